@@ -1,0 +1,42 @@
+# Two commands: `make demo` and `make test`. Both set everything up on a fresh machine first.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.lampsam-installed
+SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
+OUT ?= out/demo
+PYTEST_WORKERS ?= 2
+
+.PHONY: demo test setup syslibs lint bench clean
+
+# Open3D 0.20 needs libusb-1.0 to import; install it only when the loader cannot find it.
+syslibs:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+		echo "installing libusb-1.0-0 (needed by open3d)"; \
+		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[test]"
+	@touch $(STAMP)
+
+setup: syslibs $(STAMP)
+
+demo: setup
+	$(PY) -m lampsam demo --out $(OUT)
+
+test: setup
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --durations=15
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy .
+
+bench: setup
+	for b in scripts/bench/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf out .pytest_cache
