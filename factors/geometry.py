@@ -1,0 +1,192 @@
+"""Planar geometry shared by every model: angle wrapping, rotations, pose algebra.
+
+Conventions (docs/conventions.md, fixed there and followed here):
+
+* A planar pose ``world_T_body`` is the array ``(x, y, theta)``: metres, metres,
+  radians, heading counter-clockwise from world ``x``, wrapped to ``(-pi, pi]``.
+* Jacobians "w.r.t. the pose" are w.r.t. GTSAM's right-perturbation tangent of
+  ``Pose2``: ``pose.retract(d) = ((x, y) + R(theta) (d_x, d_y), theta + d_theta)``
+  (to first order; GTSAM's ``Expmap`` agrees with this to first order).
+  The EKF, whose state is the plain coordinates, converts with
+  :func:`coords_D_tangent`: ``z_D_coords = z_D_tangent @ tangent_D_coords(theta)``.
+
+All functions are pure and allocate small numpy arrays; none touches GTSAM so that
+the EKF can use them without building factors.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from lampsam.arrays import FloatArray
+from lampsam.errors import LampsamError
+
+__all__ = [
+    "FactorError",
+    "between",
+    "compose",
+    "coords_D_tangent",
+    "rot2",
+    "tangent_D_coords",
+    "transform_from",
+    "transform_to",
+    "wrap_angle",
+    "wrap_axis",
+]
+
+TWO_PI = 2.0 * math.pi
+
+
+class FactorError(LampsamError):
+    """A model or factor was given unusable input (wrong shape, NaN, point below camera)."""
+
+
+def wrap_angle(angle: float | FloatArray) -> float | FloatArray:
+    """Wrap an angle (or array of angles) to ``(-pi, pi]``.
+
+    Args:
+        angle: radians, scalar or any-shaped array.
+
+    Returns:
+        The same shape, each value in ``(-pi, pi]`` (``pi`` maps to ``pi``,
+        ``-pi`` maps to ``pi``).
+    """
+    wrapped = math.pi - np.mod(math.pi - np.asarray(angle, dtype=float), TWO_PI)
+    if np.ndim(wrapped) == 0:
+        return float(wrapped)
+    return wrapped
+
+
+def wrap_axis(angle: float | FloatArray) -> float | FloatArray:
+    """Wrap a line direction (defined modulo ``pi``) to ``(-pi/2, pi/2]``.
+
+    A lamp's long axis is a line, not an arrow (DESIGN sec. 1): ``phi`` and
+    ``phi + pi`` are the same axis, and residuals of axis observations are wrapped
+    with this function so that they never exceed ``pi/2`` in magnitude.
+
+    Args:
+        angle: radians, scalar or any-shaped array.
+
+    Returns:
+        The same shape, each value in ``(-pi/2, pi/2]``.
+    """
+    half = 0.5 * math.pi
+    wrapped = half - np.mod(half - np.asarray(angle, dtype=float), math.pi)
+    if np.ndim(wrapped) == 0:
+        return float(wrapped)
+    return wrapped
+
+
+def rot2(theta: float) -> FloatArray:
+    """Planar rotation matrix.
+
+    Args:
+        theta: rotation angle, radians, counter-clockwise.
+
+    Returns:
+        (2, 2) ``[[cos, -sin], [sin, cos]]``: maps body-frame vectors into the world
+        frame when ``theta`` is the body heading.
+    """
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def coords_D_tangent(theta: float) -> FloatArray:
+    """Jacobian of plain pose coordinates w.r.t. GTSAM's right tangent (conventions.md).
+
+    ``d(x, y, theta) = blockdiag(R(theta), 1) @ d_tangent``.
+
+    Args:
+        theta: pose heading, radians.
+
+    Returns:
+        (3, 3) ``blockdiag(R(theta), 1)``.
+    """
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def tangent_D_coords(theta: float) -> FloatArray:
+    """Inverse of :func:`coords_D_tangent`: ``blockdiag(R(theta)^T, 1)``.
+
+    Use it to turn a tangent Jacobian into a coordinate Jacobian (the EKF's):
+    ``z_D_coords = z_D_tangent @ tangent_D_coords(theta)``.
+
+    Args:
+        theta: pose heading, radians.
+
+    Returns:
+        (3, 3) ``blockdiag(R(theta)^T, 1)``.
+    """
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def compose(a_T_b: FloatArray, b_T_c: FloatArray) -> FloatArray:
+    """Compose two planar poses, ``a_T_c = a_T_b * b_T_c`` (like ``Pose2.compose``).
+
+    Args:
+        a_T_b: (3,) ``(x, y, theta)`` of frame b in frame a.
+        b_T_c: (3,) ``(x, y, theta)`` of frame c in frame b.
+
+    Returns:
+        (3,) ``(x, y, theta)`` of frame c in frame a, heading wrapped to ``(-pi, pi]``.
+    """
+    c, s = math.cos(a_T_b[2]), math.sin(a_T_b[2])
+    return np.array(
+        [
+            a_T_b[0] + c * b_T_c[0] - s * b_T_c[1],
+            a_T_b[1] + s * b_T_c[0] + c * b_T_c[1],
+            wrap_angle(a_T_b[2] + b_T_c[2]),
+        ]
+    )
+
+
+def between(a_T_b: FloatArray, a_T_c: FloatArray) -> FloatArray:
+    """Relative pose ``b_T_c = a_T_b^-1 * a_T_c`` (like ``Pose2.between``).
+
+    Args:
+        a_T_b: (3,) pose of frame b in frame a.
+        a_T_c: (3,) pose of frame c in frame a.
+
+    Returns:
+        (3,) pose of frame c in frame b, heading wrapped to ``(-pi, pi]``.
+    """
+    c, s = math.cos(a_T_b[2]), math.sin(a_T_b[2])
+    dx, dy = a_T_c[0] - a_T_b[0], a_T_c[1] - a_T_b[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(a_T_c[2] - a_T_b[2])])
+
+
+def transform_from(world_T_body: FloatArray, body_t_point: FloatArray) -> FloatArray:
+    """Map a body-frame planar point into the world: ``t + R(theta) p``.
+
+    Args:
+        world_T_body: (3,) pose.
+        body_t_point: (2,) point in the body frame, metres.
+
+    Returns:
+        (2,) the point in the world frame, metres.
+    """
+    c, s = math.cos(world_T_body[2]), math.sin(world_T_body[2])
+    return np.array(
+        [
+            world_T_body[0] + c * body_t_point[0] - s * body_t_point[1],
+            world_T_body[1] + s * body_t_point[0] + c * body_t_point[1],
+        ]
+    )
+
+
+def transform_to(world_T_body: FloatArray, world_t_point: FloatArray) -> FloatArray:
+    """Map a world planar point into the body frame: ``R(theta)^T (p - t)``.
+
+    Args:
+        world_T_body: (3,) pose.
+        world_t_point: (2,) point in the world frame, metres.
+
+    Returns:
+        (2,) the point in the body frame, metres.
+    """
+    c, s = math.cos(world_T_body[2]), math.sin(world_T_body[2])
+    dx, dy = world_t_point[0] - world_T_body[0], world_t_point[1] - world_T_body[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy])
