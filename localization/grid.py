@@ -328,6 +328,45 @@ def integrate_scan(grid: OccupancyGrid, sensor_pose: FloatArray, ranges: FloatAr
     integrate_points(grid, sensor_pose[:2], pts, max_range, config)
 
 
+def grid_from_scans(poses: FloatArray, ranges: FloatArray, angles: FloatArray,
+                    resolution: float, max_range: float, margin: float = 1.0,
+                    config: LogOddsConfig = LogOddsConfig()) -> OccupancyGrid:
+    """Build a grid map from planar scans taken at known poses (e.g. the Intel lab).
+
+    The grid is axis-aligned and covers every pose and every usable beam
+    endpoint (cut to ``max_range``) plus ``margin``. Each scan is fused with
+    :func:`integrate_scan`; NaN ranges are skipped (pass NaN for "no return"
+    readings that should not clear space).
+
+    Args:
+        poses: (N, 3) world poses of the scanner ``(x, y, theta)``.
+        ranges: (N, B) ranges, metres.
+        angles: (B,) beam angles in the scanner frame, rad.
+        resolution: cell size, metres.
+        max_range: usable range, metres (see :func:`integrate_scan`).
+        margin: extra border, metres.
+        config: the inverse sensor model.
+
+    Returns:
+        The grid.
+    """
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    ranges = np.asarray(ranges, dtype=np.float64).reshape(len(poses), -1)
+    if len(poses) == 0:
+        raise GridMapError("no scans to build a grid from")
+    r = np.minimum(np.where(np.isnan(ranges) | (ranges <= 0), 0.0, ranges), max_range)
+    phi = poses[:, 2:3] + np.asarray(angles)[None, :]
+    xs = np.concatenate([poses[:, 0], (poses[:, 0:1] + r * np.cos(phi)).ravel()])
+    ys = np.concatenate([poses[:, 1], (poses[:, 1:2] + r * np.sin(phi)).ravel()])
+    grid = OccupancyGrid.empty(xs.min() - margin, ys.min() - margin, xs.max() + margin,
+                               ys.max() + margin, resolution)
+    for pose, scan in zip(poses, ranges, strict=True):
+        integrate_scan(grid, pose, scan, angles, max_range, config)
+    log.info("grid from %d scans: %d x %d cells of %.3f m", len(poses), grid.width,
+             grid.height, resolution)
+    return grid
+
+
 # ---------------------------------------------------------------------- map_server I/O
 def save_map_server(grid: OccupancyGrid, path_stem: str | Path,
                     config: LogOddsConfig = LogOddsConfig()) -> Path:
