@@ -1,0 +1,303 @@
+"""Verification of a global-localization result with the ceiling feature map.
+
+Paper 2, sec. 4.2, eq. 10: after the particle filter has converged the robot
+drives on; ``R_loc = 1 - d_fail / d``, where ``d`` is the distance driven and
+``d_fail`` the part of it driven while the ceiling features (lamps, corners)
+seen by the upward camera fail to match the ceiling feature map at the
+estimated pose. ``R_loc < 0.25`` means failure: start over.
+
+Per-frame test (:func:`frame_match`): every landmark of the ceiling feature map
+is projected into normalised ceiling coordinates at the estimated pose with
+:func:`lampsam.factors.ceiling.project_point` (``docs/conventions.md``); an
+observed feature matches when a predicted landmark lies within a gate of it
+(Euclidean in ``m``, which is metres per metre of height: a gate of 0.1 at a
+2.5 m ceiling is 25 cm on the ceiling). A frame *matches* when at least
+``min_match_fraction`` of its observed features match. Frames without any
+observed feature carry no evidence and their distance counts neither in ``d``
+nor in ``d_fail`` (documented choice: the paper does not say; a stretch of
+blank ceiling should not decide).
+
+Two deciders share that per-frame test:
+
+* :class:`RlocVerifier` (the paper): decides once ``d`` reaches
+  ``verify_distance``; afterwards it keeps ``R_loc`` over a sliding window of the
+  same length, so a kidnapped robot is detected too.
+* :class:`SequentialVerifier` (ours): Wald's sequential probability ratio test
+  on the frames' match/no-match outcomes, with the evidence of a frame weighted
+  by the distance driven since the previous one (``ds / step_length``; frames a
+  few cm apart are not independent). It accepts or rejects as soon as the
+  log-likelihood ratio crosses a bound -- typically after 0.2-0.5 m, about 1-2 s
+  of driving, instead of a fixed distance. After acceptance it keeps running as
+  a CUSUM (the ratio is clipped at 0 from below), which detects a kidnapping
+  within a similar distance.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from lampsam.arrays import FloatArray
+from lampsam.errors import LocalizationError
+from lampsam.factors.ceiling import project_point
+from lampsam.frontend.measurements import CeilingFrame
+
+log = logging.getLogger(__name__)
+
+MIN_HEIGHT = 0.1  # m, conventions.md: a landmark is usable only when h > 0.1 m
+
+
+class VerificationError(LocalizationError):
+    """Malformed ceiling map or observations for verification."""
+
+
+class Verdict(enum.Enum):
+    """State of a verifier."""
+
+    PENDING = "pending"
+    ACCEPTED = "accepted"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Ceiling-feature verification (paper 2, sec. 4.2, plus the sequential test).
+
+    Attributes:
+        gate: match gate in normalised ceiling coordinates (m per m of height).
+            Default 0.10 (25 cm on a ceiling 2.5 m above the camera).
+        min_match_fraction: a frame matches when at least this fraction of its
+            observed features match. Default 0.5.
+        verify_distance: distance (m) the paper's verifier drives before
+            deciding; also its sliding-window length. Default 2.0 m.
+        r_loc_threshold: failure when ``R_loc`` is below this (eq. 10). Default
+            0.25 (the paper's, chosen by experiment).
+        p_match_correct: probability that a frame matches when the pose is right
+            (sequential test, H0). Default 0.85.
+        p_match_wrong: probability that a frame matches by chance when the pose
+            is wrong (H1). Default 0.15.
+        alpha: accepted rate of false alarms (rejecting a right pose). Default 0.01.
+        beta: accepted rate of missed failures (accepting a wrong pose). Default 0.01.
+        step_length: driving distance (m) over which frames count as one
+            independent outcome. Default 0.10 m.
+    """
+
+    gate: float = 0.10
+    min_match_fraction: float = 0.5
+    verify_distance: float = 2.0
+    r_loc_threshold: float = 0.25
+    p_match_correct: float = 0.85
+    p_match_wrong: float = 0.15
+    alpha: float = 0.01
+    beta: float = 0.01
+    step_length: float = 0.10
+
+
+def predict_landmarks(
+    pose: FloatArray, landmarks: FloatArray, body_t_camera: FloatArray, max_norm: float = 3.0
+) -> FloatArray:
+    """Normalised ceiling coordinates of the map's landmarks seen from ``pose``.
+
+    Args:
+        pose: (3,) estimated ``world_T_body`` (m, m, rad).
+        landmarks: (L, 3) ceiling feature map points, world frame (m).
+        body_t_camera: (3,) the ceiling camera's ``(x_off, y_off, z_cam)`` (m).
+        max_norm: landmarks predicted farther than this from the image centre (in
+            ``m`` units, i.e. outside any plausible field of view) are dropped.
+
+    Returns:
+        (P, 2) predicted ``m`` of the landmarks higher than 0.1 m above the camera
+        and within ``max_norm``.
+    """
+    out = []
+    for p in landmarks:
+        if p[2] - body_t_camera[2] <= MIN_HEIGHT:
+            continue
+        m, _, _ = project_point(pose, p, body_t_camera)
+        if np.hypot(m[0], m[1]) <= max_norm:
+            out.append(m)
+    return np.array(out) if out else np.zeros((0, 2))
+
+
+def observed_points(frame: CeilingFrame) -> FloatArray:
+    """All feature positions of a ceiling frame (lamps, then corners).
+
+    Args:
+        frame: the frontend's frame.
+
+    Returns:
+        (K, 2) normalised ceiling coordinates.
+    """
+    ms = [o.m for o in frame.lamps] + [o.m for o in frame.corners]
+    return np.array(ms, dtype=float).reshape(-1, 2)
+
+
+def frame_match(observed: FloatArray, predicted: FloatArray, gate: float) -> tuple[int, int]:
+    """Count the observed features with a predicted landmark within ``gate``.
+
+    Args:
+        observed: (K, 2) observed ``m``.
+        predicted: (P, 2) predicted ``m`` at the estimated pose.
+        gate: Euclidean gate in ``m`` units.
+
+    Returns:
+        (n_matched, n_observed).
+    """
+    observed = np.asarray(observed, dtype=float).reshape(-1, 2)
+    observed = observed[np.all(np.isfinite(observed), axis=1)]
+    if len(observed) == 0:
+        return 0, 0
+    if len(predicted) == 0:
+        return 0, len(observed)
+    d = np.linalg.norm(observed[:, None, :] - predicted[None, :, :], axis=2)
+    return int(np.count_nonzero(d.min(axis=1) <= gate)), len(observed)
+
+
+def frame_outcome(n_matched: int, n_observed: int, config: VerificationConfig) -> bool | None:
+    """Match (True), no match (False) or no evidence (None) for one frame."""
+    if n_observed == 0:
+        return None
+    return n_matched >= config.min_match_fraction * n_observed
+
+
+class RlocVerifier:
+    """The paper's verifier: ``R_loc = 1 - d_fail / d`` (eq. 10).
+
+    Feed it each frame's outcome with the distance driven since the previous
+    frame. The distance is attributed to the frame's outcome.
+
+    Args:
+        config: thresholds.
+    """
+
+    def __init__(self, config: VerificationConfig) -> None:
+        self.config = config
+        self.d = 0.0
+        self.d_fail = 0.0
+        self.verdict = Verdict.PENDING
+        self._window: deque[tuple[float, bool]] = deque()
+
+    @property
+    def r_loc(self) -> float:
+        """``1 - d_fail / d`` over the last ``verify_distance`` metres (1.0 before any)."""
+        return 1.0 - self.d_fail / self.d if self.d > 0 else 1.0
+
+    def update(self, ds: float, outcome: bool | None) -> Verdict:
+        """Add one frame.
+
+        Args:
+            ds: distance driven since the previous frame (m, >= 0).
+            outcome: :func:`frame_outcome` of this frame.
+
+        Returns:
+            The verdict after this frame.
+        """
+        if not (ds >= 0.0 and np.isfinite(ds)):
+            raise VerificationError(f"distance increment must be finite and >= 0, got {ds}")
+        if outcome is None or ds == 0.0:
+            return self.verdict
+        self._window.append((ds, not outcome))
+        self.d += ds
+        self.d_fail += ds if not outcome else 0.0
+        # keep a sliding window of verify_distance
+        while self._window and self.d - self._window[0][0] >= self.config.verify_distance:
+            old_ds, old_fail = self._window.popleft()
+            self.d -= old_ds
+            self.d_fail -= old_ds if old_fail else 0.0
+        if self.d >= self.config.verify_distance - 1e-9 or self.verdict is Verdict.ACCEPTED:
+            if self.r_loc < self.config.r_loc_threshold:
+                self.verdict = Verdict.FAILED
+            elif self.d >= self.config.verify_distance - 1e-9 and self.verdict is Verdict.PENDING:
+                self.verdict = Verdict.ACCEPTED
+        return self.verdict
+
+
+class SequentialVerifier:
+    """Ours: Wald's SPRT on the per-frame outcomes, then CUSUM monitoring.
+
+    The statistic ``S`` is the log-likelihood ratio of "pose wrong" (H1) over
+    "pose right" (H0), each frame contributing ``w * log(P(o | H1) / P(o | H0))``
+    with ``w = ds / step_length``. Wald's bounds: failure when
+    ``S >= log((1 - beta) / alpha)``, acceptance when ``S <= log(beta / (1 - alpha))``.
+    After acceptance ``S`` is clipped at 0 from below (CUSUM), so a later run of
+    mismatches (kidnapping) raises the alarm after about the same distance.
+
+    Args:
+        config: thresholds.
+    """
+
+    def __init__(self, config: VerificationConfig) -> None:
+        self.config = config
+        c = config
+        self.upper = float(np.log((1.0 - c.beta) / c.alpha))
+        self.lower = float(np.log(c.beta / (1.0 - c.alpha)))
+        self.llr_match = float(np.log(c.p_match_wrong / c.p_match_correct))
+        self.llr_fail = float(np.log((1.0 - c.p_match_wrong) / (1.0 - c.p_match_correct)))
+        self.S = 0.0
+        self.d = 0.0
+        self.verdict = Verdict.PENDING
+        self.d_decided: float | None = None
+
+    def update(self, ds: float, outcome: bool | None) -> Verdict:
+        """Add one frame (same arguments as :meth:`RlocVerifier.update`).
+
+        Returns:
+            The verdict after this frame; FAILED is final until :meth:`reset`.
+        """
+        if not (ds >= 0.0 and np.isfinite(ds)):
+            raise VerificationError(f"distance increment must be finite and >= 0, got {ds}")
+        if outcome is None or self.verdict is Verdict.FAILED:
+            return self.verdict
+        self.d += ds
+        w = ds / self.config.step_length
+        self.S += w * (self.llr_match if outcome else self.llr_fail)
+        if self.verdict is Verdict.ACCEPTED:
+            self.S = max(self.S, 0.0)
+        if self.S >= self.upper:
+            self.verdict = Verdict.FAILED
+            self.d_decided = self.d
+            log.info("sequential verification: failure after %.2f m", self.d)
+        elif self.S <= self.lower and self.verdict is Verdict.PENDING:
+            self.verdict = Verdict.ACCEPTED
+            self.d_decided = self.d
+            self.S = 0.0
+            log.info("sequential verification: accepted after %.2f m", self.d)
+        return self.verdict
+
+    def reset(self) -> None:
+        """Start over (after a restart of the localization)."""
+        self.S = 0.0
+        self.d = 0.0
+        self.verdict = Verdict.PENDING
+        self.d_decided = None
+
+
+class CeilingChecker:
+    """Per-frame ceiling test at an estimated pose against a ceiling feature map.
+
+    Args:
+        landmarks: (L, 3) ceiling feature map points, world frame (m).
+        body_t_camera: (3,) ceiling camera offset and height (m).
+        config: gate and fraction.
+    """
+
+    def __init__(self, landmarks: FloatArray, body_t_camera: FloatArray,
+                 config: VerificationConfig) -> None:
+        self.landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
+        if not np.all(np.isfinite(self.landmarks)):
+            raise VerificationError("ceiling feature map contains NaN or inf")
+        self.body_t_camera = np.asarray(body_t_camera, dtype=float).reshape(3)
+        self.config = config
+
+    def outcome(self, pose: FloatArray, observed: FloatArray) -> bool | None:
+        """Match / no match / no evidence for observed ``m`` (K, 2) at ``pose`` (3,)."""
+        observed = np.asarray(observed, dtype=float).reshape(-1, 2)
+        if len(observed) == 0:
+            return None
+        pred = predict_landmarks(np.asarray(pose, dtype=float), self.landmarks, self.body_t_camera)
+        n_ok, n = frame_match(observed, pred, self.config.gate)
+        return frame_outcome(n_ok, n, self.config)

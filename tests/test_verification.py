@@ -1,0 +1,135 @@
+"""Ceiling verification: R_loc (paper 2, eq. 10), the sequential test, kidnapping."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lampsam.factors.ceiling import project_point
+from lampsam.frontend.measurements import CeilingFrame, CornerObservation
+from lampsam.localization.verification import (
+    CeilingChecker,
+    RlocVerifier,
+    SequentialVerifier,
+    VerificationConfig,
+    VerificationError,
+    Verdict,
+    frame_match,
+    observed_points,
+)
+
+CAM = np.array([0.1, 0.0, 0.3])  # ceiling camera offset and height (m)
+FOV = 0.6  # |m| visible in the image (about 62 deg half-angle)
+
+
+def _ceiling(rng: np.random.Generator) -> np.ndarray:
+    """A 10 m x 10 m ceiling at 2.8 m: 30 irregular lamps and 40 corners."""
+    lamps = np.column_stack([rng.uniform(0, 10, 30), rng.uniform(0, 10, 30), np.full(30, 2.8)])
+    corners = np.column_stack([rng.uniform(0, 10, 40), rng.uniform(0, 10, 40), np.full(40, 2.8)])
+    return np.vstack([lamps, corners])
+
+
+def _observe(rng: np.random.Generator, landmarks: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    ms = [project_point(pose, p, CAM)[0] for p in landmarks]
+    m = np.array(ms)
+    m = m[np.hypot(m[:, 0], m[:, 1]) < FOV]
+    return m + rng.normal(0, 0.01, m.shape)
+
+
+def _drive(rng: np.random.Generator, n: int, start: np.ndarray, speed: float = 0.3,
+           dt: float = 0.1) -> np.ndarray:
+    """Poses of a gentle arc at ``speed`` m/s sampled at 1/dt Hz."""
+    poses = [start]
+    for _ in range(n - 1):
+        x, y, th = poses[-1]
+        poses.append(np.array([x + speed * dt * np.cos(th), y + speed * dt * np.sin(th), th + 0.01]))
+    return np.array(poses)
+
+
+def _run(verifier: RlocVerifier | SequentialVerifier, checker: CeilingChecker, truth: np.ndarray,
+         estimate: np.ndarray, landmarks: np.ndarray, rng: np.random.Generator) -> list[Verdict]:
+    verdicts = []
+    for k in range(len(truth)):
+        ds = 0.0 if k == 0 else float(np.hypot(*(truth[k, :2] - truth[k - 1, :2])))
+        obs = _observe(rng, landmarks, truth[k])
+        verdicts.append(verifier.update(ds, checker.outcome(estimate[k], obs)))
+    return verdicts
+
+
+@pytest.fixture
+def world(rng: np.random.Generator) -> tuple[np.ndarray, CeilingChecker]:
+    lm = _ceiling(rng)
+    return lm, CeilingChecker(lm, CAM, VerificationConfig())
+
+
+def test_correct_pose_gives_r_loc_near_one(rng: np.random.Generator, world) -> None:
+    lm, checker = world
+    truth = _drive(rng, 80, np.array([2.0, 3.0, 0.2]))  # 2.4 m
+    est = truth + np.array([0.05, -0.05, np.deg2rad(3.0)])  # within the paper's error
+    v = RlocVerifier(VerificationConfig())
+    verdicts = _run(v, checker, truth, est, lm, rng)
+    assert verdicts[-1] is Verdict.ACCEPTED
+    assert v.r_loc > 0.9
+
+
+def test_wrong_pose_gives_r_loc_below_threshold(rng: np.random.Generator, world) -> None:
+    lm, checker = world
+    truth = _drive(rng, 80, np.array([2.0, 3.0, 0.2]))
+    est = truth + np.array([0.8, -0.6, 0.4])
+    v = RlocVerifier(VerificationConfig())
+    verdicts = _run(v, checker, truth, est, lm, rng)
+    assert verdicts[-1] is Verdict.FAILED
+    assert v.r_loc < 0.25
+    assert Verdict.ACCEPTED not in verdicts
+
+
+def test_sequential_decides_fast_both_ways(rng: np.random.Generator, world) -> None:
+    lm, checker = world
+    truth = _drive(rng, 80, np.array([2.0, 3.0, 0.2]))
+    good = SequentialVerifier(VerificationConfig())
+    _run(good, checker, truth, truth + np.array([0.05, 0.05, 0.03]), lm, rng)
+    assert good.verdict is Verdict.ACCEPTED
+    assert good.d_decided is not None and good.d_decided < 0.6  # < 2 s at 0.3 m/s
+    bad = SequentialVerifier(VerificationConfig())
+    _run(bad, checker, truth, truth + np.array([0.8, -0.6, 0.4]), lm, rng)
+    assert bad.verdict is Verdict.FAILED
+    assert bad.d_decided is not None and bad.d_decided < 0.6
+
+
+@pytest.mark.parametrize("kind", ["rloc", "sequential"])
+def test_kidnapped_robot_is_detected(rng: np.random.Generator, world, kind: str) -> None:
+    lm, checker = world
+    before = _drive(rng, 80, np.array([2.0, 3.0, 0.2]))
+    # kidnapped: the robot is carried to another place; the estimate keeps
+    # dead-reckoning from where it was (same odometry increments)
+    after = _drive(rng, 80, np.array([7.0, 6.0, -2.0]))
+    est_after = _drive(rng, 80, before[-1])
+    truth = np.vstack([before, after])
+    est = np.vstack([before, est_after])
+    cfg = VerificationConfig()
+    v = RlocVerifier(cfg) if kind == "rloc" else SequentialVerifier(cfg)
+    verdicts = []
+    for k in range(len(truth)):
+        ds = 0.0 if k in (0, 80) else 0.03
+        obs = _observe(rng, lm, truth[k])
+        verdicts.append(v.update(ds, checker.outcome(est[k], obs)))
+    assert verdicts[79] is Verdict.ACCEPTED  # converged and accepted before the jump
+    assert verdicts[-1] is Verdict.FAILED
+    first_fail = verdicts.index(Verdict.FAILED)
+    assert first_fail >= 80
+    d_after = 0.03 * (first_fail - 80)
+    # paper verifier: the 2 m window must be < 25 % good -> about 1.5 m;
+    # sequential: a few tenths of a metre
+    assert d_after < (1.8 if kind == "rloc" else 0.6)
+
+
+def test_frame_match_and_observed_points() -> None:
+    pred = np.array([[0.0, 0.0], [0.3, 0.1]])
+    assert frame_match(np.array([[0.02, 0.0], [0.5, 0.5]]), pred, 0.1) == (1, 2)
+    assert frame_match(np.zeros((0, 2)), pred, 0.1) == (0, 0)
+    corner = CornerObservation(m=np.array([0.1, 0.2]), cov_m=np.eye(2) * 1e-4,
+                               pixel=np.zeros(2), patch=np.zeros((5, 5), np.float32), score=1.0,
+                               landmark_id=None)
+    np.testing.assert_allclose(observed_points(CeilingFrame(0.0, 0, (), (corner,))), [[0.1, 0.2]])
+    with pytest.raises(VerificationError):
+        RlocVerifier(VerificationConfig()).update(-1.0, True)
