@@ -1,0 +1,443 @@
+"""Stereo two-point runs: rig parameters, the simulator of paper 3 and the run format.
+
+The simulator renders the two target points from geometry only (pinhole cameras
+placed at the rig's two optical centres); it imports no estimator code, so the
+truth it writes is independent of ``lampsam.factors.stereo``.
+
+Run directory format (all times on one clock, seconds):
+
+``stereo_run.yaml``
+    ``scenario``, ``seed``, ``rig`` (:class:`StereoRig` fields),
+    ``target_t_points`` ([[x1, y1], [x2, y2]], m, target frame),
+    ``noise`` (``sigma_detect_px``, ``quantise``, ``sigma_v``, ``sigma_omega``,
+    ``sigma_lateral``), ``files``.
+``odometry.csv``
+    header ``t,v,omega``: measured forward speed (m/s) and turn rate (rad/s)
+    over the step that ends at ``t`` (row 0: zeros, no motion before it).
+``measurements.csv``
+    header ``t,seen,xl1,xr1,xl2,xr2``: the four horizontal image coordinates (px,
+    from the principal point, positive to the left: docs/stereo.md); ``seen`` is
+    1 when both points are in front of both cameras and inside both images,
+    else 0 and the coordinates are 0.
+``groundtruth.tum``
+    TUM ``t x y z qx qy qz qw``: the rig's true pose in the target frame, z = 0.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from lampsam.arrays import BoolArray, FloatArray
+from lampsam.errors import DatasetError
+
+log = logging.getLogger(__name__)
+
+SCENARIOS = ("straight", "turn")
+RUN_YAML = "stereo_run.yaml"
+ODOMETRY_CSV = "odometry.csv"
+MEASUREMENTS_CSV = "measurements.csv"
+GROUNDTRUTH_TUM = "groundtruth.tum"
+
+
+@dataclass(frozen=True)
+class StereoRig:
+    """A parallel stereo pair (paper 3, Fig. 1).
+
+    Defaults are a Point Grey Bumblebee2 BB2-03S2 with the 3.8 mm lens, from its
+    datasheet as commonly quoted: 12 cm baseline, 7.4 um square pixels, 648 px
+    wide (f/p = 513.5 px, horizontal field of view about 64 deg).
+
+    Attributes:
+        baseline: ``B``, distance between the optical centres, m.
+        focal_length: ``f``, lens to image plane, m.
+        pixel_pitch: ``p``, pixel width, m (square pixels).
+        width_px: image width, px; the principal point is the image centre.
+    """
+
+    baseline: float = 0.12
+    focal_length: float = 3.8e-3
+    pixel_pitch: float = 7.4e-6
+    width_px: int = 648
+
+    @property
+    def f_px(self) -> float:
+        """``f / p``, px."""
+        return self.focal_length / self.pixel_pitch
+
+    @property
+    def cu_px(self) -> float:
+        """Principal point column, px (OpenCV pixel centres: ``(width - 1) / 2``)."""
+        return 0.5 * (self.width_px - 1)
+
+    def half_width_px(self) -> float:
+        """Largest ``|x|`` (px from the principal point) still inside the image."""
+        return self.cu_px + 0.5
+
+
+@dataclass(frozen=True)
+class StereoNoise:
+    """Noise of the simulated sensors.
+
+    Attributes:
+        sigma_detect_px: Gaussian detection noise per coordinate, px (added before
+            rounding).
+        quantise: round the image column to whole pixels (uniform error,
+            variance 1/12 px^2), as the paper's noise model.
+        sigma_v: odometry forward-speed noise, m/s (white per step).
+        sigma_omega: odometry turn-rate noise, rad/s (white per step).
+        sigma_lateral: lateral-slip noise the estimators should assume, m/s
+            (the simulated robot never slips; a floor that keeps the motion
+            covariance full rank).
+    """
+
+    sigma_detect_px: float = 0.3
+    quantise: bool = True
+    sigma_v: float = 0.05
+    sigma_omega: float = 0.05
+    sigma_lateral: float = 0.01
+
+    @property
+    def var_measurement_px2(self) -> float:
+        """Variance of one image coordinate, px^2: ``sigma_detect^2 (+ 1/12)``."""
+        return self.sigma_detect_px**2 + (1.0 / 12.0 if self.quantise else 0.0)
+
+
+@dataclass(frozen=True)
+class StereoScenario:
+    """Geometry and timing of the two paper scenarios (target frame, m, rad, s).
+
+    Attributes:
+        dt: frame period, s.
+        target_t_points: the two target points, ((x1, y1), (x2, y2)), m: a 0.6 m
+            wide board facing ``-x``.
+        straight_start: rig start pose for ``straight``: 8 m before the target,
+            0.8 m to its side, heading at it.
+        straight_speed: m/s; ``straight_end_x``: stop when x passes this, m (past
+            the target, which leaves the field of view about 1.7 m before).
+        turn_pose: rig position and mean heading for ``turn``.
+        turn_amplitude: heading swing, rad; ``turn_period``: s; ``turn_duration``: s.
+    """
+
+    dt: float = 0.1
+    target_t_points: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 0.3), (0.0, -0.3))
+    straight_start: tuple[float, float, float] = (-8.0, -0.8, 0.0)
+    straight_speed: float = 0.5
+    straight_end_x: float = 0.5
+    turn_pose: tuple[float, float, float] = (-4.0, 0.2, 0.0)
+    turn_amplitude: float = 0.4
+    turn_period: float = 8.0
+    turn_duration: float = 16.0
+
+
+@dataclass(frozen=True)
+class StereoRun:
+    """One stereo two-point run in memory.
+
+    Attributes:
+        path: run directory (or None for an in-memory run).
+        rig: the stereo rig.
+        noise: the noise the run was made with (the estimators use it as known).
+        target_t_points: (2, 2) target points, m, target frame.
+        t: (N,) frame times, s, strictly increasing.
+        v, omega: (N,) measured odometry over the step ending at ``t[k]``, m/s, rad/s.
+        z: (N, 4) ``[xl1, xr1, xl2, xr2]`` px (0 where not seen).
+        seen: (N,) bool, both points imaged.
+        truth: (N, 3) true ``target_T_camera`` ``(x, y, theta)`` or None.
+        scenario: name; seed: the simulator's seed (or -1).
+    """
+
+    path: Path | None
+    rig: StereoRig
+    noise: StereoNoise
+    target_t_points: FloatArray
+    t: FloatArray
+    v: FloatArray
+    omega: FloatArray
+    z: FloatArray
+    seen: BoolArray
+    truth: FloatArray | None
+    scenario: str = ""
+    seed: int = -1
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+# --------------------------------------------------------------------------- simulation
+def true_trajectory(scenario: str, cfg: StereoScenario) -> tuple[FloatArray, FloatArray]:
+    """The true rig poses of a scenario.
+
+    Args:
+        scenario: ``"straight"`` (drive toward and past the target) or ``"turn"``
+            (turn in place, heading swinging sinusoidally).
+        cfg: the scenario geometry.
+
+    Returns:
+        ``t`` (N,) s and ``poses`` (N, 3) ``(x, y, theta)`` in the target frame.
+    """
+    if scenario == "straight":
+        x0, y0, th0 = cfg.straight_start
+        n = int(math.floor((cfg.straight_end_x - x0) / (cfg.straight_speed * cfg.dt))) + 1
+        t = np.arange(n) * cfg.dt
+        s = cfg.straight_speed * t
+        poses = np.column_stack(
+            [x0 + s * math.cos(th0), y0 + s * math.sin(th0), np.full(n, th0)]
+        )
+    elif scenario == "turn":
+        x0, y0, th0 = cfg.turn_pose
+        n = int(round(cfg.turn_duration / cfg.dt)) + 1
+        t = np.arange(n) * cfg.dt
+        theta = th0 + cfg.turn_amplitude * np.sin(2.0 * np.pi * t / cfg.turn_period)
+        poses = np.column_stack([np.full(n, x0), np.full(n, y0), theta])
+    else:
+        raise DatasetError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
+    return t, poses
+
+
+def render_columns(
+    pose: FloatArray, target_t_points: FloatArray, rig: StereoRig
+) -> tuple[FloatArray, BoolArray]:
+    """Exact image columns of the two points in both cameras (pinhole, OpenCV columns).
+
+    Each camera is a pinhole at ``rig centre +- (B/2) * left axis`` looking along
+    the rig's heading; image right is the rig's ``-y`` (right-hand side).
+
+    Args:
+        pose: (3,) rig pose in the target frame.
+        target_t_points: (2, 2) target points, m.
+        rig: the stereo rig.
+
+    Returns:
+        ``u`` (2, 2) columns, px, ``u[j] = (u_left, u_right)`` of point j, and
+        ``ok`` (2,) bool: both in front of and inside both images.
+    """
+    x, y, th = pose
+    forward = np.array([math.cos(th), math.sin(th)])
+    left = np.array([-math.sin(th), math.cos(th)])
+    centres = [np.array([x, y]) + 0.5 * rig.baseline * left,
+               np.array([x, y]) - 0.5 * rig.baseline * left]
+    u = np.zeros((2, 2))
+    ok = np.ones(2, dtype=bool)
+    for j, point in enumerate(np.asarray(target_t_points, dtype=float)):
+        for i, centre in enumerate(centres):
+            rel = point - centre
+            depth = float(rel @ forward)
+            right = -float(rel @ left)
+            if depth <= 1e-6:
+                ok[j] = False
+                continue
+            u[j, i] = rig.cu_px + rig.f_px * right / depth
+            if not (-0.5 <= u[j, i] <= rig.width_px - 0.5):
+                ok[j] = False
+    return u, ok
+
+
+def simulate_stereo(
+    scenario: str,
+    rng: np.random.Generator,
+    rig: StereoRig | None = None,
+    noise: StereoNoise | None = None,
+    cfg: StereoScenario | None = None,
+    seed: int = -1,
+) -> StereoRun:
+    """Simulate one run of a paper scenario (in memory).
+
+    Measurement noise: Gaussian detection noise, then rounding of the column to
+    a whole pixel (quantisation, variance 1/12 px^2). Odometry: true speed and
+    turn rate over each step plus white Gaussian noise.
+
+    Args:
+        scenario: ``"straight"`` or ``"turn"``.
+        rng: the random generator (seeded by the caller).
+        rig, noise, cfg: parameters (defaults when None).
+        seed: recorded in the run for reference.
+
+    Returns:
+        The run, with ``truth``.
+    """
+    rig = rig or StereoRig()
+    noise = noise or StereoNoise()
+    cfg = cfg or StereoScenario()
+    t, poses = true_trajectory(scenario, cfg)
+    points = np.asarray(cfg.target_t_points, dtype=float)
+    n = len(t)
+    v = np.zeros(n)
+    omega = np.zeros(n)
+    for k in range(1, n):
+        dt = t[k] - t[k - 1]
+        d = poses[k, :2] - poses[k - 1, :2]
+        th = poses[k - 1, 2]
+        v_true = (d[0] * math.cos(th) + d[1] * math.sin(th)) / dt
+        dth = math.atan2(math.sin(poses[k, 2] - th), math.cos(poses[k, 2] - th))
+        v[k] = v_true + rng.normal(0.0, noise.sigma_v)
+        omega[k] = dth / dt + rng.normal(0.0, noise.sigma_omega)
+    z = np.zeros((n, 4))
+    seen = np.zeros(n, dtype=bool)
+    for k in range(n):
+        u, ok = render_columns(poses[k], points, rig)
+        u_noisy = u + rng.normal(0.0, noise.sigma_detect_px, size=u.shape)
+        if noise.quantise:
+            u_noisy = np.round(u_noisy)
+        if ok.all():
+            seen[k] = True
+            z[k] = (rig.cu_px - u_noisy).reshape(4)  # paper coordinate: positive left
+    log.info("simulated %s: %d frames, %d with both points seen", scenario, n, int(seen.sum()))
+    return StereoRun(None, rig, noise, points, t, v, omega, z, seen, poses, scenario, seed)
+
+
+# --------------------------------------------------------------------------- run format
+def write_stereo_run(run: StereoRun, out: Path) -> Path:
+    """Write a run directory (format in the module docstring).
+
+    Args:
+        run: the run.
+        out: directory, created if needed.
+
+    Returns:
+        ``out``.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "scenario": run.scenario,
+        "seed": int(run.seed),
+        "rig": asdict(run.rig),
+        "noise": asdict(run.noise),
+        "target_t_points": np.asarray(run.target_t_points, dtype=float).tolist(),
+        "files": {
+            "odometry": ODOMETRY_CSV,
+            "measurements": MEASUREMENTS_CSV,
+            "groundtruth": GROUNDTRUTH_TUM if run.truth is not None else None,
+        },
+    }
+    with open(out / RUN_YAML, "w") as fh:
+        yaml.safe_dump(meta, fh, sort_keys=False)
+    with open(out / ODOMETRY_CSV, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "v", "omega"])
+        for k in range(len(run)):
+            w.writerow([f"{run.t[k]:.6f}", f"{run.v[k]:.9g}", f"{run.omega[k]:.9g}"])
+    with open(out / MEASUREMENTS_CSV, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "seen", "xl1", "xr1", "xl2", "xr2"])
+        for k in range(len(run)):
+            w.writerow([f"{run.t[k]:.6f}", int(run.seen[k])] + [f"{c:.6g}" for c in run.z[k]])
+    if run.truth is not None:
+        with open(out / GROUNDTRUTH_TUM, "w") as fh:
+            fh.write("# t x y z qx qy qz qw (rig pose in the target frame)\n")
+            for k in range(len(run)):
+                x, y, th = run.truth[k]
+                fh.write(
+                    f"{run.t[k]:.6f} {x:.9f} {y:.9f} 0 0 0 "
+                    f"{math.sin(th / 2):.12f} {math.cos(th / 2):.12f}\n"
+                )
+    return out
+
+
+def simulate_stereo_run(
+    scenario: str, out: Path, seed: int = 0, rig: StereoRig | None = None,
+    noise: StereoNoise | None = None, cfg: StereoScenario | None = None,
+) -> Path:
+    """Simulate a scenario with ``default_rng(seed)`` and write it to ``out``."""
+    if scenario not in SCENARIOS:
+        raise DatasetError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
+    run = simulate_stereo(scenario, np.random.default_rng(seed), rig, noise, cfg, seed)
+    return write_stereo_run(run, Path(out))
+
+
+def _read_csv(path: Path, header: list[str]) -> FloatArray:
+    """Numeric CSV with an exact header -> (N, len(header)); errors name file and line."""
+    if not path.is_file():
+        raise DatasetError("file not found", path)
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or [h.strip() for h in rows[0]] != header:
+        raise DatasetError(f"expected header {','.join(header)}", path, 1)
+    data = []
+    for i, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        if len(row) != len(header):
+            raise DatasetError(f"expected {len(header)} fields, got {len(row)}", path, i)
+        try:
+            vals = [float(c) for c in row]
+        except ValueError as exc:
+            raise DatasetError(f"not a number: {exc}", path, i) from exc
+        if not all(math.isfinite(c) for c in vals):
+            raise DatasetError("non-finite value", path, i)
+        data.append(vals)
+    if not data:
+        raise DatasetError("no data rows", path)
+    out = np.array(data)
+    if np.any(np.diff(out[:, 0]) <= 0):
+        line = int(np.argmax(np.diff(out[:, 0]) <= 0)) + 3
+        raise DatasetError("time does not increase", path, line)
+    return out
+
+
+def _read_tum_planar(path: Path) -> FloatArray:
+    """TUM file -> (N, 4) ``t, x, y, theta`` (yaw from the quaternion)."""
+    rows = []
+    with open(path) as fh:
+        for i, line in enumerate(fh, start=1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = s.split()
+            if len(parts) != 8:
+                raise DatasetError(f"expected 8 TUM fields, got {len(parts)}", path, i)
+            try:
+                t, x, y, _z, qx, qy, qz, qw = (float(p) for p in parts)
+            except ValueError as exc:
+                raise DatasetError(f"not a number: {exc}", path, i) from exc
+            yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+            rows.append([t, x, y, yaw])
+    if not rows:
+        raise DatasetError("no poses", path)
+    return np.array(rows)
+
+
+def read_stereo_run(path: Path) -> StereoRun:
+    """Read a run directory written by :func:`write_stereo_run`.
+
+    Raises:
+        DatasetError: missing or malformed file (naming it and the line), frame
+            times that differ between files, unknown keys.
+    """
+    path = Path(path)
+    meta_path = path / RUN_YAML
+    if not meta_path.is_file():
+        raise DatasetError(f"not a stereo run directory (no {RUN_YAML})", meta_path)
+    try:
+        with open(meta_path) as fh:
+            meta = yaml.safe_load(fh)
+        rig = StereoRig(**meta["rig"])
+        noise = StereoNoise(**meta["noise"])
+        points = np.asarray(meta["target_t_points"], dtype=float)
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"bad run description: {exc}", meta_path) from exc
+    if points.shape != (2, 2) or not np.all(np.isfinite(points)):
+        raise DatasetError("target_t_points must be 2 finite (x, y) pairs", meta_path)
+    odo = _read_csv(path / ODOMETRY_CSV, ["t", "v", "omega"])
+    meas = _read_csv(path / MEASUREMENTS_CSV, ["t", "seen", "xl1", "xr1", "xl2", "xr2"])
+    if len(odo) != len(meas) or not np.allclose(odo[:, 0], meas[:, 0], atol=1e-6):
+        raise DatasetError("odometry and measurement times differ", path / MEASUREMENTS_CSV)
+    truth = None
+    gt_path = path / GROUNDTRUTH_TUM
+    if gt_path.is_file():
+        gt = _read_tum_planar(gt_path)
+        if len(gt) != len(odo) or not np.allclose(gt[:, 0], odo[:, 0], atol=1e-6):
+            raise DatasetError("ground-truth times differ from the frames", gt_path)
+        truth = gt[:, 1:]
+    return StereoRun(
+        path, rig, noise, points, odo[:, 0], odo[:, 1], odo[:, 2], meas[:, 2:6],
+        meas[:, 1] > 0.5, truth, str(meta.get("scenario", "")), int(meta.get("seed", -1)),
+    )
