@@ -1,0 +1,602 @@
+"""Thin GTSAM adapters over the pure models (DESIGN sec. 4 and 6).
+
+Variables (keys from ``gtsam.symbol_shorthand``):
+
+* ``X(k)`` -- robot pose, ``gtsam.Pose2``.
+* ``L(j)`` -- lamp position, ``Point3`` (numpy (3,)) in the world, ``z`` above the floor.
+* ``A(j)`` -- lamp long axis, ``gtsam.Rot2`` (angle ``phi`` in the world, used mod pi).
+  A separate variable so that the same lamp can be oriented or not: a round lamp, or
+  a frame in which the lamp's ratio falls below the threshold, simply gets no axis
+  factor (paper III.4), and ``A(j)`` exists only once an axis has been seen.
+* ``C(j)`` -- corner, either inverse depth ``(alpha_x, alpha_y, rho)`` (numpy (3,),
+  anchored at a pose key) or a ``Point3``; one parametrisation per run.
+* range-bearing landmarks: ``L(j)`` as ``Point2``.
+
+Factors, and which implementation each uses (the faster where a built-in exists):
+
+==========================  ====================================================
+odometry                    ``BetweenFactorPose2`` (built-in), covariance from
+                            :func:`lampsam.factors.motion.accumulate_odometry`
+lamp / corner position      ``PlanarProjectionFactor2`` (built-in C++), in
+                            normalised coordinates: identity calibration and a
+                            virtual camera with body axes; equals
+                            :func:`lampsam.factors.ceiling.project_point`
+lamp axis                   ``CustomFactor`` on ``(X, A)``; per observation or one
+                            per frame (:func:`lamp_axis_frame_factor`)
+corner, inverse depth       ``CustomFactor`` on ``(X(k), X(anchor), C)``; per
+                            observation or one per frame; the first sight and the
+                            height prior are one built-in ``PriorFactorVector``
+corner, Point3              ``PlanarProjectionFactor2`` + :func:`height_prior_factor`
+                            (``PriorFactorPoint3`` with loose x/y sigmas)
+range-bearing               ``BearingRangeFactor2D`` (built-in); a sensor offset
+                            gives a ``CustomFactor``
+==========================  ====================================================
+
+Every adapter takes ``robust: float | None``: ``None`` = Gaussian, a float ``k`` =
+Huber with threshold ``k`` (in sigmas) on the whitened residual of each observation.
+For the per-frame factors GTSAM's robust model would weight the whole frame by one
+weight, so they apply Huber per observation inside the callback, as an exact
+square-root loss: ``r' = sign(e) sqrt(2 rho(e))`` (so ``0.5 r'^2`` is the Huber cost and
+LM's error bookkeeping stays exact).
+
+Cost of ``CustomFactor`` (measured by ``scripts/bench/bench_factors.py``; figures in
+the module-level constant :data:`BENCH_NOTES` and the report) decides the defaults:
+use the built-in for positions, and the **per-frame** custom factors for axes and
+inverse-depth corners when a GTSAM optimizer (LM, iSAM2) drives them, because each
+Python callback made from inside an optimizer copies the whole ``Values``.
+
+Caveat: ``PlanarProjectionFactor2`` throws ``CheiralityException`` (a ``RuntimeError``
+in Python) if a point falls below the camera during optimisation; inverse-depth
+corners cannot.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
+
+import gtsam
+import numpy as np
+from lampsam.arrays import FloatArray
+from lampsam.factors.ceiling import HeightPrior, lamp_axis_residual, project_inverse_depth
+from lampsam.factors.geometry import FactorError, wrap_angle
+from lampsam.factors.range_bearing import range_bearing
+
+__all__ = [
+    "BENCH_NOTES",
+    "AxisObservation",
+    "InverseDepthObservation",
+    "bearing_range_factor",
+    "height_prior_factor",
+    "huber_sqrt",
+    "inverse_depth_factor",
+    "inverse_depth_first_sight_prior",
+    "inverse_depth_frame_factor",
+    "lamp_axis_factor",
+    "lamp_axis_frame_factor",
+    "noise_model",
+    "odometry_factor",
+    "projection_factor",
+    "virtual_camera",
+]
+
+#: Filled from scripts/bench/bench_factors.py (see the report); informative only.
+BENCH_NOTES = "see scripts/bench/bench_factors.py"
+
+#: x/y sigma (metres) of :func:`height_prior_factor`: loose enough to carry no
+#: information on the horizontal position (information 1e-6 per m^2).
+LOOSE_SIGMA = 1.0e3
+
+
+def _pose(values: gtsam.Values, key: int) -> FloatArray:
+    p = values.atPose2(key)
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def _check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
+    arr = np.asarray(cov, dtype=float)
+    if arr.shape != (dim, dim) or not np.all(np.isfinite(arr)):
+        raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
+    if np.linalg.eigvalsh(0.5 * (arr + arr.T))[0] <= 0.0:
+        raise FactorError(f"{what}: covariance is not positive definite")
+    return arr
+
+
+def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseModel.Base:
+    """Gaussian noise model from a covariance, optionally wrapped in Huber.
+
+    Args:
+        cov: (d, d) covariance of the measurement, symmetric positive definite.
+        robust: None for Gaussian; ``k > 0`` for a Huber kernel with threshold ``k``
+            on the whitened residual norm (``k = 1.345`` is the usual 95 % efficiency).
+
+    Returns:
+        A ``gtsam.noiseModel`` (``Gaussian`` or ``Robust``).
+    """
+    base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
+    if robust is None:
+        return base
+    if not robust > 0.0:
+        raise FactorError(f"Huber threshold must be > 0, got {robust}")
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust), base)
+
+
+def huber_sqrt(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:
+    """Square-root Huber residual of a whitened residual block, and its derivative.
+
+    For ``n = |e|``: ``rho(n) = n^2/2`` if ``n <= k`` else ``k n - k^2/2``; returns
+    ``r' = e * s`` with ``s = sqrt(2 rho(n)) / n`` so that ``|r'|^2 / 2 = rho(n)``, and
+    ``dr'/de`` (d, d).
+
+    Args:
+        e: (d,) whitened residual.
+        k: Huber threshold (> 0).
+
+    Returns:
+        r: (d,) scaled residual.
+        r_D_e: (d, d) Jacobian.
+    """
+    n = float(np.linalg.norm(e))
+    if n <= k:
+        return e, np.eye(e.shape[0])
+    g = math.sqrt(2.0 * k * n - k * k)  # = |r'|
+    s = g / n
+    u = e / n
+    # d(s e)/de = s I + e (ds/dn) u^T,  ds/dn = (k/g - s)/n
+    ds_dn = (k / g - s) / n
+    return s * e, s * np.eye(e.shape[0]) + ds_dn * np.outer(e, u)
+
+
+# --- odometry -------------------------------------------------------------------------
+
+
+def odometry_factor(
+    key_from: int,
+    key_to: int,
+    delta: FloatArray,
+    cov: FloatArray,
+    robust: float | None = None,
+) -> gtsam.BetweenFactorPose2:
+    """Odometry between two poses (paper eqs. 13-15 propagated, built-in factor).
+
+    Args:
+        key_from: key of the start pose ``X(i)``.
+        key_to: key of the end pose ``X(j)``.
+        delta: (3,) ``start_T_end`` from :func:`lampsam.factors.motion.accumulate_odometry`.
+        cov: (3, 3) its tangent covariance (same function; floored, never singular).
+        robust: optional Huber threshold.
+
+    Returns:
+        ``gtsam.BetweenFactorPose2``.
+    """
+    cov = _check_cov(cov, 3, "odometry")
+    return gtsam.BetweenFactorPose2(
+        key_from, key_to, gtsam.Pose2(*np.asarray(delta, dtype=float)), noise_model(cov, robust)
+    )
+
+
+# --- positions: built-in projection ---------------------------------------------------
+
+
+@lru_cache(maxsize=64)
+def _virtual_camera(x_off: float, y_off: float, z_cam: float) -> tuple[gtsam.Pose3, gtsam.Cal3DS2]:
+    return (
+        gtsam.Pose3(gtsam.Rot3(), np.array([x_off, y_off, z_cam])),
+        gtsam.Cal3DS2(1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    )
+
+
+def virtual_camera(body_t_camera: FloatArray) -> tuple[gtsam.Pose3, gtsam.Cal3DS2]:
+    """Camera pose and calibration under which GTSAM's pixels ARE normalised ``m``.
+
+    The virtual camera sits at ``body_t_camera`` with its axes equal to the body axes
+    (x forward, y left, z up: right-handed, optical axis up) and an identity
+    calibration without distortion, so ``PinholeCamera.project`` returns
+    ``(b_x / b_z, b_y / b_z) = m`` (conventions.md). The real mounting rotation and
+    lens distortion are removed by the frontend before the estimator sees ``m``.
+
+    Args:
+        body_t_camera: (3,) ``(x_off, y_off, z_cam)``, metres.
+
+    Returns:
+        ``(body_T_camera: gtsam.Pose3, calibration: gtsam.Cal3DS2)``.
+    """
+    return _virtual_camera(
+        float(body_t_camera[0]), float(body_t_camera[1]), float(body_t_camera[2])
+    )
+
+
+def projection_factor(
+    pose_key: int,
+    point_key: int,
+    m: FloatArray,
+    cov_m: FloatArray,
+    body_t_camera: FloatArray,
+    robust: float | None = None,
+) -> gtsam.PlanarProjectionFactor2:
+    """Lamp or corner position seen by the upward camera (built-in C++ factor).
+
+    Same model as :func:`lampsam.factors.ceiling.project_point` (a test checks values
+    and Jacobians). Residual = predicted - measured, in normalised units.
+
+    Args:
+        pose_key: ``X(k)``.
+        point_key: ``L(j)`` or ``C(j)`` holding a world ``Point3``.
+        m: (2,) measured normalised ceiling coordinates.
+        cov_m: (2, 2) covariance of ``m``.
+        body_t_camera: (3,) camera offset, metres.
+        robust: optional Huber threshold.
+
+    Returns:
+        ``gtsam.PlanarProjectionFactor2``.
+    """
+    cov_m = _check_cov(cov_m, 2, "projection")
+    b_T_c, cal = virtual_camera(body_t_camera)
+    return gtsam.PlanarProjectionFactor2(
+        pose_key, point_key, np.asarray(m, dtype=float), b_T_c, cal, noise_model(cov_m, robust)
+    )
+
+
+def height_prior_factor(
+    point_key: int,
+    xy_guess: FloatArray,
+    body_t_camera: FloatArray,
+    prior: HeightPrior | None = None,
+) -> gtsam.PriorFactorPoint3:
+    """The 0-5 m height prior on a Cartesian landmark (built-in ``PriorFactorPoint3``).
+
+    Gaussian on ``z`` with mean ``z_cam + prior.height_mean`` and sigma
+    ``prior.height_sigma``; ``x, y`` get sigma :data:`LOOSE_SIGMA` (no information).
+
+    Args:
+        point_key: the landmark's ``Point3`` key.
+        xy_guess: (2,) any horizontal position (its weight is negligible).
+        body_t_camera: (3,) camera offset; ``z_cam`` turns height above the camera
+            into world ``z``.
+        prior: height range, default :class:`HeightPrior` ().
+
+    Returns:
+        ``gtsam.PriorFactorPoint3``.
+    """
+    prior = prior or HeightPrior()
+    mean = np.array([xy_guess[0], xy_guess[1], body_t_camera[2] + prior.height_mean])
+    sigmas = np.array([LOOSE_SIGMA, LOOSE_SIGMA, prior.height_sigma])
+    return gtsam.PriorFactorPoint3(point_key, mean, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
+
+
+# --- lamp axis ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AxisObservation:
+    """One lamp-axis observation for :func:`lamp_axis_frame_factor`.
+
+    Attributes:
+        axis_key: ``A(j)`` (a ``Rot2``).
+        alpha: measured axis in the ``(u, v)`` plane, radians (mod pi).
+        sigma: its standard deviation, radians.
+    """
+
+    axis_key: int
+    alpha: float
+    sigma: float
+
+
+def lamp_axis_factor(
+    pose_key: int,
+    axis_key: int,
+    alpha: float,
+    sigma: float,
+    robust: float | None = None,
+) -> gtsam.CustomFactor:
+    """Lamp axis observation (``phi_i = phi - theta`` mod pi), one ``CustomFactor``.
+
+    Args:
+        pose_key: ``X(k)``.
+        axis_key: ``A(j)``, a ``gtsam.Rot2``.
+        alpha: measured axis, radians, any representative mod pi.
+        sigma: its standard deviation, radians (> 0).
+        robust: optional Huber threshold.
+
+    Returns:
+        ``gtsam.CustomFactor`` with a 1-D residual wrapped to ``(-pi/2, pi/2]``.
+    """
+    if not sigma > 0.0:
+        raise FactorError(f"axis sigma must be > 0, got {sigma}")
+    meas = float(alpha)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
+        pose = _pose(values, this.keys()[0])
+        phi = values.atRot2(this.keys()[1]).theta()
+        r, r_D_pose, r_D_phi = lamp_axis_residual(pose, phi, meas)
+        if H is not None:
+            H[0] = r_D_pose
+            H[1] = r_D_phi
+        return np.array([r])
+
+    return gtsam.CustomFactor(
+        noise_model(np.array([[sigma * sigma]]), robust), [pose_key, axis_key], error
+    )
+
+
+def lamp_axis_frame_factor(
+    pose_key: int,
+    observations: Sequence[AxisObservation],
+    robust: float | None = None,
+) -> gtsam.CustomFactor:
+    """All lamp-axis observations of one frame in one ``CustomFactor``.
+
+    Residual ``i`` is ``wrap_axis(phi_i - theta - alpha_i) / sigma_i`` (whitened, unit
+    noise model), Huber per observation if ``robust`` is set.
+
+    Args:
+        pose_key: ``X(k)``.
+        observations: one :class:`AxisObservation` per lamp, distinct axis keys.
+        robust: optional Huber threshold.
+
+    Returns:
+        ``gtsam.CustomFactor`` on ``[pose_key, axis keys...]`` with a (K,) residual.
+    """
+    obs = list(observations)
+    if not obs:
+        raise FactorError("lamp_axis_frame_factor needs at least one observation")
+    keys = [pose_key] + [o.axis_key for o in obs]
+    if len(set(keys)) != len(keys):
+        raise FactorError("lamp_axis_frame_factor: axis keys must be distinct")
+    alphas = [float(o.alpha) for o in obs]
+    inv_sig = [1.0 / float(o.sigma) for o in obs]
+    n = len(obs)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
+        ks = this.keys()
+        pose = _pose(values, ks[0])
+        res = np.empty(n)
+        d_pose = np.zeros((n, 3))
+        d_phi = np.empty(n)
+        for i in range(n):
+            r, _, _ = lamp_axis_residual(pose, values.atRot2(ks[i + 1]).theta(), alphas[i])
+            e = r * inv_sig[i]
+            g = 1.0
+            if robust is not None:
+                e_arr, g_arr = huber_sqrt(np.array([e]), robust)
+                e, g = float(e_arr[0]), float(g_arr[0, 0])
+            res[i] = e
+            d_pose[i, 2] = -g * inv_sig[i]
+            d_phi[i] = g * inv_sig[i]
+        if H is not None:
+            H[0] = d_pose
+            for i in range(n):
+                col = np.zeros((n, 1))
+                col[i, 0] = d_phi[i]
+                H[i + 1] = col
+        return res
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), keys, error)
+
+
+# --- corners: inverse depth -----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class InverseDepthObservation:
+    """One inverse-depth corner observation for :func:`inverse_depth_frame_factor`.
+
+    Attributes:
+        anchor_key: ``X(a)`` of the corner's first sight (not the observing pose).
+        corner_key: ``C(j)`` holding ``(alpha_x, alpha_y, rho)``.
+        m: (2,) measured normalised coordinates.
+        cov_m: (2, 2) their covariance.
+    """
+
+    anchor_key: int
+    corner_key: int
+    m: FloatArray
+    cov_m: FloatArray
+
+
+def _sqrt_info(cov: FloatArray) -> FloatArray:
+    """Upper-triangular ``W`` with ``W^T W = cov^-1`` (whitening matrix)."""
+    return np.linalg.cholesky(np.linalg.inv(cov)).T
+
+
+def inverse_depth_factor(
+    pose_key: int,
+    anchor_key: int,
+    corner_key: int,
+    m: FloatArray,
+    cov_m: FloatArray,
+    body_t_camera: FloatArray,
+    robust: float | None = None,
+) -> gtsam.CustomFactor:
+    """Inverse-depth corner seen from a pose other than its anchor (``CustomFactor``).
+
+    Model :func:`lampsam.factors.ceiling.project_inverse_depth`; residual = predicted
+    - measured. The first sight is :func:`inverse_depth_first_sight_prior`, not this.
+
+    Args:
+        pose_key: observing pose ``X(k)``.
+        anchor_key: anchor pose ``X(a)``, ``a != k``.
+        corner_key: ``C(j)``, a (3,) vector ``(alpha_x, alpha_y, rho)``.
+        m: (2,) measured normalised coordinates.
+        cov_m: (2, 2) their covariance.
+        body_t_camera: (3,) camera offset, metres.
+        robust: optional Huber threshold.
+
+    Returns:
+        ``gtsam.CustomFactor`` on ``[pose_key, anchor_key, corner_key]``.
+    """
+    if pose_key == anchor_key:
+        raise FactorError("inverse_depth_factor: the anchor sight is a prior, not a factor")
+    cov_m = _check_cov(cov_m, 2, "inverse depth")
+    meas = np.asarray(m, dtype=float).copy()
+    off = np.asarray(body_t_camera, dtype=float).copy()
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
+        ks = this.keys()
+        pred, j_pose, j_anchor, j_idp = project_inverse_depth(
+            _pose(values, ks[0]), _pose(values, ks[1]), values.atVector(ks[2]), off
+        )
+        if H is not None:
+            H[0], H[1], H[2] = j_pose, j_anchor, j_idp
+        return pred - meas
+
+    return gtsam.CustomFactor(noise_model(cov_m, robust), [pose_key, anchor_key, corner_key], error)
+
+
+def inverse_depth_frame_factor(
+    pose_key: int,
+    observations: Sequence[InverseDepthObservation],
+    body_t_camera: FloatArray,
+    robust: float | None = None,
+) -> gtsam.CustomFactor:
+    """All inverse-depth corner observations of one frame in one ``CustomFactor``.
+
+    Residuals are whitened per observation (unit noise model); Huber per observation
+    when ``robust`` is set (:func:`huber_sqrt`). Anchors shared by several corners
+    appear once among the keys and their Jacobian blocks are stacked.
+
+    Args:
+        pose_key: observing pose ``X(k)``.
+        observations: :class:`InverseDepthObservation` s, distinct corners, anchors
+            different from ``pose_key``.
+        body_t_camera: (3,) camera offset, metres.
+        robust: optional Huber threshold.
+
+    Returns:
+        ``gtsam.CustomFactor`` with a (2K,) residual.
+    """
+    obs = list(observations)
+    if not obs:
+        raise FactorError("inverse_depth_frame_factor needs at least one observation")
+    keys: list[int] = [pose_key]
+    index: dict[int, int] = {pose_key: 0}
+    slots: list[tuple[int, int]] = []
+    for o in obs:
+        if o.anchor_key == pose_key:
+            raise FactorError("inverse_depth_frame_factor: anchor sight must be a prior")
+        if o.corner_key in index:
+            raise FactorError("inverse_depth_frame_factor: corner keys must be distinct")
+        if o.anchor_key not in index:
+            index[o.anchor_key] = len(keys)
+            keys.append(o.anchor_key)
+        index[o.corner_key] = len(keys)
+        keys.append(o.corner_key)
+        slots.append((index[o.anchor_key], index[o.corner_key]))
+    whiten = [_sqrt_info(_check_cov(o.cov_m, 2, "inverse depth")) for o in obs]
+    meas = [np.asarray(o.m, dtype=float).copy() for o in obs]
+    off = np.asarray(body_t_camera, dtype=float).copy()
+    n = len(obs)
+    n_keys = len(keys)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
+        ks = this.keys()
+        poses = {i: _pose(values, ks[i]) for i in {0, *(a for a, _ in slots)}}
+        res = np.empty(2 * n)
+        blocks = [np.zeros((2 * n, 3)) for _ in range(n_keys)] if H is not None else None
+        for i, (ia, ic) in enumerate(slots):
+            pred, j_pose, j_anchor, j_idp = project_inverse_depth(
+                poses[0], poses[ia], values.atVector(ks[ic]), off
+            )
+            w = whiten[i]
+            e = w @ (pred - meas[i])
+            g = w
+            if robust is not None:
+                e, r_D_e = huber_sqrt(e, robust)
+                g = r_D_e @ w
+            res[2 * i : 2 * i + 2] = e
+            if blocks is not None:
+                blocks[0][2 * i : 2 * i + 2] = g @ j_pose
+                blocks[ia][2 * i : 2 * i + 2] += g @ j_anchor
+                blocks[ic][2 * i : 2 * i + 2] = g @ j_idp
+        if H is not None and blocks is not None:
+            for j in range(n_keys):
+                H[j] = blocks[j]
+        return res
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), keys, error)
+
+
+def inverse_depth_first_sight_prior(
+    corner_key: int,
+    m: FloatArray,
+    cov_m: FloatArray,
+    prior: HeightPrior | None = None,
+) -> gtsam.PriorFactorVector:
+    """First sight of an inverse-depth corner plus the height prior, one built-in factor.
+
+    Seen from its anchor the corner projects to ``alpha`` whatever the anchor pose
+    (:func:`lampsam.factors.ceiling.project_inverse_depth`), so the first observation
+    is the prior ``alpha ~ N(m, cov_m)``; with the height range as ``rho ~ N(rho_mean,
+    rho_sigma^2)`` (:class:`HeightPrior`) it is one ``PriorFactorVector`` with a
+    block-diagonal covariance.
+
+    Args:
+        corner_key: ``C(j)``.
+        m: (2,) normalised coordinates at the anchor.
+        cov_m: (2, 2) their covariance.
+        prior: height range, default :class:`HeightPrior` ().
+
+    Returns:
+        ``gtsam.PriorFactorVector`` on the (3,) inverse-depth vector.
+    """
+    prior = prior or HeightPrior()
+    cov_m = _check_cov(cov_m, 2, "inverse depth prior")
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = cov_m
+    cov[2, 2] = prior.rho_sigma**2
+    mean = np.array([float(m[0]), float(m[1]), prior.rho_mean])
+    return gtsam.PriorFactorVector(corner_key, mean, gtsam.noiseModel.Gaussian.Covariance(cov))
+
+
+# --- range-bearing --------------------------------------------------------------------
+
+
+def bearing_range_factor(
+    pose_key: int,
+    landmark_key: int,
+    bearing: float,
+    range_: float,
+    cov: FloatArray,
+    body_T_sensor: FloatArray | None = None,
+    robust: float | None = None,
+) -> gtsam.NonlinearFactor:
+    """Planar range-bearing observation of a ``Point2`` landmark.
+
+    Without a sensor offset: the built-in ``gtsam.BearingRangeFactor2D``. With one:
+    a ``CustomFactor`` over :func:`lampsam.factors.range_bearing.range_bearing`
+    (bearing residual wrapped to ``(-pi, pi]``).
+
+    Args:
+        pose_key: ``X(k)``.
+        landmark_key: ``L(j)`` holding a ``Point2``.
+        bearing: measured bearing, radians.
+        range_: measured range, metres.
+        cov: (2, 2) covariance of ``[bearing, range]``.
+        body_T_sensor: optional (3,) sensor pose in the body frame.
+        robust: optional Huber threshold.
+
+    Returns:
+        The factor.
+    """
+    cov = _check_cov(cov, 2, "range-bearing")
+    noise = noise_model(cov, robust)
+    if body_T_sensor is None:
+        return gtsam.BearingRangeFactor2D(
+            pose_key, landmark_key, gtsam.Rot2(float(bearing)), float(range_), noise
+        )
+    off = np.asarray(body_T_sensor, dtype=float).copy()
+    meas = np.array([float(bearing), float(range_)])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
+        ks = this.keys()
+        z, z_D_pose, z_D_lm = range_bearing(_pose(values, ks[0]), values.atPoint2(ks[1]), off)
+        if H is not None:
+            H[0], H[1] = z_D_pose, z_D_lm
+        r = z - meas
+        r[0] = wrap_angle(r[0])
+        return r
+
+    return gtsam.CustomFactor(noise, [pose_key, landmark_key], error)
