@@ -68,8 +68,10 @@ class StereoEstimatorConfig:
 
     Attributes:
         min_disparity_px: raw triangulation needs ``x_r - x_l`` above this, px.
-        min_separation_px: raw flags ``collinear`` when both the left and the
-            right coordinates of the two points are closer than this, px.
+        min_separation_px: raw flags ``collinear`` when the two points' mean
+            coordinates ``(x_l + x_r) / 2`` (their rays from the rig centre) are
+            closer than this, px: the points are nearly in line with the camera,
+            cannot be told apart, and the heading rests on their depth difference.
         min_depth: a point nearer than this (estimated or predicted depth) is
             treated as behind the camera, m.
         gn_iterations: Gauss-Newton steps of the raw solver.
@@ -212,7 +214,7 @@ def triangulate_two_points(
     b, f_px = run.rig.baseline, run.rig.f_px
     if min(z[1] - z[0], z[3] - z[2]) <= cfg.min_disparity_px:
         return *bad, BAD_DISPARITY
-    if max(abs(z[0] - z[2]), abs(z[1] - z[3])) < cfg.min_separation_px:
+    if abs((z[0] + z[1]) - (z[2] + z[3])) < 2.0 * cfg.min_separation_px:
         return *bad, COLLINEAR
     pts = np.asarray(run.target_t_points, dtype=float)
     c1 = triangulate_point(z[0], z[1], b, f_px)
