@@ -81,8 +81,8 @@ def test_camera_point_jacobians(rng: np.random.Generator) -> None:
     for pose in _random_poses(rng):
         p = rng.uniform(-1, 1, 2)
         _, c_D_pose, c_D_point = camera_point(pose, p)
-        num_pose = numericalDerivative11(lambda q: camera_point(q, p)[0], pose)
-        num_point = numericalDerivative11(lambda q: camera_point(pose, q)[0], p)
+        num_pose = numericalDerivative11(lambda q, p=p: camera_point(q, p)[0], pose)
+        num_point = numericalDerivative11(lambda q, pose=pose: camera_point(pose, q)[0], p)
         np.testing.assert_allclose(c_D_pose, num_pose, atol=1e-6)
         np.testing.assert_allclose(c_D_point, num_point, atol=1e-6)
 
@@ -108,10 +108,10 @@ def test_motion_model_jacobians_and_pose2_compose(rng: np.random.Generator) -> N
         u = np.array([rng.uniform(-0.2, 0.5), rng.uniform(-0.2, 0.2)])
         nxt, n_D_s, n_D_u = motion_model(state, u[0], u[1])
         np.testing.assert_allclose(
-            n_D_s, numericalDerivative11(lambda s: motion_model(s, u[0], u[1])[0], state),
+            n_D_s, numericalDerivative11(lambda s, u=u: motion_model(s, u[0], u[1])[0], state),
             atol=1e-6)
         np.testing.assert_allclose(
-            n_D_u, numericalDerivative11(lambda q: motion_model(state, q[0], q[1])[0], u),
+            n_D_u, numericalDerivative11(lambda q, s0=state: motion_model(s0, q[0], q[1])[0], u),
             atol=1e-6)
         # eq. 4 is Pose2 composition with (v dt, 0, omega dt)
         composed = gtsam.Pose2(*state).compose(gtsam.Pose2(u[0], 0.0, u[1]))
