@@ -1,0 +1,334 @@
+"""Readers of RGB-D sequences: the TUM RGB-D layout and the slambook2 sample.
+
+TUM RGB-D layout (written by :mod:`lampsam.datasets.kinect_sim`, and the public
+TUM benchmark's)::
+
+    rgb.txt, depth.txt   "timestamp filename" lines, '#' comments
+    rgb/*.png            8-bit colour
+    depth/*.png          16-bit depth, metres = value / depth_scale, 0 = no depth
+    groundtruth.txt      optional world_T_camera, TUM "t tx ty tz qx qy qz qw"
+    kinect.yaml          optional intrinsics + depth_scale (lampsam runs); without it
+                         the camera must be given
+
+slambook2 ``ch5/rgbd`` (``../shared/data/rgbd_slambook2``): ``color/{1..5}.png``
+(640x480), ``depth/{1..5}.pgm`` (16-bit, metres = value / 1000), ``pose.txt``
+``tx ty tz qx qy qz qw`` per line = world_T_camera; fx = 518.0, fy = 519.0,
+cx = 325.5, cy = 253.5. Its world frame is the first camera's convention
+(``y`` roughly down), so :attr:`RgbdSequence.world_up` is ``(0, -1, 0)`` there.
+
+Camera frame (OpenCV): ``x`` right, ``y`` down, ``z`` the optical axis; depth is
+the ``z`` coordinate of the point.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from lampsam.arrays import FloatArray, ImageU8, ImageU16
+from lampsam.errors import DatasetError
+
+log = logging.getLogger(__name__)
+
+SLAMBOOK2_FX = 518.0
+SLAMBOOK2_FY = 519.0
+SLAMBOOK2_CX = 325.5
+SLAMBOOK2_CY = 253.5
+SLAMBOOK2_DEPTH_SCALE = 1000.0
+
+
+@dataclass(frozen=True)
+class RgbdCamera:
+    """Pinhole RGB-D camera (colour and depth registered).
+
+    Attributes:
+        width: image columns.
+        height: image rows.
+        fx, fy: focal lengths, pixels.
+        cx, cy: principal point, pixels (OpenCV convention).
+        depth_scale: stored depth value per metre (TUM 5000, slambook2 1000).
+        min_depth: nearest trusted depth, metres (default 0.3).
+        max_depth: farthest trusted depth, metres (default 6.0).
+        body_T_camera: (4, 4) camera pose on the robot (default identity: no robot).
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_scale: float
+    min_depth: float = 0.3
+    max_depth: float = 6.0
+    body_T_camera: FloatArray = field(default_factory=lambda: np.eye(4))  # noqa: N815
+
+    def K(self) -> FloatArray:  # noqa: N802
+        """Intrinsic matrix (3, 3)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class RgbdSequence:
+    """An RGB-D sequence with colour/depth pairs associated by time.
+
+    Attributes:
+        root: the sequence directory.
+        camera: the camera.
+        t: (N,) frame times, seconds (the depth image's time stamp).
+        rgb_files: N colour files.
+        depth_files: N depth files.
+        world_T_camera: (N, 4, 4) camera poses, or None when the sequence has none.
+        world_up: (3,) unit "up" direction in the world frame (for projecting to the floor).
+    """
+
+    root: Path
+    camera: RgbdCamera
+    t: FloatArray
+    rgb_files: tuple[Path, ...]
+    depth_files: tuple[Path, ...]
+    world_T_camera: FloatArray | None = None  # noqa: N815
+    world_up: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+
+    def __len__(self) -> int:
+        """Number of frames."""
+        return len(self.depth_files)
+
+    def load_rgb(self, i: int) -> ImageU8:
+        """Colour image ``i`` as uint8 (H, W, 3) RGB.
+
+        Raises:
+            DatasetError: missing/unreadable file or wrong size.
+        """
+        path = self.rgb_files[i]
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None:
+            raise DatasetError("colour image missing or unreadable", path)
+        _check_shape(img, self.camera, path)
+        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def load_depth(self, i: int) -> ImageU16:
+        """Depth image ``i`` as uint16 (H, W) (metres = value / ``camera.depth_scale``).
+
+        Raises:
+            DatasetError: missing/unreadable file, not 16-bit single channel, wrong size.
+        """
+        path = self.depth_files[i]
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise DatasetError("depth image missing or unreadable", path)
+        if img.dtype != np.uint16 or img.ndim != 2:
+            raise DatasetError(f"depth image must be 16-bit single channel, got {img.dtype} {img.shape}", path)
+        _check_shape(img, self.camera, path)
+        return img
+
+
+def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
+    if img.shape[:2] != (camera.height, camera.width):
+        raise DatasetError(f"image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}", path)
+
+
+def pose_from_tum_fields(vals: list[float]) -> FloatArray:
+    """(4, 4) transform from ``tx ty tz qx qy qz qw`` (quaternion normalised)."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(vals[3:7]).as_matrix()
+    T[:3, 3] = vals[:3]
+    return T
+
+
+def _read_list(path: Path) -> tuple[list[float], list[Path]]:
+    """A TUM ``timestamp filename`` list; relative names are resolved against the list's folder."""
+    if not path.is_file():
+        raise DatasetError("file list not found", path)
+    times: list[float] = []
+    files: list[Path] = []
+    for lineno, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        text = raw.strip()
+        if not text or text.startswith("#"):
+            continue
+        parts = text.split()
+        if len(parts) != 2:
+            raise DatasetError(f"expected 'timestamp filename', got {len(parts)} fields", path, lineno)
+        try:
+            t = float(parts[0])
+        except ValueError as exc:
+            raise DatasetError(f"bad timestamp {parts[0]!r}", path, lineno) from exc
+        if not math.isfinite(t):
+            raise DatasetError("timestamp is not finite", path, lineno)
+        if times and t <= times[-1]:
+            raise DatasetError(f"time goes backwards ({t} after {times[-1]})", path, lineno)
+        times.append(t)
+        files.append(path.parent / parts[1])
+    if not times:
+        raise DatasetError("no frames listed", path)
+    return times, files
+
+
+def read_tum_trajectory_3d(path: Path) -> tuple[FloatArray, FloatArray]:
+    """A TUM trajectory as full 3-D poses.
+
+    Args:
+        path: ``t tx ty tz qx qy qz qw`` per line.
+
+    Returns:
+        ``t`` (K,) seconds and ``world_T_camera`` (K, 4, 4).
+
+    Raises:
+        DatasetError: malformed line, non-finite value, zero quaternion, time not increasing.
+    """
+    if not path.is_file():
+        raise DatasetError("trajectory not found", path)
+    ts: list[float] = []
+    poses: list[FloatArray] = []
+    for lineno, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        text = raw.strip()
+        if not text or text.startswith("#"):
+            continue
+        parts = text.split()
+        if len(parts) != 8:
+            raise DatasetError(f"expected 8 fields 't tx ty tz qx qy qz qw', got {len(parts)}", path, lineno)
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError as exc:
+            raise DatasetError(f"bad number: {exc}", path, lineno) from exc
+        if not all(math.isfinite(v) for v in vals):
+            raise DatasetError("non-finite value", path, lineno)
+        if sum(v * v for v in vals[4:]) < 1e-12:
+            raise DatasetError("zero quaternion", path, lineno)
+        if ts and vals[0] <= ts[-1]:
+            raise DatasetError("time goes backwards", path, lineno)
+        ts.append(vals[0])
+        poses.append(pose_from_tum_fields(vals[1:]))
+    if not ts:
+        raise DatasetError("no poses", path)
+    return np.array(ts), np.stack(poses)
+
+
+def camera_from_yaml(path: Path) -> RgbdCamera:
+    """The camera of a lampsam ``kinect.yaml`` (written by ``kinect_sim``).
+
+    Raises:
+        DatasetError: missing file or key.
+    """
+    try:
+        meta = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise DatasetError(f"cannot read camera file: {exc}", path) from exc
+    try:
+        T = np.eye(4)
+        T[:3, :3] = np.asarray(meta["body_R_camera"], float)
+        T[:3, 3] = np.asarray(meta["body_t_camera"], float)
+        return RgbdCamera(
+            width=int(meta["width"]),
+            height=int(meta["height"]),
+            fx=float(meta["fx"]),
+            fy=float(meta["fy"]),
+            cx=float(meta["cx"]),
+            cy=float(meta["cy"]),
+            depth_scale=float(meta["depth_scale"]),
+            min_depth=float(meta.get("min_depth", 0.3)),
+            max_depth=float(meta.get("max_depth", 6.0)),
+            body_T_camera=T,
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"bad or missing camera key: {exc}", path) from exc
+
+
+def read_tum_rgbd(path: str | Path, camera: RgbdCamera | None = None, max_dt: float = 0.02) -> RgbdSequence:
+    """Read a TUM RGB-D directory.
+
+    Colour frames are associated to depth frames by nearest time stamp (within
+    ``max_dt``); unmatched depth frames are dropped with a logged warning.
+
+    Args:
+        path: the directory with ``rgb.txt`` and ``depth.txt``.
+        camera: the camera; default read from ``kinect.yaml`` in the directory.
+        max_dt: association tolerance, seconds.
+
+    Returns:
+        The sequence (``world_T_camera`` from ``groundtruth.txt`` at the frame times,
+        when present and covering them; else None).
+
+    Raises:
+        DatasetError: missing lists/camera, malformed lines.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise DatasetError("RGB-D directory not found", root)
+    if camera is None:
+        if not (root / "kinect.yaml").is_file():
+            raise DatasetError("no kinect.yaml: pass the camera explicitly", root)
+        camera = camera_from_yaml(root / "kinect.yaml")
+    t_rgb, f_rgb = _read_list(root / "rgb.txt")
+    t_depth, f_depth = _read_list(root / "depth.txt")
+    t_rgb_a = np.array(t_rgb)
+    keep_t: list[float] = []
+    keep_rgb: list[Path] = []
+    keep_depth: list[Path] = []
+    for t, f in zip(t_depth, f_depth, strict=True):
+        j = int(np.argmin(np.abs(t_rgb_a - t)))
+        if abs(t_rgb_a[j] - t) <= max_dt:
+            keep_t.append(t)
+            keep_rgb.append(f_rgb[j])
+            keep_depth.append(f)
+    dropped = len(t_depth) - len(keep_t)
+    if dropped:
+        log.warning("%s: %d depth frames without a colour frame within %.3f s dropped", root, dropped, max_dt)
+    if not keep_t:
+        raise DatasetError("no colour/depth pairs", root)
+    poses = None
+    gt = root / "groundtruth.txt"
+    if gt.is_file():
+        t_gt, T_gt = read_tum_trajectory_3d(gt)
+        idx = np.searchsorted(t_gt, keep_t)
+        idx = np.clip(idx, 0, len(t_gt) - 1)
+        prev = np.clip(idx - 1, 0, len(t_gt) - 1)
+        best = np.where(np.abs(t_gt[prev] - keep_t) < np.abs(t_gt[idx] - keep_t), prev, idx)
+        if np.all(np.abs(t_gt[best] - keep_t) <= max_dt):
+            poses = T_gt[best]
+    return RgbdSequence(root, camera, np.array(keep_t), tuple(keep_rgb), tuple(keep_depth), poses)
+
+
+def read_slambook2(path: str | Path) -> RgbdSequence:
+    """Read the slambook2 ``ch5/rgbd`` sample (module docstring).
+
+    Args:
+        path: the folder with ``color/``, ``depth/`` and ``pose.txt``.
+
+    Returns:
+        The 5-frame sequence with ``t = 0, 1, ...`` and ``world_up = (0, -1, 0)``.
+
+    Raises:
+        DatasetError: missing files or malformed ``pose.txt``.
+    """
+    root = Path(path)
+    pose_file = root / "pose.txt"
+    if not pose_file.is_file():
+        raise DatasetError("pose.txt not found", pose_file)
+    poses = []
+    for lineno, raw in enumerate(pose_file.read_text(encoding="utf-8").splitlines(), start=1):
+        if not raw.strip():
+            continue
+        try:
+            vals = [float(v) for v in raw.split()]
+        except ValueError as exc:
+            raise DatasetError(f"bad number: {exc}", pose_file, lineno) from exc
+        if len(vals) != 7 or not all(math.isfinite(v) for v in vals):
+            raise DatasetError("expected 7 finite numbers 'tx ty tz qx qy qz qw'", pose_file, lineno)
+        poses.append(pose_from_tum_fields(vals))
+    n = len(poses)
+    rgb = tuple(root / "color" / f"{i + 1}.png" for i in range(n))
+    depth = tuple(root / "depth" / f"{i + 1}.pgm" for i in range(n))
+    for f in rgb + depth:
+        if not f.is_file():
+            raise DatasetError("frame file missing", f)
+    camera = RgbdCamera(640, 480, SLAMBOOK2_FX, SLAMBOOK2_FY, SLAMBOOK2_CX, SLAMBOOK2_CY, SLAMBOOK2_DEPTH_SCALE, 0.3, 7.0)
+    return RgbdSequence(root, camera, np.arange(n, dtype=float), rgb, depth, np.stack(poses), np.array([0.0, -1.0, 0.0]))

@@ -1,0 +1,177 @@
+"""The ceiling feature map: lamps and corners of the ceiling SLAM (paper 2, sec. 2.2).
+
+The ceiling SLAM (paper 1; ``backend/``) maps lamps (region features: the
+paper's "arbitrarily shaped" features) and corners. Global localization uses
+this layer to verify a pose (paper 2, sec. 4.2, eq. 10: a feature seen by the
+upward camera must match a map feature projected at the estimated pose), so
+each feature keeps what that projection and matching need: world position with
+its height above the floor, type, lamp axis ``phi`` (mod pi) and size, and the
+position covariance when the SLAM gave one.
+
+Sources:
+
+- a SLAM output's ``landmarks.csv`` (any CSV with a header containing ``id``,
+  ``type``, ``x``, ``y``, ``z``; optional ``phi``, ``length``, ``width``,
+  ``var_x``, ``cov_xy``, ``var_y``). Its ``z`` may be the height above the
+  camera (the SLAM state, DESIGN sec. 1); pass ``z_cam`` to convert;
+- the run's true ``landmarks.csv`` (:func:`lampsam.datasets.logrun.read_landmarks`).
+
+On disk: ``ceiling_features.csv`` with header
+``id,type,x,y,z,phi,length,width,var_x,cov_xy,var_y`` (z above the floor,
+metres; phi rad, NaN when the feature has no axis; variances m^2, NaN unknown).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lampsam.arrays import BoolArray, FloatArray, IntArray
+from lampsam.errors import DatasetError, LocalizationError
+
+log = logging.getLogger(__name__)
+
+CEILING_FILE = "ceiling_features.csv"
+CEILING_HEADER = ("id", "type", "x", "y", "z", "phi", "length", "width", "var_x", "cov_xy", "var_y")
+
+
+class CeilingMapError(LocalizationError):
+    """A ceiling feature map could not be built or read."""
+
+
+@dataclass(frozen=True, eq=False)
+class CeilingFeatureMap:
+    """Lamps and corners in the world frame.
+
+    Attributes:
+        ids: (L,) landmark ids.
+        types: L type names (``lamp_rect``, ``lamp_round``, ``lamp``, ``corner``, ...).
+        xyz: (L, 3) world positions, metres; ``z`` = height above the floor.
+        phi: (L,) lamp long axis in the world, rad mod pi; NaN for none.
+        length: (L,) lamp length, metres (0 or NaN unknown).
+        width: (L,) lamp width, metres.
+        cov_xy: (L, 2, 2) horizontal position covariance, m^2 (NaN unknown).
+        source: where the features came from (``groundtruth`` or a SLAM file).
+    """
+
+    ids: IntArray
+    types: tuple[str, ...]
+    xyz: FloatArray
+    phi: FloatArray
+    length: FloatArray
+    width: FloatArray
+    cov_xy: FloatArray
+    source: str
+
+    def __len__(self) -> int:
+        """Number of features."""
+        return int(len(self.ids))
+
+    def is_lamp(self) -> BoolArray:
+        """(L,) True for lamps (any type starting with ``lamp``)."""
+        return np.array([t.startswith("lamp") for t in self.types], dtype=bool)
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``ceiling_features.csv`` (module docstring)."""
+        path = Path(path)
+        with open(path, "w", encoding="utf-8", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(CEILING_HEADER)
+            for i in range(len(self)):
+                c = self.cov_xy[i]
+                w.writerow(
+                    [int(self.ids[i]), self.types[i]]
+                    + [f"{v:.6f}" for v in self.xyz[i]]
+                    + [f"{v:.9g}" for v in (self.phi[i], self.length[i], self.width[i], c[0, 0], c[0, 1], c[1, 1])]
+                )
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, source: str | None = None) -> CeilingFeatureMap:
+        """Read ``ceiling_features.csv`` (or a SLAM ``landmarks.csv`` with z above the floor)."""
+        return read_landmark_csv(path, z_cam=0.0, source=source)
+
+
+def _col(row: dict[str, str], key: str, path: Path, line: int, default: float | None = None) -> float:
+    text = row.get(key)
+    if text is None or text == "":
+        if default is None:
+            raise DatasetError(f"missing column {key!r}", path, line)
+        return default
+    try:
+        return float(text)
+    except ValueError as exc:
+        raise DatasetError(f"column {key!r}: bad number {text!r}", path, line) from exc
+
+
+def read_landmark_csv(path: str | Path, z_cam: float = 0.0, source: str | None = None) -> CeilingFeatureMap:
+    """A ceiling map from a landmarks CSV (module docstring).
+
+    Args:
+        path: the CSV.
+        z_cam: added to every ``z`` (metres): the camera height when the file's ``z``
+            is the height above the camera, 0 when it is above the floor.
+        source: recorded as :attr:`CeilingFeatureMap.source` (default the path).
+
+    Returns:
+        The map (non-finite positions are skipped with a warning).
+
+    Raises:
+        DatasetError: missing file, missing column, bad number.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError("landmarks file not found", path)
+    ids: list[int] = []
+    types: list[str] = []
+    rows: list[list[float]] = []
+    with open(path, encoding="utf-8", newline="") as fh:
+        reader = csv.DictReader(line for line in fh if not line.startswith("#"))
+        if reader.fieldnames is None or not {"id", "x", "y", "z"} <= set(reader.fieldnames):
+            raise DatasetError(f"header must contain id,x,y,z (got {reader.fieldnames})", path, 1)
+        for k, row in enumerate(reader, start=2):
+            x, y, z = (_col(row, c, path, k) for c in ("x", "y", "z"))
+            if not all(math.isfinite(v) for v in (x, y, z)):
+                log.warning("%s:%d: non-finite landmark position skipped", path, k)
+                continue
+            phi = _col(row, "phi", path, k, _col(row, "orientation", path, k, math.nan))
+            try:
+                lid = int(float(row["id"]))
+            except (TypeError, ValueError) as exc:
+                raise DatasetError(f"bad id {row.get('id')!r}", path, k) from exc
+            ids.append(lid)
+            types.append(str(row.get("type") or "lamp"))
+            rows.append(
+                [x, y, z + z_cam, phi]
+                + [_col(row, c, path, k, math.nan) for c in ("length", "width", "var_x", "cov_xy", "var_y")]
+            )
+    a = np.array(rows, dtype=float).reshape(-1, 9)
+    cov = np.stack([np.stack([a[:, 6], a[:, 7]], -1), np.stack([a[:, 7], a[:, 8]], -1)], -2)
+    # corners and round lamps carry no axis
+    phi = np.where([t == "corner" or t == "lamp_round" for t in types], np.nan, a[:, 3]) if len(a) else a[:, 3]
+    return CeilingFeatureMap(
+        np.array(ids, np.int64), tuple(types), a[:, :3], phi, a[:, 4], a[:, 5], cov, source or str(path)
+    )
+
+
+def from_landmark_table(table: object, source: str = "groundtruth") -> CeilingFeatureMap:
+    """A ceiling map from a :class:`lampsam.datasets.logrun.LandmarkTable` (true landmarks, z above floor)."""
+    ids = np.asarray(table.ids, np.int64)  # type: ignore[attr-defined]
+    types = tuple(table.types)  # type: ignore[attr-defined]
+    phi = np.where([t in ("corner", "lamp_round") for t in types], np.nan, np.asarray(table.phi, float))  # type: ignore[attr-defined]
+    n = len(ids)
+    return CeilingFeatureMap(
+        ids,
+        types,
+        np.asarray(table.xyz, float).reshape(n, 3),  # type: ignore[attr-defined]
+        phi.reshape(n),
+        np.asarray(table.length, float),  # type: ignore[attr-defined]
+        np.asarray(table.width, float),  # type: ignore[attr-defined]
+        np.full((n, 2, 2), np.nan),
+        source,
+    )
