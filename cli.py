@@ -78,9 +78,51 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_demo)
 
 
+# --------------------------------------------------------------------------- stereo
+def _cmd_stereo_sim(args: argparse.Namespace) -> int:
+    from lampsam.datasets.stereo_sim import simulate_stereo_run
+
+    out = simulate_stereo_run(args.scenario, Path(args.out), seed=args.seed)
+    print(f"stereo run written to {out}")
+    return 0
+
+
+def _add_stereo_sim(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stereo-sim", help="simulate a stereo two-point run (paper 3)")
+    p.add_argument("--scenario", required=True, choices=["straight", "turn"],
+                   help="drive toward and past the target, or turn in place")
+    p.add_argument("--out", required=True, help="run directory to write")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.set_defaults(func=_cmd_stereo_sim)
+
+
+def _cmd_stereo(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.stereo_report import stereo_job
+
+    summary = stereo_job(Path(args.run), args.estimator, Path(args.out))
+    rms = summary.get("rms")
+    line = f"{args.estimator}: {summary['status_counts']}"
+    if rms:
+        line += (f"; RMS x {rms['x_m']:.4f} m, y {rms['y_m']:.4f} m, "
+                 f"heading {rms['heading_rad']:.5f} rad over {rms['frames']} frames")
+    print(line)
+    return 0
+
+
+def _add_stereo(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stereo", help="estimate the relative pose to a stereo target")
+    p.add_argument("run", help="stereo run directory (from stereo-sim)")
+    p.add_argument("--estimator", required=True, choices=["raw", "ekf", "isam2", "batch"],
+                   help="raw triangulation, the paper's EKF, iSAM2 online, batch smoother")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=_cmd_stereo)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
+    _add_stereo_sim,
+    _add_stereo,
 ]
 
 

@@ -1,0 +1,234 @@
+"""Stereo two-point relative pose: errors, tables, figures (paper 3, Figs. 3-5), run outputs.
+
+Plot functions take a matplotlib ``ax`` and finished results and return the
+artists; nothing here estimates. Figures are built with ``matplotlib.figure.Figure``
+(no pyplot, no GUI backend).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lampsam.arrays import BoolArray, FloatArray
+from lampsam.backend.stereo import StereoResult
+from lampsam.errors import LampsamError
+
+log = logging.getLogger(__name__)
+
+COMPONENTS = ("x", "y", "heading")
+UNITS = ("m", "m", "deg")
+COLOURS = {"raw": "tab:red", "ekf": "tab:green", "isam2": "tab:orange", "batch": "tab:blue"}
+
+
+class StereoReportError(LampsamError):
+    """Results and truth do not fit together (length, missing truth)."""
+
+
+def pose_errors(poses: FloatArray, truth: FloatArray) -> FloatArray:
+    """(N, 3) errors ``estimate - truth``: x, y (m) and heading (rad, wrapped to (-pi, pi])."""
+    poses = np.asarray(poses, dtype=float)
+    truth = np.asarray(truth, dtype=float)
+    if poses.shape != truth.shape or poses.ndim != 2 or poses.shape[1] != 3:
+        raise StereoReportError(f"pose arrays differ: {poses.shape} vs {truth.shape}")
+    e = poses - truth
+    e[:, 2] = np.pi - np.mod(np.pi - e[:, 2], 2 * np.pi)
+    return e
+
+
+def common_mask(results: Sequence[StereoResult]) -> BoolArray:
+    """(N,) frames where every given estimator has an estimate (the fair RMS set)."""
+    if not results:
+        raise StereoReportError("no results")
+    mask = np.ones(len(results[0].t), dtype=bool)
+    for r in results:
+        if len(r.t) != len(mask):
+            raise StereoReportError(f"{r.estimator}: {len(r.t)} frames, expected {len(mask)}")
+        mask &= r.valid
+    return mask
+
+
+def rms_errors(result: StereoResult, truth: FloatArray, mask: BoolArray) -> FloatArray:
+    """(3,) RMS of the x (m), y (m) and heading (rad) errors over ``mask``."""
+    e = pose_errors(result.poses, truth)[mask]
+    if len(e) == 0:
+        raise StereoReportError(f"{result.estimator}: no frames to score")
+    return np.sqrt(np.mean(e**2, axis=0))
+
+
+def markdown_table(rms: Mapping[str, Mapping[str, Sequence[float]]], caption: str = "") -> str:
+    """Markdown table: rows scenario x estimator, columns x (m), y (m), heading (deg).
+
+    Args:
+        rms: ``rms[scenario][estimator] = (x, y, heading_rad)``.
+        caption: a line put above the table.
+    """
+    lines = [caption, ""] if caption else []
+    lines += ["| scenario | estimator | RMS x (m) | RMS y (m) | RMS heading (deg) |",
+              "|---|---|---:|---:|---:|"]
+    for scenario, per_est in rms.items():
+        for est, v in per_est.items():
+            lines.append(f"| {scenario} | {est} | {v[0]:.4f} | {v[1]:.4f} | "
+                         f"{math.degrees(v[2]):.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- plots
+def plot_trajectory(
+    ax: Any,
+    truth: FloatArray,
+    results: Sequence[StereoResult],
+    target_t_points: FloatArray,
+    heading_every: int = 0,
+) -> list[Any]:
+    """Top view in the target frame (paper Figs. 3 and 5a): truth, estimates, target.
+
+    Args:
+        ax: a matplotlib Axes.
+        truth: (N, 3) true rig poses.
+        results: estimators to draw (only their valid frames).
+        target_t_points: (2, 2) target points, m.
+        heading_every: draw a heading arrow every this many frames of the truth
+            (0: none).
+
+    Returns:
+        The artists drawn.
+    """
+    artists: list[Any] = []
+    for r in results:
+        m = r.valid
+        style = "." if r.estimator == "raw" else "-"
+        artists += ax.plot(r.poses[m, 0], r.poses[m, 1], style, ms=3, lw=1.2,
+                           color=COLOURS.get(r.estimator), label=r.estimator)
+    artists += ax.plot(truth[:, 0], truth[:, 1], "k--", lw=1.0, label="truth")
+    if heading_every > 0:
+        sel = truth[::heading_every]
+        artists.append(ax.quiver(sel[:, 0], sel[:, 1], np.cos(sel[:, 2]), np.sin(sel[:, 2]),
+                                 angles="xy", scale=12, width=0.004, color="k"))
+    pts = np.asarray(target_t_points)
+    artists += ax.plot(pts[:, 0], pts[:, 1], "ks", ms=6, label="target points")
+    ax.set_xlabel("x in target frame (m)")
+    ax.set_ylabel("y in target frame (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    return artists
+
+
+def plot_error(
+    ax: Any, truth: FloatArray, results: Sequence[StereoResult], component: int
+) -> list[Any]:
+    """Error of one component over time (paper Figs. 4 and 5b).
+
+    Args:
+        ax: a matplotlib Axes.
+        truth: (N, 3) true poses.
+        results: the estimators to draw (valid frames only).
+        component: 0 = x (m), 1 = y (m), 2 = heading (deg).
+
+    Returns:
+        The artists drawn.
+    """
+    artists: list[Any] = []
+    for r in results:
+        e = pose_errors(r.poses, truth)[:, component]
+        if component == 2:
+            e = np.degrees(e)
+        m = r.valid
+        style = "." if r.estimator == "raw" else "-"
+        artists += ax.plot(r.t[m], e[m], style, ms=3, lw=1.2, color=COLOURS.get(r.estimator),
+                           label=r.estimator)
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"{COMPONENTS[component]} error ({UNITS[component]})")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    return artists
+
+
+def figure_for_run(
+    truth: FloatArray, results: Sequence[StereoResult], target_t_points: FloatArray, title: str
+) -> Any:
+    """A 2x2 figure: trajectory and x, y, heading errors. Returns a ``Figure``."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 8), layout="constrained")
+    axes = fig.subplots(2, 2)
+    plot_trajectory(axes[0, 0], truth, results, target_t_points, heading_every=10)
+    for comp, ax in zip((0, 1, 2), (axes[0, 1], axes[1, 0], axes[1, 1]), strict=True):
+        plot_error(ax, truth, results, comp)
+    fig.suptitle(title)
+    return fig
+
+
+# --------------------------------------------------------------------------- outputs
+def write_stereo_result(result: StereoResult, out: Path) -> list[Path]:
+    """Write ``estimate.tum`` (valid frames) and ``status.csv`` (every frame) to ``out``.
+
+    ``status.csv`` header: ``t,valid,status,x,y,theta,var_x,var_y,var_theta,step_ms``.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tum = out / "estimate.tum"
+    with open(tum, "w") as fh:
+        fh.write(f"# t x y z qx qy qz qw ({result.estimator}, rig pose in the target frame)\n")
+        for k in np.nonzero(result.valid)[0]:
+            x, y, th = result.poses[k]
+            fh.write(f"{result.t[k]:.6f} {x:.9f} {y:.9f} 0 0 0 {math.sin(th / 2):.12f} "
+                     f"{math.cos(th / 2):.12f}\n")
+    status = out / "status.csv"
+    with open(status, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "valid", "status", "x", "y", "theta", "var_x", "var_y", "var_theta",
+                    "step_ms"])
+        for k in range(len(result.t)):
+            c = np.diag(result.covariances[k])
+            w.writerow([f"{result.t[k]:.6f}", int(result.valid[k]), result.status[k]]
+                       + [f"{v:.9g}" for v in result.poses[k]] + [f"{v:.6g}" for v in c]
+                       + [f"{1e3 * result.step_time_s[k]:.4f}"])
+    return [tum, status]
+
+
+def stereo_job(run_dir: Path, estimator: str, out: Path) -> dict[str, Any]:
+    """``lampsam stereo RUN --estimator E --out OUT``: estimate, write, score, plot.
+
+    Writes ``estimate.tum``, ``status.csv``, ``summary.json`` and, when the run has
+    ground truth, ``errors.png`` (trajectory and errors against the truth, with
+    the raw triangulation beside the estimator).
+
+    Returns:
+        The summary (status counts, median step time, RMS when truth exists).
+    """
+    from lampsam.backend.stereo import estimate
+    from lampsam.datasets.stereo_sim import read_stereo_run
+
+    run = read_stereo_run(Path(run_dir))
+    result = estimate(run, estimator)
+    out = Path(out)
+    write_stereo_result(result, out)
+    summary: dict[str, Any] = {
+        "run": str(run_dir), "estimator": estimator, "frames": len(run),
+        "status_counts": result.status_counts(),
+        "median_step_ms": float(1e3 * np.median(result.step_time_s)),
+    }
+    if run.truth is not None and result.valid.any():
+        results = [result] if estimator == "raw" else [estimate(run, "raw"), result]
+        mask = common_mask(results)
+        if mask.any():
+            rms = rms_errors(result, run.truth, mask)
+            summary["rms"] = {"x_m": float(rms[0]), "y_m": float(rms[1]),
+                              "heading_rad": float(rms[2]), "frames": int(mask.sum())}
+        fig = figure_for_run(run.truth, results, run.target_t_points,
+                             f"{run.scenario or run_dir}: {estimator}")
+        fig.savefig(out / "errors.png", dpi=110)
+    with open(out / "summary.json", "w") as fh:
+        json.dump(summary, fh, indent=2)
+    log.info("stereo %s on %s: %s", estimator, run_dir, summary.get("rms"))
+    return summary
