@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.backend.stereo import StereoResult
 from lampsam.errors import LampsamError
