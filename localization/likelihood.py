@@ -165,21 +165,21 @@ class RayCastModel:
         config: the beam model (``max_range`` also bounds the ray casting).
         method: ``"march"`` (cast every update) or ``"table"`` (precompute).
         n_angles: heading bins of the table (``method="table"``), default 360.
-        march: sphere-tracing settings.
+        march: sphere-tracing settings (default ``RayMarchConfig()``).
     """
 
     def __init__(self, grid: OccupancyGrid, config: BeamModelConfig,
                  method: Literal["march", "table"] = "march", n_angles: int = 360,
-                 march: RayMarchConfig = RayMarchConfig()) -> None:
+                 march: RayMarchConfig | None = None) -> None:
         self.grid = grid
         self.config = config
         self.method = method
-        self.march = march
+        self.march = march if march is not None else RayMarchConfig()
         self.occupied = occupied_mask(grid)
         self.dist = distance_field(self.occupied)
         self.table: RangeTable | None = None
         if method == "table":
-            self.table = RangeTable.build(grid, n_angles, config.max_range, config=march)
+            self.table = RangeTable.build(grid, n_angles, config.max_range, config=self.march)
         elif method != "march":
             raise LikelihoodError(f"unknown ray-casting method {method!r}")
 

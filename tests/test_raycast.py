@@ -46,7 +46,8 @@ def test_distance_field_in_cells() -> None:
     occ = np.zeros((5, 7), dtype=bool)
     occ[2, 3] = True
     d = distance_field(occ)
-    assert d[2, 3] == 0 and d[2, 5] == pytest.approx(2.0) and d[0, 0] == pytest.approx(math.sqrt(13))
+    assert d[2, 3] == 0 and d[2, 5] == pytest.approx(2.0)
+    assert d[0, 0] == pytest.approx(math.sqrt(13))
     assert np.isinf(distance_field(np.zeros((2, 2), dtype=bool))).all()
 
 
