@@ -71,6 +71,7 @@ __all__ = [
     "lamp_axis",
     "lamp_axis_residual",
     "project_inverse_depth",
+    "project_inverse_depth_batch",
     "project_point",
 ]
 
@@ -256,6 +257,69 @@ def project_inverse_depth(
     j_v = np.array([-v[1], v[0]])
     m_D_anchor = np.column_stack([rho * r_ka, r_ka @ j_v])
     m_D_idp = np.column_stack([r_ka, m_D_rho])
+    return m, m_D_pose, m_D_anchor, m_D_idp
+
+
+def project_inverse_depth_batch(
+    pose: FloatArray,
+    anchor_poses: FloatArray,
+    idps: FloatArray,
+    body_t_camera: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`project_inverse_depth` for K corners seen from one pose, vectorised.
+
+    Used by the per-frame factor, where one Python call handles a whole frame.
+
+    Args:
+        pose: (3,) observing pose.
+        anchor_poses: (K, 3) anchor pose of each corner.
+        idps: (K, 3) ``(alpha_x, alpha_y, rho)`` of each corner.
+        body_t_camera: (3,) camera offset, metres.
+
+    Returns:
+        m: (K, 2); m_D_pose: (K, 2, 3); m_D_anchor: (K, 2, 3); m_D_idp: (K, 2, 3);
+        the same quantities as :func:`project_inverse_depth`, per corner.
+    """
+    anchors = np.asarray(anchor_poses, dtype=float).reshape(-1, 3)
+    q = np.asarray(idps, dtype=float).reshape(-1, 3)
+    k = anchors.shape[0]
+    ox, oy = float(body_t_camera[0]), float(body_t_camera[1])
+    ck, cks_ = math.cos(pose[2]), math.sin(pose[2])
+    cax, cay = np.cos(anchors[:, 2]), np.sin(anchors[:, 2])
+    # camera centres on the floor plane
+    ckx = pose[0] + ck * ox - cks_ * oy
+    cky = pose[1] + cks_ * ox + ck * oy
+    cax_w = anchors[:, 0] + cax * ox - cay * oy
+    cay_w = anchors[:, 1] + cay * ox + cax * oy
+    dcx, dcy = cax_w - ckx, cay_w - cky
+    m_rho_x = ck * dcx + cks_ * dcy
+    m_rho_y = -cks_ * dcx + ck * dcy
+    dth = anchors[:, 2] - pose[2]
+    cd, sd = np.cos(dth), np.sin(dth)
+    ax, ay, rho = q[:, 0], q[:, 1], q[:, 2]
+    mx = rho * m_rho_x + cd * ax - sd * ay
+    my = rho * m_rho_y + sd * ax + cd * ay
+    m = np.column_stack([mx, my])
+    m_D_pose = np.zeros((k, 2, 3))
+    m_D_pose[:, 0, 0] = -rho
+    m_D_pose[:, 1, 1] = -rho
+    m_D_pose[:, 0, 2] = my + rho * oy
+    m_D_pose[:, 1, 2] = -mx - rho * ox
+    vx, vy = rho * ox + ax, rho * oy + ay
+    m_D_anchor = np.empty((k, 2, 3))
+    m_D_anchor[:, 0, 0] = rho * cd
+    m_D_anchor[:, 0, 1] = -rho * sd
+    m_D_anchor[:, 1, 0] = rho * sd
+    m_D_anchor[:, 1, 1] = rho * cd
+    m_D_anchor[:, 0, 2] = cd * -vy - sd * vx
+    m_D_anchor[:, 1, 2] = sd * -vy + cd * vx
+    m_D_idp = np.empty((k, 2, 3))
+    m_D_idp[:, 0, 0] = cd
+    m_D_idp[:, 0, 1] = -sd
+    m_D_idp[:, 1, 0] = sd
+    m_D_idp[:, 1, 1] = cd
+    m_D_idp[:, 0, 2] = m_rho_x
+    m_D_idp[:, 1, 2] = m_rho_y
     return m, m_D_pose, m_D_anchor, m_D_idp
 
 

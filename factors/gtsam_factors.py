@@ -61,7 +61,12 @@ from typing import Any
 import gtsam
 import numpy as np
 from lampsam.arrays import FloatArray
-from lampsam.factors.ceiling import HeightPrior, lamp_axis_residual, project_inverse_depth
+from lampsam.factors.ceiling import (
+    HeightPrior,
+    lamp_axis_residual,
+    project_inverse_depth,
+    project_inverse_depth_batch,
+)
 from lampsam.factors.geometry import FactorError, wrap_angle
 from lampsam.factors.range_bearing import range_bearing
 
@@ -397,6 +402,26 @@ class InverseDepthObservation:
     cov_m: FloatArray
 
 
+def _huber_sqrt_rows(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:
+    """:func:`huber_sqrt` applied to each row of ``e`` (K, d); returns (K, d), (K, d, d)."""
+    n_rows, d = e.shape
+    norms = np.linalg.norm(e, axis=1)
+    r = e.copy()
+    r_D_e = np.broadcast_to(np.eye(d), (n_rows, d, d)).copy()
+    big = norms > k
+    if np.any(big):
+        nb = norms[big]
+        eb = e[big]
+        gb = np.sqrt(2.0 * k * nb - k * k)
+        sb = gb / nb
+        ds_dn = (k / gb - sb) / nb
+        r[big] = sb[:, None] * eb
+        r_D_e[big] = sb[:, None, None] * np.eye(d) + (ds_dn / nb)[:, None, None] * np.einsum(
+            "ki,kj->kij", eb, eb
+        )
+    return r, r_D_e
+
+
 def _sqrt_info(cov: FloatArray) -> FloatArray:
     """Upper-triangular ``W`` with ``W^T W = cov^-1`` (whitening matrix)."""
     return np.linalg.cholesky(np.linalg.inv(cov)).T
@@ -471,50 +496,52 @@ def inverse_depth_frame_factor(
     obs = list(observations)
     if not obs:
         raise FactorError("inverse_depth_frame_factor needs at least one observation")
-    keys: list[int] = [pose_key]
-    index: dict[int, int] = {pose_key: 0}
-    slots: list[tuple[int, int]] = []
+    anchor_keys: list[int] = []
+    anchor_slot: dict[int, int] = {}
+    corner_keys: list[int] = []
     for o in obs:
         if o.anchor_key == pose_key:
             raise FactorError("inverse_depth_frame_factor: anchor sight must be a prior")
-        if o.corner_key in index:
-            raise FactorError("inverse_depth_frame_factor: corner keys must be distinct")
-        if o.anchor_key not in index:
-            index[o.anchor_key] = len(keys)
-            keys.append(o.anchor_key)
-        index[o.corner_key] = len(keys)
-        keys.append(o.corner_key)
-        slots.append((index[o.anchor_key], index[o.corner_key]))
-    whiten = [_sqrt_info(_check_cov(o.cov_m, 2, "inverse depth")) for o in obs]
-    meas = [np.asarray(o.m, dtype=float).copy() for o in obs]
-    off = np.asarray(body_t_camera, dtype=float).copy()
+        if o.anchor_key not in anchor_slot:
+            anchor_slot[o.anchor_key] = len(anchor_keys)
+            anchor_keys.append(o.anchor_key)
+        corner_keys.append(o.corner_key)
+    keys = [pose_key, *anchor_keys, *corner_keys]
+    if len(set(keys)) != len(keys):
+        raise FactorError("inverse_depth_frame_factor: corner keys must be distinct")
     n = len(obs)
-    n_keys = len(keys)
+    n_anchor = len(anchor_keys)
+    which_anchor = np.array([anchor_slot[o.anchor_key] for o in obs])
+    anchor_masks = [which_anchor == u for u in range(n_anchor)]
+    whiten = np.stack([_sqrt_info(_check_cov(o.cov_m, 2, "inverse depth")) for o in obs])
+    meas = np.stack([np.asarray(o.m, dtype=float) for o in obs])
+    off = np.asarray(body_t_camera, dtype=float).copy()
+    rows = np.arange(n)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
         ks = this.keys()
-        poses = {i: _pose(values, ks[i]) for i in {0, *(a for a, _ in slots)}}
-        res = np.empty(2 * n)
-        blocks = [np.zeros((2 * n, 3)) for _ in range(n_keys)] if H is not None else None
-        for i, (ia, ic) in enumerate(slots):
-            pred, j_pose, j_anchor, j_idp = project_inverse_depth(
-                poses[0], poses[ia], values.atVector(ks[ic]), off
-            )
-            w = whiten[i]
-            e = w @ (pred - meas[i])
-            g = w
-            if robust is not None:
-                e, r_D_e = huber_sqrt(e, robust)
-                g = r_D_e @ w
-            res[2 * i : 2 * i + 2] = e
-            if blocks is not None:
-                blocks[0][2 * i : 2 * i + 2] = g @ j_pose
-                blocks[ia][2 * i : 2 * i + 2] += g @ j_anchor
-                blocks[ic][2 * i : 2 * i + 2] = g @ j_idp
-        if H is not None and blocks is not None:
-            for j in range(n_keys):
-                H[j] = blocks[j]
-        return res
+        pose = _pose(values, ks[0])
+        anchors = np.stack([_pose(values, ks[1 + u]) for u in range(n_anchor)])[which_anchor]
+        idps = np.stack([values.atVector(ks[1 + n_anchor + i]) for i in range(n)])
+        pred, j_pose, j_anchor, j_idp = project_inverse_depth_batch(pose, anchors, idps, off)
+        e = np.einsum("kij,kj->ki", whiten, pred - meas)
+        g = whiten
+        if robust is not None:
+            e, r_D_e = _huber_sqrt_rows(e, robust)
+            g = r_D_e @ whiten
+        if H is not None:
+            H[0] = (g @ j_pose).reshape(2 * n, 3)
+            g_anchor = g @ j_anchor
+            for u in range(n_anchor):
+                block = np.zeros((n, 2, 3))
+                block[anchor_masks[u]] = g_anchor[anchor_masks[u]]
+                H[1 + u] = block.reshape(2 * n, 3)
+            g_idp = g @ j_idp
+            for i in range(n):
+                block = np.zeros((n, 2, 3))
+                block[rows[i]] = g_idp[i]
+                H[1 + n_anchor + i] = block.reshape(2 * n, 3)
+        return e.reshape(2 * n)
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), keys, error)
 

@@ -23,6 +23,7 @@ from lampsam.factors.ceiling import (
     lamp_axis,
     lamp_axis_residual,
     project_inverse_depth,
+    project_inverse_depth_batch,
     project_point,
 )
 from lampsam.factors.geometry import FactorError
@@ -216,3 +217,15 @@ def test_height_prior_encodes_range() -> None:
     )
     with pytest.raises(FactorError):
         HeightPrior(h_min=3.0, h_max=2.0)
+
+
+def test_inverse_depth_batch_matches_single() -> None:
+    rng = np.random.default_rng(17)
+    pose = np.array([0.5, -1.0, 0.7])
+    anchors = np.column_stack([rng.uniform(-2, 2, (6, 2)), rng.uniform(-3, 3, 6)])
+    idps = np.column_stack([rng.uniform(-0.8, 0.8, (6, 2)), rng.uniform(0.0, 2.0, 6)])
+    batch = project_inverse_depth_batch(pose, anchors, idps, OFFSET)
+    for i in range(6):
+        single = project_inverse_depth(pose, anchors[i], idps[i], OFFSET)
+        for b, s in zip(batch, single, strict=True):
+            np.testing.assert_allclose(b[i], s, atol=1e-12)

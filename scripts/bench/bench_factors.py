@@ -1,0 +1,244 @@
+"""Benchmark: built-in vs CustomFactor, per observation vs per frame (DESIGN sec. 6).
+
+A synthetic planar drive of ``--poses`` poses under a ceiling with landmarks on a
+grid; each pose sees its ``--per-pose`` nearest landmarks (default 2,000 poses x 5 =
+10,000 observations). Timed, median of ``--repeats`` runs:
+
+* ``graph.linearize(values)`` on a Python-owned ``Values`` (no copy per callback);
+* ``LevenbergMarquardtOptimizer`` for ``--iterations`` iterations from a perturbed start
+  (callbacks from inside the optimizer: the ``Values`` copy per call).
+
+Cases:
+
+1. lamp/corner position: built-in ``PlanarProjectionFactor2`` (reference) vs a
+   ``CustomFactor`` over ``project_point`` per observation;
+2. inverse-depth corners: one ``CustomFactor`` per observation vs one per frame;
+3. lamp axes: per observation vs per frame.
+
+Ratios are against the reference of each case measured in the same run. The machine
+is shared, so absolute times are inflated; ratios are more stable.
+
+Usage: ``.venv/bin/python scripts/bench/bench_factors.py [--poses 2000 --per-pose 5]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import A, C, L, X
+from lampsam.factors.ceiling import project_inverse_depth, project_point
+from lampsam.factors.gtsam_factors import (
+    AxisObservation,
+    InverseDepthObservation,
+    inverse_depth_factor,
+    inverse_depth_first_sight_prior,
+    inverse_depth_frame_factor,
+    lamp_axis_factor,
+    lamp_axis_frame_factor,
+    noise_model,
+    odometry_factor,
+    projection_factor,
+)
+from lampsam.factors.motion import accumulate_odometry
+
+OFFSET = np.array([0.1, 0.0, 0.3])
+COV_M = np.eye(2) * 0.005**2
+
+
+def _median_time(fn: Callable[[], Any], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _world(n_poses: int, rng: np.random.Generator) -> tuple[list[np.ndarray], np.ndarray]:
+    """A lawn-mower drive over a 20 m x 10 m room and a 1 m landmark grid at 2.6-2.8 m."""
+    t = np.linspace(0.0, 1.0, n_poses)
+    x = 20.0 * t
+    y = 4.0 * np.sin(2.0 * np.pi * 3.0 * t)
+    theta = np.arctan2(np.gradient(y), np.gradient(x))
+    poses = [np.array([a, b, c]) for a, b, c in zip(x, y, theta, strict=True)]
+    gx, gy = np.meshgrid(np.arange(-0.5, 21.0, 1.0), np.arange(-5.5, 6.0, 1.0))
+    lms = np.column_stack([gx.ravel(), gy.ravel(), rng.uniform(2.6, 2.8, gx.size)])
+    return poses, lms
+
+
+def _odometry(graph: gtsam.NonlinearFactorGraph, poses: list[np.ndarray]) -> None:
+    graph.add(
+        gtsam.PriorFactorPose2(
+            X(0), gtsam.Pose2(*poses[0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-4)
+        )
+    )
+    for i in range(1, len(poses)):
+        delta = np.asarray(gtsam.Pose2(*poses[i - 1]).between(gtsam.Pose2(*poses[i])).matrix())
+        d = np.array([delta[0, 2], delta[1, 2], np.arctan2(delta[1, 0], delta[0, 0])])
+        cov = accumulate_odometry(np.array([0.01]), np.array([0.01]), 0.33, 1e-3, 1e-3)[1]
+        graph.add(odometry_factor(X(i - 1), X(i), d, cov))
+
+
+def _visible(pose: np.ndarray, lms: np.ndarray, k: int) -> np.ndarray:
+    d = np.linalg.norm(lms[:, :2] - pose[:2], axis=1)
+    return np.argsort(d)[:k]
+
+
+def _custom_projection(pose_key: int, point_key: int, m: np.ndarray) -> gtsam.CustomFactor:
+    meas = m.copy()
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> np.ndarray:
+        p = values.atPose2(this.keys()[0])
+        pred, j_pose, j_point = project_point(
+            np.array([p.x(), p.y(), p.theta()]), values.atPoint3(this.keys()[1]), OFFSET
+        )
+        if H is not None:
+            H[0], H[1] = j_pose, j_point
+        return pred - meas
+
+    return gtsam.CustomFactor(noise_model(COV_M), [pose_key, point_key], error)
+
+
+def _lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, iterations: int) -> None:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+
+
+def _perturbed(values: gtsam.Values, rng: np.random.Generator) -> gtsam.Values:
+    out = gtsam.Values()
+    for key in values.keys():
+        ch = chr(gtsam.Symbol(key).chr())
+        if ch == "x":
+            out.insert(key, values.atPose2(key).retract(rng.normal(0, 0.01, 3)))
+        elif ch == "a":
+            out.insert(key, gtsam.Rot2(values.atRot2(key).theta() + rng.normal(0, 0.02)))
+        else:
+            v = values.atVector(key)
+            out.insert(key, v + rng.normal(0, 0.01, v.shape[0]))
+    return out
+
+
+def _time_case(
+    name: str,
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    args: argparse.Namespace,
+    rng: np.random.Generator,
+) -> tuple[float, float]:
+    lin = _median_time(lambda: graph.linearize(values), args.repeats)
+    start = _perturbed(values, rng)
+    lm = _median_time(lambda: _lm(graph, start, args.iterations), args.repeats)
+    print(
+        f"  {name:<44s} factors {graph.size():6d}  linearize {lin * 1e3:9.1f} ms"
+        f"  LM({args.iterations} it) {lm * 1e3:9.1f} ms",
+        flush=True,
+    )
+    return lin, lm
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--poses", type=int, default=2000)
+    parser.add_argument("--per-pose", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--iterations", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cases", default="projection,idp,axis")
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    poses, lms = _world(args.poses, rng)
+    vis = [_visible(p, lms, args.per_pose) for p in poses]
+    n_obs = sum(len(v) for v in vis)
+    print(
+        f"{args.poses} poses, {len(lms)} landmarks, {n_obs} observations, "
+        f"median of {args.repeats} (machine shared: absolute times inflated)"
+    )
+
+    base = gtsam.Values()
+    for i, p in enumerate(poses):
+        base.insert(X(i), gtsam.Pose2(*p))
+    cases = args.cases.split(",")
+
+    if "projection" in cases:
+        print("1. position observations (Point3 landmarks)")
+        values = gtsam.Values(base)
+        for j, lm in enumerate(lms):
+            values.insert(L(j), lm)
+        g_builtin, g_custom = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+        _odometry(g_builtin, poses)
+        _odometry(g_custom, poses)
+        for i, p in enumerate(poses):
+            for j in vis[i]:
+                m = project_point(p, lms[j], OFFSET)[0]
+                g_builtin.add(projection_factor(X(i), L(int(j)), m, COV_M, OFFSET))
+                g_custom.add(_custom_projection(X(i), L(int(j)), m))
+        ref = _time_case("built-in PlanarProjectionFactor2 (ref)", g_builtin, values, args, rng)
+        cus = _time_case("CustomFactor(project_point) per observation", g_custom, values, args, rng)
+        print(
+            f"  ratio custom/built-in: linearize {cus[0] / ref[0]:.1f}x, LM {cus[1] / ref[1]:.1f}x"
+        )
+
+    if "idp" in cases:
+        print("2. inverse-depth corners (CustomFactor)")
+        values = gtsam.Values(base)
+        g_obs, g_frame = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+        _odometry(g_obs, poses)
+        _odometry(g_frame, poses)
+        anchor: dict[int, int] = {}
+        for i, p in enumerate(poses):
+            frame_obs = []
+            for j in (int(v) for v in vis[i]):
+                m = project_point(p, lms[j], OFFSET)[0]
+                if j not in anchor:
+                    anchor[j] = i
+                    idp = np.array([m[0], m[1], 1.0 / (lms[j][2] - OFFSET[2])])
+                    values.insert(C(j), idp)
+                    prior = inverse_depth_first_sight_prior(C(j), m, COV_M)
+                    g_obs.add(prior)
+                    g_frame.add(prior)
+                    continue
+                m = project_inverse_depth(p, poses[anchor[j]], values.atVector(C(j)), OFFSET)[0]
+                g_obs.add(inverse_depth_factor(X(i), X(anchor[j]), C(j), m, COV_M, OFFSET))
+                frame_obs.append(InverseDepthObservation(X(anchor[j]), C(j), m, COV_M))
+            if frame_obs:
+                g_frame.add(inverse_depth_frame_factor(X(i), frame_obs, OFFSET))
+        ref = _time_case("one CustomFactor per observation (ref)", g_obs, values, args, rng)
+        fr = _time_case("one CustomFactor per frame", g_frame, values, args, rng)
+        print(
+            f"  ratio per-frame/per-observation: linearize {fr[0] / ref[0]:.2f}x, "
+            f"LM {fr[1] / ref[1]:.2f}x"
+        )
+
+    if "axis" in cases:
+        print("3. lamp axes (CustomFactor), every observed landmark oriented")
+        values = gtsam.Values(base)
+        phis = rng.uniform(-np.pi / 2, np.pi / 2, len(lms))
+        for j, phi in enumerate(phis):
+            values.insert(A(j), gtsam.Rot2(phi))
+        g_obs, g_frame = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+        _odometry(g_obs, poses)
+        _odometry(g_frame, poses)
+        for i, p in enumerate(poses):
+            frame_obs = []
+            for j in (int(v) for v in vis[i]):
+                alpha = phis[j] - p[2]
+                g_obs.add(lamp_axis_factor(X(i), A(j), alpha, 0.02))
+                frame_obs.append(AxisObservation(A(j), alpha, 0.02))
+            g_frame.add(lamp_axis_frame_factor(X(i), frame_obs))
+        ref = _time_case("one CustomFactor per observation (ref)", g_obs, values, args, rng)
+        fr = _time_case("one CustomFactor per frame", g_frame, values, args, rng)
+        print(
+            f"  ratio per-frame/per-observation: linearize {fr[0] / ref[0]:.2f}x, "
+            f"LM {fr[1] / ref[1]:.2f}x"
+        )
+
+
+if __name__ == "__main__":
+    main()
