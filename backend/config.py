@@ -1,0 +1,207 @@
+"""Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+
+``SlamConfig`` composes the per-part configs; only ``cli.py`` reads TOML and
+builds them (``SlamConfig.from_dict``). GTSAM parameter objects are built in one
+method each (``to_gtsam()``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+from scipy.stats import chi2
+
+from lampsam.errors import EstimationError
+from lampsam.factors.ceiling import HeightPrior
+
+
+@dataclass(frozen=True)
+class MeasurementNoiseConfig:
+    """Measurement noise not carried by the observations themselves.
+
+    Attributes:
+        sigma_range: range noise of planar range-bearing observations, m
+            (default 0.15: MRCLAM's measured spread is 0.14 m).
+        sigma_bearing: bearing noise, rad (default 0.05: MRCLAM 0.046 rad).
+        var_axis_min: floor on a lamp axis variance, rad^2 (default 1e-4).
+    """
+
+    sigma_range: float = 0.15
+    sigma_bearing: float = 0.05
+    var_axis_min: float = 1e-4
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Data association, landmark initialisation and pruning (shared by all backends).
+
+    Attributes:
+        use_known_ids: use ``landmark_id`` when an observation carries one
+            (known association); otherwise associate by the gate (default True).
+        gate_prob: chi-square probability of the Mahalanobis gate, paper eq. 20
+            (default 0.99); the threshold ``d`` is ``chi2.ppf(gate_prob, dof)``.
+        new_prob: an observation farther than ``chi2.ppf(new_prob, dof)`` from every
+            landmark starts a new one; between the two thresholds it is ambiguous
+            and dropped (default 0.9999; set equal to ``gate_prob`` for the paper's
+            single threshold).
+        ncc_min: minimum normalised cross-correlation for a corner match among
+            the gated candidates (default 0.7).
+        height_min, height_max: plausible height range of ceiling landmarks above
+            the camera, m (paper: 0-5 m; default 0.5-5.0, see
+            :class:`lampsam.factors.ceiling.HeightPrior`): a Gaussian whose +-2 sigma
+            spans the range is the initialisation prior (eqs. 24-25).
+        min_observations: a landmark needs this many observations to stay in the
+            map (default 2: a landmark seen once is pruned, with a warning).
+        prune_after_steps: a landmark not re-observed for this many steps after
+            creation, with fewer than ``min_observations`` observations or a
+            position sigma above ``prune_sigma``, is removed (default 30).
+        prune_sigma: largest acceptable horizontal position sigma of a settled
+            landmark, m (default 1.0).
+    """
+
+    use_known_ids: bool = True
+    gate_prob: float = 0.99
+    new_prob: float = 0.9999
+    ncc_min: float = 0.7
+    height_min: float = 0.5
+    height_max: float = 5.0
+    min_observations: int = 2
+    prune_after_steps: int = 30
+    prune_sigma: float = 1.0
+
+    def height_prior(self) -> HeightPrior:
+        """The factors' :class:`HeightPrior` for ``[height_min, height_max]``."""
+        return HeightPrior(self.height_min, self.height_max)
+
+    def gate(self, dof: int) -> float:
+        """Mahalanobis gate ``d`` of paper eq. 20 for a ``dof``-dimensional innovation."""
+        return float(chi2.ppf(self.gate_prob, dof))
+
+    def new_threshold(self, dof: int) -> float:
+        """Squared Mahalanobis distance beyond which an observation starts a new landmark."""
+        return float(chi2.ppf(max(self.new_prob, self.gate_prob), dof))
+
+
+@dataclass(frozen=True)
+class EkfConfig:
+    """The paper's EKF-SLAM.
+
+    Attributes:
+        sigma_start_xy: standard deviation of the known start position, m (default 1e-3).
+        sigma_start_theta: of the start heading, rad (default 1e-3).
+        var_floor: additive floor on the pose process covariance per step,
+            m^2 and rad^2 (default 1e-10, only to keep P positive definite at rest).
+    """
+
+    sigma_start_xy: float = 1e-3
+    sigma_start_theta: float = 1e-3
+    var_floor: float = 1e-10
+
+
+@dataclass(frozen=True)
+class Isam2Config:
+    """Online smoothing with iSAM2.
+
+    Attributes:
+        keyframe_distance: make a keyframe after this much travel, m (default 0.1).
+        keyframe_angle: or after this much rotation, rad (default 0.15).
+        every_frame: make every frame with observations a keyframe (default False).
+        relinearize_threshold: iSAM2 relinearisation threshold (default 0.01).
+        relinearize_skip: relinearise every this many updates (default 1).
+        extra_updates: extra ``update()`` calls per keyframe (default 0).
+        sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad).
+        pose_cov_every_step: compute the pose marginal after every keyframe update
+            (default True; it is needed for the gate).
+    """
+
+    keyframe_distance: float = 0.1
+    keyframe_angle: float = 0.15
+    every_frame: bool = False
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+    extra_updates: int = 0
+    sigma_start_xy: float = 1e-3
+    sigma_start_theta: float = 1e-3
+    pose_cov_every_step: bool = True
+
+    def to_gtsam(self) -> gtsam.ISAM2Params:
+        """The ``gtsam.ISAM2Params`` for this config."""
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.relinearize_threshold)
+        params.relinearizeSkip = self.relinearize_skip
+        return params
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """Offline Levenberg-Marquardt over the whole run.
+
+    Attributes:
+        init: ``"isam2"`` (start LM from the online iSAM2 estimate, default) or
+            ``"odometry"`` (start from odometry and first-sight landmark estimates;
+            association then uses that running estimate).
+        huber_k: Huber threshold in sigmas for measurement factors, or None for
+            plain Gaussian noise (default None).
+        max_iterations: LM iterations (default 100).
+        relative_error_tol: LM relative error decrease to stop (default 1e-6).
+    """
+
+    init: str = "isam2"
+    huber_k: float | None = None
+    max_iterations: int = 100
+    relative_error_tol: float = 1e-6
+
+    def to_gtsam(self) -> gtsam.LevenbergMarquardtParams:
+        """The ``gtsam.LevenbergMarquardtParams`` for this config."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.max_iterations)
+        params.setRelativeErrorTol(self.relative_error_tol)
+        return params
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Everything :func:`lampsam.backend.slam.run_slam` needs.
+
+    Attributes:
+        features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
+        association, noise, ekf, isam2, batch: the parts above.
+    """
+
+    features: tuple[str, ...] = ("lamps", "corners")
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    noise: MeasurementNoiseConfig = field(default_factory=MeasurementNoiseConfig)
+    ekf: EkfConfig = field(default_factory=EkfConfig)
+    isam2: Isam2Config = field(default_factory=Isam2Config)
+    batch: BatchConfig = field(default_factory=BatchConfig)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> SlamConfig:
+        """Build from nested tables (``[association]``, ``[ekf]``, ...; a TOML file's).
+
+        Raises:
+            EstimationError: an unknown table or key.
+        """
+        parts: dict[str, Any] = {}
+        sub = {
+            "association": AssociationConfig,
+            "noise": MeasurementNoiseConfig,
+            "ekf": EkfConfig,
+            "isam2": Isam2Config,
+            "batch": BatchConfig,
+        }
+        for key, value in data.items():
+            if key == "features":
+                parts["features"] = tuple(value)
+            elif key in sub:
+                names = {f.name for f in dataclasses.fields(sub[key])}
+                unknown = set(value) - names
+                if unknown:
+                    raise EstimationError(f"config [{key}]: unknown keys {sorted(unknown)}")
+                parts[key] = sub[key](**value)
+            else:
+                raise EstimationError(f"config: unknown table or key {key!r}")
+        return cls(**parts)

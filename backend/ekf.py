@@ -1,0 +1,391 @@
+"""The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
+
+State ``X = [x, y, theta, landmark_1, ..., landmark_n]`` (plain coordinates, world
+frame; landmark states in :mod:`lampsam.backend.models`), covariance ``P``.
+
+- Prediction (eqs. 13-15): only the robot block changes. With ``F_x`` the robot
+  Jacobian and ``F_u Q F_u^T`` the wheel noise, ``P_RR <- F_x P_RR F_x^T + F_u Q F_u^T``
+  and ``P_RM <- F_x P_RM``; the landmark block ``P_MM`` is untouched. Several odometry
+  increments between two frames are composed on the 3x3 block first, so a step
+  costs O(n) regardless of the odometry rate. No dense ``F P F^T``.
+- Gate (eqs. 19-20) and association: :mod:`lampsam.backend.association`.
+- Update (eqs. 21-23), one observation at a time: ``H`` has nonzero columns only
+  for the robot and one landmark, so ``P H^T = P[:, R] H_R^T + P[:, L] H_L^T``
+  (n x k), ``K = P H^T Psi^-1`` and ``P <- P - K (P H^T)^T``, which equals
+  ``(I - K H) P`` (eq. 23).
+- Augmentation (eqs. 24-25) with the full cross-covariance
+  ``P_new,all = grad g_R P[R, :]`` and
+  ``P_new,new = grad g_R P_RR grad g_R^T + grad g_Z P_new grad g_Z^T``; ceiling
+  landmarks carry the 0-5 m height prior in ``P_new``.
+- Removal of landmarks that stay uncertain or are seen only once (paper sec. IV):
+  rows and columns deleted.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.association import associate
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.interface import (
+    Frame,
+    LandmarkEstimate,
+    SlamBackend,
+    SlamResult,
+    StepEstimate,
+)
+from lampsam.backend.models import Obs, initialize, observations_from_frame, predict, residual
+from lampsam.errors import EstimationError
+from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
+from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
+
+log = logging.getLogger(__name__)
+
+
+class WheelParams(Protocol):
+    """What the backends need of the odometry model (``lampsam.datasets.logrun.OdometryModel``)."""
+
+    wheel_base: float
+    k_r: float
+    k_l: float
+
+
+@dataclass
+class _Slot:
+    """Book-keeping of one landmark in the EKF state."""
+
+    id: int
+    kind: str
+    offset: int
+    dim: int
+    n_obs: int
+    created: int
+    last_seen: int
+    patch: Any = None
+
+
+def check_wheel(t: float, wheel: FloatArray) -> FloatArray:
+    """Validate a step's wheel travels.
+
+    Args:
+        t: step time, s (for the message).
+        wheel: (K, 2) ``(d_left, d_right)`` travels, m.
+
+    Returns:
+        The travels as a float (K, 2) array.
+
+    Raises:
+        EstimationError: wrong shape or NaN / inf.
+    """
+    arr = np.asarray(wheel, dtype=float).reshape(-1, 2)
+    if not np.all(np.isfinite(arr)):
+        raise EstimationError(f"t={t:.3f} s: odometry increment is NaN or inf")
+    return arr
+
+
+class EkfSlam(SlamBackend):
+    """EKF-SLAM of paper 1 behind the :class:`SlamBackend` interface.
+
+    Args:
+        wheel: wheel base and noise constants (eq. 15).
+        config: the SLAM config (association, noise, EKF part).
+        start_pose: (3,) known start pose ``world_T_body``.
+        ceiling: the ceiling observation model (for lamps/corners), or None for
+            range-bearing runs.
+    """
+
+    name = "ekf"
+
+    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 ceiling: Any = None) -> None:
+        self.wheel = wheel
+        self.config = config
+        self.ceiling = ceiling
+        cap = 64
+        self._x = np.zeros(cap)
+        self._P = np.zeros((cap, cap))
+        self._n = 3
+        self._x[:3] = np.asarray(start_pose, float)
+        cfg = config.ekf
+        self._P[:3, :3] = np.diag([cfg.sigma_start_xy**2, cfg.sigma_start_xy**2,
+                                   cfg.sigma_start_theta**2])
+        self._slots: dict[int, _Slot] = {}
+        self._next_id = 0
+        self._step = 0
+        self._last_t = -math.inf
+        self._times: list[float] = []
+        self._poses: list[FloatArray] = []
+        self._covs: list[FloatArray] = []
+        self._step_times: list[float] = []
+        self._keyframes: list[bool] = []
+        self.n_pruned = 0
+
+    # ------------------------------------------------------------------ state
+    @property
+    def x(self) -> FloatArray:
+        """(n,) the current state vector (a view)."""
+        return self._x[: self._n]
+
+    @property
+    def P(self) -> FloatArray:
+        """(n, n) the current covariance (a view)."""
+        return self._P[: self._n, : self._n]
+
+    def _grow(self, extra: int) -> None:
+        need = self._n + extra
+        cap = len(self._x)
+        if need <= cap:
+            return
+        new_cap = max(need, 2 * cap)
+        x = np.zeros(new_cap)
+        p = np.zeros((new_cap, new_cap))
+        x[: self._n] = self.x
+        p[: self._n, : self._n] = self.P
+        self._x, self._P = x, p
+
+    # ------------------------------------------------------------------ eqs. 13-15
+    def predict(self, wheel: FloatArray) -> None:
+        """Prediction with the wheel travels of several odometry samples (eqs. 13-15).
+
+        Args:
+            wheel: (K, 2) ``(d_left, d_right)`` per sample, m.
+        """
+        if len(wheel) == 0:
+            return
+        b, k_r, k_l = self.wheel.wheel_base, self.wheel.k_r, self.wheel.k_l
+        pose = self._x[:3].copy()
+        f_tot = np.eye(3)
+        q_acc = np.zeros((3, 3))
+        for d_left, d_right in wheel:
+            pose, f_x, f_u = diff_drive_step(pose, float(d_left), float(d_right), b)
+            q_acc = f_x @ q_acc @ f_x.T + f_u @ wheel_noise_cov(d_left, d_right, k_r, k_l) @ f_u.T
+            f_tot = f_x @ f_tot
+        n = self._n
+        P = self._P
+        P[:3, :3] = f_tot @ P[:3, :3] @ f_tot.T + q_acc + self.config.ekf.var_floor * np.eye(3)
+        if n > 3:
+            P[:3, 3:n] = f_tot @ P[:3, 3:n]
+            P[3:n, :3] = P[:3, 3:n].T
+        self._x[:3] = pose
+
+    # ------------------------------------------------------------------ prediction helpers
+    def _h(self, slot: _Slot, obs: Obs | None) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Predicted measurement and coordinate Jacobians (robot, landmark)."""
+        pose = self._x[:3]
+        state = self._x[slot.offset : slot.offset + slot.dim]
+        z_hat, z_D_pose, z_D_l = predict(slot.kind, pose, state, obs, self.ceiling)
+        return z_hat, z_D_pose @ tangent_D_coords(pose[2]), z_D_l
+
+    def _innovation(self, lid: int, obs: Obs) -> tuple[FloatArray, FloatArray] | None:
+        """``(nu, Psi)`` of eq. 19 for landmark ``lid`` and ``obs``."""
+        slot = self._slots[lid]
+        try:
+            z_hat, h_r, h_l = self._h(slot, obs)
+        except Exception:  # landmark behind / at the camera: not predictable here
+            return None
+        o, d = slot.offset, slot.dim
+        P = self._P
+        p_rr, p_rl, p_ll = P[:3, :3], P[:3, o : o + d], P[o : o + d, o : o + d]
+        cross = h_r @ p_rl @ h_l.T
+        psi = h_r @ p_rr @ h_r.T + cross + cross.T + h_l @ p_ll @ h_l.T + obs.R
+        return residual(obs, z_hat), psi
+
+    def _candidates(self) -> dict[str, list[int]]:
+        cands: dict[str, list[int]] = {}
+        pose = self._x[:3]
+        for lid, slot in self._slots.items():
+            if self.ceiling is not None and slot.kind != "point2":
+                state = self._x[slot.offset : slot.offset + slot.dim]
+                if not self.ceiling.in_view(pose, state):
+                    continue
+            cands.setdefault(slot.kind, []).append(lid)
+        return cands
+
+    # ------------------------------------------------------------------ eqs. 21-23
+    def _update(self, slot: _Slot, obs: Obs) -> bool:
+        """One EKF update (eqs. 21-23) with one observation of one landmark."""
+        try:
+            z_hat, h_r, h_l = self._h(slot, obs)
+        except Exception as exc:
+            log.debug("landmark %d not predictable: %s", slot.id, exc)
+            return False
+        n, o, d = self._n, slot.offset, slot.dim
+        P = self._P[:n, :n]
+        pht = P[:, :3] @ h_r.T + P[:, o : o + d] @ h_l.T  # (n, k)
+        psi = h_r @ pht[:3] + h_l @ pht[o : o + d] + obs.R
+        psi = 0.5 * (psi + psi.T)
+        try:
+            gain = np.linalg.solve(psi, pht.T).T  # (n, k), eq. 21
+        except np.linalg.LinAlgError:
+            return False
+        nu = residual(obs, z_hat)
+        self._x[:n] += gain @ nu  # eq. 22
+        self._x[2] = wrap_angle(float(self._x[2]))
+        P -= gain @ pht.T  # eq. 23: (I - K H) P
+        P[:] = 0.5 * (P + P.T)
+        if slot.kind == "lamp" and slot.dim == 4:
+            self._x[o + 3] = wrap_axis(float(self._x[o + 3]))
+        slot.n_obs += 1
+        slot.last_seen = self._step
+        return True
+
+    # ------------------------------------------------------------------ eqs. 24-25
+    def _augment(self, obs: Obs, lid: int | None) -> int | None:
+        """Add a landmark from one observation with the full cross-covariance (eqs. 24-25)."""
+        pose = self._x[:3].copy()
+        try:
+            state, g_pose, g_z, cov_z = initialize(pose, obs, self.config.association,
+                                                   self.ceiling)
+        except Exception as exc:
+            log.debug("cannot initialise a landmark: %s", exc)
+            return None
+        g_r = g_pose @ tangent_D_coords(pose[2])  # right tangent -> coordinates
+        d = len(state)
+        self._grow(d)
+        n = self._n
+        P = self._P
+        P[n : n + d, :n] = g_r @ P[:3, :n]
+        P[:n, n : n + d] = P[n : n + d, :n].T
+        P[n : n + d, n : n + d] = g_r @ P[:3, :3] @ g_r.T + g_z @ cov_z @ g_z.T
+        self._x[n : n + d] = state
+        if lid is None:
+            lid = self._new_id()
+        else:
+            self._next_id = max(self._next_id, lid + 1)
+        self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch)
+        self._n = n + d
+        return lid
+
+    def _new_id(self) -> int:
+        while self._next_id in self._slots:
+            self._next_id += 1
+        lid = self._next_id
+        self._next_id += 1
+        return lid
+
+    # ------------------------------------------------------------------ pruning
+    def _remove(self, lids: list[int]) -> None:
+        if not lids:
+            return
+        keep = np.ones(self._n, dtype=bool)
+        for lid in lids:
+            s = self._slots.pop(lid)
+            keep[s.offset : s.offset + s.dim] = False
+        idx = np.flatnonzero(keep)
+        x = self.x[idx].copy()
+        P = self.P[np.ix_(idx, idx)].copy()
+        self._n = len(idx)
+        self._x[: self._n] = x
+        self._P[: self._n, : self._n] = P
+        new_offset = np.cumsum(keep) - 1
+        for s in self._slots.values():
+            s.offset = int(new_offset[s.offset])
+        self.n_pruned += len(lids)
+
+    def _prune(self) -> None:
+        """Remove landmarks seen once long ago, or still uncertain after a while."""
+        cfg = self.config.association
+        drop = []
+        for lid, s in self._slots.items():
+            idle = self._step - s.last_seen
+            age = self._step - s.created
+            if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
+                drop.append(lid)
+            elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
+                cov = self._P[s.offset : s.offset + 2, s.offset : s.offset + 2]
+                if math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)) > cfg.prune_sigma:
+                    drop.append(lid)
+        if drop:
+            log.debug("pruning %d landmarks", len(drop))
+        self._remove(drop)
+
+    # ------------------------------------------------------------------ interface
+    def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
+        """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal."""
+        t0 = time.perf_counter()
+        if t < self._last_t:
+            raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
+        self._last_t = t
+        self.predict(check_wheel(t, wheel))
+        n_matched = n_new = 0
+        if frame is not None:
+            obs = observations_from_frame(frame, self.config.features, self.config.noise)
+            if obs:
+                patches = {lid: s.patch for lid, s in self._slots.items() if s.kind == "corner"}
+                assignments = associate(obs, self._candidates(), self._innovation,
+                                        self.config.association, lambda i: i in self._slots,
+                                        patches)
+                for a in assignments:
+                    if a.status == "matched" and a.landmark_id in self._slots:
+                        n_matched += self._update(self._slots[a.landmark_id], obs[a.obs_index])
+                for a in assignments:
+                    if a.status == "new":
+                        n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
+        self._prune()
+        self._step += 1
+        dt = time.perf_counter() - t0
+        pose = self._x[:3].copy()
+        cov = self._P[:3, :3].copy()
+        self._times.append(t)
+        self._poses.append(pose)
+        self._covs.append(cov)
+        self._step_times.append(dt)
+        self._keyframes.append(n_matched + n_new > 0)
+        return StepEstimate(t, pose, cov, n_matched + n_new > 0, n_matched, n_new, dt)
+
+    def landmarks(self) -> list[LandmarkEstimate]:
+        """The current map (landmarks with at least ``min_observations`` observations)."""
+        out = []
+        for s in self._slots.values():
+            if s.n_obs < self.config.association.min_observations:
+                continue
+            st = self._x[s.offset : s.offset + s.dim].copy()
+            cov = self._P[s.offset : s.offset + s.dim, s.offset : s.offset + s.dim].copy()
+            out.append(landmark_estimate(s.id, s.kind, st, cov, s.n_obs, self.ceiling))
+        return out
+
+    def finish(self, status: str = "ok") -> SlamResult:
+        """See :meth:`SlamBackend.finish`; landmarks seen once are pruned with a warning."""
+        once = [lid for lid, s in self._slots.items()
+                if s.n_obs < self.config.association.min_observations]
+        if once:
+            log.warning("%d landmarks seen fewer than %d times were pruned", len(once),
+                        self.config.association.min_observations)
+        self._remove(once)
+        return SlamResult(
+            backend=self.name,
+            times=np.asarray(self._times, float),
+            poses=np.asarray(self._poses, float).reshape(-1, 3),
+            pose_covs=np.asarray(self._covs, float).reshape(-1, 3, 3),
+            landmarks=self.landmarks(),
+            step_times_s=np.asarray(self._step_times, float),
+            keyframes=np.asarray(self._keyframes, bool),
+            status=status,
+            n_pruned=self.n_pruned,
+        )
+
+
+def landmark_estimate(lid: int, kind: str, state: FloatArray, cov: FloatArray, n_obs: int,
+                      ceiling: Any = None) -> LandmarkEstimate:
+    """A :class:`LandmarkEstimate` from a landmark state in EKF form.
+
+    Args:
+        lid: id; kind: landmark kind; state: (d,) EKF-form state; cov: (d, d).
+        n_obs: observations used.
+        ceiling: the ceiling model (its ``world_position`` maps a ceiling state to
+            world (x, y, z)), or None.
+    """
+    if kind == "point2":
+        return LandmarkEstimate(lid, kind, np.array([state[0], state[1], np.nan]), None, cov, n_obs)
+    position = np.asarray(state[:3], float)
+    if ceiling is not None and hasattr(ceiling, "world_position"):
+        position = ceiling.world_position(state)
+    orient = float(wrap_axis(float(state[3]))) if len(state) == 4 else None
+    return LandmarkEstimate(lid, kind, position, orient, cov, n_obs)

@@ -1,0 +1,592 @@
+"""Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
+
+Both build the same graph (DESIGN sec. 4):
+
+- keyframe poses ``X(k)`` (``Pose2``), a prior on the known start pose;
+- odometry ``BetweenFactorPose2`` between consecutive keyframes, its covariance the
+  wheel noise propagated through eqs. 13-15
+  (:func:`lampsam.factors.motion.accumulate_odometry`, with its floor);
+- measurement factors built by a per-kind landmark handler
+  (:class:`Point2Handler` for planar range-bearing: GTSAM's built-in
+  ``BearingRangeFactor2D``; :class:`lampsam.backend.ceiling_graph.CeilingHandler`
+  for lamps and corners).
+
+Keyframes: a frame becomes a keyframe when the robot has moved
+``keyframe_distance`` or turned ``keyframe_angle`` since the last one (or always,
+``every_frame``); other frames' observations are not used by the smoothers. Between
+keyframes the current pose is the last keyframe estimate composed with the
+odometry since then, with the covariance propagated to first order
+(``Sigma = Ad(delta^-1) Sigma_k Ad(delta^-1)^T + Sigma_delta`` in the right tangent).
+
+New variables are initialised from the current estimate plus odometry, never from a
+file's dead reckoning (DESIGN sec. 6). A landmark enters the graph only when it has
+``min_observations`` observations (delayed, so a single sight never makes an
+indeterminate system); until then it is "pending" with its first-sight estimate and
+covariance (eq. 25's marginal), against which association gates too. Pending
+landmarks that never get a second observation are pruned with a warning.
+
+Association uses iSAM2's marginals (``marginalCovariance`` of the pose and of each
+candidate landmark; the pose-landmark cross term is neglected). The batch backend
+runs the same online pass (``init = "isam2"``) or a pure odometry pass
+(``init = "odometry"``: running estimate = dead reckoning, suitable with known
+association) and then one LM over the whole graph.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.association import associate
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.ekf import WheelParams, check_wheel, landmark_estimate
+from lampsam.backend.interface import (
+    Frame,
+    LandmarkEstimate,
+    SlamBackend,
+    SlamResult,
+    StepEstimate,
+)
+from lampsam.backend.models import Obs, initialize, observations_from_frame, predict, residual
+from lampsam.errors import EstimationError
+from lampsam.factors.geometry import coords_D_tangent, wrap_angle
+from lampsam.factors.motion import DEFAULT_FLOOR_VAR, accumulate_odometry
+
+log = logging.getLogger(__name__)
+
+#: Variance floor used for the per-step odometry composition (the factor's own floor
+#: is added once per keyframe).
+_STEP_FLOOR = 1e-14
+
+
+def tangent_to_coords_cov(pose: FloatArray, cov_t: FloatArray) -> FloatArray:
+    """Covariance in GTSAM's right tangent -> over plain coordinates (x, y, theta).
+
+    Args:
+        pose: (3,) the pose; cov_t: (3, 3) tangent covariance.
+
+    Returns:
+        (3, 3) ``J cov_t J^T`` with ``J = blockdiag(R(theta), 1)``.
+    """
+    j = coords_D_tangent(float(pose[2]))
+    return j @ cov_t @ j.T
+
+
+def compose_cov(delta: FloatArray, cov_a: FloatArray, cov_b: FloatArray) -> FloatArray:
+    """Right-tangent covariance of ``a * b`` from those of ``a`` and ``b`` (first order).
+
+    Args:
+        delta: (3,) the pose ``b``.
+        cov_a: (3, 3) covariance of ``a`` (tangent at ``a``).
+        cov_b: (3, 3) covariance of ``b`` (tangent at ``b``), independent of ``a``.
+
+    Returns:
+        (3, 3) ``Ad(b^-1) cov_a Ad(b^-1)^T + cov_b``.
+    """
+    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+    return ad @ cov_a @ ad.T + cov_b
+
+
+@dataclass
+class _Landmark:
+    """A landmark known to a graph backend."""
+
+    id: int
+    kind: str
+    in_graph: bool
+    n_obs: int
+    state: FloatArray  # EKF-form estimate (pending: first sight; in graph: cache)
+    cov: FloatArray  # its covariance (pending: eq. 25 marginal; in graph: cache)
+    pending: list[tuple[int, Obs]] = field(default_factory=list)  # (keyframe, obs)
+    patch: Any = None
+    oriented: bool = False
+
+
+class Point2Handler:
+    """Planar range-bearing landmarks in the graph: ``Point2`` + ``BearingRangeFactor2D``."""
+
+    kind = "point2"
+
+    def insert(self, lm: _Landmark, values: gtsam.Values) -> None:
+        """Insert the landmark's variable(s) with its current estimate."""
+        values.insert(L(lm.id), np.asarray(lm.state[:2], float))
+
+    def priors(self, lm: _Landmark, graph: gtsam.NonlinearFactorGraph,
+               pose_of: Any, config: SlamConfig) -> None:
+        """No prior is needed for a planar landmark seen twice."""
+
+    def factor(self, lm: _Landmark, k: int, obs: Obs, noise: Any, pose_of: Any
+               ) -> gtsam.NonlinearFactor:
+        """``BearingRangeFactor2D(X(k), L(id), bearing, range)`` (built-in C++)."""
+        return gtsam.BearingRangeFactor2D(X(k), L(lm.id), gtsam.Rot2(float(obs.z[0])),
+                                          float(obs.z[1]), noise)
+
+    def read(self, lm: _Landmark, get: Any) -> FloatArray:
+        """EKF-form state from an estimate source (``get(key, "point2")``)."""
+        return np.asarray(get(L(lm.id), "point2"), float)
+
+    def marginal(self, lm: _Landmark, marginal_of: Any) -> FloatArray:
+        """Covariance of the EKF-form state from a marginal source."""
+        return np.asarray(marginal_of(L(lm.id)))
+
+    def keys(self, lm: _Landmark) -> list[int]:
+        """Graph keys of the landmark."""
+        return [L(lm.id)]
+
+
+class GraphSlam(SlamBackend):
+    """Shared machinery of the iSAM2 and batch backends (see module docstring).
+
+    Args:
+        wheel: wheel base and noise constants (eq. 15).
+        config: the SLAM config.
+        start_pose: (3,) known start pose.
+        ceiling: :class:`lampsam.backend.ceiling.CeilingModel` (lamps/corners) or None.
+        ceiling_handler: graph handler for ceiling kinds, or None.
+        online: keep an iSAM2 estimate (True) or only odometry (False).
+    """
+
+    name = "graph"
+
+    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 ceiling: Any = None, ceiling_handler: Any = None, online: bool = True) -> None:
+        self.wheel = wheel
+        self.config = config
+        self.ceiling = ceiling
+        self.handlers: dict[str, Any] = {"point2": Point2Handler()}
+        if ceiling_handler is not None:
+            self.handlers["lamp"] = ceiling_handler
+            self.handlers["corner"] = ceiling_handler
+        self.online = online
+        self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
+        self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
+        self.initial = gtsam.Values()  # initial guesses of every variable
+        self._new_graph = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        cfg = config.isam2
+        start = np.asarray(start_pose, float)
+        prior_sigmas = np.array([cfg.sigma_start_xy, cfg.sigma_start_xy, cfg.sigma_start_theta])
+        self._add_value(X(0), gtsam.Pose2(*start))
+        self._add_factor(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*start),
+                                                gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
+        self._kf_pose = start.copy()  # current estimate of the last keyframe
+        self._kf_cov = np.diag(prior_sigmas**2)  # its tangent covariance
+        self._kf_poses: list[FloatArray] = [start.copy()]  # running (odometry-pass) estimates
+        self._k = 0
+        self._delta = np.zeros(3)
+        self._delta_cov = np.zeros((3, 3))
+        self._wheel_since_kf: list[FloatArray] = []
+        self._landmarks: dict[int, _Landmark] = {}
+        self._next_id = 0
+        self._last_t = -math.inf
+        self._pending_update = True
+        # per-step records
+        self._times: list[float] = []
+        self._step_kf: list[int] = []
+        self._step_delta: list[FloatArray] = []
+        self._step_delta_cov: list[FloatArray] = []
+        self._step_online_pose: list[FloatArray] = []
+        self._step_online_cov: list[FloatArray] = []
+        self._step_times: list[float] = []
+        self._keyframes: list[bool] = []
+        self.update_times: list[float] = []
+        self.n_pruned = 0
+        self._flush()
+
+    # ------------------------------------------------------------------ graph building
+    def _add_value(self, key: int, value: Any) -> None:
+        self._new_values.insert(key, value)
+        self.initial.insert(key, value)
+
+    def _add_factor(self, factor: gtsam.NonlinearFactor) -> None:
+        self._new_graph.add(factor)
+        self.graph.add(factor)
+
+    def _noise(self, cov: FloatArray) -> Any:
+        """Measurement noise model; Huber-robust when the batch config asks for it."""
+        base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float))
+        k = self.config.batch.huber_k
+        if k is not None and self.name == "batch":
+            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+        return base
+
+    def _flush(self) -> None:
+        """Send the new factors and values to iSAM2 (one update)."""
+        if self.isam is None:
+            self._new_graph = gtsam.NonlinearFactorGraph()
+            self._new_values = gtsam.Values()
+            return
+        t0 = time.perf_counter()
+        try:
+            self.isam.update(self._new_graph, self._new_values)
+            for _ in range(self.config.isam2.extra_updates):
+                self.isam.update()
+        except RuntimeError as exc:
+            raise EstimationError(f"iSAM2 update failed at keyframe {self._k}: {exc}") from exc
+        self._new_graph = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._kf_pose = _pose_array(self.isam.calculateEstimatePose2(X(self._k)))
+        if self.config.isam2.pose_cov_every_step:
+            self._kf_cov = np.asarray(self.isam.marginalCovariance(X(self._k)))
+        self.update_times.append(time.perf_counter() - t0)
+
+    # ------------------------------------------------------------------ estimates
+    def _get(self, key: int, kind: str) -> Any:
+        if self.isam is not None and self.isam.valueExists(key):
+            if kind == "point2":
+                return self.isam.calculateEstimatePoint2(key)
+            if kind == "point3":
+                return self.isam.calculateEstimatePoint3(key)
+            if kind == "rot2":
+                return self.isam.calculateEstimateRot2(key)
+            if kind == "vector":
+                return self.isam.calculateEstimateVector(key)
+            if kind == "pose2":
+                return self.isam.calculateEstimatePose2(key)
+        values = self.initial
+        if kind == "point2":
+            return values.atPoint2(key)
+        if kind == "point3":
+            return values.atPoint3(key)
+        if kind == "rot2":
+            return values.atRot2(key)
+        if kind == "vector":
+            return values.atVector(key)
+        return values.atPose2(key)
+
+    def _pose_of(self, k: int) -> FloatArray:
+        """Current estimate of keyframe ``k``."""
+        if k == self._k:
+            return self._kf_pose
+        if self.isam is not None:
+            return _pose_array(self.isam.calculateEstimatePose2(X(k)))
+        return self._kf_poses[k]
+
+    def current(self) -> tuple[FloatArray, FloatArray]:
+        """Current pose (3,) and its tangent covariance (3, 3)."""
+        pose = gtsam.Pose2(*self._kf_pose).compose(gtsam.Pose2(*self._delta))
+        cov = compose_cov(self._delta, self._kf_cov, self._delta_cov)
+        return _pose_array(pose), cov
+
+    def _refresh_landmark(self, lm: _Landmark) -> None:
+        """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""
+        if not lm.in_graph or self.isam is None:
+            return
+        handler = self.handlers[lm.kind]
+        lm.state = handler.read(lm, self._get)
+        try:
+            lm.cov = handler.marginal(lm, self.isam.marginalCovariance)
+        except RuntimeError:
+            pass
+
+    # ------------------------------------------------------------------ association
+    def _innovation(self, pose: FloatArray, pose_cov: FloatArray, lid: int, obs: Obs
+                    ) -> tuple[FloatArray, FloatArray] | None:
+        lm = self._landmarks[lid]
+        try:
+            z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
+        except Exception:
+            return None
+        psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + obs.R
+        return residual(obs, z_hat), psi
+
+    def _candidates(self, pose: FloatArray) -> dict[str, list[int]]:
+        cands: dict[str, list[int]] = {}
+        for lid, lm in self._landmarks.items():
+            if self.ceiling is not None and lm.kind != "point2":
+                if not self.ceiling.in_view(pose, lm.state):
+                    continue
+            cands.setdefault(lm.kind, []).append(lid)
+        return cands
+
+    def _new_id(self) -> int:
+        while self._next_id in self._landmarks:
+            self._next_id += 1
+        lid = self._next_id
+        self._next_id += 1
+        return lid
+
+    # ------------------------------------------------------------------ keyframe
+    def _is_keyframe(self) -> bool:
+        cfg = self.config.isam2
+        if cfg.every_frame:
+            return True
+        return bool(math.hypot(self._delta[0], self._delta[1]) >= cfg.keyframe_distance
+                    or abs(self._delta[2]) >= cfg.keyframe_angle)
+
+    def _make_keyframe(self, obs: list[Obs]) -> tuple[int, int]:
+        """Add a keyframe with its odometry factor and the frame's observations."""
+        pose, pose_cov = self.current()
+        wheel = np.concatenate(self._wheel_since_kf) if self._wheel_since_kf else np.zeros((0, 2))
+        w = self.wheel
+        delta, cov = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
+                                         DEFAULT_FLOOR_VAR)
+        k = self._k + 1
+        self._add_value(X(k), gtsam.Pose2(*pose))
+        self._add_factor(gtsam.BetweenFactorPose2(X(k - 1), X(k), gtsam.Pose2(*delta),
+                                                  gtsam.noiseModel.Gaussian.Covariance(cov)))
+        self._k = k
+        self._kf_poses.append(pose.copy())
+        n_matched = n_new = 0
+        if obs:
+            gating = not self.config.association.use_known_ids or any(
+                o.landmark_id is None for o in obs)
+            if gating:  # marginals are needed only to gate
+                for ids in self._candidates(pose).values():
+                    for lid in ids:
+                        self._refresh_landmark(self._landmarks[lid])
+            patches = {lid: lm.patch for lid, lm in self._landmarks.items() if lm.kind == "corner"}
+            assignments = associate(
+                obs, self._candidates(pose),
+                lambda lid, o: self._innovation(pose, pose_cov, lid, o),
+                self.config.association, lambda i: i in self._landmarks, patches)
+            for a in assignments:
+                o = obs[a.obs_index]
+                if a.status == "matched" and a.landmark_id in self._landmarks:
+                    lm = self._landmarks[a.landmark_id]
+                    if lm.kind != o.kind:
+                        continue
+                    self._observe(lm, k, o)
+                    n_matched += 1
+                elif a.status == "new":
+                    n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
+        # The keyframe's own estimate: the prediction until iSAM2 updates it.
+        self._kf_pose = pose
+        self._kf_cov = pose_cov
+        self._delta = np.zeros(3)
+        self._delta_cov = np.zeros((3, 3))
+        self._wheel_since_kf = []
+        self._flush()
+        return n_matched, n_new
+
+    def _start_landmark(self, pose: FloatArray, pose_cov: FloatArray, k: int, obs: Obs,
+                        lid: int | None) -> int:
+        try:
+            state, g_pose, g_z, cov_z = initialize(pose, obs, self.config.association,
+                                                   self.ceiling)
+        except Exception as exc:
+            log.debug("cannot initialise a landmark: %s", exc)
+            return 0
+        cov = g_pose @ pose_cov @ g_pose.T + g_z @ cov_z @ g_z.T
+        if lid is None:
+            lid = self._new_id()
+        else:
+            self._next_id = max(self._next_id, lid + 1)
+        oriented = obs.kind == "lamp" and obs.has_axis
+        lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented)
+        self._landmarks[lid] = lm
+        if self.config.association.min_observations <= 1:
+            self._enter_graph(lm)
+        return 1
+
+    def _observe(self, lm: _Landmark, k: int, obs: Obs) -> None:
+        lm.n_obs += 1
+        if lm.in_graph:
+            self._add_factor(self.handlers[lm.kind].factor(lm, k, obs, self._noise(obs.R),
+                                                           self._pose_of))
+            return
+        lm.pending.append((k, obs))
+        if lm.n_obs >= self.config.association.min_observations:
+            self._enter_graph(lm)
+
+    def _enter_graph(self, lm: _Landmark) -> None:
+        """Insert a pending landmark and all its factors (delayed initialisation)."""
+        handler = self.handlers.get(lm.kind)
+        if handler is None:
+            raise EstimationError(f"no graph handler for landmark kind {lm.kind!r}")
+        handler.insert(lm, self._new_values_and_initial())
+        handler.priors(lm, _Adder(self), self._pose_of, self.config)
+        for k, o in lm.pending:
+            self._add_factor(handler.factor(lm, k, o, self._noise(o.R), self._pose_of))
+        lm.pending = []
+        lm.in_graph = True
+
+    def _new_values_and_initial(self) -> Any:
+        return _ValuesPair(self)
+
+    # ------------------------------------------------------------------ pruning
+    def _prune_pending(self, final: bool) -> None:
+        cfg = self.config.association
+        drop = [lid for lid, lm in self._landmarks.items()
+                if not lm.in_graph and (final or self._k - lm.pending[-1][0] > cfg.prune_after_steps)]
+        for lid in drop:
+            del self._landmarks[lid]
+        self.n_pruned += len(drop)
+        if final and drop:
+            log.warning("%d landmarks seen fewer than %d times were pruned", len(drop),
+                        cfg.min_observations)
+
+    # ------------------------------------------------------------------ interface
+    def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
+        """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal."""
+        t0 = time.perf_counter()
+        if t < self._last_t:
+            raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
+        self._last_t = t
+        wheel = check_wheel(t, wheel)
+        if len(wheel):
+            w = self.wheel
+            d, c = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
+                                       _STEP_FLOOR)
+            self._delta_cov = compose_cov(d, self._delta_cov, c)
+            self._delta = _pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
+            self._wheel_since_kf.append(wheel)
+        n_matched = n_new = 0
+        is_kf = False
+        if frame is not None:
+            obs = observations_from_frame(frame, self.config.features, self.config.noise)
+            if obs and self._is_keyframe():
+                n_matched, n_new = self._make_keyframe(obs)
+                is_kf = True
+                self._prune_pending(final=False)
+        pose, cov = self.current()
+        dt = time.perf_counter() - t0
+        self._times.append(t)
+        self._step_kf.append(self._k)
+        self._step_delta.append(self._delta.copy())
+        self._step_delta_cov.append(self._delta_cov.copy())
+        self._step_online_pose.append(pose)
+        self._step_online_cov.append(cov)
+        self._step_times.append(dt)
+        self._keyframes.append(is_kf)
+        return StepEstimate(t, pose, tangent_to_coords_cov(pose, cov), is_kf, n_matched, n_new, dt)
+
+    def _final_values(self) -> tuple[gtsam.Values, Any]:
+        """Final estimate and a marginal-covariance function (subclasses)."""
+        raise NotImplementedError
+
+    def finish(self, status: str = "ok") -> SlamResult:
+        """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
+        self._prune_pending(final=True)
+        t0 = time.perf_counter()
+        values, marginal = self._final_values()
+        final_time = time.perf_counter() - t0
+        n_kf = self._k + 1
+        kf_pose = np.array([_pose_array(values.atPose2(X(k))) for k in range(n_kf)])
+        kf_cov = np.full((n_kf, 3, 3), np.nan)
+        if marginal is not None:
+            for k in range(n_kf):
+                try:
+                    kf_cov[k] = marginal(X(k))
+                except RuntimeError:
+                    break
+        n = len(self._times)
+        poses = np.zeros((n, 3))
+        covs = np.zeros((n, 3, 3))
+        for i in range(n):
+            k = self._step_kf[i]
+            delta = self._step_delta[i]
+            p = _pose_array(gtsam.Pose2(*kf_pose[k]).compose(gtsam.Pose2(*delta)))
+            c = compose_cov(delta, kf_cov[k], self._step_delta_cov[i])
+            poses[i] = p
+            covs[i] = tangent_to_coords_cov(p, c)
+
+        def get(key: int, kind: str) -> Any:
+            return {"point2": values.atPoint2, "point3": values.atPoint3,
+                    "rot2": values.atRot2, "vector": values.atVector}[kind](key)
+
+        lms: list[LandmarkEstimate] = []
+        for lm in self._landmarks.values():
+            if not lm.in_graph:
+                continue
+            handler = self.handlers[lm.kind]
+            state = handler.read(lm, get)
+            cov = np.full((len(state), len(state)), np.nan)
+            if marginal is not None:
+                try:
+                    cov = handler.marginal(lm, marginal)
+                except RuntimeError:
+                    pass
+            lms.append(landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling))
+        return SlamResult(
+            backend=self.name,
+            times=np.asarray(self._times, float),
+            poses=poses,
+            pose_covs=covs,
+            landmarks=lms,
+            step_times_s=np.asarray(self._step_times, float),
+            keyframes=np.asarray(self._keyframes, bool),
+            status=status,
+            final_time_s=final_time,
+            n_pruned=self.n_pruned,
+            extra={"n_keyframes": float(n_kf),
+                   "update_median_ms": float(np.median(self.update_times) * 1e3)
+                   if self.update_times else float("nan"),
+                   "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)
+                   if self.update_times else float("nan")},
+        )
+
+
+class Isam2Slam(GraphSlam):
+    """Online iSAM2 backend: one ``update()`` per keyframe."""
+
+    name = "isam2"
+
+    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 ceiling: Any = None, ceiling_handler: Any = None) -> None:
+        super().__init__(wheel, config, start_pose, ceiling, ceiling_handler, online=True)
+
+    def _final_values(self) -> tuple[gtsam.Values, Any]:
+        assert self.isam is not None
+        return self.isam.calculateEstimate(), self.isam.marginalCovariance
+
+
+class BatchSlam(GraphSlam):
+    """Offline batch LM over the whole run (optionally started from iSAM2's estimate)."""
+
+    name = "batch"
+
+    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 ceiling: Any = None, ceiling_handler: Any = None) -> None:
+        if config.batch.init not in ("isam2", "odometry"):
+            raise EstimationError(f"batch.init must be 'isam2' or 'odometry', got {config.batch.init!r}")
+        super().__init__(wheel, config, start_pose, ceiling, ceiling_handler,
+                         online=config.batch.init == "isam2")
+
+    def _final_values(self) -> tuple[gtsam.Values, Any]:
+        start = self.isam.calculateEstimate() if self.isam is not None else self.initial
+        try:
+            opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
+            result = opt.optimize()
+        except RuntimeError as exc:
+            raise EstimationError(f"batch LM failed: {exc}") from exc
+        log.info("batch LM: error %.4g -> %.4g in %d iterations",
+                 self.graph.error(start), self.graph.error(result), opt.iterations())
+        try:
+            marginals = gtsam.Marginals(self.graph, result)
+            return result, marginals.marginalCovariance
+        except RuntimeError as exc:
+            log.warning("batch marginals unavailable: %s", exc)
+            return result, None
+
+
+class _ValuesPair:
+    """Insert into both the pending-update Values and the all-initial Values."""
+
+    def __init__(self, owner: GraphSlam) -> None:
+        self.owner = owner
+
+    def insert(self, key: int, value: Any) -> None:
+        self.owner._add_value(key, value)
+
+
+class _Adder:
+    """``add(factor)`` into both the pending-update graph and the full graph."""
+
+    def __init__(self, owner: GraphSlam) -> None:
+        self.owner = owner
+
+    def add(self, factor: gtsam.NonlinearFactor) -> None:
+        self.owner._add_factor(factor)
+
+
+def _pose_array(p: gtsam.Pose2) -> FloatArray:
+    return np.array([p.x(), p.y(), wrap_angle(p.theta())])

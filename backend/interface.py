@@ -1,0 +1,160 @@
+"""One interface for the three SLAM backends (``ekf``, ``isam2``, ``batch``).
+
+A backend is fed, in time order, the wheel travel since the previous step and
+(optionally) one measurement frame (:class:`lampsam.frontend.measurements.CeilingFrame`
+or :class:`~lampsam.frontend.measurements.RangeBearingFrame`). After every step it
+gives the current pose estimate and its covariance (:class:`StepEstimate`); at the
+end :meth:`SlamBackend.finish` gives a :class:`SlamResult`.
+
+Poses are ``world_T_body = (x, y, theta)`` (docs/conventions.md); pose covariances
+are over the plain coordinates ``(x, y, theta)`` in the world frame (the EKF's
+state), for every backend: the smoothers convert GTSAM's tangent-space marginal
+with ``coords_D_tangent = blockdiag(R(theta), 1)``.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+from typing import Union
+
+import numpy as np
+
+from lampsam.arrays import BoolArray, FloatArray
+from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
+
+Frame = Union[CeilingFrame, RangeBearingFrame]
+
+#: Landmark types written to ``landmarks.csv``.
+LANDMARK_TYPES = ("lamp", "corner", "point2")
+
+
+@dataclass(frozen=True)
+class StepEstimate:
+    """The estimate after one step.
+
+    Attributes:
+        t: time of the step, s (the run's clock).
+        pose: (3,) ``world_T_body`` as (x, y, theta), m and rad.
+        cov: (3, 3) covariance of ``pose`` over (x, y, theta), m^2 / rad^2.
+        keyframe: True when the step's frame was used as a keyframe (smoothers) or
+            any measurement was used (EKF).
+        n_matched: observations associated with an existing landmark.
+        n_new: landmarks created (or started, for smoothers' pending ones).
+        time_s: wall-clock time of the step, s.
+    """
+
+    t: float
+    pose: FloatArray
+    cov: FloatArray
+    keyframe: bool = False
+    n_matched: int = 0
+    n_new: int = 0
+    time_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class LandmarkEstimate:
+    """One mapped landmark.
+
+    Attributes:
+        id: the backend's landmark id (equal to the known ``landmark_id`` when
+            association is known).
+        type: ``"lamp"``, ``"corner"`` or ``"point2"`` (planar range-bearing).
+        position: (3,) world position (x, y, z), m; ``z`` is the height above the
+            camera for ceiling landmarks and NaN for planar landmarks.
+        orientation: lamp long axis ``phi`` in the world, rad mod pi, or None.
+        cov: (k, k) covariance of the estimated coordinates, k = 2 (planar),
+            3 (x, y, z) or 4 (x, y, z, phi).
+        n_obs: number of observations used.
+    """
+
+    id: int
+    type: str
+    position: FloatArray
+    orientation: float | None
+    cov: FloatArray
+    n_obs: int = 0
+
+
+@dataclass
+class SlamResult:
+    """The finished result of a SLAM run.
+
+    Attributes:
+        backend: ``"ekf"``, ``"isam2"`` or ``"batch"``.
+        times: (N,) step times, s.
+        poses: (N, 3) ``world_T_body`` (x, y, theta) at each step.
+        pose_covs: (N, 3, 3) covariance of each pose over (x, y, theta). For the
+            smoothers these are the final marginals at keyframes and the keyframe
+            marginal propagated with odometry in between.
+        landmarks: the final map.
+        step_times_s: (N,) wall-clock time of each online step, s.
+        keyframes: (N,) True where a keyframe was made.
+        status: ``"ok"``, ``"interrupted"`` or ``"failed: <reason>"``.
+        final_time_s: time of the final optimisation in :meth:`SlamBackend.finish`
+            (batch LM), s.
+        n_pruned: landmarks removed (uncertain, or seen only once).
+    """
+
+    backend: str
+    times: FloatArray
+    poses: FloatArray
+    pose_covs: FloatArray
+    landmarks: list[LandmarkEstimate]
+    step_times_s: FloatArray
+    keyframes: BoolArray
+    status: str = "ok"
+    final_time_s: float = 0.0
+    n_pruned: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+class SlamBackend(abc.ABC):
+    """Common interface of the EKF, iSAM2 and batch backends.
+
+    Usage::
+
+        backend = make_backend("isam2", ...)
+        for t, wheel, frame in stream:
+            est = backend.step(t, wheel, frame)
+        result = backend.finish()
+    """
+
+    name: str = "?"
+
+    @abc.abstractmethod
+    def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
+        """Advance to time ``t``.
+
+        Args:
+            t: the step's time, s; must not decrease.
+            wheel: (K, 2) wheel travels ``(d_left, d_right)``, m, of the odometry
+                samples since the previous step, in time order (K may be 0).
+            frame: the measurement frame taken at ``t``, or None.
+
+        Returns:
+            The estimate after the step.
+        """
+
+    @abc.abstractmethod
+    def finish(self, status: str = "ok") -> SlamResult:
+        """End the run and return the result (batch: runs the final optimisation).
+
+        Args:
+            status: status to record (``"interrupted"`` when the caller stopped early).
+        """
+
+
+def empty_result(backend: str, status: str) -> SlamResult:
+    """A result with no steps (used when nothing could be processed)."""
+    return SlamResult(
+        backend=backend,
+        times=np.zeros(0),
+        poses=np.zeros((0, 3)),
+        pose_covs=np.zeros((0, 3, 3)),
+        landmarks=[],
+        step_times_s=np.zeros(0),
+        keyframes=np.zeros(0, dtype=bool),
+        status=status,
+    )

@@ -1,0 +1,438 @@
+"""Run a SLAM backend over a logged run, and write its results.
+
+:func:`run_slam` reads a run (``lampsam.datasets.logrun.read_run``), makes the
+measurement frames (ceiling images through the frontend, the simulator's truth
+projections, or the run's range-bearing log), merges them with the wheel odometry
+into time-ordered steps, feeds a backend and writes:
+
+- ``OUT/trajectory.tum``: the estimated pose at every step (TUM, the run's clock);
+- ``OUT/landmarks.csv``: ``id, type, x, y, z, phi, n_obs`` and the covariance
+  entries (``cov_xx, cov_xy, cov_xz, cov_yy, cov_yz, cov_zz, var_phi``; NaN where a
+  landmark kind has no such coordinate);
+- ``OUT/summary.json``: counts, per-step time (median / p95 / max), total time and,
+  when the run has ground truth, position and heading errors (RMS, max) with no
+  alignment (the start pose is known).
+
+If the run is interrupted (KeyboardInterrupt) or a step fails, the steps finished so
+far are still written (status ``"interrupted"`` / ``"failed: ..."``).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.ekf import EkfSlam
+from lampsam.backend.graph import BatchSlam, Isam2Slam
+from lampsam.backend.interface import Frame, SlamBackend, SlamResult
+from lampsam.datasets.logrun import LoggedRun, OdometryLog, RangeBearingLog, Trajectory, read_run, write_tum
+from lampsam.errors import EstimationError
+from lampsam.factors.geometry import wrap_angle
+from lampsam.frontend.measurements import (
+    CeilingFrame,
+    CornerObservation,
+    LampObservation,
+    RangeBearingFrame,
+    RangeBearingObservation,
+)
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("ekf", "isam2", "batch")
+FRAME_SOURCES = ("auto", "images", "truth", "rangebearing")
+
+
+def make_backend(name: str, run: LoggedRun, config: SlamConfig, start_pose: FloatArray,
+                 ceiling: bool) -> SlamBackend:
+    """Construct a backend by name for a run.
+
+    Args:
+        name: ``"ekf"``, ``"isam2"`` or ``"batch"``.
+        run: the run (its rig gives the wheel model and the camera).
+        config: the SLAM config.
+        start_pose: (3,) known start pose.
+        ceiling: True for ceiling frames (builds the camera model and graph handler).
+
+    Raises:
+        EstimationError: an unknown backend name.
+    """
+    model = handler = None
+    if ceiling:
+        model = CeilingModel.from_camera(run.rig.camera)
+        if name != "ekf":
+            from lampsam.backend.ceiling_graph import CeilingHandler
+
+            handler = CeilingHandler(model)
+    wheel = run.rig.odometry
+    if name == "ekf":
+        return EkfSlam(wheel, config, start_pose, model)
+    if name == "isam2":
+        return Isam2Slam(wheel, config, start_pose, model, handler)
+    if name == "batch":
+        return BatchSlam(wheel, config, start_pose, model, handler)
+    raise EstimationError(f"unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
+
+
+def frames_from_range_bearing(rb: RangeBearingLog) -> list[RangeBearingFrame]:
+    """Group a range-bearing log into frames (one per distinct time stamp).
+
+    Args:
+        rb: the log; negative ids mean "unknown" (``landmark_id = None``).
+
+    Returns:
+        Frames in time order.
+    """
+    frames: list[RangeBearingFrame] = []
+    if len(rb) == 0:
+        return frames
+    starts = np.flatnonzero(np.r_[True, np.diff(rb.t) > 0])
+    ends = np.r_[starts[1:], len(rb)]
+    for a, b in zip(starts, ends, strict=True):
+        obs = tuple(
+            RangeBearingObservation(float(rb.range[i]), float(wrap_angle(float(rb.bearing[i]))),
+                                    int(rb.landmark_id[i]) if rb.landmark_id[i] >= 0 else None)
+            for i in range(a, b))
+        frames.append(RangeBearingFrame(float(rb.t[a]), obs))
+    return frames
+
+
+def frames_from_projections(run: LoggedRun, sigma_px: float, rng: np.random.Generator,
+                            known_ids: bool = True) -> list[CeilingFrame]:
+    """Ceiling frames from the simulator's truth projections (no image processing).
+
+    Each visible projection becomes an observation: the pixel plus Gaussian noise
+    (``sigma_px``) mapped to normalised coordinates with the run's camera; lamp
+    axes from ``angle_px`` are mapped by projecting a short segment. Lamps that are
+    not fully visible are skipped (as the frontend drops border blobs). Corners get
+    no patch (NCC cannot be used: known association or gate alone).
+
+    Args:
+        run: a run with ``truth/projections.csv``.
+        sigma_px: pixel noise standard deviation, px.
+        rng: the random generator for the noise.
+        known_ids: attach the true landmark ids.
+
+    Returns:
+        One frame per image index, in time order.
+
+    Raises:
+        EstimationError: the run has no truth projections or no images.
+    """
+    proj = run.projections
+    if proj is None or run.images is None:
+        raise EstimationError(f"{run.path}: no truth/projections.csv or images.csv")
+    cam = run.rig.camera
+    frames = []
+    m_all = cam.normalized_from_pixels(proj.pixel + rng.normal(0.0, sigma_px, proj.pixel.shape))
+    eps = 3.0
+    for i in range(len(run.images)):
+        rows = proj.rows_of_frame(i)
+        lamps, corners = [], []
+        for r in rows:
+            if not proj.visible[r]:
+                continue
+            m = m_all[r]
+            px = proj.pixel[r]
+            # local Jacobian of m w.r.t. pixels, for the covariance
+            jac = (cam.normalized_from_pixels(np.array([px + [1e-3, 0], px + [0, 1e-3]])) - m) / 1e-3
+            cov_m = (sigma_px**2) * jac.T @ jac + 1e-12 * np.eye(2)
+            lid = int(proj.ids[r]) if known_ids else None
+            if proj.types[r].startswith("lamp"):
+                if not proj.fully_visible[r]:
+                    continue
+                axis = None
+                var_axis = math.inf
+                a = proj.angle_px[r]
+                if math.isfinite(a):
+                    d = np.array([math.cos(a), math.sin(a)]) * eps
+                    seg = cam.normalized_from_pixels(np.array([px - d, px + d]))
+                    du, dv = seg[1] - seg[0]
+                    axis = float(math.atan2(dv, du))
+                    axis = float(axis - math.pi * round(axis / math.pi))
+                    var_axis = (0.02 + rng.normal(0, 0.0)) ** 2
+                    axis += float(rng.normal(0.0, 0.02))
+                lamps.append(LampObservation(m=m, cov_m=cov_m, axis=axis, var_axis=var_axis,
+                                             ratio=2.0 if axis is not None else 1.0, area_px=100.0,
+                                             pixel=px, landmark_id=lid))
+            else:
+                corners.append(CornerObservation(m=m, cov_m=cov_m, pixel=px,
+                                                 patch=np.zeros((1, 1), np.float32), score=1.0,
+                                                 landmark_id=lid))
+        frames.append(CeilingFrame(float(run.images.t[i]), i, tuple(lamps), tuple(corners)))
+    return frames
+
+
+def iter_steps(odometry: OdometryLog, frames: Iterable[Frame], max_dt: float = 0.5
+               ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
+    """Merge odometry and frames into time-ordered steps.
+
+    A step is made at every frame time, with the odometry samples stamped after the
+    previous step and up to the frame; between frames a frame-less step is made at
+    least every ``max_dt`` seconds of odometry; the last odometry makes a final step.
+
+    Args:
+        odometry: wheel odometry (``t``, ``d_left``, ``d_right``).
+        frames: frames in time order.
+        max_dt: longest interval without a step, s.
+
+    Yields:
+        ``(t, wheel (K, 2) (d_left, d_right), frame or None)``.
+
+    Raises:
+        EstimationError: frames going back in time.
+    """
+    t_odo = odometry.t
+    wheel = np.column_stack([odometry.d_left, odometry.d_right])
+    n = len(t_odo)
+    i = 0
+    last_t = float(t_odo[0]) if n else -math.inf
+
+    def ticks(j: int) -> Iterator[tuple[float, FloatArray, Frame | None]]:
+        nonlocal i, last_t
+        for k in range(i, j):
+            if t_odo[k] - last_t >= max_dt:
+                yield float(t_odo[k]), wheel[i : k + 1], None
+                last_t = float(t_odo[k])
+                i = k + 1
+
+    prev_frame_t = -math.inf
+    for frame in frames:
+        if frame.t < prev_frame_t:
+            raise EstimationError(
+                f"frame at t={frame.t:.3f} s goes back in time (previous {prev_frame_t:.3f})")
+        prev_frame_t = frame.t
+        j = int(np.searchsorted(t_odo, frame.t, side="right"))
+        yield from ticks(j)
+        yield float(frame.t), wheel[i:j], frame
+        last_t = max(last_t, float(frame.t))
+        i = max(i, j)
+    yield from ticks(n)
+    if i < n:
+        yield float(t_odo[-1]), wheel[i:n], None
+
+
+def start_pose_of(run: LoggedRun) -> FloatArray:
+    """The known start pose: ground truth at the first odometry time, else the origin."""
+    if run.groundtruth is not None and len(run.groundtruth):
+        return run.groundtruth.interpolate(np.array([run.odometry.t[0]]))[0]
+    log.warning("%s: no ground truth; the start pose is taken as the origin", run.path)
+    return np.zeros(3)
+
+
+def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float = 0.5
+                ) -> tuple[list[Frame] | Iterable[Frame], bool]:
+    """The run's measurement frames.
+
+    Args:
+        run: the run.
+        source: ``"auto"`` (range-bearing log if present, else images), ``"images"``
+            (frontend), ``"truth"`` (simulator projections), ``"rangebearing"``.
+        rng_seed: seed of the pixel noise for ``"truth"``.
+        sigma_px: pixel noise for ``"truth"``.
+
+    Returns:
+        ``(frames, is_ceiling)``.
+
+    Raises:
+        EstimationError: the run has neither images nor range-bearing measurements,
+            or the requested source is absent.
+    """
+    if source not in FRAME_SOURCES:
+        raise EstimationError(f"unknown frame source {source!r}; choose from {FRAME_SOURCES}")
+    if source == "auto":
+        if run.range_bearing is not None:
+            source = "rangebearing"
+        elif run.images is not None:
+            source = "images"
+        else:
+            raise EstimationError(f"{run.path}: the run has no images and no range-bearing "
+                                  "measurements: nothing to do SLAM with")
+    if source == "rangebearing":
+        if run.range_bearing is None:
+            raise EstimationError(f"{run.path}: no rangebearing.csv")
+        return frames_from_range_bearing(run.range_bearing), False
+    if run.images is None or len(run.images) == 0:
+        raise EstimationError(f"{run.path}: the run has no images")
+    if source == "truth":
+        return frames_from_projections(run, sigma_px, np.random.default_rng(rng_seed)), True
+    from lampsam.frontend.pipeline import iter_run
+
+    return iter_run(run), True
+
+
+def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame | None]]
+          ) -> SlamResult:
+    """Feed steps to a backend; on interruption or failure return what is finished.
+
+    Args:
+        backend: the backend.
+        steps: ``(t, wheel, frame)`` in time order.
+
+    Returns:
+        The result; its status says ``"interrupted"`` or ``"failed: <reason>"`` when
+        the run did not finish (the failure is also logged).
+    """
+    status = "ok"
+    try:
+        for t, wheel, frame in steps:
+            backend.step(t, wheel, frame)
+    except KeyboardInterrupt:
+        status = "interrupted"
+        log.warning("interrupted: writing the steps finished so far")
+    except EstimationError as exc:
+        status = f"failed: {exc}"
+        log.error("%s", exc)
+    return backend.finish(status)
+
+
+def run_slam(run_dir: str | Path, backend: str = "isam2",
+             features: tuple[str, ...] | None = None, out: str | Path | None = None,
+             config: SlamConfig | None = None, frames: str = "auto",
+             max_dt: float = 0.5, run: LoggedRun | None = None) -> SlamResult:
+    """Run one backend over a logged run and write the results.
+
+    Args:
+        run_dir: the run directory (ignored when ``run`` is given).
+        backend: ``"ekf"``, ``"isam2"`` or ``"batch"``.
+        features: ceiling features, a subset of ``("lamps", "corners")``; None keeps
+            ``config.features``.
+        out: output directory (created); None writes nothing.
+        config: the SLAM config (defaults when None).
+        frames: frame source, see :func:`make_frames`.
+        max_dt: longest interval without a step, s (see :func:`iter_steps`).
+        run: an already loaded run (e.g. from :func:`lampsam.datasets.mrclam.mrclam_run`).
+
+    Returns:
+        The result (also written to ``out``).
+
+    Raises:
+        EstimationError: unusable input (no frames, unknown backend or features).
+        lampsam.errors.DatasetError: the run cannot be read.
+    """
+    import dataclasses
+
+    config = config or SlamConfig()
+    if features is not None:
+        bad = set(features) - {"lamps", "corners"}
+        if bad or not features:
+            raise EstimationError(f"features must be a non-empty subset of lamps,corners; got {features}")
+        config = dataclasses.replace(config, features=tuple(features))
+    if run is None:
+        run = read_run(run_dir)
+    if backend not in BACKENDS:
+        raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
+    frame_list, is_ceiling = make_frames(run, frames)
+    start = start_pose_of(run)
+    be = make_backend(backend, run, config, start, is_ceiling)
+    t0 = time.perf_counter()
+    result = drive(be, iter_steps(run.odometry, frame_list, max_dt))
+    total = time.perf_counter() - t0
+    result.extra["total_time_s"] = total
+    if out is not None:
+        write_results(Path(out), result, run)
+    if result.status.startswith("failed"):
+        raise EstimationError(f"{backend} on {run.path}: {result.status} "
+                              f"(steps finished so far written to {out})")
+    return result
+
+
+# --------------------------------------------------------------------------- writers
+def write_trajectory(path: Path, result: SlamResult) -> None:
+    """Write the estimated poses as a TUM trajectory (the run's clock)."""
+    write_tum(path, Trajectory(t=result.times, poses=result.poses))
+
+
+def write_landmarks(path: Path, result: SlamResult) -> None:
+    """Write the map: ``id, type, x, y, z, phi, n_obs`` and covariance entries."""
+    header = ["id", "type", "x", "y", "z", "phi", "n_obs",
+              "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz", "var_phi"]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for lm in result.landmarks:
+            c = np.full((4, 4), np.nan)
+            k = lm.cov.shape[0]
+            c[:k, :k] = lm.cov
+            phi = lm.orientation if lm.orientation is not None else float("nan")
+            vals = [*lm.position, phi, c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2],
+                    c[3, 3] if k == 4 else float("nan")]
+            w.writerow([lm.id, lm.type, *(f"{v:.6g}" for v in vals[:4]), lm.n_obs,
+                        *(f"{v:.6g}" for v in vals[4:])])
+
+
+def errors_vs_truth(result: SlamResult, truth: Trajectory) -> tuple[FloatArray, FloatArray]:
+    """Position and heading errors at the steps inside the truth's time span, no alignment.
+
+    Args:
+        result: the SLAM result.
+        truth: the ground-truth trajectory.
+
+    Returns:
+        ``(position_error (M,) m, heading_error (M,) rad, wrapped)``.
+    """
+    inside = (result.times >= truth.t[0]) & (result.times <= truth.t[-1])
+    gt = truth.interpolate(result.times[inside])
+    est = result.poses[inside]
+    pos = np.hypot(est[:, 0] - gt[:, 0], est[:, 1] - gt[:, 1])
+    head = np.asarray(wrap_angle(est[:, 2] - gt[:, 2]), float)
+    return pos, head
+
+
+def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
+    """The ``summary.json`` content (see module docstring)."""
+    st = result.step_times_s * 1e3
+    frames_ms = st[result.keyframes] if result.keyframes.any() else st
+    out: dict[str, Any] = {
+        "backend": result.backend,
+        "status": result.status,
+        "steps": int(len(result.times)),
+        "keyframes": int(result.keyframes.sum()),
+        "landmarks": len(result.landmarks),
+        "landmarks_pruned": int(result.n_pruned),
+        "time_per_frame_ms": {
+            "median": float(np.median(frames_ms)) if len(frames_ms) else None,
+            "p95": float(np.percentile(frames_ms, 95)) if len(frames_ms) else None,
+            "max": float(np.max(frames_ms)) if len(frames_ms) else None,
+        },
+        "final_optimisation_s": result.final_time_s,
+        **{k: v for k, v in result.extra.items()},
+    }
+    if truth is not None and len(result.times):
+        pos, head = errors_vs_truth(result, truth)
+        if len(pos):
+            out["error"] = {
+                "alignment": "none (known start pose)",
+                "position_rms_m": float(np.sqrt(np.mean(pos**2))),
+                "position_max_m": float(np.max(pos)),
+                "heading_rms_deg": float(np.degrees(np.sqrt(np.mean(head**2)))),
+                "heading_max_deg": float(np.degrees(np.max(np.abs(head)))),
+                "n": int(len(pos)),
+            }
+    return out
+
+
+def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
+    """Write ``trajectory.tum``, ``landmarks.csv`` and ``summary.json`` to ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_trajectory(out / "trajectory.tum", result)
+    write_landmarks(out / "landmarks.csv", result)
+    with open(out / "summary.json", "w") as fh:
+        json.dump(summary(result, run.groundtruth), fh, indent=2, default=_json_default)
+    log.info("results written to %s", out)
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    raise TypeError(type(x))
