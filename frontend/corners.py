@@ -1,0 +1,258 @@
+"""FAST corners on the ceiling and normalised cross-correlation (NCC) matching.
+
+Paper 1, sec. II: corners are FAST features; association is a gate on the
+predicted position (Mahalanobis, eqs. 19-20) followed by NCC of image patches
+among the gated candidates (DESIGN.md sec. 1).
+
+* Detection: OpenCV's FAST with its non-maximum suppression, never inside the
+  lamp mask dilated by ``lamp_margin_px`` (glare edges move with exposure and
+  are not ceiling structure), then a minimum spacing: a corner survives only
+  if it has the largest response within ``min_spacing_px`` (a grey dilation of
+  the response image, i.e. a second, wider non-maximum suppression), then the
+  ``max_corners`` strongest are kept and refined to sub-pixel with
+  ``cv2.cornerSubPix`` (moves of more than ``subpix_win`` px are undone).
+* Patches: ``P x P`` grey levels centred on the corner, stored zero-mean and
+  unit-norm so that NCC of two patches is their dot product. Corners closer
+  than ``P // 2`` to the border or on a flat patch are dropped.
+* Uncertainty: isotropic ``sigma_px`` in pixels, mapped to normalised ceiling
+  coordinates with the local Jacobian of the camera model.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
+from lampsam.frontend.lamps import PixelToCeiling, ceiling_jacobians
+from lampsam.frontend.measurements import CornerObservation
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CornerDetectorConfig:
+    """Settings of the corner detector.
+
+    Attributes:
+        fast_threshold: FAST intensity threshold, grey levels (default 20).
+        min_spacing_px: minimum distance between kept corners (default 8 px).
+        max_corners: keep at most this many, strongest first (default 150).
+        lamp_margin_px: no corner within this distance of a lamp blob (default 4 px).
+        patch_size: ``P``, odd, side of the NCC patch (default 11 px).
+        subpix_win: half window of ``cv2.cornerSubPix`` refinement (default 3;
+            0 disables). FAST fires 1-2 px inside a corner; the gradient-based
+            refinement moves it to the vertex (0.2 px RMS on rendered corners).
+        min_patch_std_grey: patches flatter than this are dropped (default 3).
+        sigma_px: position noise of a corner, px (default 0.5).
+        jacobian_step_px: central-difference step for ``dm/dpx`` (default 0.5 px).
+    """
+
+    fast_threshold: int = 20
+    min_spacing_px: int = 8
+    max_corners: int = 150
+    lamp_margin_px: int = 4
+    patch_size: int = 11
+    subpix_win: int = 3
+    min_patch_std_grey: float = 3.0
+    sigma_px: float = 0.5
+    jacobian_step_px: float = 0.5
+
+
+@dataclass(frozen=True)
+class CornerDetections:
+    """Corners of one image in array form (for matching and drawing).
+
+    Attributes:
+        pixels: shape (N, 2) float ``(col, row)``.
+        scores: shape (N,) FAST responses.
+        patches: shape (N, P, P) float32, zero-mean unit-norm.
+    """
+
+    pixels: FloatArray
+    scores: FloatArray
+    patches: np.ndarray
+
+
+def _empty(p: int) -> CornerDetections:
+    return CornerDetections(np.zeros((0, 2)), np.zeros(0), np.zeros((0, p, p), np.float32))
+
+
+def extract_patches(image: ImageU8, pixels: IntArray, size: int) -> np.ndarray:
+    """Grey patches centred on integer pixels, zero-mean and unit-norm.
+
+    Args:
+        image: shape (H, W) uint8.
+        pixels: shape (N, 2) int ``(col, row)``, all at least ``size // 2``
+            from the border.
+        size: odd patch side ``P``.
+
+    Returns:
+        shape (N, P, P) float32; flat patches come out all zero.
+    """
+    half = size // 2
+    windows = np.lib.stride_tricks.sliding_window_view(image, (size, size))
+    patches = windows[pixels[:, 1] - half, pixels[:, 0] - half].astype(np.float32)
+    patches -= patches.mean(axis=(1, 2), keepdims=True)
+    norms = np.sqrt((patches * patches).sum(axis=(1, 2), keepdims=True))
+    return np.divide(patches, norms, out=np.zeros_like(patches), where=norms > 0)
+
+
+def detect_corner_pixels(
+    image: ImageU8, lamp_mask: BoolArray | None, config: CornerDetectorConfig
+) -> CornerDetections:
+    """FAST corners with spacing, away from lamps, each with its NCC patch.
+
+    Args:
+        image: shape (H, W) uint8 grey image.
+        lamp_mask: shape (H, W) bool, lamp pixels (None: no lamps).
+        config: detector settings.
+
+    Returns:
+        The corners, strongest first.
+    """
+    h, w = image.shape
+    p = config.patch_size
+    half = p // 2
+    allowed = np.zeros((h, w), np.uint8)
+    allowed[half : h - half, half : w - half] = 255
+    if lamp_mask is not None and lamp_mask.any():
+        r = config.lamp_margin_px
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        allowed[cv2.dilate(lamp_mask.astype(np.uint8), kernel) > 0] = 0
+    fast = cv2.FastFeatureDetector.create(config.fast_threshold, True)
+    kps = fast.detect(image, allowed)
+    if not kps:
+        return _empty(p)
+    pts = np.array([kp.pt for kp in kps], dtype=np.float64)
+    resp = np.array([kp.response for kp in kps], dtype=np.float32)
+    ij = np.round(pts).astype(np.int64)
+    # Wider non-maximum suppression: a tiny index-based tie-break keeps one of equals.
+    resp_tb = resp + np.arange(resp.size, dtype=np.float32) * 1e-4
+    rimg = np.zeros((h, w), np.float32)
+    rimg[ij[:, 1], ij[:, 0]] = resp_tb
+    s = config.min_spacing_px
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * s + 1, 2 * s + 1))
+    local_max = cv2.dilate(rimg, kernel)
+    keep = rimg[ij[:, 1], ij[:, 0]] >= local_max[ij[:, 1], ij[:, 0]]
+    ij, resp = ij[keep], resp[keep]
+    order = np.argsort(-resp, kind="stable")[: config.max_corners]
+    ij, resp = ij[order], resp[order]
+    pix = ij.astype(np.float64)
+    if config.subpix_win > 0:
+        win = config.subpix_win
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        ref = (
+            cv2.cornerSubPix(
+                image, pix.astype(np.float32).reshape(-1, 1, 2), (win, win), (-1, -1), crit
+            )
+            .reshape(-1, 2)
+            .astype(np.float64)
+        )
+        moved = np.abs(ref - pix).max(axis=1) <= win
+        pix[moved] = ref[moved]
+        ij = np.round(pix).astype(np.int64)
+        inside = (
+            (ij[:, 0] >= half) & (ij[:, 0] < w - half) & (ij[:, 1] >= half) & (ij[:, 1] < h - half)
+        )
+        ij, pix, resp = ij[inside], pix[inside], resp[inside]
+    patches = extract_patches(image, ij, p)
+    # Flat patches (std below the floor) are useless for NCC.
+    raw_std = np.sqrt(
+        np.lib.stride_tricks.sliding_window_view(image, (p, p))[ij[:, 1] - half, ij[:, 0] - half]
+        .reshape(len(ij), -1)
+        .astype(np.float32)
+        .var(axis=1)
+    )
+    ok = raw_std >= config.min_patch_std_grey
+    return CornerDetections(pix[ok], resp[ok].astype(np.float64), patches[ok])
+
+
+def detect_corners(
+    image: ImageU8,
+    camera: PixelToCeiling,
+    lamp_mask: BoolArray | None = None,
+    config: CornerDetectorConfig | None = None,
+) -> tuple[CornerObservation, ...]:
+    """FAST corners as :class:`CornerObservation` (normalised ceiling coordinates).
+
+    Args:
+        image: shape (H, W) uint8 grey image.
+        camera: pixel -> normalised ceiling coordinates map.
+        lamp_mask: shape (H, W) bool lamp pixels to keep away from, or None.
+        config: detector settings (defaults if None).
+
+    Returns:
+        The corners, strongest first; ``cov_m = J (sigma_px^2 I) J^T``.
+    """
+    config = config or CornerDetectorConfig()
+    det = detect_corner_pixels(image, lamp_mask, config)
+    if det.pixels.shape[0] == 0:
+        return ()
+    m, jac = ceiling_jacobians(camera, det.pixels, config.jacobian_step_px)
+    cov = config.sigma_px**2 * np.einsum("nij,nkj->nik", jac, jac)
+    return tuple(
+        CornerObservation(
+            m=m[i],
+            cov_m=cov[i],
+            pixel=det.pixels[i],
+            patch=det.patches[i],
+            score=float(det.scores[i]),
+        )
+        for i in range(det.pixels.shape[0])
+    )
+
+
+def match_ncc(
+    patches: np.ndarray,
+    predicted: FloatArray,
+    cand_patches: np.ndarray,
+    cand_positions: FloatArray,
+    gates: FloatArray | float,
+    min_ncc: float = 0.8,
+    chi2_gate: float = 9.21,
+) -> tuple[IntArray, FloatArray]:
+    """For each predicted feature, the best NCC candidate inside its gate.
+
+    Args:
+        patches: shape (N, P, P), reference patches (zero-mean, unit-norm).
+        predicted: shape (N, 2), predicted positions (pixels or ``m``, same
+            frame as ``cand_positions``).
+        cand_patches: shape (M, P, P), candidate patches (zero-mean, unit-norm).
+        cand_positions: shape (M, 2), candidate positions.
+        gates: a radius (scalar, or shape (N,) per prediction) in the position
+            units, or shape (N, 2, 2) innovation covariances ``S`` for a
+            Mahalanobis gate ``d^T S^-1 d <= chi2_gate`` (eqs. 19-20).
+        min_ncc: lowest NCC accepted (default 0.8).
+        chi2_gate: chi-square bound of the Mahalanobis gate (default 9.21,
+            99 % for 2 degrees of freedom).
+
+    Returns:
+        ``(index (N,) int, ncc (N,))``: the chosen candidate per prediction, or
+        -1 and ``nan`` when no gated candidate reaches ``min_ncc``.
+    """
+    n = predicted.shape[0]
+    m = cand_positions.shape[0]
+    index = np.full(n, -1, dtype=np.int64)
+    best = np.full(n, np.nan)
+    if n == 0 or m == 0:
+        return index, best
+    ncc = patches.reshape(n, -1) @ cand_patches.reshape(m, -1).T  # (N, M)
+    diff = cand_positions[None, :, :] - predicted[:, None, :]  # (N, M, 2)
+    g = np.asarray(gates, dtype=np.float64)
+    if g.ndim == 3:
+        s_inv = np.linalg.inv(g)
+        d2 = np.einsum("nmi,nij,nmj->nm", diff, s_inv, diff)
+        inside = d2 <= chi2_gate
+    else:
+        radius = np.broadcast_to(g, (n,))
+        inside = np.einsum("nmi,nmi->nm", diff, diff) <= (radius * radius)[:, None]
+    score = np.where(inside, ncc, -np.inf)
+    j = np.argmax(score, axis=1)
+    s = score[np.arange(n), j]
+    ok = s >= min_ncc
+    index[ok] = j[ok]
+    best[ok] = s[ok]
+    return index, best

@@ -1,0 +1,553 @@
+"""Ceiling-lamp detection: threshold, connected components, second moments.
+
+Paper 1 (``seeds/ceiling-lamp-ekf-slam.txt``), eqs. 1-7, with the corrections of
+DESIGN.md sec. 1:
+
+1. Threshold the grey image at ``k`` (eq. 1): the paper's fixed ``k``, or an
+   automatic ``k`` (:func:`auto_threshold`) for real images whose ceilings are
+   bright too.
+2. Label connected regions (the paper's grassfire labelling is
+   ``cv2.connectedComponentsWithStats``, 8-connected).
+3. Per region, the centroid and the central second moments ``a = mu20``,
+   ``b = mu11``, ``c = mu02`` (eqs. 2-4); the long-axis angle
+   ``theta = 0.5 atan2(2b, a - c)`` modulo pi (eq. 5 with the quadrant kept);
+   the axis lengths from the covariance eigenvalues (eq. 6) and
+   ``R_ori = sigma1 / sigma2`` (eq. 7). ``R_ori > ratio_threshold`` (1.5): an
+   oriented lamp, else a point lamp.
+
+Sub-pixel accuracy: the moments are not taken over the binary region but over
+*coverage weights* ``w = clip((I - bg) / (top - bg), 0, 1)`` inside the region
+dilated by ``support_px``, where ``bg`` is the median grey level of a ring
+around the blob and ``top`` the median inside it. On an anti-aliased (area
+sampled) edge the grey level is ``bg + coverage (top - bg)``, so ``w`` is the
+fraction of the pixel the lamp covers and the weighted centroid is the true
+area centroid.
+
+Uncertainty (first-order propagation of independent grey-level noise
+``sigma_n`` through the weights; only unclipped pixels, ``0 < w < 1``, carry
+it): with ``W = sum w``, ``d_i = x_i - c``,
+
+* centroid: ``cov_c = sigma_w^2 sum_i d_i d_i^T / W^2 + sigma_floor^2 I``,
+  ``sigma_w = sigma_n / (top - bg)``;
+* axis: ``var_theta = sigma_w^2 sum_i (dtheta/dw_i)^2 + sigma_axis_floor^2`` with
+  ``dtheta/dw_i = [x (2 d_xi d_yi - 2b) - y ((d_xi^2 - a) - (d_yi^2 - c))]
+  / (2 W (x^2 + y^2))``, ``x = a - c``, ``y = 2b``.
+
+``sigma_n`` is the robust spread (1.4826 MAD) of the ring, floored at
+``noise_floor_grey``. The floors stand for what the model leaves out (blur,
+non-flat lamps, compression).
+
+Pixel quantities are converted to normalised ceiling coordinates
+(docs/conventions.md) with the camera model and the local Jacobian
+``J = dm/dpx`` of its pixel -> ``m`` map at the centroid (central differences):
+``cov_m = J cov_c J^T``; the axis direction ``e = (cos theta, sin theta)``
+becomes ``J e`` (this undoes the image mirroring of the default mounting and
+the distortion), and ``var_alpha = (det J / |J e|^2)^2 var_theta``.
+
+Border blobs: a blob touching the image border is cut, so its centroid and
+axis are biased; it is flagged (``touches_border``) and left out by
+:func:`lampsam.frontend.pipeline.process_image` unless asked for.
+
+Glare: a saturated halo can bridge two lamps into one region. Such a region
+fills its moment ellipse poorly (``fill = area / (4 pi sqrt(det Sigma)) < min_fill``;
+about 0.95 for a rectangle, 1 for a disc). It is re-thresholded at higher
+levels between ``k`` and its maximum (the halo is dimmer than the tubes); if
+that separates it into at least two large-enough parts each is measured on
+its own, otherwise the region is rejected (its centroid would be of the
+union, not of a lamp) and a debug message is logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+from lampsam.arrays import BoolArray, FloatArray, ImageU8
+from lampsam.frontend.measurements import LampObservation
+
+log = logging.getLogger(__name__)
+
+
+class PixelToCeiling(Protocol):
+    """What the frontend needs from a camera model (``lampsam.datasets.logrun.CameraModel``)."""
+
+    width: int
+    height: int
+
+    def normalized_from_pixels(self, px: FloatArray) -> FloatArray:
+        """Pixels ``(N, 2)`` (col, row) -> normalised ceiling coordinates ``(N, 2)``."""
+        ...
+
+
+@dataclass(frozen=True)
+class LampDetectorConfig:
+    """Settings of the lamp detector.
+
+    Attributes:
+        threshold: the paper's fixed grey-level threshold ``k`` (pixels ``> k``
+            are lamp); None (default) chooses it per image with
+            :func:`auto_threshold`.
+        max_bright_fraction: automatic threshold: Otsu is re-applied to the
+            upper class while more than this fraction of the image lies above
+            the threshold (default 0.08: lamps are a small part of a ceiling).
+        max_otsu_iterations: automatic threshold: at most this many Otsu steps
+            (default 4).
+        min_contrast_grey: below this grey-level spread between the image's
+            median and its maximum there are no lamps (all black, all white,
+            flat images; default 30).
+        min_relative_level: the automatic threshold is at least
+            ``median + min_relative_level (peak - median)``, ``peak`` being the
+            brightest level reached by ``min_area_px`` pixels: lamps are the
+            brightest things on a ceiling, and mid-grey panels are not lamps
+            (default 0.5).
+        min_area_px: smaller blobs are rejected (default 6).
+        max_area_fraction: blobs larger than this fraction of the image are
+            rejected (glare, a window; default 0.2).
+        ratio_threshold: ``R_ori`` above which a lamp is oriented (paper: 1.5).
+        support_px: the moments are taken inside the blob dilated by this many
+            pixels, so that anti-aliased edge pixels below ``k`` count (default 2).
+        ring_px: width of the background ring outside the support (default 3).
+        noise_floor_grey: lower bound on the grey-level noise sigma (default 1.0).
+        sigma_centroid_floor_px: model-error floor on the centroid sigma
+            (default 0.05 px).
+        sigma_axis_floor: model-error floor on the axis sigma, rad (default 0.002).
+        min_fill: a blob filling less of its moment ellipse is a glare merger
+            candidate (default 0.85).
+        jacobian_step_px: step of the central differences for ``dm/dpx``
+            (default 0.5 px).
+    """
+
+    threshold: int | None = None
+    max_bright_fraction: float = 0.08
+    max_otsu_iterations: int = 4
+    min_contrast_grey: float = 30.0
+    min_relative_level: float = 0.5
+    min_area_px: int = 6
+    max_area_fraction: float = 0.2
+    ratio_threshold: float = 1.5
+    support_px: int = 2
+    ring_px: int = 3
+    noise_floor_grey: float = 1.0
+    sigma_centroid_floor_px: float = 0.05
+    sigma_axis_floor: float = 0.002
+    min_fill: float = 0.85
+    jacobian_step_px: float = 0.5
+
+
+@dataclass(frozen=True)
+class BlobMoments:
+    """Pixel-space measurement of one blob (before the camera model).
+
+    Attributes:
+        centroid: shape (2,), ``(col, row)`` pixels.
+        cov_centroid: shape (2, 2), covariance of ``centroid``, px^2.
+        cov_shape: shape (2, 2), second central moments of the coverage
+            (``[[a, b], [b, c]]``, px^2, with the 1/12 px^2 pixel-box term added).
+        theta: long-axis angle in the image, ``0.5 atan2(2b, a - c)`` (eq. 5),
+            rad in ``(-pi/2, pi/2]``, measured from image ``+col`` towards ``+row``.
+        var_theta: variance of ``theta``, rad^2.
+        sigma1: long semi-axis spread ``sqrt(lambda_max)`` px (eq. 6).
+        sigma2: short one ``sqrt(lambda_min)`` px.
+        ratio: ``sigma1 / sigma2`` (eq. 7).
+        area_px: coverage-weighted area, px.
+        touches_border: the region touches the image border.
+    """
+
+    centroid: FloatArray
+    cov_centroid: FloatArray
+    cov_shape: FloatArray
+    theta: float
+    var_theta: float
+    sigma1: float
+    sigma2: float
+    ratio: float
+    area_px: float
+    touches_border: bool
+
+
+@dataclass(frozen=True)
+class LampDetections:
+    """The lamps of one image with the intermediate products (for drawing).
+
+    Attributes:
+        lamps: every accepted lamp, border blobs included (flagged).
+        moments: the pixel-space measurement of each lamp, same order.
+        threshold: the grey-level threshold used, or None (no lamps possible).
+        mask: shape (H, W) bool, the accepted blobs' pixels (before dilation).
+        n_rejected: regions rejected (size or unresolved glare merger).
+    """
+
+    lamps: tuple[LampObservation, ...]
+    moments: tuple[BlobMoments, ...]
+    threshold: float | None
+    mask: BoolArray
+    n_rejected: int
+
+
+def wrap_axis(a: float) -> float:
+    """Wrap a line direction to ``(-pi/2, pi/2]`` (docs/conventions.md, "Angles")."""
+    w = a - math.pi * math.floor(a / math.pi)  # [0, pi)
+    return w - math.pi if w > math.pi / 2 else w
+
+
+def grey_histogram(image: ImageU8) -> FloatArray:
+    """Histogram of a uint8 image, shape (256,) float counts."""
+    return np.bincount(image.ravel(), minlength=256).astype(np.float64)
+
+
+def otsu_level(hist: FloatArray, lo: int = 0) -> float:
+    """Otsu's threshold of the grey levels ``>= lo`` of a histogram.
+
+    Args:
+        hist: shape (256,) counts per grey level.
+        lo: only levels ``lo..255`` take part (the upper class of an earlier step).
+
+    Returns:
+        ``t`` maximising the between-class variance, classes ``<= t`` and ``> t``
+        (OpenCV's rule); ``lo`` when fewer than two levels are occupied.
+    """
+    h = hist[lo:]
+    levels = np.arange(lo, 256, dtype=np.float64)
+    w0 = np.cumsum(h)
+    total = w0[-1]
+    if total <= 0:
+        return float(lo)
+    s0 = np.cumsum(h * levels)
+    w1 = total - w0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mu0 = s0 / w0
+        mu1 = (s0[-1] - s0) / w1
+        between = w0 * w1 * (mu0 - mu1) ** 2
+    between = np.nan_to_num(between, nan=-1.0, posinf=-1.0)
+    if between.max() <= 0:
+        return float(lo)
+    return float(levels[int(np.argmax(between))])
+
+
+def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
+    """Choose the lamp threshold ``k`` for one image.
+
+    Otsu's threshold of the image; while more than ``max_bright_fraction`` of
+    the pixels lie above it (a bright ceiling: Otsu separated dark structure
+    from the ceiling, not the ceiling from the lamps), Otsu again on the upper
+    class only; never below ``median + min_relative_level (peak - median)``.
+    Images whose peak is within ``min_contrast_grey`` of the median have no
+    lamps. Everything works on the 256-bin histogram.
+
+    Args:
+        image: shape (H, W) uint8 grey image.
+        config: detector settings.
+
+    Returns:
+        The threshold (lamp pixels are ``> k``), or None when no lamp can be
+        told from the background.
+    """
+    hist = grey_histogram(image)
+    cum = np.cumsum(hist)
+    total = cum[-1]
+    median = float(np.searchsorted(cum, 0.5 * total))
+    above_count = total - np.concatenate([[0.0], cum[:-1]])  # pixels >= level
+    peak = float(np.nonzero(above_count >= config.min_area_px)[0][-1])
+    if peak - median < config.min_contrast_grey:
+        return None
+    k = otsu_level(hist)
+    for _ in range(config.max_otsu_iterations):
+        above = total - cum[int(k)]
+        if above <= config.max_bright_fraction * total:
+            break
+        k_next = otsu_level(hist, int(k) + 1)
+        if k_next <= k:
+            break
+        k = k_next
+    # Lamps are the brightest things on the ceiling: never below the relative floor.
+    floor = median + max(
+        config.min_relative_level * (peak - median), 0.5 * config.min_contrast_grey
+    )
+    return max(k, floor)
+
+
+def _fill_ratio(mask: np.ndarray) -> float:
+    """Area of a binary region over the area of its 2-sigma moment ellipse."""
+    m = cv2.moments(mask.astype(np.uint8), binaryImage=True)
+    area = m["m00"]
+    if area <= 0:
+        return 0.0
+    a = m["mu20"] / area + 1.0 / 12.0
+    c = m["mu02"] / area + 1.0 / 12.0
+    b = m["mu11"] / area
+    det = a * c - b * b
+    return float(area / (4.0 * math.pi * math.sqrt(max(det, 1e-12))))
+
+
+def coverage_moments(
+    grey: FloatArray,
+    core: np.ndarray,
+    support: np.ndarray,
+    ring: np.ndarray,
+    origin: tuple[int, int],
+    config: LampDetectorConfig,
+) -> tuple[FloatArray, FloatArray, FloatArray, float, float, float] | None:
+    """Coverage-weighted centroid and second moments of one blob, with uncertainty.
+
+    Args:
+        grey: shape (h, w) float grey levels of a region of interest.
+        core: shape (h, w) bool, the thresholded blob.
+        support: shape (h, w) bool, where weights may be non-zero (dilated blob).
+        ring: shape (h, w) bool, background ring.
+        origin: ``(col, row)`` of ``grey[0, 0]`` in the image.
+        config: detector settings (noise and floors).
+
+    Returns:
+        ``(centroid (2,), cov_centroid (2, 2), moments (3,) = (a, b, c), var_theta,
+        theta, area)`` in pixels (see the module docstring for the formulas),
+        or None when the blob has no contrast against its ring.
+    """
+    top = float(np.median(grey[core]))
+    if ring.any():
+        ring_vals = grey[ring]
+        bg = float(np.median(ring_vals))
+        sigma_n = 1.4826 * float(np.median(np.abs(ring_vals - bg)))
+    else:
+        bg, sigma_n = float(grey[~core].min()) if (~core).any() else 0.0, 0.0
+    sigma_n = max(sigma_n, config.noise_floor_grey)
+    span = top - bg
+    if span <= config.min_contrast_grey * 0.5:
+        return None
+    w = np.clip((grey - bg) / span, 0.0, 1.0)
+    w[~support] = 0.0
+    rows, cols = np.nonzero(w)
+    wv = w[rows, cols]
+    total = float(wv.sum())
+    xs = cols.astype(np.float64)
+    ys = rows.astype(np.float64)
+    cx = float(wv @ xs) / total
+    cy = float(wv @ ys) / total
+    dx = xs - cx
+    dy = ys - cy
+    a = float(wv @ (dx * dx)) / total
+    b = float(wv @ (dx * dy)) / total
+    c = float(wv @ (dy * dy)) / total
+    theta = 0.5 * math.atan2(2.0 * b, a - c)
+    # First-order noise propagation through the unclipped weights.
+    free = (wv > 0.0) & (wv < 1.0)
+    sigma_w2 = (sigma_n / span) ** 2
+    fdx, fdy = dx[free], dy[free]
+    cov_c = sigma_w2 * np.array([[fdx @ fdx, fdx @ fdy], [fdx @ fdy, fdy @ fdy]]) / (
+        total * total
+    ) + config.sigma_centroid_floor_px**2 * np.eye(2)
+    x = a - c
+    y = 2.0 * b
+    den = x * x + y * y
+    if den > 1e-18:
+        dth = (x * (2.0 * fdx * fdy - 2.0 * b) - y * ((fdx * fdx - a) - (fdy * fdy - c))) / (
+            2.0 * total * den
+        )
+        var_theta = sigma_w2 * float(dth @ dth) + config.sigma_axis_floor**2
+    else:
+        var_theta = math.inf
+    centroid = np.array([cx + origin[0], cy + origin[1]])
+    return centroid, cov_c, np.array([a, b, c]), var_theta, theta, total
+
+
+def _disk(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def _measure_region(
+    grey_roi: FloatArray,
+    core: np.ndarray,
+    others: np.ndarray,
+    origin: tuple[int, int],
+    touches_border: bool,
+    config: LampDetectorConfig,
+) -> BlobMoments | None:
+    """Measure one region of a region of interest (see :func:`coverage_moments`)."""
+    support = cv2.dilate(core.astype(np.uint8), _disk(config.support_px)).astype(bool)
+    outer = cv2.dilate(core.astype(np.uint8), _disk(config.support_px + config.ring_px))
+    ring = outer.astype(bool) & ~support & ~others
+    support &= ~others
+    res = coverage_moments(grey_roi, core, support, ring, origin, config)
+    if res is None:
+        return None
+    centroid, cov_c, (a, b, c), var_theta, theta, area = res
+    # Pixel-box term: the coverage of a pixel is spread uniformly over it.
+    a += 1.0 / 12.0
+    c += 1.0 / 12.0
+    tr = a + c
+    disc = math.sqrt(max((a - c) ** 2 + 4.0 * b * b, 0.0))
+    lam1 = 0.5 * (tr + disc)
+    lam2 = max(0.5 * (tr - disc), 1e-12)
+    sigma1, sigma2 = math.sqrt(lam1), math.sqrt(lam2)
+    return BlobMoments(
+        centroid=centroid,
+        cov_centroid=cov_c,
+        cov_shape=np.array([[a, b], [b, c]]),
+        theta=wrap_axis(theta),
+        var_theta=var_theta,
+        sigma1=sigma1,
+        sigma2=sigma2,
+        ratio=sigma1 / sigma2,
+        area_px=area,
+        touches_border=touches_border,
+    )
+
+
+def _split_glare(
+    grey_roi: FloatArray, core: np.ndarray, k: float, config: LampDetectorConfig
+) -> list[np.ndarray] | None:
+    """Try to separate a glare-merged region by thresholding it higher.
+
+    Returns:
+        Two or more bool masks (one per lamp) or None when no split is found.
+    """
+    peak = float(grey_roi[core].max())
+    for frac in (0.35, 0.6, 0.8):
+        level = k + frac * (peak - k)
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(
+            (core & (grey_roi > level)).astype(np.uint8), connectivity=8
+        )
+        big = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= config.min_area_px]
+        if len(big) >= 2:
+            return [lab == i for i in big]
+    return None
+
+
+def ceiling_jacobians(
+    camera: PixelToCeiling, px: FloatArray, step: float
+) -> tuple[FloatArray, FloatArray]:
+    """Normalised ceiling coordinates and their pixel Jacobians, by central differences.
+
+    Args:
+        camera: the camera model (pixel -> ``m`` map).
+        px: shape (N, 2) pixels ``(col, row)``.
+        step: difference step, px.
+
+    Returns:
+        ``m`` shape (N, 2) and ``m_D_px`` shape (N, 2, 2).
+    """
+    n = px.shape[0]
+    offs = np.array([[0, 0], [step, 0], [-step, 0], [0, step], [0, -step]], dtype=np.float64)
+    pts = (px[:, None, :] + offs[None, :, :]).reshape(-1, 2)
+    mm = np.asarray(camera.normalized_from_pixels(pts), dtype=np.float64).reshape(n, 5, 2)
+    jac = np.empty((n, 2, 2))
+    jac[:, :, 0] = (mm[:, 1] - mm[:, 2]) / (2 * step)
+    jac[:, :, 1] = (mm[:, 3] - mm[:, 4]) / (2 * step)
+    return mm[:, 0], jac
+
+
+def to_observation(
+    mom: BlobMoments, m: FloatArray, m_D_px: FloatArray, config: LampDetectorConfig
+) -> LampObservation:
+    """Convert a pixel-space blob measurement to a :class:`LampObservation`.
+
+    Args:
+        mom: the blob's pixel measurement.
+        m: shape (2,), its centroid in normalised ceiling coordinates.
+        m_D_px: shape (2, 2), Jacobian of ``m`` with respect to the pixel.
+        config: detector settings (ratio threshold).
+
+    Returns:
+        The observation; ``axis`` is ``atan2`` of ``J e`` wrapped to
+        ``(-pi/2, pi/2]``, ``var_axis = (det J / |J e|^2)^2 var_theta``.
+    """
+    cov_m = m_D_px @ mom.cov_centroid @ m_D_px.T
+    axis: float | None = None
+    var_axis = math.inf
+    if mom.ratio > config.ratio_threshold:
+        e = np.array([math.cos(mom.theta), math.sin(mom.theta)])
+        je = m_D_px @ e
+        axis = wrap_axis(math.atan2(je[1], je[0]))
+        gain = float(np.linalg.det(m_D_px)) / float(je @ je)
+        var_axis = gain * gain * mom.var_theta
+    return LampObservation(
+        m=np.asarray(m, dtype=np.float64),
+        cov_m=cov_m,
+        axis=axis,
+        var_axis=var_axis,
+        ratio=mom.ratio,
+        area_px=mom.area_px,
+        pixel=mom.centroid,
+        landmark_id=None,
+        touches_border=mom.touches_border,
+    )
+
+
+def measure_blobs(
+    image: ImageU8, config: LampDetectorConfig
+) -> tuple[list[BlobMoments], float | None, BoolArray, int]:
+    """Threshold, label and measure the lamp blobs of an image, in pixels.
+
+    Args:
+        image: shape (H, W) uint8 grey image.
+        config: detector settings.
+
+    Returns:
+        ``(moments, threshold, mask (H, W) bool, n_rejected)``.
+    """
+    h, w = image.shape
+    k = float(config.threshold) if config.threshold is not None else auto_threshold(image, config)
+    mask = np.zeros((h, w), dtype=bool)
+    if k is None:
+        return [], None, mask, 0
+    binary = (image > k).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    size_ok = (areas >= config.min_area_px) & (areas <= config.max_area_fraction * h * w)
+    keep = np.flatnonzero(size_ok)
+    n_rejected = int(n - 1 - keep.size)
+    pad = config.support_px + config.ring_px + 1
+    out: list[BlobMoments] = []
+    for idx in keep + 1:
+        x0, y0, bw, bh = (int(v) for v in stats[idx, :4])
+        border = x0 == 0 or y0 == 0 or x0 + bw == w or y0 + bh == h
+        c0, r0 = max(x0 - pad, 0), max(y0 - pad, 0)
+        c1, r1 = min(x0 + bw + pad, w), min(y0 + bh + pad, h)
+        lab_roi = labels[r0:r1, c0:c1]
+        core = lab_roi == idx
+        others = (lab_roi != 0) & ~core
+        grey = image[r0:r1, c0:c1].astype(np.float64)
+        regions = [core]
+        if _fill_ratio(core) < config.min_fill:
+            split = _split_glare(grey, core, k, config)
+            if split is None:
+                log.debug("rejected a glare-merged region at (%d, %d)", x0, y0)
+                n_rejected += 1
+                continue
+            regions = split
+        for reg in regions:
+            others_reg = others | (core & ~cv2.dilate(reg.astype(np.uint8), _disk(1)).astype(bool))
+            mom = _measure_region(grey, reg, others_reg & ~reg, (c0, r0), border, config)
+            if mom is None:
+                n_rejected += 1
+                continue
+            out.append(mom)
+            mask[r0:r1, c0:c1] |= reg
+    return out, k, mask, n_rejected
+
+
+def detect_lamps(
+    image: ImageU8, camera: PixelToCeiling, config: LampDetectorConfig | None = None
+) -> LampDetections:
+    """Detect the ceiling lamps of one grey image (paper 1, eqs. 1-7).
+
+    Args:
+        image: shape (H, W) uint8 grey image, already validated
+            (:func:`lampsam.frontend.pipeline.check_image`).
+        camera: pixel -> normalised ceiling coordinates map.
+        config: detector settings (defaults if None).
+
+    Returns:
+        All accepted lamps, border blobs included and flagged.
+    """
+    config = config or LampDetectorConfig()
+    moments, k, mask, n_rej = measure_blobs(image, config)
+    if not moments:
+        return LampDetections((), (), k, mask, n_rej)
+    px = np.array([mo.centroid for mo in moments])
+    m, jac = ceiling_jacobians(camera, px, config.jacobian_step_px)
+    lamps = tuple(to_observation(mo, m[i], jac[i], config) for i, mo in enumerate(moments))
+    return LampDetections(lamps, tuple(moments), k, mask, n_rej)

@@ -1,0 +1,148 @@
+"""The ceiling frontend: one grey image in, one :class:`CeilingFrame` out.
+
+Bad images, decided once here:
+
+* not a numpy array, empty, not 2-D (colour or extra channels), not ``uint8``,
+  or not the camera's ``width x height`` -> :class:`lampsam.errors.FrontendError`
+  naming the frame and what is wrong (these are bugs or the wrong camera);
+* all black, all white, or flat (no grey-level contrast) -> an **empty frame**
+  (no lamps, no corners) and a debug message: this happens on a real robot
+  (lens cap, over-exposure) and the estimators just predict through it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from lampsam.arrays import ImageU8
+from lampsam.errors import FrontendError
+from lampsam.frontend.corners import CornerDetectorConfig, detect_corners
+from lampsam.frontend.lamps import LampDetectorConfig, PixelToCeiling, detect_lamps
+from lampsam.frontend.measurements import CeilingFrame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    """Settings of the ceiling frontend.
+
+    Attributes:
+        lamps: lamp detector settings.
+        corners: corner detector settings.
+        detect_corners: run the corner detector (default True).
+        keep_border_lamps: keep lamps touching the image border in the frame,
+            flagged ``touches_border`` (default False: they are dropped).
+        min_contrast_grey: images whose grey levels span less than this are
+            empty frames (default 8).
+    """
+
+    lamps: LampDetectorConfig = field(default_factory=LampDetectorConfig)
+    corners: CornerDetectorConfig = field(default_factory=CornerDetectorConfig)
+    detect_corners: bool = True
+    keep_border_lamps: bool = False
+    min_contrast_grey: float = 8.0
+
+
+def check_image(image: Any, camera: PixelToCeiling | None, where: str = "image") -> ImageU8:
+    """Validate a grey ceiling image.
+
+    Args:
+        image: the candidate image.
+        camera: its camera model (size check), or None to skip the size check.
+        where: how to name the image in messages (e.g. ``"frame 12 (img/000012.png)"``).
+
+    Returns:
+        The same array, C-contiguous, shape (H, W) uint8.
+
+    Raises:
+        FrontendError: not an array, empty, not 2-D, not uint8, or the wrong size.
+    """
+    if not isinstance(image, np.ndarray):
+        raise FrontendError(f"{where}: expected a numpy array, got {type(image).__name__}")
+    if image.size == 0:
+        raise FrontendError(f"{where}: empty image (shape {image.shape})")
+    if image.ndim != 2:
+        raise FrontendError(
+            f"{where}: expected a grey image of shape (H, W), got shape {image.shape} "
+            "(convert colour images with cv2.cvtColor(..., cv2.COLOR_BGR2GRAY))"
+        )
+    if image.dtype != np.uint8:
+        raise FrontendError(f"{where}: expected dtype uint8, got {image.dtype}")
+    if camera is not None and (image.shape[1], image.shape[0]) != (camera.width, camera.height):
+        raise FrontendError(
+            f"{where}: image is {image.shape[1]}x{image.shape[0]} but the camera model is "
+            f"{camera.width}x{camera.height}"
+        )
+    return np.ascontiguousarray(image)
+
+
+def process_image(
+    image: Any,
+    t: float,
+    index: int,
+    camera: PixelToCeiling,
+    config: FrontendConfig | None = None,
+) -> CeilingFrame:
+    """Lamps and corners of one ceiling image (paper 1, sec. II).
+
+    Args:
+        image: shape (H, W) uint8 grey image of size ``camera.width x camera.height``.
+        t: time stamp, s.
+        index: image index in the run.
+        camera: pixel -> normalised ceiling coordinates (``CameraModel``).
+        config: frontend settings (defaults if None).
+
+    Returns:
+        The frame; empty for all-black, all-white or flat images.
+
+    Raises:
+        FrontendError: see :func:`check_image`.
+    """
+    config = config or FrontendConfig()
+    img = check_image(image, camera, where=f"frame {index} (t={t:.3f} s)")
+    lo, hi = int(img.min()), int(img.max())
+    if hi - lo < config.min_contrast_grey:
+        log.debug("frame %d: flat image (grey %d..%d): no detections", index, lo, hi)
+        return CeilingFrame(t=float(t), index=int(index))
+    det = detect_lamps(img, camera, config.lamps)
+    lamps = (
+        det.lamps
+        if config.keep_border_lamps
+        else tuple(lm for lm in det.lamps if not lm.touches_border)
+    )
+    corners = detect_corners(img, camera, det.mask, config.corners) if config.detect_corners else ()
+    return CeilingFrame(t=float(t), index=int(index), lamps=lamps, corners=corners)
+
+
+def iter_run(run: Any, config: FrontendConfig | None = None) -> Iterator[CeilingFrame]:
+    """Process the images of a logged run one by one.
+
+    Args:
+        run: a ``lampsam.datasets.logrun.LoggedRun`` (``run.rig.camera``,
+            ``run.images.t``, ``run.images.load(i)``).
+        config: frontend settings.
+
+    Yields:
+        One :class:`CeilingFrame` per image, in time order.
+
+    Raises:
+        FrontendError: an image is unusable (named by index and file).
+    """
+    camera = run.rig.camera
+    images = run.images
+    for i in range(len(images.t)):
+        img = images.load(i)
+        try:
+            yield process_image(img, float(images.t[i]), i, camera, config)
+        except FrontendError as exc:
+            raise FrontendError(f"{images.files[i]}: {exc}") from exc
+
+
+def process_run(run: Any, config: FrontendConfig | None = None) -> list[CeilingFrame]:
+    """All frames of a logged run (see :func:`iter_run`)."""
+    return list(iter_run(run, config))
