@@ -43,11 +43,14 @@ is closer than about half a metre, so the range used is ``[h_min, h_max] =
 [0.5, 5.0] m``, encoded as a Gaussian whose +-2 sigma interval is that range:
 
 * on the height (Cartesian points, EKF): mean 2.75 m, sigma 1.125 m;
-* on the inverse depth ``rho`` (inverse-depth corners): the range is
-  ``[1/h_max, 1/h_min] = [0.2, 2.0] 1/m``, mean 1.1, sigma 0.45. A Gaussian on
-  ``rho`` rather than on ``h`` because the projection is linear in ``rho``: the
-  prior combines with the observations without a change of variable, and it stays
-  finite for far points.
+* on the inverse depth ``rho`` (inverse-depth corners): mean ``1 / 2.75 = 0.364``
+  1/m (the same most likely height) and sigma ``(1/h_min - mean) / 2 = 0.818`` 1/m,
+  so that +2 sigma is ``h_min`` and -2 sigma is beyond infinity (``rho < 0``): the
+  usual inverse-depth prior that includes far points. A Gaussian on ``rho`` rather
+  than on ``h`` because the projection is linear in ``rho``: the prior combines with
+  the observations without a change of variable, and it stays finite for far points.
+  (A first version centred the ``rho`` prior on ``[1/h_max, 1/h_min]``, i.e. a 0.9 m
+  height; corners seen with little parallax then settled 1.5 m too low: bench case 4.)
 
 All pose Jacobians are w.r.t. GTSAM's right tangent (conventions.md); use
 :func:`lampsam.factors.geometry.tangent_D_coords` to get the EKF's coordinates.
@@ -112,13 +115,13 @@ class HeightPrior:
 
     @property
     def rho_mean(self) -> float:
-        """Mean of the Gaussian on ``rho = 1/h``, 1/m: the centre of ``[1/h_max, 1/h_min]``."""
-        return 0.5 * (1.0 / self.h_min + 1.0 / self.h_max)
+        """Mean of the Gaussian on ``rho = 1/h``, 1/m: ``1 / height_mean``."""
+        return 1.0 / self.height_mean
 
     @property
     def rho_sigma(self) -> float:
-        """Sigma of the Gaussian on ``rho``, 1/m: a quarter of ``[1/h_max, 1/h_min]``."""
-        return 0.25 * (1.0 / self.h_min - 1.0 / self.h_max)
+        """Sigma of the Gaussian on ``rho``, 1/m: ``rho_mean + 2 sigma = 1 / h_min``."""
+        return 0.5 * (1.0 / self.h_min - self.rho_mean)
 
 
 def _camera_centre(pose: FloatArray, body_t_camera: FloatArray) -> tuple[FloatArray, float, float]:
