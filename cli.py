@@ -118,11 +118,95 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_stereo)
 
 
+# --------------------------------------------------------------------------- kinect-sim, build-map, show-map
+def _cmd_kinect_sim(args: argparse.Namespace) -> int:
+    from lampsam.datasets.kinect_sim import KinectConfig, simulate_kinect_run
+
+    cfg = KinectConfig(width=args.width, height=args.height, rate_hz=args.rate)
+    out = simulate_kinect_run(args.world, Path(args.out), seed=args.seed, config=cfg, duration=args.duration,
+                              ceiling_images=args.ceiling)
+    print(f"Kinect mapping run written to {out}")
+    return 0
+
+
+def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("kinect-sim", help="simulate the zig-zag Kinect mapping drive of a world with scene3d")
+    p.add_argument("world", help="built-in world name (office) or a world YAML file with a scene3d section")
+    p.add_argument("--out", required=True, help="run directory to write (RGB-D frames in OUT/kinect)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--duration", type=float, default=None, help="seconds to simulate (default: whole drive)")
+    p.add_argument("--width", type=int, default=320, help="image width (default 320; 640 for full Kinect)")
+    p.add_argument("--height", type=int, default=240, help="image height (default 240)")
+    p.add_argument("--rate", type=float, default=3.0, help="Kinect frame rate, Hz (default 3)")
+    p.add_argument("--ceiling", action="store_true", help="also render the ceiling camera (the ceiling simulator)")
+    p.set_defaults(func=_cmd_kinect_sim)
+
+
+def _cmd_build_map(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.localization.envmap import EnvMapConfig, build_map
+
+    cfg = EnvMapConfig()
+    table = load_toml(Path(args.config) if args.config else None).get("envmap", {})
+    try:
+        cfg = dataclasses.replace(
+            cfg,
+            depth=dataclasses.replace(cfg.depth, **table.get("depth", {})),
+            laser=dataclasses.replace(cfg.laser, **table.get("laser", {})),
+            spatial=dataclasses.replace(cfg.spatial, **table.get("spatial", {})),
+            **{k: v for k, v in table.items() if k not in ("depth", "laser", "spatial")},
+        )
+    except TypeError as exc:
+        raise LampsamError(f"{args.config}: bad [envmap] table: {exc}") from exc
+    if args.resolution is not None:
+        cfg = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, resolution=args.resolution),
+                                  laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
+    if args.feature_every is not None:
+        cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
+    report = build_map(Path(args.run), Path(args.out), poses=args.poses, config=cfg)
+    print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
+          f"{report.timings.get('total', 0.0):.1f} s)")
+    for name, figures in report.checks.items():
+        print(f"  {name}: {figures}")
+    return 0
+
+
+def _add_build_map(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run")
+    p.add_argument("run", help="run directory with kinect/, a TUM RGB-D or slambook2 folder, or a CARMEN log")
+    p.add_argument("--out", required=True, help="map directory to write")
+    p.add_argument("--poses", default="groundtruth",
+                   help="mapping poses: 'groundtruth' (default) or 'slam:PATH_TO_TUM' (a SLAM trajectory)")
+    p.add_argument("--resolution", type=float, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
+    p.add_argument("--feature-every", type=int, default=None, help="SIFT on every n-th frame (default 1)")
+    p.add_argument("--config", default=None, help="TOML file with an [envmap] table ([envmap.depth], ...)")
+    p.set_defaults(func=_cmd_build_map)
+
+
+def _cmd_show_map(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.map_plots import show_map
+
+    out = show_map(Path(args.map), Path(args.out))
+    print(f"map figure written to {out}")
+    return 0
+
+
+def _add_show_map(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("show-map", help="draw an environment map's three layers in one figure")
+    p.add_argument("map", help="map directory written by build-map")
+    p.add_argument("--out", required=True, help="PNG file to write")
+    p.set_defaults(func=_cmd_show_map)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
     _add_stereo_sim,
     _add_stereo,
+    _add_kinect_sim,
+    _add_build_map,
+    _add_show_map,
 ]
 
 

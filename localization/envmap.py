@@ -1,0 +1,771 @@
+"""The environment map: grid map, spatial feature map, ceiling feature map (paper 2, sec. 2).
+
+``build_map(run, out, poses=...)`` turns one mapping run into a self-describing
+map directory::
+
+    manifest.yaml            format, versions, units, frames, layers, config, checks
+    map.pgm + map.yaml       grid map (ROS map_server, via lampsam.localization.grid)
+    spatial_features.npz     SIFT points with world positions (spatial_map.py)
+    ceiling_features.csv     lamps and corners (ceiling_map.py)
+
+Sources (detected from ``run``):
+
+- a simulated/logged run with ``kinect/`` (TUM RGB-D): Kinect depth -> points
+  with Open3D (pointcloud.py), placed with the mapping poses (``groundtruth``:
+  the run's ``groundtruth.tum``; ``slam:PATH``: a backend's planar TUM
+  trajectory, whose ``landmarks.csv`` next to it gives the ceiling layer);
+  points in a height band above the floor are obstacles projected to the floor,
+  floor points and the rays to obstacles clear free space (grid.integrate_points,
+  log-odds); SIFT features -> spatial layer;
+- a TUM RGB-D directory, or the slambook2 sample (its own camera poses);
+- a CARMEN laser log (``*.log``/``*.log.gz``, e.g. the Intel lab): the scans at
+  the log's corrected poses (or ``slam:PATH``) -> grid map only.
+
+World frame: docs/conventions.md (``x, y`` on the floor, ``z`` up, metres).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lampsam.arrays import BoolArray, FloatArray
+from lampsam.datasets.rgbd import RgbdSequence
+from lampsam.errors import LocalizationError
+from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
+from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, integrate_points, integrate_scan, occupied_mask
+from lampsam.localization.pointcloud import depth_to_points
+from lampsam.localization.spatial_map import SPATIAL_FILE, SpatialFeatureMap, SpatialMapBuilder, SpatialMapConfig
+
+log = logging.getLogger(__name__)
+
+MANIFEST_FILE = "manifest.yaml"
+GRID_STEM = "map"
+ENVMAP_FORMAT = "lampsam-envmap"
+ENVMAP_VERSION = 1
+
+
+class EnvMapError(LocalizationError):
+    """The environment map could not be built or read (bad source, missing pose, ...)."""
+
+
+@dataclass(frozen=True)
+class DepthGridConfig:
+    """Grid map from depth images.
+
+    Attributes:
+        resolution: cell size, metres (default 0.05).
+        height_band: ``(lo, hi)`` heights of obstacle points, metres above the floor
+            (default ``(0.08, 1.8)``: above floor noise, up to the robot's height).
+        band_reference: ``"floor"`` (``z = 0``, simulated runs) or ``"camera"``
+            (heights relative to the first camera, when the floor is unknown).
+        depth_stride: use every n-th pixel in both directions (default 2).
+        free_bucket: floor rays clear free space to within this distance of the
+            farthest floor point of their bearing, metres (default 0.25).
+        bearing_bin_deg: bearing bin of the floor rays, degrees (default 0.5).
+        margin: grid border beyond the sensor positions' reach, metres (default 0.3).
+        log_odds: the inverse sensor model (grid.py's defaults).
+    """
+
+    resolution: float = 0.05
+    height_band: tuple[float, float] = (0.08, 1.8)
+    band_reference: str = "floor"
+    depth_stride: int = 2
+    free_bucket: float = 0.25
+    bearing_bin_deg: float = 0.5
+    margin: float = 0.3
+    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+
+
+@dataclass(frozen=True)
+class LaserGridConfig:
+    """Grid map from planar laser scans.
+
+    Attributes:
+        resolution: cell size, metres (default 0.1).
+        max_range: ranges beyond are no obstacle, metres (default 25).
+        min_move: use a scan when the pose moved this far since the last used one,
+            metres (default 0.1) ...
+        min_turn: ... or turned this much, rad (default 0.1).
+        margin: grid border, metres (default 1.0).
+        log_odds: the inverse sensor model.
+    """
+
+    resolution: float = 0.1
+    max_range: float = 25.0
+    min_move: float = 0.1
+    min_turn: float = 0.1
+    margin: float = 1.0
+    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+
+
+@dataclass(frozen=True)
+class EnvMapConfig:
+    """Everything ``build_map`` needs.
+
+    Attributes:
+        depth: grid from depth.
+        laser: grid from laser scans.
+        spatial: SIFT extraction and merging.
+        feature_every: SIFT on every n-th frame (default 1).
+        pose_tolerance: a frame may lie this far outside the trajectory's time span, s
+            (default 0.2); farther is a missing pose.
+    """
+
+    depth: DepthGridConfig = field(default_factory=DepthGridConfig)
+    laser: LaserGridConfig = field(default_factory=LaserGridConfig)
+    spatial: SpatialMapConfig = field(default_factory=SpatialMapConfig)
+    feature_every: int = 1
+    pose_tolerance: float = 0.2
+
+
+@dataclass(frozen=True)
+class BuildReport:
+    """What ``build_map`` did.
+
+    Attributes:
+        out: the map directory.
+        source: ``run``, ``tum_rgbd``, ``slambook2`` or ``laser``.
+        n_frames: frames or scans used.
+        timings: stage -> seconds.
+        checks: figures against the truth when known (e.g. grid precision/recall).
+    """
+
+    out: Path
+    source: str
+    n_frames: int
+    timings: dict[str, float]
+    checks: dict[str, Any]
+
+
+@dataclass(frozen=True, eq=False)
+class EnvironmentMap:
+    """A loaded map directory.
+
+    Attributes:
+        grid: the grid map.
+        spatial: the spatial feature map, or None.
+        ceiling: the ceiling feature map, or None.
+        manifest: the parsed manifest.
+    """
+
+    grid: OccupancyGrid
+    spatial: SpatialFeatureMap | None
+    ceiling: CeilingFeatureMap | None
+    manifest: dict[str, Any]
+
+
+# ---------------------------------------------------------------------------- small pure helpers
+def up_alignment(world_up: FloatArray) -> FloatArray:
+    """(3, 3) rotation taking the world's up direction to ``+z``."""
+    from scipy.spatial.transform import Rotation
+
+    up = np.asarray(world_up, float) / np.linalg.norm(world_up)
+    if np.allclose(up, [0.0, 0.0, 1.0]):
+        return np.eye(3)
+    rot, _ = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])
+    return rot.as_matrix()
+
+
+def split_by_height(points: FloatArray, floor_z: float, band: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
+    """Obstacle and floor points of a z-up cloud, projected to the floor.
+
+    Args:
+        points: (N, 3) world points, metres, ``z`` up.
+        floor_z: height of the floor (or the band's reference), metres.
+        band: ``(lo, hi)`` obstacle heights above ``floor_z``, metres.
+
+    Returns:
+        ``obstacles_xy`` (K, 2): points with ``lo <= z - floor_z <= hi``;
+        ``floor_xy`` (F, 2): points below ``lo`` (floor: seen, so free).
+    """
+    h = points[:, 2] - floor_z
+    return points[(h >= band[0]) & (h <= band[1]), :2], points[h < band[0], :2]
+
+
+def unique_cells(grid: OccupancyGrid, xy: FloatArray) -> FloatArray:
+    """One point per grid cell (the first), (K, 2), to bound the cost of ray casting."""
+    if len(xy) == 0:
+        return xy
+    cells = grid.world_to_cell(xy)
+    flat = cells[:, 1] * (grid.width + 1) + cells[:, 0]
+    _, first = np.unique(flat, return_index=True)
+    return xy[np.sort(first)]
+
+
+def farthest_per_bearing(sensor_xy: FloatArray, xy: FloatArray, bin_rad: float) -> tuple[FloatArray, FloatArray]:
+    """The farthest point in each bearing bin around the sensor.
+
+    Args:
+        sensor_xy: (2,) metres.
+        xy: (N, 2) points, metres.
+        bin_rad: bin width, rad.
+
+    Returns:
+        ``points`` (B, 2) and their distances (B,).
+    """
+    if len(xy) == 0:
+        return xy, np.zeros(0)
+    d = xy - sensor_xy
+    dist = np.hypot(d[:, 0], d[:, 1])
+    b = np.floor(np.arctan2(d[:, 1], d[:, 0]) / bin_rad).astype(np.int64)
+    order = np.lexsort((-dist, b))
+    _, first = np.unique(b[order], return_index=True)
+    pick = order[first]
+    return xy[pick], dist[pick]
+
+
+def integrate_depth_frame(
+    grid: OccupancyGrid,
+    sensor_xy: FloatArray,
+    obstacles_xy: FloatArray,
+    floor_xy: FloatArray,
+    max_range: float,
+    config: DepthGridConfig,
+) -> None:
+    """Fuse one depth frame's floor projection into the grid (in place).
+
+    Free space first: for each bearing bin the farthest floor point; the ray to it is
+    cleared (in buckets of ``free_bucket`` metres, as ``grid.integrate_points``
+    cuts rays beyond its ``max_range`` and marks no hit there). Then the obstacle
+    points (one per cell): the rays to them are cleared and their cells hit, so an
+    obstacle seen in this frame wins over the frame's own free rays.
+
+    Args:
+        grid: the map, modified in place.
+        sensor_xy: (2,) camera position projected to the floor, metres.
+        obstacles_xy: (K, 2) obstacle points on the floor plane, metres.
+        floor_xy: (F, 2) floor points, metres.
+        max_range: the sensor's range, metres.
+        config: the parameters.
+    """
+    far_xy, far_d = farthest_per_bearing(sensor_xy, floor_xy, math.radians(config.bearing_bin_deg))
+    bucket = np.floor(far_d / config.free_bucket).astype(np.int64)
+    for k in np.unique(bucket):
+        if k <= 0:
+            continue
+        sel = bucket == k
+        integrate_points(grid, sensor_xy, far_xy[sel], k * config.free_bucket - 1e-6, config.log_odds)
+    obstacles_xy = unique_cells(grid, obstacles_xy)
+    if len(obstacles_xy):
+        integrate_points(grid, sensor_xy, obstacles_xy, max_range, config.log_odds)
+
+
+def _grid_around(xy: FloatArray, reach: float, resolution: float) -> OccupancyGrid:
+    lo = xy.min(axis=0) - reach
+    hi = xy.max(axis=0) + reach
+    lo = np.floor(lo / resolution) * resolution
+    return OccupancyGrid.empty(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), resolution)
+
+
+# ---------------------------------------------------------------------------- poses
+def parse_pose_source(poses: str) -> tuple[str, Path | None]:
+    """``"groundtruth"`` or ``"slam:PATH"`` -> (kind, path).
+
+    Raises:
+        EnvMapError: anything else.
+    """
+    if poses == "groundtruth":
+        return "groundtruth", None
+    if poses.startswith("slam:") and len(poses) > 5:
+        return "slam", Path(poses[5:])
+    raise EnvMapError(f"--poses must be 'groundtruth' or 'slam:PATH_TO_TUM', got {poses!r}")
+
+
+def planar_poses_at(traj_t: FloatArray, traj_poses: FloatArray, t: FloatArray, tolerance: float, source: str) -> FloatArray:
+    """Planar poses at frame times, interpolated (x, y linear, heading unwrapped).
+
+    Args:
+        traj_t: (K,) trajectory times, s, increasing.
+        traj_poses: (K, 3) ``(x, y, theta)``.
+        t: (N,) frame times, s.
+        tolerance: how far a frame may lie outside ``[traj_t[0], traj_t[-1]]``, s.
+        source: name of the trajectory for the error message.
+
+    Returns:
+        (N, 3) poses.
+
+    Raises:
+        EnvMapError: a frame without a pose (outside the span by more than ``tolerance``).
+    """
+    t = np.asarray(t, float)
+    outside = (t < traj_t[0] - tolerance) | (t > traj_t[-1] + tolerance)
+    if np.any(outside):
+        i = int(np.flatnonzero(outside)[0])
+        raise EnvMapError(
+            f"{source}: no pose for frame {i} at t={t[i]:.3f} s "
+            f"(trajectory covers {traj_t[0]:.3f}..{traj_t[-1]:.3f} s; {int(outside.sum())} frames without pose)"
+        )
+    th = np.unwrap(traj_poses[:, 2])
+    out = np.column_stack([np.interp(t, traj_t, traj_poses[:, 0]), np.interp(t, traj_t, traj_poses[:, 1]), np.interp(t, traj_t, th)])
+    out[:, 2] = np.mod(out[:, 2] + np.pi, 2 * np.pi) - np.pi
+    return out
+
+
+def camera_poses_from_planar(planar: FloatArray, body_T_camera: FloatArray) -> FloatArray:  # noqa: N803
+    """(N, 4, 4) ``world_T_camera = world_T_body(x, y, theta) @ body_T_camera``."""
+    n = len(planar)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    c, s = np.cos(planar[:, 2]), np.sin(planar[:, 2])
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 0, 3], T[:, 1, 3] = planar[:, 0], planar[:, 1]
+    return T @ body_T_camera
+
+
+# ---------------------------------------------------------------------------- builders
+def build_depth_layers(
+    seq: RgbdSequence,
+    world_T_cameras: FloatArray,  # noqa: N803
+    config: EnvMapConfig = EnvMapConfig(),
+    with_features: bool = True,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[OccupancyGrid, SpatialFeatureMap | None, dict[str, float]]:
+    """Grid map and spatial feature map from an RGB-D sequence.
+
+    Args:
+        seq: the frames (camera, depth scale).
+        world_T_cameras: (N, 4, 4) camera poses, one per frame.
+        config: parameters.
+        with_features: also build the spatial feature map.
+        progress: called with ``(i, N)`` after each frame.
+
+    Returns:
+        ``(grid, spatial map or None, timings)``; timings in seconds per stage.
+
+    Raises:
+        EnvMapError: pose count differs from the frame count, or a pose is not finite.
+    """
+    n = len(seq)
+    poses = np.asarray(world_T_cameras, float)
+    if poses.shape != (n, 4, 4):
+        raise EnvMapError(f"{seq.root}: {n} frames but poses of shape {poses.shape}")
+    bad = ~np.all(np.isfinite(poses.reshape(n, -1)), axis=1)
+    if np.any(bad):
+        raise EnvMapError(f"{seq.root}: pose of frame {int(np.flatnonzero(bad)[0])} is not finite")
+    cfg = config.depth
+    align = np.eye(4)
+    align[:3, :3] = up_alignment(seq.world_up)
+    poses = align @ poses
+    cam = seq.camera
+    floor_z = 0.0 if cfg.band_reference == "floor" else float(poses[0, 2, 3])
+    grid = _grid_around(poses[:, :2, 3], cam.max_depth + cfg.margin, cfg.resolution)
+    builder = SpatialMapBuilder(config.spatial) if with_features else None
+    timings = {"read": 0.0, "points": 0.0, "grid": 0.0, "features": 0.0, "merge": 0.0}
+    for i in range(n):
+        t0 = time.perf_counter()
+        depth = seq.load_depth(i)
+        rgb = seq.load_rgb(i) if builder is not None and i % config.feature_every == 0 else None
+        t1 = time.perf_counter()
+        pts = depth_to_points(depth, cam, poses[i], stride=cfg.depth_stride)
+        obst, floor = split_by_height(pts, floor_z, cfg.height_band)
+        t2 = time.perf_counter()
+        integrate_depth_frame(grid, poses[i, :2, 3], obst, floor, cam.max_depth, cfg)
+        t3 = time.perf_counter()
+        if rgb is not None and builder is not None:
+            builder.add_frame(rgb, depth, cam, poses[i])
+        t4 = time.perf_counter()
+        timings["read"] += t1 - t0
+        timings["points"] += t2 - t1
+        timings["grid"] += t3 - t2
+        timings["features"] += t4 - t3
+        if progress is not None:
+            progress(i + 1, n)
+    spatial = None
+    if builder is not None:
+        t0 = time.perf_counter()
+        spatial = builder.finish()
+        timings["merge"] = time.perf_counter() - t0
+    return grid, spatial, timings
+
+
+def build_laser_grid(scans: Any, poses: FloatArray, config: LaserGridConfig = LaserGridConfig()) -> tuple[OccupancyGrid, int]:
+    """Grid map from planar scans at given poses (keyframes by motion).
+
+    Args:
+        scans: :class:`lampsam.datasets.carmen.LaserScans` (``ranges`` (N, B), ``angles`` (B,),
+            ``max_range``).
+        poses: (N, 3) laser poses ``(x, y, theta)``, metres/rad.
+        config: parameters.
+
+    Returns:
+        The grid and the number of scans used.
+    """
+    grid = _grid_around(poses[:, :2], min(config.max_range, 10.0) + config.margin, config.resolution)
+    # the grid must hold every returned endpoint within max_range
+    r = np.where(scans.ranges < min(config.max_range, scans.max_range), scans.ranges, np.nan)
+    phi = poses[:, 2:3] + scans.angles[None, :]
+    ex = poses[:, 0:1] + r * np.cos(phi)
+    ey = poses[:, 1:2] + r * np.sin(phi)
+    ends = np.stack([ex[np.isfinite(ex)], ey[np.isfinite(ey)]], axis=1)
+    if len(ends):
+        grid = _grid_around(np.vstack([ends, poses[:, :2]]), config.margin, config.resolution)
+    used = 0
+    last: FloatArray | None = None
+    for i in range(len(poses)):
+        p = poses[i]
+        if last is not None:
+            moved = math.hypot(p[0] - last[0], p[1] - last[1])
+            turned = abs((p[2] - last[2] + math.pi) % (2 * math.pi) - math.pi)
+            if moved < config.min_move and turned < config.min_turn:
+                continue
+        ranges = np.where(scans.ranges[i] >= scans.max_range, np.inf, scans.ranges[i])
+        integrate_scan(grid, p, ranges, scans.angles, config.max_range, config.log_odds)
+        last = p
+        used += 1
+    return grid, used
+
+
+# ---------------------------------------------------------------------------- truth checks
+def footprint_mask(grid: OccupancyGrid, polygons: list[FloatArray]) -> BoolArray:
+    """(H, W) cells whose centres lie inside any world polygon ((K, 2) metres each)."""
+    import cv2
+
+    img = np.zeros((grid.height, grid.width), np.uint8)
+    shift = 4
+    for poly in polygons:
+        uv = grid.world_to_map(poly) - 0.5  # pixel (ix, iy) centre at integer coords
+        pts = np.rint(uv * (1 << shift)).astype(np.int32)
+        cv2.fillPoly(img, [pts], 1, lineType=cv2.LINE_8, shift=shift)
+    return img.astype(bool)
+
+
+def occupancy_truth(grid: OccupancyGrid, scene: Any, band: tuple[float, float]) -> tuple[BoolArray, BoolArray]:
+    """True occupied cells and the visible-surface cells of a :class:`Scene3D`.
+
+    Args:
+        grid: defines the cells.
+        scene: the world's ``Scene3D``.
+        band: the obstacle height band, metres above the floor.
+
+    Returns:
+        ``occupied`` (H, W): cells inside an obstacle footprint in the band;
+        ``surface`` (H, W): occupied cells with a 4-neighbour that is free and inside
+        the room (what a sensor in the room can see).
+    """
+    from lampsam.datasets.scene3d import obstacle_footprints
+
+    occ = footprint_mask(grid, obstacle_footprints(scene, band[0], band[1]))
+    centres = grid.cell_centres()
+    x0, y0, x1, y1 = scene.bounds
+    inside = (centres[..., 0] > x0) & (centres[..., 0] < x1) & (centres[..., 1] > y0) & (centres[..., 1] < y1)
+    free_in = inside & ~occ
+    nb = np.zeros_like(occ)
+    nb[1:, :] |= free_in[:-1, :]
+    nb[:-1, :] |= free_in[1:, :]
+    nb[:, 1:] |= free_in[:, :-1]
+    nb[:, :-1] |= free_in[:, 1:]
+    return occ, occ & nb
+
+
+def _dilate(mask: BoolArray, cells: int) -> BoolArray:
+    if cells <= 0:
+        return mask
+    import cv2
+
+    k = np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
+    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
+
+
+def grid_precision_recall(
+    occupied: BoolArray, truth_occupied: BoolArray, truth_surface: BoolArray, tolerance_cells: int = 0
+) -> tuple[float, float]:
+    """Occupied-cell precision and recall of a grid map against the truth.
+
+    precision = share of the map's occupied cells within ``tolerance_cells`` of a true
+    obstacle cell; recall = share of the true visible-surface cells within
+    ``tolerance_cells`` of a map occupied cell.
+
+    Args:
+        occupied: (H, W) the map's occupied cells.
+        truth_occupied: (H, W) true obstacle cells.
+        truth_surface: (H, W) true visible-surface cells.
+        tolerance_cells: Chebyshev distance allowed, cells.
+
+    Returns:
+        ``(precision, recall)`` in [0, 1] (NaN when undefined).
+    """
+    n_occ = int(occupied.sum())
+    n_surf = int(truth_surface.sum())
+    precision = float((occupied & _dilate(truth_occupied, tolerance_cells)).sum() / n_occ) if n_occ else math.nan
+    recall = float((truth_surface & _dilate(occupied, tolerance_cells)).sum() / n_surf) if n_surf else math.nan
+    return precision, recall
+
+
+def grid_checks(grid: OccupancyGrid, scene: Any, band: tuple[float, float], config: LogOddsConfig) -> dict[str, float]:
+    """Precision/recall at 0 and 1 cell tolerance (``grid_precision_recall``)."""
+    occ, surf = occupancy_truth(grid, scene, band)
+    mask = occupied_mask(grid, config)
+    out: dict[str, float] = {"resolution": float(grid.resolution)}
+    for tol in (0, 1):
+        p, r = grid_precision_recall(mask, occ, surf, tol)
+        out[f"precision_tol{tol}"] = round(p, 4)
+        out[f"recall_tol{tol}"] = round(r, 4)
+    return out
+
+
+# ---------------------------------------------------------------------------- build_map
+def _detect_source(run: Path) -> tuple[str, Path]:
+    if run.is_file():
+        if ".log" in run.name:
+            return "laser", run
+        raise EnvMapError(f"{run}: not a run directory or a CARMEN log")
+    if not run.is_dir():
+        raise EnvMapError(f"{run}: not found")
+    if (run / "kinect").is_dir():
+        return "run", run
+    if (run / "pose.txt").is_file() and (run / "color").is_dir():
+        return "slambook2", run
+    if (run / "rgb.txt").is_file() and (run / "depth.txt").is_file():
+        return "tum_rgbd", run
+    logs = sorted(run.glob("*.log")) + sorted(run.glob("*.log.gz"))
+    if len(logs) == 1:
+        return "laser", logs[0]
+    raise EnvMapError(f"{run}: no kinect/, TUM RGB-D lists, slambook2 pose.txt or single CARMEN log found")
+
+
+def _scene_of_run(run: Path) -> Any:
+    """The Scene3D of the run's world (from meta.yaml), or None."""
+    meta_path = run / "meta.yaml"
+    if not meta_path.is_file():
+        return None
+    try:
+        meta = yaml.safe_load(meta_path.read_text(encoding="utf-8")) or {}
+        world = meta.get("world")
+        if not world:
+            return None
+        from lampsam.datasets.world import load_world
+        from lampsam.datasets.scene3d import scene_from_dict
+
+        w = load_world(world)
+        return scene_from_dict(w.extra["scene3d"]) if "scene3d" in w.extra else None
+    except Exception as exc:  # noqa: BLE001 - the truth check is optional; say why it is skipped
+        log.warning("%s: no truth geometry for the checks (%s)", run, exc)
+        return None
+
+
+def _package_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("lampsam")
+    except Exception:  # noqa: BLE001
+        return "unknown"
+
+
+def build_map(
+    run: str | Path,
+    out: str | Path,
+    poses: str = "groundtruth",
+    config: EnvMapConfig = EnvMapConfig(),
+) -> BuildReport:
+    """Build the environment map of a mapping run (module docstring).
+
+    Args:
+        run: a run directory with ``kinect/``, a TUM RGB-D or slambook2 directory, or a
+            CARMEN log (or a directory holding exactly one).
+        out: the map directory to write.
+        poses: ``"groundtruth"`` or ``"slam:PATH"`` (a planar TUM trajectory; a
+            ``landmarks.csv`` beside it gives the ceiling layer).
+        config: parameters.
+
+    Returns:
+        The :class:`BuildReport` (also written into the manifest).
+
+    Raises:
+        EnvMapError: unknown source, missing pose, unusable input.
+        DatasetError: unreadable files (naming file and line).
+    """
+    from lampsam.datasets.logrun import read_landmarks, read_tum
+    from lampsam.datasets.rgbd import read_slambook2, read_tum_rgbd
+    from lampsam.localization.ceiling_map import from_landmark_table, read_landmark_csv
+    from lampsam.localization.grid import save_map_server
+
+    t_start = time.perf_counter()
+    run = Path(run)
+    out = Path(out)
+    kind, src = _detect_source(run)
+    pose_kind, pose_path = parse_pose_source(poses)
+    checks: dict[str, Any] = {}
+    spatial: SpatialFeatureMap | None = None
+    ceiling: CeilingFeatureMap | None = None
+    grid_info: dict[str, Any] = {}
+    timings: dict[str, float] = {}
+
+    if kind == "laser":
+        from lampsam.datasets.carmen import read_carmen
+
+        t0 = time.perf_counter()
+        carmen = read_carmen(src)
+        scans = carmen.scans
+        timings["read"] = time.perf_counter() - t0
+        if pose_kind == "slam":
+            traj = read_tum(pose_path)  # type: ignore[arg-type]
+            scan_poses = planar_poses_at(traj.t, traj.poses, scans.t, config.pose_tolerance, str(pose_path))
+        else:
+            scan_poses = scans.poses
+        t0 = time.perf_counter()
+        grid, n_used = build_laser_grid(scans, scan_poses, config.laser)
+        timings["grid"] = time.perf_counter() - t0
+        n_frames = n_used
+        lo = config.laser.log_odds
+        grid_info = {"sensor": "planar laser", "max_range": config.laser.max_range, "scans_used": n_used, "scans_total": len(scans)}
+    else:
+        if kind == "slambook2":
+            seq = read_slambook2(src)
+        elif kind == "tum_rgbd":
+            seq = read_tum_rgbd(src)
+        else:
+            seq = read_tum_rgbd(src / "kinect")
+        cfg = config
+        if kind != "run" and config.depth.band_reference == "floor":
+            # no floor known: heights relative to the first camera
+            cfg = dataclasses.replace(config, depth=dataclasses.replace(config.depth, band_reference="camera", height_band=(-0.6, 0.6)))
+            log.info("%s: floor unknown, obstacle band %s m around the first camera's height", src, cfg.depth.height_band)
+        if kind == "run":
+            if pose_kind == "slam":
+                traj = read_tum(pose_path)  # type: ignore[arg-type]
+                traj_name = str(pose_path)
+            elif (src / "groundtruth.tum").is_file():
+                traj = read_tum(src / "groundtruth.tum")
+                traj_name = str(src / "groundtruth.tum")
+            else:
+                traj = None
+            if traj is not None:
+                planar = planar_poses_at(traj.t, traj.poses, seq.t, cfg.pose_tolerance, traj_name)
+                cams = camera_poses_from_planar(planar, seq.camera.body_T_camera)
+            elif seq.world_T_camera is not None:
+                cams = seq.world_T_camera
+            else:
+                raise EnvMapError(f"{src}: no groundtruth.tum and no kinect/groundtruth.txt: pass --poses slam:PATH")
+        else:
+            if pose_kind == "slam":
+                raise EnvMapError(f"{src}: --poses slam:PATH needs a run directory with kinect/")
+            if seq.world_T_camera is None:
+                raise EnvMapError(f"{src}: the sequence has no camera poses")
+            cams = seq.world_T_camera
+        grid, spatial, timings = build_depth_layers(seq, cams, cfg)
+        n_frames = len(seq)
+        lo = cfg.depth.log_odds
+        grid_info = {
+            "sensor": "RGB-D depth",
+            "height_band": list(cfg.depth.height_band),
+            "band_reference": cfg.depth.band_reference,
+            "max_range": seq.camera.max_depth,
+            "world_up_of_source": [float(v) for v in seq.world_up],
+        }
+        if kind == "run":
+            if pose_kind == "slam" and (pose_path.parent / "landmarks.csv").is_file():  # type: ignore[union-attr]
+                from lampsam.datasets.logrun import Rig
+
+                z_cam = Rig.from_yaml(src / "rig.yaml").camera.z_cam
+                ceiling = read_landmark_csv(pose_path.parent / "landmarks.csv", z_cam=z_cam, source=f"slam:{pose_path.parent / 'landmarks.csv'}")  # type: ignore[union-attr]
+            elif (src / "landmarks.csv").is_file():
+                if pose_kind == "slam":
+                    log.warning("no landmarks.csv beside %s: ceiling layer from the run's true landmarks", pose_path)
+                ceiling = from_landmark_table(read_landmarks(src / "landmarks.csv"), source="groundtruth")
+            scene = _scene_of_run(src)
+            if scene is not None:
+                checks["grid_vs_world"] = grid_checks(grid, scene, cfg.depth.height_band, lo)
+                checks["grid_vs_world"]["poses"] = poses
+
+    out.mkdir(parents=True, exist_ok=True)
+    save_map_server(grid, out / GRID_STEM, lo)
+    layers: dict[str, Any] = {
+        "grid": {
+            "file": f"{GRID_STEM}.yaml",
+            "image": f"{GRID_STEM}.pgm",
+            "format": "ROS map_server (trinary)",
+            "resolution_m": float(grid.resolution),
+            "origin": [float(v) for v in grid.origin],
+            "size_cells": [grid.width, grid.height],
+            **grid_info,
+        }
+    }
+    if spatial is not None:
+        spatial.save(out / SPATIAL_FILE)
+        layers["spatial_features"] = {
+            "file": SPATIAL_FILE,
+            "count": len(spatial),
+            "descriptor": "OpenCV SIFT, 128 float32, L2",
+            "arrays": {"xyz": "(N, 3) world m", "descriptors": "(N, 128)", "size_px": "(N,)", "angle_deg": "(N,)", "n_obs": "(N,)"},
+            "merge_radius_m": config.spatial.merge_radius,
+            "merge_descriptor_dist": config.spatial.merge_descriptor_dist,
+        }
+    if ceiling is not None:
+        ceiling.save(out / CEILING_FILE)
+        layers["ceiling_features"] = {
+            "file": CEILING_FILE,
+            "count": len(ceiling),
+            "lamps": int(ceiling.is_lamp().sum()),
+            "corners": int((~ceiling.is_lamp()).sum()),
+            "source": ceiling.source,
+            "z_reference": "height above the floor, m",
+        }
+    timings["total"] = time.perf_counter() - t_start
+    timings = {k: round(v, 3) for k, v in timings.items()}
+    manifest = {
+        "format": ENVMAP_FORMAT,
+        "format_version": ENVMAP_VERSION,
+        "created_by": f"lampsam {_package_version()}",
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "source": {"kind": kind, "path": str(src), "poses": poses, "frames_used": int(n_frames)},
+        "frames": {
+            "world": "x, y on the floor, z up, metres (docs/conventions.md)",
+            "grid": "ROS map_server: origin = world pose of the lower-left cell corner",
+            "camera": "OpenCV: x right, y down, z optical axis",
+        },
+        "units": {"length": "m", "angle": "rad (suffix _deg: degrees)", "time": "s"},
+        "layers": layers,
+        "config": _plain(asdict(config)),
+        "timings_s": timings,
+        "checks": _plain(checks),
+    }
+    with open(out / MANIFEST_FILE, "w", encoding="utf-8") as fh:
+        yaml.safe_dump(manifest, fh, sort_keys=False)
+    log.info("environment map %s: %s, %d frames, %.1f s", out, kind, n_frames, timings["total"])
+    return BuildReport(out, kind, int(n_frames), timings, checks)
+
+
+def _plain(obj: Any) -> Any:
+    """Tuples -> lists, numpy scalars -> Python, for YAML."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def load_env_map(path: str | Path) -> EnvironmentMap:
+    """Read a map directory written by :func:`build_map`.
+
+    Raises:
+        EnvMapError: no manifest or wrong format.
+    """
+    from lampsam.localization.grid import load_map_server
+
+    path = Path(path)
+    mf = path / MANIFEST_FILE
+    if not mf.is_file():
+        raise EnvMapError(f"{mf}: manifest not found (not a lampsam map directory)")
+    manifest = yaml.safe_load(mf.read_text(encoding="utf-8"))
+    if not isinstance(manifest, dict) or manifest.get("format") != ENVMAP_FORMAT:
+        raise EnvMapError(f"{mf}: not a {ENVMAP_FORMAT} manifest")
+    if int(manifest.get("format_version", 0)) > ENVMAP_VERSION:
+        raise EnvMapError(f"{mf}: format_version {manifest['format_version']} is newer than this lampsam ({ENVMAP_VERSION})")
+    layers = manifest.get("layers", {})
+    grid = load_map_server(path / layers.get("grid", {}).get("file", f"{GRID_STEM}.yaml"))
+    spatial = SpatialFeatureMap.load(path / layers["spatial_features"]["file"]) if "spatial_features" in layers else None
+    ceiling = CeilingFeatureMap.load(path / layers["ceiling_features"]["file"], source=layers["ceiling_features"].get("source")) if "ceiling_features" in layers else None
+    return EnvironmentMap(grid, spatial, ceiling, manifest)
