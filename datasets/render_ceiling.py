@@ -1,0 +1,599 @@
+"""Ceiling images by ray casting, and the true projections of landmarks, from geometry only.
+
+Renderer (per image):
+
+1. Every output pixel is split into ``S x S`` sub-pixel rays. Each ray's
+   direction comes from the camera model alone: ``cv2.undistortPoints`` of the
+   sub-pixel position gives the camera ray, ``body_R_camera`` turns it into body
+   axes, and it is scaled to unit height, ``(u, v, 1)``. This is done once.
+2. For a robot pose ``(x, y, theta)`` the optical centre is
+   ``c = (x, y) + R(theta) body_t_camera[:2]`` at height ``z_cam``; a ray meets
+   the horizontal plane at height ``H`` at ``c + (H - z_cam) R(theta) (u, v)``.
+3. Each distinct height is a *layer*: its surfaces, texture marks and lamps are
+   rasterised once, anti-aliased, into a premultiplied (grey * alpha, alpha)
+   float texture of ``texel`` metres (edges get their exact sub-texel coverage
+   from a signed distance). The ray's hit is looked up with bilinear
+   interpolation (``cv2.remap``).
+4. Layers are composited front to back (lowest, i.e. nearest, first):
+   ``out += T * grey_alpha``, ``T *= 1 - alpha``; rays that hit nothing see the
+   background grey. The ``S x S`` samples are averaged (box filter = pixel area).
+5. Optional glare around over-exposed lamps, then seeded Gaussian sensor noise,
+   then saturation to 0..255.
+
+The truth (:func:`project_landmarks`) is computed independently of the renderer:
+3-D points are projected with ``cv2.projectPoints`` using the camera's world pose
+built from the body pose and ``body_R_camera``/``body_t_camera``; nothing from
+:mod:`lampsam.factors` is used.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from lampsam.arrays import BoolArray, FloatArray, ImageU8
+from lampsam.datasets.logrun import CameraModel, LandmarkTable, ProjectionTable
+from lampsam.datasets.world import Lamp, Surface, TextureItem, World
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- rasterising
+@dataclass(frozen=True, eq=False)
+class Layer:
+    """A rasterised horizontal layer.
+
+    Attributes:
+        height: height above the floor, m.
+        x0: world x of texel column 0's centre, m.
+        y0: world y of texel row 0's centre, m.
+        texel: texel size, m.
+        tex: (rows, cols, 2) float32 premultiplied ``(grey * alpha, alpha)``; row ``i``,
+            column ``j`` is the world point ``(x0 + j texel, y0 + i texel)``.
+        flat: (rows, cols) float32 ``grey * alpha + (1 - alpha) * background``: the
+            layer composited over the background (used when nothing lies behind it).
+    """
+
+    height: float
+    x0: float
+    y0: float
+    texel: float
+    tex: np.ndarray
+    flat: np.ndarray
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` covered, m."""
+        rows, cols = self.tex.shape[:2]
+        return (
+            self.x0,
+            self.y0,
+            self.x0 + (cols - 1) * self.texel,
+            self.y0 + (rows - 1) * self.texel,
+        )
+
+
+def _rect_sdf(x: FloatArray, y: FloatArray, center: tuple[float, float], half: tuple[float, float],
+              yaw: float) -> FloatArray:  # fmt: skip
+    """Signed distance (m, negative inside) to a rotated rectangle."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = x - center[0], y - center[1]
+    qx = np.abs(c * dx + s * dy) - half[0]
+    qy = np.abs(-s * dx + c * dy) - half[1]
+    outside = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
+    inside = np.minimum(np.maximum(qx, qy), 0.0)
+    return outside + inside
+
+
+def _disc_sdf(
+    x: FloatArray, y: FloatArray, center: tuple[float, float], radius: float
+) -> FloatArray:
+    """Signed distance (m, negative inside) to a disc."""
+    return np.hypot(x - center[0], y - center[1]) - radius
+
+
+class _Canvas:
+    """A layer being painted: premultiplied grey and alpha over a texel grid."""
+
+    def __init__(self, bounds: tuple[float, float, float, float], texel: float, pad: int = 3):
+        x0, y0, x1, y1 = bounds
+        self.texel = texel
+        self.x0 = math.floor(x0 / texel) * texel - pad * texel
+        self.y0 = math.floor(y0 / texel) * texel - pad * texel
+        cols = int(math.ceil((x1 - self.x0) / texel)) + pad + 1
+        rows = int(math.ceil((y1 - self.y0) / texel)) + pad + 1
+        self.p = np.zeros((rows, cols), np.float32)
+        self.a = np.zeros((rows, cols), np.float32)
+
+    def paint(self, bbox: tuple[float, float, float, float], sdf: object, grey: float) -> None:
+        """Paint a shape given by a signed-distance callable over its bounding box ("over")."""
+        t = self.texel
+        rows, cols = self.p.shape
+        j0 = max(int(math.floor((bbox[0] - self.x0) / t)) - 2, 0)
+        j1 = min(int(math.ceil((bbox[2] - self.x0) / t)) + 3, cols)
+        i0 = max(int(math.floor((bbox[1] - self.y0) / t)) - 2, 0)
+        i1 = min(int(math.ceil((bbox[3] - self.y0) / t)) + 3, rows)
+        if j0 >= j1 or i0 >= i1:
+            return
+        xs = self.x0 + t * np.arange(j0, j1)
+        ys = self.y0 + t * np.arange(i0, i1)
+        gx, gy = np.meshgrid(xs, ys)
+        d = sdf(gx, gy)  # type: ignore[operator]
+        # Coverage of a texel-sized box by a locally straight edge at distance d.
+        cov = np.clip(0.5 - d / t, 0.0, 1.0).astype(np.float32)
+        sl = (slice(i0, i1), slice(j0, j1))
+        self.p[sl] = cov * np.float32(grey) + (1 - cov) * self.p[sl]
+        self.a[sl] = cov + (1 - cov) * self.a[sl]
+
+    def rect(
+        self, center: tuple[float, float], size: tuple[float, float], yaw: float, grey: float
+    ) -> None:
+        """Paint a rotated rectangle of side lengths ``size``."""
+        half = (size[0] / 2, size[1] / 2)
+        r = math.hypot(*half)
+        bbox = (center[0] - r, center[1] - r, center[0] + r, center[1] + r)
+        if abs(math.sin(2 * yaw)) < 1e-12:  # axis aligned: exact bbox (thin lines stay cheap)
+            hx, hy = half if abs(math.cos(yaw)) > 0.5 else (half[1], half[0])
+            bbox = (center[0] - hx, center[1] - hy, center[0] + hx, center[1] + hy)
+        self.paint(bbox, lambda x, y: _rect_sdf(x, y, center, half, yaw), grey)
+
+    def disc(self, center: tuple[float, float], radius: float, grey: float) -> None:
+        """Paint a disc."""
+        bbox = (center[0] - radius, center[1] - radius, center[0] + radius, center[1] + radius)
+        self.paint(bbox, lambda x, y: _disc_sdf(x, y, center, radius), grey)
+
+    def layer(self, height: float, box: int, background: float) -> Layer:
+        """The finished layer, box-filtered over ``box`` x ``box`` texels (odd; 1 = none)."""
+        tex: np.ndarray = np.ascontiguousarray(np.dstack([self.p, self.a]))
+        if box > 1:
+            tex = cv2.blur(tex, (box, box), borderType=cv2.BORDER_CONSTANT)
+        flat = np.ascontiguousarray(tex[..., 0] + (1.0 - tex[..., 1]) * np.float32(background))
+        return Layer(height, self.x0, self.y0, self.texel, tex, flat)
+
+
+def _lamp_half_diag(lp: Lamp) -> float:
+    return 0.5 * math.hypot(lp.length, lp.width)
+
+
+def _paint_surface(cv: _Canvas, s: Surface) -> None:
+    x0, y0, x1, y1 = s.extent
+    cv.rect(((x0 + x1) / 2, (y0 + y1) / 2), (x1 - x0, y1 - y0), 0.0, s.grey)
+    if s.tiles is not None:
+        tg = s.tiles
+        kx = np.arange(
+            math.ceil((x0 - tg.origin[0]) / tg.pitch[0]),
+            math.floor((x1 - tg.origin[0]) / tg.pitch[0]) + 1,
+        )
+        ky = np.arange(
+            math.ceil((y0 - tg.origin[1]) / tg.pitch[1]),
+            math.floor((y1 - tg.origin[1]) / tg.pitch[1]) + 1,
+        )
+        hw = tg.line_width / 2
+        for k in kx:
+            x = tg.origin[0] + k * tg.pitch[0]
+            xa, xb = max(x - hw, x0), min(x + hw, x1)
+            if xb > xa:
+                cv.rect(((xa + xb) / 2, (y0 + y1) / 2), (xb - xa, y1 - y0), 0.0, tg.grey)
+        for k in ky:
+            y = tg.origin[1] + k * tg.pitch[1]
+            ya, yb = max(y - hw, y0), min(y + hw, y1)
+            if yb > ya:
+                cv.rect(((x0 + x1) / 2, (ya + yb) / 2), (x1 - x0, yb - ya), 0.0, tg.grey)
+    for it in s.items:
+        _paint_item(cv, it)
+
+
+def _paint_item(cv: _Canvas, it: TextureItem) -> None:
+    if it.kind == "disc":
+        cv.disc(it.center, it.size[0] / 2, it.grey)
+    else:
+        cv.rect(it.center, it.size, it.yaw, it.grey)
+
+
+def _paint_lamp(cv: _Canvas, lp: Lamp) -> None:
+    if lp.shape == "round":
+        cv.disc(lp.center, lp.length / 2, lp.brightness)
+    else:
+        cv.rect(lp.center, (lp.length, lp.width), lp.yaw, lp.brightness)
+
+
+def prefilter_size(
+    height_above_camera: float, camera: CameraModel, supersample: int, texel: float
+) -> int:
+    """Odd box-filter width (texels) matching one sub-pixel sample's footprint on a plane.
+
+    For an upward pinhole the footprint of a ray sample on a horizontal plane at
+    ``h`` above the camera is ``h / (f S)`` metres wide everywhere in the image.
+    """
+    spacing = height_above_camera / (math.sqrt(camera.fx * camera.fy) * supersample)
+    return max(1, 2 * int(round((spacing / texel - 1.0) / 2.0)) + 1)
+
+
+def build_layers(world: World, camera: CameraModel | None = None) -> tuple[Layer, ...]:
+    """Rasterise the world's ceiling into layers, nearest (lowest) first.
+
+    One layer per height that has surfaces: its surfaces in file order (base, tile
+    lines, items), then the lamps at that height. Lamps at a height without a
+    surface (hung lamps) get one small layer each, so that the renderer only
+    samples them inside their own image window. Each texture is box-filtered to
+    the footprint of a sub-pixel sample (:func:`prefilter_size`), so that the S x S
+    samples of a pixel add up to its area coverage without quantisation.
+
+    Args:
+        world: the world.
+        camera: camera used to size the prefilter (default ``world.rig.camera``).
+    """
+    cam = camera or world.rig.camera
+    st = world.render
+    texel = st.texel
+    heights = sorted(
+        {round(s.height, 6) for s in world.surfaces} | {round(lp.height, 6) for lp in world.lamps}
+    )
+    layers = []
+    for h in heights:
+        surfs = [s for s in world.surfaces if round(s.height, 6) == h]
+        lamps = [lp for lp in world.lamps if round(lp.height, 6) == h]
+        groups: list[tuple[list[Surface], list[Lamp]]] = (
+            [(surfs, lamps)] if surfs else [([], [lp]) for lp in lamps]
+        )
+        box = prefilter_size(h - cam.z_cam, cam, st.supersample, texel)
+        for g_surfs, g_lamps in groups:
+            boxes = [s.extent for s in g_surfs]
+            for lp in g_lamps:
+                r = _lamp_half_diag(lp)
+                boxes.append(
+                    (lp.center[0] - r, lp.center[1] - r, lp.center[0] + r, lp.center[1] + r)
+                )
+            b = np.array(boxes)
+            cv = _Canvas(
+                (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()), texel, pad=3 + box
+            )
+            for s in g_surfs:
+                _paint_surface(cv, s)
+            for lp in g_lamps:
+                _paint_lamp(cv, lp)
+            layers.append(cv.layer(float(h), box, st.background))
+            log.debug("layer at %.3f m: %s texels, prefilter %d", h, layers[-1].tex.shape[:2], box)
+    return tuple(layers)
+
+
+# --------------------------------------------------------------------------- rays
+def sample_rays(camera: CameraModel, supersample: int) -> tuple[np.ndarray, np.ndarray, BoolArray]:
+    """Normalised ceiling coordinates of every sub-pixel sample.
+
+    Args:
+        camera: the camera (distortion included via ``cv2.undistortPoints``).
+        supersample: ``S``; samples sit at ``col + (i + 0.5) / S - 0.5``, ``i < S``.
+
+    Returns:
+        ``(U, V, valid)``: (S H, S W) float32 forward/left per metre of height
+        (body axes), and where the ray points upwards.
+    """
+    s = int(supersample)
+    cols = (np.arange(camera.width * s) + 0.5) / s - 0.5
+    rows = (np.arange(camera.height * s) + 0.5) / s - 0.5
+    gc, gr = np.meshgrid(cols, rows)
+    m = camera.normalized_from_pixels(np.column_stack([gc.ravel(), gr.ravel()]))
+    valid = np.all(np.isfinite(m), axis=1).reshape(gc.shape)
+    m = np.nan_to_num(m, nan=0.0)
+    u = m[:, 0].reshape(gc.shape).astype(np.float32)
+    v = m[:, 1].reshape(gc.shape).astype(np.float32)
+    return u, v, valid
+
+
+def camera_center(camera: CameraModel, pose: FloatArray) -> FloatArray:
+    """World ``(x, y)`` of the optical centre for a body pose ``(x, y, theta)``."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    bx, by = camera.body_t_camera[:2]
+    return np.array([pose[0] + c * bx - s * by, pose[1] + s * bx + c * by])
+
+
+class CeilingRenderer:
+    """Renders a world's ceiling as seen by its camera (see the module docstring).
+
+    Args:
+        world: the world (its ``render`` settings and ``rig.camera`` are used).
+        camera: another camera to render with (default ``world.rig.camera``).
+    """
+
+    def __init__(self, world: World, camera: CameraModel | None = None):
+        self.world = world
+        self.camera = camera or world.rig.camera
+        self.settings = world.render
+        self.layers = build_layers(world, self.camera)
+        self.u, self.v, self.valid = sample_rays(self.camera, self.settings.supersample)
+        self.all_valid = bool(self.valid.all())
+        self.m_max = float(np.sqrt(self.u**2 + self.v**2)[self.valid].max())
+        b = np.array([lay.bounds for lay in self.layers]).reshape(-1, 4)
+        self._corners = np.stack(
+            [b[:, [0, 1]], b[:, [2, 1]], b[:, [2, 3]], b[:, [0, 3]]], axis=1
+        )  # (L, 4, 2)
+        self._h = np.array([lay.height for lay in self.layers]) - self.camera.z_cam
+        self._exact_windows = not np.any(self.camera.dist) and self.all_valid
+
+    def _windows(self, pose: FloatArray, cxy: FloatArray) -> list[tuple[slice, slice] | None]:
+        """Per layer, the sample-grid window that can see it (None: out of view)."""
+        cam = self.camera
+        rows, cols = self.u.shape
+        full = (slice(0, rows), slice(0, cols))
+        reach = self._h * self.m_max
+        lo = self._corners.min(axis=1)
+        hi = self._corners.max(axis=1)
+        in_view = (cxy + reach[:, None] >= lo).all(axis=1) & (cxy - reach[:, None] <= hi).all(
+            axis=1
+        )
+        if not self._exact_windows:
+            return [full if k else None for k in in_view]
+        # Pinhole, every ray upwards: a layer's rectangle images to the convex hull of
+        # its corners' images, so their bounding box (padded) is a safe window.
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        d = self._corners - cxy  # (L, 4, 2)
+        m = np.stack(
+            [
+                c * d[..., 0] + s * d[..., 1],
+                -s * d[..., 0] + c * d[..., 1],
+                self._h[:, None] * np.ones(4),
+            ],
+            -1,
+        )
+        cam_pts = m @ cam.body_R_camera  # body -> camera axes, (L, 4, 3)
+        col = cam.fx * cam_pts[..., 0] / cam_pts[..., 2] + cam.cx
+        row = cam.fy * cam_pts[..., 1] / cam_pts[..., 2] + cam.cy
+        ss = self.settings.supersample
+        out: list[tuple[slice, slice] | None] = []
+        for k in range(len(self.layers)):
+            if not in_view[k]:
+                out.append(None)
+                continue
+            c0 = max(int(math.floor((col[k].min() + 0.5) * ss - 0.5)) - 2, 0)
+            c1 = min(int(math.ceil((col[k].max() + 0.5) * ss - 0.5)) + 3, cols)
+            r0 = max(int(math.floor((row[k].min() + 0.5) * ss - 0.5)) - 2, 0)
+            r1 = min(int(math.ceil((row[k].max() + 0.5) * ss - 0.5)) + 3, rows)
+            out.append((slice(r0, r1), slice(c0, c1)) if (r0 < r1 and c0 < c1) else None)
+        return out
+
+    def render_linear(self, pose: FloatArray) -> np.ndarray:
+        """Noise-free radiance image before saturation.
+
+        Args:
+            pose: (3,) body pose ``(x, y, theta)``, world m and rad.
+
+        Returns:
+            (H, W) float32 grey levels (lamps may exceed 255).
+        """
+        cam = self.camera
+        bg = np.float32(self.settings.background)
+        c, s = np.float32(math.cos(pose[2])), np.float32(math.sin(pose[2]))
+        a = c * self.u - s * self.v  # world-x offset per metre of height
+        b = s * self.u + c * self.v
+        cxy = camera_center(cam, pose)
+        wins = self._windows(pose, cxy)
+        acc = np.zeros_like(a)
+        trans = np.ones_like(a)
+        last = len(self.layers) - 1
+        for k, layer in enumerate(self.layers):
+            win = wins[k]
+            if win is None:
+                continue
+            scale = np.float32((layer.height - cam.z_cam) / layer.texel)
+            ox = np.float32((cxy[0] - layer.x0) / layer.texel)
+            oy = np.float32((cxy[1] - layer.y0) / layer.texel)
+            if k == last:
+                # Nothing lies behind the highest layer: sample it composited over the
+                # background, one channel, over the whole grid.
+                flat = cv2.remap(layer.flat, a * scale + ox, b * scale + oy, cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=float(bg))  # fmt: skip
+                acc += trans * flat
+                trans = None  # type: ignore[assignment]
+                break
+            samp = cv2.remap(layer.tex, a[win] * scale + ox, b[win] * scale + oy, cv2.INTER_LINEAR,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
+            acc[win] += trans[win] * samp[..., 0]
+            trans[win] *= 1.0 - samp[..., 1]
+        if trans is not None:
+            acc += trans * bg
+        if not self.all_valid:
+            acc[~self.valid] = bg
+        return cv2.resize(acc, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+
+    def render(self, pose: FloatArray, rng: np.random.Generator | None) -> ImageU8:
+        """A ceiling image: radiance, glare, sensor noise, saturation.
+
+        Args:
+            pose: (3,) body pose ``(x, y, theta)``.
+            rng: generator for the sensor noise; None renders without noise.
+
+        Returns:
+            (H, W) uint8.
+        """
+        img = self.render_linear(pose)
+        st = self.settings
+        if st.bloom > 0:
+            excess = np.maximum(img - 255.0, 0.0)
+            img = img + np.float32(st.bloom) * cv2.GaussianBlur(excess, (0, 0), st.bloom_sigma)
+        if rng is not None and st.noise_sigma > 0:
+            img = img + rng.normal(0.0, st.noise_sigma, img.shape).astype(np.float32)
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- truth
+def world_T_camera(camera: CameraModel, pose: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Camera pose in the world for a body pose.
+
+    Args:
+        camera: gives ``body_R_camera`` and ``body_t_camera``.
+        pose: (3,) ``world_T_body = (x, y, theta)``.
+
+    Returns:
+        ``(world_R_camera (3, 3), world_t_camera (3,))``.
+    """
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    world_R_body = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    world_t_body = np.array([pose[0], pose[1], 0.0])
+    return world_R_body @ camera.body_R_camera, world_t_body + world_R_body @ camera.body_t_camera
+
+
+@dataclass(frozen=True)
+class _Occluder:
+    height: float
+    shape: str  # "rect" or "disc"
+    center: tuple[float, float]
+    half: tuple[float, float]
+    yaw: float
+
+    def contains(self, xy: FloatArray) -> BoolArray:
+        if self.shape == "disc":
+            return _disc_sdf(xy[:, 0], xy[:, 1], self.center, self.half[0]) <= 0
+        return _rect_sdf(xy[:, 0], xy[:, 1], self.center, self.half, self.yaw) <= 0
+
+
+def occluders(world: World) -> tuple[_Occluder, ...]:
+    """Everything that can hide a farther point: surfaces' extents and lamps."""
+    occ = []
+    for s in world.surfaces:
+        x0, y0, x1, y1 = s.extent
+        occ.append(
+            _Occluder(
+                s.height,
+                "rect",
+                ((x0 + x1) / 2, (y0 + y1) / 2),
+                ((x1 - x0) / 2, (y1 - y0) / 2),
+                0.0,
+            )
+        )
+    for lp in world.lamps:
+        if lp.shape == "round":
+            occ.append(_Occluder(lp.height, "disc", lp.center, (lp.length / 2, lp.length / 2), 0.0))
+        else:
+            occ.append(
+                _Occluder(lp.height, "rect", lp.center, (lp.length / 2, lp.width / 2), lp.yaw)
+            )
+    return tuple(occ)
+
+
+def _hidden(points: FloatArray, cam_xyz: FloatArray, occ: tuple[_Occluder, ...]) -> BoolArray:
+    """(N,) True where the segment from the optical centre to a point crosses a nearer occluder."""
+    hidden = np.zeros(len(points), dtype=bool)
+    dz = points[:, 2] - cam_xyz[2]
+    for o in occ:
+        ho = o.height - cam_xyz[2]
+        cand = (ho > 1e-9) & (ho < dz - 1e-6)
+        if not cand.any():
+            continue
+        f = ho / dz[cand]
+        q = cam_xyz[:2] + (points[cand, :2] - cam_xyz[:2]) * f[:, None]
+        idx = np.flatnonzero(cand)
+        hidden[idx[o.contains(q)]] = True
+    return hidden
+
+
+def _project(
+    camera: CameraModel, points: FloatArray, pose: FloatArray
+) -> tuple[FloatArray, BoolArray]:
+    """Pixels of world points via ``cv2.projectPoints``; second output: in front and unfolded."""
+    if len(points) == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    w_R_c, w_t_c = world_T_camera(camera, pose)
+    c_R_w = w_R_c.T
+    rvec, _ = cv2.Rodrigues(c_R_w)
+    tvec = -c_R_w @ w_t_c
+    px, _ = cv2.projectPoints(
+        points.reshape(-1, 1, 3).astype(np.float64), rvec, tvec, camera.K(), camera.dist
+    )
+    px = px.reshape(-1, 2)
+    pc = (points - w_t_c) @ w_R_c  # camera-frame coordinates
+    ok = pc[:, 2] > 1e-6
+    if np.any(camera.dist) and ok.any():
+        # Far outside the field of view a distortion polynomial folds back: keep only
+        # projections that undistort to the same ray.
+        rays = camera.camera_rays(px[ok])
+        ok[np.flatnonzero(ok)] = np.all(np.abs(rays - pc[ok, :2] / pc[ok, 2:3]) < 1e-3, axis=1)
+    return px, ok
+
+
+def project_landmarks(
+    camera: CameraModel,
+    pose: FloatArray,
+    landmarks: LandmarkTable,
+    occ: tuple[_Occluder, ...] = (),
+    m_max: float | None = None,
+) -> ProjectionTable:
+    """True projections of the landmarks seen from a body pose (``frame``, ``t`` left 0).
+
+    A row is produced for each landmark in front of the camera whose centre (or, for
+    lamps, any outline point) projects inside the image ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``.
+
+    Args:
+        camera: the camera.
+        pose: (3,) body pose ``(x, y, theta)``.
+        landmarks: true landmarks (``length``/``width``/``phi`` give lamp outlines).
+        occ: occluders (:func:`occluders`); empty = nothing hides anything.
+        m_max: skip landmarks farther than ``m_max`` per metre of height (speed only).
+
+    Returns:
+        See :class:`lampsam.datasets.logrun.ProjectionTable`; ``angle_px`` is the
+        projected long axis ``atan2(d_row, d_col)`` of ``lamp_rect`` lamps, wrapped to
+        (-pi/2, pi/2]; ``fully_visible`` needs every outline point inside
+        ``[0.5, W - 1.5] x [0.5, H - 1.5]`` and unhidden.
+    """
+    w_R_c, w_t_c = world_T_camera(camera, pose)
+    sel = np.flatnonzero(landmarks.xyz[:, 2] > w_t_c[2] + 1e-6)
+    if m_max is not None and len(sel):
+        d = np.hypot(*(landmarks.xyz[sel, :2] - w_t_c[:2]).T)
+        reach = (
+            (landmarks.xyz[sel, 2] - w_t_c[2]) * m_max * 1.05
+            + np.maximum(landmarks.length[sel], 0)
+            + 0.1
+        )
+        sel = sel[d <= reach]
+    W, H = camera.width, camera.height  # noqa: N806
+
+    def inside(px: FloatArray, margin: float) -> BoolArray:
+        return (
+            (px[:, 0] >= -0.5 + margin) & (px[:, 0] <= W - 0.5 - margin)
+            & (px[:, 1] >= -0.5 + margin) & (px[:, 1] <= H - 0.5 - margin)
+        )  # fmt: skip
+
+    pts = landmarks.xyz[sel]
+    px, ok = _project(camera, pts, pose)
+    centre_in = ok & inside(px, 0.0)
+    hidden = _hidden(pts, w_t_c, occ) if occ else np.zeros(len(pts), dtype=bool)
+    types = [landmarks.types[i] for i in sel]
+    keep = centre_in.copy()
+    fully = np.zeros(len(sel), dtype=bool)
+    angle = np.full(len(sel), np.nan)
+    for k, i in enumerate(sel):
+        t = types[k]
+        if not t.startswith("lamp") or not ok[k]:
+            fully[k] = centre_in[k] and not hidden[k]
+            continue
+        lamp = Lamp(0, t[5:], tuple(pts[k, :2]), pts[k, 2], landmarks.length[i], landmarks.width[i],
+                    landmarks.phi[i])  # type: ignore[arg-type]  # fmt: skip
+        ring = np.column_stack([lamp.outline(), np.full(len(lamp.outline()), pts[k, 2])])
+        rpx, rok = _project(camera, ring, pose)
+        keep[k] = centre_in[k] or bool(np.any(rok & inside(rpx, 0.0)))
+        rhid = _hidden(ring, w_t_c, occ) if occ else np.zeros(len(ring), dtype=bool)
+        fully[k] = bool(np.all(rok & inside(rpx, 1.0) & ~rhid)) and not hidden[k]
+        if t == "lamp_rect":
+            half = 0.5 * landmarks.length[i]
+            e = np.array([math.cos(landmarks.phi[i]), math.sin(landmarks.phi[i]), 0.0]) * half
+            epx, eok = _project(camera, np.array([pts[k] - e, pts[k] + e]), pose)
+            if eok.all():
+                a = math.atan2(epx[1, 1] - epx[0, 1], epx[1, 0] - epx[0, 0])
+                a = (a + math.pi / 2) % math.pi - math.pi / 2
+                angle[k] = math.pi / 2 if a == -math.pi / 2 else a
+    keep &= ok
+    n = int(keep.sum())
+    return ProjectionTable(
+        frame=np.zeros(n, dtype=np.int64),
+        t=np.zeros(n),
+        ids=landmarks.ids[sel][keep],
+        types=tuple(t for t, k in zip(types, keep, strict=True) if k),
+        pixel=px[keep],
+        angle_px=angle[keep],
+        visible=(centre_in & ~hidden)[keep],
+        fully_visible=fully[keep],
+    )

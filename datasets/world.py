@@ -1,0 +1,599 @@
+"""Ceiling worlds: YAML files describing ceilings, lamps, the rig and the robot's path.
+
+A world is a YAML mapping (built-in ones live in ``datasets/worlds/``)::
+
+    name: lab
+    rig:                      # as rig.yaml; the camera may give hfov_deg instead of fx..cy
+      camera: {width: 320, height: 240, hfov_deg: 120, body_t_camera: [0.1, 0, 0.3]}
+      odometry: {wheel_base: 0.4, k_r: 4.0e-6, k_l: 4.0e-6}
+    render: {supersample: 2, texel: 0.005, noise_sigma: 2.0, bloom: 0.0, background: 60}
+    simulation: {odometry_rate_hz: 30, image_rate_hz: 15}
+    path: {speed: 0.4, start_heading_deg: 0, waypoints: [[x, y], ...]}
+    ceiling:
+      corner_id_start: 1000   # ids of derived corner landmarks start here
+      surfaces:               # horizontal, rectangular, any number of heights
+        - name: lab
+          height: 2.7         # m above the floor
+          extent: [xmin, ymin, xmax, ymax]
+          grey: 175           # base grey level (0-255)
+          corners: false      # the extent's 4 corners are corner landmarks
+          tiles: {pitch: [0.6, 0.6], origin: [0, 0], line_width: 0.02, grey: 125, corners: true}
+          items:              # painted on the surface, in order
+            - {kind: rect, center: [x, y], size: [sx, sy], yaw_deg: 0, grey: 45, corners: true}
+            - {kind: disc, center: [x, y], radius: 0.06, grey: 235}
+      lamps:
+        - {id: 1, shape: rect, center: [x, y], height: 2.5, length: 1.2, width: 0.3,
+           yaw_deg: 0, brightness: 320}
+        - {id: 2, shape: round, center: [x, y], height: 2.7, diameter: 0.35}
+        - {id: 3, shape: square, center: [x, y], height: 2.7, size: 0.6, yaw_deg: 0}
+
+Unknown top-level sections (e.g. ``scene3d`` of the office world) are kept in
+:attr:`World.extra`, never rejected. Unknown keys inside the sections above are
+errors (they are usually typos). Angles in the YAML are degrees (``_deg``); in
+the dataclasses radians.
+
+Corner landmarks are derived (:func:`world_landmarks`): tile-grid intersections
+inside a surface (except those under an item or lamp of that surface), the four
+corners of ``rect`` items and, when asked, of the surface's extent.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lampsam.arrays import FloatArray
+from lampsam.datasets.logrun import LandmarkTable, Rig, _read_yaml
+from lampsam.errors import DatasetError
+
+log = logging.getLogger(__name__)
+
+WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
+"""Folder of the built-in worlds (``<name>.yaml``)."""
+
+LAMP_TYPES = {"rect": "lamp_rect", "round": "lamp_round", "square": "lamp_square"}
+"""World lamp shapes and their ``landmarks.csv`` types."""
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """Ceiling-tile grid lines painted on a surface.
+
+    Attributes:
+        pitch: ``(px, py)`` line spacing along world x and y, m.
+        origin: ``(x, y)`` of one line intersection, m.
+        line_width: width of the grid lines, m.
+        grey: grey level of the lines.
+        corners: the line intersections are corner landmarks.
+    """
+
+    pitch: tuple[float, float] = (0.6, 0.6)
+    origin: tuple[float, float] = (0.0, 0.0)
+    line_width: float = 0.02
+    grey: float = 125.0
+    corners: bool = True
+
+
+@dataclass(frozen=True)
+class TextureItem:
+    """A flat mark on a surface: a rectangle (vent, panel) or a disc (detector, sprinkler).
+
+    Attributes:
+        kind: ``"rect"`` or ``"disc"``.
+        center: ``(x, y)`` world, m.
+        size: rect: ``(sx, sy)`` side lengths along its own axes, m; disc: ``(d, d)``.
+        yaw: rotation of the rect's first side from world x, rad.
+        grey: grey level.
+        corners: (rect) its four corners are corner landmarks.
+    """
+
+    kind: str
+    center: tuple[float, float]
+    size: tuple[float, float]
+    yaw: float = 0.0
+    grey: float = 50.0
+    corners: bool = False
+
+    def corner_points(self) -> FloatArray:
+        """(4, 2) world corners of a rect (counter-clockwise)."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        hx, hy = self.size[0] / 2, self.size[1] / 2
+        local = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]])
+        return np.asarray(self.center) + local @ np.array([[c, s], [-s, c]])
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A horizontal rectangular ceiling surface.
+
+    Attributes:
+        name: label.
+        height: height above the floor, m.
+        extent: ``(xmin, ymin, xmax, ymax)`` world, m.
+        grey: base grey level.
+        tiles: grid lines, or None.
+        items: marks painted on it, in order.
+        corners: the extent's corners are corner landmarks (e.g. a soffit or duct).
+    """
+
+    name: str
+    height: float
+    extent: tuple[float, float, float, float]
+    grey: float = 175.0
+    tiles: TileGrid | None = None
+    items: tuple[TextureItem, ...] = ()
+    corners: bool = False
+
+    def contains(self, xy: FloatArray, margin: float = 0.0) -> np.ndarray:
+        """(N,) bool: points ``xy`` (N, 2) inside the extent shrunk by ``margin``."""
+        x0, y0, x1, y1 = self.extent
+        xy = np.asarray(xy).reshape(-1, 2)
+        return (
+            (xy[:, 0] >= x0 + margin)
+            & (xy[:, 0] <= x1 - margin)
+            & (xy[:, 1] >= y0 + margin)
+            & (xy[:, 1] <= y1 - margin)
+        )
+
+
+@dataclass(frozen=True)
+class Lamp:
+    """A ceiling lamp (a bright flat shape, saturating the camera).
+
+    Attributes:
+        id: landmark id.
+        shape: ``"rect"``, ``"round"`` or ``"square"``.
+        center: ``(x, y)`` world, m.
+        height: height of the lamp's face above the floor, m.
+        length: rect: long side; round: diameter; square: side, m.
+        width: rect: short side; otherwise equal to ``length``, m.
+        yaw: direction of the long side (rect) or of one side (square) from world x, rad.
+        brightness: grey level before saturation (values above 255 saturate).
+    """
+
+    id: int
+    shape: str
+    center: tuple[float, float]
+    height: float
+    length: float
+    width: float
+    yaw: float = 0.0
+    brightness: float = 320.0
+
+    def outline(self, n_round: int = 16) -> FloatArray:
+        """(K, 2) world points on the outline (rect/square: corners and edge midpoints)."""
+        cx, cy = self.center
+        if self.shape == "round":
+            a = np.linspace(0.0, 2 * np.pi, n_round, endpoint=False)
+            r = self.length / 2
+            return np.column_stack([cx + r * np.cos(a), cy + r * np.sin(a)])
+        hx, hy = self.length / 2, self.width / 2
+        local = np.array(
+            [[hx, hy], [0, hy], [-hx, hy], [-hx, 0], [-hx, -hy], [0, -hy], [hx, -hy], [hx, 0]]
+        )
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return np.array([cx, cy]) + local @ np.array([[c, s], [-s, c]])
+
+    def contains(self, xy: FloatArray, margin: float = 0.0) -> np.ndarray:
+        """(N,) bool: points ``xy`` (N, 2) on the lamp grown by ``margin``, m."""
+        d = np.asarray(xy, dtype=np.float64).reshape(-1, 2) - np.asarray(self.center)
+        if self.shape == "round":
+            return np.hypot(d[:, 0], d[:, 1]) <= self.length / 2 + margin
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        lx = c * d[:, 0] + s * d[:, 1]
+        ly = -s * d[:, 0] + c * d[:, 1]
+        return (np.abs(lx) <= self.length / 2 + margin) & (np.abs(ly) <= self.width / 2 + margin)
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How ceiling images are rendered.
+
+    Attributes:
+        supersample: ``S``: S x S rays per pixel, averaged (default 2).
+        texel: resolution of the pre-rasterised surface textures, m (default 0.005).
+        noise_sigma: std of additive Gaussian sensor noise, grey levels (default 2.0).
+        bloom: strength of the glare around saturated areas, 0 = none (default 0.0).
+        bloom_sigma: Gaussian radius of the glare, px (default 4.0).
+        background: grey level where no surface is hit (walls, openings; default 60).
+    """
+
+    supersample: int = 2
+    texel: float = 0.005
+    noise_sigma: float = 2.0
+    bloom: float = 0.0
+    bloom_sigma: float = 4.0
+    background: float = 60.0
+
+
+@dataclass(frozen=True)
+class SimulationSettings:
+    """Sensor rates of a simulated run.
+
+    Attributes:
+        odometry_rate_hz: wheel-odometry rate (default 30).
+        image_rate_hz: image rate; must divide the odometry rate (default 15).
+    """
+
+    odometry_rate_hz: float = 30.0
+    image_rate_hz: float = 15.0
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """A ceiling world.
+
+    Attributes:
+        name: world name.
+        source: the YAML file it came from, if any.
+        rig: sensor rig.
+        surfaces: ceiling surfaces.
+        lamps: lamps.
+        waypoints: (K, 2) path, world m (may be empty).
+        speed: robot cruise speed, m/s.
+        start_heading: initial heading, rad, or None (face the second waypoint).
+        render: rendering settings.
+        simulation: rates.
+        corner_id_start: first id of derived corner landmarks.
+        description: free text.
+        extra: unknown top-level sections, kept as parsed (e.g. ``scene3d``).
+    """
+
+    name: str
+    source: Path | None
+    rig: Rig
+    surfaces: tuple[Surface, ...]
+    lamps: tuple[Lamp, ...]
+    waypoints: FloatArray
+    speed: float = 0.4
+    start_heading: float | None = None
+    render: RenderSettings = field(default_factory=RenderSettings)
+    simulation: SimulationSettings = field(default_factory=SimulationSettings)
+    corner_id_start: int = 1000
+    description: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- parsing
+_KNOWN_TOP = {"name", "description", "rig", "render", "simulation", "path", "ceiling"}
+
+
+class _Ctx:
+    """Error context: the file and the key path being parsed."""
+
+    def __init__(self, path: Path | None):
+        self.path = path
+
+    def fail(self, where: str, msg: str) -> DatasetError:
+        return DatasetError(f"{where}: {msg}", self.path)
+
+
+def _check_keys(ctx: _Ctx, d: Any, where: str, allowed: set[str], required: set[str]) -> None:
+    if not isinstance(d, Mapping):
+        raise ctx.fail(where, "must be a mapping")
+    unknown = set(d) - allowed
+    if unknown:
+        raise ctx.fail(where, f"unknown keys {sorted(unknown)} (allowed: {sorted(allowed)})")
+    missing = required - set(d)
+    if missing:
+        raise ctx.fail(where, f"missing keys {sorted(missing)}")
+
+
+def _num(ctx: _Ctx, d: Mapping[str, Any], key: str, where: str, default: float | None = None,
+         positive: bool = False, nonneg: bool = False) -> float:  # fmt: skip
+    if key not in d:
+        if default is None:
+            raise ctx.fail(where, f"missing {key!r}")
+        return float(default)
+    try:
+        v = float(d[key])
+    except (TypeError, ValueError) as exc:
+        raise ctx.fail(f"{where}.{key}", f"not a number: {d[key]!r}") from exc
+    if not math.isfinite(v):
+        raise ctx.fail(f"{where}.{key}", "must be finite")
+    if positive and v <= 0:
+        raise ctx.fail(f"{where}.{key}", f"must be > 0, got {v}")
+    if nonneg and v < 0:
+        raise ctx.fail(f"{where}.{key}", f"must be >= 0, got {v}")
+    return v
+
+
+def _vec(ctx: _Ctx, value: Any, n: int, where: str) -> tuple[float, ...]:
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise ctx.fail(where, f"expected {n} numbers, got {value!r}") from exc
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise ctx.fail(where, f"expected {n} finite numbers, got {value!r}")
+    return tuple(float(x) for x in arr)
+
+
+def _parse_item(ctx: _Ctx, d: Any, where: str) -> TextureItem:
+    _check_keys(ctx, d, where, {"kind", "center", "size", "radius", "yaw_deg", "grey", "corners"},
+                {"kind", "center"})  # fmt: skip
+    kind = d["kind"]
+    center = _vec(ctx, d["center"], 2, f"{where}.center")
+    grey = _num(ctx, d, "grey", where, 50.0, nonneg=True)
+    if kind == "rect":
+        size = _vec(ctx, d.get("size"), 2, f"{where}.size")
+        if min(size) <= 0:
+            raise ctx.fail(f"{where}.size", "must be > 0")
+        yaw = math.radians(_num(ctx, d, "yaw_deg", where, 0.0))
+        return TextureItem("rect", center, size, yaw, grey, bool(d.get("corners", False)))  # type: ignore[arg-type]
+    if kind == "disc":
+        r = _num(ctx, d, "radius", where, positive=True)
+        return TextureItem("disc", center, (2 * r, 2 * r), 0.0, grey, False)  # type: ignore[arg-type]
+    raise ctx.fail(f"{where}.kind", f"must be 'rect' or 'disc', got {kind!r}")
+
+
+def _parse_surface(ctx: _Ctx, d: Any, where: str) -> Surface:
+    _check_keys(ctx, d, where, {"name", "height", "extent", "grey", "tiles", "items", "corners"},
+                {"height", "extent"})  # fmt: skip
+    ext = _vec(ctx, d["extent"], 4, f"{where}.extent")
+    if not (ext[2] > ext[0] and ext[3] > ext[1]):
+        raise ctx.fail(f"{where}.extent", "needs xmin < xmax and ymin < ymax")
+    tiles = None
+    if d.get("tiles") is not None:
+        t = d["tiles"]
+        tw = f"{where}.tiles"
+        _check_keys(ctx, t, tw, {"pitch", "origin", "line_width", "grey", "corners"}, {"pitch"})
+        pitch = t["pitch"]
+        pitch2 = _vec(ctx, [pitch, pitch] if np.isscalar(pitch) else pitch, 2, f"{tw}.pitch")
+        if min(pitch2) <= 0:
+            raise ctx.fail(f"{tw}.pitch", "must be > 0")
+        tiles = TileGrid(
+            pitch=pitch2,  # type: ignore[arg-type]
+            origin=_vec(ctx, t.get("origin", [ext[0], ext[1]]), 2, f"{tw}.origin"),  # type: ignore[arg-type]
+            line_width=_num(ctx, t, "line_width", tw, 0.02, positive=True),
+            grey=_num(ctx, t, "grey", tw, 125.0, nonneg=True),
+            corners=bool(t.get("corners", True)),
+        )
+    items = d.get("items") or []
+    if not isinstance(items, list):
+        raise ctx.fail(f"{where}.items", "must be a list")
+    return Surface(
+        name=str(d.get("name", where)),
+        height=_num(ctx, d, "height", where, positive=True),
+        extent=ext,  # type: ignore[arg-type]
+        grey=_num(ctx, d, "grey", where, 175.0, nonneg=True),
+        tiles=tiles,
+        items=tuple(_parse_item(ctx, it, f"{where}.items[{k}]") for k, it in enumerate(items)),
+        corners=bool(d.get("corners", False)),
+    )
+
+
+def _parse_lamp(ctx: _Ctx, d: Any, where: str) -> Lamp:
+    allowed = {"id", "shape", "center", "height", "length", "width", "diameter", "size",
+               "yaw_deg", "brightness"}  # fmt: skip
+    _check_keys(ctx, d, where, allowed, {"id", "shape", "center", "height"})
+    shape = d["shape"]
+    try:
+        lamp_id = int(d["id"])
+    except (TypeError, ValueError) as exc:
+        raise ctx.fail(f"{where}.id", f"not an integer: {d['id']!r}") from exc
+    center = _vec(ctx, d["center"], 2, f"{where}.center")
+    height = _num(ctx, d, "height", where, positive=True)
+    yaw = math.radians(_num(ctx, d, "yaw_deg", where, 0.0))
+    bright = _num(ctx, d, "brightness", where, 320.0, positive=True)
+    if shape == "rect":
+        length = _num(ctx, d, "length", where, positive=True)
+        width = _num(ctx, d, "width", where, positive=True)
+        if width > length:
+            raise ctx.fail(where, "rect lamp: width must not exceed length")
+    elif shape == "round":
+        length = width = _num(ctx, d, "diameter", where, positive=True)
+    elif shape == "square":
+        length = width = _num(ctx, d, "size", where, positive=True)
+    else:
+        raise ctx.fail(f"{where}.shape", f"must be rect, round or square, got {shape!r}")
+    return Lamp(lamp_id, shape, center, height, length, width, yaw, bright)  # type: ignore[arg-type]
+
+
+def world_from_dict(doc: Any, source: Path | None = None) -> World:
+    """Build a :class:`World` from a parsed world YAML (schema in the module docstring).
+
+    Raises:
+        DatasetError: a missing or malformed entry, named by its key path and the file.
+    """
+    ctx = _Ctx(source)
+    if not isinstance(doc, Mapping):
+        raise ctx.fail("world", "must be a mapping")
+    rig = Rig.from_dict(doc.get("rig") or {}, source)
+    rd = doc.get("render") or {}
+    _check_keys(ctx, rd, "render", {"supersample", "texel", "noise_sigma", "bloom", "bloom_sigma",
+                                    "background"}, set())  # fmt: skip
+    render = RenderSettings(
+        supersample=int(_num(ctx, rd, "supersample", "render", 2, positive=True)),
+        texel=_num(ctx, rd, "texel", "render", 0.005, positive=True),
+        noise_sigma=_num(ctx, rd, "noise_sigma", "render", 2.0, nonneg=True),
+        bloom=_num(ctx, rd, "bloom", "render", 0.0, nonneg=True),
+        bloom_sigma=_num(ctx, rd, "bloom_sigma", "render", 4.0, positive=True),
+        background=_num(ctx, rd, "background", "render", 60.0, nonneg=True),
+    )
+    sd = doc.get("simulation") or {}
+    _check_keys(ctx, sd, "simulation", {"odometry_rate_hz", "image_rate_hz"}, set())
+    sim = SimulationSettings(
+        odometry_rate_hz=_num(ctx, sd, "odometry_rate_hz", "simulation", 30.0, positive=True),
+        image_rate_hz=_num(ctx, sd, "image_rate_hz", "simulation", 15.0, positive=True),
+    )
+    ratio = sim.odometry_rate_hz / sim.image_rate_hz
+    if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+        raise ctx.fail("simulation", "odometry_rate_hz must be a multiple of image_rate_hz")
+    pd = doc.get("path") or {}
+    _check_keys(ctx, pd, "path", {"speed", "start_heading_deg", "waypoints"}, set())
+    wps = pd.get("waypoints") or []
+    try:
+        waypoints = np.asarray(wps, dtype=np.float64).reshape(-1, 2)
+    except (TypeError, ValueError) as exc:
+        raise ctx.fail("path.waypoints", "must be a list of [x, y]") from exc
+    if not np.all(np.isfinite(waypoints)):
+        raise ctx.fail("path.waypoints", "must be finite")
+    start = pd.get("start_heading_deg")
+    cd = doc.get("ceiling") or {}
+    _check_keys(ctx, cd, "ceiling", {"surfaces", "lamps", "corner_id_start"}, set())
+    surfaces = tuple(
+        _parse_surface(ctx, s, f"ceiling.surfaces[{k}]")
+        for k, s in enumerate(cd.get("surfaces") or [])
+    )
+    lamps = tuple(
+        _parse_lamp(ctx, s, f"ceiling.lamps[{k}]") for k, s in enumerate(cd.get("lamps") or [])
+    )
+    ids = [lp.id for lp in lamps]
+    if len(set(ids)) != len(ids):
+        raise ctx.fail("ceiling.lamps", "duplicate lamp ids")
+    corner_start = int(_num(ctx, cd, "corner_id_start", "ceiling", 1000))
+    if ids and max(ids) >= corner_start:
+        raise ctx.fail("ceiling.lamps", f"lamp ids must be below corner_id_start={corner_start}")
+    z_cam = rig.camera.z_cam
+    for s in surfaces:
+        if s.height <= z_cam + 0.1:
+            raise ctx.fail(f"surface {s.name!r}", "must be more than 0.1 m above the camera")
+    for lp in lamps:
+        if lp.height <= z_cam + 0.1:
+            raise ctx.fail(f"lamp {lp.id}", "must be more than 0.1 m above the camera")
+    return World(
+        name=str(doc.get("name", source.stem if source else "world")),
+        source=source,
+        rig=rig,
+        surfaces=surfaces,
+        lamps=lamps,
+        waypoints=waypoints,
+        speed=_num(ctx, pd, "speed", "path", 0.4, positive=True),
+        start_heading=None if start is None else math.radians(float(start)),
+        render=render,
+        simulation=sim,
+        corner_id_start=corner_start,
+        description=str(doc.get("description", "")),
+        extra={k: v for k, v in doc.items() if k not in _KNOWN_TOP},
+    )
+
+
+def world_path(world: str | Path) -> Path:
+    """The YAML file of a built-in world name, or ``world`` itself when it is a path."""
+    p = Path(world)
+    if p.suffix in (".yaml", ".yml") or p.parent != Path("."):
+        return p
+    return WORLDS_DIR / f"{world}.yaml"
+
+
+def builtin_worlds() -> list[str]:
+    """Names of the built-in worlds."""
+    return sorted(p.stem for p in WORLDS_DIR.glob("*.yaml"))
+
+
+def load_world(world: str | Path) -> World:
+    """Load a built-in world by name (``lab``, ``corridor``, ...) or a world YAML file.
+
+    Raises:
+        DatasetError: unknown name, missing file, invalid YAML or schema errors.
+    """
+    path = world_path(world)
+    if not path.is_file():
+        raise DatasetError(
+            f"world not found (built-in: {', '.join(builtin_worlds())}; or give a YAML path)",
+            path,
+        )
+    return world_from_dict(_read_yaml(path), path)
+
+
+# --------------------------------------------------------------------------- landmarks
+def _grid_intersections(s: Surface) -> FloatArray:
+    """(N, 2) tile-grid intersections strictly inside a surface (a line width from the edge)."""
+    assert s.tiles is not None
+    tg = s.tiles
+    x0, y0, x1, y1 = s.extent
+    m = 2 * tg.line_width
+    xs = tg.origin[0] + tg.pitch[0] * np.arange(
+        math.ceil((x0 + m - tg.origin[0]) / tg.pitch[0]),
+        math.floor((x1 - m - tg.origin[0]) / tg.pitch[0]) + 1,
+    )
+    ys = tg.origin[1] + tg.pitch[1] * np.arange(
+        math.ceil((y0 + m - tg.origin[1]) / tg.pitch[1]),
+        math.floor((y1 - m - tg.origin[1]) / tg.pitch[1]) + 1,
+    )
+    gx, gy = np.meshgrid(xs, ys)
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+def _item_contains(item: TextureItem, xy: FloatArray, margin: float) -> np.ndarray:
+    """(N,) bool: points on a texture item grown by ``margin``."""
+    d = np.asarray(xy).reshape(-1, 2) - np.asarray(item.center)
+    if item.kind == "disc":
+        return np.hypot(d[:, 0], d[:, 1]) <= item.size[0] / 2 + margin
+    c, s = math.cos(item.yaw), math.sin(item.yaw)
+    lx = c * d[:, 0] + s * d[:, 1]
+    ly = -s * d[:, 0] + c * d[:, 1]
+    return (np.abs(lx) <= item.size[0] / 2 + margin) & (np.abs(ly) <= item.size[1] / 2 + margin)
+
+
+def world_landmarks(world: World) -> LandmarkTable:
+    """True landmarks of a world: its lamps, then the derived corners.
+
+    Corner ids start at ``world.corner_id_start`` and follow the order: for each
+    surface, tile intersections (row-major in y then x), rect item corners, extent
+    corners. Tile intersections lying on an item or a lamp at the surface's height
+    (grown by 5 cm) are left out.
+
+    Returns:
+        The table; lamps' ``xyz`` is the centre of the lamp face, ``phi`` the yaw
+        (rect lamps wrapped to (-pi/2, pi/2]; round 0), length/width as in :class:`Lamp`.
+    """
+    ids: list[int] = []
+    types: list[str] = []
+    xyz: list[tuple[float, float, float]] = []
+    phi: list[float] = []
+    length: list[float] = []
+    width: list[float] = []
+    for lp in world.lamps:
+        ids.append(lp.id)
+        types.append(LAMP_TYPES[lp.shape])
+        xyz.append((lp.center[0], lp.center[1], lp.height))
+        if lp.shape == "rect":
+            a = (lp.yaw + math.pi / 2) % math.pi - math.pi / 2
+            phi.append(math.pi / 2 if a == -math.pi / 2 else a)
+        elif lp.shape == "square":
+            phi.append(lp.yaw)
+        else:
+            phi.append(0.0)
+        length.append(lp.length)
+        width.append(lp.width)
+    next_id = world.corner_id_start
+    for s in world.surfaces:
+        pts: list[FloatArray] = []
+        if s.tiles is not None and s.tiles.corners:
+            g = _grid_intersections(s)
+            keep = np.ones(len(g), dtype=bool)
+            for it in s.items:
+                keep &= ~_item_contains(it, g, 0.05)
+            for lp in world.lamps:
+                if abs(lp.height - s.height) < 1e-6:
+                    keep &= ~lp.contains(g, 0.05)
+            pts.append(g[keep])
+        for it in s.items:
+            if it.kind == "rect" and it.corners:
+                pts.append(it.corner_points())
+        if s.corners:
+            x0, y0, x1, y1 = s.extent
+            pts.append(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]))
+        for p in pts:
+            for x, y in p:
+                ids.append(next_id)
+                next_id += 1
+                types.append("corner")
+                xyz.append((float(x), float(y), s.height))
+                phi.append(0.0)
+                length.append(0.0)
+                width.append(0.0)
+    return LandmarkTable(
+        ids=np.array(ids, dtype=np.int64),
+        types=tuple(types),
+        xyz=np.array(xyz, dtype=np.float64).reshape(-1, 3),
+        phi=np.array(phi),
+        length=np.array(length),
+        width=np.array(width),
+    )
