@@ -37,7 +37,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 
@@ -106,7 +105,9 @@ def _check_pairs(S: FloatArray, K: FloatArray, n_min: int) -> tuple[FloatArray, 
     S = np.asarray(S, dtype=float)
     K = np.asarray(K, dtype=float)
     if S.ndim != 2 or S.shape[1] != 3 or S.shape != K.shape:
-        raise AlignmentError(f"need two (N, 3) arrays of matched points, got {S.shape} and {K.shape}")
+        raise AlignmentError(
+            f"need two (N, 3) arrays of matched points, got {S.shape} and {K.shape}"
+        )
     if S.shape[0] < n_min:
         raise AlignmentError(f"need at least {n_min} correspondences, got {S.shape[0]}")
     if not (np.all(np.isfinite(S)) and np.all(np.isfinite(K))):

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
-
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import compose
@@ -161,7 +160,9 @@ def candidate_from_frame(
         log.debug("t=%.2f: %d matches, no candidate", t, len(qi))
         return None
     try:
-        a = ransac_align(np.asarray(map_points, dtype=float)[ti], body_points[qi], rng, config.ransac)
+        a = ransac_align(
+            np.asarray(map_points, dtype=float)[ti], body_points[qi], rng, config.ransac
+        )
     except AlignmentError as exc:
         log.debug("t=%.2f: %s", t, exc)
         return None
@@ -250,7 +251,13 @@ class CandidateCollector:
         """
         self.move_to(odom_pose)
         cand = candidate_from_frame(
-            body_points, descriptors, self.map_points, self.map_descriptors, t, self.rng, self.config
+            body_points,
+            descriptors,
+            self.map_points,
+            self.map_descriptors,
+            t,
+            self.rng,
+            self.config,
         )
         if cand is not None:
             self.candidates.append(cand)
@@ -299,5 +306,7 @@ def sample_candidates(
         phi = rng.uniform(-np.pi, np.pi, n)
         th = c.pose[2] + rng.normal(0.0, sigma_theta, n)
         th = np.mod(th + np.pi, 2 * np.pi) - np.pi
-        out.append(np.column_stack([c.pose[0] + rho * np.cos(phi), c.pose[1] + rho * np.sin(phi), th]))
+        out.append(
+            np.column_stack([c.pose[0] + rho * np.cos(phi), c.pose[1] + rho * np.sin(phi), th])
+        )
     return np.vstack(out)

@@ -40,7 +40,6 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-
 from lampsam.arrays import FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.ceiling import project_point
@@ -285,8 +284,9 @@ class CeilingChecker:
         config: gate and fraction.
     """
 
-    def __init__(self, landmarks: FloatArray, body_t_camera: FloatArray,
-                 config: VerificationConfig) -> None:
+    def __init__(
+        self, landmarks: FloatArray, body_t_camera: FloatArray, config: VerificationConfig
+    ) -> None:
         self.landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
         if not np.all(np.isfinite(self.landmarks)):
             raise VerificationError("ceiling feature map contains NaN or inf")

@@ -22,7 +22,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import wrap_angle
@@ -178,6 +177,9 @@ class VirtualScan:
         xy = _to_frame(np.asarray(odom_pose, dtype=float), self.points())
         r = np.hypot(xy[:, 0], xy[:, 1]) if len(xy) else np.zeros(0)
         ranges = min_range_scan(xy[r <= self.config.max_range])
-        log.debug("virtual scan: %d frames, %d beams with a return",
-                  self.n_frames, int(np.count_nonzero(np.isfinite(ranges))))
+        log.debug(
+            "virtual scan: %d frames, %d beams with a return",
+            self.n_frames,
+            int(np.count_nonzero(np.isfinite(ranges))),
+        )
         return ranges

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
-
 from lampsam.localization.alignment import (
     AlignmentError,
     RansacConfig,
@@ -15,9 +13,12 @@ from lampsam.localization.alignment import (
     ransac_align,
     ransac_iterations,
 )
+from scipy.spatial.transform import Rotation
 
 
-def _scene(rng: np.random.Generator, n: int, planar: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _scene(
+    rng: np.random.Generator, n: int, planar: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Body points K in front of a robot, their world images S = R K + t."""
     K = np.column_stack([rng.uniform(0.5, 4.0, n), rng.uniform(-2, 2, n), rng.uniform(0.1, 2.0, n)])
     if planar:
@@ -99,7 +100,9 @@ def test_agrees_with_open3d(rng: np.random.Generator) -> None:
     S_noisy = S + rng.normal(0, 0.01, S.shape)
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(K))
     dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(S_noisy))
-    corres = o3d.utility.Vector2iVector(np.column_stack([np.arange(40), np.arange(40)]).astype(np.int32))
+    corres = o3d.utility.Vector2iVector(
+        np.column_stack([np.arange(40), np.arange(40)]).astype(np.int32)
+    )
     T = reg.TransformationEstimationPointToPoint().compute_transformation(src, dst, corres)
     a = align(S_noisy, K)
     np.testing.assert_allclose(a.R, T[:3, :3], atol=1e-9)
@@ -110,7 +113,13 @@ def test_agrees_with_open3d(rng: np.random.Generator) -> None:
     dst_bad = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(S_bad))
     o3d.utility.random.seed(3)
     res = reg.registration_ransac_based_on_correspondence(
-        src, dst_bad, corres, 0.1, reg.TransformationEstimationPointToPoint(False), 3, [],
+        src,
+        dst_bad,
+        corres,
+        0.1,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [],
         reg.RANSACConvergenceCriteria(2000, 0.999),
     )
     b = ransac_align(S_bad, K, np.random.default_rng(3), RansacConfig(planar=False))
@@ -130,8 +139,12 @@ def test_bad_input_raises() -> None:
         align(bad, np.ones((5, 3)))
     rng = np.random.default_rng(0)
     with pytest.raises(AlignmentError):  # pure noise: no consensus
-        ransac_align(rng.uniform(-5, 5, (20, 3)), rng.uniform(-5, 5, (20, 3)), rng,
-                     RansacConfig(inlier_threshold=0.01, min_inliers=6))
+        ransac_align(
+            rng.uniform(-5, 5, (20, 3)),
+            rng.uniform(-5, 5, (20, 3)),
+            rng,
+            RansacConfig(inlier_threshold=0.01, min_inliers=6),
+        )
 
 
 def test_ransac_iterations_formula() -> None:

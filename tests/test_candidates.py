@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from lampsam.factors.geometry import wrap_angle
 from lampsam.localization.candidates import (
     CandidateCollector,
@@ -30,8 +29,13 @@ def _world(rng: np.random.Generator, m: int = 1000) -> tuple[np.ndarray, np.ndar
     return pts, desc
 
 
-def _frame(rng: np.random.Generator, pts: np.ndarray, desc: np.ndarray, pose: np.ndarray,
-           n_clutter: int = 15) -> tuple[np.ndarray, np.ndarray]:
+def _frame(
+    rng: np.random.Generator,
+    pts: np.ndarray,
+    desc: np.ndarray,
+    pose: np.ndarray,
+    n_clutter: int = 15,
+) -> tuple[np.ndarray, np.ndarray]:
     """Features seen by a forward camera (57 deg FOV) at ``pose``, plus clutter (7 m range)."""
     c, s = np.cos(pose[2]), np.sin(pose[2])
     d = pts[:, :2] - pose[:2]
@@ -40,16 +44,22 @@ def _frame(rng: np.random.Generator, pts: np.ndarray, desc: np.ndarray, pose: np
     vis = (bx > 0.3) & (np.abs(np.arctan2(by, bx)) < np.deg2rad(28.5)) & (np.hypot(bx, by) < 7.0)
     body = np.column_stack([bx, by, pts[:, 2]])[vis] + rng.normal(0, 0.01, (int(vis.sum()), 3))
     dsc = desc[vis] + rng.normal(0, 0.02, (int(vis.sum()), 128)).astype(np.float32)
-    clutter_pts = np.column_stack([rng.uniform(0.5, 4, n_clutter), rng.uniform(-1, 1, n_clutter),
-                                   rng.uniform(0, 2, n_clutter)])
+    clutter_pts = np.column_stack(
+        [
+            rng.uniform(0.5, 4, n_clutter),
+            rng.uniform(-1, 1, n_clutter),
+            rng.uniform(0, 2, n_clutter),
+        ]
+    )
     clutter_desc = rng.uniform(0, 1, (n_clutter, 128)).astype(np.float32)
     return np.vstack([body, clutter_pts]), np.vstack([dsc, clutter_desc])
 
 
 def test_ratio_test_keeps_true_matches(rng: np.random.Generator) -> None:
     train = rng.uniform(0, 1, (50, 128)).astype(np.float32)
-    query = np.vstack([train[:20] + rng.normal(0, 0.01, (20, 128)),
-                       rng.uniform(0, 1, (10, 128))]).astype(np.float32)
+    query = np.vstack(
+        [train[:20] + rng.normal(0, 0.01, (20, 128)), rng.uniform(0, 1, (10, 128))]
+    ).astype(np.float32)
     qi, ti = match_descriptors(query, train, 0.8)
     order = np.argsort(qi)
     np.testing.assert_array_equal(qi[order], np.arange(20))
@@ -87,8 +97,10 @@ def test_propagate_composes_the_odometry_increment() -> None:
 
 
 def test_equal_particles_per_candidate(rng: np.random.Generator) -> None:
-    cands = [PoseCandidate(np.array([1.0, 1.0, 0.0]), 0.1, 0.02, 10, 0.0),
-             PoseCandidate(np.array([5.0, 5.0, 1.0]), 1.0, 0.2, 8, 1.0)]
+    cands = [
+        PoseCandidate(np.array([1.0, 1.0, 0.0]), 0.1, 0.02, 10, 0.0),
+        PoseCandidate(np.array([5.0, 5.0, 1.0]), 1.0, 0.2, 8, 1.0),
+    ]
     p = sample_candidates(cands, 500, 0.05, np.random.default_rng(2))
     assert p.shape == (1000, 3)
     assert np.all(np.hypot(p[:500, 0] - 1, p[:500, 1] - 1) <= 0.1 + 1e-12)
@@ -102,6 +114,10 @@ def test_equal_particles_per_candidate(rng: np.random.Generator) -> None:
 def test_no_candidate_from_unrelated_features(rng: np.random.Generator) -> None:
     pts, desc = _world(rng)
     coll = CandidateCollector(pts, desc, CandidateConfig(), np.random.default_rng(5))
-    out = coll.add_frame(0.0, np.zeros(3), rng.uniform(0, 3, (40, 3)),
-                         rng.uniform(0, 1, (40, 128)).astype(np.float32))
+    out = coll.add_frame(
+        0.0,
+        np.zeros(3),
+        rng.uniform(0, 3, (40, 3)),
+        rng.uniform(0, 1, (40, 128)).astype(np.float32),
+    )
     assert out is None and coll.candidates == []

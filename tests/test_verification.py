@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from lampsam.factors.ceiling import project_point
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation
 from lampsam.localization.verification import (
     CeilingChecker,
     RlocVerifier,
     SequentialVerifier,
+    Verdict,
     VerificationConfig,
     VerificationError,
-    Verdict,
     frame_match,
     observed_points,
 )
@@ -36,18 +35,27 @@ def _observe(rng: np.random.Generator, landmarks: np.ndarray, pose: np.ndarray) 
     return m + rng.normal(0, 0.01, m.shape)
 
 
-def _drive(rng: np.random.Generator, n: int, start: np.ndarray, speed: float = 0.3,
-           dt: float = 0.1) -> np.ndarray:
+def _drive(
+    rng: np.random.Generator, n: int, start: np.ndarray, speed: float = 0.3, dt: float = 0.1
+) -> np.ndarray:
     """Poses of a gentle arc at ``speed`` m/s sampled at 1/dt Hz."""
     poses = [start]
     for _ in range(n - 1):
         x, y, th = poses[-1]
-        poses.append(np.array([x + speed * dt * np.cos(th), y + speed * dt * np.sin(th), th + 0.01]))
+        poses.append(
+            np.array([x + speed * dt * np.cos(th), y + speed * dt * np.sin(th), th + 0.01])
+        )
     return np.array(poses)
 
 
-def _run(verifier: RlocVerifier | SequentialVerifier, checker: CeilingChecker, truth: np.ndarray,
-         estimate: np.ndarray, landmarks: np.ndarray, rng: np.random.Generator) -> list[Verdict]:
+def _run(
+    verifier: RlocVerifier | SequentialVerifier,
+    checker: CeilingChecker,
+    truth: np.ndarray,
+    estimate: np.ndarray,
+    landmarks: np.ndarray,
+    rng: np.random.Generator,
+) -> list[Verdict]:
     verdicts = []
     for k in range(len(truth)):
         ds = 0.0 if k == 0 else float(np.hypot(*(truth[k, :2] - truth[k - 1, :2])))
@@ -127,9 +135,14 @@ def test_frame_match_and_observed_points() -> None:
     pred = np.array([[0.0, 0.0], [0.3, 0.1]])
     assert frame_match(np.array([[0.02, 0.0], [0.5, 0.5]]), pred, 0.1) == (1, 2)
     assert frame_match(np.zeros((0, 2)), pred, 0.1) == (0, 0)
-    corner = CornerObservation(m=np.array([0.1, 0.2]), cov_m=np.eye(2) * 1e-4,
-                               pixel=np.zeros(2), patch=np.zeros((5, 5), np.float32), score=1.0,
-                               landmark_id=None)
+    corner = CornerObservation(
+        m=np.array([0.1, 0.2]),
+        cov_m=np.eye(2) * 1e-4,
+        pixel=np.zeros(2),
+        patch=np.zeros((5, 5), np.float32),
+        score=1.0,
+        landmark_id=None,
+    )
     np.testing.assert_allclose(observed_points(CeilingFrame(0.0, 0, (), (corner,))), [[0.1, 0.2]])
     with pytest.raises(VerificationError):
         RlocVerifier(VerificationConfig()).update(-1.0, True)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from lampsam.localization.virtual_scan import (
     VirtualScan,
     VirtualScanConfig,
@@ -17,8 +16,12 @@ from lampsam.localization.virtual_scan import (
 def _square_room_points(half: float, n: int = 4000) -> np.ndarray:
     """Points on the walls of a square room centred on the origin, odometry frame, z = 1 m."""
     s = np.linspace(-half, half, n // 4, endpoint=False)
-    walls = [np.column_stack([np.full_like(s, half), s]), np.column_stack([np.full_like(s, -half), s]),
-             np.column_stack([s, np.full_like(s, half)]), np.column_stack([s, np.full_like(s, -half)])]
+    walls = [
+        np.column_stack([np.full_like(s, half), s]),
+        np.column_stack([np.full_like(s, -half), s]),
+        np.column_stack([s, np.full_like(s, half)]),
+        np.column_stack([s, np.full_like(s, -half)]),
+    ]
     return np.vstack(walls)
 
 

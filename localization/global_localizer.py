@@ -1,0 +1,618 @@
+"""Global localization on the environment map (paper 2, secs. 3-4, Fig. 11).
+
+The pipeline, for a robot at an unknown pose:
+
+1. **Turn in place** (30 deg/s, one full turn): every Kinect frame's SIFT
+   features give a pose candidate (:mod:`.candidates`, eqs. 1-7), earlier
+   candidates are carried along with the turn, and the depth is accumulated in
+   the 360-beam virtual scan (:mod:`.virtual_scan`).
+2. **Particle filter** on the grid map (:mod:`.particle_filter`): the same
+   number of particles in each candidate (or particles everywhere when there
+   are no candidates / the configuration says so), updated with the virtual
+   scan until the particles' spread falls below a bound.
+3. **Verification** while driving on (:mod:`.verification`): the ceiling
+   features seen must match the ceiling feature map at the estimated pose
+   (``R_loc``, eq. 10, or our sequential test); on failure, start over.
+
+The robot is reached through the :class:`Robot` protocol (turn, drive, each
+returning the frames recorded meanwhile), so the same pipeline runs on a
+simulator (``scripts/table1_experiment.py``, the tests) and on a logged run
+replayed in order (the ``localize`` subcommand).
+
+Configurations (paper Table 1, plus ours): :class:`Mode`.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from lampsam.arrays import FloatArray
+from lampsam.errors import LocalizationError
+from lampsam.factors.geometry import between, compose, wrap_angle
+from lampsam.localization.candidates import CandidateCollector, CandidateConfig, PoseCandidate
+from lampsam.localization.grid import OccupancyGrid
+from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel, RayCastModel
+from lampsam.localization.verification import (
+    CeilingChecker,
+    RlocVerifier,
+    SequentialVerifier,
+    Verdict,
+    VerificationConfig,
+)
+from lampsam.localization.virtual_scan import VirtualScan, VirtualScanConfig, beam_angles
+
+log = logging.getLogger(__name__)
+
+
+class GlobalLocalizationError(LocalizationError):
+    """The pipeline cannot run (no usable data, bad configuration)."""
+
+
+class Mode(enum.Enum):
+    """The configurations of the paper's Table 1, plus ours.
+
+    GRID_ONLY: particles everywhere in free space, no candidates, no verification.
+    NO_CEILING: candidates + particle filter, no ceiling verification.
+    PROPOSED: candidates + particle filter + ``R_loc`` verification (the paper).
+    OURS: candidates + particle filter with the likelihood field and an adaptive
+        (KLD) sample size + sequential verification.
+    """
+
+    GRID_ONLY = "grid_only"
+    NO_CEILING = "no_ceiling"
+    PROPOSED = "proposed"
+    OURS = "ours"
+
+
+# ----------------------------------------------------------------------------- data
+@dataclass(frozen=True)
+class TurnFrame:
+    """One Kinect frame recorded while turning in place.
+
+    Attributes:
+        t: time (s, the robot's clock).
+        odom: (3,) ``odom_T_body`` from wheel odometry (m, m, rad).
+        sift_points: (N, 3) SIFT keypoints with valid depth, body frame (m).
+        sift_descriptors: (N, 128) float32 descriptors.
+        depth_points: (P, 3) depth points, body frame (m), for the virtual scan.
+    """
+
+    t: float
+    odom: FloatArray
+    sift_points: FloatArray
+    sift_descriptors: FloatArray
+    depth_points: FloatArray
+
+
+@dataclass(frozen=True)
+class DriveFrame:
+    """One ceiling-camera frame recorded while driving on.
+
+    Attributes:
+        t: time (s).
+        odom: (3,) ``odom_T_body`` (m, m, rad).
+        ceiling_m: (K, 2) observed ceiling features (lamps and corners) in
+            normalised ceiling coordinates (conventions.md).
+    """
+
+    t: float
+    odom: FloatArray
+    ceiling_m: FloatArray
+
+
+class Robot(Protocol):
+    """What the localizer asks of the robot (or of a simulator, or a log replay)."""
+
+    def turn(self, angle: float, rate: float) -> Sequence[TurnFrame]:
+        """Turn in place by ``angle`` (rad) at ``rate`` (rad/s); the frames recorded."""
+        ...
+
+    def drive(self, distance: float) -> Sequence[DriveFrame]:
+        """Drive on for ``distance`` (m, along a collision-free path); the frames recorded."""
+        ...
+
+
+@dataclass(frozen=True)
+class EnvironmentMaps:
+    """The three layers of the environment map the localizer uses.
+
+    Attributes:
+        grid: the grid map (Kinect depth projected to the floor).
+        spatial_xyz: (M, 3) spatial feature map points, world frame (m).
+        spatial_descriptors: (M, 128) their SIFT descriptors.
+        ceiling_xyz: (L, 3) ceiling feature map (lamps, corners), world (m).
+        ceiling_body_t_camera: (3,) ceiling camera offset and height (m).
+    """
+
+    grid: OccupancyGrid
+    spatial_xyz: FloatArray
+    spatial_descriptors: FloatArray
+    ceiling_xyz: FloatArray
+    ceiling_body_t_camera: FloatArray
+
+
+# ----------------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class FilterConfig:
+    """Particle filter settings of the localizer.
+
+    Attributes:
+        particles_per_candidate: particles in each candidate disc (paper: the
+            same number in every candidate). Default 300.
+        n_uniform: particles spread over the free space when there is no
+            candidate (GRID_ONLY, or a turn without any). Default 20000.
+        max_updates: measurement updates on the virtual scan before giving up.
+            Default 15.
+        converged_sigma_xy: converged when the position spread (sqrt of the
+            largest eigenvalue of the xy covariance) is below this (m). Default 0.10.
+        converged_sigma_theta: ... and the heading spread below this (rad).
+            Default 0.08.
+        jitter_xy: roughening between updates on the same scan (m). Default 0.02.
+        jitter_theta: roughening of the heading (rad). Default 0.01.
+        beam: per-beam measurement model (sigma, mixture, max range).
+        beam_step: use every ``beam_step``-th beam of the 360. Default 2.
+    """
+
+    particles_per_candidate: int = 300
+    n_uniform: int = 20000
+    max_updates: int = 15
+    converged_sigma_xy: float = 0.10
+    converged_sigma_theta: float = 0.08
+    jitter_xy: float = 0.02
+    jitter_theta: float = 0.01
+    beam: BeamModelConfig = field(
+        default_factory=lambda: BeamModelConfig(
+            sigma_hit=0.15, z_hit=0.8, z_rand=0.2, max_range=4.5, beam_weight=0.2
+        )
+    )
+    beam_step: int = 2
+
+
+@dataclass(frozen=True)
+class GlobalLocalizerConfig:
+    """The whole pipeline.
+
+    Attributes:
+        mode: which Table-1 configuration. Default PROPOSED.
+        turn_rate: in-place turning rate (rad/s). Default 30 deg/s (paper).
+        turn_angle: how far to turn (rad). Default one full turn.
+        drive_step: distance driven between verifier decisions (m). Default 0.25.
+        max_verify_distance: give up verifying (count as failure) after this
+            distance (m). Default 3.0.
+        max_restarts: start over at most this many times. Default 3.
+        candidates: candidate generation.
+        scan: the virtual scan's point band.
+        filter: the particle filter.
+        verification: ceiling verification.
+    """
+
+    mode: Mode = Mode.PROPOSED
+    turn_rate: float = float(np.deg2rad(30.0))
+    turn_angle: float = float(2 * np.pi)
+    drive_step: float = 0.25
+    max_verify_distance: float = 3.0
+    max_restarts: int = 3
+    candidates: CandidateConfig = field(default_factory=CandidateConfig)
+    scan: VirtualScanConfig = field(default_factory=VirtualScanConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
+
+
+# ----------------------------------------------------------------------------- result
+@dataclass(frozen=True)
+class AttemptRecord:
+    """One try (turn, filter, verification).
+
+    Attributes:
+        n_candidates: candidates found during the turn.
+        filter_updates: measurement updates until convergence (or the limit).
+        converged: the particle spread fell below the bound.
+        verdict: the verifier's final verdict (``accepted`` without verification).
+        r_loc: ``R_loc`` at the end (NaN for the sequential verifier / none).
+        verify_distance: distance driven while verifying (m).
+        pose: (3,) the estimate at the end of the attempt.
+    """
+
+    n_candidates: int
+    filter_updates: int
+    converged: bool
+    verdict: str
+    r_loc: float
+    verify_distance: float
+    pose: list[float]
+
+
+@dataclass(frozen=True)
+class LocalizationResult:
+    """What ``OUT/result.json`` holds.
+
+    Attributes:
+        success: the last attempt was accepted.
+        pose: (3,) ``world_T_body`` at the end (m, m, rad), in the world frame.
+        covariance: (3, 3) particle covariance of the pose (heading wrapped).
+        mode: the configuration's name.
+        restarts: attempts minus one.
+        robot_time: seconds of robot time (turning + driving), by stage.
+        compute_time: seconds of computation, by stage.
+        attempts: one record per attempt.
+        odom: (3,) the odometry reading that goes with ``pose`` (to re-check
+            or track it later).
+    """
+
+    success: bool
+    pose: FloatArray
+    covariance: FloatArray
+    mode: str
+    restarts: int
+    robot_time: dict[str, float]
+    compute_time: dict[str, float]
+    attempts: list[AttemptRecord]
+    odom: FloatArray = field(default_factory=lambda: np.zeros(3))
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready dict (lists instead of arrays)."""
+        return {
+            "success": self.success,
+            "pose": [float(v) for v in self.pose],
+            "covariance": np.asarray(self.covariance).tolist(),
+            "mode": self.mode,
+            "restarts": self.restarts,
+            "robot_time_s": self.robot_time,
+            "compute_time_s": self.compute_time,
+            "attempts": [asdict(a) for a in self.attempts],
+        }
+
+
+def write_result(result: LocalizationResult, out_dir: str | Path) -> Path:
+    """Write ``out_dir/result.json``; returns its path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "result.json"
+    path.write_text(json.dumps(result.to_json(), indent=2))
+    return path
+
+
+# ----------------------------------------------------------------------------- filter
+class _Particles:
+    """The particle set of one attempt, behind the few operations the pipeline needs.
+
+    Placeholder until ``localization/particle_filter.py`` (another engineer's)
+    lands; then these methods delegate to its ``ParticleFilter``.
+
+    Args:
+        poses: (N, 3) initial particles ``(x, y, theta)``.
+    """
+
+    def __init__(self, poses: FloatArray) -> None:
+        self.poses = np.asarray(poses, dtype=float)
+        self.log_w = np.zeros(len(self.poses))
+
+    @property
+    def weights(self) -> FloatArray:
+        """(N,) normalised weights."""
+        w = np.exp(self.log_w - self.log_w.max())
+        return w / w.sum()
+
+    def update(self, log_likelihood: FloatArray) -> None:
+        """Multiply the weights by the likelihoods (added in log space)."""
+        self.log_w = self.log_w + log_likelihood
+
+    def resample(self, rng: np.random.Generator, jitter: tuple[float, float]) -> None:
+        """Low-variance (systematic) resampling, then roughening by ``jitter`` (m, rad)."""
+        w = self.weights
+        n = len(w)
+        positions = (rng.random() + np.arange(n)) / n
+        idx = np.minimum(np.searchsorted(np.cumsum(w), positions), n - 1)
+        p = self.poses[idx].copy()
+        p[:, :2] += rng.normal(0.0, jitter[0], (n, 2))
+        p[:, 2] = np.asarray(wrap_angle(p[:, 2] + rng.normal(0.0, jitter[1], n)))
+        self.poses = p
+        self.log_w = np.zeros(n)
+
+    def estimate(self) -> tuple[FloatArray, FloatArray]:
+        """Weighted mean (circular in theta) and covariance of the particles.
+
+        Returns:
+            mean (3,) and covariance (3, 3) with the heading residual wrapped.
+        """
+        w = self.weights
+        mean_xy = w @ self.poses[:, :2]
+        th = float(np.arctan2(w @ np.sin(self.poses[:, 2]), w @ np.cos(self.poses[:, 2])))
+        d = np.column_stack([self.poses[:, :2] - mean_xy, wrap_angle(self.poses[:, 2] - th)])
+        cov = (d * w[:, None]).T @ d
+        return np.array([mean_xy[0], mean_xy[1], th]), cov
+
+    def mode_estimate(self, radius: float = 0.5) -> FloatArray:
+        """Mean of the particles near the best one (robust when modes remain), (3,)."""
+        w = self.weights
+        best = self.poses[int(np.argmax(w))]
+        near = (np.hypot(*(self.poses[:, :2] - best[:2]).T) < radius) & (
+            np.abs(wrap_angle(self.poses[:, 2] - best[2])) < radius
+        )
+        ws = w[near] / w[near].sum()
+        p = self.poses[near]
+        th = float(np.arctan2(ws @ np.sin(p[:, 2]), ws @ np.cos(p[:, 2])))
+        xy = ws @ p[:, :2]
+        return np.array([xy[0], xy[1], th])
+
+    def move(self, delta: FloatArray) -> None:
+        """Apply an odometry increment ``body_T_body2`` (3,) to every particle."""
+        c, s = np.cos(self.poses[:, 2]), np.sin(self.poses[:, 2])
+        self.poses = np.column_stack(
+            [
+                self.poses[:, 0] + c * delta[0] - s * delta[1],
+                self.poses[:, 1] + s * delta[0] + c * delta[1],
+                wrap_angle(self.poses[:, 2] + delta[2]),
+            ]
+        )
+
+
+def _uniform_free(grid: OccupancyGrid, n: int, rng: np.random.Generator) -> FloatArray:
+    """(n, 3) particles uniform over the grid's free cells and headings."""
+    from lampsam.localization.grid import free_mask
+
+    iy, ix = np.nonzero(free_mask(grid))
+    if len(ix) == 0:
+        raise GlobalLocalizationError("the grid map has no free cell to put particles in")
+    k = rng.integers(0, len(ix), n)
+    cells = np.column_stack([ix[k], iy[k]])
+    xy = grid.cell_to_world(cells) + rng.uniform(-0.5, 0.5, (n, 2)) * grid.resolution
+    return np.column_stack([xy, rng.uniform(-np.pi, np.pi, n)])
+
+
+def _candidate_particles(
+    cands: Sequence[PoseCandidate], n_per: int, sigma_theta: float, rng: np.random.Generator
+) -> FloatArray:
+    from lampsam.localization.candidates import sample_candidates
+
+    return sample_candidates(cands, n_per, sigma_theta, rng)
+
+
+# ----------------------------------------------------------------------------- pipeline
+def _make_model(maps: EnvironmentMaps, config: GlobalLocalizerConfig) -> Any:
+    beam = config.filter.beam
+    if config.mode is Mode.OURS:
+        return LikelihoodFieldModel(maps.grid, beam)
+    return RayCastModel(maps.grid, beam, method="march")
+
+
+def _turn_stage(
+    robot: Robot, maps: EnvironmentMaps, config: GlobalLocalizerConfig, rng: np.random.Generator
+) -> tuple[list[PoseCandidate], FloatArray, FloatArray, float, float]:
+    """Turn in place: candidates and the virtual scan.
+
+    Returns:
+        candidates (in the body frame at the end of the turn), the 360-beam scan
+        (360,), the odometry pose at the end (3,), robot seconds, compute seconds.
+    """
+    frames = robot.turn(config.turn_angle, config.turn_rate)
+    if not frames:
+        raise GlobalLocalizationError("the robot returned no frame while turning")
+    t0 = time.perf_counter()
+    collector = CandidateCollector(
+        maps.spatial_xyz, maps.spatial_descriptors, config.candidates, rng
+    )
+    vscan = VirtualScan(config.scan)
+    use_candidates = config.mode is not Mode.GRID_ONLY
+    for f in frames:
+        vscan.add(f.odom, f.depth_points)
+        if use_candidates:
+            collector.add_frame(f.t, f.odom, f.sift_points, f.sift_descriptors)
+        else:
+            collector.move_to(f.odom)
+    odom_end = np.asarray(frames[-1].odom, dtype=float)
+    scan = vscan.scan(odom_end)
+    compute = time.perf_counter() - t0
+    robot_s = float(frames[-1].t - frames[0].t)
+    log.info(
+        "turn: %d frames, %d candidates, %d/360 beams",
+        len(frames),
+        len(collector.candidates),
+        int(np.count_nonzero(np.isfinite(scan))),
+    )
+    return collector.candidates, scan, odom_end, robot_s, compute
+
+
+def _filter_stage(
+    cands: Sequence[PoseCandidate],
+    scan: FloatArray,
+    model: Any,
+    maps: EnvironmentMaps,
+    config: GlobalLocalizerConfig,
+    rng: np.random.Generator,
+) -> tuple[_Particles, int, bool]:
+    """Particle filter on the virtual scan until the spread is below the bound."""
+    fc = config.filter
+    if cands and config.mode is not Mode.GRID_ONLY:
+        init = _candidate_particles(
+            cands, fc.particles_per_candidate, config.candidates.sigma_theta, rng
+        )
+    else:
+        init = _uniform_free(maps.grid, fc.n_uniform, rng)
+    pf = _Particles(init)
+    angles = beam_angles()[:: fc.beam_step]
+    ranges = scan[:: fc.beam_step]
+    converged = False
+    n_updates = 0
+    while n_updates < fc.max_updates:
+        n_updates += 1
+        pf.update(model.log_likelihood(pf.poses, ranges, angles))
+        _, cov = pf.estimate()
+        sxy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
+        sth = float(np.sqrt(max(cov[2, 2], 0.0)))
+        if sxy < fc.converged_sigma_xy and sth < fc.converged_sigma_theta:
+            converged = True
+            break
+        pf.resample(rng, (fc.jitter_xy, fc.jitter_theta))
+    log.info("filter: %d updates, converged %s", n_updates, converged)
+    return pf, n_updates, converged
+
+
+def _verify_stage(
+    robot: Robot,
+    pose_end: FloatArray,
+    odom_end: FloatArray,
+    maps: EnvironmentMaps,
+    config: GlobalLocalizerConfig,
+    monitoring: bool = False,
+) -> tuple[Verdict, float, float, FloatArray, FloatArray, float, float]:
+    """Drive on and verify the pose with the ceiling features.
+
+    Args:
+        monitoring: start the sequential verifier as already accepted (CUSUM),
+            for re-checking a pose localized earlier (kidnapping).
+
+    Returns:
+        verdict, R_loc (NaN for the sequential test), distance driven, the pose
+        at the end of the drive (3,), the odometry there (3,), robot seconds,
+        compute seconds.
+    """
+    vc = config.verification
+    checker = CeilingChecker(maps.ceiling_xyz, maps.ceiling_body_t_camera, vc)
+    verifier: RlocVerifier | SequentialVerifier
+    verifier = RlocVerifier(vc) if config.mode is Mode.PROPOSED else SequentialVerifier(vc)
+    if monitoring and isinstance(verifier, SequentialVerifier):
+        verifier.verdict = Verdict.ACCEPTED
+    prev = np.asarray(odom_end, dtype=float)
+    pose = np.asarray(pose_end, dtype=float)
+    d = 0.0
+    robot_s = 0.0
+    compute = 0.0
+    verdict = Verdict.PENDING
+    evidence = False
+    target = (
+        vc.verify_distance if isinstance(verifier, RlocVerifier) else config.max_verify_distance
+    )
+    while d < target - 1e-9:
+        frames = robot.drive(min(config.drive_step, target - d))
+        if not frames:
+            break
+        t0 = time.perf_counter()
+        robot_s += float(frames[-1].t - frames[0].t) + (
+            frames[1].t - frames[0].t if len(frames) > 1 else 0.0
+        )
+        for f in frames:
+            delta = between(prev, np.asarray(f.odom, dtype=float))
+            prev = np.asarray(f.odom, dtype=float)
+            pose = compose(pose, delta)
+            ds = float(np.hypot(delta[0], delta[1]))
+            d += ds
+            outcome = checker.outcome(pose, f.ceiling_m)
+            evidence |= outcome is not None
+            verdict = verifier.update(ds, outcome)
+        compute += time.perf_counter() - t0
+        if verdict is Verdict.FAILED:
+            break
+        if verdict is Verdict.ACCEPTED and not monitoring:
+            if isinstance(verifier, SequentialVerifier) or d >= target - 1e-9:
+                break
+    if verdict is Verdict.PENDING:
+        if not evidence:
+            log.warning("no ceiling feature seen while verifying: pose accepted unverified")
+            verdict = Verdict.ACCEPTED
+        else:
+            verdict = Verdict.FAILED
+    r_loc = verifier.r_loc if isinstance(verifier, RlocVerifier) else float("nan")
+    return verdict, r_loc, d, pose, prev, robot_s, compute
+
+
+def localize(
+    robot: Robot,
+    maps: EnvironmentMaps,
+    config: GlobalLocalizerConfig,
+    rng: np.random.Generator,
+    initial: LocalizationResult | None = None,
+) -> LocalizationResult:
+    """Run global localization (Fig. 11 of paper 2): turn, filter, verify, restart.
+
+    Args:
+        robot: the robot (or simulator / replay), see :class:`Robot`.
+        maps: the environment map layers.
+        config: the configuration (``config.mode`` picks the Table-1 row).
+        rng: generator for RANSAC, particles and resampling.
+        initial: a previous result to re-check first, by driving on from its
+            pose and odometry (monitoring after convergence: after a kidnapping
+            this check fails and the pipeline starts over). Ignored by the
+            configurations without verification.
+
+    Returns:
+        The :class:`LocalizationResult` (pose in the world frame at the end of
+        the last drive). ``restarts`` counts the attempts after the first,
+        including the re-check of ``initial``.
+    """
+    model = _make_model(maps, config)
+    robot_time = {"turn": 0.0, "verification": 0.0}
+    compute_time = {"candidates": 0.0, "filter": 0.0, "verification": 0.0}
+    attempts: list[AttemptRecord] = []
+    pose, odom = np.zeros(3), np.zeros(3)
+    cov = np.full((3, 3), np.nan)
+    success = False
+    verifies = config.mode in (Mode.PROPOSED, Mode.OURS)
+    if initial is not None and verifies:
+        verdict, r_loc, d, pose, odom, rs, cs = _verify_stage(
+            robot, initial.pose, initial.odom, maps, config, monitoring=True
+        )
+        robot_time["verification"] += rs
+        compute_time["verification"] += cs
+        cov = np.asarray(initial.covariance)
+        attempts.append(
+            AttemptRecord(0, 0, True, verdict.value, r_loc, d, [float(v) for v in pose])
+        )
+        success = verdict is Verdict.ACCEPTED
+        if not success:
+            log.info("re-check of the earlier pose failed (kidnapped?): starting over")
+    for attempt in range(config.max_restarts + 1):
+        if success:
+            break
+        cands, scan, odom, rs, cs = _turn_stage(robot, maps, config, rng)
+        robot_time["turn"] += rs
+        compute_time["candidates"] += cs
+        t0 = time.perf_counter()
+        pf, n_upd, converged = _filter_stage(cands, scan, model, maps, config, rng)
+        pose = pf.mode_estimate()
+        _, cov = pf.estimate()
+        compute_time["filter"] += time.perf_counter() - t0
+        if not verifies:
+            attempts.append(
+                AttemptRecord(
+                    len(cands),
+                    n_upd,
+                    converged,
+                    Verdict.ACCEPTED.value,
+                    float("nan"),
+                    0.0,
+                    [float(v) for v in pose],
+                )
+            )
+            success = True
+            break
+        verdict, r_loc, d, pose, odom, rs, cs = _verify_stage(robot, pose, odom, maps, config)
+        robot_time["verification"] += rs
+        compute_time["verification"] += cs
+        attempts.append(
+            AttemptRecord(
+                len(cands), n_upd, converged, verdict.value, r_loc, d, [float(v) for v in pose]
+            )
+        )
+        success = verdict is Verdict.ACCEPTED
+        if not success:
+            log.info("attempt %d failed verification (R_loc %.2f): starting over", attempt, r_loc)
+    return LocalizationResult(
+        success,
+        pose,
+        cov,
+        config.mode.value,
+        max(len(attempts) - 1, 0),
+        robot_time,
+        compute_time,
+        attempts,
+        odom,
+    )

@@ -1,0 +1,173 @@
+"""Global localizer end to end on a small synthetic world (grid + features + ceiling)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lampsam.factors.ceiling import project_point
+from lampsam.factors.geometry import compose, wrap_angle
+from lampsam.localization.global_localizer import (
+    DriveFrame,
+    EnvironmentMaps,
+    GlobalLocalizerConfig,
+    Mode,
+    TurnFrame,
+    localize,
+    write_result,
+)
+from lampsam.localization.grid import OccupancyGrid, occupied_mask
+from lampsam.localization.raycast import cast_rays
+
+RES = 0.05
+CAM = np.array([0.1, 0.0, 0.3])
+KINECT_FOV = np.deg2rad(57.0)
+KINECT_RANGE = 4.5
+
+
+def _grid(
+    boxes: Sequence[tuple[float, float, float, float]], w: float = 8.0, h: float = 6.0
+) -> OccupancyGrid:
+    """A walled room with rectangular obstacles (x0, y0, x1, y1), log-odds +-4."""
+    g = OccupancyGrid.empty(0.0, 0.0, w, h, RES)
+    lo = np.full((g.height, g.width), -4.0)
+    lo[:2, :] = lo[-2:, :] = 4.0
+    lo[:, :2] = lo[:, -2:] = 4.0
+    for x0, y0, x1, y1 in boxes:
+        lo[int(y0 / RES) : int(y1 / RES), int(x0 / RES) : int(x1 / RES)] = 4.0
+    g.log_odds = lo
+    return g
+
+
+MAP_BOXES = [(1.0, 1.0, 2.0, 1.6), (5.0, 3.5, 5.6, 5.0), (3.0, 4.6, 3.4, 6.0), (6.5, 0.0, 8.0, 1.2)]
+# the environment changed after mapping: one box moved, a new one appeared
+NOW_BOXES = [
+    (1.0, 1.0, 2.0, 1.6),
+    (5.0, 3.8, 5.6, 5.0),
+    (3.0, 4.6, 3.4, 6.0),
+    (6.5, 0.0, 8.0, 1.2),
+    (2.5, 2.6, 2.8, 2.9),
+]
+
+
+class SyntheticWorld:
+    """Map layers and a simulated robot (Kinect by ray casting, ceiling by projection)."""
+
+    def __init__(self, rng: np.random.Generator, start: np.ndarray) -> None:
+        self.rng = rng
+        self.map_grid = _grid(MAP_BOXES)
+        self.now_grid = _grid(NOW_BOXES)
+        occ = occupied_mask(self.map_grid)
+        iy, ix = np.nonzero(occ)
+        pick = rng.choice(len(ix), 1500, replace=False)
+        xy = np.column_stack([(ix[pick] + 0.5) * RES, (iy[pick] + 0.5) * RES])
+        self.spatial_xyz = np.column_stack([xy, rng.uniform(0.2, 1.6, len(xy))])
+        self.spatial_desc = rng.uniform(0, 1, (len(xy), 128)).astype(np.float32)
+        self.ceiling = np.column_stack(
+            [rng.uniform(0, 8, 60), rng.uniform(0, 6, 60), np.full(60, 2.8)]
+        )
+        self.pose = np.asarray(start, dtype=float)
+        self.odom = np.zeros(3)
+        self.t = 0.0
+
+    def maps(self) -> EnvironmentMaps:
+        return EnvironmentMaps(
+            self.map_grid, self.spatial_xyz, self.spatial_desc, self.ceiling, CAM
+        )
+
+    def _move(self, delta: np.ndarray) -> None:
+        self.pose = compose(self.pose, delta)
+        noisy = (
+            delta + self.rng.normal(0, 1, 3) * np.array([0.01, 0.01, 0.01]) * np.abs(delta).sum()
+        )
+        self.odom = compose(self.odom, noisy)
+
+    def _kinect(self) -> TurnFrame:
+        angles = np.linspace(-KINECT_FOV / 2, KINECT_FOV / 2, 58)
+        r = cast_rays(self.now_grid, self.pose[None], angles, KINECT_RANGE)[0]
+        ok = r < KINECT_RANGE - 1e-6
+        r = r[ok] + self.rng.normal(0, 0.01, ok.sum())
+        depth = np.column_stack(
+            [r * np.cos(angles[ok]), r * np.sin(angles[ok]), np.full(ok.sum(), 0.5)]
+        )
+        c, s = np.cos(self.pose[2]), np.sin(self.pose[2])
+        d = self.spatial_xyz[:, :2] - self.pose[:2]
+        bx, by = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+        bearing = np.arctan2(by, bx)
+        dist = np.hypot(bx, by)
+        vis = (bx > 0.3) & (np.abs(bearing) < KINECT_FOV / 2) & (dist < KINECT_RANGE)
+        idx = np.nonzero(vis)[0]
+        if len(idx):  # line of sight in the current world
+            rr = cast_rays(self.now_grid, self.pose[None], bearing[idx], KINECT_RANGE)[0]
+            idx = idx[rr > dist[idx] - 0.15]
+        pts = np.column_stack([bx[idx], by[idx], self.spatial_xyz[idx, 2]]) + self.rng.normal(
+            0, 0.01, (len(idx), 3)
+        )
+        desc = self.spatial_desc[idx] + self.rng.normal(0, 0.02, (len(idx), 128)).astype(np.float32)
+        return TurnFrame(self.t, self.odom.copy(), pts, desc, depth)
+
+    def turn(self, angle: float, rate: float) -> list[TurnFrame]:
+        dt = 1.0 / 3.0  # Kinect at 3 Hz
+        n = int(np.ceil(abs(angle) / (rate * dt)))
+        frames = [self._kinect()]
+        for _ in range(n):
+            self._move(np.array([0.0, 0.0, np.sign(angle) * rate * dt]))
+            self.t += dt
+            frames.append(self._kinect())
+        return frames
+
+    def _ceiling_obs(self) -> np.ndarray:
+        m = np.array([project_point(self.pose, p, CAM)[0] for p in self.ceiling])
+        m = m[np.hypot(m[:, 0], m[:, 1]) < 0.6]
+        return m + self.rng.normal(0, 0.01, m.shape)
+
+    def drive(self, distance: float) -> list[DriveFrame]:
+        dt, v = 0.1, 0.3
+        frames = []
+        travelled = 0.0
+        while travelled < distance - 1e-9:
+            ahead = cast_rays(self.now_grid, self.pose[None], np.array([0.0]), 3.0)[0, 0]
+            w = 0.0 if ahead > 0.8 else 1.0  # turn left in front of obstacles
+            step = v * dt if w == 0.0 else 0.0
+            self._move(np.array([step, 0.0, w * dt]))
+            travelled += step
+            self.t += dt
+            frames.append(DriveFrame(self.t, self.odom.copy(), self._ceiling_obs()))
+        return frames
+
+    def kidnap(self, pose: np.ndarray) -> None:
+        self.pose = np.asarray(pose, dtype=float)
+
+
+def _error(pose: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    return float(np.hypot(*(pose[:2] - truth[:2]))), float(abs(wrap_angle(pose[2] - truth[2])))
+
+
+@pytest.mark.parametrize("mode", [Mode.PROPOSED, Mode.OURS])
+def test_end_to_end_small_world(rng: np.random.Generator, mode: Mode, tmp_path: Path) -> None:
+    world = SyntheticWorld(rng, np.array([3.7, 2.2, 0.9]))
+    cfg = GlobalLocalizerConfig(mode=mode)
+    res = localize(world, world.maps(), cfg, np.random.default_rng(11))
+    e_xy, e_th = _error(res.pose, world.pose)
+    assert res.success
+    assert e_xy < 0.15 and e_th < np.deg2rad(5.0)
+    assert res.restarts == 0
+    assert res.robot_time["turn"] == pytest.approx(12.0, abs=0.5)
+    data = json.loads(write_result(res, tmp_path).read_text())
+    assert data["success"] and len(data["covariance"]) == 3
+
+
+def test_kidnapped_after_convergence_is_detected_and_recovered(rng: np.random.Generator) -> None:
+    world = SyntheticWorld(rng, np.array([3.7, 2.2, 0.9]))
+    cfg = GlobalLocalizerConfig(mode=Mode.OURS)
+    res = localize(world, world.maps(), cfg, np.random.default_rng(11))
+    assert res.success
+    world.kidnap(np.array([6.0, 2.5, 2.5]))
+    res2 = localize(world, world.maps(), cfg, np.random.default_rng(12), initial=res)
+    assert res2.attempts[0].verdict == "failed"  # the kidnapping is detected
+    assert res2.success and res2.restarts >= 1  # and the robot is found again
+    e_xy, e_th = _error(res2.pose, world.pose)
+    assert e_xy < 0.15 and e_th < np.deg2rad(5.0)
