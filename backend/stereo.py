@@ -33,7 +33,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 from lampsam.arrays import BoolArray, FloatArray
-from lampsam.datasets.stereo_sim import StereoRun
+from lampsam.datasets.stereo_sim import StereoRig, StereoRun
 from lampsam.errors import EstimationError
 from lampsam.factors.stereo import (
     camera_point,
@@ -190,7 +190,11 @@ def _pose_vec(pose: gtsam.Pose2) -> FloatArray:
 
 # --------------------------------------------------------------------------- raw
 def triangulate_two_points(
-    z: FloatArray, run: StereoRun, cfg: StereoEstimatorConfig
+    z: FloatArray,
+    target_t_points: FloatArray,
+    rig: StereoRig,
+    var_px2: float,
+    cfg: StereoEstimatorConfig,
 ) -> tuple[FloatArray, FloatArray, str]:
     """Per-frame pose from the four coordinates alone.
 
@@ -200,7 +204,9 @@ def triangulate_two_points(
 
     Args:
         z: (4,) ``[xl1, xr1, xl2, xr2]`` px.
-        run: gives the rig, target points and noise.
+        target_t_points: (2, 2) the target points in the target frame, m.
+        rig: baseline and ``f/p``.
+        var_px2: variance of one image coordinate, px^2 (for the covariance).
         cfg: thresholds.
 
     Returns:
@@ -211,12 +217,12 @@ def triangulate_two_points(
     bad = (np.zeros(3), _INVALID_COV.copy())
     if not np.all(np.isfinite(z)):
         return *bad, NONFINITE
-    b, f_px = run.rig.baseline, run.rig.f_px
+    b, f_px = rig.baseline, rig.f_px
     if min(z[1] - z[0], z[3] - z[2]) <= cfg.min_disparity_px:
         return *bad, BAD_DISPARITY
     if abs((z[0] + z[1]) - (z[2] + z[3])) < 2.0 * cfg.min_separation_px:
         return *bad, COLLINEAR
-    pts = np.asarray(run.target_t_points, dtype=float)
+    pts = np.asarray(target_t_points, dtype=float)
     c1 = triangulate_point(z[0], z[1], b, f_px)
     c2 = triangulate_point(z[2], z[3], b, f_px)
     dc, do = c2 - c1, pts[1] - pts[0]
@@ -243,9 +249,17 @@ def triangulate_two_points(
     if not predicted_depths_ok(vec, pts, cfg.min_depth):
         return *bad, BEHIND
     _, h_D = two_point_measurement(vec, pts, b, f_px)
-    cov_tangent = np.linalg.inv(h_D.T @ h_D) * run.noise.var_measurement_px2
+    cov_tangent = np.linalg.inv(h_D.T @ h_D) * var_px2
     jac = coords_D_tangent(vec[2])
     return vec, jac @ cov_tangent @ jac.T, OK
+
+
+def raw_fix(
+    run: StereoRun, k: int, cfg: StereoEstimatorConfig
+) -> tuple[FloatArray, FloatArray, str]:
+    """:func:`triangulate_two_points` on frame ``k`` of a run."""
+    return triangulate_two_points(run.z[k], run.target_t_points, run.rig,
+                                  run.noise.var_measurement_px2, cfg)
 
 
 class RawEstimator:
@@ -259,7 +273,7 @@ class RawEstimator:
         status = measurement_status(self.run.z[k], bool(self.run.seen[k]))
         if status != OK:
             return _invalid(status)
-        pose, cov, status = triangulate_two_points(self.run.z[k], self.run, self.cfg)
+        pose, cov, status = raw_fix(self.run, k, self.cfg)
         return StereoStep(pose, cov, status, status == OK)
 
 
@@ -312,7 +326,7 @@ class StereoEkf:
         if self.x is None:
             if status != OK:
                 return _invalid(UNINITIALISED)
-            pose, _, raw_status = triangulate_two_points(z, self.run, self.cfg)
+            pose, _, raw_status = raw_fix(self.run, k, self.cfg)
             if raw_status != OK:
                 return _invalid(UNINITIALISED)
             self.x, self.P = pose, np.diag(np.square(self.cfg.sigma_init))
@@ -366,7 +380,7 @@ class StereoIsam2:
         if self.k_prev is None:
             if status != OK:
                 return _invalid(UNINITIALISED)
-            pose, _, raw_status = triangulate_two_points(z, self.run, self.cfg)
+            pose, _, raw_status = raw_fix(self.run, k, self.cfg)
             if raw_status != OK:
                 return _invalid(UNINITIALISED)
             p0 = gtsam.Pose2(*pose)
@@ -426,7 +440,7 @@ def batch_smoother(run: StereoRun, cfg: StereoEstimatorConfig) -> list[StereoSte
     k0, pose0 = None, None
     for k in range(n):
         if measurement_status(run.z[k], bool(run.seen[k])) == OK:
-            pose, _, st = triangulate_two_points(run.z[k], run, cfg)
+            pose, _, st = raw_fix(run, k, cfg)
             if st == OK:
                 k0, pose0 = k, pose
                 break

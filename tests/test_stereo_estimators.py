@@ -18,6 +18,7 @@ from lampsam.backend.stereo import (
     UNINITIALISED,
     StereoEstimatorConfig,
     estimate,
+    raw_fix,
     triangulate_two_points,
 )
 from lampsam.datasets.stereo_sim import StereoNoise, StereoRun, StereoScenario, simulate_stereo
@@ -37,6 +38,11 @@ def _rms(run: StereoRun, poses: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(e**2, axis=0))
 
 
+def _tri(z: np.ndarray, run: StereoRun) -> tuple[np.ndarray, np.ndarray, str]:
+    return triangulate_two_points(z, run.target_t_points, run.rig,
+                                  run.noise.var_measurement_px2, CFG)
+
+
 def _noise_free(scenario: str) -> StereoRun:
     return simulate_stereo(
         scenario, np.random.default_rng(0),
@@ -48,7 +54,7 @@ def test_raw_recovers_truth_without_noise() -> None:
     run = replace(_noise_free("turn"), noise=StereoNoise())
     assert run.truth is not None
     for k in range(0, len(run), 20):
-        pose, cov, status = triangulate_two_points(run.z[k], run, CFG)
+        pose, cov, status = raw_fix(run, k, CFG)
         assert status == OK
         np.testing.assert_allclose(pose, run.truth[k], atol=1e-8)
         assert np.all(np.linalg.eigvalsh(cov) > 0)
@@ -58,18 +64,18 @@ def test_raw_degenerate_flags() -> None:
     run = _noise_free("straight")
     z = two_point_measurement(np.array([-3.0, 0.0, 0.0]), run.target_t_points,
                               run.rig.baseline, run.rig.f_px)[0]
-    assert triangulate_two_points(z, run, CFG)[2] == OK
+    assert _tri(z, run)[2] == OK
     # zero and negative disparity
     for bad in (np.array([z[1], z[1], z[2], z[3]]), np.array([z[1], z[0], z[2], z[3]])):
-        pose, cov, status = triangulate_two_points(bad, run, CFG)
+        pose, cov, status = _tri(bad, run)
         assert status == BAD_DISPARITY and np.all(np.isfinite(pose)) and np.all(np.isfinite(cov))
     # NaN in the measurement
-    assert triangulate_two_points(np.array([np.nan, 1, 2, 3]), run, CFG)[2] == NONFINITE
+    assert _tri(np.array([np.nan, 1, 2, 3]), run)[2] == NONFINITE
     # two points on one camera ray: target points (0, 0) and (1, 0), rig at (-5, 0)
     inline = replace(run, target_t_points=np.array([[0.0, 0.0], [1.0, 0.0]]))
     z_in = two_point_measurement(np.array([-5.0, 0.0, 0.0]), inline.target_t_points,
                                  run.rig.baseline, run.rig.f_px)[0]
-    pose, cov, status = triangulate_two_points(z_in, inline, CFG)
+    pose, cov, status = _tri(z_in, inline)
     assert status == COLLINEAR and np.all(pose == 0) and np.all(np.isfinite(cov))
 
 
