@@ -11,8 +11,9 @@ Candidates found earlier in the turn are carried along with the robot
 (paper Fig. 8): each is composed with the odometry increment since, so that at
 the end of the turn every candidate is a hypothesis of the robot's *current*
 pose. Every candidate then receives the same number of particles (a tight
-candidate is sampled densely), which :func:`pf_candidates` hands to the particle
-filter as ``(pose, radius)`` pairs.
+candidate is sampled densely): :func:`pf_candidates` gives the ``(pose, radius)``
+pairs that :meth:`lampsam.localization.particle_filter.ParticleFilter.init_candidates`
+samples.
 """
 
 from __future__ import annotations
@@ -274,39 +275,3 @@ def pf_candidates(candidates: Sequence[PoseCandidate]) -> list[tuple[FloatArray,
         ``[(pose (3,), radius), ...]``, one per candidate, same order.
     """
     return [(c.pose.copy(), c.radius) for c in candidates]
-
-
-def sample_candidates(
-    candidates: Sequence[PoseCandidate],
-    particles_per_candidate: int,
-    sigma_theta: float,
-    rng: np.random.Generator,
-) -> FloatArray:
-    """The same number of particles in each candidate disc (paper sec. 3).
-
-    Positions are uniform over the disc of radius ``r``; headings are the
-    candidate's plus Gaussian noise ``sigma_theta``. Used when the particle
-    filter is built from explicit particles.
-
-    Args:
-        candidates: the candidates.
-        particles_per_candidate: particles per candidate.
-        sigma_theta: heading noise (rad).
-        rng: generator.
-
-    Returns:
-        (len(candidates) * particles_per_candidate, 3) particles ``(x, y, theta)``.
-    """
-    if not candidates:
-        return np.zeros((0, 3))
-    n = particles_per_candidate
-    out = []
-    for c in candidates:
-        rho = c.radius * np.sqrt(rng.random(n))
-        phi = rng.uniform(-np.pi, np.pi, n)
-        th = c.pose[2] + rng.normal(0.0, sigma_theta, n)
-        th = np.mod(th + np.pi, 2 * np.pi) - np.pi
-        out.append(
-            np.column_stack([c.pose[0] + rho * np.cos(phi), c.pose[1] + rho * np.sin(phi), th])
-        )
-    return np.vstack(out)

@@ -29,7 +29,7 @@ import json
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -37,9 +37,15 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import between, compose, wrap_angle
-from lampsam.localization.candidates import CandidateCollector, CandidateConfig, PoseCandidate
+from lampsam.localization.candidates import (
+    CandidateCollector,
+    CandidateConfig,
+    PoseCandidate,
+    pf_candidates,
+)
 from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel, RayCastModel
+from lampsam.localization.particle_filter import KldConfig, ParticleFilter, ParticleFilterConfig
 from lampsam.localization.verification import (
     CeilingChecker,
     RlocVerifier,
@@ -151,29 +157,31 @@ class FilterConfig:
             candidate (GRID_ONLY, or a turn without any). Default 20000.
         max_updates: measurement updates on the virtual scan before giving up.
             Default 15.
-        converged_sigma_xy: converged when the position spread (sqrt of the
-            largest eigenvalue of the xy covariance) is below this (m). Default 0.10.
-        converged_sigma_theta: ... and the heading spread below this (rad).
-            Default 0.08.
-        jitter_xy: roughening between updates on the same scan (m). Default 0.02.
-        jitter_theta: roughening of the heading (rad). Default 0.01.
-        beam: per-beam measurement model (sigma, mixture, max range).
+        beam: per-beam measurement model. Default sigma 0.15 m, 20 % random
+            returns, 4.5 m (the Kinect's range), beams tempered by 0.2 (the 360
+            beams of a virtual scan are far from independent).
         beam_step: use every ``beam_step``-th beam of the 360. Default 2.
+        pf: the filter's own settings (convergence bounds: 0.10 m and 0.08 rad
+            here; roughening between updates on the same scan: 2 cm, 0.01 rad).
+        kld_in_ours: use the KLD-adaptive sample size in :attr:`Mode.OURS`.
+            Default True.
     """
 
     particles_per_candidate: int = 300
     n_uniform: int = 20000
     max_updates: int = 15
-    converged_sigma_xy: float = 0.10
-    converged_sigma_theta: float = 0.08
-    jitter_xy: float = 0.02
-    jitter_theta: float = 0.01
     beam: BeamModelConfig = field(
         default_factory=lambda: BeamModelConfig(
             sigma_hit=0.15, z_hit=0.8, z_rand=0.2, max_range=4.5, beam_weight=0.2
         )
     )
     beam_step: int = 2
+    pf: ParticleFilterConfig = field(
+        default_factory=lambda: ParticleFilterConfig(
+            converged_sigma_xy=0.10, converged_sigma_theta=0.08, jitter_xy=0.02, jitter_theta=0.01
+        )
+    )
+    kld_in_ours: bool = True
 
 
 @dataclass(frozen=True)
@@ -281,99 +289,32 @@ def write_result(result: LocalizationResult, out_dir: str | Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- filter
-class _Particles:
-    """The particle set of one attempt, behind the few operations the pipeline needs.
+def mode_estimate(
+    particles: FloatArray, log_weights: FloatArray, radius: float = 0.5
+) -> FloatArray:
+    """Weighted mean of the particles near the heaviest one.
 
-    Placeholder until ``localization/particle_filter.py`` (another engineer's)
-    lands; then these methods delegate to its ``ParticleFilter``.
+    Unlike the global weighted mean, it stays on one mode when the filter has
+    not (yet) collapsed to a single hypothesis.
 
     Args:
-        poses: (N, 3) initial particles ``(x, y, theta)``.
+        particles: (N, 3) poses ``(x, y, theta)``.
+        log_weights: (N,) log-weights.
+        radius: neighbourhood of the heaviest particle (m in x, y; rad in theta).
+
+    Returns:
+        (3,) pose, circular mean heading.
     """
-
-    def __init__(self, poses: FloatArray) -> None:
-        self.poses = np.asarray(poses, dtype=float)
-        self.log_w = np.zeros(len(self.poses))
-
-    @property
-    def weights(self) -> FloatArray:
-        """(N,) normalised weights."""
-        w = np.exp(self.log_w - self.log_w.max())
-        return w / w.sum()
-
-    def update(self, log_likelihood: FloatArray) -> None:
-        """Multiply the weights by the likelihoods (added in log space)."""
-        self.log_w = self.log_w + log_likelihood
-
-    def resample(self, rng: np.random.Generator, jitter: tuple[float, float]) -> None:
-        """Low-variance (systematic) resampling, then roughening by ``jitter`` (m, rad)."""
-        w = self.weights
-        n = len(w)
-        positions = (rng.random() + np.arange(n)) / n
-        idx = np.minimum(np.searchsorted(np.cumsum(w), positions), n - 1)
-        p = self.poses[idx].copy()
-        p[:, :2] += rng.normal(0.0, jitter[0], (n, 2))
-        p[:, 2] = np.asarray(wrap_angle(p[:, 2] + rng.normal(0.0, jitter[1], n)))
-        self.poses = p
-        self.log_w = np.zeros(n)
-
-    def estimate(self) -> tuple[FloatArray, FloatArray]:
-        """Weighted mean (circular in theta) and covariance of the particles.
-
-        Returns:
-            mean (3,) and covariance (3, 3) with the heading residual wrapped.
-        """
-        w = self.weights
-        mean_xy = w @ self.poses[:, :2]
-        th = float(np.arctan2(w @ np.sin(self.poses[:, 2]), w @ np.cos(self.poses[:, 2])))
-        d = np.column_stack([self.poses[:, :2] - mean_xy, wrap_angle(self.poses[:, 2] - th)])
-        cov = (d * w[:, None]).T @ d
-        return np.array([mean_xy[0], mean_xy[1], th]), cov
-
-    def mode_estimate(self, radius: float = 0.5) -> FloatArray:
-        """Mean of the particles near the best one (robust when modes remain), (3,)."""
-        w = self.weights
-        best = self.poses[int(np.argmax(w))]
-        near = (np.hypot(*(self.poses[:, :2] - best[:2]).T) < radius) & (
-            np.abs(wrap_angle(self.poses[:, 2] - best[2])) < radius
-        )
-        ws = w[near] / w[near].sum()
-        p = self.poses[near]
-        th = float(np.arctan2(ws @ np.sin(p[:, 2]), ws @ np.cos(p[:, 2])))
-        xy = ws @ p[:, :2]
-        return np.array([xy[0], xy[1], th])
-
-    def move(self, delta: FloatArray) -> None:
-        """Apply an odometry increment ``body_T_body2`` (3,) to every particle."""
-        c, s = np.cos(self.poses[:, 2]), np.sin(self.poses[:, 2])
-        self.poses = np.column_stack(
-            [
-                self.poses[:, 0] + c * delta[0] - s * delta[1],
-                self.poses[:, 1] + s * delta[0] + c * delta[1],
-                wrap_angle(self.poses[:, 2] + delta[2]),
-            ]
-        )
-
-
-def _uniform_free(grid: OccupancyGrid, n: int, rng: np.random.Generator) -> FloatArray:
-    """(n, 3) particles uniform over the grid's free cells and headings."""
-    from lampsam.localization.grid import free_mask
-
-    iy, ix = np.nonzero(free_mask(grid))
-    if len(ix) == 0:
-        raise GlobalLocalizationError("the grid map has no free cell to put particles in")
-    k = rng.integers(0, len(ix), n)
-    cells = np.column_stack([ix[k], iy[k]])
-    xy = grid.cell_to_world(cells) + rng.uniform(-0.5, 0.5, (n, 2)) * grid.resolution
-    return np.column_stack([xy, rng.uniform(-np.pi, np.pi, n)])
-
-
-def _candidate_particles(
-    cands: Sequence[PoseCandidate], n_per: int, sigma_theta: float, rng: np.random.Generator
-) -> FloatArray:
-    from lampsam.localization.candidates import sample_candidates
-
-    return sample_candidates(cands, n_per, sigma_theta, rng)
+    w = np.exp(log_weights - log_weights.max())
+    best = particles[int(np.argmax(w))]
+    near = (np.hypot(particles[:, 0] - best[0], particles[:, 1] - best[1]) < radius) & (
+        np.abs(np.asarray(wrap_angle(particles[:, 2] - best[2]))) < radius
+    )
+    ws = w[near] / w[near].sum()
+    p = particles[near]
+    th = float(np.arctan2(ws @ np.sin(p[:, 2]), ws @ np.cos(p[:, 2])))
+    xy = ws @ p[:, :2]
+    return np.array([xy[0], xy[1], th])
 
 
 # ----------------------------------------------------------------------------- pipeline
@@ -428,31 +369,36 @@ def _filter_stage(
     maps: EnvironmentMaps,
     config: GlobalLocalizerConfig,
     rng: np.random.Generator,
-) -> tuple[_Particles, int, bool]:
-    """Particle filter on the virtual scan until the spread is below the bound."""
+) -> tuple[ParticleFilter, int, bool]:
+    """Particle filter on the virtual scan until the spread is below the bound.
+
+    The robot stands still after the turn, so the same scan is applied
+    repeatedly, resampling (with roughening) in between, as the paper's
+    "repeated process" (sec. 4.1) does.
+    """
     fc = config.filter
+    pf_config = fc.pf
+    if config.mode is Mode.OURS and fc.kld_in_ours and pf_config.kld is None:
+        pf_config = replace(pf_config, kld=KldConfig())
+    pf = ParticleFilter(model, pf_config, rng)
     if cands and config.mode is not Mode.GRID_ONLY:
-        init = _candidate_particles(
-            cands, fc.particles_per_candidate, config.candidates.sigma_theta, rng
+        pf.init_candidates(
+            pf_candidates(cands), fc.particles_per_candidate, config.candidates.sigma_theta
         )
     else:
-        init = _uniform_free(maps.grid, fc.n_uniform, rng)
-    pf = _Particles(init)
+        pf.init_uniform(maps.grid, fc.n_uniform)
     angles = beam_angles()[:: fc.beam_step]
     ranges = scan[:: fc.beam_step]
     converged = False
     n_updates = 0
     while n_updates < fc.max_updates:
         n_updates += 1
-        pf.update(model.log_likelihood(pf.poses, ranges, angles))
-        _, cov = pf.estimate()
-        sxy = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)))
-        sth = float(np.sqrt(max(cov[2, 2], 0.0)))
-        if sxy < fc.converged_sigma_xy and sth < fc.converged_sigma_theta:
+        pf.update(ranges, angles)
+        if pf.converged():
             converged = True
             break
-        pf.resample(rng, (fc.jitter_xy, fc.jitter_theta))
-    log.info("filter: %d updates, converged %s", n_updates, converged)
+        pf.resample()
+    log.info("filter: %d updates, %d particles, converged %s", n_updates, pf.n, converged)
     return pf, n_updates, converged
 
 
@@ -577,7 +523,7 @@ def localize(
         compute_time["candidates"] += cs
         t0 = time.perf_counter()
         pf, n_upd, converged = _filter_stage(cands, scan, model, maps, config, rng)
-        pose = pf.mode_estimate()
+        pose = mode_estimate(pf.particles, pf.log_weights)
         _, cov = pf.estimate()
         compute_time["filter"] += time.perf_counter() - t0
         if not verifies:

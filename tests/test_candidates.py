@@ -13,8 +13,8 @@ from lampsam.localization.candidates import (
     match_descriptors,
     pf_candidates,
     propagate,
-    sample_candidates,
 )
+from lampsam.localization.particle_filter import sample_candidate_discs
 
 
 def _world(rng: np.random.Generator, m: int = 1000) -> tuple[np.ndarray, np.ndarray]:
@@ -101,7 +101,7 @@ def test_equal_particles_per_candidate(rng: np.random.Generator) -> None:
         PoseCandidate(np.array([1.0, 1.0, 0.0]), 0.1, 0.02, 10, 0.0),
         PoseCandidate(np.array([5.0, 5.0, 1.0]), 1.0, 0.2, 8, 1.0),
     ]
-    p = sample_candidates(cands, 500, 0.05, np.random.default_rng(2))
+    p = sample_candidate_discs(pf_candidates(cands), 500, 0.05, np.random.default_rng(2))
     assert p.shape == (1000, 3)
     assert np.all(np.hypot(p[:500, 0] - 1, p[:500, 1] - 1) <= 0.1 + 1e-12)
     assert np.all(np.hypot(p[500:, 0] - 5, p[500:, 1] - 5) <= 1.0 + 1e-12)
