@@ -199,6 +199,59 @@ def _add_show_map(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_show_map)
 
 
+# --------------------------------------------------------------------------- slam
+def _cmd_slam(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.backend.config import SlamConfig
+    from lampsam.backend.slam import run_slam, summary
+    from lampsam.evaluation.slam_report import write_slam_plot
+
+    config = SlamConfig.from_dict(load_toml(Path(args.config) if args.config else None))
+    if args.gate_only:
+        config = dataclasses.replace(
+            config, association=dataclasses.replace(config.association, use_known_ids=False))
+    features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+    out = Path(args.out)
+    if args.mrclam:
+        from lampsam.datasets.mrclam import mrclam_run
+
+        run = mrclam_run(Path(args.run), duration=args.duration)
+    else:
+        from lampsam.datasets.logrun import read_run
+
+        run = read_run(args.run)
+    result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+    write_slam_plot(out / "slam.png", result, run.groundtruth)
+    s = summary(result, run.groundtruth)
+    err = s.get("error")
+    msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
+    if err:
+        msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
+                f" heading RMS {err['heading_rms_deg']:.2f} deg")
+    print(msg + f"; written to {out}")
+    return 0 if result.status == "ok" else 1
+
+
+def _add_slam(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("slam", help="run EKF / iSAM2 / batch SLAM over a logged run")
+    p.add_argument("run", help="run directory (or the mrclam_ds0 folder with --mrclam)")
+    p.add_argument("--backend", choices=("ekf", "isam2", "batch"), default="isam2",
+                   help="estimator (default isam2)")
+    p.add_argument("--features", default="lamps,corners",
+                   help="ceiling features to use: lamps,corners (default both)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--config", default=None, help="TOML config ([association], [ekf], [isam2], ...)")
+    p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
+                   help="measurement source (default auto: range-bearing log, else images)")
+    p.add_argument("--gate-only", action="store_true",
+                   help="ignore known landmark ids: associate by the Mahalanobis gate alone")
+    p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--duration", type=float, default=None,
+                   help="with --mrclam: use only the first seconds")
+    p.set_defaults(func=_cmd_slam)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
@@ -207,6 +260,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_kinect_sim,
     _add_build_map,
     _add_show_map,
+    _add_slam,
 ]
 
 

@@ -8,14 +8,20 @@ method each (``to_gtsam()``).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
-from scipy.stats import chi2
-
 from lampsam.errors import EstimationError
 from lampsam.factors.ceiling import HeightPrior
+from scipy.special import chdtri
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_quantile(prob: float, dof: int) -> float:
+    """The ``prob`` quantile of the chi-square distribution with ``dof`` degrees of freedom."""
+    return float(chdtri(dof, 1.0 - prob))
 
 
 @dataclass(frozen=True)
@@ -78,11 +84,11 @@ class AssociationConfig:
 
     def gate(self, dof: int) -> float:
         """Mahalanobis gate ``d`` of paper eq. 20 for a ``dof``-dimensional innovation."""
-        return float(chi2.ppf(self.gate_prob, dof))
+        return _chi2_quantile(self.gate_prob, dof)
 
     def new_threshold(self, dof: int) -> float:
         """Squared Mahalanobis distance beyond which an observation starts a new landmark."""
-        return float(chi2.ppf(max(self.new_prob, self.gate_prob), dof))
+        return _chi2_quantile(max(self.new_prob, self.gate_prob), dof)
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
-
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate
 from lampsam.backend.config import SlamConfig
@@ -209,32 +208,69 @@ class EkfSlam(SlamBackend):
         return cands
 
     # ------------------------------------------------------------------ eqs. 21-23
-    def _update(self, slot: _Slot, obs: Obs) -> bool:
-        """One EKF update (eqs. 21-23) with one observation of one landmark."""
-        try:
-            z_hat, h_r, h_l = self._h(slot, obs)
-        except Exception as exc:
-            log.debug("landmark %d not predictable: %s", slot.id, exc)
-            return False
-        n, o, d = self._n, slot.offset, slot.dim
+    def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
+        """EKF update (eqs. 21-23) with all associated observations of a frame, stacked.
+
+        ``H`` (K x n) has nonzero blocks only in the robot columns and each observed
+        landmark's columns, so ``P H^T`` is assembled from column blocks of ``P``
+        (n x K) and ``Psi = H P H^T + R`` (eq. 19) from its rows. Stacking the frame's
+        observations into one update equals the paper's sequential ``K_i`` updates
+        for a linear model; it needs one ``n x n`` rank-K correction instead of K.
+
+        Args:
+            pairs: (landmark slot, observation) pairs.
+
+        Returns:
+            Number of observations used.
+        """
+        n = self._n
         P = self._P[:n, :n]
-        pht = P[:, :3] @ h_r.T + P[:, o : o + d] @ h_l.T  # (n, k)
-        psi = h_r @ pht[:3] + h_l @ pht[o : o + d] + obs.R
+        rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
+        for slot, obs in pairs:
+            try:
+                z_hat, h_r, h_l = self._h(slot, obs)
+            except Exception as exc:  # behind the camera: skip this observation
+                log.debug("landmark %d not predictable: %s", slot.id, exc)
+                continue
+            rows.append((slot, obs, residual(obs, z_hat), h_r, h_l))
+        if not rows:
+            return 0
+        k_tot = sum(len(r[2]) for r in rows)
+        pht = np.empty((n, k_tot))
+        nu = np.empty(k_tot)
+        r_blk = np.zeros((k_tot, k_tot))
+        i = 0
+        for slot, obs, res, h_r, h_l in rows:
+            k = len(res)
+            o, d = slot.offset, slot.dim
+            pht[:, i : i + k] = P[:, :3] @ h_r.T + P[:, o : o + d] @ h_l.T
+            nu[i : i + k] = res
+            r_blk[i : i + k, i : i + k] = obs.R
+            i += k
+        psi = np.empty((k_tot, k_tot))  # eq. 19: H (P H^T) + R
+        i = 0
+        for slot, _obs, res, h_r, h_l in rows:
+            k = len(res)
+            o, d = slot.offset, slot.dim
+            psi[i : i + k] = h_r @ pht[:3] + h_l @ pht[o : o + d]
+            i += k
+        psi += r_blk
         psi = 0.5 * (psi + psi.T)
         try:
-            gain = np.linalg.solve(psi, pht.T).T  # (n, k), eq. 21
+            gain = np.linalg.solve(psi, pht.T).T  # eq. 21, (n, K)
         except np.linalg.LinAlgError:
-            return False
-        nu = residual(obs, z_hat)
+            log.warning("singular innovation covariance: update skipped")
+            return 0
         self._x[:n] += gain @ nu  # eq. 22
         self._x[2] = wrap_angle(float(self._x[2]))
-        P -= gain @ pht.T  # eq. 23: (I - K H) P
-        P[:] = 0.5 * (P + P.T)
-        if slot.kind == "lamp" and slot.dim == 4:
-            self._x[o + 3] = wrap_axis(float(self._x[o + 3]))
-        slot.n_obs += 1
-        slot.last_seen = self._step
-        return True
+        P -= gain @ pht.T  # eq. 23: (I - K H) P = P - K (P H^T)^T
+        for slot, *_ in rows:
+            if slot.kind == "lamp" and slot.dim == 4:
+                o = slot.offset + 3
+                self._x[o] = wrap_axis(float(self._x[o]))
+            slot.n_obs += 1
+            slot.last_seen = self._step
+        return len(rows)
 
     # ------------------------------------------------------------------ eqs. 24-25
     def _augment(self, obs: Obs, lid: int | None) -> int | None:
@@ -319,16 +355,23 @@ class EkfSlam(SlamBackend):
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
             if obs:
                 patches = {lid: s.patch for lid, s in self._slots.items() if s.kind == "corner"}
-                assignments = associate(obs, self._candidates(), self._innovation,
+                gating = not self.config.association.use_known_ids or any(
+                    o.landmark_id is None for o in obs)
+                cands = self._candidates() if gating else {}
+                assignments = associate(obs, cands, self._innovation,
                                         self.config.association, lambda i: i in self._slots,
                                         patches)
-                for a in assignments:
-                    if a.status == "matched" and a.landmark_id in self._slots:
-                        n_matched += self._update(self._slots[a.landmark_id], obs[a.obs_index])
+                pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
+                         if a.status == "matched" and a.landmark_id in self._slots
+                         and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
+                n_matched = self._update(pairs)
                 for a in assignments:
                     if a.status == "new":
                         n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
         self._prune()
+        if self._step % 50 == 0:  # keep P symmetric against round-off
+            P = self.P
+            P[:] = 0.5 * (P + P.T)
         self._step += 1
         dt = time.perf_counter() - t0
         pose = self._x[:3].copy()

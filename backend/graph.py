@@ -43,7 +43,6 @@ from typing import Any
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
-
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate
 from lampsam.backend.config import SlamConfig
@@ -58,6 +57,7 @@ from lampsam.backend.interface import (
 from lampsam.backend.models import Obs, initialize, observations_from_frame, predict, residual
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import coords_D_tangent, wrap_angle
+from lampsam.factors.gtsam_factors import bearing_range_factor, odometry_factor
 from lampsam.factors.motion import DEFAULT_FLOOR_VAR, accumulate_odometry
 
 log = logging.getLogger(__name__)
@@ -119,15 +119,14 @@ class Point2Handler:
         """Insert the landmark's variable(s) with its current estimate."""
         values.insert(L(lm.id), np.asarray(lm.state[:2], float))
 
-    def priors(self, lm: _Landmark, graph: gtsam.NonlinearFactorGraph,
-               pose_of: Any, config: SlamConfig) -> None:
+    def priors(self, lm: _Landmark, graph: Any, pose_of: Any, config: SlamConfig) -> None:
         """No prior is needed for a planar landmark seen twice."""
 
-    def factor(self, lm: _Landmark, k: int, obs: Obs, noise: Any, pose_of: Any
-               ) -> gtsam.NonlinearFactor:
-        """``BearingRangeFactor2D(X(k), L(id), bearing, range)`` (built-in C++)."""
-        return gtsam.BearingRangeFactor2D(X(k), L(lm.id), gtsam.Rot2(float(obs.z[0])),
-                                          float(obs.z[1]), noise)
+    def factors(self, lm: _Landmark, k: int, obs: Obs, robust: float | None
+                ) -> list[gtsam.NonlinearFactor]:
+        """``BearingRangeFactor2D(X(k), L(id))`` (built-in C++, via the factors adapter)."""
+        return [bearing_range_factor(X(k), L(lm.id), float(obs.z[0]), float(obs.z[1]), obs.R,
+                                     robust=robust)]
 
     def read(self, lm: _Landmark, get: Any) -> FloatArray:
         """EKF-form state from an estimate source (``get(key, "point2")``)."""
@@ -210,13 +209,10 @@ class GraphSlam(SlamBackend):
         self._new_graph.add(factor)
         self.graph.add(factor)
 
-    def _noise(self, cov: FloatArray) -> Any:
-        """Measurement noise model; Huber-robust when the batch config asks for it."""
-        base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float))
-        k = self.config.batch.huber_k
-        if k is not None and self.name == "batch":
-            return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
-        return base
+    @property
+    def robust(self) -> float | None:
+        """Huber threshold for measurement factors (batch with ``huber_k`` set), else None."""
+        return self.config.batch.huber_k if self.name == "batch" else None
 
     def _flush(self) -> None:
         """Send the new factors and values to iSAM2 (one update)."""
@@ -331,8 +327,7 @@ class GraphSlam(SlamBackend):
                                          DEFAULT_FLOOR_VAR)
         k = self._k + 1
         self._add_value(X(k), gtsam.Pose2(*pose))
-        self._add_factor(gtsam.BetweenFactorPose2(X(k - 1), X(k), gtsam.Pose2(*delta),
-                                                  gtsam.noiseModel.Gaussian.Covariance(cov)))
+        self._add_factor(odometry_factor(X(k - 1), X(k), delta, cov))
         self._k = k
         self._kf_poses.append(pose.copy())
         n_matched = n_new = 0
@@ -345,7 +340,7 @@ class GraphSlam(SlamBackend):
                         self._refresh_landmark(self._landmarks[lid])
             patches = {lid: lm.patch for lid, lm in self._landmarks.items() if lm.kind == "corner"}
             assignments = associate(
-                obs, self._candidates(pose),
+                obs, self._candidates(pose) if gating else {},
                 lambda lid, o: self._innovation(pose, pose_cov, lid, o),
                 self.config.association, lambda i: i in self._landmarks, patches)
             for a in assignments:
@@ -358,6 +353,10 @@ class GraphSlam(SlamBackend):
                     n_matched += 1
                 elif a.status == "new":
                     n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
+        for handler in {id(h): h for h in self.handlers.values()}.values():
+            if hasattr(handler, "flush"):
+                for f in handler.flush(self.robust):
+                    self._add_factor(f)
         # The keyframe's own estimate: the prediction until iSAM2 updates it.
         self._kf_pose = pose
         self._kf_cov = pose_cov
@@ -390,8 +389,8 @@ class GraphSlam(SlamBackend):
     def _observe(self, lm: _Landmark, k: int, obs: Obs) -> None:
         lm.n_obs += 1
         if lm.in_graph:
-            self._add_factor(self.handlers[lm.kind].factor(lm, k, obs, self._noise(obs.R),
-                                                           self._pose_of))
+            for f in self.handlers[lm.kind].factors(lm, k, obs, self.robust):
+                self._add_factor(f)
             return
         lm.pending.append((k, obs))
         if lm.n_obs >= self.config.association.min_observations:
@@ -405,7 +404,8 @@ class GraphSlam(SlamBackend):
         handler.insert(lm, self._new_values_and_initial())
         handler.priors(lm, _Adder(self), self._pose_of, self.config)
         for k, o in lm.pending:
-            self._add_factor(handler.factor(lm, k, o, self._noise(o.R), self._pose_of))
+            for f in handler.factors(lm, k, o, self.robust):
+                self._add_factor(f)
         lm.pending = []
         lm.in_graph = True
 

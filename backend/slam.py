@@ -29,14 +29,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
-from lampsam.datasets.logrun import LoggedRun, OdometryLog, RangeBearingLog, Trajectory, read_run, write_tum
+from lampsam.datasets.logrun import (
+    LoggedRun,
+    OdometryLog,
+    RangeBearingLog,
+    Trajectory,
+    read_run,
+    write_tum,
+)
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import wrap_angle
 from lampsam.frontend.measurements import (

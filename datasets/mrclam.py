@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.datasets.logrun import (
     LoggedRun,
