@@ -31,10 +31,10 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
-from lampsam.arrays import FloatArray
+from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import between, compose, wrap_angle
 from lampsam.localization.candidates import (
@@ -54,6 +54,9 @@ from lampsam.localization.verification import (
     VerificationConfig,
 )
 from lampsam.localization.virtual_scan import VirtualScan, VirtualScanConfig, beam_angles
+
+if TYPE_CHECKING:
+    from lampsam.localization.envmap import EnvironmentMap
 
 log = logging.getLogger(__name__)
 
@@ -107,11 +110,13 @@ class DriveFrame:
         odom: (3,) ``odom_T_body`` (m, m, rad).
         ceiling_m: (K, 2) observed ceiling features (lamps and corners) in
             normalised ceiling coordinates (conventions.md).
+        ceiling_is_lamp: (K,) bool, which of them are lamps (None: unknown).
     """
 
     t: float
     odom: FloatArray
     ceiling_m: FloatArray
+    ceiling_is_lamp: BoolArray | None = None
 
 
 class Robot(Protocol):
@@ -136,6 +141,7 @@ class EnvironmentMaps:
         spatial_descriptors: (M, 128) their SIFT descriptors.
         ceiling_xyz: (L, 3) ceiling feature map (lamps, corners), world (m).
         ceiling_body_t_camera: (3,) ceiling camera offset and height (m).
+        ceiling_is_lamp: (L,) bool, which ceiling features are lamps (None: unknown).
     """
 
     grid: OccupancyGrid
@@ -143,6 +149,26 @@ class EnvironmentMaps:
     spatial_descriptors: FloatArray
     ceiling_xyz: FloatArray
     ceiling_body_t_camera: FloatArray
+    ceiling_is_lamp: BoolArray | None = None
+
+    @classmethod
+    def from_env_map(cls, env: EnvironmentMap, body_t_camera: FloatArray) -> EnvironmentMaps:
+        """Adapt a loaded map directory (:func:`lampsam.localization.envmap.load_env_map`).
+
+        Args:
+            env: the map; a missing spatial or ceiling layer gives empty arrays
+                (no candidates / no verification evidence).
+            body_t_camera: (3,) the ceiling camera's mounting (from the run's rig).
+        """
+        sp, ce = env.spatial, env.ceiling
+        return cls(
+            env.grid,
+            np.zeros((0, 3)) if sp is None else np.asarray(sp.xyz, dtype=float),
+            np.zeros((0, 128), np.float32) if sp is None else np.asarray(sp.descriptors),
+            np.zeros((0, 3)) if ce is None else np.asarray(ce.xyz, dtype=float),
+            np.asarray(body_t_camera, dtype=float).reshape(3),
+            None if ce is None else np.asarray(ce.is_lamp(), dtype=bool),
+        )
 
 
 # ----------------------------------------------------------------------------- config
@@ -422,7 +448,9 @@ def _verify_stage(
         compute seconds.
     """
     vc = config.verification
-    checker = CeilingChecker(maps.ceiling_xyz, maps.ceiling_body_t_camera, vc)
+    checker = CeilingChecker(
+        maps.ceiling_xyz, maps.ceiling_body_t_camera, vc, is_lamp=maps.ceiling_is_lamp
+    )
     verifier: RlocVerifier | SequentialVerifier
     verifier = RlocVerifier(vc) if config.mode is Mode.PROPOSED else SequentialVerifier(vc)
     if monitoring and isinstance(verifier, SequentialVerifier):
@@ -451,7 +479,7 @@ def _verify_stage(
             pose = compose(pose, delta)
             ds = float(np.hypot(delta[0], delta[1]))
             d += ds
-            outcome = checker.outcome(pose, f.ceiling_m)
+            outcome = checker.outcome(pose, f.ceiling_m, f.ceiling_is_lamp)
             evidence |= outcome is not None
             verdict = verifier.update(ds, outcome)
         compute += time.perf_counter() - t0

@@ -40,7 +40,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from lampsam.arrays import FloatArray
+from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.ceiling import project_point
 from lampsam.frontend.measurements import CeilingFrame
@@ -278,26 +278,65 @@ class SequentialVerifier:
 class CeilingChecker:
     """Per-frame ceiling test at an estimated pose against a ceiling feature map.
 
+    Lamps and corners are matched within their own kind when the kinds are
+    known: a tiled ceiling's corners form a periodic lattice that a pose off by
+    one tile also matches, so a frame that sees a lamp must match its lamps
+    (at least ``min_match_fraction`` of them) and, separately, its corners.
+
     Args:
         landmarks: (L, 3) ceiling feature map points, world frame (m).
         body_t_camera: (3,) ceiling camera offset and height (m).
         config: gate and fraction.
+        is_lamp: (L,) bool, which landmarks are lamps; None = kinds unknown
+            (all features are matched against all landmarks).
     """
 
     def __init__(
-        self, landmarks: FloatArray, body_t_camera: FloatArray, config: VerificationConfig
+        self,
+        landmarks: FloatArray,
+        body_t_camera: FloatArray,
+        config: VerificationConfig,
+        is_lamp: BoolArray | None = None,
     ) -> None:
         self.landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
         if not np.all(np.isfinite(self.landmarks)):
             raise VerificationError("ceiling feature map contains NaN or inf")
         self.body_t_camera = np.asarray(body_t_camera, dtype=float).reshape(3)
         self.config = config
+        self.is_lamp = None if is_lamp is None else np.asarray(is_lamp, dtype=bool).reshape(-1)
+        if self.is_lamp is not None and len(self.is_lamp) != len(self.landmarks):
+            raise VerificationError("is_lamp and the ceiling landmarks differ in length")
 
-    def outcome(self, pose: FloatArray, observed: FloatArray) -> bool | None:
-        """Match / no match / no evidence for observed ``m`` (K, 2) at ``pose`` (3,)."""
+    def outcome(
+        self, pose: FloatArray, observed: FloatArray, observed_is_lamp: BoolArray | None = None
+    ) -> bool | None:
+        """Match / no match / no evidence for one frame.
+
+        Args:
+            pose: (3,) estimated ``world_T_body``.
+            observed: (K, 2) observed ``m`` (lamps and corners).
+            observed_is_lamp: (K,) bool kinds of the observations, or None.
+
+        Returns:
+            True (match), False (no match) or None (nothing observed).
+        """
         observed = np.asarray(observed, dtype=float).reshape(-1, 2)
         if len(observed) == 0:
             return None
-        pred = predict_landmarks(np.asarray(pose, dtype=float), self.landmarks, self.body_t_camera)
-        n_ok, n = frame_match(observed, pred, self.config.gate)
-        return frame_outcome(n_ok, n, self.config)
+        pose = np.asarray(pose, dtype=float)
+        if self.is_lamp is None or observed_is_lamp is None:
+            pred = predict_landmarks(pose, self.landmarks, self.body_t_camera)
+            n_ok, n = frame_match(observed, pred, self.config.gate)
+            return frame_outcome(n_ok, n, self.config)
+        kinds = np.asarray(observed_is_lamp, dtype=bool).reshape(-1)
+        result: bool | None = None
+        for kind in (True, False):
+            obs = observed[kinds == kind]
+            if len(obs) == 0:
+                continue
+            pred = predict_landmarks(pose, self.landmarks[self.is_lamp == kind], self.body_t_camera)
+            ok = frame_outcome(*frame_match(obs, pred, self.config.gate), self.config)
+            if ok is False:
+                return False
+            result = True
+        return result

@@ -146,3 +146,23 @@ def test_frame_match_and_observed_points() -> None:
     np.testing.assert_allclose(observed_points(CeilingFrame(0.0, 0, (), (corner,))), [[0.1, 0.2]])
     with pytest.raises(VerificationError):
         RlocVerifier(VerificationConfig()).update(-1.0, True)
+
+
+def test_lamps_decide_on_a_periodic_corner_lattice() -> None:
+    # 0.6 m tiles: a pose off by one tile matches every corner, but not the lamp
+    gx, gy = np.meshgrid(np.arange(0, 6.01, 0.6), np.arange(0, 6.01, 0.6))
+    corners = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.7)])
+    lamps = np.array([[2.1, 2.9, 2.7], [4.5, 1.2, 2.7]])
+    lm = np.vstack([lamps, corners])
+    kinds = np.arange(len(lm)) < 2
+    truth = np.array([2.0, 2.5, 0.0])
+    m = np.array([project_point(truth, p, CAM)[0] for p in lm])
+    vis = np.hypot(m[:, 0], m[:, 1]) < FOV
+    obs, obs_kind = m[vis], kinds[vis]
+    assert obs_kind.any()
+    wrong = truth + np.array([0.6, 0.0, 0.0])
+    typed = CeilingChecker(lm, CAM, VerificationConfig(), is_lamp=kinds)
+    untyped = CeilingChecker(lm, CAM, VerificationConfig())
+    assert typed.outcome(truth, obs, obs_kind) is True
+    assert untyped.outcome(wrong, obs) is True  # fooled by the lattice
+    assert typed.outcome(wrong, obs, obs_kind) is False
