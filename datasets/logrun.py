@@ -237,13 +237,13 @@ class OdometryModel:
 
     Attributes:
         wheel_base: distance between the wheels ``b``, m (default 0.4).
-        k_r: right-wheel slip constant, m: ``var(ds_r) = k_r |ds_r|`` (eq. 15; default 4e-6).
-        k_l: left-wheel slip constant, m (default 4e-6).
+        k_r: right-wheel slip constant, m: ``var(ds_r) = k_r |ds_r|`` (eq. 15; default 2e-5).
+        k_l: left-wheel slip constant, m (default 2e-5).
     """
 
     wheel_base: float = 0.4
-    k_r: float = 4e-6
-    k_l: float = 4e-6
+    k_r: float = 2e-5
+    k_l: float = 2e-5
 
     def __post_init__(self) -> None:
         """Validate (ValueError on non-positive base or negative constants)."""
@@ -983,6 +983,18 @@ class ImageWriter:
         rel = f"{IMAGES_DIR}/{self.count:06d}.png"
         if not cv2.imwrite(str(self.run_dir / rel), image):
             raise DatasetError("cannot write image", self.run_dir / rel)
+        self._fh.write(f"{t:.6f},{rel}\n")
+        self._fh.flush()
+        self.count += 1
+        return self.run_dir / rel
+
+    def write_encoded(self, t: float, png: bytes) -> Path:
+        """Write the next image from PNG bytes (e.g. encoded by a worker process) and index it."""
+        rel = f"{IMAGES_DIR}/{self.count:06d}.png"
+        try:
+            (self.run_dir / rel).write_bytes(png)
+        except OSError as exc:
+            raise DatasetError(f"cannot write image: {exc}", self.run_dir / rel) from exc
         self._fh.write(f"{t:.6f},{rel}\n")
         self._fh.flush()
         self.count += 1

@@ -5,7 +5,7 @@ A world is a YAML mapping (built-in ones live in ``datasets/worlds/``)::
     name: lab
     rig:                      # as rig.yaml; the camera may give hfov_deg instead of fx..cy
       camera: {width: 320, height: 240, hfov_deg: 120, body_t_camera: [0.1, 0, 0.3]}
-      odometry: {wheel_base: 0.4, k_r: 4.0e-6, k_l: 4.0e-6}
+      odometry: {wheel_base: 0.4, k_r: 2.0e-5, k_l: 2.0e-5}
     render: {supersample: 2, texel: 0.005, noise_sigma: 2.0, bloom: 0.0, background: 60}
     simulation: {odometry_rate_hz: 30, image_rate_hz: 15}
     path: {speed: 0.4, start_heading_deg: 0, waypoints: [[x, y], ...]}
