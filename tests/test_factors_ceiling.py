@@ -26,7 +26,7 @@ from lampsam.factors.ceiling import (
     project_inverse_depth_batch,
     project_point,
 )
-from lampsam.factors.geometry import FactorError
+from lampsam.factors.geometry import FactorError, wrap_axis
 
 SEEDS = [0, 1, 2, 3, 4, 5]
 OFFSET = np.array([0.12, -0.03, 0.35])  # x_off, y_off, z_cam
@@ -122,6 +122,14 @@ def test_lamp_axis_jacobians(seed: int) -> None:
         return np.array([lamp_axis_residual(_arr(p), float(a[0]), meas)[0]])
 
     _, r_D_pose, r_D_phi = lamp_axis_residual(_arr(pose), float(phi[0]), meas)
+    alpha0, a_D_pose, a_D_phi = lamp_axis(_arr(pose), float(phi[0]))
+
+    def g(p: gtsam.Pose2, a: np.ndarray) -> np.ndarray:  # no jump at the wrap point
+        alpha = lamp_axis(_arr(p), float(a[0]))[0]
+        return np.array([alpha0 + wrap_axis(alpha - alpha0)])
+
+    np.testing.assert_allclose(a_D_pose, numericalDerivative21(g, pose, phi), atol=1e-6)
+    np.testing.assert_allclose(a_D_phi, numericalDerivative22(g, pose, phi), atol=1e-6)
     np.testing.assert_allclose(r_D_pose, numericalDerivative21(h, pose, phi), atol=1e-6)
     np.testing.assert_allclose(r_D_phi, numericalDerivative22(h, pose, phi), atol=1e-6)
 
