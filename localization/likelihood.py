@@ -78,6 +78,8 @@ class BeamModelConfig:
 class MeasurementModel(Protocol):
     """What the particle filter needs from a measurement model."""
 
+    config: BeamModelConfig
+
     def log_likelihood(self, poses: FloatArray, ranges: FloatArray,
                        angles: FloatArray) -> FloatArray:
         """Scan log-likelihood (P,) of poses (P, 3) for ranges (B,) at angles (B,)."""
@@ -211,44 +213,75 @@ class RayCastModel:
 class LikelihoodFieldModel:
     """Likelihood field: beam endpoints scored by their distance to the nearest wall.
 
+    The per-cell log-likelihood ``field`` (H, W) is precomputed; an update
+    computes all endpoints in map cell coordinates with one (2P, 3) x (3, B)
+    matrix product and gathers the field with ``cv2.remap`` (nearest cell, or
+    bilinear with ``interpolate=True``); endpoints outside the map score as if
+    far from any wall.
+
     Args:
         grid: the map.
         config: the beam model.
+        interpolate: bilinear interpolation of the field (default False).
     """
 
-    def __init__(self, grid: OccupancyGrid, config: BeamModelConfig) -> None:
+    #: cv2.remap handles at most 32767 rows at once.
+    _CHUNK = 32_000
+
+    def __init__(self, grid: OccupancyGrid, config: BeamModelConfig,
+                 interpolate: bool = False) -> None:
         self.grid = grid
         self.config = config
+        self.interpolate = interpolate
         dist_m = distance_field(occupied_mask(grid)).astype(np.float64) * grid.resolution
-        far = beam_log_likelihood(np.array([np.inf if config.z_rand > 0 else 1e3]), config)[0]
-        field = np.full((grid.height + 2, grid.width + 2), far, dtype=np.float32)
-        field[1:-1, 1:-1] = beam_log_likelihood(dist_m, config).astype(np.float32)
-        self.field = field
-        self._flat = field.reshape(-1)
+        self.far = float(beam_log_likelihood(np.array([np.inf if config.z_rand > 0 else 1e3]),
+                                             config)[0])
+        self.field = np.ascontiguousarray(beam_log_likelihood(dist_m, config), dtype=np.float32)
+
+    def endpoint_log_likelihood(self, poses: FloatArray, ranges: FloatArray,
+                                angles: FloatArray) -> FloatArray:
+        """Per-beam log-likelihood of every pose's endpoints (all beams used as given).
+
+        Args:
+            poses: (P, 3) world poses, metres/rad.
+            ranges: (B,) ranges, metres (all finite).
+            angles: (B,) beam angles, rad.
+
+        Returns:
+            (P, B) float32.
+        """
+        import cv2
+
+        g = self.grid
+        inv_res = 1.0 / g.resolution
+        # Beam vectors in map cell units (map axes rotated by the origin yaw).
+        phi = angles - g.origin[2]
+        beams = np.vstack([ranges * np.cos(phi) * inv_res, ranges * np.sin(phi) * inv_res,
+                           np.ones_like(ranges)]).astype(np.float32)
+        # cv2.remap's nearest neighbour rounds; cell ix covers map coordinates [ix, ix + 1).
+        uv = g.world_to_map(poses[:, :2]) - 0.5
+        heading = poses[:, 2] - g.origin[2]
+        c, s = np.cos(heading), np.sin(heading)
+        out = np.empty((len(poses), len(ranges)), dtype=np.float32)
+        interp = cv2.INTER_LINEAR if self.interpolate else cv2.INTER_NEAREST
+        for start in range(0, len(poses), self._CHUNK):
+            sl = slice(start, min(start + self._CHUNK, len(poses)))
+            n = sl.stop - sl.start
+            # Rows [c, -s, u0] give u = u0 + c bx - s by; rows [s, c, v0] give v.
+            a = np.empty((2 * n, 3), dtype=np.float32)
+            a[:n, 0], a[:n, 1], a[:n, 2] = c[sl], -s[sl], uv[sl, 0]
+            a[n:, 0], a[n:, 1], a[n:, 2] = s[sl], c[sl], uv[sl, 1]
+            end = a @ beams
+            out[sl] = cv2.remap(self.field, end[:n], end[n:], interp,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=self.far)
+        return out
 
     def log_likelihood(self, poses: FloatArray, ranges: FloatArray,
                        angles: FloatArray) -> FloatArray:
-        """Scan log-likelihood of each pose (see :class:`RayCastModel.log_likelihood`)."""
+        """Scan log-likelihood of each pose (see :meth:`RayCastModel.log_likelihood`)."""
         poses, ranges, angles = _check_inputs(poses, ranges, angles)
         ok = valid_beams(ranges, self.config.max_range)
         if not ok.any():
             return np.zeros(len(poses))
-        g = self.grid
-        inv_res = 1.0 / g.resolution
-        # Beam vectors in map cell units (map axes rotated by the origin yaw).
-        phi = angles[ok] - g.origin[2]
-        bx = (ranges[ok] * np.cos(phi) * inv_res).astype(np.float32)
-        by = (ranges[ok] * np.sin(phi) * inv_res).astype(np.float32)
-        uv = g.world_to_map(poses[:, :2]).astype(np.float32) + np.float32(1.0)  # +1: padding
-        c = np.cos(poses[:, 2]).astype(np.float32)[:, None]
-        s = np.sin(poses[:, 2]).astype(np.float32)[:, None]
-        # cos(theta + a) = cos(theta) cos(a) - sin(theta) sin(a): no per-beam trig.
-        u = uv[:, 0:1] + (c * bx - s * by)
-        v = uv[:, 1:2] + (s * bx + c * by)
-        h, w = self.field.shape
-        iu = np.clip(u, 0, w - 1, out=u).astype(np.int32)
-        iv = np.clip(v, 0, h - 1, out=v).astype(np.int32)
-        iv *= np.int32(w)
-        iv += iu
-        ll = self._flat[iv].sum(axis=1, dtype=np.float64)
-        return self.config.beam_weight * ll
+        ll = self.endpoint_log_likelihood(poses, ranges[ok], angles[ok])
+        return self.config.beam_weight * ll.sum(axis=1, dtype=np.float64)
