@@ -252,6 +252,37 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_slam)
 
 
+# --------------------------------------------------------------------------- localize
+def _cmd_localize(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.localization.global_localizer import GlobalLocalizerConfig, Mode, localize_run
+
+    table = load_toml(Path(args.config) if args.config else None).get("localize", {})
+    try:
+        cfg = dataclasses.replace(GlobalLocalizerConfig(), **table)
+    except TypeError as exc:
+        raise LampsamError(f"{args.config}: bad [localize] table: {exc}") from exc
+    cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
+    result = localize_run(Path(args.run), Path(args.map), Path(args.out), cfg, seed=args.seed)
+    x, y, th = result.pose
+    print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
+          f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
+    return 0 if result.success else 1
+
+
+def _add_localize(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("localize", help="global localization of a run on an environment map")
+    p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images")
+    p.add_argument("--map", required=True, help="environment map directory (build-map)")
+    p.add_argument("--out", required=True, help="output directory for result.json")
+    p.add_argument("--mode", default="proposed", choices=["grid_only", "no_ceiling", "proposed", "ours"],
+                   help="configuration of the paper's Table 1, or ours (default proposed)")
+    p.add_argument("--seed", type=int, default=0, help="seed of RANSAC and the particle filter (default 0)")
+    p.add_argument("--config", default=None, help="TOML file with a [localize] table (scalar settings)")
+    p.set_defaults(func=_cmd_localize)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
@@ -261,6 +292,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_build_map,
     _add_show_map,
     _add_slam,
+    _add_localize,
 ]
 
 
