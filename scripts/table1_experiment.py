@@ -251,23 +251,25 @@ def run_trials(
 def table(rows: list[dict[str, object]], modes: list[Mode]) -> str:
     """The Markdown table: success, times, errors (means over the successful trials)."""
     lines = [
-        "| configuration | trials | success | compute time (s) | robot time (s) | localisation time (s) "
-        "| position error (cm) | heading error (deg) | restarts |",
+        "| configuration | trials | success | compute time (s) | robot time (s) "
+        "| localisation time (s) | position error (cm) | heading error (deg) | restarts |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
+    def mean(key: str, sel: list[dict[str, object]]) -> float:
+        vals = [float(x[key]) for x in sel]  # type: ignore[arg-type]
+        return float(np.mean(vals)) if vals else float("nan")
+
     for mode in modes:
         r = [x for x in rows if x["mode"] == mode.value]
         if not r:
             continue
         ok = [x for x in r if x["success"]]
-
-        def mean(key: str, sel: list[dict[str, object]]) -> float:
-            return float(np.mean([float(x[key]) for x in sel])) if sel else float("nan")  # type: ignore[arg-type]
-
         lines.append(
-            f"| {mode.value} | {len(r)} | {100.0 * len(ok) / len(r):.0f} % | {mean('compute_s', r):.1f} "
+            f"| {mode.value} | {len(r)} | {100.0 * len(ok) / len(r):.0f} % "
+            f"| {mean('compute_s', r):.1f} "
             f"| {mean('robot_s', r):.1f} (turn {mean('turn_s', r):.1f}) | {mean('total_s', r):.1f} "
-            f"| {100 * mean('error_m', ok):.1f} | {mean('error_deg', ok):.1f} | {mean('restarts', r):.2f} |"
+            f"| {100 * mean('error_m', ok):.1f} | {mean('error_deg', ok):.1f} "
+            f"| {mean('restarts', r):.2f} |"
         )
     return "\n".join(lines)
 
