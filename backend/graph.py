@@ -276,22 +276,51 @@ class GraphSlam(SlamBackend):
         """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""
         if not lm.in_graph or self.isam is None:
             return
-        handler = self.handlers[lm.kind]
-        lm.state = handler.read(lm, self._get)
-        try:
-            lm.cov = handler.marginal(lm, self.isam.marginalCovariance)
-        except RuntimeError:
-            pass
+        lm.state = self.handlers[lm.kind].read(lm, self._get)
 
     # ------------------------------------------------------------------ association
-    def _innovation(self, pose: FloatArray, pose_cov: FloatArray, lid: int, obs: Obs
-                    ) -> tuple[FloatArray, FloatArray] | None:
+    def _joint_cov(self, lm: _Landmark, k: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Joint marginal blocks ``(S_kk, S_kl, S_ll)`` of keyframe ``k`` and a landmark.
+
+        From iSAM2's ``jointMarginalCovariance``; the landmark block is over the
+        EKF-form state (the handler's keys, in order). None without iSAM2.
+        """
+        if self.isam is None or not lm.in_graph:
+            return None
+        keys = [X(k), *self.handlers[lm.kind].keys(lm)]
+        try:
+            full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
+        except RuntimeError:
+            return None
+        return full[:3, :3], full[:3, 3:], full[3:, 3:]
+
+    def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
+                    obs: Obs) -> tuple[FloatArray, FloatArray] | None:
+        """``(nu, Psi)`` (eq. 19) with the pose-landmark cross-covariance.
+
+        The current pose is ``x = x_k * delta`` (``k`` the last keyframe in iSAM2), so
+        in the right tangent ``dx = Ad(delta^-1) dx_k + d_delta``: its covariance and
+        cross-covariance with a landmark follow from the joint marginal of
+        ``(X(k), landmark)``. Without the cross term the gate is far too wide: a
+        landmark initialised from the pose is strongly correlated with it.
+        """
+        k, pose, delta, delta_cov = gate_ctx
         lm = self._landmarks[lid]
         try:
             z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
         except Exception:
             return None
-        psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + obs.R
+        joint = self._joint_cov(lm, k)
+        if joint is None:  # no joint marginal: independent pose and landmark
+            _, pose_cov = self.current()
+            psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + obs.R
+            return residual(obs, z_hat), psi
+        s_kk, s_kl, s_ll = joint
+        ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+        s_xx = ad @ s_kk @ ad.T + delta_cov
+        s_xl = ad @ s_kl
+        cross = h_p @ s_xl @ h_l.T
+        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + obs.R
         return residual(obs, z_hat), psi
 
     def _candidates(self, pose: FloatArray) -> dict[str, list[int]]:
@@ -321,6 +350,7 @@ class GraphSlam(SlamBackend):
     def _make_keyframe(self, obs: list[Obs]) -> tuple[int, int]:
         """Add a keyframe with its odometry factor and the frame's observations."""
         pose, pose_cov = self.current()
+        gate_ctx = (self._k, pose, self._delta.copy(), self._delta_cov.copy())
         wheel = np.concatenate(self._wheel_since_kf) if self._wheel_since_kf else np.zeros((0, 2))
         w = self.wheel
         delta, cov = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
@@ -341,7 +371,7 @@ class GraphSlam(SlamBackend):
             patches = {lid: lm.patch for lid, lm in self._landmarks.items() if lm.kind == "corner"}
             assignments = associate(
                 obs, self._candidates(pose) if gating else {},
-                lambda lid, o: self._innovation(pose, pose_cov, lid, o),
+                lambda lid, o: self._innovation(gate_ctx, lid, o),
                 self.config.association, lambda i: i in self._landmarks, patches)
             for a in assignments:
                 o = obs[a.obs_index]
@@ -382,8 +412,7 @@ class GraphSlam(SlamBackend):
         oriented = obs.kind == "lamp" and obs.has_axis
         lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented)
         self._landmarks[lid] = lm
-        if self.config.association.min_observations <= 1:
-            self._enter_graph(lm)
+        self._enter_graph(lm)
         return 1
 
     def _observe(self, lm: _Landmark, k: int, obs: Obs) -> None:
@@ -413,16 +442,19 @@ class GraphSlam(SlamBackend):
         return _ValuesPair(self)
 
     # ------------------------------------------------------------------ pruning
-    def _prune_pending(self, final: bool) -> None:
+    def _prune_once_seen(self) -> list[int]:
+        """Landmarks with fewer than ``min_observations`` observations (left out of the map).
+
+        Their variables stay in the graph (a range-bearing sight, or a ceiling sight
+        with the height prior, determines them), but they are not reported.
+        """
         cfg = self.config.association
-        drop = [lid for lid, lm in self._landmarks.items()
-                if not lm.in_graph and (final or self._k - lm.pending[-1][0] > cfg.prune_after_steps)]
-        for lid in drop:
-            del self._landmarks[lid]
+        drop = [lid for lid, lm in self._landmarks.items() if lm.n_obs < cfg.min_observations]
+        if drop:
+            log.warning("%d landmarks seen fewer than %d times were pruned from the map",
+                        len(drop), cfg.min_observations)
         self.n_pruned += len(drop)
-        if final and drop:
-            log.warning("%d landmarks seen fewer than %d times were pruned", len(drop),
-                        cfg.min_observations)
+        return drop
 
     # ------------------------------------------------------------------ interface
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
@@ -446,7 +478,6 @@ class GraphSlam(SlamBackend):
             if obs and self._is_keyframe():
                 n_matched, n_new = self._make_keyframe(obs)
                 is_kf = True
-                self._prune_pending(final=False)
         pose, cov = self.current()
         dt = time.perf_counter() - t0
         self._times.append(t)
@@ -465,7 +496,7 @@ class GraphSlam(SlamBackend):
 
     def finish(self, status: str = "ok") -> SlamResult:
         """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
-        self._prune_pending(final=True)
+        pruned = set(self._prune_once_seen())
         t0 = time.perf_counter()
         values, marginal = self._final_values()
         final_time = time.perf_counter() - t0
@@ -495,7 +526,7 @@ class GraphSlam(SlamBackend):
 
         lms: list[LandmarkEstimate] = []
         for lm in self._landmarks.values():
-            if not lm.in_graph:
+            if not lm.in_graph or lm.id in pruned:
                 continue
             handler = self.handlers[lm.kind]
             state = handler.read(lm, get)
