@@ -30,7 +30,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
 from lampsam.datasets.scene3d import Scene3D, TriangleScene, triangle_scene
 from lampsam.errors import DatasetError
@@ -104,10 +103,12 @@ class KinectConfig:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     def body_R_camera(self) -> FloatArray:  # noqa: N802
-        """(3, 3) columns = camera x, y, z axes in body coordinates (forward view, tilted by pitch)."""
+        """(3, 3) columns = camera x, y, z axes in body coordinates (forward, tilted by pitch)."""
         forward = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
         p = math.radians(self.pitch_deg)
-        tilt = np.array([[math.cos(p), 0.0, math.sin(p)], [0.0, 1.0, 0.0], [-math.sin(p), 0.0, math.cos(p)]])
+        tilt = np.array(
+            [[math.cos(p), 0.0, math.sin(p)], [0.0, 1.0, 0.0], [-math.sin(p), 0.0, math.cos(p)]]
+        )
         return tilt @ forward
 
     def body_T_camera(self) -> FloatArray:  # noqa: N802
@@ -148,15 +149,22 @@ class KinectRenderer:
         self.mesh: TriangleScene = triangle_scene(scene)
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(
-            o3d.core.Tensor(self.mesh.vertices.astype(np.float32)), o3d.core.Tensor(self.mesh.triangles.astype(np.uint32))
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.mesh.vertices, np.float32)),
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.mesh.triangles, np.uint32)),
         )
-        u, v = np.meshgrid(np.arange(config.width, dtype=np.float64), np.arange(config.height, dtype=np.float64))
-        self._dirs_cam = np.stack([(u - config.cx) / config.fx, (v - config.cy) / config.fy, np.ones_like(u)], axis=-1)
+        u, v = np.meshgrid(
+            np.arange(config.width, dtype=np.float64), np.arange(config.height, dtype=np.float64)
+        )
+        self._dirs_cam = np.stack(
+            [(u - config.cx) / config.fx, (v - config.cy) / config.fy, np.ones_like(u)], axis=-1
+        )
         self._cos_max = math.cos(math.radians(config.max_incidence_deg))
         light = np.array([0.3, 0.5, 0.8])
         self._light = light / np.linalg.norm(light)
 
-    def render(self, world_T_cam: FloatArray, rng: np.random.Generator | None = None) -> tuple[ImageU8, ImageU16]:  # noqa: N803
+    def render(
+        self, world_T_cam: FloatArray, rng: np.random.Generator | None = None
+    ) -> tuple[ImageU8, ImageU16]:  # noqa: N803
         """Render one frame.
 
         Args:
@@ -175,7 +183,7 @@ class KinectRenderer:
         dirs = self._dirs_cam @ rot.T
         origin = np.broadcast_to(world_T_cam[:3, 3], dirs.shape)
         rays = np.concatenate([origin, dirs], axis=-1).astype(np.float32)
-        ans = self._scene.cast_rays(o3d.core.Tensor(rays))
+        ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         z = ans["t_hit"].numpy().astype(np.float64)  # ray direction has unit camera-z: t = depth
         hit = np.isfinite(z)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
@@ -206,13 +214,19 @@ class KinectRenderer:
         rgb_u8 = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
         # depth: noise grows with z^2, drop-outs at grazing angles and out of range
         if rng is not None and cfg.sigma_depth_k > 0:
-            z = np.where(hit, z + rng.normal(0.0, 1.0, z.shape) * cfg.sigma_depth_k * np.where(hit, z, 0.0) ** 2, z)
+            z = np.where(
+                hit,
+                z + rng.normal(0.0, 1.0, z.shape) * cfg.sigma_depth_k * np.where(hit, z, 0.0) ** 2,
+                z,
+            )
         valid = hit & (z >= cfg.min_depth) & (z <= cfg.max_depth) & (cos_inc >= self._cos_max)
         depth = np.zeros(z.shape, np.uint16)
         depth[valid] = np.clip(np.rint(z[valid] * cfg.depth_scale), 1, 65535).astype(np.uint16)
         return rgb_u8, depth
 
-    def render_pose(self, pose: FloatArray, rng: np.random.Generator | None = None) -> tuple[ImageU8, ImageU16]:
+    def render_pose(
+        self, pose: FloatArray, rng: np.random.Generator | None = None
+    ) -> tuple[ImageU8, ImageU16]:
         """Render at a planar robot pose ``(x, y, theta)`` (world, metres/rad)."""
         return self.render(world_T_camera(pose, self.config), rng)
 
@@ -238,7 +252,7 @@ def kinect_intrinsics_dict(config: KinectConfig) -> dict[str, object]:
         "cx": float(config.cx),
         "cy": float(config.cy),
         "depth_scale": float(config.depth_scale),
-        "depth_units": "depth png value / depth_scale = metres along the optical axis; 0 = no depth",
+        "depth_units": "png value / depth_scale = metres along the optical axis; 0 = none",
         "min_depth": float(config.min_depth),
         "max_depth": float(config.max_depth),
         "body_t_camera": [float(v) for v in config.body_t_camera],
@@ -271,7 +285,9 @@ class TumRgbdWriter:
         self._depth = open(self.out / "depth.txt", "w", encoding="utf-8")  # noqa: SIM115
         self._gt = open(self.out / "groundtruth.txt", "w", encoding="utf-8")  # noqa: SIM115
         self._rgb.write("# color images\n# timestamp filename\n")
-        self._depth.write(f"# depth maps\n# depth_scale {config.depth_scale:g} (value / depth_scale = metres)\n")
+        self._depth.write(
+            f"# depth maps\n# depth_scale {config.depth_scale:g} (value / depth_scale = metres)\n"
+        )
         self._depth.write("# timestamp filename\n")
         self._gt.write("# world_T_camera\n# timestamp tx ty tz qx qy qz qw\n")
         self.count = 0
@@ -287,7 +303,10 @@ class TumRgbdWriter:
         self._depth.write(f"{t:.6f} depth/{name}\n")
         q = rotation_to_quaternion(world_T_cam[:3, :3])
         p = world_T_cam[:3, 3]
-        self._gt.write(f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}\n")
+        self._gt.write(
+            f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+            f"{q[0]:.8f} {q[1]:.8f} {q[2]:.8f} {q[3]:.8f}\n"
+        )
         for fh in (self._rgb, self._depth, self._gt):
             fh.flush()
         self.count += 1
@@ -443,7 +462,8 @@ def simulate_kinect_run(
             "duration_s": float(t[-1]),
         }
         write_run(
-            out, w.rig, OdometryLog(t[1:], noisy[1:, 0], noisy[1:, 1]), groundtruth=Trajectory(t, poses),
+            out, w.rig, OdometryLog(t[1:], noisy[1:, 0], noisy[1:, 1]),
+            groundtruth=Trajectory(t, poses),
             landmarks=world_landmarks(w), meta=meta,
         )  # fmt: skip
     _add_kinect_meta(out, w.name, config)

@@ -30,7 +30,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
 from lampsam.errors import DatasetError
 
@@ -124,14 +123,19 @@ class RgbdSequence:
         if img is None:
             raise DatasetError("depth image missing or unreadable", path)
         if img.dtype != np.uint16 or img.ndim != 2:
-            raise DatasetError(f"depth image must be 16-bit single channel, got {img.dtype} {img.shape}", path)
+            raise DatasetError(
+                f"depth image must be 16-bit single channel, got {img.dtype} {img.shape}", path
+            )
         _check_shape(img, self.camera, path)
         return img
 
 
 def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
     if img.shape[:2] != (camera.height, camera.width):
-        raise DatasetError(f"image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}", path)
+        raise DatasetError(
+            f"image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}",
+            path,
+        )
 
 
 def pose_from_tum_fields(vals: list[float]) -> FloatArray:
@@ -156,7 +160,9 @@ def _read_list(path: Path) -> tuple[list[float], list[Path]]:
             continue
         parts = text.split()
         if len(parts) != 2:
-            raise DatasetError(f"expected 'timestamp filename', got {len(parts)} fields", path, lineno)
+            raise DatasetError(
+                f"expected 'timestamp filename', got {len(parts)} fields", path, lineno
+            )
         try:
             t = float(parts[0])
         except ValueError as exc:
@@ -194,7 +200,9 @@ def read_tum_trajectory_3d(path: Path) -> tuple[FloatArray, FloatArray]:
             continue
         parts = text.split()
         if len(parts) != 8:
-            raise DatasetError(f"expected 8 fields 't tx ty tz qx qy qz qw', got {len(parts)}", path, lineno)
+            raise DatasetError(
+                f"expected 8 fields 't tx ty tz qx qy qz qw', got {len(parts)}", path, lineno
+            )
         try:
             vals = [float(p) for p in parts]
         except ValueError as exc:
@@ -242,7 +250,9 @@ def camera_from_yaml(path: Path) -> RgbdCamera:
         raise DatasetError(f"bad or missing camera key: {exc}", path) from exc
 
 
-def read_tum_rgbd(path: str | Path, camera: RgbdCamera | None = None, max_dt: float = 0.02) -> RgbdSequence:
+def read_tum_rgbd(
+    path: str | Path, camera: RgbdCamera | None = None, max_dt: float = 0.02
+) -> RgbdSequence:
     """Read a TUM RGB-D directory.
 
     Colour frames are associated to depth frames by nearest time stamp (within
@@ -281,7 +291,12 @@ def read_tum_rgbd(path: str | Path, camera: RgbdCamera | None = None, max_dt: fl
             keep_depth.append(f)
     dropped = len(t_depth) - len(keep_t)
     if dropped:
-        log.warning("%s: %d depth frames without a colour frame within %.3f s dropped", root, dropped, max_dt)
+        log.warning(
+            "%s: %d depth frames without a colour frame within %.3f s dropped",
+            root,
+            dropped,
+            max_dt,
+        )
     if not keep_t:
         raise DatasetError("no colour/depth pairs", root)
     poses = None
@@ -322,7 +337,9 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
         except ValueError as exc:
             raise DatasetError(f"bad number: {exc}", pose_file, lineno) from exc
         if len(vals) != 7 or not all(math.isfinite(v) for v in vals):
-            raise DatasetError("expected 7 finite numbers 'tx ty tz qx qy qz qw'", pose_file, lineno)
+            raise DatasetError(
+                "expected 7 finite numbers 'tx ty tz qx qy qz qw'", pose_file, lineno
+            )
         poses.append(pose_from_tum_fields(vals))
     n = len(poses)
     rgb = tuple(root / "color" / f"{i + 1}.png" for i in range(n))
@@ -330,5 +347,23 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
     for f in rgb + depth:
         if not f.is_file():
             raise DatasetError("frame file missing", f)
-    camera = RgbdCamera(640, 480, SLAMBOOK2_FX, SLAMBOOK2_FY, SLAMBOOK2_CX, SLAMBOOK2_CY, SLAMBOOK2_DEPTH_SCALE, 0.3, 7.0)
-    return RgbdSequence(root, camera, np.arange(n, dtype=float), rgb, depth, np.stack(poses), np.array([0.0, -1.0, 0.0]))
+    camera = RgbdCamera(
+        640,
+        480,
+        SLAMBOOK2_FX,
+        SLAMBOOK2_FY,
+        SLAMBOOK2_CX,
+        SLAMBOOK2_CY,
+        SLAMBOOK2_DEPTH_SCALE,
+        0.3,
+        7.0,
+    )
+    return RgbdSequence(
+        root,
+        camera,
+        np.arange(n, dtype=float),
+        rgb,
+        depth,
+        np.stack(poses),
+        np.array([0.0, -1.0, 0.0]),
+    )

@@ -48,7 +48,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-
 from lampsam.arrays import FloatArray, ImageU8, IntArray
 from lampsam.errors import DatasetError
 
@@ -90,7 +89,10 @@ class Box:
 
     def corners(self) -> FloatArray:
         """The 8 corners, (8, 3) world metres; index bits (x, y, z) = (i & 1, i & 2, i & 4)."""
-        signs = np.array([[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)], float)
+        signs = np.array(
+            [[(i & 1) * 2 - 1, ((i >> 1) & 1) * 2 - 1, ((i >> 2) & 1) * 2 - 1] for i in range(8)],
+            float,
+        )
         local = signs * (self.size / 2.0)
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -126,12 +128,19 @@ class Picture:
     seed: int
 
     def corners(self) -> FloatArray:
-        """(4, 3) world corners: top-left, top-right, bottom-right, bottom-left as a viewer sees them."""
+        """(4, 3) world corners: top-left, top-right, bottom-right, bottom-left (viewer's view)."""
         right = np.array([-math.sin(self.facing), math.cos(self.facing), 0.0])
         up = np.array([0.0, 0.0, 1.0])
         hw, hh = self.width / 2, self.height / 2
         c = self.center
-        return np.array([c - right * hw + up * hh, c + right * hw + up * hh, c + right * hw - up * hh, c - right * hw - up * hh])
+        return np.array(
+            [
+                c - right * hw + up * hh,
+                c + right * hw + up * hh,
+                c + right * hw - up * hh,
+                c - right * hw - up * hh,
+            ]
+        )
 
 
 @dataclass(frozen=True)
@@ -231,7 +240,11 @@ def _num(item: Mapping[str, Any], key: str, where: str, default: float | None = 
 
 
 def _wall_boxes(
-    wall: Mapping[str, Any], doors: list[Mapping[str, Any]], thickness: float, height: float, where: str
+    wall: Mapping[str, Any],
+    doors: list[Mapping[str, Any]],
+    thickness: float,
+    height: float,
+    where: str,
 ) -> list[Box]:
     """Split one wall into boxes around its door openings; closed doors become door boxes."""
     wid = str(wall.get("id", where))
@@ -245,7 +258,9 @@ def _wall_boxes(
         raise DatasetError(f"scene3d: {where}: wall '{wid}' has zero length")
     direction = (end - start) / length
     yaw = math.atan2(direction[1], direction[0])
-    pieces: list[tuple[float, float, float, float, str, str, FloatArray]] = []  # s0, s1, z0, z1, id, kind, colour
+    pieces: list[
+        tuple[float, float, float, float, str, str, FloatArray]
+    ] = []  # s0, s1, z0, z1, id, kind, colour
     cuts: list[tuple[float, float, float, Mapping[str, Any]]] = []
     for j, door in enumerate(doors):
         dwhere = f"doors[{door.get('id', j)}]"
@@ -254,7 +269,9 @@ def _wall_boxes(
         dh = min(_num(door, "height", dwhere, 2.1), h)
         s0, s1 = along - width / 2, along + width / 2
         if s0 < 0 or s1 > length:
-            raise DatasetError(f"scene3d: {dwhere}: door lies outside wall '{wid}' (0..{length:.2f} m)")
+            raise DatasetError(
+                f"scene3d: {dwhere}: door lies outside wall '{wid}' (0..{length:.2f} m)"
+            )
         cuts.append((s0, s1, dh, door))
     cuts.sort(key=lambda c: c[0])
     cursor = 0.0
@@ -275,7 +292,16 @@ def _wall_boxes(
     for s0, s1, z0, z1, pid, kind, col in pieces:
         mid = start + direction * (s0 + s1) / 2
         t = thick * (0.6 if kind == KIND_DOOR else 1.0)
-        boxes.append(Box(pid, kind, np.array([mid[0], mid[1], (z0 + z1) / 2]), np.array([s1 - s0, t, z1 - z0]), yaw, col))
+        boxes.append(
+            Box(
+                pid,
+                kind,
+                np.array([mid[0], mid[1], (z0 + z1) / 2]),
+                np.array([s1 - s0, t, z1 - z0]),
+                yaw,
+                col,
+            )
+        )
     return boxes
 
 
@@ -308,7 +334,9 @@ def scene_from_dict(section: Mapping[str, Any], bounds: Iterable[float] | None =
     for j, wall in enumerate(section.get("walls", []) or []):
         wid = str(wall.get("id", f"wall{j}"))
         wall_ids.add(wid)
-        boxes += _wall_boxes(wall, doors_by_wall.get(wid, []), thickness, wall_height, f"walls[{wid}]")
+        boxes += _wall_boxes(
+            wall, doors_by_wall.get(wid, []), thickness, wall_height, f"walls[{wid}]"
+        )
     unknown = set(doors_by_wall) - wall_ids
     if unknown:
         raise DatasetError(f"scene3d: doors refer to unknown walls {sorted(unknown)}")
@@ -352,7 +380,9 @@ def scene_from_dict(section: Mapping[str, Any], bounds: Iterable[float] | None =
         for oid, spec in (item.get("move", {}) or {}).items():
             c = np.asarray(spec.get("center"), dtype=float).reshape(-1)
             if c.shape not in ((2,), (3,)):
-                raise DatasetError(f"scene3d: changes[{name}].move[{oid}].center needs 2 or 3 numbers")
+                raise DatasetError(
+                    f"scene3d: changes[{name}].move[{oid}].center needs 2 or 3 numbers"
+                )
             yaw = math.radians(float(spec["yaw_deg"])) if "yaw_deg" in spec else None
             move[str(oid)] = (c, yaw)
         missing = (set(remove) | set(move)) - set(ids)
@@ -439,7 +469,9 @@ def apply_changes(scene: Scene3D, names: Iterable[str]) -> Scene3D:
             if p.id in ch.move:
                 c, yaw = ch.move[p.id]
                 center = np.array([c[0], c[1], c[2] if c.size == 3 else p.center[2]])
-                pictures[i] = dataclasses.replace(p, center=center, facing=p.facing if yaw is None else yaw)
+                pictures[i] = dataclasses.replace(
+                    p, center=center, facing=p.facing if yaw is None else yaw
+                )
     return dataclasses.replace(scene, boxes=tuple(boxes), pictures=tuple(pictures))
 
 
@@ -470,23 +502,51 @@ def picture_texture(picture: Picture, px_per_m: float = TEXTURE_PX_PER_M) -> Ima
         elif kind == 1:
             cv2.circle(img, (x, y), s // 2 + 2, color, -1)
         elif kind == 2:
-            pts = np.stack([x + rng.integers(-s, s, 4), y + rng.integers(-s, s, 4)], axis=1).astype(np.int32)
+            pts = np.stack([x + rng.integers(-s, s, 4), y + rng.integers(-s, s, 4)], axis=1).astype(
+                np.int32
+            )
             cv2.fillPoly(img, [pts], color)
         else:
-            cv2.line(img, (x, y), (x + int(rng.integers(-s, s)), y + int(rng.integers(-s, s))), color, 2)
+            cv2.line(
+                img, (x, y), (x + int(rng.integers(-s, s)), y + int(rng.integers(-s, s))), color, 2
+            )
     letters = "ABCDEFGHJKLMNPQRSTUVWXYZ0123456789"
     for _ in range(int(3 + h / 40)):
-        text = "".join(letters[int(i)] for i in rng.integers(0, len(letters), int(rng.integers(3, 8))))
+        text = "".join(
+            letters[int(i)] for i in rng.integers(0, len(letters), int(rng.integers(3, 8)))
+        )
         org = (int(rng.integers(0, max(1, w - 40))), int(rng.integers(14, h)))
         color = tuple(int(c) for c in rng.integers(0, 90, 3))
-        cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, float(rng.uniform(0.4, 1.0)), color, 2, cv2.LINE_AA)
+        cv2.putText(
+            img,
+            text,
+            org,
+            cv2.FONT_HERSHEY_SIMPLEX,
+            float(rng.uniform(0.4, 1.0)),
+            color,
+            2,
+            cv2.LINE_AA,
+        )
     cv2.rectangle(img, (0, 0), (w - 1, h - 1), (40, 30, 20), max(2, w // 60))
     return img
 
 
 # ---------------------------------------------------------------------------- meshes
 _BOX_FACES = np.array(
-    [[0, 2, 3], [0, 3, 1], [4, 5, 7], [4, 7, 6], [0, 1, 5], [0, 5, 4], [2, 6, 7], [2, 7, 3], [0, 4, 6], [0, 6, 2], [1, 3, 7], [1, 7, 5]],
+    [
+        [0, 2, 3],
+        [0, 3, 1],
+        [4, 5, 7],
+        [4, 7, 6],
+        [0, 1, 5],
+        [0, 5, 4],
+        [2, 6, 7],
+        [2, 7, 3],
+        [0, 4, 6],
+        [0, 6, 2],
+        [1, 3, 7],
+        [1, 7, 5],
+    ],
     dtype=np.int32,
 )
 
@@ -511,7 +571,15 @@ def triangle_scene(scene: Scene3D, px_per_m: float = TEXTURE_PX_PER_M) -> Triang
     obj_kinds: list[str] = []
     textures: list[ImageU8] = []
 
-    def add(v: FloatArray, f: IntArray, color: FloatArray, oid: str, kind: str, tex: int = -1, tc: FloatArray | None = None) -> None:
+    def add(
+        v: FloatArray,
+        f: IntArray,
+        color: FloatArray,
+        oid: str,
+        kind: str,
+        tex: int = -1,
+        tc: FloatArray | None = None,
+    ) -> None:
         base = sum(len(x) for x in verts)
         verts.append(np.asarray(v, float))
         tris.append(np.asarray(f, np.int32) + base)
@@ -524,15 +592,33 @@ def triangle_scene(scene: Scene3D, px_per_m: float = TEXTURE_PX_PER_M) -> Triang
 
     x0, y0, x1, y1 = (float(b) for b in scene.bounds)
     pad = 0.5
-    for z, color, oid, kind in ((0.0, scene.floor_color, "floor", KIND_FLOOR), (scene.height, scene.ceiling_color, "ceiling", KIND_CEILING)):
-        quad = np.array([[x0 - pad, y0 - pad, z], [x1 + pad, y0 - pad, z], [x1 + pad, y1 + pad, z], [x0 - pad, y1 + pad, z]])
+    for z, color, oid, kind in (
+        (0.0, scene.floor_color, "floor", KIND_FLOOR),
+        (scene.height, scene.ceiling_color, "ceiling", KIND_CEILING),
+    ):
+        quad = np.array(
+            [
+                [x0 - pad, y0 - pad, z],
+                [x1 + pad, y0 - pad, z],
+                [x1 + pad, y1 + pad, z],
+                [x0 - pad, y1 + pad, z],
+            ]
+        )
         add(quad, np.array([[0, 1, 2], [0, 2, 3]]), color, oid, kind)
     for box in scene.boxes:
         add(box.corners(), _BOX_FACES, box.color, box.id, box.kind)
     quad_tc = np.array([[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], [[0.0, 0.0], [1.0, 1.0], [0.0, 1.0]]])
     for pic in scene.pictures:
         textures.append(picture_texture(pic, px_per_m))
-        add(pic.corners(), np.array([[0, 1, 2], [0, 2, 3]]), np.ones(3), pic.id, KIND_PICTURE, len(textures) - 1, quad_tc)
+        add(
+            pic.corners(),
+            np.array([[0, 1, 2], [0, 2, 3]]),
+            np.ones(3),
+            pic.id,
+            KIND_PICTURE,
+            len(textures) - 1,
+            quad_tc,
+        )
     return TriangleScene(
         vertices=np.concatenate(verts).astype(np.float32),
         triangles=np.concatenate(tris).astype(np.int32),

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from lampsam.localization.envmap import EnvironmentMap, load_env_map
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
 
@@ -33,7 +32,9 @@ def plot_grid(ax: Any, grid: OccupancyGrid) -> Any:
     img[occupied_mask(grid)] = 0.0
     x0, y0 = grid.origin[:2]
     extent = (x0, x0 + grid.width * grid.resolution, y0, y0 + grid.height * grid.resolution)
-    return ax.imshow(img, cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest")
+    return ax.imshow(
+        img, cmap="gray", vmin=0, vmax=1, origin="lower", extent=extent, interpolation="nearest"
+    )
 
 
 def plot_spatial_features(ax: Any, xyz: np.ndarray, n_obs: np.ndarray | None = None) -> Any:
@@ -48,10 +49,21 @@ def plot_spatial_features(ax: Any, xyz: np.ndarray, n_obs: np.ndarray | None = N
         The scatter artist.
     """
     size = 8.0 if n_obs is None else 6.0 + 3.0 * np.sqrt(np.asarray(n_obs, float))
-    return ax.scatter(xyz[:, 0], xyz[:, 1], c=xyz[:, 2], s=size, cmap="viridis", marker=".", linewidths=0, label="SIFT (colour = height)")
+    return ax.scatter(
+        xyz[:, 0],
+        xyz[:, 1],
+        c=xyz[:, 2],
+        s=size,
+        cmap="viridis",
+        marker=".",
+        linewidths=0,
+        label="SIFT (colour = height)",
+    )
 
 
-def plot_ceiling_features(ax: Any, xyz: np.ndarray, is_lamp: np.ndarray, phi: np.ndarray | None = None) -> list[Any]:
+def plot_ceiling_features(
+    ax: Any, xyz: np.ndarray, is_lamp: np.ndarray, phi: np.ndarray | None = None
+) -> list[Any]:
     """Ceiling lamps (yellow, with their axis) and corners (red crosses).
 
     Args:
@@ -64,17 +76,38 @@ def plot_ceiling_features(ax: Any, xyz: np.ndarray, is_lamp: np.ndarray, phi: np
         The artists.
     """
     arts = [
-        ax.scatter(xyz[is_lamp, 0], xyz[is_lamp, 1], s=60, c="gold", edgecolors="k", marker="o", label="lamps", zorder=3),
-        ax.scatter(xyz[~is_lamp, 0], xyz[~is_lamp, 1], s=14, c="red", marker="x", label="ceiling corners", zorder=3),
+        ax.scatter(
+            xyz[is_lamp, 0],
+            xyz[is_lamp, 1],
+            s=60,
+            c="gold",
+            edgecolors="k",
+            marker="o",
+            label="lamps",
+            zorder=3,
+        ),
+        ax.scatter(
+            xyz[~is_lamp, 0],
+            xyz[~is_lamp, 1],
+            s=14,
+            c="red",
+            marker="x",
+            label="ceiling corners",
+            zorder=3,
+        ),
     ]
     if phi is not None:
         ok = is_lamp & np.isfinite(phi)
         dx, dy = 0.4 * np.cos(phi[ok]), 0.4 * np.sin(phi[ok])
         p = xyz[ok]
-        segs = np.stack([np.stack([p[:, 0] - dx, p[:, 1] - dy], 1), np.stack([p[:, 0] + dx, p[:, 1] + dy], 1)], 1)
+        segs = np.stack(
+            [np.stack([p[:, 0] - dx, p[:, 1] - dy], 1), np.stack([p[:, 0] + dx, p[:, 1] + dy], 1)],
+            1,
+        )
         from matplotlib.collections import LineCollection
 
-        arts.append(ax.add_collection(LineCollection(segs, colors="darkorange", linewidths=2, zorder=3)))
+        lines = LineCollection(list(segs), colors="darkorange", linewidths=2, zorder=3)
+        arts.append(ax.add_collection(lines))
     return arts
 
 
@@ -116,7 +149,8 @@ def show_map(map_dir: str | Path, out_png: str | Path, dpi: int = 150) -> Path:
     plot_env_map(ax, env)
     src = env.manifest.get("source", {})
     layers = env.manifest.get("layers", {})
-    title = f"environment map: {Path(str(src.get('path', map_dir))).name} ({src.get('kind', '?')}, poses {src.get('poses', '?')})"
+    name = Path(str(src.get("path", map_dir))).name
+    title = f"environment map: {name} ({src.get('kind', '?')}, poses {src.get('poses', '?')})"
     counts = []
     if "spatial_features" in layers:
         counts.append(f"{layers['spatial_features']['count']} SIFT points")

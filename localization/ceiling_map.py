@@ -30,8 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
 from lampsam.arrays import BoolArray, FloatArray, IntArray
+from lampsam.datasets.logrun import LandmarkTable
 from lampsam.errors import DatasetError, LocalizationError
 
 log = logging.getLogger(__name__)
@@ -87,7 +87,17 @@ class CeilingFeatureMap:
                 w.writerow(
                     [int(self.ids[i]), self.types[i]]
                     + [f"{v:.6f}" for v in self.xyz[i]]
-                    + [f"{v:.9g}" for v in (self.phi[i], self.length[i], self.width[i], c[0, 0], c[0, 1], c[1, 1])]
+                    + [
+                        f"{v:.9g}"
+                        for v in (
+                            self.phi[i],
+                            self.length[i],
+                            self.width[i],
+                            c[0, 0],
+                            c[0, 1],
+                            c[1, 1],
+                        )
+                    ]
                 )
         return path
 
@@ -97,7 +107,9 @@ class CeilingFeatureMap:
         return read_landmark_csv(path, z_cam=0.0, source=source)
 
 
-def _col(row: dict[str, str], key: str, path: Path, line: int, default: float | None = None) -> float:
+def _col(
+    row: dict[str, str], key: str, path: Path, line: int, default: float | None = None
+) -> float:
     text = row.get(key)
     if text is None or text == "":
         if default is None:
@@ -109,7 +121,9 @@ def _col(row: dict[str, str], key: str, path: Path, line: int, default: float | 
         raise DatasetError(f"column {key!r}: bad number {text!r}", path, line) from exc
 
 
-def read_landmark_csv(path: str | Path, z_cam: float = 0.0, source: str | None = None) -> CeilingFeatureMap:
+def read_landmark_csv(
+    path: str | Path, z_cam: float = 0.0, source: str | None = None
+) -> CeilingFeatureMap:
     """A ceiling map from a landmarks CSV (module docstring).
 
     Args:
@@ -148,30 +162,42 @@ def read_landmark_csv(path: str | Path, z_cam: float = 0.0, source: str | None =
             types.append(str(row.get("type") or "lamp"))
             rows.append(
                 [x, y, z + z_cam, phi]
-                + [_col(row, c, path, k, math.nan) for c in ("length", "width", "var_x", "cov_xy", "var_y")]
+                + [
+                    _col(row, c, path, k, math.nan)
+                    for c in ("length", "width", "var_x", "cov_xy", "var_y")
+                ]
             )
     a = np.array(rows, dtype=float).reshape(-1, 9)
     cov = np.stack([np.stack([a[:, 6], a[:, 7]], -1), np.stack([a[:, 7], a[:, 8]], -1)], -2)
     # corners and round lamps carry no axis
-    phi = np.where([t == "corner" or t == "lamp_round" for t in types], np.nan, a[:, 3]) if len(a) else a[:, 3]
+    no_axis = np.array([t in ("corner", "lamp_round") for t in types], dtype=bool)
+    axis = np.where(no_axis, np.nan, a[:, 3])
     return CeilingFeatureMap(
-        np.array(ids, np.int64), tuple(types), a[:, :3], phi, a[:, 4], a[:, 5], cov, source or str(path)
+        np.array(ids, np.int64),
+        tuple(types),
+        a[:, :3],
+        axis,
+        a[:, 4],
+        a[:, 5],
+        cov,
+        source or str(path),
     )
 
 
-def from_landmark_table(table: object, source: str = "groundtruth") -> CeilingFeatureMap:
-    """A ceiling map from a :class:`lampsam.datasets.logrun.LandmarkTable` (true landmarks, z above floor)."""
-    ids = np.asarray(table.ids, np.int64)  # type: ignore[attr-defined]
-    types = tuple(table.types)  # type: ignore[attr-defined]
-    phi = np.where([t in ("corner", "lamp_round") for t in types], np.nan, np.asarray(table.phi, float))  # type: ignore[attr-defined]
+def from_landmark_table(table: LandmarkTable, source: str = "groundtruth") -> CeilingFeatureMap:
+    """Ceiling map of a :class:`lampsam.datasets.logrun.LandmarkTable` (truth, z above floor)."""
+    ids = np.asarray(table.ids, np.int64)
+    types = tuple(table.types)
+    no_axis = np.array([t in ("corner", "lamp_round") for t in types], dtype=bool)
+    phi = np.where(no_axis, np.nan, np.asarray(table.phi, dtype=np.float64))
     n = len(ids)
     return CeilingFeatureMap(
         ids,
         types,
-        np.asarray(table.xyz, float).reshape(n, 3),  # type: ignore[attr-defined]
+        np.asarray(table.xyz, dtype=np.float64).reshape(n, 3),
         phi.reshape(n),
-        np.asarray(table.length, float),  # type: ignore[attr-defined]
-        np.asarray(table.width, float),  # type: ignore[attr-defined]
+        np.asarray(table.length, dtype=np.float64),
+        np.asarray(table.width, dtype=np.float64),
         np.full((n, 2, 2), np.nan),
         source,
     )

@@ -38,14 +38,24 @@ from typing import Any
 
 import numpy as np
 import yaml
-
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.errors import LocalizationError
 from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
-from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, integrate_points, integrate_scan, occupied_mask
+from lampsam.localization.grid import (
+    LogOddsConfig,
+    OccupancyGrid,
+    integrate_points,
+    integrate_scan,
+    occupied_mask,
+)
 from lampsam.localization.pointcloud import depth_to_points
-from lampsam.localization.spatial_map import SPATIAL_FILE, SpatialFeatureMap, SpatialMapBuilder, SpatialMapConfig
+from lampsam.localization.spatial_map import (
+    SPATIAL_FILE,
+    SpatialFeatureMap,
+    SpatialMapBuilder,
+    SpatialMapConfig,
+)
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +187,9 @@ def up_alignment(world_up: FloatArray) -> FloatArray:
     return rot.as_matrix()
 
 
-def split_by_height(points: FloatArray, floor_z: float, band: tuple[float, float]) -> tuple[FloatArray, FloatArray]:
+def split_by_height(
+    points: FloatArray, floor_z: float, band: tuple[float, float]
+) -> tuple[FloatArray, FloatArray]:
     """Obstacle and floor points of a z-up cloud, projected to the floor.
 
     Args:
@@ -203,7 +215,9 @@ def unique_cells(grid: OccupancyGrid, xy: FloatArray) -> FloatArray:
     return xy[np.sort(first)]
 
 
-def farthest_per_bearing(sensor_xy: FloatArray, xy: FloatArray, bin_rad: float) -> tuple[FloatArray, FloatArray]:
+def farthest_per_bearing(
+    sensor_xy: FloatArray, xy: FloatArray, bin_rad: float
+) -> tuple[FloatArray, FloatArray]:
     """The farthest point in each bearing bin around the sensor.
 
     Args:
@@ -255,7 +269,9 @@ def integrate_depth_frame(
         if k <= 0:
             continue
         sel = bucket == k
-        integrate_points(grid, sensor_xy, far_xy[sel], k * config.free_bucket - 1e-6, config.log_odds)
+        integrate_points(
+            grid, sensor_xy, far_xy[sel], k * config.free_bucket - 1e-6, config.log_odds
+        )
     obstacles_xy = unique_cells(grid, obstacles_xy)
     if len(obstacles_xy):
         integrate_points(grid, sensor_xy, obstacles_xy, max_range, config.log_odds)
@@ -282,7 +298,9 @@ def parse_pose_source(poses: str) -> tuple[str, Path | None]:
     raise EnvMapError(f"--poses must be 'groundtruth' or 'slam:PATH_TO_TUM', got {poses!r}")
 
 
-def planar_poses_at(traj_t: FloatArray, traj_poses: FloatArray, t: FloatArray, tolerance: float, source: str) -> FloatArray:
+def planar_poses_at(
+    traj_t: FloatArray, traj_poses: FloatArray, t: FloatArray, tolerance: float, source: str
+) -> FloatArray:
     """Planar poses at frame times, interpolated (x, y linear, heading unwrapped).
 
     Args:
@@ -304,10 +322,17 @@ def planar_poses_at(traj_t: FloatArray, traj_poses: FloatArray, t: FloatArray, t
         i = int(np.flatnonzero(outside)[0])
         raise EnvMapError(
             f"{source}: no pose for frame {i} at t={t[i]:.3f} s "
-            f"(trajectory covers {traj_t[0]:.3f}..{traj_t[-1]:.3f} s; {int(outside.sum())} frames without pose)"
+            f"(trajectory covers {traj_t[0]:.3f}..{traj_t[-1]:.3f} s; "
+            f"{int(outside.sum())} frames without pose)"
         )
     th = np.unwrap(traj_poses[:, 2])
-    out = np.column_stack([np.interp(t, traj_t, traj_poses[:, 0]), np.interp(t, traj_t, traj_poses[:, 1]), np.interp(t, traj_t, th)])
+    out = np.column_stack(
+        [
+            np.interp(t, traj_t, traj_poses[:, 0]),
+            np.interp(t, traj_t, traj_poses[:, 1]),
+            np.interp(t, traj_t, th),
+        ]
+    )
     out[:, 2] = np.mod(out[:, 2] + np.pi, 2 * np.pi) - np.pi
     return out
 
@@ -388,7 +413,9 @@ def build_depth_layers(
     return grid, spatial, timings
 
 
-def build_laser_grid(scans: Any, poses: FloatArray, config: LaserGridConfig = LaserGridConfig()) -> tuple[OccupancyGrid, int]:
+def build_laser_grid(
+    scans: Any, poses: FloatArray, config: LaserGridConfig = LaserGridConfig()
+) -> tuple[OccupancyGrid, int]:
     """Grid map from planar scans at given poses (keyframes by motion).
 
     Args:
@@ -400,7 +427,9 @@ def build_laser_grid(scans: Any, poses: FloatArray, config: LaserGridConfig = La
     Returns:
         The grid and the number of scans used.
     """
-    grid = _grid_around(poses[:, :2], min(config.max_range, 10.0) + config.margin, config.resolution)
+    grid = _grid_around(
+        poses[:, :2], min(config.max_range, 10.0) + config.margin, config.resolution
+    )
     # the grid must hold every returned endpoint within max_range
     r = np.where(scans.ranges < min(config.max_range, scans.max_range), scans.ranges, np.nan)
     phi = poses[:, 2:3] + scans.angles[None, :]
@@ -439,7 +468,9 @@ def footprint_mask(grid: OccupancyGrid, polygons: list[FloatArray]) -> BoolArray
     return img.astype(bool)
 
 
-def occupancy_truth(grid: OccupancyGrid, scene: Any, band: tuple[float, float]) -> tuple[BoolArray, BoolArray]:
+def occupancy_truth(
+    grid: OccupancyGrid, scene: Any, band: tuple[float, float]
+) -> tuple[BoolArray, BoolArray]:
     """True occupied cells and the visible-surface cells of a :class:`Scene3D`.
 
     Args:
@@ -457,7 +488,12 @@ def occupancy_truth(grid: OccupancyGrid, scene: Any, band: tuple[float, float]) 
     occ = footprint_mask(grid, obstacle_footprints(scene, band[0], band[1]))
     centres = grid.cell_centres()
     x0, y0, x1, y1 = scene.bounds
-    inside = (centres[..., 0] > x0) & (centres[..., 0] < x1) & (centres[..., 1] > y0) & (centres[..., 1] < y1)
+    inside = (
+        (centres[..., 0] > x0)
+        & (centres[..., 0] < x1)
+        & (centres[..., 1] > y0)
+        & (centres[..., 1] < y1)
+    )
     free_in = inside & ~occ
     nb = np.zeros_like(occ)
     nb[1:, :] |= free_in[:-1, :]
@@ -477,7 +513,10 @@ def _dilate(mask: BoolArray, cells: int) -> BoolArray:
 
 
 def grid_precision_recall(
-    occupied: BoolArray, truth_occupied: BoolArray, truth_surface: BoolArray, tolerance_cells: int = 0
+    occupied: BoolArray,
+    truth_occupied: BoolArray,
+    truth_surface: BoolArray,
+    tolerance_cells: int = 0,
 ) -> tuple[float, float]:
     """Occupied-cell precision and recall of a grid map against the truth.
 
@@ -496,12 +535,22 @@ def grid_precision_recall(
     """
     n_occ = int(occupied.sum())
     n_surf = int(truth_surface.sum())
-    precision = float((occupied & _dilate(truth_occupied, tolerance_cells)).sum() / n_occ) if n_occ else math.nan
-    recall = float((truth_surface & _dilate(occupied, tolerance_cells)).sum() / n_surf) if n_surf else math.nan
+    precision = (
+        float((occupied & _dilate(truth_occupied, tolerance_cells)).sum() / n_occ)
+        if n_occ
+        else math.nan
+    )
+    recall = (
+        float((truth_surface & _dilate(occupied, tolerance_cells)).sum() / n_surf)
+        if n_surf
+        else math.nan
+    )
     return precision, recall
 
 
-def grid_checks(grid: OccupancyGrid, scene: Any, band: tuple[float, float], config: LogOddsConfig) -> dict[str, float]:
+def grid_checks(
+    grid: OccupancyGrid, scene: Any, band: tuple[float, float], config: LogOddsConfig
+) -> dict[str, float]:
     """Precision/recall at 0 and 1 cell tolerance (``grid_precision_recall``)."""
     occ, surf = occupancy_truth(grid, scene, band)
     mask = occupied_mask(grid, config)
@@ -530,7 +579,9 @@ def _detect_source(run: Path) -> tuple[str, Path]:
     logs = sorted(run.glob("*.log")) + sorted(run.glob("*.log.gz"))
     if len(logs) == 1:
         return "laser", logs[0]
-    raise EnvMapError(f"{run}: no kinect/, TUM RGB-D lists, slambook2 pose.txt or single CARMEN log found")
+    raise EnvMapError(
+        f"{run}: no kinect/, TUM RGB-D lists, slambook2 pose.txt or single CARMEN log found"
+    )
 
 
 def _scene_of_run(run: Path) -> Any:
@@ -543,8 +594,8 @@ def _scene_of_run(run: Path) -> Any:
         world = meta.get("world")
         if not world:
             return None
-        from lampsam.datasets.world import load_world
         from lampsam.datasets.scene3d import scene_from_dict
+        from lampsam.datasets.world import load_world
 
         w = load_world(world)
         return scene_from_dict(w.extra["scene3d"]) if "scene3d" in w.extra else None
@@ -610,7 +661,9 @@ def build_map(
         timings["read"] = time.perf_counter() - t0
         if pose_kind == "slam":
             traj = read_tum(pose_path)  # type: ignore[arg-type]
-            scan_poses = planar_poses_at(traj.t, traj.poses, scans.t, config.pose_tolerance, str(pose_path))
+            scan_poses = planar_poses_at(
+                traj.t, traj.poses, scans.t, config.pose_tolerance, str(pose_path)
+            )
         else:
             scan_poses = scans.poses
         t0 = time.perf_counter()
@@ -618,7 +671,12 @@ def build_map(
         timings["grid"] = time.perf_counter() - t0
         n_frames = n_used
         lo = config.laser.log_odds
-        grid_info = {"sensor": "planar laser", "max_range": config.laser.max_range, "scans_used": n_used, "scans_total": len(scans)}
+        grid_info = {
+            "sensor": "planar laser",
+            "max_range": config.laser.max_range,
+            "scans_used": n_used,
+            "scans_total": len(scans),
+        }
     else:
         if kind == "slambook2":
             seq = read_slambook2(src)
@@ -629,8 +687,17 @@ def build_map(
         cfg = config
         if kind != "run" and config.depth.band_reference == "floor":
             # no floor known: heights relative to the first camera
-            cfg = dataclasses.replace(config, depth=dataclasses.replace(config.depth, band_reference="camera", height_band=(-0.6, 0.6)))
-            log.info("%s: floor unknown, obstacle band %s m around the first camera's height", src, cfg.depth.height_band)
+            cfg = dataclasses.replace(
+                config,
+                depth=dataclasses.replace(
+                    config.depth, band_reference="camera", height_band=(-0.6, 0.6)
+                ),
+            )
+            log.info(
+                "%s: floor unknown, obstacle band %s m around the first camera's height",
+                src,
+                cfg.depth.height_band,
+            )
         if kind == "run":
             if pose_kind == "slam":
                 traj = read_tum(pose_path)  # type: ignore[arg-type]
@@ -646,7 +713,10 @@ def build_map(
             elif seq.world_T_camera is not None:
                 cams = seq.world_T_camera
             else:
-                raise EnvMapError(f"{src}: no groundtruth.tum and no kinect/groundtruth.txt: pass --poses slam:PATH")
+                raise EnvMapError(
+                    f"{src}: no groundtruth.tum and no kinect/groundtruth.txt: "
+                    "pass --poses slam:PATH"
+                )
         else:
             if pose_kind == "slam":
                 raise EnvMapError(f"{src}: --poses slam:PATH needs a run directory with kinect/")
@@ -667,12 +737,22 @@ def build_map(
             if pose_kind == "slam" and (pose_path.parent / "landmarks.csv").is_file():  # type: ignore[union-attr]
                 from lampsam.datasets.logrun import Rig
 
+                assert pose_path is not None  # parse_pose_source gives a path for "slam"
                 z_cam = Rig.from_yaml(src / "rig.yaml").camera.z_cam
-                ceiling = read_landmark_csv(pose_path.parent / "landmarks.csv", z_cam=z_cam, source=f"slam:{pose_path.parent / 'landmarks.csv'}")  # type: ignore[union-attr]
+                ceiling = read_landmark_csv(
+                    pose_path.parent / "landmarks.csv",
+                    z_cam=z_cam,
+                    source=f"slam:{pose_path.parent / 'landmarks.csv'}",
+                )
             elif (src / "landmarks.csv").is_file():
                 if pose_kind == "slam":
-                    log.warning("no landmarks.csv beside %s: ceiling layer from the run's true landmarks", pose_path)
-                ceiling = from_landmark_table(read_landmarks(src / "landmarks.csv"), source="groundtruth")
+                    log.warning(
+                        "no landmarks.csv beside %s: ceiling layer from the run's true landmarks",
+                        pose_path,
+                    )
+                ceiling = from_landmark_table(
+                    read_landmarks(src / "landmarks.csv"), source="groundtruth"
+                )
             scene = _scene_of_run(src)
             if scene is not None:
                 checks["grid_vs_world"] = grid_checks(grid, scene, cfg.depth.height_band, lo)
@@ -697,7 +777,13 @@ def build_map(
             "file": SPATIAL_FILE,
             "count": len(spatial),
             "descriptor": "OpenCV SIFT, 128 float32, L2",
-            "arrays": {"xyz": "(N, 3) world m", "descriptors": "(N, 128)", "size_px": "(N,)", "angle_deg": "(N,)", "n_obs": "(N,)"},
+            "arrays": {
+                "xyz": "(N, 3) world m",
+                "descriptors": "(N, 128)",
+                "size_px": "(N,)",
+                "angle_deg": "(N,)",
+                "n_obs": "(N,)",
+            },
             "merge_radius_m": config.spatial.merge_radius,
             "merge_descriptor_dist": config.spatial.merge_descriptor_dist,
         }
@@ -763,9 +849,23 @@ def load_env_map(path: str | Path) -> EnvironmentMap:
     if not isinstance(manifest, dict) or manifest.get("format") != ENVMAP_FORMAT:
         raise EnvMapError(f"{mf}: not a {ENVMAP_FORMAT} manifest")
     if int(manifest.get("format_version", 0)) > ENVMAP_VERSION:
-        raise EnvMapError(f"{mf}: format_version {manifest['format_version']} is newer than this lampsam ({ENVMAP_VERSION})")
+        raise EnvMapError(
+            f"{mf}: format_version {manifest['format_version']} is newer than "
+            f"this lampsam's ({ENVMAP_VERSION})"
+        )
     layers = manifest.get("layers", {})
     grid = load_map_server(path / layers.get("grid", {}).get("file", f"{GRID_STEM}.yaml"))
-    spatial = SpatialFeatureMap.load(path / layers["spatial_features"]["file"]) if "spatial_features" in layers else None
-    ceiling = CeilingFeatureMap.load(path / layers["ceiling_features"]["file"], source=layers["ceiling_features"].get("source")) if "ceiling_features" in layers else None
+    spatial = (
+        SpatialFeatureMap.load(path / layers["spatial_features"]["file"])
+        if "spatial_features" in layers
+        else None
+    )
+    ceiling = (
+        CeilingFeatureMap.load(
+            path / layers["ceiling_features"]["file"],
+            source=layers["ceiling_features"].get("source"),
+        )
+        if "ceiling_features" in layers
+        else None
+    )
     return EnvironmentMap(grid, spatial, ceiling, manifest)

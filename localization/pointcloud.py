@@ -13,7 +13,6 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
 from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.errors import LocalizationError
@@ -41,9 +40,13 @@ def check_depth(depth: np.ndarray, camera: RgbdCamera, name: str = "depth") -> I
     """
     if not isinstance(depth, np.ndarray) or depth.dtype != np.uint16:
         dtype = getattr(depth, "dtype", type(depth).__name__)
-        raise PointCloudError(f"{name}: depth must be uint16 (value / depth_scale = metres), got {dtype}")
+        raise PointCloudError(
+            f"{name}: depth must be uint16 (value / depth_scale = metres), got {dtype}"
+        )
     if depth.ndim != 2 or depth.shape != (camera.height, camera.width):
-        raise PointCloudError(f"{name}: depth is {depth.shape}, camera expects ({camera.height}, {camera.width})")
+        raise PointCloudError(
+            f"{name}: depth is {depth.shape}, camera expects ({camera.height}, {camera.width})"
+        )
     return np.ascontiguousarray(depth)
 
 
@@ -53,14 +56,18 @@ def check_pose(world_T_camera: FloatArray, name: str = "pose") -> FloatArray:  #
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise PointCloudError(f"{name}: expected a finite (4, 4) transform, got shape {T.shape}")
     if abs(np.linalg.det(T[:3, :3]) - 1.0) > 1e-3:
-        raise PointCloudError(f"{name}: rotation part is not a rotation (det {np.linalg.det(T[:3, :3]):.4f})")
+        raise PointCloudError(
+            f"{name}: rotation part is not a rotation (det {np.linalg.det(T[:3, :3]):.4f})"
+        )
     return T
 
 
 def _intrinsic(camera: RgbdCamera) -> object:
     import open3d as o3d
 
-    return o3d.camera.PinholeCameraIntrinsic(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+    return o3d.camera.PinholeCameraIntrinsic(
+        camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy
+    )
 
 
 def _depth_in_range(depth: ImageU16, camera: RgbdCamera) -> ImageU16:
@@ -133,9 +140,12 @@ def rgbd_to_cloud(
 
     depth = _depth_in_range(check_depth(depth, camera), camera)
     if rgb.dtype != np.uint8 or rgb.shape != (camera.height, camera.width, 3):
-        raise PointCloudError(f"colour must be uint8 ({camera.height}, {camera.width}, 3), got {rgb.dtype} {rgb.shape}")
+        raise PointCloudError(
+            f"colour must be uint8 ({camera.height}, {camera.width}, 3), "
+            f"got {rgb.dtype} {rgb.shape}"
+        )
     rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
-        o3d.geometry.Image(np.ascontiguousarray(rgb)),
+        o3d.geometry.Image(np.ascontiguousarray(rgb)),  # type: ignore[call-overload]
         o3d.geometry.Image(depth),
         depth_scale=float(camera.depth_scale),
         depth_trunc=float(camera.max_depth),
@@ -169,7 +179,9 @@ def backproject_pixels(
     row = np.clip(np.rint(px[:, 1]).astype(int), 0, camera.height - 1)
     z = depth[row, col].astype(np.float64) / camera.depth_scale
     valid = (z >= camera.min_depth) & (z <= camera.max_depth)
-    pts = np.stack([(px[:, 0] - camera.cx) / camera.fx * z, (px[:, 1] - camera.cy) / camera.fy * z, z], axis=1)
+    pts = np.stack(
+        [(px[:, 0] - camera.cx) / camera.fx * z, (px[:, 1] - camera.cy) / camera.fy * z, z], axis=1
+    )
     pts[~valid] = np.nan
     return pts, valid
 
@@ -179,7 +191,9 @@ def transform_points(T: FloatArray, points: FloatArray) -> FloatArray:  # noqa: 
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def overlap_agreement(points_a: FloatArray, points_b: FloatArray, overlap_radius: float = 0.10) -> tuple[float, int]:
+def overlap_agreement(
+    points_a: FloatArray, points_b: FloatArray, overlap_radius: float = 0.10
+) -> tuple[float, int]:
     """How well two world-frame clouds agree where they overlap.
 
     Each point of ``a`` finds its nearest neighbour in ``b``; pairs closer than

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from lampsam.arrays import FloatArray, ImageU8, ImageU16, IntArray
 from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.errors import LocalizationError
@@ -87,7 +86,12 @@ class SpatialFeatureMap:
         """Write ``.npz`` (module docstring); returns the path."""
         path = Path(path)
         np.savez_compressed(
-            path, xyz=self.xyz, descriptors=self.descriptors, size_px=self.size_px, angle_deg=self.angle_deg, n_obs=self.n_obs
+            path,
+            xyz=self.xyz,
+            descriptors=self.descriptors,
+            size_px=self.size_px,
+            angle_deg=self.angle_deg,
+            n_obs=self.n_obs,
         )
         return path
 
@@ -139,10 +143,15 @@ class FrameFeatures:
 
 def make_sift(config: SpatialMapConfig = SpatialMapConfig()) -> cv2.SIFT:
     """An OpenCV SIFT detector for the config."""
-    return cv2.SIFT_create(nfeatures=config.n_features, contrastThreshold=config.contrast_threshold)
+    # SIFT_create is missing from OpenCV's type stubs
+    return cv2.SIFT_create(  # type: ignore[attr-defined]
+        nfeatures=config.n_features, contrastThreshold=config.contrast_threshold
+    )
 
 
-def frame_features(rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, sift: cv2.SIFT) -> FrameFeatures:
+def frame_features(
+    rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, sift: cv2.SIFT
+) -> FrameFeatures:
     """Detect SIFT keypoints and give each a 3-D camera-frame position from depth.
 
     Args:
@@ -157,7 +166,13 @@ def frame_features(rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, sift: cv2.
     grey = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     kps, desc = sift.detectAndCompute(grey, None)
     if not kps:
-        return FrameFeatures(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 128), np.float32), np.zeros(0), np.zeros(0))
+        return FrameFeatures(
+            np.zeros((0, 2)),
+            np.zeros((0, 3)),
+            np.zeros((0, 128), np.float32),
+            np.zeros(0),
+            np.zeros(0),
+        )
     px = np.array([k.pt for k in kps], dtype=np.float64)
     pts, valid = backproject_pixels(depth, camera, px)
     return FrameFeatures(
@@ -184,7 +199,9 @@ class SpatialMapBuilder:
         self._size: list[FloatArray] = []
         self._angle: list[FloatArray] = []
 
-    def add_frame(self, rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, world_T_camera: FloatArray) -> int:  # noqa: N803
+    def add_frame(
+        self, rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, world_T_camera: FloatArray
+    ) -> int:  # noqa: N803
         """Extract one frame's features and place them with the camera pose (4, 4).
 
         Returns:
@@ -195,7 +212,13 @@ class SpatialMapBuilder:
         self.add_features(transform_points(T, f.camera_xyz), f.descriptors, f.size_px, f.angle_deg)
         return len(f.descriptors)
 
-    def add_features(self, world_xyz: FloatArray, descriptors: FloatArray, size_px: FloatArray, angle_deg: FloatArray) -> None:
+    def add_features(
+        self,
+        world_xyz: FloatArray,
+        descriptors: FloatArray,
+        size_px: FloatArray,
+        angle_deg: FloatArray,
+    ) -> None:
         """Add already placed features: (K, 3) world metres, (K, 128), (K,), (K,)."""
         self._xyz.append(np.asarray(world_xyz, float).reshape(-1, 3))
         self._desc.append(np.asarray(descriptors, np.float32).reshape(-1, 128))
@@ -205,7 +228,13 @@ class SpatialMapBuilder:
     def finish(self) -> SpatialFeatureMap:
         """Merge duplicates (:func:`merge_duplicates`) and return the map."""
         if not self._xyz:
-            return SpatialFeatureMap(np.zeros((0, 3)), np.zeros((0, 128), np.float32), np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
+            return SpatialFeatureMap(
+                np.zeros((0, 3)),
+                np.zeros((0, 128), np.float32),
+                np.zeros(0),
+                np.zeros(0),
+                np.zeros(0, np.int64),
+            )
         return merge_duplicates(
             np.concatenate(self._xyz),
             np.concatenate(self._desc),
@@ -216,7 +245,11 @@ class SpatialMapBuilder:
 
 
 def merge_duplicates(
-    xyz: FloatArray, descriptors: FloatArray, size_px: FloatArray, angle_deg: FloatArray, config: SpatialMapConfig
+    xyz: FloatArray,
+    descriptors: FloatArray,
+    size_px: FloatArray,
+    angle_deg: FloatArray,
+    config: SpatialMapConfig,
 ) -> SpatialFeatureMap:
     """Merge observations of one physical point.
 
@@ -244,7 +277,11 @@ def merge_duplicates(
     if len(pairs):
         dd = np.linalg.norm(descriptors[pairs[:, 0]] - descriptors[pairs[:, 1]], axis=1)
         pairs = pairs[dd < config.merge_descriptor_dist]
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
+    graph = (
+        coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        if len(pairs)
+        else coo_matrix((n, n))
+    )
     n_comp, label = connected_components(graph, directed=False)
     counts = np.bincount(label, minlength=n_comp)
 
@@ -263,5 +300,10 @@ def merge_duplicates(
         angle_deg[first][keep],
         counts[keep].astype(np.int64),
     )
-    log.info("spatial map: %d observations -> %d points (%d seen more than once)", n, len(merged), int((counts > 1).sum()))
+    log.info(
+        "spatial map: %d observations -> %d points (%d seen more than once)",
+        n,
+        len(merged),
+        int((counts > 1).sum()),
+    )
     return merged
