@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -658,8 +659,13 @@ def _read_csv(
     return rows, lines
 
 
-def _check_time(t: FloatArray, lines: Sequence[int], path: Path, strict: bool = True) -> None:
-    """DatasetError at the first time stamp that does not increase (or decreases if not strict)."""
+def _check_time(
+    t: FloatArray, lines: Sequence[int] | None, path: Path, strict: bool = True
+) -> None:
+    """DatasetError at the first time stamp that does not increase (or decreases if not strict).
+
+    ``lines`` are the data lines' numbers; None re-scans ``path`` for them on error.
+    """
     if len(t) < 2:
         return
     dt = np.diff(t)
@@ -667,7 +673,8 @@ def _check_time(t: FloatArray, lines: Sequence[int], path: Path, strict: bool = 
     if len(bad):
         k = int(bad[0]) + 1
         what = "does not increase" if strict else "goes backwards"
-        raise DatasetError(f"time stamp {t[k]!r} {what} (previous {t[k - 1]!r})", path, lines[k])
+        line_nos = lines if lines is not None else _data_line_numbers(path)
+        raise DatasetError(f"time stamp {t[k]!r} {what} (previous {t[k - 1]!r})", path, line_nos[k])
 
 
 def _str_field(text: str, path: Path, line: int, column: str) -> str:
@@ -678,6 +685,116 @@ def _str_field(text: str, path: Path, line: int, column: str) -> str:
 
 
 # --------------------------------------------------------------------------- readers
+def _fast_columns(path: Path, header: Sequence[str], kinds: str) -> tuple[list[Any], None] | None:
+    """Parse a well-formed table with ``np.loadtxt`` (C speed); None when anything is off.
+
+    ``kinds`` has one letter per column: ``f`` finite float, ``n`` float allowing NaN,
+    ``i`` integer, ``s`` non-empty string, ``b`` 0/1. On None the caller re-reads the
+    file line by line with :func:`_read_csv`, which names the offending line. Line
+    numbers are not returned (see :func:`_data_line_numbers`).
+    """
+    skip = 0
+    try:
+        with open(path, encoding="utf-8") as fh:
+            for raw in fh:
+                skip += 1
+                line = raw.strip()
+                if line and not line.startswith("#"):
+                    if line != ",".join(header):
+                        return None
+                    break
+            else:
+                return None
+    except (OSError, UnicodeDecodeError):
+        return None
+    num_idx = [j for j, k in enumerate(kinds) if k != "s"]
+    str_idx = [j for j, k in enumerate(kinds) if k == "s"]
+    cols: list[Any] = [None] * len(kinds)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # "empty input file" and friends -> slow path
+            if num_idx:
+                a = np.loadtxt(path, delimiter=",", skiprows=skip, usecols=num_idx, ndmin=2,
+                               dtype=np.float64, comments="#", encoding="utf-8")  # fmt: skip
+            if str_idx:
+                st = np.loadtxt(path, delimiter=",", skiprows=skip, usecols=str_idx, ndmin=2,
+                                dtype=str, comments="#", encoding="utf-8")  # fmt: skip
+    except (ValueError, UserWarning):
+        return None
+    rows = len(a) if num_idx else len(st)
+    if rows == 0:
+        return None
+    for c, j in enumerate(num_idx):
+        col = a[:, c]
+        kind = kinds[j]
+        if kind == "n":
+            if np.any(np.isinf(col)):
+                return None
+            cols[j] = col.copy()
+            continue
+        if not np.all(np.isfinite(col)):
+            return None
+        if kind == "f":
+            cols[j] = col.copy()
+        elif kind == "i":
+            if not np.all(col == np.round(col)) or np.any(np.abs(col) > 2**53):
+                return None
+            cols[j] = col.astype(np.int64)
+        else:  # "b"
+            if not np.all((col == 0) | (col == 1)):
+                return None
+            cols[j] = col == 1
+    for c, j in enumerate(str_idx):
+        strs = [x.strip() for x in st[:, c].tolist()]
+        if not all(strs):
+            return None
+        cols[j] = strs
+    if num_idx and str_idx and len(st) != len(a):
+        return None
+    return cols, None
+
+
+def _data_line_numbers(path: Path) -> list[int]:
+    """1-based line numbers of a table's data lines (after the header; no blanks/comments)."""
+    out: list[int] = []
+    header_seen = False
+    with _open_text(path) as fh:
+        for n, raw in enumerate(fh, start=1):
+            line = raw.strip()
+            if not line or line.startswith("#"):
+                continue
+            if header_seen:
+                out.append(n)
+            header_seen = True
+    return out
+
+
+def _columns(
+    path: Path,
+    header: Sequence[str],
+    kinds: str,
+    parsers: Sequence[Callable[[str, Path, int, str], Any]],
+    allow_empty: bool = False,
+) -> tuple[list[Any], list[int] | None]:
+    """Columns of a table: the fast path, else the line-by-line parser (precise errors)."""
+    fast = _fast_columns(path, header, kinds)
+    if fast is not None:
+        return fast
+    rows, lines = _read_csv(path, header, parsers, allow_empty)
+    cols: list[Any] = []
+    for j, kind in enumerate(kinds):
+        col = [r[j] for r in rows]
+        if kind in "fn":
+            cols.append(np.array(col, dtype=np.float64))
+        elif kind == "i":
+            cols.append(np.array(col, dtype=np.int64))
+        elif kind == "b":
+            cols.append(np.array(col, dtype=bool))
+        else:
+            cols.append(col)
+    return cols, lines
+
+
 def read_odometry(path: str | Path) -> OdometryLog:
     """Read ``odometry.csv`` (``t,d_left,d_right``).
 
@@ -685,10 +802,9 @@ def read_odometry(path: str | Path) -> OdometryLog:
         DatasetError: missing, malformed, non-finite, empty, or time not increasing.
     """
     path = Path(path)
-    rows, lines = _read_csv(path, ODOMETRY_HEADER, [_parse_float] * 3)
-    a = np.array(rows, dtype=np.float64)
-    _check_time(a[:, 0], lines, path)
-    return OdometryLog(t=a[:, 0], d_left=a[:, 1], d_right=a[:, 2])
+    (t, dl, dr), lines = _columns(path, ODOMETRY_HEADER, "fff", [_parse_float] * 3)
+    _check_time(t, lines, path)
+    return OdometryLog(t=t, d_left=dl, d_right=dr)
 
 
 def read_image_index(path: str | Path, shape: tuple[int, int] | None = None) -> ImageIndex:
@@ -700,10 +816,9 @@ def read_image_index(path: str | Path, shape: tuple[int, int] | None = None) -> 
         DatasetError: missing, malformed, empty, or time not increasing.
     """
     path = Path(path)
-    rows, lines = _read_csv(path, IMAGES_HEADER, [_parse_float, _str_field])
-    t = np.array([r[0] for r in rows], dtype=np.float64)
+    (t, names), lines = _columns(path, IMAGES_HEADER, "fs", [_parse_float, _str_field])
     _check_time(t, lines, path)
-    files = [path.parent / r[1] for r in rows]
+    files = [path.parent / name for name in names]
     return ImageIndex(t=t, files=files, shape=shape, index_path=path)
 
 
@@ -740,17 +855,10 @@ def read_range_bearing(path: str | Path) -> RangeBearingLog:
         DatasetError: missing, malformed, non-finite, empty or time going backwards.
     """
     path = Path(path)
-    rows, lines = _read_csv(
-        path, RANGE_BEARING_HEADER, [_parse_float, _parse_int, _parse_float, _parse_float]
-    )
-    t = np.array([r[0] for r in rows], dtype=np.float64)
+    parsers = [_parse_float, _parse_int, _parse_float, _parse_float]
+    (t, lid, rng, brg), lines = _columns(path, RANGE_BEARING_HEADER, "fiff", parsers)
     _check_time(t, lines, path, strict=False)
-    return RangeBearingLog(
-        t=t,
-        landmark_id=np.array([r[1] for r in rows], dtype=np.int64),
-        range=np.array([r[2] for r in rows], dtype=np.float64),
-        bearing=np.array([r[3] for r in rows], dtype=np.float64),
-    )
+    return RangeBearingLog(t=t, landmark_id=lid, range=rng, bearing=brg)
 
 
 def read_projections(path: str | Path) -> ProjectionTable:
@@ -782,19 +890,14 @@ def read_projections(path: str | Path) -> ProjectionTable:
         _bool,
         _bool,
     ]
-    rows, lines = _read_csv(path, PROJECTIONS_HEADER, parsers, allow_empty=True)
-    frame = np.array([r[0] for r in rows], dtype=np.int64)
+    cols, lines = _columns(path, PROJECTIONS_HEADER, "ifisffnbb", parsers, allow_empty=True)
+    frame, t, ids, types, col, row, angle, vis, full = cols
     _check_time(frame.astype(np.float64), lines, path, strict=False)
     return ProjectionTable(
-        frame=frame,
-        t=np.array([r[1] for r in rows], dtype=np.float64),
-        ids=np.array([r[2] for r in rows], dtype=np.int64),
-        types=tuple(r[3] for r in rows),
-        pixel=np.array([[r[4], r[5]] for r in rows], dtype=np.float64).reshape(-1, 2),
-        angle_px=np.array([r[6] for r in rows], dtype=np.float64),
-        visible=np.array([r[7] for r in rows], dtype=bool),
-        fully_visible=np.array([r[8] for r in rows], dtype=bool),
-    )
+        frame=frame, t=t, ids=ids, types=tuple(types),
+        pixel=np.column_stack([col, row]).reshape(-1, 2), angle_px=angle,
+        visible=vis, fully_visible=full,
+    )  # fmt: skip
 
 
 def read_tum(path: str | Path) -> Trajectory:
