@@ -178,9 +178,9 @@ def write_stereo_result(result: StereoResult, out: Path) -> list[Path]:
     tum = out / "estimate.tum"
     with open(tum, "w") as fh:
         fh.write(f"# t x y z qx qy qz qw ({result.estimator}, rig pose in the target frame)\n")
-        for k in np.nonzero(result.valid)[0]:
-            x, y, th = result.poses[k]
-            fh.write(f"{result.t[k]:.6f} {x:.9f} {y:.9f} 0 0 0 {math.sin(th / 2):.12f} "
+        for i in np.nonzero(result.valid)[0]:
+            x, y, th = result.poses[i]
+            fh.write(f"{result.t[i]:.6f} {x:.9f} {y:.9f} 0 0 0 {math.sin(th / 2):.12f} "
                      f"{math.cos(th / 2):.12f}\n")
     status = out / "status.csv"
     with open(status, "w", newline="") as fh:
