@@ -104,6 +104,14 @@ class LampDetectorConfig:
             brightest level reached by ``min_area_px`` pixels: lamps are the
             brightest things on a ceiling, and mid-grey panels are not lamps
             (default 0.5).
+        min_blob_contrast_grey: a blob whose level (median inside) is less
+            than this above its background ring is not a lamp (specular
+            highlights on bright ducts; default 60).
+        max_peak_drop_grey: a blob whose brightest pixel is more than this
+            below the image's lamp peak (the brightest level reached by
+            ``min_area_px`` pixels) is not a lamp: lamps are light sources and
+            saturate or nearly, specular highlights on ducts and walls are
+            dimmer (default 22; None disables).
         min_area_px: smaller blobs are rejected (default 6).
         max_area_fraction: blobs larger than this fraction of the image are
             rejected (glare, a window; default 0.2).
@@ -126,6 +134,8 @@ class LampDetectorConfig:
     max_otsu_iterations: int = 4
     min_contrast_grey: float = 30.0
     min_relative_level: float = 0.5
+    min_blob_contrast_grey: float = 60.0
+    max_peak_drop_grey: float | None = 22.0
     min_area_px: int = 6
     max_area_fraction: float = 0.2
     ratio_threshold: float = 1.5
@@ -155,6 +165,7 @@ class BlobMoments:
         ratio: ``sigma1 / sigma2`` (eq. 7).
         area_px: coverage-weighted area, px.
         touches_border: the region touches the image border.
+        contrast: lamp level minus background level (``top - bg``), grey levels.
     """
 
     centroid: FloatArray
@@ -167,6 +178,7 @@ class BlobMoments:
     ratio: float
     area_px: float
     touches_border: bool
+    contrast: float
 
 
 @dataclass(frozen=True)
@@ -196,7 +208,8 @@ def wrap_axis(a: float) -> float:
 
 def grey_histogram(image: ImageU8) -> FloatArray:
     """Histogram of a uint8 image, shape (256,) float counts."""
-    return np.bincount(image.ravel(), minlength=256).astype(np.float64)
+    hist = cv2.calcHist([np.ascontiguousarray(image)], [0], None, [256], [0, 256])
+    return hist.ravel().astype(np.float64)
 
 
 def otsu_level(hist: FloatArray, lo: int = 0) -> float:
@@ -228,6 +241,18 @@ def otsu_level(hist: FloatArray, lo: int = 0) -> float:
     return float(levels[int(np.argmax(between))])
 
 
+def peak_level(hist: FloatArray, min_count: int) -> float:
+    """The brightest grey level reached by at least ``min_count`` pixels.
+
+    Args:
+        hist: shape (256,) counts per grey level.
+        min_count: pixel count (a lamp's minimum area; ignores hot pixels).
+    """
+    above = hist[::-1].cumsum()[::-1]  # pixels >= level
+    hits = np.flatnonzero(above >= min_count)
+    return float(hits[-1]) if hits.size else 0.0
+
+
 def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
     """Choose the lamp threshold ``k`` for one image.
 
@@ -250,8 +275,7 @@ def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
     cum = np.cumsum(hist)
     total = cum[-1]
     median = float(np.searchsorted(cum, 0.5 * total))
-    above_count = total - np.concatenate([[0.0], cum[:-1]])  # pixels >= level
-    peak = float(np.nonzero(above_count >= config.min_area_px)[0][-1])
+    peak = peak_level(hist, config.min_area_px)
     if peak - median < config.min_contrast_grey:
         return None
     k = otsu_level(hist)
@@ -283,6 +307,32 @@ def _fill_ratio(mask: np.ndarray) -> float:
     return float(area / (4.0 * math.pi * math.sqrt(max(det, 1e-12))))
 
 
+def _hist(grey: FloatArray, mask: np.ndarray) -> FloatArray:
+    """Histogram (256,) of the integer grey levels of ``grey`` where ``mask``."""
+    u8 = np.ascontiguousarray(grey.astype(np.uint8))
+    h = cv2.calcHist([u8], [0], mask.astype(np.uint8), [256], [0, 256])
+    return h.ravel().astype(np.float64)
+
+
+def _hist_median(hist: FloatArray) -> float:
+    """Median grey level of a histogram (lower median)."""
+    cum = np.cumsum(hist)
+    return float(np.searchsorted(cum, 0.5 * cum[-1]))
+
+
+def _abs_dev_median(hist: FloatArray, centre: float) -> float:
+    """Median absolute deviation from ``centre`` of a grey-level histogram."""
+    dev = np.abs(np.arange(256) - centre)
+    order = np.argsort(dev, kind="stable")
+    cum = np.cumsum(hist[order])
+    return float(dev[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def _median(grey: FloatArray, mask: np.ndarray) -> float:
+    """Median grey level of ``grey`` (integer-valued) where ``mask``."""
+    return _hist_median(_hist(grey, mask))
+
+
 def coverage_moments(
     grey: FloatArray,
     core: np.ndarray,
@@ -290,7 +340,7 @@ def coverage_moments(
     ring: np.ndarray,
     origin: tuple[int, int],
     config: LampDetectorConfig,
-) -> tuple[FloatArray, FloatArray, FloatArray, float, float, float] | None:
+) -> tuple[FloatArray, FloatArray, FloatArray, float, float, float, float] | None:
     """Coverage-weighted centroid and second moments of one blob, with uncertainty.
 
     Args:
@@ -303,19 +353,19 @@ def coverage_moments(
 
     Returns:
         ``(centroid (2,), cov_centroid (2, 2), moments (3,) = (a, b, c), var_theta,
-        theta, area)`` in pixels (see the module docstring for the formulas),
+        theta, area, contrast)`` in pixels (see the module docstring for the formulas),
         or None when the blob has no contrast against its ring.
     """
-    top = float(np.median(grey[core]))
+    top = _median(grey, core)
     if ring.any():
-        ring_vals = grey[ring]
-        bg = float(np.median(ring_vals))
-        sigma_n = 1.4826 * float(np.median(np.abs(ring_vals - bg)))
+        ring_hist = _hist(grey, ring)
+        bg = _hist_median(ring_hist)
+        sigma_n = 1.4826 * _abs_dev_median(ring_hist, bg)
     else:
         bg, sigma_n = float(grey[~core].min()) if (~core).any() else 0.0, 0.0
     sigma_n = max(sigma_n, config.noise_floor_grey)
     span = top - bg
-    if span <= config.min_contrast_grey * 0.5:
+    if span < config.min_blob_contrast_grey:
         return None
     w = np.clip((grey - bg) / span, 0.0, 1.0)
     w[~support] = 0.0
@@ -350,7 +400,7 @@ def coverage_moments(
     else:
         var_theta = math.inf
     centroid = np.array([cx + origin[0], cy + origin[1]])
-    return centroid, cov_c, np.array([a, b, c]), var_theta, theta, total
+    return centroid, cov_c, np.array([a, b, c]), var_theta, theta, total, span
 
 
 def _disk(radius: int) -> np.ndarray:
@@ -373,7 +423,7 @@ def _measure_region(
     res = coverage_moments(grey_roi, core, support, ring, origin, config)
     if res is None:
         return None
-    centroid, cov_c, (a, b, c), var_theta, theta, area = res
+    centroid, cov_c, (a, b, c), var_theta, theta, area, span = res
     # Pixel-box term: the coverage of a pixel is spread uniformly over it.
     a += 1.0 / 12.0
     c += 1.0 / 12.0
@@ -393,6 +443,7 @@ def _measure_region(
         ratio=sigma1 / sigma2,
         area_px=area,
         touches_border=touches_border,
+        contrast=span,
     )
 
 
@@ -500,6 +551,7 @@ def measure_blobs(
     keep = np.flatnonzero(size_ok)
     n_rejected = int(n - 1 - keep.size)
     pad = config.support_px + config.ring_px + 1
+    peak = peak_level(grey_histogram(image), config.min_area_px)
     out: list[BlobMoments] = []
     for idx in keep + 1:
         x0, y0, bw, bh = (int(v) for v in stats[idx, :4])
@@ -510,6 +562,10 @@ def measure_blobs(
         core = lab_roi == idx
         others = (lab_roi != 0) & ~core
         grey = image[r0:r1, c0:c1].astype(np.float64)
+        if config.max_peak_drop_grey is not None:
+            if float(grey[core].max()) < peak - config.max_peak_drop_grey:
+                n_rejected += 1
+                continue
         regions = [core]
         if _fill_ratio(core) < config.min_fill:
             split = _split_glare(grey, core, k, config)

@@ -1,0 +1,241 @@
+"""Overlay gallery of the ceiling frontend on real photos (``lampsam gallery``).
+
+Each photo is read as grey in its sensor orientation (EXIF rotation ignored, so
+the phone photos of ``ceiling_photos`` are 4000x3000 landscape like a camera
+frame), run through the frontend at 320x240 (``INTER_AREA``) and at full size,
+and drawn with its detections: oriented lamps green with their long axis
+(``+-2 sigma1``), point lamps blue, border lamps red, corners yellow.
+
+The full-size run scales the size-dependent settings with the image width
+(:func:`config_for_width`); the camera model is a pinhole with a 70 deg
+horizontal field of view (the phone's intrinsics are unknown; it only affects
+``m``, not what is drawn).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+from lampsam.arrays import ImageU8
+from lampsam.errors import LampsamError
+from lampsam.frontend.corners import CornerDetections, detect_corner_pixels
+from lampsam.frontend.lamps import LampDetections, detect_lamps
+from lampsam.frontend.pipeline import FrontendConfig, check_image
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+log = logging.getLogger(__name__)
+
+REFERENCE_WIDTH = 320
+"""Image width the default settings are tuned for, px."""
+
+
+@dataclass(frozen=True)
+class GalleryEntry:
+    """Detections on one photo at one size.
+
+    Attributes:
+        name: file name.
+        width: image width, px.
+        height: image height, px.
+        threshold: lamp threshold used (grey level) or None.
+        n_lamps: lamps not touching the border.
+        n_oriented: of those, with ``R_ori > ratio_threshold``.
+        n_border: lamps touching the border (not used).
+        n_corners: corners.
+        time_ms: lamps + corners wall time, ms.
+    """
+
+    name: str
+    width: int
+    height: int
+    threshold: float | None
+    n_lamps: int
+    n_oriented: int
+    n_border: int
+    n_corners: int
+    time_ms: float
+
+
+def config_for_width(width: int, base: FrontendConfig | None = None) -> FrontendConfig:
+    """Scale the size-dependent settings from 320 px wide images to ``width``.
+
+    Areas scale with ``s^2`` and distances with ``s``, ``s = width / 320``.
+
+    Args:
+        width: image width, px.
+        base: settings at 320 px (defaults if None).
+    """
+    base = base or FrontendConfig()
+    s = width / REFERENCE_WIDTH
+    if abs(s - 1.0) < 1e-9:
+        return base
+    lamps = replace(base.lamps, min_area_px=max(int(round(base.lamps.min_area_px * s * s)), 1))
+    corners = replace(
+        base.corners,
+        min_spacing_px=max(int(round(base.corners.min_spacing_px * s)), 1),
+        lamp_margin_px=max(int(round(base.corners.lamp_margin_px * s)), 1),
+    )
+    return replace(base, lamps=lamps, corners=corners)
+
+
+def load_photo(path: str | Path, size: tuple[int, int] | None) -> ImageU8:
+    """A photo as grey uint8 in sensor orientation, optionally resized.
+
+    Args:
+        path: image file.
+        size: ``(width, height)`` to resize to with ``INTER_AREA``, or None (full size).
+
+    Raises:
+        LampsamError: the file is missing or not an image.
+    """
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    if img is None:
+        raise LampsamError(f"{path}: cannot read the image (missing or not an image)")
+    if size is not None:
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+    return img
+
+
+def run_photo(
+    image: ImageU8, config: FrontendConfig | None = None
+) -> tuple[LampDetections, CornerDetections, float]:
+    """Lamps and corners of one photo.
+
+    Args:
+        image: shape (H, W) uint8 grey.
+        config: frontend settings (default: :func:`config_for_width` of the width).
+
+    Returns:
+        ``(lamps, corners, wall time ms)``.
+    """
+    from lampsam.datasets.logrun import CameraModel
+
+    img = check_image(image, None)
+    h, w = img.shape
+    config = config or config_for_width(w)
+    camera = CameraModel.from_fov(w, h, 70.0)
+    t0 = time.perf_counter()
+    lamps = detect_lamps(img, camera, config.lamps)
+    corners = detect_corner_pixels(img, lamps.mask, config.corners)
+    return lamps, corners, 1e3 * (time.perf_counter() - t0)
+
+
+def plot_detections(
+    ax: Axes, image: ImageU8, lamps: LampDetections, corners: CornerDetections, title: str = ""
+) -> list[object]:
+    """Draw an image with its lamps and corners on a matplotlib axis.
+
+    Args:
+        ax: a matplotlib ``Axes``.
+        image: shape (H, W) uint8.
+        lamps: the lamp detections of ``image``.
+        corners: the corner detections of ``image``.
+        title: axis title.
+
+    Returns:
+        The artists drawn.
+    """
+    arts: list[object] = [ax.imshow(image, cmap="gray", vmin=0, vmax=255)]
+    for lm, mo in zip(lamps.lamps, lamps.moments, strict=True):
+        colour = "red" if lm.touches_border else ("lime" if lm.axis is not None else "deepskyblue")
+        cx, cy = lm.pixel
+        arts += ax.plot([cx], [cy], "o", ms=3, color=colour)
+        if lm.axis is not None or lm.touches_border:
+            e = 2.0 * mo.sigma1 * np.array([math.cos(mo.theta), math.sin(mo.theta)])
+            xs, ys = [cx - e[0], cx + e[0]], [cy - e[1], cy + e[1]]
+            arts += ax.plot(xs, ys, "-", lw=1.2, color=colour)
+    if corners.pixels.shape[0]:
+        arts += ax.plot(corners.pixels[:, 0], corners.pixels[:, 1], "+", ms=4, color="yellow")
+    ax.set_title(title, fontsize=7)
+    ax.set_axis_off()
+    return arts
+
+
+def make_gallery(
+    photos_dir: str | Path,
+    out_png: str | Path,
+    full_size: bool = True,
+    small: tuple[int, int] = (320, 240),
+) -> list[GalleryEntry]:
+    """Run the frontend on every ``*.jpg``/``*.png`` of a folder and draw the gallery.
+
+    Args:
+        photos_dir: folder of photos.
+        out_png: the gallery image to write (one row per photo; columns: 320x240,
+            full size).
+        full_size: also run at full size.
+        small: the reduced size ``(width, height)``.
+
+    Returns:
+        One entry per photo and size.
+
+    Raises:
+        LampsamError: the folder has no photos.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = sorted(
+        p for p in Path(photos_dir).glob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png")
+    )
+    if not files:
+        raise LampsamError(f"{photos_dir}: no .jpg or .png photos")
+    sizes: list[tuple[int, int] | None] = [small] + ([None] if full_size else [])
+    fig, axes = plt.subplots(
+        len(files), len(sizes), figsize=(4.0 * len(sizes), 3.0 * len(files)), squeeze=False
+    )
+    entries: list[GalleryEntry] = []
+    for r, path in enumerate(files):
+        for c, size in enumerate(sizes):
+            img = load_photo(path, size)
+            lamps, corners, ms = run_photo(img)
+            used = [lm for lm in lamps.lamps if not lm.touches_border]
+            entry = GalleryEntry(
+                name=path.name,
+                width=img.shape[1],
+                height=img.shape[0],
+                threshold=lamps.threshold,
+                n_lamps=len(used),
+                n_oriented=sum(lm.axis is not None for lm in used),
+                n_border=len(lamps.lamps) - len(used),
+                n_corners=int(corners.pixels.shape[0]),
+                time_ms=ms,
+            )
+            entries.append(entry)
+            log.info("%s", entry)
+            shown = img
+            if size is None:  # draw full-size results on a 1000 px wide copy
+                shown = cv2.resize(img, (1000, 750), interpolation=cv2.INTER_AREA)
+            scale = shown.shape[1] / img.shape[1]
+            plot_detections(
+                axes[r, c],
+                shown,
+                _scaled(lamps, scale),
+                CornerDetections(corners.pixels * scale, corners.scores, corners.patches),
+                f"{path.name} {img.shape[1]}x{img.shape[0]}: {entry.n_lamps} lamps "
+                f"({entry.n_oriented} oriented), {entry.n_border} border, "
+                f"{entry.n_corners} corners",
+            )
+    fig.tight_layout()
+    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=130)
+    plt.close(fig)
+    return entries
+
+
+def _scaled(det: LampDetections, s: float) -> LampDetections:
+    """Detections with pixel quantities scaled by ``s`` (for drawing on a resized image)."""
+    lamps = tuple(replace(lm, pixel=lm.pixel * s) for lm in det.lamps)
+    moms = tuple(replace(mo, centroid=mo.centroid * s, sigma1=mo.sigma1 * s) for mo in det.moments)
+    return replace(det, lamps=lamps, moments=moms)
