@@ -77,8 +77,10 @@ class DepthGridConfig:
         resolution: cell size, metres (default 0.05).
         height_band: ``(lo, hi)`` heights of obstacle points, metres above the floor
             (default ``(0.08, 1.8)``: above floor noise, up to the robot's height).
-        band_reference: ``"floor"`` (``z = 0``, simulated runs) or ``"camera"``
-            (heights relative to the first camera, when the floor is unknown).
+        band_reference: ``"floor"`` (``z = 0``, simulated runs), ``"fit"`` (the floor
+            plane fitted to the fused cloud with Open3D RANSAC: sets "up" and the
+            floor height, for hand-held data) or ``"camera"`` (heights relative to
+            the first camera).
         depth_stride: use every n-th pixel in both directions (default 2).
         free_bucket: floor rays clear free space to within this distance of the
             farthest floor point of their bearing, metres (default 0.25).
@@ -347,6 +349,68 @@ def camera_poses_from_planar(planar: FloatArray, body_T_camera: FloatArray) -> F
     return T @ body_T_camera
 
 
+def fit_floor(
+    seq: RgbdSequence,
+    world_T_cameras: FloatArray,  # noqa: N803
+    up_hint: FloatArray,
+    max_tilt_deg: float = 35.0,
+    stride: int = 8,
+) -> tuple[FloatArray, float] | None:
+    """The floor plane of a sequence: the lowest large plane roughly normal to ``up_hint``.
+
+    Up to four planes are peeled off the fused, subsampled cloud with Open3D's
+    RANSAC ``segment_plane`` (3 cm threshold); among those whose normal is within
+    ``max_tilt_deg`` of ``up_hint`` and that hold at least 5 % of the points, the
+    lowest along the normal is the floor.
+
+    Args:
+        seq: the frames.
+        world_T_cameras: (N, 4, 4) camera poses.
+        up_hint: (3,) approximate up direction, world.
+        max_tilt_deg: largest angle between the plane normal and ``up_hint``.
+        stride: pixel stride of the cloud.
+
+    Returns:
+        ``(up, offset)``: unit normal pointing up, and ``offset`` with the height of a
+        point ``p`` above the floor ``up . p + offset``; None when no plane qualifies.
+    """
+    import open3d as o3d
+
+    pts = np.vstack(
+        [
+            depth_to_points(seq.load_depth(i), seq.camera, world_T_cameras[i], stride)
+            for i in range(len(seq))
+        ]
+    )
+    if len(pts) < 100:
+        return None
+    hint = np.asarray(up_hint, float) / np.linalg.norm(up_hint)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    best: tuple[FloatArray, float] | None = None
+    for _ in range(4):
+        if len(cloud.points) < 0.05 * len(pts):
+            break
+        model, inliers = cloud.segment_plane(0.03, 3, 500)
+        n, d = np.asarray(model[:3], float), float(model[3])
+        scale = np.linalg.norm(n)
+        n, d = n / scale, d / scale
+        if n @ hint < 0:
+            n, d = -n, -d
+        if len(inliers) >= 0.05 * len(pts) and n @ hint > math.cos(math.radians(max_tilt_deg)):
+            # the offset d is minus the plane's height along n: the floor has the largest d
+            if best is None or d > best[1]:
+                best = (n, d)
+        cloud = cloud.select_by_index(inliers, invert=True)
+    if best is not None:
+        log.info(
+            "%s: floor plane fitted, up %s, %.3f m below the origin",
+            seq.root,
+            np.round(best[0], 3),
+            best[1],
+        )
+    return best
+
+
 # ---------------------------------------------------------------------------- builders
 def build_depth_layers(
     seq: RgbdSequence,
@@ -378,11 +442,20 @@ def build_depth_layers(
     if np.any(bad):
         raise EnvMapError(f"{seq.root}: pose of frame {int(np.flatnonzero(bad)[0])} is not finite")
     cfg = config.depth
-    align = np.eye(4)
-    align[:3, :3] = up_alignment(seq.world_up)
-    poses = align @ poses
     cam = seq.camera
-    floor_z = 0.0 if cfg.band_reference == "floor" else float(poses[0, 2, 3])
+    up = np.asarray(seq.world_up, float)
+    fitted = fit_floor(seq, poses, up) if cfg.band_reference == "fit" else None
+    if fitted is not None:
+        up = fitted[0]
+    align = np.eye(4)
+    align[:3, :3] = up_alignment(up)
+    poses = align @ poses
+    if fitted is not None:
+        floor_z = -fitted[1]  # after the alignment, z = up . p
+    elif cfg.band_reference == "floor":
+        floor_z = 0.0
+    else:  # "camera", or a floor that could not be fitted
+        floor_z = float(poses[0, 2, 3])
     grid = _grid_around(poses[:, :2, 3], cam.max_depth + cfg.margin, cfg.resolution)
     builder = SpatialMapBuilder(config.spatial) if with_features else None
     timings = {"read": 0.0, "points": 0.0, "grid": 0.0, "features": 0.0, "merge": 0.0}
@@ -686,17 +759,9 @@ def build_map(
             seq = read_tum_rgbd(src / "kinect")
         cfg = config
         if kind != "run" and config.depth.band_reference == "floor":
-            # no floor known: heights relative to the first camera
+            # no floor known: fit it (falls back to the first camera's height)
             cfg = dataclasses.replace(
-                config,
-                depth=dataclasses.replace(
-                    config.depth, band_reference="camera", height_band=(-0.6, 0.6)
-                ),
-            )
-            log.info(
-                "%s: floor unknown, obstacle band %s m around the first camera's height",
-                src,
-                cfg.depth.height_band,
+                config, depth=dataclasses.replace(config.depth, band_reference="fit")
             )
         if kind == "run":
             if pose_kind == "slam":

@@ -14,7 +14,7 @@ import logging
 
 import numpy as np
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
-from lampsam.datasets.rgbd import RgbdCamera
+from lampsam.datasets.rgbd import RgbdCamera, RgbdSequence
 from lampsam.errors import LocalizationError
 
 log = logging.getLogger(__name__)
@@ -217,3 +217,36 @@ def overlap_agreement(
     if not np.any(inside):
         return float("nan"), 0
     return float(np.median(dist[inside])), int(inside.sum())
+
+
+def fuse_sequence(
+    seq: RgbdSequence,
+    world_T_cameras: FloatArray | None = None,  # noqa: N803
+    voxel: float = 0.01,
+) -> object:
+    """Fuse all frames of an RGB-D sequence into one coloured world cloud.
+
+    Each frame goes through :func:`rgbd_to_cloud` at its pose; the union is voxel
+    downsampled (Open3D ``voxel_down_sample``) so that overlapping frames do not
+    pile up points.
+
+    Args:
+        seq: the frames.
+        world_T_cameras: (N, 4, 4) poses; default the sequence's own.
+        voxel: voxel size, metres (0 keeps every point).
+
+    Returns:
+        ``open3d.geometry.PointCloud`` in the world frame.
+
+    Raises:
+        PointCloudError: no poses, or a pose count that differs from the frames.
+    """
+    import open3d as o3d
+
+    poses = seq.world_T_camera if world_T_cameras is None else np.asarray(world_T_cameras, float)
+    if poses is None or len(poses) != len(seq):
+        raise PointCloudError(f"{seq.root}: need one pose per frame ({len(seq)} frames)")
+    fused = o3d.geometry.PointCloud()
+    for i in range(len(seq)):
+        fused += rgbd_to_cloud(seq.load_rgb(i), seq.load_depth(i), seq.camera, poses[i])
+    return fused.voxel_down_sample(voxel) if voxel > 0 else fused
