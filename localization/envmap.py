@@ -392,7 +392,7 @@ def fit_floor(
             break
         model, inliers = cloud.segment_plane(0.03, 3, 500)
         n, d = np.asarray(model[:3], float), float(model[3])
-        scale = np.linalg.norm(n)
+        scale = float(np.linalg.norm(n))
         n, d = n / scale, d / scale
         if n @ hint < 0:
             n, d = -n, -d

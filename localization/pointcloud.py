@@ -11,6 +11,7 @@ do exactly this (their ``extrinsic`` is ``camera_T_world``).
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
@@ -62,7 +63,7 @@ def check_pose(world_T_camera: FloatArray, name: str = "pose") -> FloatArray:  #
     return T
 
 
-def _intrinsic(camera: RgbdCamera) -> object:
+def _intrinsic(camera: RgbdCamera) -> Any:
     import open3d as o3d
 
     return o3d.camera.PinholeCameraIntrinsic(
@@ -121,7 +122,7 @@ def rgbd_to_cloud(
     depth: ImageU16,
     camera: RgbdCamera,
     world_T_camera: FloatArray | None = None,  # noqa: N803
-) -> object:
+) -> Any:
     """Coloured point cloud with Open3D ``create_from_rgbd_image``.
 
     Args:
@@ -223,7 +224,7 @@ def fuse_sequence(
     seq: RgbdSequence,
     world_T_cameras: FloatArray | None = None,  # noqa: N803
     voxel: float = 0.01,
-) -> object:
+) -> Any:
     """Fuse all frames of an RGB-D sequence into one coloured world cloud.
 
     Each frame goes through :func:`rgbd_to_cloud` at its pose; the union is voxel
