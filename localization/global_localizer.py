@@ -45,7 +45,13 @@ from lampsam.localization.candidates import (
 )
 from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel, RayCastModel
-from lampsam.localization.particle_filter import KldConfig, ParticleFilter, ParticleFilterConfig
+from lampsam.localization.particle_filter import (
+    KldConfig,
+    ParticleFilter,
+    ParticleFilterConfig,
+    sample_candidate_discs,
+    sample_free_space,
+)
 from lampsam.localization.verification import (
     CeilingChecker,
     RlocVerifier,
@@ -191,6 +197,10 @@ class FilterConfig:
             here; roughening between updates on the same scan: 2 cm, 0.01 rad).
         kld_in_ours: use the KLD-adaptive sample size in :attr:`Mode.OURS`.
             Default True.
+        uniform_in_ours: in :attr:`Mode.OURS`, particles spread over the free
+            space in addition to the candidates' (when a changed environment
+            leaves only wrong candidates, the paper's filter cannot recover
+            until verification fails). Default 5000.
     """
 
     particles_per_candidate: int = 300
@@ -208,6 +218,7 @@ class FilterConfig:
         )
     )
     kld_in_ours: bool = True
+    uniform_in_ours: int = 5000
 
 
 @dataclass(frozen=True)
@@ -407,7 +418,12 @@ def _filter_stage(
     if config.mode is Mode.OURS and fc.kld_in_ours and pf_config.kld is None:
         pf_config = replace(pf_config, kld=KldConfig())
     pf = ParticleFilter(model, pf_config, rng)
-    if cands and config.mode is not Mode.GRID_ONLY:
+    if cands and config.mode is Mode.OURS and fc.uniform_in_ours > 0:
+        disc = sample_candidate_discs(
+            pf_candidates(cands), fc.particles_per_candidate, config.candidates.sigma_theta, rng
+        )
+        pf.init_particles(np.vstack([disc, sample_free_space(maps.grid, fc.uniform_in_ours, rng)]))
+    elif cands and config.mode is not Mode.GRID_ONLY:
         pf.init_candidates(
             pf_candidates(cands), fc.particles_per_candidate, config.candidates.sigma_theta
         )
