@@ -15,10 +15,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import stats
-
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LampsamError
+from scipy import stats
 
 
 class MetricsError(LampsamError):
@@ -222,7 +221,8 @@ class NeesSummary:
     upper: float
     fraction_inside: float  # fraction of steps whose run-averaged NEES is inside the bounds
     fraction_above: float  # fraction above the upper bound (overconfidence)
-    mean_upper: float  # 95 % upper bound for ``mean`` itself (time average, steps independent)
+    mean_lower: float  # 95 % bounds for ``mean`` itself (time average, steps taken as independent)
+    mean_upper: float
     dof: int
     n_runs: int
 
@@ -231,9 +231,15 @@ class NeesSummary:
         """True when the time-averaged NEES exceeds its own 95 % upper bound."""
         return self.mean > self.mean_upper
 
+    @property
+    def underconfident(self) -> bool:
+        """True when the time-averaged NEES is below its own 95 % lower bound."""
+        return self.mean < self.mean_lower
+
     def to_dict(self) -> dict[str, float | int | bool]:
         d: dict[str, float | int | bool] = dict(asdict(self))
         d["overconfident"] = self.overconfident
+        d["underconfident"] = self.underconfident
         return d
 
 
@@ -252,13 +258,14 @@ def nees_summary(nees_runs: FloatArray, dof: int = 3, probability: float = 0.95)
     if avg.size == 0:
         raise MetricsError("no finite NEES values")
     lo, hi = chi2_bounds(dof, m, probability)
-    _, mean_hi = chi2_bounds(dof, m * avg.size, probability)
+    mean_lo, mean_hi = chi2_bounds(dof, m * avg.size, probability)
     return NeesSummary(
         mean=float(avg.mean()),
         lower=lo,
         upper=hi,
         fraction_inside=float(np.mean((avg >= lo) & (avg <= hi))),
         fraction_above=float(np.mean(avg > hi)),
+        mean_lower=mean_lo,
         mean_upper=mean_hi,
         dof=dof,
         n_runs=m,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
-
 from lampsam.evaluation import metrics as M
 
 
@@ -60,7 +59,8 @@ def test_nees_summary_detects_overconfidence(rng: np.random.Generator) -> None:
     consistent = np.sum(rng.normal(size=(n_runs, n_steps, 3)) ** 2, axis=2)
     s = M.nees_summary(consistent, dof=3)
     assert abs(s.mean - 3.0) < 3 * np.sqrt(2 * 3 / (n_runs * n_steps)) * 3  # 3 sigma of the mean
-    assert not s.overconfident and s.fraction_inside > 0.85
+    assert not s.overconfident and not s.underconfident and s.fraction_inside > 0.85
+    assert M.nees_summary(consistent / 4.0, dof=3).underconfident
     # Covariance reported 4x too small -> NEES about 12.
     s_over = M.nees_summary(4.0 * consistent, dof=3)
     assert s_over.overconfident and s_over.fraction_above > 0.9

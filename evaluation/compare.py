@@ -1,0 +1,469 @@
+"""Compare SLAM backends (EKF against smoothing) over runs and Monte Carlo seeds.
+
+``lampsam compare RUN [RUN ...] --backends ekf,isam2,batch --seeds N --out REPORT``:
+
+* ``RUN`` is a run directory, a built-in world name or world YAML (then ``N`` runs
+  are simulated with seeds ``0..N-1``: the same world and path, independent
+  odometry and image noise), or ``mrclam`` / ``mrclam-gated`` (the shared MRCLAM
+  data with known association, or association by the gate alone).
+* Every (run, backend) job runs in a fresh process (so its peak memory is its own),
+  in parallel, with a progress bar. A job that fails (indeterminate system,
+  unusable input, a crash) is recorded as failed with its reason; it is never
+  dropped from the table.
+* Metrics (``evaluation.metrics``; trajectory statistics through evo): position
+  and heading error without alignment (the start pose is known), RPE per metre,
+  map error after association with the truth, pose NEES over time with the
+  chi-square 95 % bounds, time per frame, total time, peak memory.
+
+Outputs: ``REPORT/report.md``, ``REPORT/report.html`` (images embedded),
+``REPORT/summary.json`` (every number in the table), ``REPORT/figures/*.png`` and
+one directory per job with the backend's own outputs (``trajectory.tum``,
+``landmarks.csv``, ``summary.json``) and ``arrays.npz``.
+"""
+
+from __future__ import annotations
+
+import base64
+import concurrent.futures as cf
+import json
+import logging
+import multiprocessing as mp
+import resource
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lampsam.arrays import FloatArray
+from lampsam.errors import LampsamError
+from lampsam.evaluation import metrics as M
+
+log = logging.getLogger(__name__)
+
+MRCLAM_NAMES = ("mrclam", "mrclam-gated")
+
+
+class CompareError(LampsamError):
+    """The comparison could not be set up (unknown run, no backends)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One backend on one run."""
+
+    group: str  # world name or run directory name: rows of the table are (group, backend)
+    seed: int
+    run_dir: str
+    backend: str
+    out_dir: str
+    frames: str = "auto"
+    features: tuple[str, ...] | None = None
+
+
+@dataclass
+class JobResult:
+    """What a job returns to the parent (small and picklable; arrays stay on disk)."""
+
+    job: Job
+    status: str
+    metrics: dict[str, Any] = field(default_factory=dict)
+    arrays: str | None = None  # path of arrays.npz
+
+
+# --------------------------------------------------------------------------- runs
+def _is_world(name: str) -> bool:
+    from lampsam.datasets.world import builtin_worlds
+
+    return name in builtin_worlds() or (name.endswith((".yaml", ".yml")) and Path(name).is_file())
+
+
+def prepare_runs(
+    runs: list[str], seeds: int, out: Path, duration: float | None
+) -> list[tuple[str, int, Path]]:
+    """Resolve RUN arguments into ``(group, seed, run_dir)``; simulate worlds.
+
+    Args:
+        runs: run directories, world names / YAML files, or ``mrclam[-gated]``.
+        seeds: Monte Carlo seeds per simulated world.
+        out: the report directory (simulated and adapted runs go to ``out/runs``).
+        duration: simulated seconds per run (None: the world's whole path).
+
+    Raises:
+        CompareError: an argument is none of the above.
+    """
+    resolved: list[tuple[str, int, Path]] = []
+    for name in runs:
+        if name in MRCLAM_NAMES:
+            from lampsam.datasets.mrclam import write_mrclam_run
+            from lampsam.datasets.paths import shared_dataset
+
+            root = shared_dataset("mrclam_ds0")
+            if root is None:
+                raise CompareError("mrclam: the shared dataset mrclam_ds0 was not found (set LAMPSAM_DATA)")
+            run_dir = out / "runs" / name
+            if not (run_dir / "odometry.csv").exists():
+                kw: dict[str, Any] = {"known_ids": name == "mrclam"}
+                if duration is not None:
+                    kw["duration"] = duration
+                write_mrclam_run(root, run_dir, **kw)
+            resolved.append((name, 0, run_dir))
+        elif _is_world(name):
+            from lampsam.datasets.simulator import simulate_world
+
+            group = Path(name).stem
+            for seed in range(seeds):
+                run_dir = out / "runs" / f"{group}-seed{seed:02d}"
+                if not (run_dir / "meta.yaml").exists():
+                    log.info("simulating %s seed %d", group, seed)
+                    simulate_world(name, run_dir, seed=seed, duration=duration)
+                resolved.append((group, seed, run_dir))
+        elif Path(name).is_dir():
+            resolved.append((Path(name).name, 0, Path(name)))
+        else:
+            raise CompareError(f"{name}: not a run directory, a world, or mrclam")
+    return resolved
+
+
+# --------------------------------------------------------------------------- one job
+def _truth_landmarks(run_dir: Path, run: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(ids, types, xyz) of the true landmarks, or None."""
+    if getattr(run, "landmarks", None) is not None:
+        lt = run.landmarks
+        types = np.array(["lamp" if str(t).startswith("lamp") else str(t) for t in lt.types])
+        return np.asarray(lt.ids), types, np.asarray(lt.xyz, float)
+    meta = run_dir / "landmarks_xy.csv"  # written by the MRCLAM adapter, if at all
+    if meta.exists():
+        arr = np.loadtxt(meta, delimiter=",", skiprows=1, ndmin=2)
+        xyz = np.column_stack([arr[:, 1:3], np.full(len(arr), np.nan)])
+        return arr[:, 0].astype(int), np.array(["point2"] * len(arr)), xyz
+    return None
+
+
+def _map_error(result: Any, truth: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+               camera_height: float) -> dict[str, Any]:
+    """Landmark error on the floor plane: by id when the ids are true ids, else nearest (<0.5 m)."""
+    if truth is None or not result.landmarks:
+        return {}
+    tid, ttype, txyz = truth
+    est_ids, est_xyz = [], []
+    for lm in result.landmarks:
+        est_ids.append(lm.id)
+        p = np.asarray(lm.position, float).copy()
+        est_xyz.append(p)
+    est_ids_a = np.asarray(est_ids)
+    est_xyz_a = np.asarray(est_xyz)
+    known = set(tid.tolist())
+    if np.isin(est_ids_a, list(known)).mean() < 0.5:
+        # Ids are the backend's own: associate each estimate with the nearest true landmark.
+        d = np.linalg.norm(est_xyz_a[:, None, :2] - txyz[None, :, :2], axis=2)
+        nearest = np.argmin(d, axis=1)
+        est_ids_a = np.where(d[np.arange(len(d)), nearest] < 0.5, tid[nearest], -1)
+    try:
+        stats, n = M.map_error(est_ids_a, est_xyz_a, tid, txyz, dims=2)
+    except M.MetricsError:
+        return {"map_associated": 0}
+    return {"map_rms_m": stats.rms, "map_max_m": stats.max, "map_associated": n,
+            "map_landmarks": len(result.landmarks)}
+
+
+def run_job(job: Job) -> JobResult:
+    """Run one backend on one run and compute its metrics (runs in a worker process)."""
+    from lampsam.backend.slam import run_slam
+    from lampsam.datasets.logrun import read_run
+
+    out = Path(job.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        run = read_run(job.run_dir)
+        t0 = time.perf_counter()
+        result = run_slam(job.run_dir, job.backend, features=job.features, out=out,
+                          frames=job.frames, run=run)
+        total = time.perf_counter() - t0
+    except LampsamError as exc:
+        return JobResult(job, f"failed: {exc}")
+    except Exception as exc:  # a crash inside a backend is a failed job, not a lost row
+        log.debug("job crashed", exc_info=True)
+        return JobResult(job, f"failed: {type(exc).__name__}: {exc}",
+                         metrics={"traceback": traceback.format_exc(limit=5)})
+    m: dict[str, Any] = {"total_time_s": total, "steps": len(result.times),
+                         "keyframes": int(np.sum(result.keyframes))}
+    st = np.asarray(result.step_times_s) * 1e3
+    kf = st[np.asarray(result.keyframes, bool)] if np.any(result.keyframes) else st
+    if kf.size:
+        m["frame_ms_median"] = float(np.median(kf))
+        m["frame_ms_p95"] = float(np.percentile(kf, 95))
+    m["final_optimisation_s"] = float(result.final_time_s)
+    arrays: dict[str, FloatArray] = {"t": result.times, "poses": result.poses, "covs": result.pose_covs}
+    gt = run.groundtruth
+    if gt is not None and len(result.times):
+        inside = (result.times >= gt.t[0]) & (result.times <= gt.t[-1])
+        t = result.times[inside]
+        est = result.poses[inside]
+        truth = gt.interpolate(t)
+        pos, head = M.pose_errors(est, truth)
+        ps, hs = M.error_stats(pos), M.error_stats(np.degrees(head))
+        m.update(pos_rms_m=ps.rms, pos_max_m=ps.max, head_rms_deg=hs.rms, head_max_deg=hs.max)
+        e = M.coordinate_errors(est, truth)
+        nees = M.nees(e, result.pose_covs[inside])
+        ns = M.nees_summary(nees, dof=3)
+        m.update(nees_mean=ns.mean, nees_inside=ns.fraction_inside, nees_above=ns.fraction_above)
+        try:
+            m.update(M.evo_ape_rpe(t, est, gt.t, gt.poses))
+        except M.MetricsError as exc:
+            log.warning("%s: evo metrics skipped: %s", job.run_dir, exc)
+        arrays.update(t_err=t, truth=truth, pos_err=pos, head_err=head, nees=nees,
+                      gt_xy=gt.poses[:, :2])
+    cam_h = float(run.rig.camera.body_t_camera[2]) if run.rig is not None else 0.0
+    m.update(_map_error(result, _truth_landmarks(Path(job.run_dir), run), cam_h))
+    if result.landmarks:
+        arrays["lm_xy"] = np.array([lm.position[:2] for lm in result.landmarks], float)
+        arrays["lm_cov"] = np.array([np.asarray(lm.cov)[:2, :2] for lm in result.landmarks], float)
+        arrays["lm_type"] = np.array([lm.type for lm in result.landmarks])
+    truth_lm = _truth_landmarks(Path(job.run_dir), run)
+    if truth_lm is not None:
+        arrays["true_lm_xy"] = truth_lm[2][:, :2]
+    m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    np.savez_compressed(out / "arrays.npz", **arrays)
+    return JobResult(job, result.status, m, str(out / "arrays.npz"))
+
+
+# --------------------------------------------------------------------------- aggregate
+TABLE_COLUMNS: list[tuple[str, str, str]] = [
+    # key, header, format
+    ("pos_rms_m", "pos RMS [m]", "{:.3f}"),
+    ("pos_max_m", "pos max [m]", "{:.3f}"),
+    ("head_rms_deg", "head RMS [deg]", "{:.2f}"),
+    ("head_max_deg", "head max [deg]", "{:.2f}"),
+    ("rpe_trans_per_m", "RPE [m/m]", "{:.4f}"),
+    ("map_rms_m", "map RMS [m]", "{:.3f}"),
+    ("nees_mean", "NEES (3 ideal)", "{:.2f}"),
+    ("nees_inside", "in 95% bound", "{:.0%}"),
+    ("frame_ms_median", "frame median [ms]", "{:.1f}"),
+    ("frame_ms_p95", "frame p95 [ms]", "{:.1f}"),
+    ("total_time_s", "total [s]", "{:.1f}"),
+    ("peak_rss_mb", "peak mem [MB]", "{:.0f}"),
+]
+
+
+def aggregate(results: list[JobResult]) -> list[dict[str, Any]]:
+    """One row per (group, backend): means over seeds; failures counted, never dropped.
+
+    ``pos_max_m`` and ``head_max_deg`` are maxima over seeds; NEES is averaged over
+    seeds step by step (runs of one world share their time stamps) and summarised
+    with the chi-square bounds of that number of runs.
+    """
+    rows: list[dict[str, Any]] = []
+    keys = sorted({(r.job.group, r.job.backend) for r in results},
+                  key=lambda k: (k[0], ["ekf", "isam2", "batch"].index(k[1])
+                                 if k[1] in ("ekf", "isam2", "batch") else 9))
+    for group, backend in keys:
+        rs = [r for r in results if r.job.group == group and r.job.backend == backend]
+        ok = [r for r in rs if not r.status.startswith("failed")]
+        row: dict[str, Any] = {"run": group, "backend": backend, "seeds": len(rs),
+                               "failed": len(rs) - len(ok),
+                               "failures": [r.status for r in rs if r.status.startswith("failed")]}
+        for key, _, _ in TABLE_COLUMNS:
+            vals = [r.metrics[key] for r in ok if key in r.metrics and np.isfinite(r.metrics[key])]
+            if vals:
+                row[key] = float(np.max(vals) if key.endswith("_max_m") or key.endswith("max_deg")
+                                 else np.mean(vals))
+        if ok:
+            pos = [r.metrics["pos_rms_m"] for r in ok if "pos_rms_m" in r.metrics]
+            if pos:
+                row["pos_rms_per_seed"] = pos
+        nees_runs = []
+        for r in ok:
+            if r.arrays and Path(r.arrays).exists():
+                with np.load(r.arrays) as z:
+                    if "nees" in z:
+                        nees_runs.append(z["nees"])
+        if nees_runs:
+            n = min(len(x) for x in nees_runs)
+            ns = M.nees_summary(np.array([x[:n] for x in nees_runs]), dof=3)
+            row.update(nees_mean=ns.mean, nees_inside=ns.fraction_inside,
+                       nees_bounds=[ns.lower, ns.upper], nees_overconfident=ns.overconfident,
+                       nees_underconfident=ns.underconfident,
+                       nees_mean_bounds=[ns.mean_lower, ns.mean_upper])
+        rows.append(row)
+    return rows
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """The comparison table in Markdown (failed seeds are counted in their own column)."""
+    head = ["run", "backend", "seeds ok"] + [h for _, h, _ in TABLE_COLUMNS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in rows:
+        cells = [row["run"], row["backend"], f"{row['seeds'] - row['failed']}/{row['seeds']}"]
+        for key, _, fmt in TABLE_COLUMNS:
+            v = row.get(key)
+            cells.append(fmt.format(v) if v is not None else "–")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def consistency_sentences(rows: list[dict[str, Any]]) -> list[str]:
+    """Plain-language verdicts on consistency and on smoother vs EKF accuracy."""
+    out = []
+    for row in rows:
+        if "nees_mean" not in row:
+            continue
+        lo, hi = row["nees_bounds"]
+        verdict = ("overconfident" if row.get("nees_overconfident")
+                   else "underconfident" if row.get("nees_underconfident") else "consistent")
+        out.append(
+            f"- {row['run']} / {row['backend']}: time-averaged NEES {row['nees_mean']:.2f} "
+            f"(ideal 3; per-step 95 % bounds [{lo:.2f}, {hi:.2f}] for {row['seeds'] - row['failed']} runs), "
+            f"{row['nees_inside']:.0%} of steps inside: **{verdict}**"
+            + (f", {row['nees_mean'] / 3.0:.1f}x the ideal" if verdict == "overconfident" else "")
+            + "."
+        )
+    groups = sorted({r["run"] for r in rows})
+    for g in groups:
+        by = {r["backend"]: r for r in rows if r["run"] == g}
+        if "ekf" in by and "pos_rms_m" in by["ekf"]:
+            for b in ("batch", "isam2"):
+                if b in by and "pos_rms_m" in by[b]:
+                    ratio = by[b]["pos_rms_m"] / by["ekf"]["pos_rms_m"]
+                    out.append(f"- {g}: {b} position RMS is {ratio:.2f}x the EKF's "
+                               f"({by[b]['pos_rms_m']:.3f} m vs {by['ekf']['pos_rms_m']:.3f} m).")
+    return out
+
+
+def _img_html(path: Path) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return f'<figure><img src="data:image/png;base64,{data}" style="max-width:100%"><figcaption>{path.stem}</figcaption></figure>'
+
+
+def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
+                 figures: list[Path], wall_s: float) -> None:
+    """Write report.md, report.html and summary.json."""
+    table = markdown_table(rows)
+    notes = consistency_sentences(rows)
+    failures = [f"- {r.job.group} seed {r.job.seed} / {r.job.backend}: {r.status}"
+                for r in results if r.status.startswith("failed")]
+    md = [
+        "# lampsam: EKF against smoothing",
+        "",
+        f"{len(results)} jobs, wall time {wall_s:.1f} s. Errors without alignment (the start "
+        "pose is known); RPE per metre from evo; NEES over (x, y, theta), averaged over seeds.",
+        "",
+        table,
+        "",
+        "## Consistency and accuracy",
+        *notes,
+    ]
+    if failures:
+        md += ["", "## Failed jobs", *failures]
+    md += ["", "## Figures", *[f"![{f.stem}](figures/{f.name})" for f in figures], ""]
+    (out / "report.md").write_text("\n".join(md))
+    html_table = _md_table_to_html(table)
+    html = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>lampsam compare</title>",
+        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse}"
+        "td,th{border:1px solid #999;padding:3px 6px;text-align:right}</style></head><body>",
+        "<h1>lampsam: EKF against smoothing</h1>",
+        f"<p>{len(results)} jobs, wall time {wall_s:.1f} s.</p>",
+        html_table,
+        "<h2>Consistency and accuracy</h2><ul>",
+        *[f"<li>{n[2:]}</li>" for n in notes],
+        "</ul>",
+    ]
+    if failures:
+        html += ["<h2>Failed jobs</h2><ul>", *[f"<li>{f[2:]}</li>" for f in failures], "</ul>"]
+    html += ["<h2>Figures</h2>", *[_img_html(f) for f in figures], "</body></html>"]
+    (out / "report.html").write_text("\n".join(html))
+    summary = {
+        "rows": rows,
+        "jobs": [{"run": r.job.group, "seed": r.job.seed, "backend": r.job.backend,
+                  "run_dir": r.job.run_dir, "status": r.status,
+                  **{k: v for k, v in r.metrics.items() if k != "traceback"}} for r in results],
+        "wall_time_s": wall_s,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+
+
+def _md_table_to_html(table: str) -> str:
+    lines = table.splitlines()
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    body = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]
+    out = ["<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"]
+    out += ["<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in body]
+    return "\n".join(out) + "</table>"
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(type(x))
+
+
+# --------------------------------------------------------------------------- driver
+def compare(
+    runs: list[str],
+    backends: tuple[str, ...] = ("ekf", "isam2", "batch"),
+    seeds: int = 1,
+    out: str | Path = "out/compare",
+    workers: int = 2,
+    frames: str = "auto",
+    features: tuple[str, ...] | None = None,
+    duration: float | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Run every backend on every run; write the report; return the table rows.
+
+    Args:
+        runs: see the module docstring.
+        backends: subset of ``ekf, isam2, batch``.
+        seeds: Monte Carlo seeds per simulated world.
+        out: report directory.
+        workers: parallel processes.
+        frames: measurement source for every job (``auto``, ``images``, ``truth``).
+        features: ceiling features (None: the backend default).
+        duration: simulated seconds per world run (None: the whole path).
+        progress: show a progress bar (tqdm, on stderr).
+
+    Returns:
+        The aggregated rows (as in ``summary.json``).
+    """
+    from lampsam.backend.slam import BACKENDS
+
+    bad = [b for b in backends if b not in BACKENDS]
+    if not backends or bad:
+        raise CompareError(f"backends must be a non-empty subset of {', '.join(BACKENDS)}; got {bad or backends}")
+    if seeds < 1:
+        raise CompareError("--seeds must be at least 1")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    resolved = prepare_runs(runs, seeds, out, duration)
+    jobs = [
+        Job(group, seed, str(run_dir), b, str(out / "jobs" / f"{run_dir.name}-{b}"), frames, features)
+        for group, seed, run_dir in resolved
+        for b in backends
+    ]
+    results: list[JobResult] = []
+    ctx = mp.get_context("spawn")
+    with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1) as pool:
+        futures = {pool.submit(run_job, j): j for j in jobs}
+        iterator = cf.as_completed(futures)
+        if progress:
+            from tqdm import tqdm
+
+            iterator = tqdm(iterator, total=len(jobs), desc="compare", unit="job")
+        for fut in iterator:
+            job = futures[fut]
+            try:
+                results.append(fut.result())
+            except Exception as exc:  # the worker process itself died
+                results.append(JobResult(job, f"failed: worker died: {type(exc).__name__}: {exc}"))
+    results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
+    rows = aggregate(results)
+    from lampsam.evaluation.compare_plots import make_figures
+
+    figures = make_figures(out / "figures", results)
+    write_report(out, rows, results, figures, time.perf_counter() - t_start)
+    return rows

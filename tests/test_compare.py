@@ -1,0 +1,52 @@
+"""The comparison's aggregation and failure handling (no backend needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lampsam.evaluation import compare as C
+
+
+def _job(backend: str, seed: int, tmp: Path) -> C.Job:
+    return C.Job("lab", seed, str(tmp / f"run{seed}"), backend, str(tmp / f"job{seed}{backend}"))
+
+
+def _ok(job: C.Job, pos_rms: float, tmp: Path, nees: np.ndarray) -> C.JobResult:
+    path = tmp / f"{job.backend}{job.seed}.npz"
+    np.savez(path, nees=nees)
+    return C.JobResult(job, "ok", {"pos_rms_m": pos_rms, "pos_max_m": 2 * pos_rms}, str(path))
+
+
+def test_failed_jobs_are_counted_not_dropped(tmp_path: Path, rng: np.random.Generator) -> None:
+    nees = np.sum(rng.normal(size=(2, 300, 3)) ** 2, axis=2)
+    results = [
+        _ok(_job("ekf", 0, tmp_path), 0.10, tmp_path, nees[0]),
+        _ok(_job("ekf", 1, tmp_path), 0.20, tmp_path, nees[1]),
+        C.JobResult(_job("batch", 0, tmp_path), "failed: indeterminate system"),
+        _ok(_job("batch", 1, tmp_path), 0.04, tmp_path, nees[0]),
+    ]
+    rows = {r["backend"]: r for r in C.aggregate(results)}
+    assert rows["ekf"]["failed"] == 0 and rows["ekf"]["pos_rms_m"] == pytest.approx(0.15)
+    assert rows["ekf"]["pos_max_m"] == pytest.approx(0.40)  # max over seeds, not mean
+    assert rows["batch"]["failed"] == 1 and rows["batch"]["failures"] == ["failed: indeterminate system"]
+    assert rows["batch"]["pos_rms_m"] == pytest.approx(0.04)
+    # consistent NEES from 2 runs: mean near 3 and not flagged
+    assert abs(rows["ekf"]["nees_mean"] - 3.0) < 0.3 and not rows["ekf"]["nees_overconfident"]
+    table = C.markdown_table(C.aggregate(results))
+    assert "| lab | batch | 1/2 |" in table and "| lab | ekf | 2/2 |" in table
+    text = "\n".join(C.consistency_sentences(C.aggregate(results)))
+    assert "batch position RMS is 0.27x the EKF's" in text
+
+
+def test_job_on_missing_run_is_a_failed_result(tmp_path: Path) -> None:
+    res = C.run_job(C.Job("x", 0, str(tmp_path / "absent"), "ekf", str(tmp_path / "out")))
+    assert res.status.startswith("failed") and "absent" in res.status
+
+
+def test_unknown_run_and_backend_raise(tmp_path: Path) -> None:
+    with pytest.raises(C.CompareError):
+        C.compare(["no-such-thing"], out=tmp_path)
+    with pytest.raises(C.CompareError):
+        C.compare(["lab"], backends=("kalman",), out=tmp_path)
