@@ -252,6 +252,35 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_slam)
 
 
+# --------------------------------------------------------------------------- compare
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.compare import compare, markdown_table
+
+    backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
+    features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
+    rows = compare(args.runs, backends=backends, seeds=args.seeds, out=Path(args.out),
+                   workers=args.workers, frames=args.frames, features=features,
+                   duration=args.duration, progress=not args.no_progress)
+    print(markdown_table(rows))
+    print(f"report: {Path(args.out) / 'report.md'} (also report.html, summary.json, figures/)")
+    return 1 if any(r["failed"] for r in rows) else 0
+
+
+def _add_compare(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("compare", help="compare EKF against smoothing over runs and seeds")
+    p.add_argument("runs", nargs="+", help="run directories, world names (simulated per seed), or mrclam / mrclam-gated")
+    p.add_argument("--backends", default="ekf,isam2,batch", help="comma-separated (default ekf,isam2,batch)")
+    p.add_argument("--seeds", type=int, default=1, help="Monte Carlo seeds per simulated world (default 1)")
+    p.add_argument("--out", required=True, help="report directory")
+    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--frames", default="auto", choices=["auto", "images", "truth"],
+                   help="measurements: auto (frontend on images / range-bearing), images, truth projections")
+    p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners (default: backend config)")
+    p.add_argument("--duration", type=float, default=None, help="seconds per simulated run (default whole path)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_compare)
+
+
 # --------------------------------------------------------------------------- localize
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
@@ -292,6 +321,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_build_map,
     _add_show_map,
     _add_slam,
+    _add_compare,
     _add_localize,
 ]
 
