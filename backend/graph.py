@@ -58,7 +58,7 @@ from lampsam.backend.models import Obs, initialize, observations_from_frame, pre
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import coords_D_tangent, wrap_angle
 from lampsam.factors.gtsam_factors import bearing_range_factor, odometry_factor
-from lampsam.factors.motion import DEFAULT_FLOOR_VAR, accumulate_odometry
+from lampsam.factors.motion import accumulate_odometry
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +226,8 @@ class GraphSlam(SlamBackend):
             for _ in range(self.config.isam2.extra_updates):
                 self.isam.update()
         except RuntimeError as exc:
-            raise EstimationError(f"iSAM2 update failed at keyframe {self._k}: {exc}") from exc
+            raise EstimationError(
+                f"iSAM2 update failed at keyframe {self._k}: {type(exc).__name__} {exc}") from exc
         self._new_graph = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._kf_pose = _pose_array(self.isam.calculateEstimatePose2(X(self._k)))
@@ -354,7 +355,7 @@ class GraphSlam(SlamBackend):
         wheel = np.concatenate(self._wheel_since_kf) if self._wheel_since_kf else np.zeros((0, 2))
         w = self.wheel
         delta, cov = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
-                                         DEFAULT_FLOOR_VAR)
+                                         self.config.isam2.odometry_floor_var)
         k = self._k + 1
         self._add_value(X(k), gtsam.Pose2(*pose))
         self._add_factor(odometry_factor(X(k - 1), X(k), delta, cov))
