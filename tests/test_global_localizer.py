@@ -13,6 +13,7 @@ from lampsam.factors.geometry import compose, wrap_angle
 from lampsam.localization.global_localizer import (
     DriveFrame,
     EnvironmentMaps,
+    FilterConfig,
     GlobalLocalizerConfig,
     Mode,
     TurnFrame,
@@ -171,3 +172,25 @@ def test_kidnapped_after_convergence_is_detected_and_recovered(rng: np.random.Ge
     assert res2.success and res2.restarts >= 1  # and the robot is found again
     e_xy, e_th = _error(res2.pose, world.pose)
     assert e_xy < 0.15 and e_th < np.deg2rad(5.0)
+
+
+def test_modes_without_verification_do_not_drive(rng: np.random.Generator) -> None:
+    world = SyntheticWorld(rng, np.array([3.7, 2.2, 0.9]))
+    cfg = GlobalLocalizerConfig(mode=Mode.GRID_ONLY, filter=FilterConfig(n_uniform=4000))
+    res = localize(world, world.maps(), cfg, np.random.default_rng(3))
+    assert res.robot_time["verification"] == 0.0 and res.restarts == 0
+    assert res.attempts[0].n_candidates == 0  # grid map only: no spatial features used
+    assert res.compute_time["filter"] > 0.0
+    assert np.allclose(res.covariance, res.covariance.T)
+
+
+def test_cli_localize_reports_a_missing_map(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from lampsam.cli import main
+
+    rc = main(
+        ["localize", str(tmp_path), "--map", str(tmp_path / "nomap"), "--out", str(tmp_path / "o")]
+    )
+    assert rc == 2
+    assert "manifest not found" in capsys.readouterr().err
