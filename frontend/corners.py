@@ -154,7 +154,7 @@ def detect_corner_pixels(
     kps = fast.detect(image, allowed)
     if not kps:
         return _empty(p)
-    pts = cv2.KeyPoint_convert(kps).astype(np.float64).reshape(-1, 2)
+    pts = np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float64).reshape(-1, 2)
     resp = np.array([kp.response for kp in kps], dtype=np.float64)
     # Bound the work on large images: the strongest candidates only.
     cap = 20 * config.max_corners

@@ -107,11 +107,16 @@ class LampDetectorConfig:
         min_blob_contrast_grey: a blob whose level (median inside) is less
             than this above its background ring is not a lamp (specular
             highlights on bright ducts; default 60).
-        max_peak_drop_grey: a blob whose brightest pixel is more than this
+        max_peak_drop_grey: a blob whose fifth-brightest pixel is more than this
             below the image's lamp peak (the brightest level reached by
             ``min_area_px`` pixels) is not a lamp: lamps are light sources and
             saturate or nearly, specular highlights on ducts and walls are
-            dimmer (default 22; None disables).
+            dimmer (default 15; None disables).
+        max_peak_drop_thin_grey: the same for blobs thinner than
+            ``thin_width_px``, whose brightest pixel area sampling dims
+            (default 25).
+        thin_width_px: short-axis width ``sqrt(12 lambda_min)`` below which a
+            blob is thin (default 3 px).
         min_area_px: smaller blobs are rejected (default 6).
         max_area_fraction: blobs larger than this fraction of the image are
             rejected (glare, a window; default 0.2).
@@ -135,7 +140,9 @@ class LampDetectorConfig:
     min_contrast_grey: float = 30.0
     min_relative_level: float = 0.5
     min_blob_contrast_grey: float = 60.0
-    max_peak_drop_grey: float | None = 22.0
+    max_peak_drop_grey: float | None = 15.0
+    max_peak_drop_thin_grey: float = 25.0
+    thin_width_px: float = 3.0
     min_area_px: int = 6
     max_area_fraction: float = 0.2
     ratio_threshold: float = 1.5
@@ -292,6 +299,26 @@ def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
         config.min_relative_level * (peak - median), 0.5 * config.min_contrast_grey
     )
     return max(k, floor)
+
+
+def _too_dim(grey: FloatArray, core: np.ndarray, peak: float, config: LampDetectorConfig) -> bool:
+    """Whether a blob is too dim to be a light source (see ``max_peak_drop_grey``).
+
+    A blob at least ``thin_width_px`` wide must reach ``peak - max_peak_drop_grey``
+    with its fifth-brightest pixel (robust to a few noisy pixels); a thinner one is
+    dimmed by area sampling, so its brightest pixel need only reach
+    ``peak - max_peak_drop_thin_grey``.
+    """
+    assert config.max_peak_drop_grey is not None
+    m = cv2.moments(core.astype(np.uint8), binaryImage=True)
+    area = max(m["m00"], 1.0)
+    a, b, c = m["mu20"] / area, m["mu11"] / area, m["mu02"] / area
+    lam_min = 0.5 * (a + c - math.sqrt(max((a - c) ** 2 + 4 * b * b, 0.0))) + 1.0 / 12.0
+    if math.sqrt(12.0 * max(lam_min, 0.0)) < config.thin_width_px:
+        return float(grey[core].max()) < peak - config.max_peak_drop_thin_grey
+    vals = grey[core]
+    level = float(np.partition(vals, vals.size - 5)[vals.size - 5]) if vals.size > 5 else vals.min()
+    return level < peak - config.max_peak_drop_grey
 
 
 def _fill_ratio(mask: np.ndarray) -> float:
@@ -563,7 +590,7 @@ def measure_blobs(
         others = (lab_roi != 0) & ~core
         grey = image[r0:r1, c0:c1].astype(np.float64)
         if config.max_peak_drop_grey is not None:
-            if float(grey[core].max()) < peak - config.max_peak_drop_grey:
+            if _too_dim(grey, core, peak, config):
                 n_rejected += 1
                 continue
         regions = [core]
