@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.backend.stereo import StereoResult
+from lampsam.backend.stereo_kitti import KittiTwoPointResult
 from lampsam.errors import LampsamError
 
 log = logging.getLogger(__name__)
@@ -231,3 +232,60 @@ def stereo_job(run_dir: Path, estimator: str, out: Path) -> dict[str, Any]:
         json.dump(summary, fh, indent=2)
     log.info("stereo %s on %s: %s", estimator, run_dir, summary.get("rms"))
     return summary
+
+
+# --------------------------------------------------------------------------- KITTI
+def kitti_summary(result: KittiTwoPointResult) -> dict[str, Any]:
+    """Numbers of the KITTI two-point check (see :mod:`lampsam.backend.stereo_kitti`).
+
+    Returns:
+        ``frames``, ``scored``, ``pairs``; relative motion anchor -> k errors
+        (``rel_rms``, ``rel_median_abs``: x m, y m, heading rad); the chained
+        trajectory's final error (``final_error``: x, y m, heading rad) and path
+        length; the eq. 2 check on moved points (``model_px``: median, RMS, p90,
+        fraction within 1 px, count).
+    """
+    e = result.rel_error[result.scored]
+    steps = np.linalg.norm(np.diff(result.truth[:, :2], axis=0), axis=1)
+    final = pose_errors(result.estimate[-1:], result.truth[-1:])[0]
+    res = np.abs(result.model_residual_px)
+    return {
+        "frames": len(result.truth), "scored": int(result.scored.sum()),
+        "pairs": int(result.n_pairs),
+        "rel_rms": np.sqrt(np.mean(e**2, axis=0)).tolist(),
+        "rel_median_abs": np.median(np.abs(e), axis=0).tolist(),
+        "final_error": final.tolist(), "path_length_m": float(steps.sum()),
+        "model_px": {"median": float(np.median(res)), "rms": float(np.sqrt(np.mean(res**2))),
+                     "p90": float(np.percentile(res, 90)),
+                     "within_1px": float(np.mean(res < 1.0)), "count": int(len(res))},
+    }
+
+
+def plot_kitti_trajectory(ax: Any, result: KittiTwoPointResult) -> list[Any]:
+    """Top view (paper axes: x forward, y left of the frame-0 rig): truth and chain."""
+    artists = ax.plot(result.truth[:, 0], result.truth[:, 1], "k--", label="KITTI ground truth")
+    artists += ax.plot(result.estimate[:, 0], result.estimate[:, 1], ".-", color="tab:red",
+                       ms=3, label="two-point raw, chained")
+    ax.set_xlabel("x forward of frame 0 (m)")
+    ax.set_ylabel("y left of frame 0 (m)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    return artists
+
+
+def plot_kitti_errors(ax: Any, result: KittiTwoPointResult) -> list[Any]:
+    """Relative-motion errors (anchor -> k) per frame: x, y (m) and heading (deg, right axis)."""
+    k = np.nonzero(result.scored)[0]
+    e = result.rel_error[k]
+    artists = ax.plot(k, e[:, 0], ".-", label="x error (m)")
+    artists += ax.plot(k, e[:, 1], ".-", label="y error (m)")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("relative motion error (m)")
+    ax.grid(True, alpha=0.3)
+    ax2 = ax.twinx()
+    artists += ax2.plot(k, np.degrees(e[:, 2]), ".-", color="tab:green",
+                        label="heading error (deg)")
+    ax2.set_ylabel("heading error (deg)")
+    ax.legend(loc="upper left", fontsize=8)
+    ax2.legend(loc="upper right", fontsize=8)
+    return artists
