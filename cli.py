@@ -312,6 +312,47 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_localize)
 
 
+# --------------------------------------------------------------------------- frontend-eval
+def _cmd_frontend_eval(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.frontend_eval import evaluate_run
+
+    res = evaluate_run(Path(args.run), out=args.out, max_frames=args.max_frames)
+    print(res.summary())
+    return 0 if all(res.targets_met.values()) else 1
+
+
+def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "frontend-eval", help="measure the ceiling frontend against a simulated run's truth"
+    )
+    p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
+    p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
+    p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    p.set_defaults(func=_cmd_frontend_eval)
+
+
+# --------------------------------------------------------------------------- gallery
+def _cmd_gallery(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.gallery import make_gallery
+
+    entries = make_gallery(Path(args.photos), Path(args.out), full_size=not args.small_only)
+    for e in entries:
+        print(
+            f"{e.name} {e.width}x{e.height}: {e.n_lamps} lamps ({e.n_oriented} oriented), "
+            f"{e.n_border} at the border, {e.n_corners} corners, {e.time_ms:.1f} ms"
+        )
+    print(f"gallery written to {args.out}")
+    return 0
+
+
+def _add_gallery(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("gallery", help="ceiling frontend overlays on a folder of photos")
+    p.add_argument("photos", help="folder of .jpg/.png ceiling photos")
+    p.add_argument("--out", required=True, help="gallery PNG to write")
+    p.add_argument("--small-only", action="store_true", help="only 320x240, not full size")
+    p.set_defaults(func=_cmd_gallery)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
@@ -323,6 +364,8 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_slam,
     _add_compare,
     _add_localize,
+    _add_frontend_eval,
+    _add_gallery,
 ]
 
 
