@@ -33,6 +33,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
+import cv2
 import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.errors import LocalizationError
@@ -250,8 +251,6 @@ class LikelihoodFieldModel:
         Returns:
             (P, B) float32.
         """
-        import cv2
-
         g = self.grid
         inv_res = 1.0 / g.resolution
         # Beam vectors in map cell units (map axes rotated by the origin yaw).

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.errors import LocalizationError
-from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, occupied_mask
+from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, free_mask, occupied_mask
 from scipy import ndimage
 
 log = logging.getLogger(__name__)
@@ -208,8 +208,6 @@ class RangeTable:
         Returns:
             The table.
         """
-        from lampsam.localization.grid import free_mask
-
         if max_range > 65.5:
             raise RaycastError(f"max_range {max_range} m does not fit uint16 millimetres")
         occupied = occupied_mask(grid)
