@@ -287,5 +287,5 @@ def plot_kitti_errors(ax: Any, result: KittiTwoPointResult) -> list[Any]:
                         label="heading error (deg)")
     ax2.set_ylabel("heading error (deg)")
     ax.legend(loc="upper left", fontsize=8)
-    ax2.legend(loc="upper right", fontsize=8)
+    ax2.legend(loc="lower right", fontsize=8)
     return artists
