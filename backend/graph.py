@@ -11,25 +11,27 @@ Both build the same graph (DESIGN sec. 4):
   ``BearingRangeFactor2D``; :class:`lampsam.backend.ceiling_graph.CeilingHandler`
   for lamps and corners).
 
-Keyframes: a frame becomes a keyframe when the robot has moved
-``keyframe_distance`` or turned ``keyframe_angle`` since the last one (or always,
-``every_frame``); other frames' observations are not used by the smoothers. Between
-keyframes the current pose is the last keyframe estimate composed with the
-odometry since then, with the covariance propagated to first order
+Keyframes: every frame with observations (``every_frame``, the default), or a frame
+after the robot has moved ``keyframe_distance`` or turned ``keyframe_angle`` since
+the last keyframe; the smoothers do not use other frames' observations. Between
+keyframes the current pose is the last keyframe estimate composed with the odometry
+since then, with the covariance propagated to first order
 (``Sigma = Ad(delta^-1) Sigma_k Ad(delta^-1)^T + Sigma_delta`` in the right tangent).
 
 New variables are initialised from the current estimate plus odometry, never from a
-file's dead reckoning (DESIGN sec. 6). A landmark enters the graph only when it has
-``min_observations`` observations (delayed, so a single sight never makes an
-indeterminate system); until then it is "pending" with its first-sight estimate and
-covariance (eq. 25's marginal), against which association gates too. Pending
-landmarks that never get a second observation are pruned with a warning.
+file's dead reckoning (DESIGN sec. 6). A landmark enters the graph at its first
+sight, initialised like the EKF's (eqs. 24-25; ceiling landmarks also get the
+height prior, so a single sight is never an indeterminate system). Landmarks with
+fewer than ``min_observations`` observations are left out of the reported map, with
+a warning.
 
-Association uses iSAM2's marginals (``marginalCovariance`` of the pose and of each
-candidate landmark; the pose-landmark cross term is neglected). The batch backend
-runs the same online pass (``init = "isam2"``) or a pure odometry pass
-(``init = "odometry"``: running estimate = dead reckoning, suitable with known
-association) and then one LM over the whole graph.
+Association (eqs. 19-20) uses iSAM2's joint marginal of the last keyframe pose and
+each candidate landmark, propagated to the current pose, so the pose-landmark
+cross-covariance is kept (without it the gate is far too wide and MRCLAM's
+gate-only run diverged). The batch backend runs the same online pass
+(``init = "isam2"``) or a pure odometry pass (``init = "odometry"``: running
+estimate = dead reckoning, gating then without cross-covariance: meant for known
+association) and then one LM over the whole graph, with Huber noise if configured.
 """
 
 from __future__ import annotations
@@ -103,9 +105,9 @@ class _Landmark:
     kind: str
     in_graph: bool
     n_obs: int
-    state: FloatArray  # EKF-form estimate (pending: first sight; in graph: cache)
-    cov: FloatArray  # its covariance (pending: eq. 25 marginal; in graph: cache)
-    pending: list[tuple[int, Obs]] = field(default_factory=list)  # (keyframe, obs)
+    state: FloatArray  # EKF-form estimate (refreshed from iSAM2 when gating)
+    cov: FloatArray  # first-sight covariance (eq. 25 marginal), used without iSAM2
+    pending: list[tuple[int, Obs]] = field(default_factory=list)  # (keyframe, obs) to add
     patch: Any = None
     oriented: bool = False
 
@@ -186,7 +188,6 @@ class GraphSlam(SlamBackend):
         self._landmarks: dict[int, _Landmark] = {}
         self._next_id = 0
         self._last_t = -math.inf
-        self._pending_update = True
         # per-step records
         self._times: list[float] = []
         self._step_kf: list[int] = []
@@ -427,7 +428,7 @@ class GraphSlam(SlamBackend):
             self._enter_graph(lm)
 
     def _enter_graph(self, lm: _Landmark) -> None:
-        """Insert a pending landmark and all its factors (delayed initialisation)."""
+        """Insert a landmark's variables, priors and its buffered factors."""
         handler = self.handlers.get(lm.kind)
         if handler is None:
             raise EstimationError(f"no graph handler for landmark kind {lm.kind!r}")

@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field
-from typing import Union
+from typing import TypeAlias
 
 import numpy as np
-
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
 
-Frame = Union[CeilingFrame, RangeBearingFrame]
+#: A measurement frame the backends accept.
+Frame: TypeAlias = CeilingFrame | RangeBearingFrame
 
 #: Landmark types written to ``landmarks.csv``.
 LANDMARK_TYPES = ("lamp", "corner", "point2")

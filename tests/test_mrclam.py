@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tests.conftest import require_shared
-
 from lampsam.backend.slam import errors_vs_truth, run_slam
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.mrclam import (
@@ -17,6 +15,8 @@ from lampsam.datasets.mrclam import (
 )
 from lampsam.errors import DatasetError
 from lampsam.factors.motion import accumulate_odometry
+
+from tests.conftest import require_shared
 
 
 def test_wheel_travel_inverts_the_motion_model() -> None:
@@ -67,9 +67,9 @@ def test_mrclam_run_written_and_ekf_beats_dead_reckoning(tmp_path) -> None:
     run = read_run(run_dir)
     assert run.range_bearing is not None and len(run.range_bearing) > 100
     ekf = run_slam(run_dir, "ekf")
+    from lampsam.backend.config import SlamConfig
     from lampsam.backend.ekf import EkfSlam
     from lampsam.backend.slam import drive, iter_steps, start_pose_of
-    from lampsam.backend.config import SlamConfig
 
     dr = drive(EkfSlam(run.rig.odometry, SlamConfig(), start_pose_of(run)),
                iter_steps(run.odometry, []))
