@@ -49,6 +49,7 @@ from lampsam.localization.particle_filter import (
     KldConfig,
     ParticleFilter,
     ParticleFilterConfig,
+    normalise_log_weights,
     sample_candidate_discs,
     sample_free_space,
 )
@@ -201,6 +202,10 @@ class FilterConfig:
             space in addition to the candidates' (when a changed environment
             leaves only wrong candidates, the paper's filter cannot recover
             until verification fails). Default 5000.
+        uniform_share_in_ours: prior probability mass of those uniform
+            particles (the candidates share the rest): the SIFT candidates are
+            evidence, a uniform particle must out-score them by a large
+            likelihood ratio to win. Default 0.05.
     """
 
     particles_per_candidate: int = 300
@@ -219,6 +224,7 @@ class FilterConfig:
     )
     kld_in_ours: bool = True
     uniform_in_ours: int = 5000
+    uniform_share_in_ours: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -423,6 +429,12 @@ def _filter_stage(
             pf_candidates(cands), fc.particles_per_candidate, config.candidates.sigma_theta, rng
         )
         pf.init_particles(np.vstack([disc, sample_free_space(maps.grid, fc.uniform_in_ours, rng)]))
+        share = min(max(fc.uniform_share_in_ours, 1e-6), 1.0 - 1e-6)
+        prior = np.concatenate([
+            np.full(len(disc), np.log((1.0 - share) / len(disc))),
+            np.full(fc.uniform_in_ours, np.log(share / fc.uniform_in_ours)),
+        ])  # fmt: skip
+        pf.log_weights = normalise_log_weights(prior)
     elif cands and config.mode is not Mode.GRID_ONLY:
         pf.init_candidates(
             pf_candidates(cands), fc.particles_per_candidate, config.candidates.sigma_theta

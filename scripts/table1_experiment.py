@@ -169,7 +169,7 @@ def random_starts(
 
 
 def run_trials(
-    trials: int, work: Path, seed: int, clearance: float, modes: list[Mode]
+    trials: int, work: Path, seed: int, clearance: float, modes: list[Mode], skip: int = 0
 ) -> list[dict[str, object]]:
     """All trials of all modes; one dict per (trial, mode)."""
     map_dir = build_maps(work, seed)
@@ -191,6 +191,8 @@ def run_trials(
     starts = random_starts(grid_now, trials, clearance, np.random.default_rng(seed))
     rows: list[dict[str, object]] = []
     for i, start in enumerate(starts):
+        if i < skip:
+            continue
         for mode in modes:
             robot = OfficeRobot(
                 renderer,
@@ -255,6 +257,7 @@ def table(rows: list[dict[str, object]], modes: list[Mode]) -> str:
         "| localisation time (s) | position error (cm) | heading error (deg) | restarts |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
+
     def mean(key: str, sel: list[dict[str, object]]) -> float:
         vals = [float(x[key]) for x in sel]  # type: ignore[arg-type]
         return float(np.mean(vals)) if vals else float("nan")
@@ -283,12 +286,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m")
     ap.add_argument("--modes", default=",".join(m.value for m in Mode))
+    ap.add_argument("--skip", type=int, default=0, help="skip the first trials (debugging)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     modes = [Mode(m) for m in args.modes.split(",")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes)
+    rows = run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes, args.skip)
     (out / "trials.json").write_text(json.dumps(rows, indent=1))
     md = table(rows, modes)
     (out / "table1.md").write_text(md + "\n")
