@@ -78,8 +78,9 @@ class Mode(enum.Enum):
     GRID_ONLY: particles everywhere in free space, no candidates, no verification.
     NO_CEILING: candidates + particle filter, no ceiling verification.
     PROPOSED: candidates + particle filter + ``R_loc`` verification (the paper).
-    OURS: candidates + particle filter with the likelihood field and an adaptive
-        (KLD) sample size + sequential verification.
+    OURS: candidates plus a few uniform particles (5 % prior mass), particle
+        filter with the likelihood field and an adaptive (KLD) sample size,
+        sequential verification (decides after about 0.3 m instead of 2 m).
     """
 
     GRID_ONLY = "grid_only"

@@ -40,15 +40,15 @@ class VirtualScanConfig:
     """Which depth points make up the virtual scan.
 
     Attributes:
-        z_min: lowest point height kept (m above the floor). Default 0.05 m.
-        z_max: highest point height kept (m). Default 1.8 m (below door frames
-            and the ceiling).
+        z_min: lowest point height kept (m above the floor). Default 0.08 m,
+            the grid map's band (``envmap.DepthGridConfig.height_band``).
+        z_max: highest point height kept (m). Default 1.8 m (same band).
         min_range: nearer points are dropped (m); the Kinect's minimum depth
             is about 0.5 m along the optical axis. Default 0.3 m.
         max_range: farther points are dropped (m). Default 4.5 m.
     """
 
-    z_min: float = 0.05
+    z_min: float = 0.08
     z_max: float = 1.8
     min_range: float = 0.3
     max_range: float = 4.5
