@@ -290,15 +290,15 @@ class StereoEkf:
         self.run, self.cfg = run, cfg
         self.x: FloatArray | None = None
         self.P: FloatArray | None = None
-        self.R = measurement_cov(run)
+        self.cov_meas = measurement_cov(run)  # the paper's R, px^2
 
     def predict(self, dt: float, v_dt: float, omega_dt: float) -> None:
         """Eqs. 6-8: ``x = f(x)``, ``P = A P A^T + Q`` with ``Q`` from the odometry noise."""
         assert self.x is not None and self.P is not None
         jac = coords_D_tangent(self.x[2])
-        q = jac @ motion_tangent_cov(self.run, dt) @ jac.T
+        cov_motion = jac @ motion_tangent_cov(self.run, dt) @ jac.T  # the paper's Q
         self.x, a, _ = motion_model(self.x, v_dt, omega_dt)
-        self.P = a @ self.P @ a.T + q
+        self.P = a @ self.P @ a.T + cov_motion
 
     def update(self, z: FloatArray) -> str:
         """Eqs. 9-12; returns the status (the update is skipped unless ``ok``)."""
@@ -310,7 +310,7 @@ class StereoEkf:
         h, h_D_tangent = two_point_measurement(self.x, pts, rig.baseline, rig.f_px)
         H = h_D_tangent @ coords_D_tangent(self.x[2]).T  # eq. 9, coordinates
         innov = z - h
-        S = H @ self.P @ H.T + self.R
+        S = H @ self.P @ H.T + self.cov_meas
         if self.cfg.gate_chi2 > 0 and float(innov @ np.linalg.solve(S, innov)) > self.cfg.gate_chi2:
             return GATED
         K = np.linalg.solve(S, H @ self.P).T  # eq. 10 (S and P symmetric)

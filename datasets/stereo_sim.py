@@ -28,9 +28,8 @@ from __future__ import annotations
 import csv
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml
@@ -165,7 +164,6 @@ class StereoRun:
     truth: FloatArray | None
     scenario: str = ""
     seed: int = -1
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.t)
