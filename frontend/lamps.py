@@ -59,6 +59,7 @@ union, not of a lamp) and a debug message is logged.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -349,10 +350,10 @@ def _hist_median(hist: FloatArray) -> float:
 
 def _abs_dev_median(hist: FloatArray, centre: float) -> float:
     """Median absolute deviation from ``centre`` of a grey-level histogram."""
-    dev = np.abs(np.arange(256) - centre)
-    order = np.argsort(dev, kind="stable")
-    cum = np.cumsum(hist[order])
-    return float(dev[order][np.searchsorted(cum, 0.5 * cum[-1])])
+    dev = np.abs(np.arange(256) - round(centre))
+    folded = np.bincount(dev, weights=hist, minlength=256)
+    cum = np.cumsum(folded)
+    return float(np.searchsorted(cum, 0.5 * cum[-1]))
 
 
 def _median(grey: FloatArray, mask: np.ndarray) -> float:
@@ -430,7 +431,9 @@ def coverage_moments(
     return centroid, cov_c, np.array([a, b, c]), var_theta, theta, total, span
 
 
+@functools.lru_cache(maxsize=16)
 def _disk(radius: int) -> np.ndarray:
+    """Elliptic structuring element of the given radius (cached)."""
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
@@ -474,6 +477,24 @@ def _measure_region(
     )
 
 
+def label_blobs(binary: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """8-connected labelling with statistics (the paper's grassfire labelling).
+
+    Uses 16-bit labels whenever the image cannot hold 65535 components (at most
+    one per 2x2 block): OpenCV computes the statistics about 3x faster then.
+
+    Args:
+        binary: shape (H, W) uint8, non-zero = foreground.
+
+    Returns:
+        ``(n, labels (H, W), stats (n, 5))`` as ``cv2.connectedComponentsWithStats``.
+    """
+    h, w = binary.shape
+    ltype = cv2.CV_16U if ((h + 1) // 2) * ((w + 1) // 2) < 65535 else cv2.CV_32S
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, None, None, None, 8, ltype)
+    return int(n), labels, stats
+
+
 def _split_glare(
     grey_roi: FloatArray, core: np.ndarray, k: float, config: LampDetectorConfig
 ) -> list[np.ndarray] | None:
@@ -485,9 +506,7 @@ def _split_glare(
     peak = float(grey_roi[core].max())
     for frac in (0.35, 0.6, 0.8):
         level = k + frac * (peak - k)
-        n, lab, stats, _ = cv2.connectedComponentsWithStats(
-            (core & (grey_roi > level)).astype(np.uint8), connectivity=8
-        )
+        n, lab, stats = label_blobs((core & (grey_roi > level)).astype(np.uint8))
         big = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= config.min_area_px]
         if len(big) >= 2:
             return [lab == i for i in big]
@@ -572,7 +591,7 @@ def measure_blobs(
     if k is None:
         return [], None, mask, 0
     binary = (image > k).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    n, labels, stats = label_blobs(binary)
     areas = stats[1:, cv2.CC_STAT_AREA]
     size_ok = (areas >= config.min_area_px) & (areas <= config.max_area_fraction * h * w)
     keep = np.flatnonzero(size_ok)
