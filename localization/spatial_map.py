@@ -285,10 +285,13 @@ def merge_duplicates(
     n_comp, label = connected_components(graph, directed=False)
     counts = np.bincount(label, minlength=n_comp)
 
+    # (n_comp, n) membership matrix: one sparse product sums each component
+    member = coo_matrix((np.ones(n), (label, np.arange(n))), shape=(n_comp, n)).tocsr()
+
     def mean_by(values: np.ndarray) -> np.ndarray:
-        out = np.zeros((n_comp,) + values.shape[1:])
-        np.add.at(out, label, values)
-        return out / counts.reshape((-1,) + (1,) * (values.ndim - 1))
+        flat = values.reshape(n, -1).astype(np.float64)
+        out = np.asarray(member @ flat) / counts[:, None]
+        return out.reshape((n_comp,) + values.shape[1:])
 
     first = np.full(n_comp, n, np.int64)
     np.minimum.at(first, label, np.arange(n))
