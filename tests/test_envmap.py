@@ -200,3 +200,46 @@ def test_ceiling_map_round_trip(tmp_path: Path) -> None:
     (tmp_path / "bad.csv").write_text("id,type,x,y,z\n1,lamp,1.0,oops,2.0\n")
     with pytest.raises(Exception, match=r"bad\.csv:2: column 'y'"):
         read_landmark_csv(tmp_path / "bad.csv")
+
+
+def test_laser_grid_of_a_square_room() -> None:
+    """Scans from inside a 6 m x 4 m room: walls occupied, the inside free, outside unknown."""
+    from lampsam.datasets.carmen import LaserScans, carmen_beam_angles
+    from lampsam.localization.envmap import LaserGridConfig, build_laser_grid
+
+    angles = carmen_beam_angles(180)
+    four = [[2.0, 2.0, 0.0], [2.0, 2.0, math.pi], [4.0, 2.0, math.pi / 2], [4.0, 2.0, -math.pi / 2]]
+    poses = np.array(four * 4)  # each view 4 times: enough evidence to pass the thresholds
+    ranges = np.empty((len(poses), len(angles)))
+    for k, (x, y, th) in enumerate(poses):
+        phi = th + angles
+        c, s = np.cos(phi), np.sin(phi)
+        with np.errstate(divide="ignore"):
+            tx = np.where(c > 0, (6.0 - x) / c, np.where(c < 0, -x / c, np.inf))
+            ty = np.where(s > 0, (4.0 - y) / s, np.where(s < 0, -y / s, np.inf))
+        ranges[k] = np.minimum(tx, ty)
+    scans = LaserScans(
+        np.arange(16.0), ranges, angles, poses, poses.copy(), np.arange(1, 17), max_range=80.0
+    )
+    grid, used = build_laser_grid(
+        scans, poses, LaserGridConfig(resolution=0.1, min_move=0.0, min_turn=0.0)
+    )
+    assert used == 16
+    occ, free = occupied_mask(grid), free_mask(grid)
+    centres = grid.cell_centres()
+    on_wall = (np.abs(centres[..., 0]) < 0.05) | (np.abs(centres[..., 0] - 6.0) < 0.05)
+    on_wall |= (np.abs(centres[..., 1]) < 0.05) | (np.abs(centres[..., 1] - 4.0) < 0.05)
+    # every occupied cell touches a wall line (within one cell)
+    near_wall = (
+        np.minimum.reduce([np.abs(centres[..., 0]), np.abs(centres[..., 0] - 6.0)]) < 0.11
+    ) | (np.minimum.reduce([np.abs(centres[..., 1]), np.abs(centres[..., 1] - 4.0)]) < 0.11)
+    assert occ.sum() > 100 and np.all(near_wall[occ])
+    inside = (
+        (centres[..., 0] > 0.5)
+        & (centres[..., 0] < 5.5)
+        & (centres[..., 1] > 0.5)
+        & (centres[..., 1] < 3.5)
+    )
+    assert free[inside].mean() > 0.95
+    outside = (centres[..., 0] < -0.3) | (centres[..., 1] < -0.3)
+    assert not np.any(free[outside] | occ[outside])
