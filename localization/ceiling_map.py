@@ -12,7 +12,8 @@ Sources:
 
 - a SLAM output's ``landmarks.csv`` (any CSV with a header containing ``id``,
   ``type``, ``x``, ``y``, ``z``; optional ``phi``, ``length``, ``width``,
-  ``var_x``, ``cov_xy``, ``var_y``). Its ``z`` may be the height above the
+  ``var_x`` or ``cov_xx``, ``cov_xy``, ``var_y`` or ``cov_yy``: the backend's
+  ``landmarks.csv`` is read as it is). Its ``z`` may be the height above the
   camera (the SLAM state, DESIGN sec. 1); pass ``z_cam`` to convert;
 - the run's true ``landmarks.csv`` (:func:`lampsam.datasets.logrun.read_landmarks`).
 
@@ -162,9 +163,10 @@ def read_landmark_csv(
             types.append(str(row.get("type") or "lamp"))
             rows.append(
                 [x, y, z + z_cam, phi]
+                + [_col(row, c, path, k, math.nan) for c in ("length", "width")]
                 + [
-                    _col(row, c, path, k, math.nan)
-                    for c in ("length", "width", "var_x", "cov_xy", "var_y")
+                    _col(row, c, path, k, _col(row, alt, path, k, math.nan))
+                    for c, alt in (("var_x", "cov_xx"), ("cov_xy", "cov_xy"), ("var_y", "cov_yy"))
                 ]
             )
     a = np.array(rows, dtype=float).reshape(-1, 9)

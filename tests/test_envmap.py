@@ -158,16 +158,19 @@ def test_build_map_with_slam_poses_and_missing_pose(tiny_run: Path, tmp_path: Pa
     slam_dir = tmp_path / "slam"
     slam_dir.mkdir()
     write_tum(slam_dir / "trajectory.tum", gt)
-    (slam_dir / "landmarks.csv").write_text(
-        "id,type,x,y,z,phi\n1,lamp,2.0,2.0,2.38,0.1\n1000,corner,0.2,0.2,2.4,nan\n"
+    (slam_dir / "landmarks.csv").write_text(  # the backend's columns (backend/slam.py)
+        "id,type,x,y,z,phi,n_obs,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz,var_phi\n"
+        "1,lamp,2.0,2.0,2.38,0.1,9,0.01,0.002,0,0.02,0,0.03,0.001\n"
+        "1000,corner,0.2,0.2,2.4,nan,4,0.04,0,0,0.05,0,0.06,nan\n"
     )
     report = build_map(tiny_run, tmp_path / "map", poses=f"slam:{slam_dir / 'trajectory.tum'}")
     env = load_env_map(tmp_path / "map")
     assert report.checks["grid_vs_world"]["precision_tol1"] > 0.95
     assert env.ceiling is not None and len(env.ceiling) == 2
-    np.testing.assert_allclose(
-        env.ceiling.xyz[0], [2.0, 2.0, 2.38 + 0.3]
-    )  # z above the camera -> floor
+    # z above the camera (0.3 m, rig.yaml) -> above the floor
+    np.testing.assert_allclose(env.ceiling.xyz[0], [2.0, 2.0, 2.38 + 0.3])
+    np.testing.assert_allclose(env.ceiling.cov_xy[0], [[0.01, 0.002], [0.002, 0.02]])
+    assert math.isnan(env.ceiling.phi[1])
     short = Trajectory(gt.t[gt.t < 4.0], gt.poses[gt.t < 4.0])
     write_tum(slam_dir / "short.tum", short)
     with pytest.raises(EnvMapError, match="no pose for frame"):
