@@ -119,12 +119,15 @@ class DriveFrame:
         ceiling_m: (K, 2) observed ceiling features (lamps and corners) in
             normalised ceiling coordinates (conventions.md).
         ceiling_is_lamp: (K,) bool, which of them are lamps (None: unknown).
+        ceiling_axis: (K,) lamps' long axes in the image (rad, mod pi, the
+            frontend's ``LampObservation.axis``), NaN for none (None: unknown).
     """
 
     t: float
     odom: FloatArray
     ceiling_m: FloatArray
     ceiling_is_lamp: BoolArray | None = None
+    ceiling_axis: FloatArray | None = None
 
 
 class Robot(Protocol):
@@ -150,6 +153,8 @@ class EnvironmentMaps:
         ceiling_xyz: (L, 3) ceiling feature map (lamps, corners), world (m).
         ceiling_body_t_camera: (3,) ceiling camera offset and height (m).
         ceiling_is_lamp: (L,) bool, which ceiling features are lamps (None: unknown).
+        ceiling_phi: (L,) lamps' long axes in the world (rad, mod pi), NaN for
+            none (None: axes not checked).
     """
 
     grid: OccupancyGrid
@@ -158,6 +163,7 @@ class EnvironmentMaps:
     ceiling_xyz: FloatArray
     ceiling_body_t_camera: FloatArray
     ceiling_is_lamp: BoolArray | None = None
+    ceiling_phi: FloatArray | None = None
 
     @classmethod
     def from_env_map(cls, env: EnvironmentMap, body_t_camera: FloatArray) -> EnvironmentMaps:
@@ -176,6 +182,7 @@ class EnvironmentMaps:
             np.zeros((0, 3)) if ce is None else np.asarray(ce.xyz, dtype=float),
             np.asarray(body_t_camera, dtype=float).reshape(3),
             None if ce is None else np.asarray(ce.is_lamp(), dtype=bool),
+            None if ce is None else np.asarray(ce.phi, dtype=float),
         )
 
 
@@ -478,7 +485,11 @@ def _verify_stage(
     """
     vc = config.verification
     checker = CeilingChecker(
-        maps.ceiling_xyz, maps.ceiling_body_t_camera, vc, is_lamp=maps.ceiling_is_lamp
+        maps.ceiling_xyz,
+        maps.ceiling_body_t_camera,
+        vc,
+        is_lamp=maps.ceiling_is_lamp,
+        phi=maps.ceiling_phi,
     )
     verifier: RlocVerifier | SequentialVerifier
     verifier = RlocVerifier(vc) if config.mode is Mode.PROPOSED else SequentialVerifier(vc)
@@ -508,7 +519,7 @@ def _verify_stage(
             pose = compose(pose, delta)
             ds = float(np.hypot(delta[0], delta[1]))
             d += ds
-            outcome = checker.outcome(pose, f.ceiling_m, f.ceiling_is_lamp)
+            outcome = checker.outcome(pose, f.ceiling_m, f.ceiling_is_lamp, f.ceiling_axis)
             evidence |= outcome is not None
             verdict = verifier.update(ds, outcome)
         compute += time.perf_counter() - t0
@@ -660,7 +671,7 @@ class ReplayRobot:
         self.kinect = read_tum_rgbd(kdir)
         self.sift = make_sift()
         self.cursor = float(min(self.t_odom[0], self.kinect.t[0]))
-        self._ceiling: list[tuple[float, FloatArray, BoolArray]] | None = None
+        self._ceiling: list[DriveFrame] | None = None
 
     def _odom_at(self, t: float) -> FloatArray:
         i = int(np.clip(np.searchsorted(self.t_odom, t, side="right") - 1, 0, len(self.t_odom) - 1))
@@ -694,18 +705,21 @@ class ReplayRobot:
                 break
         return frames
 
-    def _ceiling_frames(self) -> list[tuple[float, FloatArray, BoolArray]]:
+    def _ceiling_frames(self) -> list[DriveFrame]:
         if self._ceiling is None:
             from lampsam.frontend.pipeline import iter_run
 
-            out: list[tuple[float, FloatArray, BoolArray]] = []
+            out: list[DriveFrame] = []
             if self.run.images is not None:
                 for f in iter_run(self.run):
                     m = [o.m for o in f.lamps] + [o.m for o in f.corners]
                     kinds = [True] * len(f.lamps) + [False] * len(f.corners)
-                    out.append(
-                        (f.t, np.array(m, dtype=float).reshape(-1, 2), np.array(kinds, bool))
-                    )
+                    axis = [np.nan if o.axis is None else o.axis for o in f.lamps]
+                    axis += [np.nan] * len(f.corners)
+                    out.append(DriveFrame(
+                        f.t, self._odom_at(f.t), np.array(m, dtype=float).reshape(-1, 2),
+                        np.array(kinds, bool), np.array(axis, dtype=float),
+                    ))  # fmt: skip
             self._ceiling = out
         return self._ceiling
 
@@ -713,12 +727,12 @@ class ReplayRobot:
         """Ceiling frames until the recorded path has grown by ``distance``."""
         s0 = self.path[self._index_at(self.cursor)]
         frames: list[DriveFrame] = []
-        for t_f, m, kinds in self._ceiling_frames():
-            if t_f < self.cursor:
+        for f in self._ceiling_frames():
+            if f.t < self.cursor:
                 continue
-            frames.append(DriveFrame(t_f, self._odom_at(t_f), m, kinds))
-            self.cursor = t_f + 1e-6
-            if self.path[self._index_at(t_f)] - s0 >= distance - 1e-9:
+            frames.append(f)
+            self.cursor = f.t + 1e-6
+            if self.path[self._index_at(f.t)] - s0 >= distance - 1e-9:
                 break
         return frames
 

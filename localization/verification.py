@@ -43,6 +43,7 @@ import numpy as np
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.ceiling import project_point
+from lampsam.factors.geometry import wrap_axis
 from lampsam.frontend.measurements import CeilingFrame
 
 log = logging.getLogger(__name__)
@@ -83,6 +84,11 @@ class VerificationConfig:
         beta: accepted rate of missed failures (accepting a wrong pose). Default 0.01.
         step_length: driving distance (m) over which frames count as one
             independent outcome. Default 0.10 m.
+        axis_gate: a lamp with a long axis matches only a map lamp whose
+            predicted image axis ``wrap_axis(phi - theta)`` (conventions.md) is
+            within this (rad) of the observed one. Default 15 deg. Without it a
+            ceiling of strip lamps on a square lattice accepts a pose turned by
+            90 deg.
     """
 
     gate: float = 0.10
@@ -94,6 +100,7 @@ class VerificationConfig:
     alpha: float = 0.01
     beta: float = 0.01
     step_length: float = 0.10
+    axis_gate: float = float(np.deg2rad(15.0))
 
 
 def predict_landmarks(
@@ -109,17 +116,17 @@ def predict_landmarks(
             ``m`` units, i.e. outside any plausible field of view) are dropped.
 
     Returns:
-        (P, 2) predicted ``m`` of the landmarks higher than 0.1 m above the camera
-        and within ``max_norm``.
+        (L, 2) predicted ``m``; NaN rows for landmarks not higher than 0.1 m
+        above the camera or beyond ``max_norm``.
     """
-    out = []
-    for p in landmarks:
+    out = np.full((len(landmarks), 2), np.nan)
+    for i, p in enumerate(landmarks):
         if p[2] - body_t_camera[2] <= MIN_HEIGHT:
             continue
         m, _, _ = project_point(pose, p, body_t_camera)
         if np.hypot(m[0], m[1]) <= max_norm:
-            out.append(m)
-    return np.array(out) if out else np.zeros((0, 2))
+            out[i] = m
+    return out
 
 
 def observed_points(frame: CeilingFrame) -> FloatArray:
@@ -135,25 +142,43 @@ def observed_points(frame: CeilingFrame) -> FloatArray:
     return np.array(ms, dtype=float).reshape(-1, 2)
 
 
-def frame_match(observed: FloatArray, predicted: FloatArray, gate: float) -> tuple[int, int]:
+def frame_match(
+    observed: FloatArray,
+    predicted: FloatArray,
+    gate: float,
+    observed_axis: FloatArray | None = None,
+    predicted_axis: FloatArray | None = None,
+    axis_gate: float = np.pi,
+) -> tuple[int, int]:
     """Count the observed features with a predicted landmark within ``gate``.
 
     Args:
-        observed: (K, 2) observed ``m``.
-        predicted: (P, 2) predicted ``m`` at the estimated pose.
+        observed: (K, 2) observed ``m``; non-finite rows are ignored.
+        predicted: (P, 2) predicted ``m`` at the estimated pose; NaN rows never match.
         gate: Euclidean gate in ``m`` units.
+        observed_axis: (K,) observed lamp axes (rad, mod pi), NaN = none.
+        predicted_axis: (P,) predicted image axes ``wrap_axis(phi - theta)``, NaN = none.
+        axis_gate: when both axes are known they must agree within this (rad, mod pi).
 
     Returns:
         (n_matched, n_observed).
     """
     observed = np.asarray(observed, dtype=float).reshape(-1, 2)
-    observed = observed[np.all(np.isfinite(observed), axis=1)]
+    keep = np.all(np.isfinite(observed), axis=1)
+    observed = observed[keep]
     if len(observed) == 0:
         return 0, 0
+    predicted = np.asarray(predicted, dtype=float).reshape(-1, 2)
     if len(predicted) == 0:
         return 0, len(observed)
     d = np.linalg.norm(observed[:, None, :] - predicted[None, :, :], axis=2)
-    return int(np.count_nonzero(d.min(axis=1) <= gate)), len(observed)
+    ok = np.nan_to_num(d, nan=np.inf) <= gate
+    if observed_axis is not None and predicted_axis is not None:
+        oa = np.asarray(observed_axis, dtype=float).reshape(-1)[keep]
+        pa = np.asarray(predicted_axis, dtype=float).reshape(-1)
+        da = np.abs(np.asarray(wrap_axis(oa[:, None] - pa[None, :])))
+        ok &= ~(np.isfinite(da) & (da > axis_gate))
+    return int(np.count_nonzero(ok.any(axis=1))), len(observed)
 
 
 def frame_outcome(n_matched: int, n_observed: int, config: VerificationConfig) -> bool | None:
@@ -289,6 +314,8 @@ class CeilingChecker:
         config: gate and fraction.
         is_lamp: (L,) bool, which landmarks are lamps; None = kinds unknown
             (all features are matched against all landmarks).
+        phi: (L,) lamps' long axes in the world (rad, mod pi), NaN = no axis;
+            None = axes not checked.
     """
 
     def __init__(
@@ -297,6 +324,7 @@ class CeilingChecker:
         body_t_camera: FloatArray,
         config: VerificationConfig,
         is_lamp: BoolArray | None = None,
+        phi: FloatArray | None = None,
     ) -> None:
         self.landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
         if not np.all(np.isfinite(self.landmarks)):
@@ -306,9 +334,16 @@ class CeilingChecker:
         self.is_lamp = None if is_lamp is None else np.asarray(is_lamp, dtype=bool).reshape(-1)
         if self.is_lamp is not None and len(self.is_lamp) != len(self.landmarks):
             raise VerificationError("is_lamp and the ceiling landmarks differ in length")
+        self.phi = None if phi is None else np.asarray(phi, dtype=float).reshape(-1)
+        if self.phi is not None and len(self.phi) != len(self.landmarks):
+            raise VerificationError("phi and the ceiling landmarks differ in length")
 
     def outcome(
-        self, pose: FloatArray, observed: FloatArray, observed_is_lamp: BoolArray | None = None
+        self,
+        pose: FloatArray,
+        observed: FloatArray,
+        observed_is_lamp: BoolArray | None = None,
+        observed_axis: FloatArray | None = None,
     ) -> bool | None:
         """Match / no match / no evidence for one frame.
 
@@ -316,6 +351,8 @@ class CeilingChecker:
             pose: (3,) estimated ``world_T_body``.
             observed: (K, 2) observed ``m`` (lamps and corners).
             observed_is_lamp: (K,) bool kinds of the observations, or None.
+            observed_axis: (K,) observed lamp axes in the image (rad, mod pi),
+                NaN for none, or None.
 
         Returns:
             True (match), False (no match) or None (nothing observed).
@@ -324,19 +361,24 @@ class CeilingChecker:
         if len(observed) == 0:
             return None
         pose = np.asarray(pose, dtype=float)
+        k = len(observed)
+        oa = None if observed_axis is None else np.asarray(observed_axis, float).reshape(k)
+        pa = None if self.phi is None else np.asarray(wrap_axis(self.phi - pose[2]))
+        pred = predict_landmarks(pose, self.landmarks, self.body_t_camera)
+        gate, agate = self.config.gate, self.config.axis_gate
         if self.is_lamp is None or observed_is_lamp is None:
-            pred = predict_landmarks(pose, self.landmarks, self.body_t_camera)
-            n_ok, n = frame_match(observed, pred, self.config.gate)
-            return frame_outcome(n_ok, n, self.config)
+            return frame_outcome(*frame_match(observed, pred, gate, oa, pa, agate), self.config)
         kinds = np.asarray(observed_is_lamp, dtype=bool).reshape(-1)
         result: bool | None = None
         for kind in (True, False):
-            obs = observed[kinds == kind]
-            if len(obs) == 0:
+            sel, lm = kinds == kind, self.is_lamp == kind
+            if not sel.any():
                 continue
-            pred = predict_landmarks(pose, self.landmarks[self.is_lamp == kind], self.body_t_camera)
-            ok = frame_outcome(*frame_match(obs, pred, self.config.gate), self.config)
-            if ok is False:
+            n_ok, n = frame_match(
+                observed[sel], pred[lm], gate,
+                None if oa is None else oa[sel], None if pa is None else pa[lm], agate,
+            )  # fmt: skip
+            if frame_outcome(n_ok, n, self.config) is False:
                 return False
             result = True
         return result

@@ -39,7 +39,7 @@ from lampsam.datasets.logrun import read_run
 from lampsam.datasets.rgbd import RgbdCamera, camera_from_yaml
 from lampsam.datasets.scene3d import apply_changes, load_scene, obstacle_footprints
 from lampsam.factors.ceiling import project_point
-from lampsam.factors.geometry import compose, wrap_angle
+from lampsam.factors.geometry import compose, wrap_angle, wrap_axis
 from lampsam.localization.envmap import build_map, footprint_mask, load_env_map
 from lampsam.localization.global_localizer import (
     DriveFrame,
@@ -91,6 +91,7 @@ class OfficeRobot:
     ceiling_is_lamp: np.ndarray
     ceiling_cam: np.ndarray
     ceiling_camera: object
+    ceiling_phi: np.ndarray
     pose: np.ndarray
     rng: np.random.Generator
     odom_sigma: float = 0.01
@@ -127,18 +128,23 @@ class OfficeRobot:
             frames.append(self._kinect())
         return frames
 
-    def _ceiling(self) -> tuple[np.ndarray, np.ndarray]:
-        ms, kinds = [], []
-        for p, lamp in zip(self.ceiling_xyz, self.ceiling_is_lamp, strict=True):
+    def _ceiling(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ms, idx = [], []
+        for i, p in enumerate(self.ceiling_xyz):
             if p[2] - self.ceiling_cam[2] <= 0.1:
                 continue
             ms.append(project_point(self.pose, p, self.ceiling_cam)[0])
-            kinds.append(lamp)
+            idx.append(i)
         m = np.array(ms).reshape(-1, 2)
+        sel = np.array(idx, dtype=int)
         px = self.ceiling_camera.pixels_from_normalized(m)  # type: ignore[attr-defined]
         w, h = self.ceiling_camera.width, self.ceiling_camera.height  # type: ignore[attr-defined]
         vis = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        return m[vis] + self.rng.normal(0, 0.005, (int(vis.sum()), 2)), np.array(kinds)[vis]
+        sel = sel[vis]
+        axis = np.asarray(wrap_axis(self.ceiling_phi[sel] - self.pose[2]))
+        axis = axis + self.rng.normal(0, np.deg2rad(2.0), len(sel))
+        noisy = m[vis] + self.rng.normal(0, 0.005, (len(sel), 2))
+        return noisy, self.ceiling_is_lamp[sel], axis
 
     def drive(self, distance: float) -> list[DriveFrame]:
         dt = 1.0 / self.ceiling_rate
@@ -152,8 +158,8 @@ class OfficeRobot:
             else:
                 self._move(np.array([0.0, 0.0, 0.5 * dt]))
             self.t += dt
-            m, kinds = self._ceiling()
-            frames.append(DriveFrame(self.t, self.odom.copy(), m, kinds))
+            m, kinds, axis = self._ceiling()
+            frames.append(DriveFrame(self.t, self.odom.copy(), m, kinds, axis))
         return frames
 
 
@@ -188,6 +194,8 @@ def run_trials(
     assert lm is not None
     ceiling_xyz = np.asarray(lm.xyz, dtype=float)
     is_lamp = np.array([str(k).startswith("lamp") for k in lm.types])
+    rect = np.array([str(k) == "lamp_rect" for k in lm.types])
+    phi = np.where(rect, np.asarray(lm.phi, dtype=float), np.nan)
     starts = random_starts(grid_now, trials, clearance, np.random.default_rng(seed))
     rows: list[dict[str, object]] = []
     for i, start in enumerate(starts):
@@ -203,6 +211,7 @@ def run_trials(
                 is_lamp,
                 body_t_cam,
                 cam,
+                phi,
                 start.copy(),
                 np.random.default_rng(seed * 1000 + i),
             )

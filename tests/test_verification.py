@@ -166,3 +166,27 @@ def test_lamps_decide_on_a_periodic_corner_lattice() -> None:
     assert typed.outcome(truth, obs, obs_kind) is True
     assert untyped.outcome(wrong, obs) is True  # fooled by the lattice
     assert typed.outcome(wrong, obs, obs_kind) is False
+
+
+def test_lamp_axes_reject_a_pose_turned_by_90_degrees() -> None:
+    # strip lamps on a 2 m square lattice, long axes along world x
+    gx, gy = np.meshgrid(np.arange(1.0, 9.1, 2.0), np.arange(1.0, 9.1, 2.0))
+    lamps = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.7)])
+    phi = np.zeros(len(lamps))
+    truth = np.array([5.0 - CAM[0], 5.0, 0.3])  # camera above the lattice point (5, 5)
+    m = np.array([project_point(truth, p, CAM)[0] for p in lamps])
+    vis = np.hypot(m[:, 0], m[:, 1]) < FOV
+    obs = m[vis]
+    obs_axis = np.full(len(obs), -0.3)  # the image axis: wrap_axis(phi - theta)
+    # turned by 90 deg about the camera centre: same lamp positions in the image
+    c = np.array([5.0, 5.0])
+    th = truth[2] + np.pi / 2
+    turned = np.array([*(c - CAM[0] * np.array([np.cos(th), np.sin(th)])), th])
+    no_axes = CeilingChecker(lamps, CAM, VerificationConfig(), is_lamp=np.ones(len(lamps), bool))
+    axes = CeilingChecker(
+        lamps, CAM, VerificationConfig(), is_lamp=np.ones(len(lamps), bool), phi=phi
+    )
+    kinds = np.ones(len(obs), bool)
+    assert no_axes.outcome(turned, obs, kinds) is True  # the lattice fools positions alone
+    assert axes.outcome(truth, obs, kinds, obs_axis) is True
+    assert axes.outcome(turned, obs, kinds, obs_axis) is False
