@@ -68,7 +68,9 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from lampsam.evaluation.demo import run_demo
 
-    run_demo(Path(args.out))
+    result = run_demo(Path(args.out))
+    print(f"demo run written to {result.run}")
+    print(f"contact sheet: {result.contact_sheet}")
     return 0
 
 
