@@ -80,7 +80,9 @@ def test_lamp_appears_at_pinhole_pixel_heading_zero() -> None:
     pose = np.array([0.0, 0.0, 0.0])
     img = renderer.render_linear(pose)  # float, no noise, no saturation
     col, row = _blob_centroid(img, expected)
-    assert math.hypot(col - expected[0], row - expected[1]) < 0.5
+    # Spec: within 0.5 px. The anti-aliased linear image is in fact far better (measured
+    # < 0.01 px over random poses), so hold it to 0.05 px.
+    assert math.hypot(col - expected[0], row - expected[1]) < 0.05
     # The quantised uint8 image with sensor noise is also within 0.5 px.
     noisy = renderer.render(pose, np.random.default_rng(5))
     col_n, row_n = _blob_centroid(noisy, expected, half=10)
