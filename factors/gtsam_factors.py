@@ -272,6 +272,7 @@ def height_prior_factor(
     xy_guess: FloatArray,
     body_t_camera: FloatArray,
     prior: HeightPrior | None = None,
+    robust: float | None = None,
 ) -> gtsam.PriorFactorPoint3:
     """The 0-5 m height prior on a Cartesian landmark (built-in ``PriorFactorPoint3``).
 
@@ -284,14 +285,16 @@ def height_prior_factor(
         body_t_camera: (3,) camera offset; ``z_cam`` turns height above the camera
             into world ``z``.
         prior: height range, default :class:`HeightPrior` ().
+        robust: optional Huber threshold (rarely useful on a prior; offered for
+            uniformity).
 
     Returns:
         ``gtsam.PriorFactorPoint3``.
     """
     prior = prior or HeightPrior()
     mean = np.array([xy_guess[0], xy_guess[1], body_t_camera[2] + prior.height_mean])
-    sigmas = np.array([LOOSE_SIGMA, LOOSE_SIGMA, prior.height_sigma])
-    return gtsam.PriorFactorPoint3(point_key, mean, gtsam.noiseModel.Diagonal.Sigmas(sigmas))
+    var = np.array([LOOSE_SIGMA, LOOSE_SIGMA, prior.height_sigma]) ** 2
+    return gtsam.PriorFactorPoint3(point_key, mean, noise_model(np.diag(var), robust))
 
 
 # --- lamp axis ------------------------------------------------------------------------
@@ -573,6 +576,7 @@ def inverse_depth_first_sight_prior(
     m: FloatArray,
     cov_m: FloatArray,
     prior: HeightPrior | None = None,
+    robust: float | None = None,
 ) -> gtsam.PriorFactorVector:
     """First sight of an inverse-depth corner plus the height prior, one built-in factor.
 
@@ -587,6 +591,8 @@ def inverse_depth_first_sight_prior(
         m: (2,) normalised coordinates at the anchor.
         cov_m: (2, 2) their covariance.
         prior: height range, default :class:`HeightPrior` ().
+        robust: optional Huber threshold on the whitened 3-vector (the ``rho`` part
+            is within 2 sigma by construction, so in practice it acts on ``alpha``).
 
     Returns:
         ``gtsam.PriorFactorVector`` on the (3,) inverse-depth vector.
@@ -597,7 +603,7 @@ def inverse_depth_first_sight_prior(
     cov[:2, :2] = cov_m
     cov[2, 2] = prior.rho_sigma**2
     mean = np.array([float(m[0]), float(m[1]), prior.rho_mean])
-    return gtsam.PriorFactorVector(corner_key, mean, gtsam.noiseModel.Gaussian.Covariance(cov))
+    return gtsam.PriorFactorVector(corner_key, mean, noise_model(cov, robust))
 
 
 # --- range-bearing --------------------------------------------------------------------
