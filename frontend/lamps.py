@@ -652,6 +652,7 @@ def _measure_labels(
     m: int,
     border: BoolArray,
     config: LampDetectorConfig,
+    origin: tuple[int, int] = (0, 0),
 ) -> list[BlobMoments | None]:
     """Coverage moments of many blobs at once (see the module docstring).
 
@@ -667,9 +668,11 @@ def _measure_labels(
         m: number of blobs.
         border: shape (m + 1,) bool, blob touches the image border.
         config: detector settings.
+        origin: ``(col, row)`` of ``image[0, 0]`` in the full image (a crop).
 
     Returns:
-        One :class:`BlobMoments` (or None: no contrast) per label ``1..m``.
+        One :class:`BlobMoments` (or None: no contrast) per label ``1..m``,
+        centroids in full-image pixels.
     """
     own_img = comp > 0
     other_img = (binary > 0) & ~own_img
@@ -741,7 +744,7 @@ def _measure_labels(
         lam2 = max(0.5 * (ai + ci - disc), 1e-12)
         out.append(
             BlobMoments(
-                centroid=np.array([cx[i], cy[i]]),
+                centroid=np.array([cx[i] + origin[0], cy[i] + origin[1]]),
                 cov_centroid=cov_c,
                 cov_shape=np.array([[ai, bi], [bi, ci]]),
                 theta=wrap_axis(float(theta[i])),
@@ -795,9 +798,14 @@ def measure_blobs(
     border = np.concatenate([[False], (x0 == 0) | (y0 == 0) | (x1 == w) | (y1 == h)])
     remap = np.zeros(n, dtype=np.uint16)
     remap[keep] = np.arange(1, keep.size + 1, dtype=np.uint16)
-    comp = remap[labels]
+    # Work inside the union box of the candidates (plus the ring): lamps are sparse.
+    pad = config.support_px + config.ring_px + 1
+    bx0, by0 = max(int(x0.min()) - pad, 0), max(int(y0.min()) - pad, 0)
+    bx1, by1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
+    box = (slice(by0, by1), slice(bx0, bx1))
+    comp = remap[labels[box]]
     peak = peak_level(grey_histogram(image), config.min_area_px)
-    too_dim, merged = _shape_checks(comp, image, keep.size, peak, config)
+    too_dim, merged = _shape_checks(comp, image[box], keep.size, peak, config)
     n_rejected += int(too_dim.sum())
     good = ~too_dim & ~merged
     good[0] = False
@@ -808,7 +816,13 @@ def measure_blobs(
     out: list[BlobMoments] = []
     if good_ids.size:
         res = _measure_labels(
-            image, binary, comp2, good_ids.size, border[np.r_[0, good_ids]], config
+            image[box],
+            binary[box],
+            comp2,
+            good_ids.size,
+            border[np.r_[0, good_ids]],
+            config,
+            origin=(bx0, by0),
         )
         for mom in res:
             if mom is None:
@@ -817,9 +831,8 @@ def measure_blobs(
                 out.append(mom)
         ok_lab = np.zeros(good_ids.size + 1, dtype=bool)
         ok_lab[1:] = [mom is not None for mom in res]
-        mask |= ok_lab[comp2]
+        mask[box] |= ok_lab[comp2]
     # Glare-merger candidates: per region, re-thresholded higher.
-    pad = config.support_px + config.ring_px + 1
     for j in np.flatnonzero(merged & ~too_dim):
         if j == 0:
             continue
