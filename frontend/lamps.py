@@ -54,7 +54,19 @@ about 0.95 for a rectangle, 1 for a disc). It is re-thresholded at higher
 levels between ``k`` and its maximum (the halo is dimmer than the tubes); if
 that separates it into at least two large-enough parts each is measured on
 its own, otherwise the region is rejected (its centroid would be of the
-union, not of a lamp) and a debug message is logged.
+union, not of a lamp) and a debug message is logged. Two lamps joined end to
+end fill their ellipse like one long lamp and are not split; glare that grows
+a region past ``max_area_fraction`` of the image rejects it.
+
+Not lamps: blobs smaller than ``min_area_px`` or larger than
+``max_area_fraction`` of the image, blobs less than ``min_blob_contrast_grey``
+above their ring, and blobs too dim to be a light source (their fifth-brightest
+pixel more than ``max_peak_drop_grey`` below the image's lamp peak: smoke
+detectors, specular highlights on ducts).
+
+All per-blob sums are vectorised over the blobs (``np.bincount`` by label), so
+the cost hardly grows with the number of lamps; only glare splits go region by
+region.
 """
 
 from __future__ import annotations
@@ -300,39 +312,6 @@ def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
         config.min_relative_level * (peak - median), 0.5 * config.min_contrast_grey
     )
     return max(k, floor)
-
-
-def _too_dim(grey: FloatArray, core: np.ndarray, peak: float, config: LampDetectorConfig) -> bool:
-    """Whether a blob is too dim to be a light source (see ``max_peak_drop_grey``).
-
-    A blob at least ``thin_width_px`` wide must reach ``peak - max_peak_drop_grey``
-    with its fifth-brightest pixel (robust to a few noisy pixels); a thinner one is
-    dimmed by area sampling, so its brightest pixel need only reach
-    ``peak - max_peak_drop_thin_grey``.
-    """
-    assert config.max_peak_drop_grey is not None
-    m = cv2.moments(core.astype(np.uint8), binaryImage=True)
-    area = max(m["m00"], 1.0)
-    a, b, c = m["mu20"] / area, m["mu11"] / area, m["mu02"] / area
-    lam_min = 0.5 * (a + c - math.sqrt(max((a - c) ** 2 + 4 * b * b, 0.0))) + 1.0 / 12.0
-    if math.sqrt(12.0 * max(lam_min, 0.0)) < config.thin_width_px:
-        return float(grey[core].max()) < peak - config.max_peak_drop_thin_grey
-    vals = grey[core]
-    level = float(np.partition(vals, vals.size - 5)[vals.size - 5]) if vals.size > 5 else vals.min()
-    return level < peak - config.max_peak_drop_grey
-
-
-def _fill_ratio(mask: np.ndarray) -> float:
-    """Area of a binary region over the area of its 2-sigma moment ellipse."""
-    m = cv2.moments(mask.astype(np.uint8), binaryImage=True)
-    area = m["m00"]
-    if area <= 0:
-        return 0.0
-    a = m["mu20"] / area + 1.0 / 12.0
-    c = m["mu02"] / area + 1.0 / 12.0
-    b = m["mu11"] / area
-    det = a * c - b * b
-    return float(area / (4.0 * math.pi * math.sqrt(max(det, 1e-12))))
 
 
 def _hist(grey: FloatArray, mask: np.ndarray) -> FloatArray:
