@@ -40,9 +40,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
+from lampsam.datasets.logrun import CameraModel, ProjectionTable, read_run
 from lampsam.errors import LampsamError
 from lampsam.frontend.corners import detect_corner_pixels, match_ncc
-from lampsam.frontend.lamps import detect_lamps, wrap_axis
+from lampsam.frontend.lamps import PixelToCeiling, detect_lamps, wrap_axis
 from lampsam.frontend.pipeline import FrontendConfig, check_image
 
 log = logging.getLogger(__name__)
@@ -162,7 +163,7 @@ def _nearest(a: FloatArray, b: FloatArray) -> tuple[IntArray, FloatArray]:
 
 def evaluate_frames(
     frames: Iterable[tuple[ImageU8, FrameTruth]],
-    camera: object,
+    camera: PixelToCeiling,
     config: FrontendConfig | None = None,
     settings: EvalSettings | None = None,
     source: str = "",
@@ -188,11 +189,12 @@ def evaluate_frames(
     n_corners: list[int] = []
     n_true_corners = 0
     rep_num = rep_den = 0
+    ncc_correct = 0
     prev: tuple[FloatArray, np.ndarray, IntArray, FrameTruth] | None = None
     for img, truth in frames:
         img = check_image(img, camera)
         res.n_frames += 1
-        det = detect_lamps(img, camera, config.lamps)  # type: ignore[arg-type]
+        det = detect_lamps(img, camera, config.lamps)
         used = [i for i, lm in enumerate(det.lamps) if not lm.touches_border]
         px = np.array([det.lamps[i].pixel for i in used]).reshape(-1, 2)
         lamp = truth.is_lamp()
@@ -238,11 +240,8 @@ def evaluate_frames(
                 res.n_ncc_tests += len(sel)
                 made = idx >= 0
                 res.n_ncc_matches += int(made.sum())
-                correct = int(np.sum(ids[idx[made]] == p_ids[np.array(sel)[made]]))
-                res.__dict__.setdefault("_ncc_correct", 0)
-                res.__dict__["_ncc_correct"] += correct
+                ncc_correct += int(np.sum(ids[idx[made]] == p_ids[np.array(sel)[made]]))
         prev = (cd.pixels, cd.patches, ids, truth)
-    ncc_correct = int(res.__dict__.pop("_ncc_correct", 0))
     if res.n_truth_lamps_full:
         res.lamp_recall = res.n_found / res.n_truth_lamps_full
     if res.n_detections:
@@ -275,16 +274,16 @@ def evaluate_frames(
     return res
 
 
-def truth_of_frame(projections: object, frame: int) -> FrameTruth:
+def truth_of_frame(projections: ProjectionTable, frame: int) -> FrameTruth:
     """The rows of a ``ProjectionTable`` (``lampsam.datasets.logrun``) for one image."""
-    rows = projections.rows_of_frame(frame)  # type: ignore[attr-defined]
+    rows = projections.rows_of_frame(frame)
     return FrameTruth(
-        ids=projections.ids[rows],  # type: ignore[attr-defined]
-        types=tuple(projections.types[r] for r in rows),  # type: ignore[attr-defined]
-        pixel=projections.pixel[rows],  # type: ignore[attr-defined]
-        angle_px=projections.angle_px[rows],  # type: ignore[attr-defined]
-        visible=projections.visible[rows],  # type: ignore[attr-defined]
-        fully_visible=projections.fully_visible[rows],  # type: ignore[attr-defined]
+        ids=projections.ids[rows],
+        types=tuple(projections.types[r] for r in rows),
+        pixel=projections.pixel[rows],
+        angle_px=projections.angle_px[rows],
+        visible=projections.visible[rows],
+        fully_visible=projections.fully_visible[rows],
     )
 
 
@@ -310,18 +309,17 @@ def evaluate_run(
     Raises:
         LampsamError: the run cannot be read or has no images or no truth.
     """
-    from lampsam.datasets.logrun import read_run
-
     run = read_run(run_dir)
     if run.images is None or len(run.images) == 0:
         raise LampsamError(f"{run_dir}: the run has no ceiling images")
     if run.projections is None:
         raise LampsamError(f"{run_dir}: no truth/projections.csv (only simulated runs have truth)")
-    n = len(run.images) if max_frames is None else min(max_frames, len(run.images))
+    images, projections = run.images, run.projections
+    n = len(images) if max_frames is None else min(max_frames, len(images))
 
     def frames() -> Iterable[tuple[ImageU8, FrameTruth]]:
         for i in range(n):
-            yield run.images.load(i), truth_of_frame(run.projections, i)  # type: ignore[union-attr]
+            yield images.load(i), truth_of_frame(projections, i)
 
     res = evaluate_frames(frames(), run.rig.camera, config, settings, source=str(run_dir))
     out_path = Path(out) if out is not None else Path(run_dir) / "frontend_eval.json"
@@ -529,8 +527,6 @@ def evaluate_synthetic(
     rng: np.random.Generator, n_frames: int = 20, config: FrontendConfig | None = None
 ) -> FrontendMetrics:
     """:func:`evaluate_frames` on :func:`synthetic_sequence` with a 320x240 camera."""
-    from lampsam.datasets.logrun import CameraModel
-
     frames = synthetic_sequence(rng, n_frames)
     return evaluate_frames(frames, CameraModel(), config, source="synthetic rendering")
 
