@@ -1,0 +1,455 @@
+"""Scaling of the EKF and iSAM2 backends: time per update against map size (issue 5).
+
+Usage::
+
+    python scripts/bench/bench_scaling.py [--lengths 10,20,40,80,160] [--repeats 3]
+                                          [--quick] [--unknown-ids] [--out out/bench_scaling]
+
+World: a straight corridor ``length`` m long and ``2 * half_width`` m wide with a
+landmark every ``spacing`` m on both walls (10 m -> 42, 160 m -> 642 landmarks at
+0.5 m). The robot drives from one end to the other at 0.5 m/s, weaving gently,
+with wheel odometry at 20 Hz corrupted by the paper's wheel noise
+(``var(d) = k |d|``, eq. 15) and range-bearing frames at 5 Hz of the landmarks
+within ``max_range`` in the forward half-plane (Gaussian range / bearing noise;
+known association by default, ``--unknown-ids`` gates instead). All randomness
+comes from one seeded ``numpy.random.Generator``.
+
+Each backend (``make_backend`` -> ``step`` per :func:`iter_steps` step ->
+``finish``, the public API of :mod:`lampsam.backend.slam`) runs over each length
+``--repeats`` times. The wall time of every ``step`` with a frame (an "update")
+is measured around the call; over the LAST ``--tail`` fraction of the frames (where
+the map is largest) the median and p95 are taken, against the median number of
+landmarks in the state there. The table shows the median over repeats of those
+per-run figures, the ratio to the smallest size (reference measured in the same
+run) and the EKF / iSAM2 ratio. The exponent of ``t = c n**a`` is fitted on a
+log-log scale over the larger sizes (:func:`lampsam.evaluation.scaling_plots.fit_series`).
+
+Writes ``OUT/scaling.json`` (every number) and ``OUT/scaling.png`` (log-log figure).
+Timings on a shared machine are inflated by other processes; the load average at
+the start and end is recorded in the JSON.
+"""
+
+from __future__ import annotations
+
+# ruff: noqa: E402  (the BLAS thread count must be set before numpy is imported)
+import os
+
+# One BLAS thread: on this shared 2-core machine a multi-threaded OpenBLAS
+# oversubscribes the cores and made the EKF update ~7x slower (measured). Must be
+# set before numpy is imported; an explicit environment setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse
+import gc
+import json
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from lampsam.arrays import FloatArray, IntArray
+from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig, SlamConfig
+from lampsam.backend.slam import frames_from_range_bearing, iter_steps, make_backend
+from lampsam.datasets.logrun import (
+    LoggedRun,
+    OdometryLog,
+    OdometryModel,
+    RangeBearingLog,
+    Rig,
+    Trajectory,
+)
+from lampsam.errors import LampsamError
+from lampsam.evaluation.scaling_plots import ScalingSeries, fit_series, plot_scaling
+from lampsam.factors.geometry import wrap_angle
+from lampsam.factors.motion import diff_drive_step
+
+log = logging.getLogger("bench_scaling")
+
+#: Timed variants: label -> (backend name, overrides of ``Isam2Config``). ``isam2`` is
+#: the backend as configured by default (relinearisation threshold 0.01, every
+#: update); ``isam2-gtsam`` uses GTSAM's own defaults (threshold 0.1, every 10th update).
+VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
+    "ekf": ("ekf", {}),
+    "isam2": ("isam2", {}),
+    "isam2-gtsam": ("isam2", {"relinearize_threshold": 0.1, "relinearize_skip": 10}),
+}
+
+
+@dataclass(frozen=True)
+class CorridorConfig:
+    """The synthetic corridor world and its sensors.
+
+    Attributes:
+        spacing: distance between landmarks along each wall, m (default 0.5).
+        half_width: distance from the centre line to each wall, m (default 1.5).
+        speed: forward speed, m/s (default 0.5).
+        odo_rate: odometry rate, Hz (default 20).
+        frame_every: a range-bearing frame every this many odometry samples
+            (default 10: 2 Hz, one every 0.25 m).
+        weave_rate: amplitude of the weaving yaw rate, rad/s (default 0.05).
+        weave_period: its period, s (default 20).
+        wheel_base: m (default 0.4); k_wheel: eq. 15 slip constant, m (default 2e-5).
+        max_range: sensor range, m (default 3.0).
+        half_fov: half field of view about body x, rad (default pi/2).
+        sigma_range: range noise, m (default 0.05); sigma_bearing: rad (default 0.02).
+    """
+
+    spacing: float = 0.5
+    half_width: float = 1.5
+    speed: float = 0.5
+    odo_rate: float = 20.0
+    frame_every: int = 10
+    weave_rate: float = 0.05
+    weave_period: float = 20.0
+    wheel_base: float = 0.4
+    k_wheel: float = 2e-5
+    max_range: float = 3.0
+    half_fov: float = math.pi / 2
+    sigma_range: float = 0.05
+    sigma_bearing: float = 0.02
+
+
+def corridor_landmarks(length: float, cfg: CorridorConfig) -> FloatArray:
+    """Landmarks on both walls of a corridor along world x from 0 to ``length``.
+
+    Returns:
+        (L, 2) world positions (x, y), m; ids are the row indices.
+    """
+    xs = np.arange(0.0, length + 1e-9, cfg.spacing)
+    left = np.column_stack([xs, np.full_like(xs, cfg.half_width)])
+    right = np.column_stack([xs, np.full_like(xs, -cfg.half_width)])
+    return np.vstack([left, right])
+
+
+def simulate_corridor(length: float, cfg: CorridorConfig, rng: np.random.Generator,
+                      known_ids: bool = True) -> tuple[LoggedRun, FloatArray]:
+    """A run along the corridor: noisy wheel odometry and range-bearing frames.
+
+    The true wheel travels follow ``v`` and a weaving yaw rate
+    ``w(t) = weave_rate cos(2 pi t / weave_period)`` (``d_r,l = v dt +- b w dt / 2``);
+    the logged travels add ``N(0, k |d|)`` per wheel (paper 1, eq. 15).
+
+    Args:
+        length: corridor length, m.
+        cfg: world and sensor parameters.
+        rng: the random generator (all noise).
+        known_ids: log the true landmark ids (else -1: association by the gate).
+
+    Returns:
+        ``(run, landmarks (L, 2))``; the run has odometry, range-bearing frames and
+        the true trajectory at the odometry times.
+    """
+    lms = corridor_landmarks(length, cfg)
+    dt = 1.0 / cfg.odo_rate
+    n_max = int(math.ceil(1.5 * length / (cfg.speed * dt)))  # weaving lengthens the path
+    t = np.arange(n_max + 1) * dt
+    w = cfg.weave_rate * np.cos(2.0 * math.pi * t / cfg.weave_period)
+    ds = np.full(n_max + 1, cfg.speed * dt)
+    d_right = ds + 0.5 * cfg.wheel_base * w * dt
+    d_left = ds - 0.5 * cfg.wheel_base * w * dt
+    d_right[0] = d_left[0] = 0.0
+    poses = np.zeros((n_max + 1, 3))
+    n = n_max
+    for i in range(1, n_max + 1):
+        poses[i] = diff_drive_step(poses[i - 1], float(d_left[i]), float(d_right[i]),
+                                   cfg.wheel_base)[0]
+        if poses[i, 0] >= length:  # the end of the corridor
+            n = i
+            break
+    t, d_left, d_right, poses = t[: n + 1], d_left[: n + 1], d_right[: n + 1], poses[: n + 1]
+    meas_left = d_left + rng.normal(0.0, 1.0, n + 1) * np.sqrt(cfg.k_wheel * np.abs(d_left))
+    meas_right = d_right + rng.normal(0.0, 1.0, n + 1) * np.sqrt(cfg.k_wheel * np.abs(d_right))
+    rb_t: list[FloatArray] = []
+    rb_id: list[IntArray] = []
+    rb_r: list[FloatArray] = []
+    rb_b: list[FloatArray] = []
+    for i in range(cfg.frame_every, n + 1, cfg.frame_every):
+        x, y, th = poses[i]
+        dx, dy = lms[:, 0] - x, lms[:, 1] - y
+        rng_true = np.hypot(dx, dy)
+        bearing = np.asarray(wrap_angle(np.arctan2(dy, dx) - th), float)
+        seen = np.flatnonzero((rng_true <= cfg.max_range) & (np.abs(bearing) <= cfg.half_fov))
+        k = len(seen)
+        rb_t.append(np.full(k, t[i]))
+        rb_id.append(seen.astype(np.int64) if known_ids else np.full(k, -1, np.int64))
+        rb_r.append(rng_true[seen] + rng.normal(0.0, cfg.sigma_range, k))
+        rb_b.append(np.asarray(wrap_angle(bearing[seen] + rng.normal(0.0, cfg.sigma_bearing, k)),
+                               float))
+    rig = Rig(odometry=OdometryModel(wheel_base=cfg.wheel_base, k_r=cfg.k_wheel, k_l=cfg.k_wheel))
+    run = LoggedRun(
+        path=Path(f"<corridor {length:g} m>"),
+        rig=rig,
+        odometry=OdometryLog(t=t, d_left=meas_left, d_right=meas_right),
+        groundtruth=Trajectory(t=t, poses=poses),
+        range_bearing=RangeBearingLog(t=np.concatenate(rb_t), landmark_id=np.concatenate(rb_id),
+                                      range=np.concatenate(rb_r), bearing=np.concatenate(rb_b)),
+        meta={"source": "bench_scaling corridor", "length_m": length},
+    )
+    return run, lms
+
+
+def landmarks_in_state(backend: Any, n_started: int) -> int:
+    """Landmarks in the backend's state: the EKF's state size, else those started.
+
+    The EKF exposes its state vector ``x`` = ``[x, y, theta, (lx, ly) * n]`` (planar
+    landmarks); the graph backends keep every landmark they started.
+    """
+    x = getattr(backend, "x", None)
+    if x is not None:
+        return (len(x) - 3) // 2
+    return n_started
+
+
+def dead_reckoning_error(run: LoggedRun) -> float:
+    """End position error of the logged (noisy) odometry alone, m (a reference)."""
+    assert run.groundtruth is not None
+    pose = run.groundtruth.poses[0].copy()
+    b = run.rig.odometry.wheel_base
+    for d_l, d_r in zip(run.odometry.d_left, run.odometry.d_right, strict=True):
+        pose = diff_drive_step(pose, float(d_l), float(d_r), b)[0]
+    return float(np.hypot(*(pose[:2] - run.groundtruth.poses[-1, :2])))
+
+
+def time_one_run(backend: str, run: LoggedRun, config: SlamConfig, tail: float
+                 ) -> dict[str, Any]:
+    """Drive one backend over a run, timing every step that carries a frame.
+
+    Args:
+        backend: ``"ekf"`` or ``"isam2"``.
+        run: the run (range-bearing frames).
+        config: SLAM config.
+        tail: fraction of the frames, at the end of the run, that is summarised.
+
+    Returns:
+        ``status``, ``n_landmarks`` (median in the state over the tail),
+        ``{wall,cpu}_{median,p95}_s`` (wall clock and process time per update over the
+        tail), ``n_updates`` (in the tail), ``final_pos_err_m``, ``total_s``, ``n_map``.
+    """
+    frames = frames_from_range_bearing(run.range_bearing)  # type: ignore[arg-type]
+    assert run.groundtruth is not None
+    start = run.groundtruth.poses[0]
+    be = make_backend(backend, run, config, start, ceiling=False)
+    wall: list[float] = []
+    cpu: list[float] = []
+    n_state: list[int] = []
+    n_lm = 0
+    status = "ok"
+    gc.collect()
+    t_start = time.perf_counter()
+    try:
+        for t, wheel, frame in iter_steps(run.odometry, frames):
+            w0, c0 = time.perf_counter(), time.process_time()
+            est = be.step(t, wheel, frame)
+            w1, c1 = time.perf_counter(), time.process_time()
+            n_lm += est.n_new
+            if frame is not None:
+                wall.append(w1 - w0)
+                cpu.append(c1 - c0)
+                n_state.append(landmarks_in_state(be, n_lm))
+    except LampsamError as exc:
+        status = f"failed: {exc}"
+        log.error("%s on %s: %s", backend, run.path, exc)
+    result = be.finish(status)
+    total = time.perf_counter() - t_start
+    out: dict[str, Any] = {"status": result.status, "total_s": total, "n_map": len(result.landmarks)}
+    if not wall or len(result.poses) == 0:
+        return out
+    k0 = int(len(wall) * (1.0 - tail))
+    out["n_landmarks"] = float(np.median(n_state[k0:]))
+    for clock, times in (("wall", wall), ("cpu", cpu)):
+        arr = np.asarray(times[k0:])
+        out[f"{clock}_median_s"] = float(np.median(arr))
+        out[f"{clock}_p95_s"] = float(np.percentile(arr, 95))
+    out["n_updates"] = len(wall) - k0
+    out["final_pos_err_m"] = float(np.hypot(*(result.poses[-1, :2] - run.groundtruth.poses[-1, :2])))
+    return out
+
+
+#: Per-run figures that are summarised over repeats by their median.
+SUMMARISED = ("n_landmarks", "wall_median_s", "wall_p95_s", "cpu_median_s", "cpu_p95_s",
+              "final_pos_err_m", "total_s")
+
+
+def run_sweep(lengths: list[float], variants: list[str], repeats: int, seed: int, tail: float,
+              known_ids: bool, cfg: CorridorConfig) -> list[dict[str, Any]]:
+    """Simulate every length once and time each variant ``repeats`` times on it.
+
+    Returns:
+        One row per (length, variant): the per-run dicts of :func:`time_one_run`
+        under ``runs`` and the median over runs of each :data:`SUMMARISED` figure.
+    """
+    noise = MeasurementNoiseConfig(sigma_range=cfg.sigma_range, sigma_bearing=cfg.sigma_bearing)
+    # No online pruning: with the default (a landmark whose sigma exceeds 1 m after 30
+    # idle steps is removed) the EKF drops the landmarks behind as its uncertainty
+    # grows and its state stops growing (~250 landmarks on 160 m, measured), which
+    # defeats a sweep over map size; the per-step prune scan is also skipped.
+    assoc = replace(AssociationConfig(), use_known_ids=known_ids, prune_after_steps=10**9)
+    base = SlamConfig(noise=noise, association=assoc)
+    rng = np.random.default_rng(seed)
+    rows: list[dict[str, Any]] = []
+    for length in lengths:
+        run, lms = simulate_corridor(length, cfg, rng, known_ids)
+        dr_err = dead_reckoning_error(run)
+        for backend in variants:
+            name, isam2_overrides = VARIANTS[backend]
+            config = replace(base, isam2=replace(base.isam2, **isam2_overrides))
+            runs = []
+            for rep in range(repeats):
+                r = time_one_run(name, run, config, tail)
+                runs.append(r)
+                log.info("%s %5.0f m rep %d: %s", backend, length, rep,
+                         {k: (round(v, 6) if isinstance(v, float) else v) for k, v in r.items()})
+            ok = [r for r in runs if r["status"] == "ok" and "n_landmarks" in r]
+            row: dict[str, Any] = {"backend": backend, "length_m": length,
+                                   "landmarks_world": int(len(lms)),
+                                   "dead_reckoning_err_m": dr_err,
+                                   "status": "ok" if len(ok) == len(runs) else runs[-1]["status"]}
+            for key in SUMMARISED if ok else ():
+                row[key] = float(np.median([r[key] for r in ok]))
+            row["runs"] = runs
+            rows.append(row)
+    return rows
+
+
+def fit_all(rows: list[dict[str, Any]], variants: list[str], clock: str) -> list[ScalingSeries]:
+    """One fitted :class:`ScalingSeries` per variant from the sweep's rows, on ``clock``."""
+    series = []
+    for backend in variants:
+        ok = [r for r in rows if r["backend"] == backend and f"{clock}_median_s" in r
+              and r[f"{clock}_median_s"] > 0]
+        if len(ok) < 2:
+            log.warning("%s: fewer than two sizes finished, no fit", backend)
+            continue
+        series.append(fit_series(backend, [r["n_landmarks"] for r in ok],
+                                 [r[f"{clock}_median_s"] for r in ok],
+                                 [r[f"{clock}_p95_s"] for r in ok]))
+    return series
+
+
+def print_table(rows: list[dict[str, Any]], variants: list[str], clock: str) -> None:
+    """The table: per variant and length, sizes, times (both clocks), ratios on ``clock``."""
+    key = f"{clock}_median_s"
+    ref = {b: next((r[key] for r in rows if r["backend"] == b and key in r), None)
+           for b in variants}
+    isam = {r["length_m"]: r.get(key) for r in rows if r["backend"] == "isam2"}
+    print(f"{'backend':11} {'len m':>5} {'lm world':>8} {'lm state':>8} {'cpu med':>8} "
+          f"{'cpu p95':>8} {'wall med':>8} {'wall p95':>8} {'x smallest':>10} {'ekf/isam2':>9} "
+          f"{'err m':>6} {'DR err':>6} {'run s':>6}  status")
+    print(f"{'':11} {'':>5} {'':>8} {'':>8} {'ms':>8} {'ms':>8} {'ms':>8} {'ms':>8} "
+          f"{f'({clock})':>10} {f'({clock})':>9}")
+    for r in rows:
+        if key not in r:
+            print(f"{r['backend']:11} {r['length_m']:5.0f} {r['landmarks_world']:8d}   -- {r['status']}")
+            continue
+        rb = ref[r["backend"]]
+        ratio = r[key] / rb if rb else float("nan")
+        iv = isam.get(r["length_m"])
+        vs = (r[key] / iv) if (r["backend"] == "ekf" and iv) else float("nan")
+        print(f"{r['backend']:11} {r['length_m']:5.0f} {r['landmarks_world']:8d} "
+              f"{r['n_landmarks']:8.0f} {r['cpu_median_s'] * 1e3:8.3f} {r['cpu_p95_s'] * 1e3:8.3f} "
+              f"{r['wall_median_s'] * 1e3:8.3f} {r['wall_p95_s'] * 1e3:8.3f} {ratio:10.2f} "
+              f"{vs:9.2f} {r['final_pos_err_m']:6.2f} {r['dead_reckoning_err_m']:6.2f} "
+              f"{r['total_s']:6.1f}  {r['status']}")
+
+
+def save_figure(series: list[ScalingSeries], path: Path, clock: str) -> None:
+    """The log-log figure of :func:`plot_scaling`, saved as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.0, 5.0))
+    plot_scaling(ax, series)
+    what = "CPU (process) time" if clock == "cpu" else "wall-clock time"
+    ax.set_ylabel(f"{what} per update [ms]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse arguments, run the sweep, print the table and exponents, save JSON + PNG."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--lengths", default="10,20,40,80,160", help="corridor lengths, m")
+    p.add_argument("--repeats", type=int, default=3, help="runs per backend and length")
+    p.add_argument("--tail", type=float, default=0.2,
+                   help="fraction of the frames at the end of each run that is timed")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--variants", default=",".join(VARIANTS),
+                   help=f"comma-separated subset of {', '.join(VARIANTS)}")
+    p.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
+                   help="time that is fitted and plotted: process CPU time (default; robust "
+                        "to other processes on a shared machine) or wall clock")
+    p.add_argument("--spacing", type=float, default=0.5, help="landmark spacing on each wall, m")
+    p.add_argument("--frame-every", type=int, default=CorridorConfig.frame_every,
+                   help="odometry samples (20 Hz) per range-bearing frame (= iSAM2 keyframe)")
+    p.add_argument("--unknown-ids", action="store_true",
+                   help="association by the chi-square gate instead of known ids")
+    p.add_argument("--quick", action="store_true", help="lengths 10,20,40,80 and 1 repeat")
+    p.add_argument("--out", default="out/bench_scaling", help="output directory")
+    p.add_argument("-v", "--verbose", action="store_true")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if args.quick:
+        args.lengths, args.repeats = "10,20,40,80", 1
+    try:
+        lengths = [float(x) for x in args.lengths.split(",") if x.strip()]
+    except ValueError:
+        p.error(f"--lengths: not a comma-separated list of numbers: {args.lengths!r}")
+    if (not lengths or any(not (x > 0) for x in lengths) or args.repeats < 1
+            or not 0 < args.tail <= 1 or args.frame_every < 1 or not args.spacing > 0):
+        p.error("lengths and spacing must be positive, repeats and frame-every >= 1, "
+                "0 < tail <= 1")
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    if not variants or any(v not in VARIANTS for v in variants):
+        p.error(f"--variants: choose from {', '.join(VARIANTS)}")
+    cfg = CorridorConfig(spacing=args.spacing, frame_every=args.frame_every)
+    load0 = os.getloadavg()
+    t0 = time.perf_counter()
+    rows = run_sweep(lengths, variants, args.repeats, args.seed, args.tail,
+                     not args.unknown_ids, cfg)
+    series = fit_all(rows, variants, args.clock)
+    other = "wall" if args.clock == "cpu" else "cpu"
+    other_exp = {s.backend: s.exponent for s in fit_all(rows, variants, other)}
+    print_table(rows, variants, args.clock)
+    print()
+    expected = {"ekf": 2.0, "isam2": 0.0, "isam2-gtsam": 0.0}
+    for s in series:
+        print(f"{s.backend:11}: {args.clock} time per update ~ n^{s.exponent:.2f} ({other}: "
+              f"n^{other_exp.get(s.backend, float('nan')):.2f}) over n >= "
+              f"{s.fit_min_landmarks:.0f} landmarks; expected ~n^{expected[s.backend]:.0f}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    load1 = os.getloadavg()
+    elapsed = time.perf_counter() - t0
+    doc: dict[str, Any] = {
+        "args": vars(args),
+        "world": cfg.__dict__,
+        "load_average": {"start": load0, "end": load1},
+        "cpu_count": os.cpu_count(),
+        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "elapsed_s": elapsed,
+        "fits": {s.backend: {"clock": args.clock, "exponent": s.exponent,
+                             "coefficient_s": s.coefficient,
+                             "fit_min_landmarks": s.fit_min_landmarks,
+                             f"{other}_exponent": other_exp.get(s.backend)} for s in series},
+        "rows": rows,
+    }
+    (out / "scaling.json").write_text(json.dumps(doc, indent=2))
+    if series:
+        save_figure(series, out / "scaling.png", args.clock)
+    print(f"\nwrote {out / 'scaling.json'} and {out / 'scaling.png'} ({elapsed:.0f} s; "
+          f"load average {load0[0]:.1f} -> {load1[0]:.1f} on "
+          f"{os.cpu_count()} cores: timings are inflated by other processes)")
+    return 0 if all(r["status"] == "ok" for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
