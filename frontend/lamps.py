@@ -119,7 +119,7 @@ class LampDetectorConfig:
             (default 0.5).
         min_blob_contrast_grey: a blob whose level (median inside) is less
             than this above its background ring is not a lamp (specular
-            highlights on bright ducts; default 60).
+            highlights on bright ducts; default 30).
         max_peak_drop_grey: a blob whose fifth-brightest pixel is more than this
             below the image's lamp peak (the brightest level reached by
             ``min_area_px`` pixels) is not a lamp: lamps are light sources and
@@ -152,7 +152,7 @@ class LampDetectorConfig:
     max_otsu_iterations: int = 4
     min_contrast_grey: float = 30.0
     min_relative_level: float = 0.5
-    min_blob_contrast_grey: float = 60.0
+    min_blob_contrast_grey: float = 30.0
     max_peak_drop_grey: float | None = 15.0
     max_peak_drop_thin_grey: float = 25.0
     thin_width_px: float = 3.0
