@@ -131,6 +131,7 @@ class RgbdSequence:
 
 
 def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
+    """Raise a DatasetError naming ``path`` when ``img`` is not the camera's size."""
     if img.shape[:2] != (camera.height, camera.width):
         raise DatasetError(
             f"image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}",

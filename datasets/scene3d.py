@@ -216,6 +216,7 @@ class TriangleScene:
 
 # ---------------------------------------------------------------------------- parsing
 def _vec(value: Any, n: int, where: str) -> FloatArray:
+    """``value`` as ``n`` finite floats, or a DatasetError naming ``where``."""
     try:
         arr = np.asarray(value, dtype=float).reshape(-1)
     except (TypeError, ValueError) as exc:
@@ -226,6 +227,7 @@ def _vec(value: Any, n: int, where: str) -> FloatArray:
 
 
 def _num(item: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
+    """``item[key]`` as a finite float (``default`` when absent and given)."""
     if key not in item:
         if default is None:
             raise DatasetError(f"scene3d: {where}: missing '{key}'")

@@ -111,6 +111,7 @@ class CeilingFeatureMap:
 def _col(
     row: dict[str, str], key: str, path: Path, line: int, default: float | None = None
 ) -> float:
+    """Column ``key`` of a CSV row as a float (``default`` when empty/absent and given)."""
     text = row.get(key)
     if text is None or text == "":
         if default is None:

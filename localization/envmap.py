@@ -280,6 +280,7 @@ def integrate_depth_frame(
 
 
 def _grid_around(xy: FloatArray, reach: float, resolution: float) -> OccupancyGrid:
+    """An empty grid covering points (N, 2) grown by ``reach`` metres."""
     lo = xy.min(axis=0) - reach
     hi = xy.max(axis=0) + reach
     lo = np.floor(lo / resolution) * resolution
@@ -577,6 +578,7 @@ def occupancy_truth(
 
 
 def _dilate(mask: BoolArray, cells: int) -> BoolArray:
+    """Square dilation of a mask by ``cells`` (Chebyshev radius)."""
     if cells <= 0:
         return mask
     import cv2
@@ -637,6 +639,7 @@ def grid_checks(
 
 # ---------------------------------------------------------------------------- build_map
 def _detect_source(run: Path) -> tuple[str, Path]:
+    """Kind of input (``run``, ``slambook2``, ``tum_rgbd``, ``laser``) and the path to read."""
     if run.is_file():
         if ".log" in run.name:
             return "laser", run
@@ -678,6 +681,7 @@ def _scene_of_run(run: Path) -> Any:
 
 
 def _package_version() -> str:
+    """The installed lampsam version, or ``unknown``."""
     try:
         from importlib.metadata import version
 

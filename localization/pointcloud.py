@@ -64,6 +64,7 @@ def check_pose(world_T_camera: FloatArray, name: str = "pose") -> FloatArray:  #
 
 
 def _intrinsic(camera: RgbdCamera) -> Any:
+    """Open3D ``PinholeCameraIntrinsic`` of the camera."""
     import open3d as o3d
 
     return o3d.camera.PinholeCameraIntrinsic(
