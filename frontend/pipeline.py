@@ -131,10 +131,13 @@ def iter_run(run: Any, config: FrontendConfig | None = None) -> Iterator[Ceiling
         One :class:`CeilingFrame` per image, in time order.
 
     Raises:
-        FrontendError: an image is unusable (named by index and file).
+        FrontendError: the run has no images, or an image is unusable (named by
+            index and file).
     """
     camera = run.rig.camera
     images = run.images
+    if images is None:
+        raise FrontendError(f"{run.path}: the run has no ceiling images")
     for i in range(len(images.t)):
         img = images.load(i)
         try:

@@ -127,3 +127,14 @@ def test_full_size_photo_and_gallery(tmp_path: Path) -> None:
     entries = make_gallery(sub, tmp_path / "g.png", full_size=False)
     assert (tmp_path / "g.png").stat().st_size > 10_000
     assert entries[0].n_lamps == PHOTO_COUNTS["808_db_photo.jpg"]
+
+
+def test_run_without_images_is_a_clear_error(lab_run: Path) -> None:
+    import dataclasses
+
+    from lampsam.datasets.logrun import read_run
+    from lampsam.errors import FrontendError
+
+    run = dataclasses.replace(read_run(lab_run), images=None)
+    with pytest.raises(FrontendError, match="no ceiling images"):
+        next(iter_run(run))
