@@ -760,7 +760,7 @@ def measure_blobs(
     mask = np.zeros((h, w), dtype=bool)
     if k is None:
         return [], None, mask, 0
-    binary = (image > k).astype(np.uint8)
+    _, binary = cv2.threshold(image, k, 1, cv2.THRESH_BINARY)  # 1 where image > k
     n, labels, stats = label_blobs(binary)
     areas = stats[1:, cv2.CC_STAT_AREA]
     size_ok = (areas >= config.min_area_px) & (areas <= config.max_area_fraction * h * w)
