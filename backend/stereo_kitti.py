@@ -1,12 +1,10 @@
-"""Stereo two-point relative pose on real KITTI images: tracking, pair selection, check.
+"""Stereo two-point relative pose on real KITTI images: pair selection and check.
 
-The image processing here (corner detection, left-right matching, tracking) is
-frontend work; it lives beside the stereo estimators because ``frontend/`` is
-owned by others (see the report). It uses OpenCV only:
-Shi-Tomasi corners (``goodFeaturesToTrack``) in the left image, pyramidal
-Lucas-Kanade optical flow for left(k-1) -> left(k) tracking and for left -> right
-matching on the rectified pair, each with a forward-backward check; a stereo
-match must stay on the same row (rectified) and have positive disparity.
+The tracks come from the frontend, :func:`lampsam.frontend.stereo_tracking.track_sequence`
+(Shi-Tomasi corners, Lucas-Kanade tracking and left-right matching); this module
+is the estimation half. Pair selection stays here because its score is the
+two-point pose covariance from the eq. 5 Jacobians of :mod:`lampsam.factors.stereo`,
+which the frontend may not import.
 
 Two-point procedure (paper 3 on real data): at an anchor frame ``a`` pick two
 well-separated tracked points with valid stereo; the target frame ``{O}`` is the
@@ -23,9 +21,8 @@ import logging
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
-from lampsam.arrays import BoolArray, FloatArray, ImageU8
+from lampsam.arrays import BoolArray, FloatArray
 from lampsam.backend.stereo import OK, StereoEstimatorConfig, triangulate_two_points
 from lampsam.datasets.kitti import KittiStereoSequence
 from lampsam.datasets.stereo_sim import StereoRig
@@ -36,138 +33,33 @@ from lampsam.factors.stereo import (
     triangulate_point,
     two_point_measurement,
 )
+from lampsam.frontend.stereo_tracking import (
+    StereoTracks,
+    TrackConfig,
+    paper_coords,
+    track_sequence,
+)
+
+#: ``track_sequence``, ``TrackConfig``, ``StereoTracks`` and ``paper_coords`` are
+#: re-exported for the callers that imported them from here before the move.
+__all__ = [
+    "KittiTwoPointResult",
+    "StereoTracks",
+    "TrackConfig",
+    "kitti_rig",
+    "paper_coords",
+    "select_pairs",
+    "track_sequence",
+    "two_point_on_kitti",
+]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TrackConfig:
-    """Corner tracking and stereo matching settings (OpenCV).
-
-    Attributes:
-        max_corners: corners detected per (re-)detection.
-        quality: ``goodFeaturesToTrack`` quality level (fraction of the best).
-        min_distance_px: minimum spacing of corners, px.
-        redetect_below: detect new corners when fewer tracks remain.
-        win_px: Lucas-Kanade window size, px; levels: pyramid levels.
-        fb_max_px: forward-backward error limit, px.
-        row_max_px: a stereo match may differ in row by at most this, px.
-        min_disparity_px: smallest accepted disparity, px.
-        border_px: drop points closer than this to the image border, px.
-    """
-
-    max_corners: int = 500
-    quality: float = 0.01
-    min_distance_px: float = 12.0
-    redetect_below: int = 250
-    win_px: int = 21
-    levels: int = 4
-    fb_max_px: float = 0.5
-    row_max_px: float = 1.0
-    min_disparity_px: float = 1.0
-    border_px: float = 10.0
-
-
-@dataclass(frozen=True)
-class StereoTracks:
-    """Tracked points over a sequence: ``M`` tracks, ``N`` frames.
-
-    Attributes:
-        u_left, u_right, v: (N, M) left/right column and row, px (0 where absent).
-        seen: (N, M) bool, the track is in the left image at that frame.
-        stereo: (N, M) bool, it also has a valid right match.
-    """
-
-    u_left: FloatArray
-    u_right: FloatArray
-    v: FloatArray
-    seen: BoolArray
-    stereo: BoolArray
-
-
-def _lk(a: ImageU8, b: ImageU8, pts: FloatArray, cfg: TrackConfig,
-        guess: FloatArray | None = None) -> tuple[FloatArray, BoolArray]:
-    """Pyramidal LK ``a -> b`` with a forward-backward check: points (K, 2), ok (K,)."""
-    if len(pts) == 0:
-        return pts.reshape(0, 2), np.zeros(0, dtype=bool)
-    p0 = pts.astype(np.float32).reshape(-1, 1, 2)
-    win = (cfg.win_px, cfg.win_px)
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    init = p0.copy() if guess is None else guess.astype(np.float32).reshape(-1, 1, 2)
-    use_init = cv2.OPTFLOW_USE_INITIAL_FLOW
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(a, b, p0, init, winSize=win, maxLevel=cfg.levels,
-                                          criteria=crit, flags=use_init)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, p1, p0.copy(), winSize=win,
-                                           maxLevel=cfg.levels, criteria=crit, flags=use_init)
-    fb = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < cfg.fb_max_px)
-    return p1.reshape(-1, 2).astype(float), ok
-
-
-def track_sequence(seq: KittiStereoSequence, cfg: TrackConfig | None = None) -> StereoTracks:
-    """Track corners through the left images and match each to the right image.
-
-    Args:
-        seq: the KITTI sequence.
-        cfg: tracking settings.
-
-    Returns:
-        The tracks (see :class:`StereoTracks`).
-    """
-    cfg = cfg or TrackConfig()
-    n = len(seq)
-    rows: list[dict[int, tuple[float, float, float, bool]]] = []
-    ids = np.zeros(0, dtype=int)
-    pts = np.zeros((0, 2))
-    next_id = 0
-    prev_left: ImageU8 | None = None
-    w, h = seq.width, seq.height
-    for k in range(n):
-        left, right = seq.load_pair(k)
-        if prev_left is not None and len(pts):
-            pts, ok = _lk(prev_left, left, pts, cfg)
-            inside = ((pts[:, 0] > cfg.border_px) & (pts[:, 0] < w - cfg.border_px)
-                      & (pts[:, 1] > cfg.border_px) & (pts[:, 1] < h - cfg.border_px))
-            keep = ok & inside
-            pts, ids = pts[keep], ids[keep]
-        if len(pts) < cfg.redetect_below:
-            mask = np.full((h, w), 255, np.uint8)
-            for p in pts:
-                cv2.circle(mask, (int(p[0]), int(p[1])), int(cfg.min_distance_px), 0, -1)
-            new = cv2.goodFeaturesToTrack(left, cfg.max_corners, cfg.quality,
-                                          cfg.min_distance_px, mask=mask)
-            if new is not None:
-                new = new.reshape(-1, 2).astype(float)
-                pts = np.vstack([pts, new])
-                ids = np.concatenate([ids, np.arange(next_id, next_id + len(new))])
-                next_id += len(new)
-        # left -> right on the rectified pair; guess a 20 px disparity
-        guess = pts - np.array([20.0, 0.0])
-        pr, ok = _lk(left, right, pts, cfg, guess)
-        disp = pts[:, 0] - pr[:, 0]
-        good = ok & (np.abs(pr[:, 1] - pts[:, 1]) < cfg.row_max_px) & (disp > cfg.min_disparity_px)
-        rows.append({int(i): (p[0], r[0], p[1], bool(g))
-                     for i, p, r, g in zip(ids, pts, pr, good, strict=True)})
-        prev_left = left
-    m = next_id
-    u_l, u_r, v = np.zeros((n, m)), np.zeros((n, m)), np.zeros((n, m))
-    seen, stereo = np.zeros((n, m), bool), np.zeros((n, m), bool)
-    for k, row in enumerate(rows):
-        for i, (ul, ur, vv, g) in row.items():
-            u_l[k, i], u_r[k, i], v[k, i], seen[k, i], stereo[k, i] = ul, ur, vv, True, g
-    log.info("tracked %d points over %d frames", m, n)
-    return StereoTracks(u_l, u_r, v, seen, stereo)
 
 
 def kitti_rig(seq: KittiStereoSequence) -> StereoRig:
     """The sequence as a :class:`StereoRig` (focal length in px, pixel pitch 1)."""
     return StereoRig(baseline=seq.baseline, focal_length=seq.fx, pixel_pitch=1.0,
                      width_px=seq.width)
-
-
-def paper_coords(u: FloatArray, seq: KittiStereoSequence) -> FloatArray:
-    """OpenCV columns -> the paper's horizontal coordinate (px, positive left): ``cx - u``."""
-    return seq.cx - np.asarray(u, dtype=float)
 
 
 def _points_at(tracks: StereoTracks, k: int, seq: KittiStereoSequence,

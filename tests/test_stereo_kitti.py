@@ -9,12 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lampsam.backend.stereo_kitti import (
-    KittiTwoPointResult,
-    track_sequence,
-    two_point_on_kitti,
-)
+from lampsam.backend.stereo_kitti import KittiTwoPointResult, two_point_on_kitti
 from lampsam.datasets.kitti import KittiError, KittiStereoSequence, read_kitti_sequence
+from lampsam.frontend.stereo_tracking import track_sequence
 
 from tests.conftest import require_shared
 
