@@ -155,6 +155,8 @@ class EnvironmentMaps:
         ceiling_is_lamp: (L,) bool, which ceiling features are lamps (None: unknown).
         ceiling_phi: (L,) lamps' long axes in the world (rad, mod pi), NaN for
             none (None: axes not checked).
+        ceiling_camera: the upward camera (``lampsam.datasets.logrun.CameraModel``):
+            with it, map lamps predicted inside the image must be seen too.
     """
 
     grid: OccupancyGrid
@@ -164,15 +166,19 @@ class EnvironmentMaps:
     ceiling_body_t_camera: FloatArray
     ceiling_is_lamp: BoolArray | None = None
     ceiling_phi: FloatArray | None = None
+    ceiling_camera: Any = None
 
     @classmethod
-    def from_env_map(cls, env: EnvironmentMap, body_t_camera: FloatArray) -> EnvironmentMaps:
+    def from_env_map(
+        cls, env: EnvironmentMap, body_t_camera: FloatArray, camera: Any = None
+    ) -> EnvironmentMaps:
         """Adapt a loaded map directory (:func:`lampsam.localization.envmap.load_env_map`).
 
         Args:
             env: the map; a missing spatial or ceiling layer gives empty arrays
                 (no candidates / no verification evidence).
             body_t_camera: (3,) the ceiling camera's mounting (from the run's rig).
+            camera: the run's ``CameraModel`` (optional, see ``ceiling_camera``).
         """
         sp, ce = env.spatial, env.ceiling
         return cls(
@@ -183,6 +189,7 @@ class EnvironmentMaps:
             np.asarray(body_t_camera, dtype=float).reshape(3),
             None if ce is None else np.asarray(ce.is_lamp(), dtype=bool),
             None if ce is None else np.asarray(ce.phi, dtype=float),
+            camera,
         )
 
 
@@ -464,6 +471,20 @@ def _filter_stage(
     return pf, n_updates, converged
 
 
+def _image_interior(camera: Any, margin_px: float = 15.0) -> Any:
+    """``m (N, 2) -> (N,) bool``: inside the camera's image by ``margin_px`` pixels."""
+
+    def in_view(m: FloatArray) -> BoolArray:
+        px = np.asarray(camera.pixels_from_normalized(np.asarray(m, dtype=float).reshape(-1, 2)))
+        w, h = float(camera.width), float(camera.height)
+        return (
+            (px[:, 0] >= margin_px) & (px[:, 0] <= w - 1 - margin_px)
+            & (px[:, 1] >= margin_px) & (px[:, 1] <= h - 1 - margin_px)
+        )  # fmt: skip
+
+    return in_view
+
+
 def _verify_stage(
     robot: Robot,
     pose_end: FloatArray,
@@ -490,6 +511,7 @@ def _verify_stage(
         vc,
         is_lamp=maps.ceiling_is_lamp,
         phi=maps.ceiling_phi,
+        in_view=None if maps.ceiling_camera is None else _image_interior(maps.ceiling_camera),
     )
     verifier: RlocVerifier | SequentialVerifier
     verifier = RlocVerifier(vc) if config.mode is Mode.PROPOSED else SequentialVerifier(vc)
@@ -763,7 +785,8 @@ def localize_run(
 
     env = load_env_map(map_dir)
     robot = ReplayRobot(run_dir)
-    maps = EnvironmentMaps.from_env_map(env, robot.run.rig.camera.body_t_camera)
+    cam = robot.run.rig.camera
+    maps = EnvironmentMaps.from_env_map(env, cam.body_t_camera, cam)
     result = localize(robot, maps, config, np.random.default_rng(seed))
     path = write_result(result, out_dir)
     log.info("localization %s: result in %s", "succeeded" if result.success else "failed", path)

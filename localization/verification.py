@@ -37,6 +37,7 @@ from __future__ import annotations
 import enum
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -316,6 +317,12 @@ class CeilingChecker:
             (all features are matched against all landmarks).
         phi: (L,) lamps' long axes in the world (rad, mod pi), NaN = no axis;
             None = axes not checked.
+        in_view: maps predicted ``m`` (N, 2) to (N,) bool "well inside the
+            image"; when given (and kinds are known), every map lamp predicted
+            in view must also be observed (a lamp is too large to miss): a frame
+            whose observations all match but which misses the map's lamps fails
+            too. Without it only the observed features are checked, and a tiled
+            ceiling's corner lattice alone can accept a pose turned by 90 deg.
     """
 
     def __init__(
@@ -325,6 +332,7 @@ class CeilingChecker:
         config: VerificationConfig,
         is_lamp: BoolArray | None = None,
         phi: FloatArray | None = None,
+        in_view: Callable[[FloatArray], BoolArray] | None = None,
     ) -> None:
         self.landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 3)
         if not np.all(np.isfinite(self.landmarks)):
@@ -335,6 +343,7 @@ class CeilingChecker:
         if self.is_lamp is not None and len(self.is_lamp) != len(self.landmarks):
             raise VerificationError("is_lamp and the ceiling landmarks differ in length")
         self.phi = None if phi is None else np.asarray(phi, dtype=float).reshape(-1)
+        self.in_view = in_view
         if self.phi is not None and len(self.phi) != len(self.landmarks):
             raise VerificationError("phi and the ceiling landmarks differ in length")
 
@@ -358,9 +367,12 @@ class CeilingChecker:
             True (match), False (no match) or None (nothing observed).
         """
         observed = np.asarray(observed, dtype=float).reshape(-1, 2)
-        if len(observed) == 0:
-            return None
         pose = np.asarray(pose, dtype=float)
+        if len(observed) == 0:
+            if self.in_view is None or self.is_lamp is None:
+                return None
+            pred = predict_landmarks(pose, self.landmarks, self.body_t_camera)
+            return None if self._lamps_seen(pred, observed) else False
         k = len(observed)
         oa = None if observed_axis is None else np.asarray(observed_axis, float).reshape(k)
         pa = None if self.phi is None else np.asarray(wrap_axis(self.phi - pose[2]))
@@ -369,6 +381,8 @@ class CeilingChecker:
         if self.is_lamp is None or observed_is_lamp is None:
             return frame_outcome(*frame_match(observed, pred, gate, oa, pa, agate), self.config)
         kinds = np.asarray(observed_is_lamp, dtype=bool).reshape(-1)
+        if self.in_view is not None and not self._lamps_seen(pred, observed[kinds]):
+            return False
         result: bool | None = None
         for kind in (True, False):
             sel, lm = kinds == kind, self.is_lamp == kind
@@ -382,3 +396,16 @@ class CeilingChecker:
                 return False
             result = True
         return result
+
+    def _lamps_seen(self, pred: FloatArray, observed_lamps: FloatArray) -> bool:
+        """Whether enough of the map lamps predicted well inside the image were observed."""
+        assert self.in_view is not None and self.is_lamp is not None
+        lamps = pred[self.is_lamp]
+        lamps = lamps[np.all(np.isfinite(lamps), axis=1)]
+        if len(lamps) == 0:
+            return True
+        lamps = lamps[np.asarray(self.in_view(lamps), dtype=bool)]
+        if len(lamps) == 0:
+            return True
+        n_seen, n = frame_match(lamps, observed_lamps, self.config.gate)
+        return n_seen >= self.config.min_match_fraction * n

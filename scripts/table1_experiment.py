@@ -183,7 +183,7 @@ def run_trials(
     run = read_run(work / "map_run")
     cam = run.rig.camera
     body_t_cam = np.asarray(cam.body_t_camera, dtype=float)
-    maps = EnvironmentMaps.from_env_map(env, body_t_cam)
+    maps = EnvironmentMaps.from_env_map(env, body_t_cam, cam)
     scene = load_scene(WORLD)
     scene_now = apply_changes(scene, list(scene.changes))
     kinect = KinectConfig()

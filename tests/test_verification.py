@@ -190,3 +190,24 @@ def test_lamp_axes_reject_a_pose_turned_by_90_degrees() -> None:
     assert no_axes.outcome(turned, obs, kinds) is True  # the lattice fools positions alone
     assert axes.outcome(truth, obs, kinds, obs_axis) is True
     assert axes.outcome(turned, obs, kinds, obs_axis) is False
+
+
+def test_missing_lamps_fail_when_the_view_is_known(rng: np.random.Generator) -> None:
+    lm = _ceiling(rng)
+    kinds = np.arange(len(lm)) < 30  # _ceiling: 30 lamps, then corners
+
+    def in_view(m: np.ndarray) -> np.ndarray:
+        return np.hypot(m[:, 0], m[:, 1]) < FOV - 0.05
+
+    pose = np.array([5.0, 5.0, 0.0])
+    m = np.array([project_point(pose, p, CAM)[0] for p in lm])
+    vis = np.hypot(m[:, 0], m[:, 1]) < FOV
+    assert (vis & kinds).any()
+    corners_only = m[vis & ~kinds]
+    chk = CeilingChecker(lm, CAM, VerificationConfig(), is_lamp=kinds, in_view=in_view)
+    assert chk.outcome(pose, m[vis], kinds[vis]) is True
+    # the lamps overhead were not seen: the corners alone must not accept the pose
+    assert chk.outcome(pose, corners_only, np.zeros(len(corners_only), bool)) is False
+    assert chk.outcome(pose, np.zeros((0, 2))) is False
+    blind = CeilingChecker(lm, CAM, VerificationConfig(), is_lamp=kinds)
+    assert blind.outcome(pose, corners_only, np.zeros(len(corners_only), bool)) is True
