@@ -335,26 +335,6 @@ class MappingDrive:
     speed: float = 0.3
     both_directions: bool = True
 
-    @classmethod
-    def from_dict(cls, data: dict[str, object] | None) -> MappingDrive:
-        """From a world YAML's ``mapping_drive`` section (missing keys keep the defaults)."""
-        if not data:
-            return cls()
-        try:
-            kw: dict[str, object] = {}
-            if "lanes" in data:
-                kw["lanes"] = tuple(float(v) for v in data["lanes"])  # type: ignore[attr-defined]
-            if "span" in data:
-                lo, hi = (float(v) for v in data["span"])  # type: ignore[attr-defined]
-                kw["span"] = (lo, hi)
-            if "speed" in data:
-                kw["speed"] = float(data["speed"])  # type: ignore[arg-type]
-            if "both_directions" in data:
-                kw["both_directions"] = bool(data["both_directions"])
-            return cls(**kw)  # type: ignore[arg-type]
-        except (TypeError, ValueError) as exc:
-            raise DatasetError(f"mapping_drive: {exc}") from exc
-
 
 def zigzag_waypoints(drive: MappingDrive) -> FloatArray:
     """Waypoints of the zig-zag: lanes along x (boustrophedon), then along y back.

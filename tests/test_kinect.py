@@ -182,3 +182,9 @@ def test_zigzag_covers_the_lattice() -> None:
         # every lane is driven both along x and along y
         assert np.any((wp[:-1, 1] == lane) & (wp[1:, 1] == lane))
         assert np.any((wp[:-1, 0] == lane) & (wp[1:, 0] == lane))
+
+
+def test_office_path_is_the_default_zigzag() -> None:
+    from lampsam.datasets.world import load_world
+
+    np.testing.assert_allclose(load_world("office").waypoints, zigzag_waypoints(MappingDrive()))
