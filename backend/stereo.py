@@ -32,18 +32,18 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
+from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.datasets.stereo_sim import StereoRig, StereoRun
 from lampsam.errors import EstimationError
+from lampsam.factors.geometry import coords_D_tangent
 from lampsam.factors.stereo import (
     camera_point,
-    coords_D_tangent,
     motion_factor,
     motion_model,
     triangulate_point,
     two_point_factor,
     two_point_measurement,
-    wrap_angle,
 )
 
 log = logging.getLogger(__name__)
@@ -262,6 +262,19 @@ def raw_fix(
                                   run.noise.var_measurement_px2, cfg)
 
 
+def _start_pose(run: StereoRun, k: int, cfg: StereoEstimatorConfig, status: str) -> FloatArray | None:
+    """(3,) raw fix of frame ``k`` to start a recursive estimator, or None if it has none.
+
+    Args:
+        run: the run; k: frame index; cfg: solver thresholds.
+        status: the measurement status of frame ``k`` (:func:`measurement_status`).
+    """
+    if status != OK:
+        return None
+    pose, _, raw_status = raw_fix(run, k, cfg)
+    return pose if raw_status == OK else None
+
+
 class RawEstimator:
     """Per-frame triangulation; no memory between frames."""
 
@@ -324,10 +337,8 @@ class StereoEkf:
         """Predict with the odometry of step ``k``, then update with frame ``k``."""
         z, status = self.run.z[k], measurement_status(self.run.z[k], bool(self.run.seen[k]))
         if self.x is None:
-            if status != OK:
-                return _invalid(UNINITIALISED)
-            pose, _, raw_status = raw_fix(self.run, k, self.cfg)
-            if raw_status != OK:
+            pose = _start_pose(self.run, k, self.cfg, status)
+            if pose is None:
                 return _invalid(UNINITIALISED)
             self.x, self.P = pose, np.diag(np.square(self.cfg.sigma_init))
         else:
@@ -378,10 +389,8 @@ class StereoIsam2:
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         if self.k_prev is None:
-            if status != OK:
-                return _invalid(UNINITIALISED)
-            pose, _, raw_status = raw_fix(self.run, k, self.cfg)
-            if raw_status != OK:
+            pose = _start_pose(self.run, k, self.cfg, status)
+            if pose is None:
                 return _invalid(UNINITIALISED)
             p0 = gtsam.Pose2(*pose)
             graph.add(gtsam.PriorFactorPose2(X(k), p0, gtsam.noiseModel.Diagonal.Sigmas(

@@ -18,17 +18,17 @@ last frame where the old pair was valid, and the estimates are chained.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
+from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.backend.stereo import OK, StereoEstimatorConfig, triangulate_two_points
 from lampsam.datasets.kitti import KittiStereoSequence
 from lampsam.datasets.stereo_sim import StereoRig
+from lampsam.factors.geometry import between, compose
 from lampsam.factors.stereo import (
     camera_point,
-    rot2,
     stereo_project,
     triangulate_point,
     two_point_measurement,
@@ -119,17 +119,6 @@ def select_pairs(
     return [(int(cand[iu[ok][b]]), int(cand[ju[ok][b]])) for b in order]
 
 
-def _between(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Planar ``a^-1 b``: pose ``b`` in the frame of pose ``a``."""
-    d = rot2(a[2]).T @ (b[:2] - a[:2])
-    return np.array([d[0], d[1], math.remainder(b[2] - a[2], 2 * math.pi)])
-
-
-def _compose(a: FloatArray, b: FloatArray) -> FloatArray:
-    t = a[:2] + rot2(a[2]) @ b[:2]
-    return np.array([t[0], t[1], math.remainder(a[2] + b[2], 2 * math.pi)])
-
-
 @dataclass(frozen=True)
 class KittiTwoPointResult:
     """The two-point relative pose on KITTI against the ground truth.
@@ -217,11 +206,11 @@ def two_point_on_kitti(
                 est[k] = est[last_ok]
                 continue
             n_pairs += 1
-        est[k] = _compose(est[a], pose)
+        est[k] = compose(est[a], pose)
         anchor[k] = a
         last_ok = k
-        rel_err[k] = pose - _between(truth[a], truth[k])
-        rel_err[k, 2] = math.remainder(rel_err[k, 2], 2 * math.pi)
+        rel_err[k] = pose - between(truth[a], truth[k])
+        rel_err[k, 2] = wrap_angle(rel_err[k, 2])
         scored[k] = True
     residuals = []
     for k in range(1, n):
@@ -229,7 +218,7 @@ def two_point_on_kitti(
         if len(both) == 0:
             continue
         c_prev = _points_at(tracks, k - 1, seq, both)
-        motion = _between(truth[k - 1], truth[k])
+        motion = between(truth[k - 1], truth[k])
         meas_l = paper_coords(tracks.u_left[k, both], seq)
         meas_r = paper_coords(tracks.u_right[k, both], seq)
         for c, ml, mr in zip(c_prev, meas_l, meas_r, strict=True):

@@ -39,11 +39,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.datasets.logrun import CameraModel, ProjectionTable, read_run
 from lampsam.errors import LampsamError
 from lampsam.frontend.corners import detect_corner_pixels, match_ncc
-from lampsam.frontend.lamps import PixelToCeiling, detect_lamps, wrap_axis
+from lampsam.frontend.lamps import PixelToCeiling, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
 
 log = logging.getLogger(__name__)

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LampsamError
 from scipy import stats
@@ -22,11 +23,6 @@ from scipy import stats
 
 class MetricsError(LampsamError):
     """Inputs to a metric do not fit (shapes, empty, no overlap in time)."""
-
-
-def _wrap(a: FloatArray) -> FloatArray:
-    """Wrap angles to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
 
 
 def _check_poses(name: str, poses: FloatArray) -> FloatArray:
@@ -84,7 +80,7 @@ def pose_errors(estimate: FloatArray, truth: FloatArray) -> tuple[FloatArray, Fl
     if est.shape != gt.shape:
         raise MetricsError(f"estimate {est.shape} and truth {gt.shape} differ in length")
     pos = np.hypot(est[:, 0] - gt[:, 0], est[:, 1] - gt[:, 1])
-    head = _wrap(est[:, 2] - gt[:, 2])
+    head = wrap_angle(est[:, 2] - gt[:, 2])
     return pos, head
 
 
@@ -106,7 +102,7 @@ def interpolate_poses(t_query: FloatArray, t: FloatArray, poses: FloatArray) -> 
     out = np.empty((tq.size, 3))
     out[:, 0] = np.interp(tq, t, p[:, 0])
     out[:, 1] = np.interp(tq, t, p[:, 1])
-    out[:, 2] = _wrap(np.interp(tq, t, unwrapped))
+    out[:, 2] = wrap_angle(np.interp(tq, t, unwrapped))
     return out
 
 
@@ -121,7 +117,7 @@ def se2_log(poses: FloatArray) -> FloatArray:
         ``Pose2.Expmap(xi) == pose``.
     """
     p = np.atleast_2d(np.asarray(poses, dtype=np.float64))
-    w = _wrap(p[:, 2])
+    w = wrap_angle(p[:, 2])
     half = 0.5 * w
     small = np.abs(w) < 1e-9
     # V^{-1} = (w/2) [[cot(w/2), 1], [-1, cot(w/2)]] for Pose2 (GTSAM Pose2::Logmap).
@@ -138,7 +134,7 @@ def between(a: FloatArray, b: FloatArray) -> FloatArray:
     b = np.atleast_2d(b)
     c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, _wrap(b[:, 2] - a[:, 2])])
+    return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[:, 2] - a[:, 2])])
 
 
 def tangent_errors(estimate: FloatArray, truth: FloatArray) -> FloatArray:
@@ -161,7 +157,7 @@ def coordinate_errors(estimate: FloatArray, truth: FloatArray) -> FloatArray:
     est = _check_poses("estimate", estimate)
     gt = _check_poses("truth", truth)
     d = gt - est
-    d[:, 2] = _wrap(d[:, 2])
+    d[:, 2] = wrap_angle(d[:, 2])
     return d
 
 

@@ -1,4 +1,7 @@
-"""Planar geometry shared by every model: angle wrapping, rotations, pose algebra.
+"""Planar geometry shared by every model: rotations, pose algebra (and angle wrapping).
+
+``wrap_angle`` and ``wrap_axis`` are defined in :mod:`lampsam.angles` and
+re-exported here for the models and their callers.
 
 Conventions (docs/conventions.md, fixed there and followed here):
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from lampsam.angles import wrap_angle, wrap_axis
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError
 
@@ -35,47 +39,8 @@ __all__ = [
     "wrap_axis",
 ]
 
-TWO_PI = 2.0 * math.pi
-
-
 class FactorError(LampsamError):
     """A model or factor was given unusable input (wrong shape, NaN, point below camera)."""
-
-
-def wrap_angle(angle: float | FloatArray) -> float | FloatArray:
-    """Wrap an angle (or array of angles) to ``(-pi, pi]``.
-
-    Args:
-        angle: radians, scalar or any-shaped array.
-
-    Returns:
-        The same shape, each value in ``(-pi, pi]`` (``pi`` maps to ``pi``,
-        ``-pi`` maps to ``pi``).
-    """
-    wrapped = math.pi - np.mod(math.pi - np.asarray(angle, dtype=float), TWO_PI)
-    if np.ndim(wrapped) == 0:
-        return float(wrapped)
-    return wrapped
-
-
-def wrap_axis(angle: float | FloatArray) -> float | FloatArray:
-    """Wrap a line direction (defined modulo ``pi``) to ``(-pi/2, pi/2]``.
-
-    A lamp's long axis is a line, not an arrow (DESIGN sec. 1): ``phi`` and
-    ``phi + pi`` are the same axis, and residuals of axis observations are wrapped
-    with this function so that they never exceed ``pi/2`` in magnitude.
-
-    Args:
-        angle: radians, scalar or any-shaped array.
-
-    Returns:
-        The same shape, each value in ``(-pi/2, pi/2]``.
-    """
-    half = 0.5 * math.pi
-    wrapped = half - np.mod(half - np.asarray(angle, dtype=float), math.pi)
-    if np.ndim(wrapped) == 0:
-        return float(wrapped)
-    return wrapped
 
 
 def rot2(theta: float) -> FloatArray:

@@ -30,8 +30,10 @@ from functools import partial
 
 import gtsam
 import numpy as np
+from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError
+from lampsam.factors.geometry import rot2
 
 #: Order of the four coordinates in a two-point measurement (eq. 5).
 MEASUREMENT_ORDER = ("xl1", "xr1", "xl2", "xr2")
@@ -39,18 +41,6 @@ MEASUREMENT_ORDER = ("xl1", "xr1", "xl2", "xr2")
 
 class StereoModelError(LampsamError):
     """A stereo model was called with an unusable argument (shape, non-finite)."""
-
-
-def wrap_angle(angle: float | FloatArray) -> float | FloatArray:
-    """Wrap an angle (rad) to ``(-pi, pi]`` (docs/conventions.md)."""
-    wrapped = np.pi - np.mod(np.pi - np.asarray(angle, dtype=float), 2.0 * np.pi)
-    return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
-
-
-def rot2(theta: float) -> FloatArray:
-    """(2, 2) rotation matrix ``R(theta)``."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s], [s, c]])
 
 
 def pose_vector(pose: gtsam.Pose2 | FloatArray) -> FloatArray:
@@ -139,13 +129,6 @@ def two_point_measurement(
         z[2 * j : 2 * j + 2] = x
         z_D_pose[2 * j : 2 * j + 2] = x_D_c @ c_D_pose
     return z, z_D_pose
-
-
-def coords_D_tangent(theta: float) -> FloatArray:
-    """(3, 3) ``blockdiag(R(theta), 1)``: tangent perturbation -> coordinate change."""
-    out = np.eye(3)
-    out[:2, :2] = rot2(theta)
-    return out
 
 
 def motion_model(

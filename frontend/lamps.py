@@ -79,6 +79,7 @@ from typing import Protocol
 
 import cv2
 import numpy as np
+from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.frontend.measurements import LampObservation
 
@@ -218,12 +219,6 @@ class LampDetections:
     threshold: float | None
     mask: BoolArray
     n_rejected: int
-
-
-def wrap_axis(a: float) -> float:
-    """Wrap a line direction to ``(-pi/2, pi/2]`` (docs/conventions.md, "Angles")."""
-    w = a - math.pi * math.floor(a / math.pi)  # [0, pi)
-    return w - math.pi if w > math.pi / 2 else w
 
 
 def grey_histogram(image: ImageU8) -> FloatArray:

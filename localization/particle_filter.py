@@ -32,6 +32,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.localization.grid import OccupancyGrid, free_mask
@@ -45,10 +46,8 @@ class ParticleFilterError(LocalizationError):
     """Bad particle-filter input (no free space, empty candidates, NaN odometry)."""
 
 
-def wrap(angle: FloatArray) -> FloatArray:
-    """Wrap angles to ``(-pi, pi]`` (conventions.md), elementwise."""
-    a = np.mod(np.asarray(angle, dtype=np.float64) + math.pi, 2 * math.pi) - math.pi
-    return np.where(a == -math.pi, math.pi, a)
+#: Alias of :func:`lampsam.angles.wrap_angle`, kept for the callers of ``wrap``.
+wrap = wrap_angle
 
 
 @dataclass(frozen=True)
@@ -211,12 +210,12 @@ def sample_motion(particles: FloatArray, odom_prev: FloatArray, odom_now: FloatA
         raise ParticleFilterError("odometry pose is not finite")
     dx, dy = odom_now[0] - odom_prev[0], odom_now[1] - odom_prev[1]
     trans = math.hypot(dx, dy)
-    dtheta = float(wrap(odom_now[2] - odom_prev[2]))
-    rot1 = float(wrap(math.atan2(dy, dx) - odom_prev[2])) if trans > 1e-6 else 0.0
+    dtheta = float(wrap_angle(odom_now[2] - odom_prev[2]))
+    rot1 = float(wrap_angle(math.atan2(dy, dx) - odom_prev[2])) if trans > 1e-6 else 0.0
     if abs(rot1) > math.pi / 2 and trans > 1e-6:  # driving backwards: keep rotations small
-        rot1 = float(wrap(rot1 + math.pi))
+        rot1 = float(wrap_angle(rot1 + math.pi))
         trans = -trans
-    rot2 = float(wrap(dtheta - rot1))
+    rot2 = float(wrap_angle(dtheta - rot1))
     n = len(particles)
     s_rot1 = noise.a_rot_rot * abs(rot1) + noise.a_rot_trans * abs(trans) + noise.sigma_rot_min
     s_rot2 = noise.a_rot_rot * abs(rot2) + noise.a_rot_trans * abs(trans) + noise.sigma_rot_min
@@ -229,7 +228,7 @@ def sample_motion(particles: FloatArray, odom_prev: FloatArray, odom_now: FloatA
     heading = particles[:, 2] + r1
     out[:, 0] = particles[:, 0] + tr * np.cos(heading)
     out[:, 1] = particles[:, 1] + tr * np.sin(heading)
-    out[:, 2] = wrap(heading + r2)
+    out[:, 2] = wrap_angle(heading + r2)
     return out
 
 
@@ -249,7 +248,7 @@ def weighted_estimate(particles: FloatArray,
     mean_th = math.atan2(float(w @ np.sin(particles[:, 2])), float(w @ np.cos(particles[:, 2])))
     mean = np.array([mean_xy[0], mean_xy[1], mean_th])
     d = particles - mean
-    d[:, 2] = wrap(d[:, 2])
+    d[:, 2] = wrap_angle(d[:, 2])
     cov = (d * w[:, None]).T @ d
     return mean, cov
 
@@ -314,7 +313,7 @@ def sample_candidate_discs(candidates: Sequence[tuple[FloatArray, float]], per_c
         rho = radius * np.sqrt(rng.uniform(0.0, 1.0, per_candidate))
         phi = rng.uniform(-math.pi, math.pi, per_candidate)
         out.append(np.column_stack([pose[0] + rho * np.cos(phi), pose[1] + rho * np.sin(phi),
-                                    wrap(pose[2] + rng.normal(0.0, sigma_theta, per_candidate))]))
+                                    wrap_angle(pose[2] + rng.normal(0.0, sigma_theta, per_candidate))]))
     return np.concatenate(out)
 
 
@@ -356,7 +355,7 @@ class ParticleFilter:
         if len(particles) == 0 or not np.all(np.isfinite(particles)):
             raise ParticleFilterError("initial particles must be non-empty and finite")
         self.particles = particles.copy()
-        self.particles[:, 2] = wrap(self.particles[:, 2])
+        self.particles[:, 2] = wrap_angle(self.particles[:, 2])
         self.log_weights = np.full(len(particles), -math.log(len(particles)))
         self.evidence_per_beam = math.nan
         self.evidence_slow = math.nan
@@ -442,7 +441,7 @@ class ParticleFilter:
         if self.config.jitter_xy > 0:
             new[:, :2] += self.rng.normal(0.0, self.config.jitter_xy, (len(new), 2))
         if self.config.jitter_theta > 0:
-            new[:, 2] = wrap(new[:, 2] + self.rng.normal(0.0, self.config.jitter_theta, len(new)))
+            new[:, 2] = wrap_angle(new[:, 2] + self.rng.normal(0.0, self.config.jitter_theta, len(new)))
         self.particles = new
         self.log_weights = np.full(len(new), -math.log(len(new)))
 
