@@ -103,7 +103,8 @@ def plot_nees(ax: Axes, t: FloatArray, nees_avg: FloatArray, n_runs: int, label:
               color: str | None = None, dof: int = 3) -> list[Any]:
     """Seed-averaged NEES over time with the chi-square 95 % band of ``n_runs`` runs."""
     lo, hi = chi2_bounds(dof, n_runs)
-    artists = ax.semilogy(t, np.clip(nees_avg, 1e-3, None), color=color, lw=0.8, label=label)
+    artists: list[Any] = list(ax.semilogy(t, np.clip(nees_avg, 1e-3, None), color=color,
+                                          lw=0.8, label=label))
     artists.append(ax.axhspan(lo, hi, color="tab:green", alpha=0.08))
     artists.append(ax.axhline(dof, color="black", lw=0.5, ls=":"))
     ax.set_xlabel("time [s]")
@@ -201,7 +202,7 @@ def make_figures(fig_dir: Path, results: list[JobResult]) -> list[Path]:
         else:
             plt.close(fig)
         # Error distribution across seeds
-        per_b = {}
+        per_b: dict[str, list[float]] = {}
         for r in results:
             if r.job.group == g and "pos_rms_m" in r.metrics:
                 per_b.setdefault(r.job.backend, []).append(r.metrics["pos_rms_m"])

@@ -13,12 +13,16 @@ Poses are ``(x, y, theta)`` rows, world frame, metres and radians
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LampsamError
 from scipy import stats
+
+if TYPE_CHECKING:
+    from evo.core.trajectory import PoseTrajectory3D
 
 
 class MetricsError(LampsamError):
@@ -268,8 +272,18 @@ def nees_summary(nees_runs: FloatArray, dof: int = 3, probability: float = 0.95)
     )
 
 
-def to_evo(t: FloatArray, poses: FloatArray):  # -> evo PoseTrajectory3D (import kept lazy)
-    """Planar poses to an ``evo.core.trajectory.PoseTrajectory3D`` (z = 0, yaw quaternion)."""
+def to_evo(t: FloatArray, poses: FloatArray) -> PoseTrajectory3D:
+    """Planar poses to an ``evo.core.trajectory.PoseTrajectory3D`` (z = 0, yaw quaternion).
+
+    evo is imported lazily, inside the function.
+
+    Args:
+        t: (N,) timestamps, s.
+        poses: (N, 3) ``(x, y, theta)`` in the world frame, metres and radians.
+
+    Returns:
+        The trajectory; orientation is the yaw quaternion ``(cos(theta/2), 0, 0, sin(theta/2))``.
+    """
     from evo.core.trajectory import PoseTrajectory3D
 
     p = _check_poses("poses", poses)
