@@ -123,9 +123,9 @@ def fit_series(backend: str, n: ArrayLike, median_s: ArrayLike, p95_s: ArrayLike
 def plot_scaling(ax: Axes, series: list[ScalingSeries]) -> list[Any]:
     """Time per update against landmarks in the state, log-log, with the fitted lines.
 
-    Medians are drawn as filled markers joined by a line, the p95 as open markers of
-    the same colour, and each fit as a dashed line over the sizes it used, labelled
-    with its exponent.
+    Medians are drawn as filled markers joined by a thin line, the p95 as open
+    markers of the same colour, and each fit as a thick dashed line over the sizes it
+    used, labelled with its exponent. Times are drawn in ms.
 
     Args:
         ax: target axis.
@@ -137,7 +137,7 @@ def plot_scaling(ax: Axes, series: list[ScalingSeries]) -> list[Any]:
     artists: list[Any] = []
     for s in series:
         color = COLORS.get(s.backend)
-        artists += ax.plot(s.n_landmarks, s.median_s * 1e3, "o-", color=color,
+        artists += ax.plot(s.n_landmarks, s.median_s * 1e3, "o-", color=color, lw=1.0,
                            label=f"{s.backend} median")
         artists += ax.plot(s.n_landmarks, s.p95_s * 1e3, "^", color=color, mfc="none",
                            label=f"{s.backend} p95")
@@ -145,7 +145,7 @@ def plot_scaling(ax: Axes, series: list[ScalingSeries]) -> list[Any]:
             used = s.n_landmarks[s.n_landmarks >= s.fit_min_landmarks]
             xs = np.geomspace(used.min(), used.max(), 20)
             artists += ax.plot(xs, s.coefficient * xs**s.exponent * 1e3, "--", color=color,
-                               label=f"{s.backend} fit: t ~ n^{s.exponent:.2f}")
+                               lw=2.5, alpha=0.6, label=f"{s.backend} fit: t ~ n^{s.exponent:.2f}")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("landmarks in the state n [-]")
