@@ -514,6 +514,42 @@ def _project(
     return px, ok
 
 
+def lamp_outlines(
+    centers: FloatArray, length: FloatArray, width: FloatArray, phi: FloatArray, round_: list[bool]
+) -> FloatArray:
+    """Outline points of lamps, 16 each.
+
+    Args:
+        centers: (K, 3) lamp centres, world m.
+        length: (K,) long side (round: diameter), m.
+        width: (K,) short side, m.
+        phi: (K,) yaw of the long side, rad.
+        round_: K flags: round lamps get 16 points on the circle, others the 4
+            corners and 3 points on each side.
+
+    Returns:
+        (K, 16, 3) world points at the lamps' heights.
+    """
+    k = len(centers)
+    a = np.linspace(0.0, 2 * np.pi, 16, endpoint=False)
+    circle = np.column_stack([np.cos(a), np.sin(a)])  # unit radius
+    f = np.array([-0.5, 0.0, 0.5])
+    one = np.ones(3)
+    box = np.concatenate([
+        [[1, 1], [-1, 1], [-1, -1], [1, -1]],
+        np.column_stack([f * 2, one]), np.column_stack([f * 2, -one]),
+        np.column_stack([one, f * 2]), np.column_stack([-one, f * 2]),
+    ])  # fmt: skip  # (16, 2) on the [-1, 1]^2 square
+    is_round = np.asarray(round_, dtype=bool).reshape(k, 1, 1)
+    half = np.stack([length / 2, width / 2], axis=-1)[:, None, :]  # (K, 1, 2)
+    local = np.where(is_round, circle[None] * half[..., :1], box[None] * half)
+    c, s = np.cos(phi)[:, None], np.sin(phi)[:, None]
+    x = centers[:, None, 0] + c * local[..., 0] - s * local[..., 1]
+    y = centers[:, None, 1] + s * local[..., 0] + c * local[..., 1]
+    z = np.broadcast_to(centers[:, None, 2], x.shape)
+    return np.stack([x, y, z], axis=-1).reshape(k, 16, 3)
+
+
 def project_landmarks(
     camera: CameraModel,
     pose: FloatArray,
@@ -558,33 +594,53 @@ def project_landmarks(
         )  # fmt: skip
 
     pts = landmarks.xyz[sel]
-    px, ok = _project(camera, pts, pose)
-    centre_in = ok & inside(px, 0.0)
-    hidden = _hidden(pts, w_t_c, occ) if occ else np.zeros(len(pts), dtype=bool)
     types = [landmarks.types[i] for i in sel]
+    lamp_k = np.array([k for k, t in enumerate(types) if t.startswith("lamp")], dtype=np.int64)
+    rect_k = np.array([k for k, t in enumerate(types) if t == "lamp_rect"], dtype=np.int64)
+    rings = lamp_outlines(
+        pts[lamp_k], landmarks.length[sel[lamp_k]], landmarks.width[sel[lamp_k]],
+        landmarks.phi[sel[lamp_k]], [types[k] == "lamp_round" for k in lamp_k],
+    )  # fmt: skip  # (K, R, 3)
+    n_ring = rings.shape[1]
+    e = (
+        0.5
+        * landmarks.length[sel[rect_k], None]
+        * np.column_stack(
+            [
+                np.cos(landmarks.phi[sel[rect_k]]),
+                np.sin(landmarks.phi[sel[rect_k]]),
+                np.zeros(len(rect_k)),
+            ]
+        )
+    )
+    ends = np.concatenate([pts[rect_k] - e, pts[rect_k] + e])
+    # One projection and one occlusion test for centres, outlines and axis ends.
+    n_pts, n_rings = len(pts), len(lamp_k) * n_ring
+    all_pts = np.concatenate([pts, rings.reshape(-1, 3), ends])
+    all_px, all_ok = _project(camera, all_pts, pose)
+    px, ok = all_px[:n_pts], all_ok[:n_pts]
+    vis_pts = all_pts[: n_pts + n_rings]
+    all_hidden = _hidden(vis_pts, w_t_c, occ) if occ else np.zeros(len(vis_pts), dtype=bool)
+    hidden = all_hidden[:n_pts]
+    centre_in = ok & inside(px, 0.0)
     keep = centre_in.copy()
-    fully = np.zeros(len(sel), dtype=bool)
+    fully = centre_in & ~hidden  # corners; lamps are overwritten below
     angle = np.full(len(sel), np.nan)
-    for k, i in enumerate(sel):
-        t = types[k]
-        if not t.startswith("lamp") or not ok[k]:
-            fully[k] = centre_in[k] and not hidden[k]
-            continue
-        lamp = Lamp(0, t[5:], tuple(pts[k, :2]), pts[k, 2], landmarks.length[i], landmarks.width[i],
-                    landmarks.phi[i])  # type: ignore[arg-type]  # fmt: skip
-        ring = np.column_stack([lamp.outline(), np.full(len(lamp.outline()), pts[k, 2])])
-        rpx, rok = _project(camera, ring, pose)
-        keep[k] = centre_in[k] or bool(np.any(rok & inside(rpx, 0.0)))
-        rhid = _hidden(ring, w_t_c, occ) if occ else np.zeros(len(ring), dtype=bool)
-        fully[k] = bool(np.all(rok & inside(rpx, 1.0) & ~rhid)) and not hidden[k]
-        if t == "lamp_rect":
-            half = 0.5 * landmarks.length[i]
-            e = np.array([math.cos(landmarks.phi[i]), math.sin(landmarks.phi[i]), 0.0]) * half
-            epx, eok = _project(camera, np.array([pts[k] - e, pts[k] + e]), pose)
-            if eok.all():
-                a = math.atan2(epx[1, 1] - epx[0, 1], epx[1, 0] - epx[0, 0])
-                a = (a + math.pi / 2) % math.pi - math.pi / 2
-                angle[k] = math.pi / 2 if a == -math.pi / 2 else a
+    if len(lamp_k):
+        rpx = all_px[n_pts : n_pts + n_rings]
+        rok = all_ok[n_pts : n_pts + n_rings]
+        rhid = all_hidden[n_pts:]
+        any_in = (rok & inside(rpx, 0.0)).reshape(-1, n_ring).any(axis=1)
+        all_in = (rok & inside(rpx, 1.0) & ~rhid).reshape(-1, n_ring).all(axis=1)
+        keep[lamp_k] |= any_in
+        fully[lamp_k] = all_in & ~hidden[lamp_k] & ok[lamp_k]
+    if len(rect_k):
+        epx = all_px[n_pts + n_rings :].reshape(2, -1, 2)
+        eok = all_ok[n_pts + n_rings :].reshape(2, -1).all(axis=0)
+        a = np.arctan2(epx[1, :, 1] - epx[0, :, 1], epx[1, :, 0] - epx[0, :, 0])
+        a = np.mod(a + np.pi / 2, np.pi) - np.pi / 2
+        a = np.where(a == -np.pi / 2, np.pi / 2, a)
+        angle[rect_k] = np.where(eok, a, np.nan)
     keep &= ok
     n = int(keep.sum())
     return ProjectionTable(

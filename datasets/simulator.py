@@ -48,7 +48,7 @@ from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
 
-# Per-process renderer state (set in the parent before forking, or by the initializer).
+# Per-process renderer state (built in-process, or by the pool initializer in each worker).
 _STATE: dict[str, Any] = {}
 
 
@@ -204,11 +204,11 @@ def simulate_world(
             results = map(_render_task, tasks)
             _consume(results, t, frame_idx, images, proj)
         else:
+            # "spawn", not "fork": forking a process whose OpenCV thread pool (or any
+            # other thread) holds a lock can deadlock the child. Each worker builds its
+            # own renderer (about a second).
             _STATE.clear()
-            _init_state(w, seed)  # built once here; forked workers inherit it
-            ctx = (
-                mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
-            )
+            ctx = mp.get_context("spawn")
             with ctx.Pool(n_workers, initializer=_worker_init, initargs=(w, seed)) as pool:
                 _consume(pool.imap(_render_task, tasks, chunksize=4), t, frame_idx, images, proj)
     finally:
