@@ -13,8 +13,8 @@ Sources:
 - a SLAM output's ``landmarks.csv`` (any CSV with a header containing ``id``,
   ``type``, ``x``, ``y``, ``z``; optional ``phi``, ``length``, ``width``,
   ``var_x`` or ``cov_xx``, ``cov_xy``, ``var_y`` or ``cov_yy``: the backend's
-  ``landmarks.csv`` is read as it is). Its ``z`` may be the height above the
-  camera (the SLAM state, DESIGN sec. 1); pass ``z_cam`` to convert;
+  ``landmarks.csv`` is read as it is). Its ``z`` is the height above the floor
+  (backend/ceiling.py); for a file with ``z`` above the camera pass ``z_cam``;
 - the run's true ``landmarks.csv`` (:func:`lampsam.datasets.logrun.read_landmarks`).
 
 On disk: ``ceiling_features.csv`` with header

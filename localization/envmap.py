@@ -804,13 +804,12 @@ def build_map(
         }
         if kind == "run":
             if pose_kind == "slam" and (pose_path.parent / "landmarks.csv").is_file():  # type: ignore[union-attr]
-                from lampsam.datasets.logrun import Rig
-
                 assert pose_path is not None  # parse_pose_source gives a path for "slam"
-                z_cam = Rig.from_yaml(src / "rig.yaml").camera.z_cam
+                # backend/slam.py writes z above the floor (backend/ceiling.py; checked:
+                # 2.681 m for a lamp at 2.68 m), so no camera-height offset
                 ceiling = read_landmark_csv(
                     pose_path.parent / "landmarks.csv",
-                    z_cam=z_cam,
+                    z_cam=0.0,
                     source=f"slam:{pose_path.parent / 'landmarks.csv'}",
                 )
             elif (src / "landmarks.csv").is_file():
