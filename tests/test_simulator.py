@@ -268,3 +268,24 @@ def test_simulation_is_deterministic_across_worker_counts(tmp_path: Path) -> Non
     for i in range(len(a.images)):
         np.testing.assert_array_equal(a.images.load(i), b.images.load(i))
     np.testing.assert_array_equal(a.odometry.d_left, b.odometry.d_left)
+
+
+def test_lamp_with_lens_distortion_matches_projectpoints() -> None:
+    """With distortion, rays come from cv2.undistortPoints and the truth from
+    cv2.projectPoints: the small lamp's blob centroid and its projected centre agree."""
+    doc = _world([{"id": 1, "shape": "round", "center": [1.1, 0.5], "height": 2.5,
+                   "diameter": 0.1, "brightness": 250}])  # fmt: skip
+    doc["rig"]["camera"]["dist"] = [-0.05, 0.004, 0.0005, -0.0005, 0.0]
+    w = world_from_dict(doc)
+    renderer = CeilingRenderer(w)
+    lms = world_landmarks(w)
+    undistorted = project_landmarks(world_from_dict(_world([])).rig.camera, np.zeros(3), lms).pixel[
+        0
+    ]
+    for pose in ([0.0, 0.0, 0.0], [-0.5, 0.3, 0.4], [0.3, -0.8, -1.0]):
+        truth = project_landmarks(w.rig.camera, np.array(pose), lms)
+        col, row = _blob_centroid(renderer.render_linear(np.array(pose)), tuple(truth.pixel[0]), 12)
+        assert math.hypot(col - truth.pixel[0, 0], row - truth.pixel[0, 1]) < 0.1
+    # The distortion moved the lamp (the check is not vacuous).
+    first = project_landmarks(w.rig.camera, np.zeros(3), lms).pixel[0]
+    assert np.hypot(*(first - undistorted)) > 0.2
