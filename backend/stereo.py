@@ -41,6 +41,7 @@ from lampsam.factors.stereo import (
     camera_point,
     motion_factor,
     motion_model,
+    pose_vector,
     triangulate_point,
     two_point_factor,
     two_point_measurement,
@@ -148,6 +149,7 @@ _INVALID_COV = np.eye(3) * 1e6
 
 
 def _invalid(status: str) -> StereoStep:
+    """A step without an estimate: zero pose, the placeholder covariance, ``status``."""
     return StereoStep(np.zeros(3), _INVALID_COV.copy(), status, False)
 
 
@@ -182,10 +184,6 @@ def measurement_status(z: FloatArray, seen: bool) -> str:
 def predicted_depths_ok(pose: FloatArray, points: FloatArray, min_depth: float) -> bool:
     """True when both target points are at least ``min_depth`` in front of the rig."""
     return all(camera_point(pose, p)[0][0] > min_depth for p in points)
-
-
-def _pose_vec(pose: gtsam.Pose2) -> FloatArray:
-    return np.array([pose.x(), pose.y(), pose.theta()])
 
 
 # --------------------------------------------------------------------------- raw
@@ -233,7 +231,7 @@ def triangulate_two_points(
     pose = gtsam.Pose2(t[0], t[1], theta)
     info = None
     for _ in range(cfg.gn_iterations):
-        if not predicted_depths_ok(_pose_vec(pose), pts, cfg.min_depth):
+        if not predicted_depths_ok(pose_vector(pose), pts, cfg.min_depth):
             return *bad, BEHIND
         h, h_D = two_point_measurement(pose, pts, b, f_px)
         info = h_D.T @ h_D
@@ -351,10 +349,12 @@ class StereoEkf:
 
 # --------------------------------------------------------------------------- graphs
 def _noise(cov: FloatArray) -> gtsam.noiseModel.Base:
+    """Gaussian noise model of a covariance matrix."""
     return gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
 
 
 def _coords_cov(pose: FloatArray, cov_tangent: FloatArray) -> FloatArray:
+    """(3, 3) covariance in plain coordinates from one in GTSAM's right tangent at ``pose``."""
     jac = coords_D_tangent(pose[2])
     return jac @ cov_tangent @ jac.T
 
@@ -378,6 +378,7 @@ class StereoIsam2:
         self.meas_noise = _noise(measurement_cov(run))
 
     def _measurement_factor(self, k: int) -> gtsam.CustomFactor:
+        """The two-point measurement factor (eq. 5) of frame ``k`` on ``X(k)``."""
         rig = self.run.rig
         return two_point_factor(
             X(k), self.run.z[k], self.run.target_t_points, rig.baseline, rig.f_px, self.meas_noise
@@ -413,7 +414,7 @@ class StereoIsam2:
         self.isam.update(graph, values)
         for _ in range(self.cfg.isam2_extra_updates):
             self.isam.update()
-        pose = _pose_vec(self.isam.calculateEstimatePose2(X(k)))
+        pose = pose_vector(self.isam.calculateEstimatePose2(X(k)))
         cov = _coords_cov(pose, self.isam.marginalCovariance(X(k)))
         self.k_prev, self.x_prev, self.P_prev = k, pose, cov
         return StereoStep(pose, cov, status, True)
@@ -496,7 +497,7 @@ def batch_smoother(run: StereoRun, cfg: StereoEstimatorConfig) -> list[StereoSte
     except RuntimeError as exc:
         raise EstimationError(f"batch smoother: marginals failed: {exc}") from exc
     for k in range(k0, n):
-        pose = _pose_vec(result.atPose2(X(k)))
+        pose = pose_vector(result.atPose2(X(k)))
         steps[k] = StereoStep(pose, _coords_cov(pose, marginals.marginalCovariance(X(k))),
                               status[k], True)
     return steps

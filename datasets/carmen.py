@@ -102,6 +102,7 @@ def carmen_beam_angles(n_beams: int, fov: float = math.pi) -> FloatArray:
 
 
 def _floats(tokens: list[str], path: Path, line_no: int) -> list[float]:
+    """``tokens`` as floats; DatasetError naming ``path`` and ``line_no`` on a non-number."""
     try:
         values = [float(v) for v in tokens]
     except ValueError as exc:

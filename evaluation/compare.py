@@ -74,6 +74,7 @@ class JobResult:
 
 # --------------------------------------------------------------------------- runs
 def _is_world(name: str) -> bool:
+    """True for a built-in world name or an existing world YAML file."""
     from lampsam.datasets.world import builtin_worlds
 
     return name in builtin_worlds() or (name.endswith((".yaml", ".yml")) and Path(name).is_file())
@@ -332,6 +333,7 @@ def consistency_sentences(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def _img_html(path: Path) -> str:
+    """An HTML figure with the PNG at ``path`` inlined as base64."""
     data = base64.b64encode(path.read_bytes()).decode("ascii")
     return f'<figure><img src="data:image/png;base64,{data}" style="max-width:100%"><figcaption>{path.stem}</figcaption></figure>'
 
@@ -385,6 +387,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
 
 
 def _md_table_to_html(table: str) -> str:
+    """A Markdown pipe table (header, rule, rows) as an HTML table."""
     lines = table.splitlines()
     head = [c.strip() for c in lines[0].strip("|").split("|")]
     body = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]
@@ -394,6 +397,7 @@ def _md_table_to_html(table: str) -> str:
 
 
 def _json_default(x: Any) -> Any:
+    """JSON fallback for numpy scalars and arrays."""
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, np.ndarray):

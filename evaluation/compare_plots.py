@@ -125,6 +125,7 @@ def plot_error_distribution(ax: Axes, per_backend: dict[str, list[float]]) -> li
 
 
 def _load(results: list[JobResult]) -> dict[tuple[str, int, str], dict[str, np.ndarray]]:
+    """Saved arrays of each finished job, keyed by (group, seed, backend)."""
     data: dict[tuple[str, int, str], dict[str, np.ndarray]] = {}
     for r in results:
         if r.arrays and Path(r.arrays).exists() and not r.status.startswith("failed"):
@@ -214,6 +215,7 @@ def make_figures(fig_dir: Path, results: list[JobResult]) -> list[Path]:
 
 
 def _save(fig: Any, path: Path) -> Path:
+    """Lay out, save at 110 dpi and close a figure; returns ``path``."""
     import matplotlib.pyplot as plt
 
     fig.tight_layout()

@@ -97,6 +97,7 @@ class EvalSettings:
 
 
 def _isnan(v: object) -> bool:
+    """True for a float NaN (False for anything else)."""
     return isinstance(v, float) and math.isnan(v)
 
 

@@ -30,6 +30,7 @@ class MetricsError(LampsamError):
 
 
 def _check_poses(name: str, poses: FloatArray) -> FloatArray:
+    """``poses`` as a non-empty (N, 3) float array; MetricsError naming ``name`` otherwise."""
     arr = np.asarray(poses, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise MetricsError(f"{name}: expected shape (N, 3) of x, y, theta, got {arr.shape}")

@@ -125,6 +125,7 @@ class HeightPrior:
 
 
 def _camera_centre(pose: FloatArray, body_t_camera: FloatArray) -> tuple[FloatArray, float, float]:
+    """World position (2,) of the camera centre of ``pose`` (x, y, theta), m, and ``cos``/``sin`` of its heading."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     ox, oy = float(body_t_camera[0]), float(body_t_camera[1])
     centre = np.array([pose[0] + c * ox - s * oy, pose[1] + s * ox + c * oy])

@@ -119,11 +119,13 @@ LOOSE_SIGMA = 1.0e3
 
 
 def _pose(values: gtsam.Values, key: int) -> FloatArray:
+    """(3,) ``(x, y, theta)`` of the ``Pose2`` stored under ``key``."""
     p = values.atPose2(key)
     return np.array([p.x(), p.y(), p.theta()])
 
 
 def _check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
+    """``cov`` as a (dim, dim) float array; FactorError unless finite and positive definite."""
     arr = np.asarray(cov, dtype=float)
     if arr.shape != (dim, dim) or not np.all(np.isfinite(arr)):
         raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
@@ -210,6 +212,7 @@ def odometry_factor(
 
 @lru_cache(maxsize=64)
 def _virtual_camera(x_off: float, y_off: float, z_cam: float) -> tuple[gtsam.Pose3, gtsam.Cal3DS2]:
+    """Upward camera at body offset ``(x_off, y_off)`` and height ``z_cam`` (m) with unit intrinsics."""
     return (
         gtsam.Pose3(gtsam.Rot3(), np.array([x_off, y_off, z_cam])),
         gtsam.Cal3DS2(1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),

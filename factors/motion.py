@@ -103,6 +103,7 @@ def wheel_noise_cov(d_left: float, d_right: float, k_r: float, k_l: float) -> Fl
 
 
 def _as_floor(floor: float | Sequence[float] | FloatArray) -> FloatArray:
+    """(3,) variance floor (m^2, m^2, rad^2) from a scalar or 3 values; FactorError unless finite and > 0."""
     arr = np.broadcast_to(np.asarray(floor, dtype=float), (3,)).copy()
     if not np.all(np.isfinite(arr)) or np.any(arr <= 0.0):
         raise FactorError(f"odometry covariance floor must be finite and > 0, got {arr}")

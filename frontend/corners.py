@@ -105,6 +105,7 @@ def spacing_nms(pts: FloatArray, score: FloatArray, spacing: float) -> BoolArray
 
 
 def _empty(p: int) -> CornerDetections:
+    """No corners: (0, 2) pixels, (0,) scores, (0, p, p) patches."""
     return CornerDetections(np.zeros((0, 2)), np.zeros(0), np.zeros((0, p, p), np.float32))
 
 

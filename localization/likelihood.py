@@ -152,6 +152,7 @@ def scan_log_likelihood(expected: FloatArray, measured: FloatArray,
 
 def _check_inputs(poses: FloatArray, ranges: FloatArray,
                   angles: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Poses (P, 3), ranges (B,), angles (B,) as float arrays; LikelihoodError on mismatched shapes."""
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     ranges = np.asarray(ranges, dtype=np.float64).reshape(-1)
     angles = np.asarray(angles, dtype=np.float64).reshape(-1)
