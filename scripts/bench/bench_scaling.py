@@ -367,6 +367,32 @@ def print_table(rows: list[dict[str, Any]], variants: list[str], clock: str) -> 
               f"{r['total_s']:6.1f}  {r['status']}")
 
 
+#: Why a measured exponent may differ from the expected one (measured while writing this
+#: script; printed when it differs by more than 0.3).
+EXPLANATIONS = {
+    "ekf": "below 2 while the O(n^2) covariance update (eq. 23) does not yet dominate the "
+           "fixed per-update Python cost and the O(n) work (prediction cross-covariance, "
+           "per-landmark bookkeeping); at 300-1200 landmarks the slope between successive "
+           "sizes rose from ~1.4 to ~1.8 (default run). Heavy load from other processes "
+           "(e.g. --quick on a busy machine) blurs it further.",
+    "isam2": "iSAM2 with the backend's relinearisation (threshold 0.01 checked at every "
+             "update) re-eliminates every clique from a relinearised variable up to the root; "
+             "how often old variables cross the threshold depends on the run, so the cost "
+             "is bumpy, and with denser keyframes (--frame-every 4) it grew ~linearly; "
+             "compare isam2-gtsam (threshold 0.1, every 10th update).",
+    "isam2-gtsam": "a small residual growth remains (per-update work in iSAM2 or the "
+                   "Python backend that grows with the graph; not profiled further).",
+}
+
+
+def local_slope(series: ScalingSeries) -> float:
+    """Log-log slope between the two largest sizes of a series (NaN with fewer than two)."""
+    n, t = series.n_landmarks, series.median_s
+    if len(n) < 2 or n[-1] == n[-2]:
+        return float("nan")
+    return float(np.log(t[-1] / t[-2]) / np.log(n[-1] / n[-2]))
+
+
 def save_figure(series: list[ScalingSeries], path: Path, clock: str) -> None:
     """The log-log figure of :func:`plot_scaling`, saved as a PNG."""
     import matplotlib
@@ -401,7 +427,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="odometry samples (20 Hz) per range-bearing frame (= iSAM2 keyframe)")
     p.add_argument("--unknown-ids", action="store_true",
                    help="association by the chi-square gate instead of known ids")
-    p.add_argument("--quick", action="store_true", help="lengths 10,20,40,80 and 1 repeat")
+    p.add_argument("--quick", action="store_true", help="lengths 20,40,80,160 and 1 repeat")
     p.add_argument("--out", default="out/bench_scaling", help="output directory")
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
@@ -410,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.verbose:  # the backends warn about the last, once-seen landmarks
         logging.getLogger("lampsam").setLevel(logging.ERROR)
     if args.quick:
-        args.lengths, args.repeats = "10,20,40,80", 1
+        args.lengths, args.repeats = "20,40,80,160", 1
     try:
         lengths = [float(x) for x in args.lengths.split(",") if x.strip()]
     except ValueError:
@@ -433,10 +459,16 @@ def main(argv: list[str] | None = None) -> int:
     print_table(rows, variants, args.clock)
     print()
     expected = {"ekf": 2.0, "isam2": 0.0, "isam2-gtsam": 0.0}
+    last_slope = {s.backend: local_slope(s) for s in series}
     for s in series:
         print(f"{s.backend:11}: {args.clock} time per update ~ n^{s.exponent:.2f} ({other}: "
               f"n^{other_exp.get(s.backend, float('nan')):.2f}) over n >= "
-              f"{s.fit_min_landmarks:.0f} landmarks; expected ~n^{expected[s.backend]:.0f}")
+              f"{s.fit_min_landmarks:.0f} landmarks; slope between the two largest sizes "
+              f"{last_slope[s.backend]:.2f}; expected ~n^{expected[s.backend]:.0f}")
+    for s in series:
+        if abs(s.exponent - expected[s.backend]) > 0.3:
+            print(f"  {s.backend}: the exponent differs from {expected[s.backend]:.0f}: "
+                  f"{EXPLANATIONS[s.backend]}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     load1 = os.getloadavg()
@@ -449,6 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "elapsed_s": elapsed,
         "fits": {s.backend: {"clock": args.clock, "exponent": s.exponent,
+                             "slope_two_largest": last_slope[s.backend],
                              "coefficient_s": s.coefficient,
                              "fit_min_landmarks": s.fit_min_landmarks,
                              f"{other}_exponent": other_exp.get(s.backend)} for s in series},
