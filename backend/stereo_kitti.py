@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from lampsam.angles import wrap_angle
-from lampsam.arrays import BoolArray, FloatArray
+from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.stereo import OK, StereoEstimatorConfig, triangulate_two_points
 from lampsam.datasets.kitti import KittiStereoSequence
 from lampsam.datasets.stereo_sim import StereoRig
@@ -63,7 +63,7 @@ def kitti_rig(seq: KittiStereoSequence) -> StereoRig:
 
 
 def _points_at(tracks: StereoTracks, k: int, seq: KittiStereoSequence,
-               idx: FloatArray) -> FloatArray:
+               idx: IntArray) -> FloatArray:
     """(len(idx), 2) triangulated rig-frame points ``(depth, left)`` of tracks at frame k."""
     xl = paper_coords(tracks.u_left[k, idx], seq)
     xr = paper_coords(tracks.u_right[k, idx], seq)
@@ -137,7 +137,7 @@ class KittiTwoPointResult:
 
     truth: FloatArray
     estimate: FloatArray
-    anchor: FloatArray
+    anchor: IntArray
     rel_error: FloatArray
     scored: BoolArray
     n_pairs: int
