@@ -92,7 +92,7 @@ def plot_ceiling_features(
             s=14,
             c="red",
             marker="x",
-            label="ceiling corners",
+            label="ceiling corners" if np.any(~is_lamp) else None,
             zorder=3,
         ),
     ]
