@@ -831,6 +831,7 @@ def read_landmarks(path: str | Path) -> LandmarkTable:
     path = Path(path)
 
     def _type(text: str, p: Path, line: int, column: str) -> str:
+        """A known landmark type, or DatasetError."""
         if text not in LANDMARK_TYPES:
             raise DatasetError(f"column {column!r}: unknown landmark type {text!r}", p, line)
         return text
@@ -870,11 +871,13 @@ def read_projections(path: str | Path) -> ProjectionTable:
     path = Path(path)
 
     def _nan_ok(text: str, p: Path, line: int, column: str) -> float:
+        """A float that may be ``nan`` (but not inf)."""
         if text.lower() == "nan":
             return math.nan
         return _parse_float(text, p, line, column)
 
     def _bool(text: str, p: Path, line: int, column: str) -> bool:
+        """``0``/``1`` as a bool, or DatasetError."""
         if text not in ("0", "1"):
             raise DatasetError(f"column {column!r}: expected 0 or 1, got {text!r}", p, line)
         return text == "1"

@@ -99,6 +99,7 @@ class _Canvas:
     """A layer being painted: premultiplied grey and alpha over a texel grid."""
 
     def __init__(self, bounds: tuple[float, float, float, float], texel: float, pad: int = 3):
+        """Empty canvas covering ``bounds`` (m) plus ``pad`` texels."""
         x0, y0, x1, y1 = bounds
         self.texel = texel
         self.x0 = math.floor(x0 / texel) * texel - pad * texel
@@ -155,10 +156,12 @@ class _Canvas:
 
 
 def _lamp_half_diag(lp: Lamp) -> float:
+    """Half the diagonal of a lamp's bounding rectangle, m."""
     return 0.5 * math.hypot(lp.length, lp.width)
 
 
 def _paint_surface(cv: _Canvas, s: Surface) -> None:
+    """Paint a surface: base rectangle, tile-grid lines clipped to it, then its marks."""
     x0, y0, x1, y1 = s.extent
     cv.rect(((x0 + x1) / 2, (y0 + y1) / 2), (x1 - x0, y1 - y0), 0.0, s.grey)
     if s.tiles is not None:
@@ -187,6 +190,7 @@ def _paint_surface(cv: _Canvas, s: Surface) -> None:
 
 
 def _paint_item(cv: _Canvas, it: TextureItem) -> None:
+    """Paint one texture mark."""
     if it.kind == "disc":
         cv.disc(it.center, it.size[0] / 2, it.grey)
     else:
@@ -194,6 +198,7 @@ def _paint_item(cv: _Canvas, it: TextureItem) -> None:
 
 
 def _paint_lamp(cv: _Canvas, lp: Lamp) -> None:
+    """Paint a lamp at its (possibly > 255) brightness."""
     if lp.shape == "round":
         cv.disc(lp.center, lp.length / 2, lp.brightness)
     else:
@@ -300,6 +305,7 @@ class CeilingRenderer:
     """
 
     def __init__(self, world: World, camera: CameraModel | None = None):
+        """Rasterise the layers and precompute the sub-pixel rays."""
         self.world = world
         self.camera = camera or world.rig.camera
         self.settings = world.render
@@ -438,6 +444,8 @@ def world_T_camera(camera: CameraModel, pose: FloatArray) -> tuple[FloatArray, F
 
 @dataclass(frozen=True)
 class _Occluder:
+    """A horizontal shape that hides what lies above it from the camera below."""
+
     height: float
     shape: str  # "rect" or "disc"
     center: tuple[float, float]
@@ -445,6 +453,7 @@ class _Occluder:
     yaw: float
 
     def contains(self, xy: FloatArray) -> BoolArray:
+        """(N,) bool: points ``xy`` (N, 2) on the shape."""
         if self.shape == "disc":
             return _disc_sdf(xy[:, 0], xy[:, 1], self.center, self.half[0]) <= 0
         return _rect_sdf(xy[:, 0], xy[:, 1], self.center, self.half, self.yaw) <= 0
@@ -588,6 +597,7 @@ def project_landmarks(
     W, H = camera.width, camera.height  # noqa: N806
 
     def inside(px: FloatArray, margin: float) -> BoolArray:
+        """(N,) bool: pixels inside the image shrunk by ``margin`` px."""
         return (
             (px[:, 0] >= -0.5 + margin) & (px[:, 0] <= W - 0.5 - margin)
             & (px[:, 1] >= -0.5 + margin) & (px[:, 1] <= H - 0.5 - margin)

@@ -93,6 +93,7 @@ def render_frame(index: int, pose: FloatArray) -> tuple[bytes, ProjectionTable]:
 
 
 def _render_task(args: tuple[int, FloatArray]) -> tuple[int, bytes, ProjectionTable]:
+    """Pool task: render frame ``i`` at ``pose``."""
     i, pose = args
     png, truth = render_frame(i, pose)
     return i, png, truth

@@ -267,13 +267,16 @@ class _Ctx:
     """Error context: the file and the key path being parsed."""
 
     def __init__(self, path: Path | None):
+        """Remember the file for error messages."""
         self.path = path
 
     def fail(self, where: str, msg: str) -> DatasetError:
+        """A DatasetError ``where: msg`` naming the world file."""
         return DatasetError(f"{where}: {msg}", self.path)
 
 
 def _check_keys(ctx: _Ctx, d: Any, where: str, allowed: set[str], required: set[str]) -> None:
+    """DatasetError unless ``d`` is a mapping with the required and only allowed keys."""
     if not isinstance(d, Mapping):
         raise ctx.fail(where, "must be a mapping")
     unknown = set(d) - allowed
@@ -286,6 +289,7 @@ def _check_keys(ctx: _Ctx, d: Any, where: str, allowed: set[str], required: set[
 
 def _num(ctx: _Ctx, d: Mapping[str, Any], key: str, where: str, default: float | None = None,
          positive: bool = False, nonneg: bool = False) -> float:  # fmt: skip
+    """A finite number ``d[key]`` (or the default), optionally positive/non-negative."""
     if key not in d:
         if default is None:
             raise ctx.fail(where, f"missing {key!r}")
@@ -304,6 +308,7 @@ def _num(ctx: _Ctx, d: Mapping[str, Any], key: str, where: str, default: float |
 
 
 def _vec(ctx: _Ctx, value: Any, n: int, where: str) -> tuple[float, ...]:
+    """A tuple of ``n`` finite numbers, or DatasetError naming ``where``."""
     try:
         arr = np.asarray(value, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError) as exc:
@@ -314,6 +319,7 @@ def _vec(ctx: _Ctx, value: Any, n: int, where: str) -> tuple[float, ...]:
 
 
 def _parse_item(ctx: _Ctx, d: Any, where: str) -> TextureItem:
+    """One texture mark of a surface."""
     _check_keys(ctx, d, where, {"kind", "center", "size", "radius", "yaw_deg", "grey", "corners"},
                 {"kind", "center"})  # fmt: skip
     kind = d["kind"]
@@ -332,6 +338,7 @@ def _parse_item(ctx: _Ctx, d: Any, where: str) -> TextureItem:
 
 
 def _parse_surface(ctx: _Ctx, d: Any, where: str) -> Surface:
+    """One ceiling surface (with its tile grid and marks)."""
     _check_keys(ctx, d, where, {"name", "height", "extent", "grey", "tiles", "items", "corners"},
                 {"height", "extent"})  # fmt: skip
     ext = _vec(ctx, d["extent"], 4, f"{where}.extent")
@@ -368,6 +375,7 @@ def _parse_surface(ctx: _Ctx, d: Any, where: str) -> Surface:
 
 
 def _parse_lamp(ctx: _Ctx, d: Any, where: str) -> Lamp:
+    """One lamp; ``diameter`` (round) and ``size`` (square) set length = width."""
     allowed = {"id", "shape", "center", "height", "length", "width", "diameter", "size",
                "yaw_deg", "brightness"}  # fmt: skip
     _check_keys(ctx, d, where, allowed, {"id", "shape", "center", "height"})

@@ -41,6 +41,7 @@ def _median_ms(fn, poses: np.ndarray, repeats: int) -> tuple[float, float]:
 
 
 def main() -> None:
+    """Run the benchmark and print the figures."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--frames", type=int, default=40, help="poses per repetition")
@@ -64,6 +65,7 @@ def main() -> None:
     my = renderer.v * np.float32(200) + np.float32(layer.flat.shape[0] / 2)
 
     def ref(_: np.ndarray) -> None:
+        """The reference: one full-grid remap."""
         cv2.remap(layer.flat, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
     ref_ms, ref_cpu = _median_ms(ref, sel, args.repeats)
