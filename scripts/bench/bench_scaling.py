@@ -300,9 +300,10 @@ def run_sweep(lengths: list[float], variants: list[str], repeats: int, seed: int
     # defeats a sweep over map size; the per-step prune scan is also skipped.
     assoc = replace(AssociationConfig(), use_known_ids=known_ids, prune_after_steps=10**9)
     base = SlamConfig(noise=noise, association=assoc)
-    rng = np.random.default_rng(seed)
     rows: list[dict[str, Any]] = []
     for length in lengths:
+        # one generator per length: a world does not depend on which other lengths run
+        rng = np.random.default_rng([seed, round(length * 1000)])
         run, lms = simulate_corridor(length, cfg, rng, known_ids)
         dr_err = dead_reckoning_error(run)
         for backend in variants:
