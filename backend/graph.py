@@ -500,17 +500,23 @@ class GraphSlam(SlamBackend):
         """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
         pruned = set(self._prune_once_seen())
         t0 = time.perf_counter()
-        values, marginal = self._final_values()
+        try:
+            values, marginal = self._final_values()
+        except (RuntimeError, EstimationError) as exc:  # a broken graph: keep the online poses
+            log.error("final optimisation failed (%s): keeping the online estimates", exc)
+            values, marginal = self.initial, None
+            status = status if status.startswith("failed") else f"failed: {exc}"
         final_time = time.perf_counter() - t0
         n_kf = self._k + 1
-        kf_pose = np.array([_pose_array(values.atPose2(X(k))) for k in range(n_kf)])
+        kf_pose = np.array([_pose_array(values.atPose2(X(k))) if values.exists(X(k))
+                            else self._kf_poses[k] for k in range(n_kf)])
         kf_cov = np.full((n_kf, 3, 3), np.nan)
-        if marginal is not None:
+        if marginal is not None and self.config.isam2.final_covariances:
             for k in range(n_kf):
                 try:
                     kf_cov[k] = marginal(X(k))
-                except RuntimeError:
-                    break
+                except (RuntimeError, IndexError):
+                    continue
         n = len(self._times)
         poses = np.zeros((n, 3))
         covs = np.zeros((n, 3, 3))
@@ -531,12 +537,14 @@ class GraphSlam(SlamBackend):
             if not lm.in_graph or lm.id in pruned:
                 continue
             handler = self.handlers[lm.kind]
+            if not all(values.exists(key) for key in handler.keys(lm)):
+                continue
             state = handler.read(lm, get)
             cov = np.full((len(state), len(state)), np.nan)
             if marginal is not None:
                 try:
                     cov = handler.marginal(lm, marginal)
-                except RuntimeError:
+                except (RuntimeError, IndexError):
                     pass
             lms.append(landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling))
         return SlamResult(

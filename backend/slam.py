@@ -44,7 +44,7 @@ from lampsam.datasets.logrun import (
     write_tum,
 )
 from lampsam.errors import EstimationError
-from lampsam.factors.geometry import wrap_angle
+from lampsam.factors.geometry import wrap_angle, wrap_axis
 from lampsam.frontend.measurements import (
     CeilingFrame,
     CornerObservation,
@@ -119,7 +119,8 @@ def frames_from_projections(run: LoggedRun, sigma_px: float, rng: np.random.Gene
 
     Each visible projection becomes an observation: the pixel plus Gaussian noise
     (``sigma_px``) mapped to normalised coordinates with the run's camera; lamp
-    axes from ``angle_px`` are mapped by projecting a short segment. Lamps that are
+    axes from ``angle_px`` are mapped by projecting a short segment, plus 0.02 rad
+    noise. Lamps that are
     not fully visible are skipped (as the frontend drops border blobs). Corners get
     no patch (NCC cannot be used: known association or gate alone).
 
@@ -140,39 +141,42 @@ def frames_from_projections(run: LoggedRun, sigma_px: float, rng: np.random.Gene
         raise EstimationError(f"{run.path}: no truth/projections.csv or images.csv")
     cam = run.rig.camera
     frames = []
-    m_all = cam.normalized_from_pixels(proj.pixel + rng.normal(0.0, sigma_px, proj.pixel.shape))
-    eps = 3.0
+    px_all = proj.pixel
+    m_all = cam.normalized_from_pixels(px_all + rng.normal(0.0, sigma_px, px_all.shape))
+    # d m / d pixel by finite differences, all rows at once: cov_m = sigma^2 J J^T
+    h = 1e-3
+    m0 = cam.normalized_from_pixels(px_all)
+    j_col = (cam.normalized_from_pixels(px_all + [h, 0.0]) - m0) / h
+    j_row = (cam.normalized_from_pixels(px_all + [0.0, h]) - m0) / h
+    jac = np.stack([j_col, j_row], axis=2)  # (P, 2, 2)
+    cov_all = sigma_px**2 * jac @ jac.transpose(0, 2, 1) + 1e-12 * np.eye(2)
+    # lamp axes: the image segment along angle_px mapped to (u, v)
+    ang = np.nan_to_num(proj.angle_px)
+    d = 3.0 * np.column_stack([np.cos(ang), np.sin(ang)])
+    seg = cam.normalized_from_pixels(px_all + d) - cam.normalized_from_pixels(px_all - d)
+    axis_all = np.arctan2(seg[:, 1], seg[:, 0])
+    sigma_axis = 0.02
+    axis_noise = rng.normal(0.0, sigma_axis, len(axis_all))
     for i in range(len(run.images)):
-        rows = proj.rows_of_frame(i)
         lamps, corners = [], []
-        for r in rows:
+        for r in proj.rows_of_frame(i):
             if not proj.visible[r]:
                 continue
-            m = m_all[r]
-            px = proj.pixel[r]
-            # local Jacobian of m w.r.t. pixels, for the covariance
-            jac = (cam.normalized_from_pixels(np.array([px + [1e-3, 0], px + [0, 1e-3]])) - m) / 1e-3
-            cov_m = (sigma_px**2) * jac.T @ jac + 1e-12 * np.eye(2)
             lid = int(proj.ids[r]) if known_ids else None
             if proj.types[r].startswith("lamp"):
                 if not proj.fully_visible[r]:
                     continue
                 axis = None
                 var_axis = math.inf
-                a = proj.angle_px[r]
-                if math.isfinite(a):
-                    d = np.array([math.cos(a), math.sin(a)]) * eps
-                    seg = cam.normalized_from_pixels(np.array([px - d, px + d]))
-                    du, dv = seg[1] - seg[0]
-                    axis = float(math.atan2(dv, du))
-                    axis = float(axis - math.pi * round(axis / math.pi))
-                    var_axis = (0.02 + rng.normal(0, 0.0)) ** 2
-                    axis += float(rng.normal(0.0, 0.02))
-                lamps.append(LampObservation(m=m, cov_m=cov_m, axis=axis, var_axis=var_axis,
+                if math.isfinite(proj.angle_px[r]):
+                    axis = float(wrap_axis(float(axis_all[r] + axis_noise[r])))
+                    var_axis = sigma_axis**2
+                lamps.append(LampObservation(m=m_all[r], cov_m=cov_all[r], axis=axis,
+                                             var_axis=var_axis,
                                              ratio=2.0 if axis is not None else 1.0, area_px=100.0,
-                                             pixel=px, landmark_id=lid))
+                                             pixel=px_all[r], landmark_id=lid))
             else:
-                corners.append(CornerObservation(m=m, cov_m=cov_m, pixel=px,
+                corners.append(CornerObservation(m=m_all[r], cov_m=cov_all[r], pixel=px_all[r],
                                                  patch=np.zeros((1, 1), np.float32), score=1.0,
                                                  landmark_id=lid))
         frames.append(CeilingFrame(float(run.images.t[i]), i, tuple(lamps), tuple(corners)))
