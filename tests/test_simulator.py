@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from lampsam.datasets.logrun import read_run
@@ -258,6 +259,27 @@ def test_short_simulated_run_reads_back(tmp_path: Path) -> None:
                               occluders(load_world("lab")))  # fmt: skip
     np.testing.assert_array_equal(run.projections.ids[rows], fresh.ids)
     np.testing.assert_allclose(run.projections.pixel[rows], fresh.pixel, atol=1e-3)
+    # The contact sheet of the run is a readable image of 2 x 2 frames.
+    from lampsam.evaluation.contact_sheet import frame_indices, write_contact_sheet
+
+    sheet = write_contact_sheet(out, tmp_path / "sheet.png", rows=2, cols=2)
+    png = cv2.imread(str(sheet))
+    assert png is not None and png.shape[0] > 200 and png.shape[1] > 300
+    np.testing.assert_array_equal(frame_indices(31, 4), [0, 10, 20, 30])
+
+
+def test_bloom_brightens_around_saturated_lamps() -> None:
+    doc = _world([{"id": 1, "shape": "square", "center": [1.1, 0.0], "height": 2.5, "size": 0.3,
+                   "brightness": 2000}])  # fmt: skip
+    plain = CeilingRenderer(world_from_dict(doc)).render(np.zeros(3), None)
+    doc["render"] = {"noise_sigma": 0.0, "bloom": 0.5, "bloom_sigma": 3.0}
+    glare = CeilingRenderer(world_from_dict(doc)).render(np.zeros(3), None)
+    col = int(round(CX))
+    row = int(round(CY - F * 1.0 / 2.2))  # lamp centre; its half side is 0.15 / 2.2 * f = 6.3 px
+    assert plain[row, col] == 255 and glare[row, col] == 255
+    assert plain[row, col + 10] == BASE_GREY  # 3.7 px outside the lamp edge
+    assert glare[row, col + 10] > BASE_GREY + 20
+    assert np.all(glare.astype(int) >= plain.astype(int))
 
 
 def test_simulation_is_deterministic_across_worker_counts(tmp_path: Path) -> None:
