@@ -309,8 +309,11 @@ def evaluate_run(
         The metrics (also written as JSON).
 
     Raises:
-        LampsamError: the run cannot be read or has no images or no truth.
+        LampsamError: the run cannot be read or has no images or no truth, or
+            ``max_frames`` is below 1.
     """
+    if max_frames is not None and max_frames < 1:
+        raise LampsamError(f"{run_dir}: max_frames must be at least 1, got {max_frames}")
     run = read_run(run_dir)
     if run.images is None or len(run.images) == 0:
         raise LampsamError(f"{run_dir}: the run has no ceiling images")

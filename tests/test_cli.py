@@ -167,7 +167,8 @@ def test_frontend_eval_on_tiny_run(
 def test_frontend_eval_bad_inputs(
     lab_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Missing run directory; a PNG full of garbage bytes (named, with its images.csv line)."""
+    """Missing run directory; a PNG full of garbage bytes (named, with its images.csv
+    line); ``--max-frames`` below 1."""
     assert main(["frontend-eval", str(tmp_path / "no_such_run")]) == 2
     _clean_failure(capsys.readouterr().err, "no_such_run")
 
@@ -177,6 +178,12 @@ def test_frontend_eval_bad_inputs(
     out = tmp_path / "fe.json"
     assert main(["frontend-eval", str(bad), "--max-frames", "5", "--out", str(out)]) == 2
     _clean_failure(capsys.readouterr().err, "000002.png", "images.csv")
+    assert not out.exists()
+
+    # no frames to evaluate is bad input, not a report of NaNs
+    for n in ("0", "-3"):
+        assert main(["frontend-eval", str(lab_run), "--max-frames", n, "--out", str(out)]) == 2
+        _clean_failure(capsys.readouterr().err, "max_frames", n)
     assert not out.exists()
 
 
