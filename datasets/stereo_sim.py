@@ -301,9 +301,15 @@ def write_stereo_run(run: StereoRun, out: Path) -> Path:
 
     Returns:
         ``out``.
+
+    Raises:
+        DatasetError: ``out`` cannot be created (e.g. it is below a file).
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DatasetError(f"cannot create the run directory ({exc.strerror})", out) from exc
     meta = {
         "scenario": run.scenario,
         "seed": int(run.seed),

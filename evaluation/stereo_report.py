@@ -173,9 +173,15 @@ def write_stereo_result(result: StereoResult, out: Path) -> list[Path]:
     """Write ``estimate.tum`` (valid frames) and ``status.csv`` (every frame) to ``out``.
 
     ``status.csv`` header: ``t,valid,status,x,y,theta,var_x,var_y,var_theta,step_ms``.
+
+    Raises:
+        StereoReportError: ``out`` cannot be created (e.g. it is a file).
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StereoReportError(f"{out}: cannot create the output directory ({exc.strerror})") from exc
     tum = out / "estimate.tum"
     with open(tum, "w") as fh:
         fh.write(f"# t x y z qx qy qz qw ({result.estimator}, rig pose in the target frame)\n")

@@ -95,7 +95,8 @@ def test_stereo_sim_turn_and_estimate(tmp_path: Path) -> None:
 
 
 def test_stereo_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Missing run directory; a malformed measurements line (named by file and line)."""
+    """Missing run directory; a malformed measurements line (named by file and line);
+    output paths that cannot be created."""
     missing = tmp_path / "no_such_run"
     assert main(["stereo", str(missing), "--estimator", "ekf", "--out", str(tmp_path / "o")]) == 2
     _clean_failure(capsys.readouterr().err, "no_such_run")
@@ -104,12 +105,23 @@ def test_stereo_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert main(["stereo-sim", "--scenario", "turn", "--out", str(run_dir)]) == 0
     meas = run_dir / "measurements.csv"
     lines = meas.read_text().splitlines()
+    good_line = lines[4]
     lines[4] = "0.3,1,abc,74.5,27.5"  # line 5: a field short
     meas.write_text("\n".join(lines) + "\n")
     capsys.readouterr()
     assert main(["stereo", str(run_dir), "--estimator", "ekf", "--out", str(tmp_path / "o")]) == 2
     _clean_failure(capsys.readouterr().err, "measurements.csv:5")
     assert not (tmp_path / "o" / "summary.json").exists()
+
+    # an output path that cannot be a directory: named, no traceback
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    assert main(["stereo-sim", "--scenario", "turn", "--out", str(blocker / "run")]) == 2
+    _clean_failure(capsys.readouterr().err, "a_file")
+    lines[4] = good_line  # repair the run
+    meas.write_text("\n".join(lines) + "\n")
+    assert main(["stereo", str(run_dir), "--estimator", "raw", "--out", str(blocker)]) == 2
+    _clean_failure(capsys.readouterr().err, "a_file", "output directory")
 
 
 @pytest.mark.parametrize(
