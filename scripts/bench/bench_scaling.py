@@ -373,8 +373,8 @@ def print_table(rows: list[dict[str, Any]], variants: list[str], clock: str) -> 
 EXPLANATIONS = {
     "ekf": "below 2 while the O(n^2) covariance update (eq. 23) does not yet dominate the "
            "fixed per-update Python cost and the O(n) work (prediction cross-covariance, "
-           "per-landmark bookkeeping); at 300-1200 landmarks the slope between successive "
-           "sizes rose from ~1.4 to ~1.8 (default run). Heavy load from other processes "
+           "per-landmark bookkeeping); the slope between successive sizes rises towards 2 "
+           "(~1.4 at 150-600 landmarks, 1.8-1.9 at 600-1200 in the default runs). Heavy load from other processes "
            "(e.g. --quick on a busy machine) blurs it further.",
     "isam2": "iSAM2 with the backend's relinearisation (threshold 0.01 checked at every "
              "update) re-eliminates every clique from a relinearised variable up to the root; "
