@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.slam import (
