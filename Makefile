@@ -7,6 +7,11 @@ STAMP := $(VENV)/.lampsam-installed
 SUDO := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 OUT ?= out/demo
 PYTEST_WORKERS ?= 2
+# One BLAS/OpenMP thread per process: tests and comparisons parallelise over processes,
+# and threaded BLAS on small matrices was measured ~7x slower on 2 cores.
+export OPENBLAS_NUM_THREADS ?= 1
+export OMP_NUM_THREADS ?= 1
+export MKL_NUM_THREADS ?= 1
 
 .PHONY: demo test setup syslibs lint bench clean
 

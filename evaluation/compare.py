@@ -28,6 +28,7 @@ import concurrent.futures as cf
 import json
 import logging
 import multiprocessing as mp
+import os
 import resource
 import time
 import traceback
@@ -39,6 +40,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
+from lampsam.evaluation.outputs import ensure_dir
 
 log = logging.getLogger(__name__)
 
@@ -441,7 +443,7 @@ def compare(
     if seeds < 1:
         raise CompareError("--seeds must be at least 1")
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    ensure_dir(out, CompareError)
     t_start = time.perf_counter()
     resolved = prepare_runs(runs, seeds, out, duration)
     jobs = [
@@ -450,6 +452,11 @@ def compare(
         for b in backends
     ]
     results: list[JobResult] = []
+    # One BLAS/OpenMP thread per worker: parallelism comes from the processes, and a
+    # threaded BLAS on small EKF matrices was measured ~7x slower on 2 cores
+    # (scripts/bench/bench_scaling.py). Spawned children read these at import.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     ctx = mp.get_context("spawn")
     with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1) as pool:
         futures = {pool.submit(run_job, j): j for j in jobs}
