@@ -43,6 +43,7 @@ from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.datasets.logrun import CameraModel, ProjectionTable, read_run
 from lampsam.errors import LampsamError
+from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.corners import detect_corner_pixels, match_ncc
 from lampsam.frontend.lamps import PixelToCeiling, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
@@ -130,7 +131,7 @@ class FrontendMetrics:
     def to_json(self, path: str | Path) -> None:
         """Write the figures as JSON (NaN as null)."""
         data = {k: (None if _isnan(v) else v) for k, v in asdict(self).items()}
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        ensure_dir(Path(path).parent)
         Path(path).write_text(json.dumps(data, indent=2) + "\n")
 
     def summary(self) -> str:
@@ -314,11 +315,13 @@ def evaluate_run(
     """
     if max_frames is not None and max_frames < 1:
         raise LampsamError(f"{run_dir}: max_frames must be at least 1, got {max_frames}")
+    out_path = Path(out) if out is not None else Path(run_dir) / "frontend_eval.json"
     run = read_run(run_dir)
     if run.images is None or len(run.images) == 0:
         raise LampsamError(f"{run_dir}: the run has no ceiling images")
     if run.projections is None:
         raise LampsamError(f"{run_dir}: no truth/projections.csv (only simulated runs have truth)")
+    ensure_dir(out_path.parent)  # before the work, after the input is known good
     images, projections = run.images, run.projections
     n = len(images) if max_frames is None else min(max_frames, len(images))
 
@@ -327,7 +330,6 @@ def evaluate_run(
             yield images.load(i), truth_of_frame(projections, i)
 
     res = evaluate_frames(frames(), run.rig.camera, config, settings, source=str(run_dir))
-    out_path = Path(out) if out is not None else Path(run_dir) / "frontend_eval.json"
     res.to_json(out_path)
     log.info("frontend evaluation written to %s", out_path)
     return res

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 from lampsam.arrays import ImageU8
 from lampsam.errors import LampsamError
+from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.corners import CornerDetections, detect_corner_pixels
 from lampsam.frontend.lamps import LampDetections, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
@@ -191,6 +192,7 @@ def make_gallery(
     )
     if not files:
         raise LampsamError(f"{photos_dir}: no .jpg or .png photos")
+    ensure_dir(Path(out_png).parent)
     sizes: list[tuple[int, int] | None] = [small] + ([None] if full_size else [])
     fig, axes = plt.subplots(
         len(files), len(sizes), figsize=(4.0 * len(sizes), 3.0 * len(files)), squeeze=False
@@ -228,7 +230,6 @@ def make_gallery(
                 f"{entry.n_corners} corners",
             )
     fig.tight_layout()
-    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out_png, dpi=130)
     plt.close(fig)
     return entries

@@ -20,6 +20,7 @@ from lampsam.arrays import BoolArray, FloatArray
 from lampsam.backend.stereo import StereoResult
 from lampsam.backend.stereo_kitti import KittiTwoPointResult
 from lampsam.errors import LampsamError
+from lampsam.evaluation.outputs import ensure_dir
 
 log = logging.getLogger(__name__)
 
@@ -177,11 +178,7 @@ def write_stereo_result(result: StereoResult, out: Path) -> list[Path]:
     Raises:
         StereoReportError: ``out`` cannot be created (e.g. it is a file).
     """
-    out = Path(out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise StereoReportError(f"{out}: cannot create the output directory ({exc.strerror})") from exc
+    out = ensure_dir(out, StereoReportError)
     tum = out / "estimate.tum"
     with open(tum, "w") as fh:
         fh.write(f"# t x y z qx qy qz qw ({result.estimator}, rig pose in the target frame)\n")
@@ -216,6 +213,7 @@ def stereo_job(run_dir: Path, estimator: str, out: Path) -> dict[str, Any]:
     from lampsam.datasets.stereo_sim import read_stereo_run
 
     run = read_stereo_run(Path(run_dir))
+    ensure_dir(out, StereoReportError)  # before the work, after the input is known good
     result = estimate(run, estimator)
     out = Path(out)
     write_stereo_result(result, out)

@@ -16,6 +16,7 @@ import re
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from lampsam.angles import wrap_angle
@@ -198,6 +199,13 @@ def test_frontend_eval_bad_inputs(
         _clean_failure(capsys.readouterr().err, "max_frames", n)
     assert not out.exists()
 
+    # an output below a file
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    assert main(["frontend-eval", str(lab_run), "--max-frames", "1",
+                 "--out", str(blocker / "fe.json")]) == 2
+    _clean_failure(capsys.readouterr().err, "a_file", "output directory")
+
 
 # --------------------------------------------------------------------------- gallery
 _GALLERY_LINE = re.compile(r"^(\S+) (\d+)x(\d+): (\d+) lamps \((\d+) oriented\)")
@@ -230,7 +238,7 @@ def test_gallery_on_simulated_frames(
 
 
 def test_gallery_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A missing folder, an empty folder and a PNG full of garbage bytes."""
+    """A missing folder, an empty folder, a PNG full of garbage bytes, an output below a file."""
     out = tmp_path / "g.png"
     assert main(["gallery", str(tmp_path / "no_photos"), "--out", str(out)]) == 2
     _clean_failure(capsys.readouterr().err, "no_photos")
@@ -242,6 +250,12 @@ def test_gallery_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert main(["gallery", str(empty), "--out", str(out), "--small-only"]) == 2
     _clean_failure(capsys.readouterr().err, "broken.png")
     assert not out.exists()
+    (empty / "broken.png").unlink()
+    cv2.imwrite(str(empty / "flat.png"), np.full((240, 320), 90, np.uint8))
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    assert main(["gallery", str(empty), "--out", str(blocker / "g.png"), "--small-only"]) == 2
+    _clean_failure(capsys.readouterr().err, "a_file", "output directory")
 
 
 @pytest.mark.shared_data
@@ -263,11 +277,16 @@ def test_gallery_on_real_photo(tmp_path: Path, capsys: pytest.CaptureFixture[str
 
 # --------------------------------------------------------------------------- compare
 def test_compare_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A run that is neither a directory nor a world; an unknown backend name."""
+    """A run that is neither a directory nor a world; an unknown backend name; an output
+    path that is a file (refused before any run is simulated)."""
     out = tmp_path / "cmp"
     assert main(["compare", str(tmp_path / "no_such_run"), "--backends", "ekf",
                  "--out", str(out)]) == 2
     _clean_failure(capsys.readouterr().err, "no_such_run")
     assert main(["compare", "lab", "--backends", "kalman", "--out", str(out)]) == 2
     _clean_failure(capsys.readouterr().err, "kalman")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    assert main(["compare", "lab", "--backends", "ekf", "--out", str(blocker)]) == 2
+    _clean_failure(capsys.readouterr().err, "a_file", "output directory")
 
