@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import base64
 import concurrent.futures as cf
+import contextlib
 import json
 import logging
 import multiprocessing as mp
@@ -32,6 +33,7 @@ import os
 import resource
 import time
 import traceback
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -408,6 +410,31 @@ def _json_default(x: Any) -> Any:
 
 
 # --------------------------------------------------------------------------- driver
+_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def _single_threaded_children() -> Iterator[None]:
+    """One BLAS/OpenMP thread in processes spawned inside the block; restored after.
+
+    Parallelism comes from the worker processes, and a threaded BLAS on the EKF's
+    small matrices was measured ~7x slower on 2 cores (scripts/bench/bench_scaling.py).
+    Spawned children read these variables when they import numpy. A value the user
+    set is kept.
+    """
+    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+    for v in _THREAD_VARS:
+        os.environ.setdefault(v, "1")
+    try:
+        yield
+    finally:
+        for v, old in saved.items():
+            if old is None:
+                os.environ.pop(v, None)
+            else:
+                os.environ[v] = old
+
+
 def compare(
     runs: list[str],
     backends: tuple[str, ...] = ("ekf", "isam2", "batch"),
@@ -452,13 +479,10 @@ def compare(
         for b in backends
     ]
     results: list[JobResult] = []
-    # One BLAS/OpenMP thread per worker: parallelism comes from the processes, and a
-    # threaded BLAS on small EKF matrices was measured ~7x slower on 2 cores
-    # (scripts/bench/bench_scaling.py). Spawned children read these at import.
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
     ctx = mp.get_context("spawn")
-    with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1) as pool:
+    with _single_threaded_children(), cf.ProcessPoolExecutor(
+        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
+    ) as pool:
         futures = {pool.submit(run_job, j): j for j in jobs}
         iterator = cf.as_completed(futures)
         if progress:
