@@ -501,17 +501,14 @@ def build_laser_grid(
     Returns:
         The grid and the number of scans used.
     """
-    grid = _grid_around(
-        poses[:, :2], min(config.max_range, 10.0) + config.margin, config.resolution
-    )
-    # the grid must hold every returned endpoint within max_range
+    # the grid holds the poses and every endpoint that returned within max_range
     r = np.where(scans.ranges < min(config.max_range, scans.max_range), scans.ranges, np.nan)
     phi = poses[:, 2:3] + scans.angles[None, :]
     ex = poses[:, 0:1] + r * np.cos(phi)
     ey = poses[:, 1:2] + r * np.sin(phi)
-    ends = np.stack([ex[np.isfinite(ex)], ey[np.isfinite(ey)]], axis=1)
-    if len(ends):
-        grid = _grid_around(np.vstack([ends, poses[:, :2]]), config.margin, config.resolution)
+    ok = np.isfinite(ex)
+    ends = np.stack([ex[ok], ey[ok]], axis=1)
+    grid = _grid_around(np.vstack([ends, poses[:, :2]]), config.margin, config.resolution)
     used = 0
     last: FloatArray | None = None
     for i in range(len(poses)):
