@@ -221,6 +221,19 @@ class FilterConfig:
             particles (the candidates share the rest): the SIFT candidates are
             evidence, a uniform particle must out-score them by a large
             likelihood ratio to win. Default 0.05.
+        recheck_modes_in_ours: in :attr:`Mode.OURS`, the converged estimate and
+            the best distinct modes of the first update (up to this many in
+            all) are re-scored by a short particle filter with the ray-casting
+            model (0 = off). Default 8. The likelihood field ignores occlusion
+            and is fast, but in the changed office it preferred a pose's
+            half-turn twin (the ceiling is symmetric under a half turn, so
+            verification cannot tell them apart either); ray casting preferred
+            the truth (office trial 12).
+        mode_separation: two modes are distinct when more than this apart in
+            position (m) or heading (rad). Default (0.5, 0.5).
+        recheck_radius: disc radius (m) of the re-scoring particles around each
+            mode. Default 0.25.
+        recheck_particles: particles per mode in the re-scoring. Default 200.
     """
 
     particles_per_candidate: int = 300
@@ -240,6 +253,10 @@ class FilterConfig:
     kld_in_ours: bool = True
     uniform_in_ours: int = 5000
     uniform_share_in_ours: float = 0.05
+    recheck_modes_in_ours: int = 8
+    mode_separation: tuple[float, float] = (0.5, 0.5)
+    recheck_radius: float = 0.25
+    recheck_particles: int = 200
 
 
 @dataclass(frozen=True)
@@ -458,6 +475,85 @@ def _filter_stage(
         pf.init_uniform(maps.grid, fc.n_uniform)
     angles = beam_angles()[:: fc.beam_step]
     ranges = scan[:: fc.beam_step]
+    recheck = config.mode is Mode.OURS and fc.recheck_modes_in_ours > 0
+    first_modes = np.zeros((0, 3))
+    converged = False
+    n_updates = 0
+    while n_updates < fc.max_updates:
+        n_updates += 1
+        pf.update(ranges, angles)
+        if recheck and n_updates == 1:
+            first_modes = distinct_modes(
+                pf.particles, pf.log_weights, fc.recheck_modes_in_ours, fc.mode_separation
+            )
+        if pf.converged():
+            converged = True
+            break
+        pf.resample()
+    log.info("filter: %d updates, %d particles, converged %s", n_updates, pf.n, converged)
+    if recheck:
+        best = mode_estimate(pf.particles, pf.log_weights)
+        modes = distinct_modes(
+            np.vstack([best[None], first_modes]),
+            np.concatenate([[0.0], np.full(len(first_modes), -1.0)]),
+            fc.recheck_modes_in_ours,
+            fc.mode_separation,
+        )
+        pf, n_more, converged = _recheck_modes(modes, ranges, angles, maps, config, rng)
+        n_updates += n_more
+    return pf, n_updates, converged
+
+
+def distinct_modes(
+    particles: FloatArray, log_weights: FloatArray, k: int, separation: tuple[float, float]
+) -> FloatArray:
+    """The heaviest particles that are pairwise distinct (greedy non-maximum suppression).
+
+    Args:
+        particles: (N, 3) poses (m, m, rad).
+        log_weights: (N,) log-weights (only their order matters).
+        k: at most this many modes.
+        separation: ``(metres, radians)``: a particle closer than both to a
+            chosen mode is suppressed.
+
+    Returns:
+        (M, 3) modes, M <= k, heaviest first.
+    """
+    order = np.argsort(-np.asarray(log_weights, dtype=float))[: max(50 * k, 1000)]
+    chosen: list[FloatArray] = []
+    for i in order:
+        p = particles[i]
+        if chosen:
+            c = np.asarray(chosen)
+            near = (np.hypot(c[:, 0] - p[0], c[:, 1] - p[1]) < separation[0]) & (
+                np.abs(np.asarray(wrap_angle(c[:, 2] - p[2]))) < separation[1]
+            )
+            if near.any():
+                continue
+        chosen.append(np.asarray(p, dtype=float))
+        if len(chosen) >= k:
+            break
+    return np.asarray(chosen, dtype=float).reshape(-1, 3)
+
+
+def _recheck_modes(
+    modes: FloatArray,
+    ranges: FloatArray,
+    angles: FloatArray,
+    maps: EnvironmentMaps,
+    config: GlobalLocalizerConfig,
+    rng: np.random.Generator,
+) -> tuple[ParticleFilter, int, bool]:
+    """Ours: a short ray-casting particle filter over discs around the given modes.
+
+    The same number of particles in each disc (as the paper does with its
+    candidates), updated on the virtual scan until converged.
+    """
+    fc = config.filter
+    pf = ParticleFilter(RayCastModel(maps.grid, fc.beam, method="march"), fc.pf, rng)
+    pf.init_candidates(
+        [(m, fc.recheck_radius) for m in modes], fc.recheck_particles, config.candidates.sigma_theta
+    )
     converged = False
     n_updates = 0
     while n_updates < fc.max_updates:
@@ -467,7 +563,12 @@ def _filter_stage(
             converged = True
             break
         pf.resample()
-    log.info("filter: %d updates, %d particles, converged %s", n_updates, pf.n, converged)
+    log.info(
+        "re-check of %d modes by ray casting: %d updates, converged %s",
+        len(modes),
+        n_updates,
+        converged,
+    )
     return pf, n_updates, converged
 
 
@@ -551,10 +652,12 @@ def _verify_stage(
             if isinstance(verifier, SequentialVerifier) or d >= target - 1e-9:
                 break
     if verdict is Verdict.PENDING:
-        if not evidence:
-            log.warning("no ceiling feature seen while verifying: pose accepted unverified")
+        if not evidence and vc.accept_without_evidence:
+            log.warning("no discriminating ceiling feature while verifying: accepted unverified")
             verdict = Verdict.ACCEPTED
         else:
+            if not evidence:
+                log.warning("no discriminating ceiling feature while verifying: starting over")
             verdict = Verdict.FAILED
     r_loc = verifier.r_loc if isinstance(verifier, RlocVerifier) else float("nan")
     return verdict, r_loc, d, pose, prev, robot_s, compute

@@ -90,6 +90,26 @@ class VerificationConfig:
             within this (rad) of the observed one. Default 15 deg. Without it a
             ceiling of strip lamps on a square lattice accepts a pose turned by
             90 deg.
+        lamp_match_fraction: a frame that sees lamps matches only when at least
+            this fraction of them match (separately from the corners). Default
+            0.75. Lamps are large and bright: at the right pose the detector
+            finds and places them reliably, whereas at a twin pose of a
+            symmetric lamp layout half of them can still match (office trial
+            12: a pose turned by 90 deg about the room centre matched 2 of 4
+            lamps and passed the 0.5 fraction).
+        twin_radius: shifts of the ceiling map up to this length (m, on the
+            ceiling) are the "twin" hypotheses of :func:`self_similarity`.
+            Default 1.0 m.
+        twin_min_shift: shifts shorter than this (m) are not twins (they are
+            within the 30 cm failure bound). Default 0.3 m.
+        max_self_similarity: a kind of feature whose map matches itself under a
+            twin shift for more than this fraction of its features (a periodic
+            tile-corner lattice: about 1.0) cannot tell a pose from its twins
+            and does not vote in a frame's outcome. Default 0.5.
+        accept_without_evidence: when the whole verification drive produced no
+            discriminating evidence, accept the pose unverified (True) or start
+            over (False). Default False: verification must not accept on
+            evidence that cannot discriminate.
     """
 
     gate: float = 0.10
@@ -102,6 +122,11 @@ class VerificationConfig:
     beta: float = 0.01
     step_length: float = 0.10
     axis_gate: float = float(np.deg2rad(15.0))
+    lamp_match_fraction: float = 0.75
+    twin_radius: float = 1.0
+    twin_min_shift: float = 0.3
+    max_self_similarity: float = 0.5
+    accept_without_evidence: bool = False
 
 
 def predict_landmarks(
@@ -128,6 +153,50 @@ def predict_landmarks(
         if np.hypot(m[0], m[1]) <= max_norm:
             out[i] = m
     return out
+
+
+def self_similarity(xy: FloatArray, gate: float, radius: float, min_shift: float) -> float:
+    """Worst-case fraction of map features that a shifted copy of the map matches.
+
+    The twins of a pose are the poses shifted by a vector ``t`` with
+    ``min_shift <= |t| <= radius``; a feature of a kind discriminates between a
+    pose and its twins only when the kind's map does not match itself after
+    such a shift. The candidate shifts are the differences between pairs of
+    features (only they can bring a feature onto another), rounded to
+    ``gate / 2``; for each, the fraction of features with a feature of the same
+    kind within ``gate`` after the shift. A tile lattice of pitch ``a <= radius``
+    gives about 1 (interior corners), lamps spaced by more than ``radius`` give 0.
+
+    Args:
+        xy: (N, 2) the kind's feature positions on the ceiling, world frame (m).
+        gate: match radius on the ceiling (m).
+        radius: longest twin shift (m).
+        min_shift: shortest twin shift (m).
+
+    Returns:
+        The largest matched fraction over the twin shifts, in [0, 1]; 0 for
+        fewer than two features.
+    """
+    from scipy.spatial import cKDTree
+
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if len(xy) < 2:
+        return 0.0
+    tree = cKDTree(xy)
+    pairs = tree.query_pairs(radius + gate, output_type="ndarray")
+    if len(pairs) == 0:
+        return 0.0
+    d = xy[pairs[:, 1]] - xy[pairs[:, 0]]
+    d = np.vstack([d, -d])
+    q = max(gate / 2.0, 1e-6)
+    shifts = np.unique(np.round(d / q), axis=0) * q
+    n = np.hypot(shifts[:, 0], shifts[:, 1])
+    shifts = shifts[(n >= min_shift) & (n <= radius)]
+    best = 0.0
+    for t in shifts:
+        dist, _ = tree.query(xy + t, distance_upper_bound=gate)
+        best = max(best, float(np.mean(np.isfinite(dist))))
+    return best
 
 
 def observed_points(frame: CeilingFrame) -> FloatArray:
@@ -305,9 +374,12 @@ class CeilingChecker:
     """Per-frame ceiling test at an estimated pose against a ceiling feature map.
 
     Lamps and corners are matched within their own kind when the kinds are
-    known: a tiled ceiling's corners form a periodic lattice that a pose off by
-    one tile also matches, so a frame that sees a lamp must match its lamps
-    (at least ``min_match_fraction`` of them) and, separately, its corners.
+    known: a frame that sees lamps must match at least ``lamp_match_fraction``
+    of them and, separately, ``min_match_fraction`` of its corners. A kind
+    votes only when it can tell a pose from its twins: a tiled ceiling's
+    corners form a periodic lattice that a pose off by one tile matches as
+    well (:func:`self_similarity` above ``max_self_similarity``), so they carry
+    no evidence and a frame that sees only them is no evidence (None).
 
     Args:
         landmarks: (L, 3) ceiling feature map points, world frame (m).
@@ -346,6 +418,20 @@ class CeilingChecker:
         self.in_view = in_view
         if self.phi is not None and len(self.phi) != len(self.landmarks):
             raise VerificationError("phi and the ceiling landmarks differ in length")
+        self.votes = {True: True, False: True}
+        if self.is_lamp is not None and len(self.landmarks):
+            h = float(np.median(self.landmarks[:, 2])) - float(self.body_t_camera[2])
+            gate_m = config.gate * max(h, MIN_HEIGHT)
+            for kind in (True, False):
+                xy = self.landmarks[self.is_lamp == kind, :2]
+                sim = self_similarity(xy, gate_m, config.twin_radius, config.twin_min_shift)
+                self.votes[kind] = sim <= config.max_self_similarity
+                log.info(
+                    "ceiling %s: self-similarity under twin shifts %.2f -> %s",
+                    "lamps" if kind else "corners",
+                    sim,
+                    "vote" if self.votes[kind] else "do not vote (periodic)",
+                )
 
     def outcome(
         self,
@@ -386,13 +472,14 @@ class CeilingChecker:
         result: bool | None = None
         for kind in (True, False):
             sel, lm = kinds == kind, self.is_lamp == kind
-            if not sel.any():
+            if not sel.any() or not self.votes[kind]:
                 continue
             n_ok, n = frame_match(
                 observed[sel], pred[lm], gate,
                 None if oa is None else oa[sel], None if pa is None else pa[lm], agate,
             )  # fmt: skip
-            if frame_outcome(n_ok, n, self.config) is False:
+            need = self.config.lamp_match_fraction if kind else self.config.min_match_fraction
+            if n_ok < need * n:
                 return False
             result = True
         return result
@@ -408,4 +495,4 @@ class CeilingChecker:
         if len(lamps) == 0:
             return True
         n_seen, n = frame_match(lamps, observed_lamps, self.config.gate)
-        return n_seen >= self.config.min_match_fraction * n
+        return n_seen >= self.config.lamp_match_fraction * n

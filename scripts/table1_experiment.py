@@ -2,7 +2,8 @@
 
 Usage::
 
-    python scripts/table1_experiment.py --trials 50 --out out/table1 [--work /tmp/table1]
+    python scripts/table1_experiment.py --trials 50 --out out/table1 [--work /tmp/table1] [--jobs 2]
+    python scripts/table1_experiment.py --out out/table1 --report-only
 
 1. Mapping: the Kinect zig-zag drive of the office (``datasets.kinect_sim``),
    the environment map built from it with the true poses (``localization.envmap``);
@@ -20,7 +21,12 @@ Failure (paper): localisation time over 60 s, or final error over 30 cm or 10 de
 Localisation time = robot time (turning + verification driving) + compute time
 (serial, i.e. conservative; measured on a shared machine, inflated by the load).
 
-Output: ``OUT/table1.md`` (the table), ``OUT/trials.json`` (every trial).
+Output: ``OUT/trials.w<k>.jsonl`` (one line per finished trial and
+configuration, written as it finishes; a rerun resumes), ``OUT/table1.md``
+(the table), ``OUT/table1.png`` (errors and success rates), ``OUT/trials.json``
+(every trial). ``--jobs 2`` runs two worker processes on interleaved trials
+(each runs every configuration on its trials, so an interrupted run has about
+the same number of trials per configuration).
 """
 
 from __future__ import annotations
@@ -175,9 +181,28 @@ def random_starts(
 
 
 def run_trials(
-    trials: int, work: Path, seed: int, clearance: float, modes: list[Mode], skip: int = 0
+    trials: int,
+    work: Path,
+    seed: int,
+    clearance: float,
+    modes: list[Mode],
+    skip: int = 0,
+    worker: int = 0,
+    n_workers: int = 1,
+    sink: Path | None = None,
 ) -> list[dict[str, object]]:
-    """All trials of all modes; one dict per (trial, mode)."""
+    """Trials ``i >= skip`` with ``i % n_workers == worker``, all modes; one dict per (trial, mode).
+
+    Every finished (trial, mode) is appended as one JSON line to ``sink`` at
+    once (an interrupted run keeps what finished); pairs already in ``sink``
+    are not run again (resume).
+    """
+    done: set[tuple[int, str]] = set()
+    if sink is not None and sink.is_file():
+        for line in sink.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                done.add((int(r["trial"]), str(r["mode"])))
     map_dir = build_maps(work, seed)
     env = load_env_map(map_dir)
     run = read_run(work / "map_run")
@@ -199,9 +224,11 @@ def run_trials(
     starts = random_starts(grid_now, trials, clearance, np.random.default_rng(seed))
     rows: list[dict[str, object]] = []
     for i, start in enumerate(starts):
-        if i < skip:
+        if i < skip or i % n_workers != worker:
             continue
         for mode in modes:
+            if (i, mode.value) in done:
+                continue
             robot = OfficeRobot(
                 renderer,
                 kinect,
@@ -226,25 +253,33 @@ def run_trials(
             robot_s = float(sum(res.robot_time.values()))
             total = compute + robot_s
             ok = bool(res.success and e_xy <= 0.30 and e_th <= math.radians(10.0) and total <= 60.0)
-            rows.append(
-                {
-                    "trial": i,
-                    "mode": mode.value,
-                    "start": start.tolist(),
-                    "truth": robot.pose.tolist(),
-                    "pose": [float(v) for v in res.pose],
-                    "claimed_success": res.success,
-                    "success": ok,
-                    "error_m": e_xy,
-                    "error_deg": math.degrees(e_th),
-                    "compute_s": compute,
-                    "robot_s": robot_s,
-                    "turn_s": res.robot_time["turn"],
-                    "total_s": total,
-                    "restarts": res.restarts,
-                    "wall_s": wall,
-                }
-            )
+            row: dict[str, object] = {
+                "trial": i,
+                "mode": mode.value,
+                "start": start.tolist(),
+                "truth": robot.pose.tolist(),
+                "pose": [float(v) for v in res.pose],
+                "claimed_success": res.success,
+                "success": ok,
+                "error_m": e_xy,
+                "error_deg": math.degrees(e_th),
+                "compute_s": compute,
+                "robot_s": robot_s,
+                "turn_s": res.robot_time["turn"],
+                "total_s": total,
+                "restarts": res.restarts,
+                "wall_s": wall,
+                "compute_stages_s": dict(res.compute_time),
+                "compute_after_turn_s": compute - float(res.compute_time["candidates"]),
+                "attempts": [
+                    {"n_candidates": a.n_candidates, "verdict": a.verdict, "pose": a.pose}
+                    for a in res.attempts
+                ],
+            }
+            rows.append(row)
+            if sink is not None:
+                with sink.open("a") as fh:
+                    fh.write(json.dumps(row) + "\n")
             log.info(
                 "trial %d %-10s ok=%s err %.3f m %.1f deg compute %.1f s robot %.1f s restarts %d",
                 i,
@@ -259,31 +294,142 @@ def run_trials(
     return rows
 
 
+PAPER = {  # paper 2, Table 1 (DESIGN.md sec. 2): success %, localisation time s, cm, deg
+    "grid_only": (68.0, 41.7, 13.4, 9.2),
+    "no_ceiling": (82.0, 5.2, 12.6, 8.7),
+    "proposed": (98.0, 10.4 + 12.3, 12.0, 8.4),
+}
+
+
 def table(rows: list[dict[str, object]], modes: list[Mode]) -> str:
-    """The Markdown table: success, times, errors (means over the successful trials)."""
+    """The Markdown table: success, times (means; compute after the turn also median), errors.
+
+    Errors are means over the successful trials (as the paper's); times and
+    restarts over all trials.
+    """
     lines = [
-        "| configuration | trials | success | compute time (s) | robot time (s) "
-        "| localisation time (s) | position error (cm) | heading error (deg) | restarts |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| configuration | trials | success | compute after turn (s), mean / median "
+        "| compute total (s) | robot time (s) (turning) | localisation time (s) "
+        "| position error (cm) | heading error (deg) | restarts | paper: success, time, error |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
+    def vals(key: str, sel: list[dict[str, object]]) -> np.ndarray:
+        return np.array([float(x[key]) for x in sel])  # type: ignore[arg-type]
+
     def mean(key: str, sel: list[dict[str, object]]) -> float:
-        vals = [float(x[key]) for x in sel]  # type: ignore[arg-type]
-        return float(np.mean(vals)) if vals else float("nan")
+        v = vals(key, sel)
+        return float(np.mean(v)) if len(v) else float("nan")
 
     for mode in modes:
         r = [x for x in rows if x["mode"] == mode.value]
         if not r:
             continue
         ok = [x for x in r if x["success"]]
+        after = vals("compute_after_turn_s", r)
+        paper = PAPER.get(mode.value)
+        ptxt = (
+            "-" if paper is None
+            else f"{paper[0]:.0f} %, {paper[1]:.1f} s, {paper[2]:.1f} cm / {paper[3]:.1f} deg"
+        )  # fmt: skip
         lines.append(
-            f"| {mode.value} | {len(r)} | {100.0 * len(ok) / len(r):.0f} % "
+            f"| {mode.value} | {len(r)} | {100.0 * len(ok) / len(r):.0f} % ({len(ok)}/{len(r)}) "
+            f"| {np.mean(after):.2f} / {np.median(after):.2f} "
             f"| {mean('compute_s', r):.1f} "
-            f"| {mean('robot_s', r):.1f} (turn {mean('turn_s', r):.1f}) | {mean('total_s', r):.1f} "
+            f"| {mean('robot_s', r):.1f} ({mean('turn_s', r):.1f}) | {mean('total_s', r):.1f} "
             f"| {100 * mean('error_m', ok):.1f} | {mean('error_deg', ok):.1f} "
-            f"| {mean('restarts', r):.2f} |"
+            f"| {mean('restarts', r):.2f} | {ptxt} |"
         )
     return "\n".join(lines)
+
+
+def plot_errors(ax: object, rows: list[dict[str, object]], modes: list[Mode]) -> None:
+    """Per-configuration final error scatter (log axes) with the 30 cm / 10 deg failure box.
+
+    Trials that ran over 60 s are drawn as crosses (failures despite a small error).
+    """
+    colours = {"grid_only": "tab:grey", "no_ceiling": "tab:orange", "proposed": "tab:blue",
+               "ours": "tab:green"}  # fmt: skip
+    for k, mode in enumerate(modes):
+        r = [x for x in rows if x["mode"] == mode.value]
+        if not r:
+            continue
+        e = np.array([[float(x["error_m"]) * 100, float(x["error_deg"])] for x in r])  # type: ignore[arg-type]
+        e = np.maximum(e, [0.3, 0.03])
+        slow = np.array([float(x["total_s"]) > 60.0 for x in r])  # type: ignore[arg-type]
+        jitter = 1.0 + 0.04 * (k - 1.5)
+        c = colours.get(mode.value, None)
+        ax.scatter(e[~slow, 0] * jitter, e[~slow, 1], s=14, alpha=0.7, color=c,  # type: ignore[attr-defined]
+                   label=f"{mode.value} (n={len(r)})")  # fmt: skip
+        if slow.any():
+            ax.scatter(e[slow, 0] * jitter, e[slow, 1], s=30, marker="x", color=c)  # type: ignore[attr-defined]
+    ax.axvline(30.0, color="red", lw=1, ls="--")  # type: ignore[attr-defined]
+    ax.axhline(10.0, color="red", lw=1, ls="--")  # type: ignore[attr-defined]
+    ax.fill_between([0.1, 30.0], 0.01, 10.0, color="green", alpha=0.06, lw=0)  # type: ignore[attr-defined]
+    ax.set_xscale("log")  # type: ignore[attr-defined]
+    ax.set_yscale("log")  # type: ignore[attr-defined]
+    ax.set_xlim(0.2, 2000)  # type: ignore[attr-defined]
+    ax.set_ylim(0.02, 300)  # type: ignore[attr-defined]
+    ax.set_xlabel("final position error (cm, log)")  # type: ignore[attr-defined]
+    ax.set_ylabel("final heading error (deg, log)")  # type: ignore[attr-defined]
+    ax.set_title("errors; success box 30 cm / 10 deg (x: over 60 s)")  # type: ignore[attr-defined]
+    ax.legend(fontsize=7, loc="upper left")  # type: ignore[attr-defined]
+
+
+def plot_success(ax: object, rows: list[dict[str, object]], modes: list[Mode]) -> None:
+    """Success rate per configuration (bars) with the paper's rates (black ticks)."""
+    names, rates, counts = [], [], []
+    for mode in modes:
+        r = [x for x in rows if x["mode"] == mode.value]
+        if not r:
+            continue
+        names.append(mode.value)
+        rates.append(100.0 * sum(bool(x["success"]) for x in r) / len(r))
+        counts.append(len(r))
+    xs = np.arange(len(names))
+    ax.bar(xs, rates, color="tab:blue", alpha=0.7, label="this run")  # type: ignore[attr-defined]
+    for x, rate, n in zip(xs, rates, counts, strict=True):
+        ax.text(x, rate + 1.5, f"{rate:.0f} %\nn={n}", ha="center", fontsize=7)  # type: ignore[attr-defined]
+    px = [x for x, n in zip(xs, names, strict=True) if n in PAPER]
+    py = [PAPER[n][0] for n in names if n in PAPER]
+    ax.scatter(px, py, marker="_", s=400, color="black", label="paper 2, Table 1")  # type: ignore[attr-defined]
+    ax.set_xticks(xs, names, fontsize=8)  # type: ignore[attr-defined]
+    ax.set_ylim(0, 115)  # type: ignore[attr-defined]
+    ax.set_ylabel("success rate (%)")  # type: ignore[attr-defined]
+    ax.set_xlabel("configuration")  # type: ignore[attr-defined]
+    ax.set_title("success (error < 30 cm / 10 deg, < 60 s)")  # type: ignore[attr-defined]
+    ax.legend(fontsize=7, loc="lower right")  # type: ignore[attr-defined]
+
+
+def write_report(rows: list[dict[str, object]], modes: list[Mode], out: Path) -> str:
+    """``OUT/trials.json``, ``OUT/table1.md`` and ``OUT/table1.png`` from the finished rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sorted(rows, key=lambda x: (int(x["trial"]), str(x["mode"])))  # type: ignore[arg-type]
+    (out / "trials.json").write_text(json.dumps(rows, indent=1))
+    md = table(rows, modes)
+    (out / "table1.md").write_text(md + "\n")
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), gridspec_kw={"width_ratios": [1.4, 1]})
+    plot_errors(axes[0], rows, modes)
+    plot_success(axes[1], rows, modes)
+    fig.tight_layout()
+    fig.savefig(out / "table1.png", dpi=90)
+    plt.close(fig)
+    return md
+
+
+def read_rows(out: Path) -> list[dict[str, object]]:
+    """All rows of the per-worker line files ``OUT/trials.w*.jsonl`` (last one per pair wins)."""
+    rows: dict[tuple[int, str], dict[str, object]] = {}
+    for f in sorted(out.glob("trials.w*.jsonl")):
+        for line in f.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows[(int(r["trial"]), str(r["mode"]))] = r
+    return list(rows.values())
 
 
 def main() -> None:
@@ -296,15 +442,41 @@ def main() -> None:
     ap.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m")
     ap.add_argument("--modes", default=",".join(m.value for m in Mode))
     ap.add_argument("--skip", type=int, default=0, help="skip the first trials (debugging)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="worker processes (trials interleaved: worker k runs i %% jobs == k)")  # fmt: skip
+    ap.add_argument("--worker", type=int, default=-1, help=argparse.SUPPRESS)
+    ap.add_argument("--report-only", action="store_true",
+                    help="only rebuild the table and figure from OUT/trials.w*.jsonl")  # fmt: skip
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     modes = [Mode(m) for m in args.modes.split(",")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows = run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes, args.skip)
-    (out / "trials.json").write_text(json.dumps(rows, indent=1))
-    md = table(rows, modes)
-    (out / "table1.md").write_text(md + "\n")
+    if args.worker >= 0:
+        run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes, args.skip,
+                   args.worker, args.jobs, out / f"trials.w{args.worker}.jsonl")  # fmt: skip
+        return
+    if not args.report_only:
+        build_maps(Path(args.work), args.seed)  # once, before the workers share the cache
+        if args.jobs <= 1:
+            run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes, args.skip,
+                       0, 1, out / "trials.w0.jsonl")  # fmt: skip
+        else:
+            import os
+            import subprocess
+            import sys
+
+            env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+            procs = []
+            for k in range(args.jobs):
+                cmd = [sys.executable, __file__, *sys.argv[1:], "--worker", str(k)]
+                with (out / f"worker{k}.log").open("w") as fh:
+                    procs.append(
+                        subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+                    )
+            for p in procs:
+                p.wait()
+    md = write_report(read_rows(out), modes, out)
     print(md)
 
 

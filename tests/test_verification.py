@@ -211,3 +211,80 @@ def test_missing_lamps_fail_when_the_view_is_known(rng: np.random.Generator) -> 
     assert chk.outcome(pose, np.zeros((0, 2))) is False
     blind = CeilingChecker(lm, CAM, VerificationConfig(), is_lamp=kinds)
     assert blind.outcome(pose, corners_only, np.zeros(len(corners_only), bool)) is True
+
+
+def _twin_ceiling() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A small periodic ceiling with a twin, like the office: 0.6 m tiles, strip lamps on 3 m.
+
+    Lamp positions and tile corners are symmetric under a quarter turn about
+    (4.5, 4.5); the lamps' long axes (two of them across) only partly so.
+    """
+    gx, gy = np.meshgrid(np.arange(0.3, 8.71, 0.6), np.arange(0.3, 8.71, 0.6))
+    corners = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 2.7)])
+    lx, ly = np.meshgrid([1.5, 4.5, 7.5], [1.5, 4.5, 7.5])
+    lamps = np.column_stack([lx.ravel(), ly.ravel(), np.full(lx.size, 2.7)])
+    phi = np.zeros(len(lamps))
+    phi[[2, 5]] = np.pi / 2  # (7.5, 1.5) and (7.5, 4.5) across
+    lm = np.vstack([lamps, corners])
+    kinds = np.arange(len(lm)) < len(lamps)
+    return lm, kinds, np.concatenate([phi, np.full(len(corners), np.nan)])
+
+
+def test_self_similarity_flags_a_tile_lattice_not_sparse_lamps() -> None:
+    lm, kinds, _ = _twin_ceiling()
+    gate = 0.1 * (2.7 - CAM[2])
+    from lampsam.localization.verification import self_similarity
+
+    assert self_similarity(lm[~kinds, :2], gate, 1.0, 0.3) > 0.85  # lattice: its own twin
+    assert self_similarity(lm[kinds, :2], gate, 1.0, 0.3) == 0.0  # lamps 3 m apart
+    rng = np.random.default_rng(5)
+    assert self_similarity(rng.uniform(0, 9, (60, 2)), gate, 1.0, 0.3) < 0.3
+
+
+def test_twin_pose_on_a_periodic_ceiling_is_rejected() -> None:
+    # the robot between lamps (1.5, 1.5), (4.5, 1.5), (1.5, 4.5), (4.5, 4.5); its
+    # twin (quarter turn about the ceiling centre, office trial 12) sees the
+    # turned lamps: the corner lattice matches everywhere, two of four lamps
+    # match with their axes, the others are across
+    lm, kinds, phi = _twin_ceiling()
+    truth = np.array([2.7, 2.6, 0.4])
+    c = np.array([4.5, 4.5])
+    d = truth[:2] - c
+    twin = np.array([c[0] - d[1], c[1] + d[0], truth[2] + np.pi / 2])
+    fov = 1.2  # a wide-angle ceiling camera (|m| < 1.2 is about 50 deg half-angle)
+    rng = np.random.default_rng(12)
+    m = np.array([project_point(truth, p, CAM)[0] for p in lm])
+    vis = np.hypot(m[:, 0], m[:, 1]) < fov
+    obs = m[vis] + rng.normal(0, 0.005, (int(vis.sum()), 2))
+    obs_kind = kinds[vis]
+    obs_axis = np.where(obs_kind, np.mod(phi[vis] - truth[2], np.pi), np.nan)
+    assert obs_kind.sum() >= 3 and (~obs_kind).sum() > 20
+    cfg = VerificationConfig()
+    # the checker before this fix: lamps at 0.5, corners vote
+    old = CeilingChecker(
+        lm, CAM, VerificationConfig(lamp_match_fraction=0.5, max_self_similarity=1.0),
+        is_lamp=kinds, phi=phi,
+    )  # fmt: skip
+    new = CeilingChecker(lm, CAM, cfg, is_lamp=kinds, phi=phi)
+    assert new.votes == {True: True, False: False}
+    n_ok, n = frame_match(
+        obs[obs_kind],
+        np.array([project_point(twin, p, CAM)[0] for p in lm[kinds]]),
+        cfg.gate,
+        obs_axis[obs_kind],
+        np.mod(phi[kinds] - twin[2], np.pi),
+        cfg.axis_gate,
+    )
+    assert 0.5 <= n_ok / n < 1.0  # the twin: some, not all, lamps match
+    assert old.outcome(twin, obs, obs_kind, obs_axis) is True  # the bug: twin accepted
+    assert new.outcome(twin, obs, obs_kind, obs_axis) is False
+    assert new.outcome(truth, obs, obs_kind, obs_axis) is True
+    # corners alone cannot discriminate: no evidence either way
+    only = ~obs_kind
+    assert new.outcome(twin, obs[only], obs_kind[only]) is None
+    # a whole drive at the twin fails both verifiers
+    for v in (RlocVerifier(cfg), SequentialVerifier(cfg)):
+        verdict = Verdict.PENDING
+        for _ in range(80):
+            verdict = v.update(0.03, new.outcome(twin, obs, obs_kind, obs_axis))
+        assert verdict is Verdict.FAILED
