@@ -194,3 +194,18 @@ def test_cli_localize_reports_a_missing_map(
     )
     assert rc == 2
     assert "manifest not found" in capsys.readouterr().err
+
+
+def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
+    from lampsam.localization.global_localizer import distinct_modes
+
+    rng = np.random.default_rng(3)
+    centres = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, np.pi], [4.0, 2.0, 1.0]])
+    parts = np.vstack([c + rng.normal(0, [0.05, 0.05, 0.02], (50, 3)) for c in centres])
+    logw = np.concatenate([np.full(50, -1.0), np.full(50, -2.0), np.full(50, -3.0)])
+    logw = logw + rng.normal(0, 0.01, 150)
+    modes = distinct_modes(parts, logw, 5, (0.5, 0.5))
+    assert len(modes) == 3  # same place, turned by pi, is a separate mode
+    np.testing.assert_allclose(modes[:, :2], centres[:, :2], atol=0.2)
+    assert abs(np.cos(modes[1, 2] - np.pi) - 1.0) < 0.01
+    assert len(distinct_modes(parts, logw, 2, (0.5, 0.5))) == 2
