@@ -15,10 +15,11 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import tomllib
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+import tomllib
 
 from lampsam.errors import LampsamError
 
@@ -66,12 +67,18 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
 
 # --------------------------------------------------------------------------- demo
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.compare import markdown_table
     from lampsam.evaluation.demo import run_demo
 
     result = run_demo(Path(args.out))
-    print(f"demo run written to {result.run}")
-    print(f"contact sheet: {result.contact_sheet}")
-    return 0
+    print()
+    print(markdown_table(result.rows))
+    print()
+    print(f"simulated run:      {result.run}")
+    print(f"contact sheet:      {result.contact_sheet}")
+    print(f"comparison report:  {result.report} (and report.html, summary.json, figures/)")
+    print(f"per-backend output: {result.out / 'compare' / 'jobs'} (trajectory.tum, landmarks.csv, summary.json)")
+    return 1 if any(r["failed"] for r in result.rows) else 0
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:

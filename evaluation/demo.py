@@ -1,8 +1,12 @@
-"""The demo job (``lampsam demo`` / ``make demo``): simulate the lab, show the truth.
+"""The demo job (``lampsam demo`` / ``make demo``): the main job on the built-in world.
 
-For now: simulate a short run of the built-in ``lab`` world into ``out/run`` and
-write a contact sheet of its frames with the true lamp and corner projections
-(``out/contact_sheet.png``). Later stages extend this with SLAM and reports.
+1. Simulate a short run of the built-in ``lab`` world into ``OUT/run`` (ceiling
+   images rendered from geometry, noisy wheel odometry, ground truth).
+2. Write a contact sheet of its frames with the true lamp and corner projections
+   (``OUT/contact_sheet.png``).
+3. Run ceiling SLAM with the EKF, iSAM2 and batch backends on the frontend's
+   detections in the images, and compare them (``OUT/compare/report.md``,
+   ``report.html``, ``summary.json``, ``figures/``).
 """
 
 from __future__ import annotations
@@ -10,8 +14,10 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from lampsam.datasets.simulator import simulate_world
+from lampsam.evaluation.compare import compare
 from lampsam.evaluation.contact_sheet import write_contact_sheet
 
 log = logging.getLogger(__name__)
@@ -30,25 +36,35 @@ class DemoResult:
         out: the demo's output directory.
         run: the simulated run directory.
         contact_sheet: the contact-sheet PNG.
+        report: the comparison report (Markdown; HTML beside it).
+        rows: the comparison table rows (as in ``summary.json``).
     """
 
     out: Path
     run: Path
     contact_sheet: Path
+    report: Path
+    rows: list[dict[str, Any]]
 
 
-def run_demo(out: Path, duration: float = DEMO_DURATION) -> DemoResult:
-    """Simulate a short ``lab`` run into ``out/run`` and write ``out/contact_sheet.png``.
+def run_demo(out: Path, duration: float = DEMO_DURATION, workers: int = 2,
+             progress: bool = True) -> DemoResult:
+    """Simulate a short ``lab`` run, draw its truth, and compare the three backends on it.
 
     Args:
         out: output directory (created).
         duration: seconds of the lab path to simulate.
+        workers: parallel processes for the comparison.
+        progress: show the comparison's progress bar.
 
     Returns:
-        The paths written.
+        The paths written and the comparison rows.
     """
     out = Path(out)
     run = simulate_world(DEMO_WORLD, out / "run", seed=DEMO_SEED, duration=duration)
     sheet = write_contact_sheet(run, out / "contact_sheet.png")
     log.info("demo: run in %s, contact sheet %s", run, sheet)
-    return DemoResult(out=out, run=run, contact_sheet=sheet)
+    rows = compare([str(run)], backends=("ekf", "isam2", "batch"), seeds=1,
+                   out=out / "compare", workers=workers, frames="images", progress=progress)
+    return DemoResult(out=out, run=run, contact_sheet=sheet, report=out / "compare" / "report.md",
+                      rows=rows)
