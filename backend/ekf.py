@@ -40,7 +40,14 @@ from lampsam.backend.interface import (
     SlamResult,
     StepEstimate,
 )
-from lampsam.backend.models import Obs, initialize, observations_from_frame, predict, residual
+from lampsam.backend.models import (
+    Obs,
+    for_landmark,
+    initialize,
+    observations_from_frame,
+    predict,
+    residual,
+)
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
@@ -185,6 +192,7 @@ class EkfSlam(SlamBackend):
     def _innovation(self, lid: int, obs: Obs) -> tuple[FloatArray, FloatArray] | None:
         """``(nu, Psi)`` of eq. 19 for landmark ``lid`` and ``obs``."""
         slot = self._slots[lid]
+        obs = for_landmark(obs, slot.dim)
         try:
             z_hat, h_r, h_l = self._h(slot, obs)
         except Exception:  # landmark behind / at the camera: not predictable here
@@ -227,6 +235,7 @@ class EkfSlam(SlamBackend):
         P = self._P[:n, :n]
         rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
         for slot, obs in pairs:
+            obs = for_landmark(obs, slot.dim)
             try:
                 z_hat, h_r, h_l = self._h(slot, obs)
             except Exception as exc:  # behind the camera: skip this observation

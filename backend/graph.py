@@ -56,7 +56,14 @@ from lampsam.backend.interface import (
     SlamResult,
     StepEstimate,
 )
-from lampsam.backend.models import Obs, initialize, observations_from_frame, predict, residual
+from lampsam.backend.models import (
+    Obs,
+    for_landmark,
+    initialize,
+    observations_from_frame,
+    predict,
+    residual,
+)
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import coords_D_tangent, wrap_angle
 from lampsam.factors.gtsam_factors import bearing_range_factor, odometry_factor
@@ -308,6 +315,7 @@ class GraphSlam(SlamBackend):
         """
         k, pose, delta, delta_cov = gate_ctx
         lm = self._landmarks[lid]
+        obs = for_landmark(obs, len(lm.state))
         try:
             z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
         except Exception:

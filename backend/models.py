@@ -19,6 +19,7 @@ them with :func:`lampsam.factors.geometry.tangent_D_coords`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -97,6 +98,23 @@ def observations_from_frame(
             out.append(Obs("corner", np.asarray(c.m, float), np.asarray(c.cov_m, float),
                            c.landmark_id, patch=c.patch))
     return out
+
+
+def for_landmark(obs: Obs, state_dim: int) -> Obs:
+    """The part of ``obs`` that a landmark with a ``state_dim`` state can predict.
+
+    A lamp first seen without a usable axis has a position-only state ``(x, y, z)``;
+    when a later frame does measure its axis, that observation updates the position
+    only (paper 1, III.4, the converse case), so the axis row is dropped here rather
+    than the state being resized. Everything else is returned unchanged.
+
+    Args:
+        obs: the observation.
+        state_dim: length of the landmark's state (3: no axis, 4: with axis).
+    """
+    if obs.kind == "lamp" and obs.has_axis and state_dim < 4:
+        return dataclasses.replace(obs, z=obs.z[:2].copy(), R=obs.R[:2, :2].copy(), has_axis=False)
+    return obs
 
 
 def residual(obs: Obs, z_hat: FloatArray) -> FloatArray:

@@ -43,7 +43,7 @@ from lampsam.datasets.logrun import (
     read_run,
     write_tum,
 )
-from lampsam.errors import EstimationError
+from lampsam.errors import EstimationError, LampsamError
 from lampsam.factors.geometry import wrap_angle, wrap_axis
 from lampsam.frontend.measurements import (
     CeilingFrame,
@@ -294,15 +294,23 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
         the run did not finish (the failure is also logged).
     """
     status = "ok"
+    t_step: float | None = None
     try:
         for t, wheel, frame in steps:
+            t_step = t
             backend.step(t, wheel, frame)
     except KeyboardInterrupt:
         status = "interrupted"
         log.warning("interrupted: writing the steps finished so far")
-    except EstimationError as exc:
+    except LampsamError as exc:  # estimation failure, or bad input met mid-run (names the file)
         status = f"failed: {exc}"
         log.error("%s", exc)
+    except Exception as exc:  # a defect: keep the finished steps, say where it happened
+        where = f" at t={t_step:.3f} s" if t_step is not None else ""
+        status = f"failed{where}: {type(exc).__name__}: {exc}"
+        log.error("step%s failed: %s: %s (run with -vv for the traceback); "
+                  "the steps finished so far are kept", where, type(exc).__name__, exc)
+        log.debug("traceback", exc_info=True)
     return backend.finish(status)
 
 
