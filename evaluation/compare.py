@@ -147,8 +147,14 @@ def _truth_landmarks(run_dir: Path, run: Any) -> tuple[np.ndarray, np.ndarray, n
 
 
 def _map_error(result: Any, truth: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-               camera_height: float) -> dict[str, Any]:
-    """Landmark error on the floor plane: by id when the ids are true ids, else nearest (<0.5 m)."""
+               ids_are_true: bool) -> dict[str, Any]:
+    """Landmark error on the floor plane.
+
+    Estimated landmarks are associated with the truth by id when the measurements
+    carried the true ids (``ids_are_true``: frames from the simulator's truth, or a
+    dataset with known association); otherwise each estimate is paired with the
+    nearest true landmark within 0.5 m (a backend's own ids mean nothing to the truth).
+    """
     if truth is None or not result.landmarks:
         return {}
     tid, ttype, txyz = truth
@@ -159,9 +165,7 @@ def _map_error(result: Any, truth: tuple[np.ndarray, np.ndarray, np.ndarray] | N
         est_xyz.append(p)
     est_ids_a = np.asarray(est_ids)
     est_xyz_a = np.asarray(est_xyz)
-    known = set(tid.tolist())
-    if np.isin(est_ids_a, list(known)).mean() < 0.5:
-        # Ids are the backend's own: associate each estimate with the nearest true landmark.
+    if not ids_are_true:
         d = np.linalg.norm(est_xyz_a[:, None, :2] - txyz[None, :, :2], axis=2)
         nearest = np.argmin(d, axis=1)
         est_ids_a = np.where(d[np.arange(len(d)), nearest] < 0.5, tid[nearest], -1)
@@ -220,8 +224,10 @@ def run_job(job: Job) -> JobResult:
             log.warning("%s: evo metrics skipped: %s", job.run_dir, exc)
         arrays.update(t_err=t, truth=truth, pos_err=pos, head_err=head, nees=nees,
                       gt_xy=gt.poses[:, :2])
-    cam_h = float(run.rig.camera.body_t_camera[2]) if run.rig is not None else 0.0
-    m.update(_map_error(result, _truth_landmarks(Path(job.run_dir), run), cam_h))
+    ids_are_true = job.frames == "truth" or (job.frames in ("auto", "rangebearing")
+                                             and run.range_bearing is not None
+                                             and bool(np.any(run.range_bearing.landmark_id >= 0)))
+    m.update(_map_error(result, _truth_landmarks(Path(job.run_dir), run), ids_are_true))
     if result.landmarks:
         arrays["lm_xy"] = np.array([lm.position[:2] for lm in result.landmarks], float)
         arrays["lm_cov"] = np.array([np.asarray(lm.cov)[:2, :2] for lm in result.landmarks], float)

@@ -61,3 +61,17 @@ def test_thread_variables_restored(monkeypatch: pytest.MonkeyPatch) -> None:
         assert os.environ["OMP_NUM_THREADS"] == "1"
         assert os.environ["OPENBLAS_NUM_THREADS"] == "4"  # the user's choice is kept
     assert "OMP_NUM_THREADS" not in os.environ and os.environ["OPENBLAS_NUM_THREADS"] == "4"
+
+
+def test_map_error_associates_by_position_when_ids_are_the_backends() -> None:
+    from types import SimpleNamespace
+
+    lm = lambda i, x, y: SimpleNamespace(id=i, position=np.array([x, y, 2.5]))  # noqa: E731
+    # Backend ids 0, 1 collide with true ids 0, 1 but name other landmarks.
+    result = SimpleNamespace(landmarks=[lm(0, 5.02, 0.0), lm(1, 0.0, 0.03)])
+    truth = (np.array([0, 1]), np.array(["lamp", "lamp"]), np.array([[0.0, 0.0, 2.5], [5.0, 0.0, 2.5]]))
+    by_position = C._map_error(result, truth, ids_are_true=False)
+    assert by_position["map_associated"] == 2
+    assert by_position["map_rms_m"] == pytest.approx(np.sqrt((0.02**2 + 0.03**2) / 2))
+    by_id = C._map_error(result, truth, ids_are_true=True)
+    assert by_id["map_rms_m"] > 4.9  # the same ids taken at face value pair the wrong landmarks
