@@ -100,3 +100,24 @@ def test_map_error_by_id() -> None:
     )
     assert n == 2
     assert stats.rms == pytest.approx(np.sqrt((0.4**2 + 0.3**2) / 2))
+
+
+def test_autocorrelation_time_iid_and_ar1(rng: np.random.Generator) -> None:
+    iid = rng.normal(size=20000)
+    assert M.integrated_autocorrelation_time(iid) == pytest.approx(1.0, abs=0.1)
+    # AR(1) with coefficient a has tau = (1 + a) / (1 - a) = 19 for a = 0.9
+    a, x = 0.9, np.empty(50000)
+    x[0] = 0.0
+    e = rng.normal(size=x.size)
+    for i in range(1, x.size):
+        x[i] = a * x[i - 1] + e[i]
+    assert M.integrated_autocorrelation_time(x) == pytest.approx(19.0, rel=0.15)
+
+
+def test_correlated_nees_is_not_called_overconfident(rng: np.random.Generator) -> None:
+    # One run, 600 steps of a slowly varying but consistent NEES (mean 3 over the long run):
+    # a 10 % excursion of the time average must not count as significant.
+    steps = 600
+    slow = np.repeat(np.sum(rng.normal(size=(30, 3)) ** 2, axis=1), steps // 30)
+    s = M.nees_summary(slow * 3.3 / slow.mean(), dof=3)
+    assert not s.overconfident
