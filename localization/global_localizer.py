@@ -59,6 +59,7 @@ from lampsam.localization.verification import (
     SequentialVerifier,
     Verdict,
     VerificationConfig,
+    refine_pose,
 )
 from lampsam.localization.virtual_scan import VirtualScan, VirtualScanConfig, beam_angles
 
@@ -271,6 +272,15 @@ class GlobalLocalizerConfig:
         max_verify_distance: give up verifying (count as failure) after this
             distance (m). Default 3.0.
         max_restarts: start over at most this many times. Default 3.
+        refine_in_ours: in :attr:`Mode.OURS`, the first ceiling frame of the
+            verification drive that matches at least two lamps corrects the
+            pose (:func:`lampsam.localization.verification.refine_pose`)
+            before the frames are tested. Default True. In the changed office
+            the scan alone left a bias of 0.2 m / 5 deg (moved furniture) that
+            the ceiling test then rejected, restart after restart.
+        max_refine: the correction is applied only when within this
+            ``(metres, radians)``; a larger one is a different pose, left to
+            verification. Default (0.3 m, 10 deg): the success bound.
         candidates: candidate generation.
         scan: the virtual scan's point band.
         filter: the particle filter.
@@ -283,6 +293,8 @@ class GlobalLocalizerConfig:
     drive_step: float = 0.25
     max_verify_distance: float = 3.0
     max_restarts: int = 3
+    refine_in_ours: bool = True
+    max_refine: tuple[float, float] = (0.3, float(np.deg2rad(10.0)))
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     scan: VirtualScanConfig = field(default_factory=VirtualScanConfig)
     filter: FilterConfig = field(default_factory=FilterConfig)
@@ -620,6 +632,8 @@ def _verify_stage(
         verifier.verdict = Verdict.ACCEPTED
     prev = np.asarray(odom_end, dtype=float)
     pose = np.asarray(pose_end, dtype=float)
+    refine = config.mode is Mode.OURS and config.refine_in_ours and not monitoring
+    refine &= maps.ceiling_is_lamp is not None
     d = 0.0
     robot_s = 0.0
     compute = 0.0
@@ -642,6 +656,22 @@ def _verify_stage(
             pose = compose(pose, delta)
             ds = float(np.hypot(delta[0], delta[1]))
             d += ds
+            if refine and f.ceiling_is_lamp is not None and np.sum(f.ceiling_is_lamp) >= 2:
+                assert maps.ceiling_is_lamp is not None
+                fixed, n_l = refine_pose(
+                    pose, f.ceiling_m, f.ceiling_is_lamp, maps.ceiling_xyz,
+                    maps.ceiling_is_lamp, maps.ceiling_body_t_camera,
+                )  # fmt: skip
+                if n_l >= 2:
+                    refine = False
+                    step = between(pose, fixed)
+                    if (
+                        np.hypot(step[0], step[1]) <= config.max_refine[0]
+                        and abs(step[2]) <= config.max_refine[1]
+                    ):
+                        log.info("ceiling refinement: %.2f m, %.1f deg", np.hypot(*step[:2]),
+                                 np.rad2deg(step[2]))  # fmt: skip
+                        pose = fixed
             outcome = checker.outcome(pose, f.ceiling_m, f.ceiling_is_lamp, f.ceiling_axis)
             evidence |= outcome is not None
             verdict = verifier.update(ds, outcome)

@@ -496,3 +496,84 @@ class CeilingChecker:
             return True
         n_seen, n = frame_match(lamps, observed_lamps, self.config.gate)
         return n_seen >= self.config.lamp_match_fraction * n
+
+
+def rigid_2d(source: FloatArray, target: FloatArray) -> FloatArray:
+    """Least-squares planar rigid transform with ``target ~ R(theta) source + t`` (2-D Kabsch).
+
+    Args:
+        source: (N, 2) points (body frame), N >= 2.
+        target: (N, 2) corresponding points (world frame).
+
+    Returns:
+        (3,) ``(t_x, t_y, theta)`` (m, m, rad).
+    """
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - cs, target - ct
+    theta = float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
+    c, s = np.cos(theta), np.sin(theta)
+    t = ct - np.array([c * cs[0] - s * cs[1], s * cs[0] + c * cs[1]])
+    return np.array([t[0], t[1], theta])
+
+
+def refine_pose(
+    pose: FloatArray,
+    observed: FloatArray,
+    observed_is_lamp: BoolArray,
+    landmarks: FloatArray,
+    is_lamp: BoolArray,
+    body_t_camera: FloatArray,
+    gates: tuple[float, float] = (0.25, 0.08),
+    iterations: int = 3,
+) -> tuple[FloatArray, int]:
+    """Correct a pose with one ceiling frame: match, align in 2-D, repeat (ours).
+
+    Each observed feature ``m`` of a landmark at height ``h`` above the camera
+    lies at ``q = h m + o_xy`` in the body frame (the inverse of
+    :func:`lampsam.factors.ceiling.project_point`); the pose that maps the
+    matched ``q`` onto the landmarks' ``(x, y)`` is the 2-D rigid alignment
+    (:func:`rigid_2d`). Matches are nearest predicted landmarks of the same
+    kind within ``gates`` (lamps, corners; normalised units): the lamp gate is
+    wide (lamps are sparse), the corner gate below half a tile (a corner
+    lattice matches the wrong corner beyond that).
+
+    Args:
+        pose: (3,) initial ``world_T_body``.
+        observed: (K, 2) observed ``m``.
+        observed_is_lamp: (K,) kinds.
+        landmarks: (L, 3) ceiling map, world (m).
+        is_lamp: (L,) kinds.
+        body_t_camera: (3,) camera offset and height (m).
+        gates: match gates for lamps and corners.
+        iterations: match-align rounds.
+
+    Returns:
+        The refined pose (3,) and the number of lamps matched in the last
+        round (the pose is returned unchanged when fewer than 2 lamps match).
+    """
+    pose = np.asarray(pose, dtype=float).copy()
+    observed = np.asarray(observed, dtype=float).reshape(-1, 2)
+    kinds = np.asarray(observed_is_lamp, dtype=bool).reshape(-1)
+    n_lamps = 0
+    for _ in range(iterations):
+        pred = predict_landmarks(pose, landmarks, body_t_camera)
+        src, dst = [], []
+        n_lamps = 0
+        for kind, gate in ((True, gates[0]), (False, gates[1])):
+            obs_k = observed[kinds == kind]
+            idx = np.nonzero((is_lamp == kind) & np.all(np.isfinite(pred), axis=1))[0]
+            if len(obs_k) == 0 or len(idx) == 0:
+                continue
+            dist = np.linalg.norm(obs_k[:, None, :] - pred[idx][None, :, :], axis=2)
+            j = np.argmin(dist, axis=1)
+            ok = dist[np.arange(len(obs_k)), j] <= gate
+            lm = landmarks[idx[j[ok]]]
+            h = lm[:, 2] - body_t_camera[2]
+            src.append(obs_k[ok] * h[:, None] + body_t_camera[:2])
+            dst.append(lm[:, :2])
+            if kind:
+                n_lamps = int(ok.sum())
+        if n_lamps < 2:
+            return pose, n_lamps
+        pose = rigid_2d(np.vstack(src), np.vstack(dst))
+    return pose, n_lamps
