@@ -288,3 +288,35 @@ def test_twin_pose_on_a_periodic_ceiling_is_rejected() -> None:
         for _ in range(80):
             verdict = v.update(0.03, new.outcome(twin, obs, obs_kind, obs_axis))
         assert verdict is Verdict.FAILED
+
+
+def test_rigid_2d_recovers_a_known_transform() -> None:
+    from lampsam.localization.verification import rigid_2d
+
+    rng = np.random.default_rng(21)
+    src = rng.uniform(-2, 2, (20, 2))
+    th, t = 0.7, np.array([1.5, -0.4])
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    np.testing.assert_allclose(rigid_2d(src, src @ R.T + t), [*t, th], atol=1e-9)
+
+
+def test_refine_pose_corrects_a_biased_pose_on_a_tiled_ceiling() -> None:
+    from lampsam.localization.verification import refine_pose
+
+    rng = np.random.default_rng(33)
+    lm, kinds, _ = _twin_ceiling()
+    truth = np.array([3.3, 3.1, 0.7])
+    m = np.array([project_point(truth, p, CAM)[0] for p in lm])
+    vis = np.hypot(m[:, 0], m[:, 1]) < 1.2
+    obs = m[vis] + rng.normal(0, 0.005, (int(vis.sum()), 2))
+    # a scan-fitted pose off by 0.2 m and 7 deg (the office's changed furniture)
+    start = truth + np.array([0.2, -0.15, np.deg2rad(7.0)])
+    fixed, n_lamps = refine_pose(start, obs, kinds[vis], lm, kinds, CAM)
+    assert n_lamps >= 2
+    assert np.hypot(*(fixed[:2] - truth[:2])) < 0.02  # m
+    assert abs(fixed[2] - truth[2]) < np.deg2rad(0.5)
+    # corners alone (no lamp) cannot be trusted on a lattice: pose unchanged
+    only = ~kinds[vis]
+    same, n0 = refine_pose(start, obs[only], kinds[vis][only], lm, kinds, CAM)
+    assert n0 == 0
+    np.testing.assert_array_equal(same, start)
