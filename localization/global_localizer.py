@@ -80,8 +80,11 @@ class Mode(enum.Enum):
     NO_CEILING: candidates + particle filter, no ceiling verification.
     PROPOSED: candidates + particle filter + ``R_loc`` verification (the paper).
     OURS: candidates plus a few uniform particles (5 % prior mass), particle
-        filter with the likelihood field and an adaptive (KLD) sample size,
-        sequential verification (decides after about 0.3 m instead of 2 m).
+        filter with the likelihood field and an adaptive (KLD) sample size;
+        its estimate and the best distinct modes of the first update re-scored
+        by a short ray-casting filter; the pose refined by the first ceiling
+        frame with two lamps (2-D alignment to the ceiling map); sequential
+        verification (decides after about 0.3 m instead of 2 m).
     """
 
     GRID_ONLY = "grid_only"
