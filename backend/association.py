@@ -19,6 +19,7 @@ With known association (``landmark_id`` set and ``use_known_ids``) the id decide
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -84,7 +85,7 @@ def patch_ncc(a: np.ndarray | None, b: np.ndarray | None) -> float:
     """
     if a is None or b is None or np.shape(a) != np.shape(b):
         return -1.0
-    return float(np.sum(np.asarray(a, float) * np.asarray(b, float)))
+    return float(np.vdot(np.asarray(a, float), np.asarray(b, float)))
 
 
 def associate(
@@ -94,6 +95,7 @@ def associate(
     config: AssociationConfig,
     existing: Callable[[int], bool],
     patches: dict[int, np.ndarray] | None = None,
+    screened: dict[int, dict[int, tuple[float, bool]]] | None = None,
 ) -> list[Assignment]:
     """Associate one frame's observations with the map (paper eqs. 19-20, NCC for corners).
 
@@ -106,6 +108,13 @@ def associate(
         existing: ``existing(id)`` tells whether a landmark id is in the map (for
             known association).
         patches: corner landmark id -> reference patch, for NCC.
+        screened: optional pre-screening by the backend (:func:`screen_pairs`):
+            observation index -> {landmark id: (d2, exact)}. For a screened
+            observation only these landmarks are candidates (the others are beyond
+            the new-landmark threshold); an ``exact`` distance is used as is, an
+            inexact one (a cheaper, wider gate) only to skip the pair or, when it is
+            below the gate and the NCC passes, to ask ``innovation`` for the exact
+            one. Corner pairs failing the NCC never cost an innovation call.
 
     Returns:
         One :class:`Assignment` per observation, in input order.
@@ -120,16 +129,32 @@ def associate(
             continue
         gate = config.gate(len(obs.z))
         best = float("inf")
-        for lid in candidates.get(obs.kind, ()):
-            pred = innovation(lid, obs)
-            if pred is None:
+        if screened is not None and i in screened:
+            items = screened[i].items()
+        else:
+            items = ((lid, (float("nan"), False)) for lid in candidates.get(obs.kind, ()))
+        for lid, (d2_screen, exact) in items:
+            screen_only = not math.isnan(d2_screen)
+            if screen_only and d2_screen >= gate:  # cannot match: the screen is wider
+                best = min(best, d2_screen)
                 continue
-            d2 = mahalanobis2(*pred)
+            ncc = 0.0
+            if obs.kind == "corner":
+                ncc = patch_ncc(obs.patch, (patches or {}).get(lid))
+                if ncc < config.ncc_min and screen_only:
+                    best = min(best, d2_screen)
+                    continue
+            if exact:
+                d2 = d2_screen
+            else:
+                pred = innovation(lid, obs)
+                if pred is None:
+                    continue
+                d2 = mahalanobis2(*pred)
             best = min(best, d2)
             if d2 >= gate:
                 continue
             if obs.kind == "corner":
-                ncc = patch_ncc(obs.patch, (patches or {}).get(lid))
                 if ncc < config.ncc_min:
                     continue
                 pairs.append((-ncc, i, lid, d2))
@@ -152,3 +177,66 @@ def associate(
         else:
             result[i] = Assignment(i, None, "dropped", best_d2[i])
     return [result[i] for i in range(len(observations))]
+
+
+def pairwise_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatArray) -> FloatArray:
+    """Squared Mahalanobis distances of every observation to every prediction (eq. 20).
+
+    For 2-D measurements: ``d2[i, j] = nu^T (S_j + R_i)^-1 nu`` with
+    ``nu = z_i - z_hat_j`` (no angle: ceiling coordinates), the 2x2 inverse in
+    closed form, all pairs at once.
+
+    Args:
+        z: (N, 2) measurements; r: (N, 2, 2) their noise.
+        z_hat: (M, 2) predictions; s: (M, 2, 2) prediction covariances
+            ``H P H^T`` (eq. 19 without ``R``).
+
+    Returns:
+        (N, M) distances; ``inf`` where the sum is not positive definite.
+    """
+    psi = r[:, None, :, :] + s[None, :, :, :]
+    nu = z[:, None, :] - z_hat[None, :, :]
+    a, b, c, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 0], psi[..., 1, 1]
+    del c
+    det = a * d - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
+    return np.where((det > 0) & (a > 0), d2, np.inf)
+
+
+def screen_pairs(observations: list[Obs], kind: str, lids: list[int], z_hat: FloatArray,
+                 s: FloatArray, config: AssociationConfig, exact: bool
+                 ) -> dict[int, dict[int, tuple[float, bool]]]:
+    """Pre-screen observations of one kind against M predicted landmarks (vectorised).
+
+    Uses the position part ``(u, v)`` of each observation (for a lamp with an axis
+    the distance over the first two rows is a lower bound of the full one) and keeps
+    the pairs below the new-landmark threshold (:meth:`AssociationConfig.new_threshold`):
+    the others can neither match nor make the observation ambiguous.
+
+    Args:
+        observations: the frame's observations (all kinds).
+        kind: the kind to screen.
+        lids: (M,) landmark ids of the predictions.
+        z_hat: (M, 2) predicted ``(u, v)``; s: (M, 2, 2) their covariance ``H P H^T``.
+        config: association thresholds.
+        exact: ``s`` is the full eq.-19 covariance (with the pose-landmark cross
+            term), so a 2-D distance is final; otherwise every kept distance is a
+            screen only.
+
+    Returns:
+        For :func:`associate`'s ``screened``: obs index -> {landmark id: (d2, exact)}.
+    """
+    idx = [i for i, o in enumerate(observations) if o.kind == kind]
+    out: dict[int, dict[int, tuple[float, bool]]] = {i: {} for i in idx}
+    if not idx or not lids:
+        return out
+    z = np.array([observations[i].z[:2] for i in idx], float)
+    r = np.array([observations[i].R[:2, :2] for i in idx], float)
+    d2 = pairwise_d2(z, r, np.asarray(z_hat, float), np.asarray(s, float))
+    for row, i in enumerate(idx):
+        dof = len(observations[i].z)
+        keep = np.flatnonzero(d2[row] < config.new_threshold(dof))
+        fin = exact and dof == 2
+        out[i] = {lids[j]: (float(d2[row, j]), fin) for j in keep}
+    return out

@@ -128,6 +128,100 @@ class CeilingModel:
             return False
         return math.hypot(m[0], m[1]) < 1.2 * self.max_radius
 
+    def project_many(self, pose: FloatArray, points: FloatArray
+                     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Vectorised :func:`lampsam.factors.ceiling.project_point` for M landmarks at once.
+
+        Same model (paper 1, eqs. 17-18, Cartesian): ``m = (R^T (p_xy - t) - o_xy) / h``,
+        ``h = p_z - z_cam``; used to pre-select and gate candidates without a Python
+        call per landmark.
+
+        Args:
+            pose: (3,) ``world_T_body``.
+            points: (M, 3) world points, m (extra columns, e.g. a lamp axis, ignored).
+
+        Returns:
+            ``(m (M, 2), m_D_pose (M, 2, 3) right tangent, m_D_point (M, 2, 3),
+            visible (M,) bool)``; ``visible`` is False for points less than
+            :data:`MIN_USABLE_HEIGHT` above the camera or predicted beyond
+            ``1.2 * max_radius`` (their other entries are finite but meaningless).
+        """
+        pts = np.asarray(points, dtype=float).reshape(-1, points.shape[-1] if len(points) else 3)
+        n = len(pts)
+        o = self.body_t_camera
+        h = pts[:, 2] - o[2] if n else np.zeros(0)
+        ok_h = h >= MIN_USABLE_HEIGHT
+        inv_h = 1.0 / np.where(ok_h, h, 1.0)
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        dx, dy = pts[:, 0] - pose[0], pts[:, 1] - pose[1]
+        qx, qy = c * dx + s * dy, -s * dx + c * dy
+        m = np.stack([(qx - o[0]) * inv_h, (qy - o[1]) * inv_h], axis=1)
+        m_D_pose = np.zeros((n, 2, 3))
+        m_D_pose[:, 0, 0] = -inv_h
+        m_D_pose[:, 1, 1] = -inv_h
+        m_D_pose[:, 0, 2] = qy * inv_h
+        m_D_pose[:, 1, 2] = -qx * inv_h
+        m_D_point = np.empty((n, 2, 3))
+        m_D_point[:, 0, 0] = c * inv_h
+        m_D_point[:, 0, 1] = s * inv_h
+        m_D_point[:, 0, 2] = -m[:, 0] * inv_h
+        m_D_point[:, 1, 0] = -s * inv_h
+        m_D_point[:, 1, 1] = c * inv_h
+        m_D_point[:, 1, 2] = -m[:, 1] * inv_h
+        visible = ok_h & (np.hypot(m[:, 0], m[:, 1]) < 1.2 * self.max_radius)
+        return m, m_D_pose, m_D_point, visible
+
+    def in_view_many(self, pose: FloatArray, points: FloatArray) -> FloatArray:
+        """(M,) bool: :meth:`in_view` for M landmark states at once (``points`` (M, >=3))."""
+        if len(points) == 0:
+            return np.zeros(0, dtype=bool)
+        return self.project_many(pose, points)[3]
+
+    def triangulate(self, poses: FloatArray, ms: FloatArray, covs: FloatArray
+                    ) -> tuple[FloatArray, FloatArray]:
+        """Corner position from two or more sights (delayed initialisation).
+
+        Eq. 17-18 is linear in ``(p_x, p_y, h)`` for known poses:
+        ``R_k^T p_xy - h m_k = R_k^T t_k + o_xy``; weighted least squares over the
+        sights (weights ``cov_m^-1 / h^2`` evaluated at the unweighted solution, the
+        pose uncertainty ignored) gives the point and its covariance.
+
+        Args:
+            poses: (K, 3) ``world_T_body`` of the sights.
+            ms: (K, 2) normalised ceiling coordinates.
+            covs: (K, 2, 2) their covariances.
+
+        Returns:
+            ``(point (3,) world, cov (3, 3) over (x, y, z))``; the covariance is
+            infinite-like (``1e6 I``) when the sights have no parallax.
+        """
+        poses = np.asarray(poses, float)
+        ms = np.asarray(ms, float)
+        o = self.body_t_camera
+        rows, rhs, w = [], [], []
+        for (x, y, th), m, cov in zip(poses, ms, covs, strict=True):
+            c, s = math.cos(th), math.sin(th)
+            rt = np.array([[c, s], [-s, c]])
+            a = np.zeros((2, 3))
+            a[:, :2] = rt
+            a[:, 2] = -m
+            rows.append(a)
+            rhs.append(rt @ np.array([x, y]) + o[:2])
+            w.append(np.linalg.inv(np.asarray(cov, float)))
+        a_all = np.vstack(rows)
+        b_all = np.concatenate(rhs)
+        sol, *_ = np.linalg.lstsq(a_all, b_all, rcond=None)
+        h = max(float(sol[2]), MIN_USABLE_HEIGHT)
+        info = sum(a.T @ (wk / h**2) @ a for a, wk in zip(rows, w, strict=True))
+        try:
+            cov_s = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            cov_s = 1e6 * np.eye(3)
+        if not np.all(np.isfinite(cov_s)) or np.min(np.linalg.eigvalsh(cov_s)) < 0:
+            cov_s = 1e6 * np.eye(3)
+        point = np.array([sol[0], sol[1], sol[2] + o[2]])
+        return point, cov_s
+
     def world_position(self, state: FloatArray) -> FloatArray:
         """(3,) world position of a landmark state, m."""
         return np.asarray(state[:3], dtype=float).copy()

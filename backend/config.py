@@ -132,6 +132,17 @@ class Isam2Config:
         odometry_floor_var: variance added to each diagonal entry of every odometry
             factor's tangent covariance, m^2 / rad^2 (default 1e-6 = (1 mm)^2 and
             (1 mrad)^2, :data:`lampsam.factors.motion.DEFAULT_FLOOR_VAR`).
+        corner_huber_k: Huber threshold in sigmas on corner projection factors in
+            both smoothers (default 1.345, the usual 95 %-efficiency value): corners
+            are associated by gate + NCC without known ids, and one wrong match must
+            not pull the graph; None for plain Gaussian factors.
+        corner_init_min_sights: a corner enters the graph only once it is
+            triangulated from this many keyframes (default 2; delayed initialisation).
+        corner_init_max_rel_sigma: ... and the triangulated height above the camera
+            has a standard deviation at most this fraction of the height (default 0.15:
+            enough parallax); until then the corner is pending (gated, not in the graph).
+        corner_pending_keyframes: a pending corner not seen for this many keyframes
+            is forgotten (default 30).
     """
 
     keyframe_distance: float = 0.1
@@ -145,6 +156,10 @@ class Isam2Config:
     pose_cov_every_step: bool = True
     odometry_floor_var: float = 1e-6
     final_covariances: bool = True
+    corner_huber_k: float | None = 1.345
+    corner_init_min_sights: int = 2
+    corner_init_max_rel_sigma: float = 0.15
+    corner_pending_keyframes: int = 30
 
     def to_gtsam(self) -> gtsam.ISAM2Params:
         """The ``gtsam.ISAM2Params`` for this config."""

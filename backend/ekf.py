@@ -23,6 +23,7 @@ frame; landmark states in :mod:`lampsam.backend.models`), covariance ``P``.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import time
@@ -31,7 +32,7 @@ from typing import Any, Protocol
 
 import numpy as np
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate
+from lampsam.backend.association import associate, screen_pairs
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import (
     Frame,
@@ -51,6 +52,7 @@ from lampsam.backend.models import (
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
+from scipy.linalg import solve_triangular
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +77,19 @@ class _Slot:
     created: int
     last_seen: int
     patch: Any = None
+
+
+#: Landmarks examined by the EKF's pruning per step (round robin).
+_PRUNE_CHECKS_PER_STEP = 8
+#: Doomed landmarks are removed from the state in batches of this size (or this often).
+_PRUNE_BATCH = 16
+
+
+def _max_sigma_2x2(cov: FloatArray) -> float:
+    """Largest standard deviation of a 2x2 covariance (closed-form eigenvalue), m."""
+    a, b, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    lam = 0.5 * (a + d) + math.sqrt(max(0.25 * (a - d) ** 2 + b * b, 0.0))
+    return math.sqrt(max(lam, 0.0))
 
 
 def check_wheel(t: float, wheel: FloatArray) -> FloatArray:
@@ -123,6 +138,8 @@ class EkfSlam(SlamBackend):
         self._P[:3, :3] = np.diag([cfg.sigma_start_xy**2, cfg.sigma_start_xy**2,
                                    cfg.sigma_start_theta**2])
         self._slots: dict[int, _Slot] = {}
+        self._prune_queue: collections.deque[int] = collections.deque()
+        self._doomed: set[int] = set()
         self._next_id = 0
         self._step = 0
         self._last_t = -math.inf
@@ -204,6 +221,56 @@ class EkfSlam(SlamBackend):
         psi = h_r @ p_rr @ h_r.T + cross + cross.T + h_l @ p_ll @ h_l.T + obs.R
         return residual(obs, z_hat), psi
 
+    def _screen(self, obs: list[Obs]) -> tuple[dict[str, list[int]],
+                                                dict[int, dict[int, tuple[float, bool]]]]:
+        """Candidates per kind and the vectorised gate of ceiling observations.
+
+        All ceiling landmarks are projected at once
+        (:meth:`lampsam.backend.ceiling.CeilingModel.project_many`); for the visible
+        ones ``S = H P H^T`` (eq. 19 without ``R``, with the robot-landmark cross
+        term: exact) is built from gathered blocks of ``P``, and
+        :func:`lampsam.backend.association.screen_pairs` computes every observation x
+        landmark distance in numpy. Planar landmarks go the per-pair way.
+
+        Returns:
+            ``(candidates, screened)`` for :func:`associate`.
+        """
+        cands: dict[str, list[int]] = {}
+        screened: dict[int, dict[int, tuple[float, bool]]] = {}
+        ceiling_slots: dict[str, list[_Slot]] = {}
+        for lid, slot in self._slots.items():
+            if lid in self._doomed:
+                continue
+            if self.ceiling is None or slot.kind == "point2":
+                cands.setdefault(slot.kind, []).append(lid)
+            else:
+                ceiling_slots.setdefault(slot.kind, []).append(slot)
+        pose = self._x[:3]
+        P = self._P
+        t_d_c = tangent_D_coords(pose[2])
+        for kind, slots in ceiling_slots.items():
+            offs = np.array([sl.offset for sl in slots])
+            idx = offs[:, None] + np.arange(3)[None, :]  # (M, 3) position columns
+            m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, self._x[idx])
+            keep = np.flatnonzero(vis)
+            lids = [slots[j].id for j in keep]
+            cands[kind] = lids
+            if not any(o.kind == kind for o in obs):
+                continue
+            h_r = m_d_pose[keep] @ t_d_c  # (M, 2, 3) coordinates
+            h_l = m_d_pt[keep]
+            ik = idx[keep]
+            p_rr = P[:3, :3]
+            p_rl = np.transpose(P[:3][:, ik], (1, 0, 2))  # (M, 3, 3)
+            p_ll = P[ik[:, :, None], ik[:, None, :]]  # (M, 3, 3)
+            hl_t = np.transpose(h_l, (0, 2, 1))
+            cross = h_r @ p_rl @ hl_t
+            s_pred = (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
+                      + np.transpose(cross, (0, 2, 1)) + h_l @ p_ll @ hl_t)
+            screened.update(screen_pairs(obs, kind, lids, m[keep], s_pred,
+                                         self.config.association, exact=True))
+        return cands, screened
+
     def _candidates(self) -> dict[str, list[int]]:
         cands: dict[str, list[int]] = {}
         pose = self._x[:3]
@@ -265,14 +332,19 @@ class EkfSlam(SlamBackend):
             i += k
         psi += r_blk
         psi = 0.5 * (psi + psi.T)
+        # Eqs. 21-23 through the Cholesky factor C C^T = Psi: with W = (P H^T) C^-T,
+        # K nu = W (C^-1 nu) and K (P H^T)^T = W W^T, a symmetric rank-K product
+        # (BLAS syrk: half the flops of the general product, and P stays symmetric).
         try:
-            gain = np.linalg.solve(psi, pht.T).T  # eq. 21, (n, K)
+            chol = np.linalg.cholesky(psi)
         except np.linalg.LinAlgError:
-            log.warning("singular innovation covariance: update skipped")
+            log.warning("innovation covariance not positive definite: update skipped")
             return 0
-        self._x[:n] += gain @ nu  # eq. 22
+        w = solve_triangular(chol, pht.T, lower=True, check_finite=False).T  # (n, K)
+        self._x[:n] += w @ solve_triangular(chol, nu, lower=True, check_finite=False)  # eq. 22
         self._x[2] = wrap_angle(float(self._x[2]))
-        P -= gain @ pht.T  # eq. 23: (I - K H) P = P - K (P H^T)^T
+        w = np.ascontiguousarray(w)
+        P -= w @ w.T  # eq. 23: (I - K H) P = P - K (P H^T)^T
         for slot, *_ in rows:
             if slot.kind == "lamp" and slot.dim == 4:
                 o = slot.offset + 3
@@ -305,6 +377,7 @@ class EkfSlam(SlamBackend):
         else:
             self._next_id = max(self._next_id, lid + 1)
         self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch)
+        self._prune_queue.append(lid)
         self._n = n + d
         return lid
 
@@ -335,21 +408,37 @@ class EkfSlam(SlamBackend):
         self.n_pruned += len(lids)
 
     def _prune(self) -> None:
-        """Remove landmarks seen once long ago, or still uncertain after a while."""
+        """Remove landmarks seen once long ago, or still uncertain after a while.
+
+        Amortised O(1) per step: :data:`_PRUNE_CHECKS_PER_STEP` landmarks are taken
+        from a round-robin queue each step (so each is checked every
+        ``n / _PRUNE_CHECKS_PER_STEP`` steps); doomed landmarks stop being candidates
+        at once and are cut out of ``x`` and ``P`` (an O(n^2) copy) in batches of
+        :data:`_PRUNE_BATCH` or every :data:`_PRUNE_BATCH` steps.
+        """
         cfg = self.config.association
-        drop = []
-        for lid, s in self._slots.items():
+        for _ in range(min(_PRUNE_CHECKS_PER_STEP, len(self._prune_queue))):
+            lid = self._prune_queue.popleft()
+            s = self._slots.get(lid)
+            if s is None or lid in self._doomed:
+                continue
             idle = self._step - s.last_seen
             age = self._step - s.created
+            drop = False
             if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
-                drop.append(lid)
+                drop = True
             elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
                 cov = self._P[s.offset : s.offset + 2, s.offset : s.offset + 2]
-                if math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)) > cfg.prune_sigma:
-                    drop.append(lid)
-        if drop:
-            log.debug("pruning %d landmarks", len(drop))
-        self._remove(drop)
+                drop = _max_sigma_2x2(cov) > cfg.prune_sigma
+            if drop:
+                self._doomed.add(lid)
+            else:
+                self._prune_queue.append(lid)
+        if self._doomed and (len(self._doomed) >= _PRUNE_BATCH
+                             or self._step % _PRUNE_BATCH == 0):
+            log.debug("pruning %d landmarks", len(self._doomed))
+            self._remove(sorted(self._doomed))
+            self._doomed.clear()
 
     # ------------------------------------------------------------------ interface
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
@@ -363,13 +452,13 @@ class EkfSlam(SlamBackend):
         if frame is not None:
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
             if obs:
-                patches = {lid: s.patch for lid, s in self._slots.items() if s.kind == "corner"}
                 gating = not self.config.association.use_known_ids or any(
                     o.landmark_id is None for o in obs)
-                cands = self._candidates() if gating else {}
+                cands, screened = self._screen(obs) if gating else ({}, {})
+                patches = {lid: self._slots[lid].patch for lid in cands.get("corner", ())}
                 assignments = associate(obs, cands, self._innovation,
                                         self.config.association, lambda i: i in self._slots,
-                                        patches)
+                                        patches, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
@@ -410,7 +499,8 @@ class EkfSlam(SlamBackend):
         if once:
             log.warning("%d landmarks seen fewer than %d times were pruned", len(once),
                         self.config.association.min_observations)
-        self._remove(once)
+        self._remove(sorted(set(once) | self._doomed))
+        self._doomed.clear()
         return SlamResult(
             backend=self.name,
             times=np.asarray(self._times, float),

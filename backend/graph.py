@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -46,7 +47,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate
+from lampsam.backend.association import associate, screen_pairs
+from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import WheelParams, check_wheel, landmark_estimate
 from lampsam.backend.interface import (
@@ -117,6 +119,7 @@ class _Landmark:
     pending: list[tuple[int, Obs]] = field(default_factory=list)  # (keyframe, obs) to add
     patch: Any = None
     oriented: bool = False
+    last_kf: int = 0  # last keyframe that observed it
 
 
 class Point2Handler:
@@ -206,6 +209,9 @@ class GraphSlam(SlamBackend):
         self._keyframes: list[bool] = []
         self.update_times: list[float] = []
         self.n_pruned = 0
+        self.n_recoveries = 0
+        self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
+        self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
         self._flush()
 
     # ------------------------------------------------------------------ graph building
@@ -213,14 +219,23 @@ class GraphSlam(SlamBackend):
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
-    def _add_factor(self, factor: gtsam.NonlinearFactor) -> None:
+    def _add_factor(self, factor: gtsam.NonlinearFactor, lid: int | None = None) -> None:
+        """Add to the pending update and the full graph; ``lid``: the measured landmark."""
         self._new_graph.add(factor)
         self.graph.add(factor)
+        if lid is not None:
+            self._update_factor_lids.append((self.graph.size() - 1, lid))
 
     @property
     def robust(self) -> float | None:
         """Huber threshold for measurement factors (batch with ``huber_k`` set), else None."""
         return self.config.batch.huber_k if self.name == "batch" else None
+
+    def _robust_for(self, kind: str) -> float | None:
+        """Huber threshold for a kind's factors: corners get ``isam2.corner_huber_k``."""
+        if kind == "corner" and self.config.isam2.corner_huber_k is not None:
+            return self.config.isam2.corner_huber_k
+        return self.robust
 
     def _flush(self) -> None:
         """Send the new factors and values to iSAM2 (one update)."""
@@ -234,14 +249,71 @@ class GraphSlam(SlamBackend):
             for _ in range(self.config.isam2.extra_updates):
                 self.isam.update()
         except RuntimeError as exc:
-            raise EstimationError(
-                f"iSAM2 update failed at keyframe {self._k}: {type(exc).__name__} {exc}") from exc
+            self._recover(exc)
         self._new_graph = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
+        self._update_factor_lids = []
         self._kf_pose = _pose_array(self.isam.calculateEstimatePose2(X(self._k)))
         if self.config.isam2.pose_cov_every_step:
             self._kf_cov = np.asarray(self.isam.marginalCovariance(X(self._k)))
         self.update_times.append(time.perf_counter() - t0)
+
+    def _recover(self, exc: RuntimeError) -> None:
+        """Rebuild iSAM2 after a failed update, without the offending measurements.
+
+        A failed ``update()`` (e.g. GTSAM's CheiralityException: a relinearised
+        landmark below the camera) leaves iSAM2 in an unknown state. The landmark
+        named in the message (else every landmark measured in this update) loses
+        the factors added in this update; one that entered the graph in this update
+        is removed altogether. A fresh iSAM2 is then built from the whole remaining
+        graph, started from the last estimate. Logged as a warning.
+
+        Raises:
+            EstimationError: the rebuilt graph fails too.
+        """
+        named = {int(m.group(1)) for m in re.finditer(r"\bl(\d+)\b", str(exc))}
+        new_lids = {lid for _, lid in self._update_factor_lids}
+        bad = (named & set(self._landmarks)) or new_lids
+        drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
+        entered = {lid for lid in bad if self._new_values.exists(L(lid))}
+        log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
+                    "factors of %d landmarks (%d removed) and rebuilding iSAM2",
+                    self._k, type(exc).__name__, str(exc).strip()[:120], len(bad), len(entered))
+        try:
+            old = self.isam.calculateEstimate()
+        except RuntimeError:
+            old = gtsam.Values()
+        removed_keys = set()
+        for lid in entered:
+            lm = self._landmarks.pop(lid)
+            removed_keys.update(self.handlers[lm.kind].keys(lm))
+            self.n_pruned += 1
+        graph = gtsam.NonlinearFactorGraph()
+        for i in range(self.graph.size()):
+            f = self.graph.at(i)
+            if f is None or i in drop_idx or any(key in removed_keys for key in f.keys()):
+                continue
+            graph.add(f)
+        values = gtsam.Values()
+        for key in self.initial.keys():
+            if key in removed_keys:
+                continue
+            src = old if old.exists(key) else self.initial
+            values.insert(key, _value_at(src, key))
+        initial = gtsam.Values()
+        for key in self.initial.keys():
+            if key not in removed_keys:
+                initial.insert(key, _value_at(self.initial, key))
+        self.graph = graph
+        self.initial = initial
+        self.isam = gtsam.ISAM2(self.config.isam2.to_gtsam())
+        try:
+            self.isam.update(graph, values)
+        except RuntimeError as exc2:
+            raise EstimationError(f"iSAM2 rebuild failed at keyframe {self._k}: "
+                                  f"{type(exc2).__name__} {exc2}") from exc2
+        self._joint_cache = {}
+        self.n_recoveries += 1
 
     # ------------------------------------------------------------------ estimates
     def _get(self, key: int, kind: str) -> Any:
@@ -296,12 +368,18 @@ class GraphSlam(SlamBackend):
         """
         if self.isam is None or not lm.in_graph:
             return None
+        if lm.id in self._joint_cache:
+            return self._joint_cache[lm.id]
         keys = [X(k), *self.handlers[lm.kind].keys(lm)]
         try:
             full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
         except RuntimeError:
+            self._joint_cache[lm.id] = None
             return None
-        return full[:3, :3], full[:3, 3:], full[3:, 3:]
+        out = full[:3, :3], full[:3, 3:], full[3:, 3:]
+        self._joint_cache[lm.id] = out
+        lm.cov = out[2].copy()  # tighter screen next time (see _screen)
+        return out
 
     def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
                     obs: Obs) -> tuple[FloatArray, FloatArray] | None:
@@ -333,14 +411,55 @@ class GraphSlam(SlamBackend):
         psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + obs.R
         return residual(obs, z_hat), psi
 
-    def _candidates(self, pose: FloatArray) -> dict[str, list[int]]:
+    def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
+                ) -> tuple[dict[str, list[int]], dict[int, dict[int, tuple[float, bool]]]]:
+        """Candidates per kind and a cheap vectorised gate for ceiling observations.
+
+        Ceiling landmarks are projected all at once
+        (:meth:`~lampsam.backend.ceiling.CeilingModel.project_many`) from their
+        cached states; the visible ones that are in the graph are refreshed from
+        iSAM2. The screen uses ``S = H_p Sigma_x H_p^T + H_l Sigma_l H_l^T`` (pose
+        and landmark marginals, no cross term: wider than eq. 19's true
+        covariance, since a landmark is positively correlated with the pose that
+        placed it), with ``Sigma_l`` the landmark's last joint-marginal block (or its
+        initialisation covariance). Only pairs that pass this screen below the gate
+        and, for corners, the NCC cost a joint marginal (:meth:`_joint_cov`,
+        cached per keyframe). Planar landmarks go the per-pair way.
+
+        Returns:
+            ``(candidates, screened)`` for :func:`associate`.
+        """
         cands: dict[str, list[int]] = {}
+        screened: dict[int, dict[int, tuple[float, bool]]] = {}
+        by_kind: dict[str, list[_Landmark]] = {}
         for lid, lm in self._landmarks.items():
-            if self.ceiling is not None and lm.kind != "point2":
-                if not self.ceiling.in_view(pose, lm.state):
-                    continue
-            cands.setdefault(lm.kind, []).append(lid)
-        return cands
+            if self.ceiling is None or lm.kind == "point2":
+                cands.setdefault(lm.kind, []).append(lid)
+            else:
+                by_kind.setdefault(lm.kind, []).append(lm)
+        for kind, lms in by_kind.items():
+            pts = np.array([lm.state[:3] for lm in lms])
+            vis = self.ceiling.in_view_many(pose, pts)
+            visible = [lms[j] for j in np.flatnonzero(vis)]
+            for lm in visible:
+                self._refresh_landmark(lm)
+            if not visible:
+                cands[kind] = []
+                continue
+            pts = np.array([lm.state[:3] for lm in visible])
+            m, h_p, h_l, vis = self.ceiling.project_many(pose, pts)
+            keep = np.flatnonzero(vis)
+            lids = [visible[j].id for j in keep]
+            cands[kind] = lids
+            if not keep.size or not any(o.kind == kind for o in obs):
+                continue
+            cov_l = np.array([visible[j].cov[:3, :3] for j in keep])
+            hp, hl = h_p[keep], h_l[keep]
+            s_pred = (hp @ pose_cov @ np.transpose(hp, (0, 2, 1))
+                      + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
+            screened.update(screen_pairs(obs, kind, lids, m[keep], s_pred,
+                                         self.config.association, exact=False))
+        return cands, screened
 
     def _new_id(self) -> int:
         while self._next_id in self._landmarks:
@@ -371,18 +490,15 @@ class GraphSlam(SlamBackend):
         self._k = k
         self._kf_poses.append(pose.copy())
         n_matched = n_new = 0
+        self._joint_cache = {}
         if obs:
             gating = not self.config.association.use_known_ids or any(
                 o.landmark_id is None for o in obs)
-            if gating:  # marginals are needed only to gate
-                for ids in self._candidates(pose).values():
-                    for lid in ids:
-                        self._refresh_landmark(self._landmarks[lid])
-            patches = {lid: lm.patch for lid, lm in self._landmarks.items() if lm.kind == "corner"}
+            cands, screened = self._screen(obs, pose, pose_cov) if gating else ({}, {})
+            patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
             assignments = associate(
-                obs, self._candidates(pose) if gating else {},
-                lambda lid, o: self._innovation(gate_ctx, lid, o),
-                self.config.association, lambda i: i in self._landmarks, patches)
+                obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
+                self.config.association, lambda i: i in self._landmarks, patches, screened)
             for a in assignments:
                 o = obs[a.obs_index]
                 if a.status == "matched" and a.landmark_id in self._landmarks:
@@ -393,6 +509,8 @@ class GraphSlam(SlamBackend):
                     n_matched += 1
                 elif a.status == "new":
                     n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
+        if k % 10 == 0:
+            self._forget_pending(k)
         for handler in {id(h): h for h in self.handlers.values()}.values():
             if hasattr(handler, "flush"):
                 for f in handler.flush(self.robust):
@@ -420,19 +538,80 @@ class GraphSlam(SlamBackend):
         else:
             self._next_id = max(self._next_id, lid + 1)
         oriented = obs.kind == "lamp" and obs.has_axis
-        lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented)
+        lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented, k)
         self._landmarks[lid] = lm
-        self._enter_graph(lm)
+        if lm.kind != "corner" or self.ceiling is None:
+            self._enter_graph(lm)
         return 1
+
+    def _try_triangulate(self, lm: _Landmark) -> bool:
+        """Delayed initialisation of a pending corner (see :class:`Isam2Config`).
+
+        Triangulates from the pending sights' keyframe estimates
+        (:meth:`~lampsam.backend.ceiling.CeilingModel.triangulate`); accepted when
+        at least ``corner_init_min_sights`` distinct keyframes see it, the height
+        above the camera is at least :data:`~lampsam.backend.ceiling.MIN_USABLE_HEIGHT`
+        and at most ``2 * height_max``, and its sigma is at most
+        ``corner_init_max_rel_sigma`` of the height. Sights inconsistent with the
+        point (reprojection chi-square beyond the new-landmark threshold) drop the
+        newest sight (a wrong association). On success the state and the gating
+        covariance are set from the triangulation.
+
+        Returns:
+            True when the corner may enter the graph.
+        """
+        cfg = self.config.isam2
+        ks = {k for k, _ in lm.pending}
+        if len(ks) < cfg.corner_init_min_sights:
+            return False
+        poses = np.array([self._kf_poses[k] if k == self._k else self._pose_of(k)
+                          for k, _ in lm.pending])
+        ms = np.array([o.z[:2] for _, o in lm.pending])
+        covs = np.array([o.R[:2, :2] for _, o in lm.pending])
+        point, cov = self.ceiling.triangulate(poses, ms, covs)
+        h = point[2] - self.ceiling.body_t_camera[2]
+        if h < MIN_USABLE_HEIGHT or h > 2.0 * self.config.association.height_max:
+            return False
+        chi2 = 0.0
+        for pose, m, c in zip(poses, ms, covs, strict=True):
+            try:
+                m_hat, _, _ = self.ceiling.predict(pose, point, with_axis=False)
+            except Exception:
+                return False
+            r = m - m_hat
+            chi2 += float(r @ np.linalg.solve(c, r))
+        dof = 2 * len(poses) - 3
+        if chi2 > self.config.association.new_threshold(max(dof, 1)):
+            lm.pending.pop()  # the newest sight does not fit: likely a wrong match
+            lm.n_obs -= 1
+            return False
+        if math.sqrt(max(cov[2, 2], 0.0)) > cfg.corner_init_max_rel_sigma * h:
+            return False
+        lm.state = point
+        lm.cov = cov + np.diag([*np.diag(self._kf_cov)[:2], 0.0])
+        return True
+
+    def _forget_pending(self, k: int) -> None:
+        """Forget pending corners not seen for ``corner_pending_keyframes`` keyframes."""
+        horizon = self.config.isam2.corner_pending_keyframes
+        stale = [lid for lid, lm in self._landmarks.items()
+                 if not lm.in_graph and lm.kind == "corner" and k - lm.last_kf > horizon]
+        for lid in stale:
+            del self._landmarks[lid]
+        self.n_pruned += len(stale)
 
     def _observe(self, lm: _Landmark, k: int, obs: Obs) -> None:
         lm.n_obs += 1
+        lm.last_kf = k
         if lm.in_graph:
-            for f in self.handlers[lm.kind].factors(lm, k, obs, self.robust):
-                self._add_factor(f)
+            for f in self.handlers[lm.kind].factors(lm, k, obs, self._robust_for(lm.kind)):
+                self._add_factor(f, lm.id)
             return
         lm.pending.append((k, obs))
-        if lm.n_obs >= self.config.association.min_observations:
+        if lm.kind == "corner" and self.ceiling is not None:
+            if self._try_triangulate(lm):
+                self._enter_graph(lm)
+        elif lm.n_obs >= self.config.association.min_observations:
             self._enter_graph(lm)
 
     def _enter_graph(self, lm: _Landmark) -> None:
@@ -443,8 +622,8 @@ class GraphSlam(SlamBackend):
         handler.insert(lm, self._new_values_and_initial())
         handler.priors(lm, _Adder(self), self._pose_of, self.config)
         for k, o in lm.pending:
-            for f in handler.factors(lm, k, o, self.robust):
-                self._add_factor(f)
+            for f in handler.factors(lm, k, o, self._robust_for(lm.kind)):
+                self._add_factor(f, lm.id)
         lm.pending = []
         lm.in_graph = True
 
@@ -606,7 +785,12 @@ class BatchSlam(GraphSlam):
             opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
             result = opt.optimize()
         except RuntimeError as exc:
-            raise EstimationError(f"batch LM failed: {exc}") from exc
+            if self.isam is None:
+                raise EstimationError(f"batch LM failed: {exc}") from exc
+            # e.g. a trial step put a landmark below the camera: keep the online smoother's
+            log.warning("batch LM failed (%s: %s): keeping the iSAM2 estimate",
+                        type(exc).__name__, str(exc).strip()[:120])
+            return start, self.isam.marginalCovariance
         log.info("batch LM: error %.4g -> %.4g in %d iterations",
                  self.graph.error(start), self.graph.error(result), opt.iterations())
         try:
@@ -635,6 +819,22 @@ class _Adder:
 
     def add(self, factor: gtsam.NonlinearFactor) -> None:
         self.owner._add_factor(factor)
+
+
+def _value_at(values: gtsam.Values, key: int) -> Any:
+    """The value of ``key`` in its own type (Pose2, Point2/3, Rot2 or Vector)."""
+    sym = gtsam.Symbol(key)
+    ch = chr(sym.chr())
+    if ch == "x":
+        return values.atPose2(key)
+    if ch == "a":
+        return values.atRot2(key)
+    for getter in (values.atPoint3, values.atPoint2, values.atVector):
+        try:
+            return getter(key)
+        except RuntimeError:
+            continue
+    raise EstimationError(f"cannot read graph value {gtsam.DefaultKeyFormatter(key)}")
 
 
 def _pose_array(p: gtsam.Pose2) -> FloatArray:
