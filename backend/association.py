@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs

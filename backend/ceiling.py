@@ -18,6 +18,7 @@ import math
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.factors.ceiling import (
     HeightPrior,

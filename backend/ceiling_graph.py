@@ -29,6 +29,7 @@ from typing import Any
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import A, L, X
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig

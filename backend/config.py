@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
+from scipy.special import chdtri
+
 from lampsam.errors import EstimationError
 from lampsam.factors.ceiling import HeightPrior
-from scipy.special import chdtri
 
 
 @functools.lru_cache(maxsize=64)

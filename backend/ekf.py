@@ -31,6 +31,8 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+from scipy.linalg import solve_triangular
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate, screen_pairs
 from lampsam.backend.config import SlamConfig
@@ -52,7 +54,6 @@ from lampsam.backend.models import (
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
-from scipy.linalg import solve_triangular
 
 log = logging.getLogger(__name__)
 

@@ -46,6 +46,7 @@ from typing import Any
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate, screen_pairs
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
@@ -378,7 +379,6 @@ class GraphSlam(SlamBackend):
             return None
         out = full[:3, :3], full[:3, 3:], full[3:, 3:]
         self._joint_cache[lm.id] = out
-        lm.cov = out[2].copy()  # tighter screen next time (see _screen)
         return out
 
     def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
@@ -421,10 +421,12 @@ class GraphSlam(SlamBackend):
         iSAM2. The screen uses ``S = H_p Sigma_x H_p^T + H_l Sigma_l H_l^T`` (pose
         and landmark marginals, no cross term: wider than eq. 19's true
         covariance, since a landmark is positively correlated with the pose that
-        placed it), with ``Sigma_l`` the landmark's last joint-marginal block (or its
-        initialisation covariance). Only pairs that pass this screen below the gate
-        and, for corners, the NCC cost a joint marginal (:meth:`_joint_cov`,
-        cached per keyframe). Planar landmarks go the per-pair way.
+        placed it), with ``Sigma_x`` the current pose marginal and ``Sigma_l`` the
+        landmark's initialisation covariance (eq. 25 or the triangulation; an
+        upper bound of its marginal, and free, where iSAM2's landmark marginals cost
+        several ms each). Only ambiguous observations then cost joint marginals
+        (:meth:`_mark_ambiguous`, :meth:`_joint_cov`, cached per keyframe). Planar
+        landmarks go the per-pair way (joint marginal per pair, as before).
 
         Returns:
             ``(candidates, screened)`` for :func:`associate`.
@@ -457,9 +459,36 @@ class GraphSlam(SlamBackend):
             hp, hl = h_p[keep], h_l[keep]
             s_pred = (hp @ pose_cov @ np.transpose(hp, (0, 2, 1))
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
-            screened.update(screen_pairs(obs, kind, lids, m[keep], s_pred,
-                                         self.config.association, exact=False))
+            sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
+                              exact=True)
+            screened.update(self._mark_ambiguous(obs, sc))
         return cands, screened
+
+    def _mark_ambiguous(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
+                        ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Keep the cheap distance where it decides alone; ask for the joint marginal otherwise.
+
+        Corners: the NCC picks the winner among the gated candidates (paper), so the
+        cheap (wider) gate is final; a wrong match that it lets through is bounded by
+        the Huber loss on corner factors (``isam2.corner_huber_k``). Lamps: an
+        observation with at most one landmark inside the cheap gate is decided by
+        it (the true eq.-19 covariance could only reject the match); with two or
+        more, the exact distances (iSAM2 joint marginal with the pose-landmark cross
+        term, :meth:`_joint_cov`) pick the winner. iSAM2's joint marginals cost
+        several ms each on a graph dense with corners (17 ms on the lab run), so
+        this keeps them to the few ambiguous lamp observations.
+        """
+        cfg = self.config.association
+        out: dict[int, dict[int, tuple[float, bool]]] = {}
+        for i, pairs in screened.items():
+            o = obs[i]
+            gate = cfg.gate(len(o.z))
+            inside = [lid for lid, (d2, _) in pairs.items() if d2 < gate]
+            if o.kind == "corner" or len(inside) <= 1:
+                out[i] = {lid: (d2, len(o.z) == 2) for lid, (d2, _) in pairs.items()}
+            else:
+                out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
+        return out
 
     def _new_id(self) -> int:
         while self._next_id in self._landmarks:

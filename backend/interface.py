@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import TypeAlias
 
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig
 from lampsam.factors.geometry import coords_D_tangent, wrap_angle, wrap_axis

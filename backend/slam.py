@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig
