@@ -281,6 +281,13 @@ class GlobalLocalizerConfig:
             before the frames are tested. Default True. In the changed office
             the scan alone left a bias of 0.2 m / 5 deg (moved furniture) that
             the ceiling test then rejected, restart after restart.
+        relocate_in_ours: in :attr:`Mode.OURS`, after a failed attempt whose
+            turn found no candidate, drive on until this distance (m) since the
+            turn before turning again. Default 1.5 m. Without SIFT matches the
+            scan alone is ambiguous in a near-symmetric room; turning again
+            0.3 m away sees the same ambiguity, while the paper's verifier
+            (2 m) reaches new, mapped features (office: the proposed
+            configuration found candidates after its restarts, ours did not).
         max_refine: the correction is applied only when within this
             ``(metres, radians)``; a larger one is a different pose, left to
             verification. Default (0.3 m, 10 deg): the success bound.
@@ -297,6 +304,7 @@ class GlobalLocalizerConfig:
     max_verify_distance: float = 3.0
     max_restarts: int = 3
     refine_in_ours: bool = True
+    relocate_in_ours: float = 1.5
     max_refine: tuple[float, float] = (0.3, float(np.deg2rad(10.0)))
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     scan: VirtualScanConfig = field(default_factory=VirtualScanConfig)
@@ -777,6 +785,17 @@ def localize(
         success = verdict is Verdict.ACCEPTED
         if not success:
             log.info("attempt %d failed verification (R_loc %.2f): starting over", attempt, r_loc)
+            more = config.relocate_in_ours - d
+            if (
+                config.mode is Mode.OURS
+                and not cands
+                and more > 0
+                and attempt < config.max_restarts
+            ):
+                frames = robot.drive(more)
+                if frames:
+                    robot_time["verification"] += float(frames[-1].t - frames[0].t)
+                log.info("no candidate in this turn: drove %.2f m on before turning again", more)
     return LocalizationResult(
         success,
         pose,
