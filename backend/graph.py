@@ -74,6 +74,9 @@ from lampsam.factors.motion import accumulate_odometry
 
 log = logging.getLogger(__name__)
 
+#: Keyframes back over which the smoothers' screen uses the relative gate.
+_RELATIVE_GATE_KEYFRAMES = 30
+
 #: Variance floor used for the per-step odometry composition (the factor's own floor
 #: is added once per keyframe).
 _STEP_FLOOR = 1e-14
@@ -121,6 +124,7 @@ class _Landmark:
     patch: Any = None
     oriented: bool = False
     last_kf: int = 0  # last keyframe that observed it
+    cov_rel: Any = None  # (3, 3) position covariance relative to that keyframe's pose
 
 
 class Point2Handler:
@@ -213,6 +217,7 @@ class GraphSlam(SlamBackend):
         self.n_recoveries = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
+        self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         self._flush()
 
     # ------------------------------------------------------------------ graph building
@@ -266,8 +271,10 @@ class GraphSlam(SlamBackend):
         landmark below the camera) leaves iSAM2 in an unknown state. The landmark
         named in the message (else every landmark measured in this update) loses
         the factors added in this update; one that entered the graph in this update
-        is removed altogether. A fresh iSAM2 is then built from the whole remaining
-        graph, started from the last estimate. Logged as a warning.
+        is removed altogether, and so is any ceiling landmark whose estimate is
+        now below the camera (no usable linearisation point). A fresh iSAM2 is then
+        built from the whole remaining graph, started from the last estimate (each
+        removed landmark's factors go too). Logged as a warning.
 
         Raises:
             EstimationError: the rebuilt graph fails too.
@@ -277,13 +284,19 @@ class GraphSlam(SlamBackend):
         bad = (named & set(self._landmarks)) or new_lids
         drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
         entered = {lid for lid in bad if self._new_values.exists(L(lid))}
-        log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
-                    "factors of %d landmarks (%d removed) and rebuilding iSAM2",
-                    self._k, type(exc).__name__, str(exc).strip()[:120], len(bad), len(entered))
         try:
             old = self.isam.calculateEstimate()
         except RuntimeError:
             old = gtsam.Values()
+        if self.ceiling is not None:  # landmarks the failed step put under the lens
+            z_min = float(self.ceiling.body_t_camera[2]) + MIN_USABLE_HEIGHT
+            for lid, lm in self._landmarks.items():
+                if lm.in_graph and lm.kind in ("lamp", "corner") and old.exists(L(lid)):
+                    if float(old.atPoint3(L(lid))[2]) < z_min:
+                        entered.add(lid)
+        log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
+                    "factors of %d landmarks (%d removed) and rebuilding iSAM2",
+                    self._k, type(exc).__name__, str(exc).strip()[:120], len(bad), len(entered))
         removed_keys = set()
         for lid in entered:
             lm = self._landmarks.pop(lid)
@@ -455,14 +468,42 @@ class GraphSlam(SlamBackend):
             cands[kind] = lids
             if not keep.size or not any(o.kind == kind for o in obs):
                 continue
-            cov_l = np.array([visible[j].cov[:3, :3] for j in keep])
+            rel = self._relative_covs()
+            cov_l = np.empty((len(keep), 3, 3))
+            cov_x = np.empty((len(keep), 3, 3))
+            for n, j in enumerate(keep):
+                lm = visible[j]
+                if lm.cov_rel is not None and lm.last_kf in rel:
+                    cov_l[n] = lm.cov_rel
+                    cov_x[n] = rel[lm.last_kf]
+                else:
+                    cov_l[n] = lm.cov[:3, :3]
+                    cov_x[n] = pose_cov
             hp, hl = h_p[keep], h_l[keep]
-            s_pred = (hp @ pose_cov @ np.transpose(hp, (0, 2, 1))
+            s_pred = (hp @ cov_x @ np.transpose(hp, (0, 2, 1))
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
             sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
                               exact=True)
             screened.update(self._mark_ambiguous(obs, sc))
         return cands, screened
+
+    def _relative_covs(self) -> dict[int, FloatArray]:
+        """Tangent covariance of the current keyframe relative to each recent keyframe.
+
+        Composes the odometry factors' covariances (eqs. 13-15, with their floor)
+        backwards from the current keyframe ``k`` over the last
+        :data:`_RELATIVE_GATE_KEYFRAMES` keyframes: ``{j: cov(x_j^-1 x_k)}``.
+        """
+        k = self._k
+        out: dict[int, FloatArray] = {k: np.zeros((3, 3))}
+        delta = np.zeros(3)
+        cov = np.zeros((3, 3))
+        for j in range(k - 1, max(k - _RELATIVE_GATE_KEYFRAMES, 0) - 1, -1):
+            d_j, c_j = self._odo[j + 1]
+            cov = compose_cov(delta, c_j, cov)
+            delta = _pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
+            out[j] = cov
+        return out
 
     def _mark_ambiguous(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
                         ) -> dict[int, dict[int, tuple[float, bool]]]:
@@ -518,6 +559,7 @@ class GraphSlam(SlamBackend):
         self._add_factor(odometry_factor(X(k - 1), X(k), delta, cov))
         self._k = k
         self._kf_poses.append(pose.copy())
+        self._odo.append((np.asarray(delta, float), np.asarray(cov, float)))
         n_matched = n_new = 0
         self._joint_cache = {}
         if obs:
@@ -561,13 +603,15 @@ class GraphSlam(SlamBackend):
         except Exception as exc:
             log.debug("cannot initialise a landmark: %s", exc)
             return 0
-        cov = g_pose @ pose_cov @ g_pose.T + g_z @ cov_z @ g_z.T
+        cov_meas = g_z @ cov_z @ g_z.T
+        cov = g_pose @ pose_cov @ g_pose.T + cov_meas
         if lid is None:
             lid = self._new_id()
         else:
             self._next_id = max(self._next_id, lid + 1)
         oriented = obs.kind == "lamp" and obs.has_axis
-        lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented, k)
+        lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented, k,
+                       cov_meas[:3, :3])
         self._landmarks[lid] = lm
         if lm.kind != "corner" or self.ceiling is None:
             self._enter_graph(lm)
@@ -618,6 +662,7 @@ class GraphSlam(SlamBackend):
             return False
         lm.state = point
         lm.cov = cov + np.diag([*np.diag(self._kf_cov)[:2], 0.0])
+        lm.cov_rel = cov
         return True
 
     def _forget_pending(self, k: int) -> None:
