@@ -74,6 +74,9 @@ from lampsam.factors.motion import accumulate_odometry
 
 log = logging.getLogger(__name__)
 
+#: Sights of a lamp triangulated to tighten its gate (:meth:`GraphSlam._tighten_lamp_gate`).
+_LAMP_SIGHTS = 6
+
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 _RELATIVE_GATE_KEYFRAMES = 30
 
@@ -125,6 +128,7 @@ class _Landmark:
     oriented: bool = False
     last_kf: int = 0  # last keyframe that observed it
     cov_rel: Any = None  # (3, 3) position covariance relative to that keyframe's pose
+    sights: list[tuple[int, Obs]] = field(default_factory=list)  # first sights of a lamp
 
 
 class Point2Handler:
@@ -613,6 +617,8 @@ class GraphSlam(SlamBackend):
         lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented, k,
                        cov_meas[:3, :3])
         self._landmarks[lid] = lm
+        if lm.kind == "lamp":
+            lm.sights.append((k, obs))
         if lm.kind != "corner" or self.ceiling is None:
             self._enter_graph(lm)
         return 1
@@ -680,6 +686,8 @@ class GraphSlam(SlamBackend):
         if lm.in_graph:
             for f in self.handlers[lm.kind].factors(lm, k, obs, self._robust_for(lm.kind)):
                 self._add_factor(f, lm.id)
+            if lm.kind == "lamp" and self.ceiling is not None:
+                self._tighten_lamp_gate(lm, k, obs)
             return
         lm.pending.append((k, obs))
         if lm.kind == "corner" and self.ceiling is not None:
@@ -687,6 +695,32 @@ class GraphSlam(SlamBackend):
                 self._enter_graph(lm)
         elif lm.n_obs >= self.config.association.min_observations:
             self._enter_graph(lm)
+
+    def _tighten_lamp_gate(self, lm: _Landmark, k: int, obs: Obs) -> None:
+        """Replace a lamp's first-sight gating covariance by a triangulated one.
+
+        A lamp enters the graph at its first sight with eq. 25's covariance (long
+        along the viewing ray, from the height prior), which keeps its screen wide
+        and sends it to the costly joint marginals. Its first
+        :data:`_LAMP_SIGHTS` sights are triangulated like a corner's
+        (:meth:`~lampsam.backend.ceiling.CeilingModel.triangulate`); once the
+        height is determined to ``corner_init_max_rel_sigma``, the triangulation
+        covariance becomes the lamp's relative gating covariance.
+        """
+        if len(lm.sights) >= _LAMP_SIGHTS:
+            return
+        lm.sights.append((k, obs))
+        if len({kk for kk, _ in lm.sights}) < 2:
+            return
+        poses = np.array([self._kf_poses[kk] if kk == self._k else self._pose_of(kk)
+                          for kk, _ in lm.sights])
+        ms = np.array([o.z[:2] for _, o in lm.sights])
+        covs = np.array([o.R[:2, :2] for _, o in lm.sights])
+        point, cov = self.ceiling.triangulate(poses, ms, covs)
+        h = point[2] - self.ceiling.body_t_camera[2]
+        if h >= MIN_USABLE_HEIGHT and math.sqrt(max(cov[2, 2], 0.0)) <= (
+                self.config.isam2.corner_init_max_rel_sigma * h):
+            lm.cov_rel = cov
 
     def _enter_graph(self, lm: _Landmark) -> None:
         """Insert a landmark's variables, priors and its buffered factors."""
