@@ -19,19 +19,32 @@ since then, with the covariance propagated to first order
 (``Sigma = Ad(delta^-1) Sigma_k Ad(delta^-1)^T + Sigma_delta`` in the right tangent).
 
 New variables are initialised from the current estimate plus odometry, never from a
-file's dead reckoning (DESIGN sec. 6). A landmark enters the graph at its first
-sight, initialised like the EKF's (eqs. 24-25; ceiling landmarks also get the
-height prior, so a single sight is never an indeterminate system). Landmarks with
-fewer than ``min_observations`` observations are left out of the reported map, with
-a warning.
+file's dead reckoning (DESIGN sec. 6). Lamps (and planar points) enter the graph at
+their first sight, initialised like the EKF's (eqs. 24-25, with the height prior, so
+a single sight is never an indeterminate system). Corners use delayed
+initialisation: they stay pending (gated, not in the graph) until triangulated from
+at least two keyframes with enough parallax and a height above the camera
+(:meth:`GraphSlam._try_triangulate`, ``Isam2Config.corner_init_*``); a corner
+initialised from one ray could be pulled under the lens by the next update, where
+GTSAM's projection factor throws. Corner factors carry a Huber loss by default
+(``Isam2Config.corner_huber_k``): they are associated by gate + NCC without ids. A
+failed iSAM2 update is not fatal: the offending factors are dropped and iSAM2 is
+rebuilt (:meth:`GraphSlam._recover`, logged). Landmarks with fewer than
+``min_observations`` observations are left out of the reported map, with a warning.
 
-Association (eqs. 19-20) uses iSAM2's joint marginal of the last keyframe pose and
-each candidate landmark, propagated to the current pose, so the pose-landmark
-cross-covariance is kept (without it the gate is far too wide and MRCLAM's
-gate-only run diverged). The batch backend runs the same online pass
+Association (eqs. 19-20): planar points use iSAM2's joint marginal of the last
+keyframe pose and each candidate landmark, propagated to the current pose, so the
+pose-landmark cross-covariance is kept (without it the gate is far too wide and
+MRCLAM's gate-only run diverged). Ceiling landmarks are screened all at once in
+numpy with a relative gate (:meth:`GraphSlam._screen`: the odometry covariance since
+the landmark's last observing keyframe plus its measurement-only covariance, which
+stands in for the cross term); corners are then decided by that gate and the NCC,
+and only lamps with two or more gated candidates pay for joint marginals (each costs
+several ms on a corner-dense graph). The batch backend runs the same online pass
 (``init = "isam2"``) or a pure odometry pass (``init = "odometry"``: running
 estimate = dead reckoning, gating then without cross-covariance: meant for known
-association) and then one LM over the whole graph, with Huber noise if configured.
+association) and then one LM over the whole graph, with Huber noise if configured;
+if LM fails (a trial step throwing), the iSAM2 estimate is kept, with a warning.
 """
 
 from __future__ import annotations
