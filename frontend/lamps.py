@@ -246,11 +246,10 @@ def otsu_level(hist: FloatArray, lo: int = 0) -> float:
         return float(lo)
     s0 = np.cumsum(h * levels)
     w1 = total - w0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mu0 = s0 / w0
-        mu1 = (s0[-1] - s0) / w1
-        between = w0 * w1 * (mu0 - mu1) ** 2
-    between = np.nan_to_num(between, nan=-1.0, posinf=-1.0)
+    # Both classes non-empty (counts are exact integers in float64); elsewhere -1.
+    valid = (w0 > 0) & (w1 > 0)
+    w0s, w1s = np.where(valid, w0, 1.0), np.where(valid, w1, 1.0)
+    between = np.where(valid, w0 * w1 * (s0 / w0s - (s0[-1] - s0) / w1s) ** 2, -1.0)
     if between.max() <= 0:
         return float(lo)
     return float(levels[int(np.argmax(between))])
@@ -268,7 +267,9 @@ def peak_level(hist: FloatArray, min_count: int) -> float:
     return float(hits[-1]) if hits.size else 0.0
 
 
-def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
+def auto_threshold(
+    image: ImageU8, config: LampDetectorConfig, hist: FloatArray | None = None
+) -> float | None:
     """Choose the lamp threshold ``k`` for one image.
 
     Otsu's threshold of the image; while more than ``max_bright_fraction`` of
@@ -281,12 +282,15 @@ def auto_threshold(image: ImageU8, config: LampDetectorConfig) -> float | None:
     Args:
         image: shape (H, W) uint8 grey image.
         config: detector settings.
+        hist: shape (256,) the image's :func:`grey_histogram` when the caller
+            already has it (None: computed here).
 
     Returns:
         The threshold (lamp pixels are ``> k``), or None when no lamp can be
         told from the background.
     """
-    hist = grey_histogram(image)
+    if hist is None:
+        hist = grey_histogram(image)
     cum = np.cumsum(hist)
     total = cum[-1]
     median = float(np.searchsorted(cum, 0.5 * total))
@@ -702,30 +706,37 @@ def _measure_labels(
     )
     (dth2,) = _label_sums(lab, [free * num * num], n)
     dth2 = dth2 / (2.0 * s0 * den_safe) ** 2
+    # Per-blob results, still vectorised; Python only builds the dataclasses.
+    cov_c = np.empty((n, 2, 2))
+    cov_c[:, 0, 0], cov_c[:, 0, 1], cov_c[:, 1, 1] = fxx, fxy, fyy
+    cov_c[:, 1, 0] = fxy
+    cov_c = sigma_w2[:, None, None] * cov_c / (s0**2)[:, None, None]
+    cov_c += config.sigma_centroid_floor_px**2 * np.eye(2)
+    var_theta = np.where(den > 1e-18, sigma_w2 * dth2 + config.sigma_axis_floor**2, math.inf)
+    a12, c12 = a + 1.0 / 12.0, c + 1.0 / 12.0
+    cov_s = np.empty((n, 2, 2))
+    cov_s[:, 0, 0], cov_s[:, 0, 1], cov_s[:, 1, 0], cov_s[:, 1, 1] = a12, b, b, c12
+    disc = np.sqrt(np.maximum((a12 - c12) * (a12 - c12) + 4.0 * b * b, 0.0))
+    lam1 = 0.5 * (a12 + c12 + disc)
+    lam2 = np.maximum(0.5 * (a12 + c12 - disc), 1e-12)
+    sig1, sig2, ratio = np.sqrt(lam1), np.sqrt(lam2), np.sqrt(lam1 / lam2)
+    theta_w = wrap_axis(theta)
+    centroid = np.column_stack([cx + origin[0], cy + origin[1]])
     out: list[BlobMoments | None] = []
     for i in range(1, n):
         if not ok[i]:
             out.append(None)
             continue
-        cov_c = sigma_w2[i] * np.array([[fxx[i], fxy[i]], [fxy[i], fyy[i]]]) / (s0[i] ** 2)
-        cov_c += config.sigma_centroid_floor_px**2 * np.eye(2)
-        var_theta = (
-            sigma_w2[i] * dth2[i] + config.sigma_axis_floor**2 if den[i] > 1e-18 else math.inf
-        )
-        ai, ci, bi = a[i] + 1.0 / 12.0, c[i] + 1.0 / 12.0, b[i]
-        disc = math.sqrt(max((ai - ci) ** 2 + 4.0 * bi * bi, 0.0))
-        lam1 = 0.5 * (ai + ci + disc)
-        lam2 = max(0.5 * (ai + ci - disc), 1e-12)
         out.append(
             BlobMoments(
-                centroid=np.array([cx[i] + origin[0], cy[i] + origin[1]]),
-                cov_centroid=cov_c,
-                cov_shape=np.array([[ai, bi], [bi, ci]]),
-                theta=wrap_axis(float(theta[i])),
-                var_theta=float(var_theta),
-                sigma1=math.sqrt(lam1),
-                sigma2=math.sqrt(lam2),
-                ratio=math.sqrt(lam1 / lam2),
+                centroid=centroid[i],
+                cov_centroid=cov_c[i],
+                cov_shape=cov_s[i],
+                theta=float(theta_w[i]),
+                var_theta=float(var_theta[i]),
+                sigma1=float(sig1[i]),
+                sigma2=float(sig2[i]),
+                ratio=float(ratio[i]),
                 area_px=float(s0[i]),
                 touches_border=bool(border[i]),
                 contrast=float(span[i]),
@@ -751,7 +762,12 @@ def measure_blobs(
         ``(moments, threshold, mask (H, W) bool, n_rejected)``; moments in label order.
     """
     h, w = image.shape
-    k = float(config.threshold) if config.threshold is not None else auto_threshold(image, config)
+    hist = grey_histogram(image)  # one histogram for the threshold and the lamp peak
+    k = (
+        float(config.threshold)
+        if config.threshold is not None
+        else auto_threshold(image, config, hist)
+    )
     mask = np.zeros((h, w), dtype=bool)
     if k is None:
         return [], None, mask, 0
@@ -778,7 +794,7 @@ def measure_blobs(
     bx1, by1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
     box = (slice(by0, by1), slice(bx0, bx1))
     comp = remap[labels[box]]
-    peak = peak_level(grey_histogram(image), config.min_area_px)
+    peak = peak_level(hist, config.min_area_px)
     too_dim, merged = _shape_checks(comp, image[box], keep.size, peak, config)
     n_rejected += int(too_dim.sum())
     good = ~too_dim & ~merged
