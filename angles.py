@@ -16,6 +16,7 @@ import math
 from typing import overload
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 
 TWO_PI = 2.0 * math.pi

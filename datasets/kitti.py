@@ -26,6 +26,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import FloatArray, ImageU8
 from lampsam.errors import DatasetError
 

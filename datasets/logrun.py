@@ -32,6 +32,7 @@ from typing import Any, TextIO
 import cv2
 import numpy as np
 import yaml
+
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.errors import DatasetError
 

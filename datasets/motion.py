@@ -16,6 +16,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 
 log = logging.getLogger(__name__)

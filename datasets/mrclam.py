@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.datasets.logrun import (
     LoggedRun,

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray, ImageU8
 from lampsam.datasets.logrun import CameraModel, LandmarkTable, ProjectionTable
 from lampsam.datasets.world import Lamp, Surface, TextureItem, World

@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
+
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
 from lampsam.errors import DatasetError
 

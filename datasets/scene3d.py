@@ -48,6 +48,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import FloatArray, ImageU8, IntArray
 from lampsam.errors import DatasetError
 

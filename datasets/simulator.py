@@ -26,8 +26,9 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import lampsam
 import numpy as np
+
+import lampsam
 from lampsam.arrays import FloatArray
 from lampsam.datasets.logrun import (
     META_FILE,

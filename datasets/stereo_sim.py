@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import DatasetError
 

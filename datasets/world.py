@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.datasets.logrun import LandmarkTable, Rig, _read_yaml
 from lampsam.errors import DatasetError

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M

@@ -11,12 +11,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.evaluation.metrics import chi2_bounds
 
 if TYPE_CHECKING:
-    from lampsam.evaluation.compare import JobResult
     from matplotlib.axes import Axes
+
+    from lampsam.evaluation.compare import JobResult
 
 log = logging.getLogger(__name__)
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
 from lampsam.datasets.logrun import LoggedRun, ProjectionTable, read_run
 from lampsam.errors import DatasetError
 

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.datasets.logrun import CameraModel, ProjectionTable, read_run

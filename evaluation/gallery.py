@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import ImageU8
 from lampsam.errors import LampsamError
 from lampsam.evaluation.outputs import ensure_dir

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.localization.envmap import EnvironmentMap, load_env_map
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
 

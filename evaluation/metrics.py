@@ -16,10 +16,11 @@ from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy import stats
+
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LampsamError
-from scipy import stats
 
 if TYPE_CHECKING:
     from evo.core.trajectory import PoseTrajectory3D

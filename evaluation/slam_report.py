@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.interface import SlamResult
 

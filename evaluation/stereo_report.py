@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.backend.stereo import StereoResult
 from lampsam.backend.stereo_kitti import KittiTwoPointResult

@@ -62,6 +62,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.factors.geometry import FactorError, wrap_axis
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from lampsam.angles import wrap_angle, wrap_axis
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError

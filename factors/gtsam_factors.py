@@ -86,6 +86,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.factors.ceiling import (
     HeightPrior,

@@ -26,6 +26,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.factors.geometry import FactorError, tangent_D_coords, wrap_angle
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.factors.geometry import FactorError, rot2, wrap_angle
 

@@ -30,6 +30,7 @@ from functools import partial
 
 import gtsam
 import numpy as np
+
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError

@@ -37,6 +37,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 

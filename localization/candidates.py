@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import compose

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.datasets.logrun import LandmarkTable
 from lampsam.errors import DatasetError, LocalizationError

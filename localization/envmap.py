@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.errors import LocalizationError

@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
+
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.errors import InputError
 

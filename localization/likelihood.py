@@ -35,6 +35,7 @@ from typing import Literal, Protocol
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.localization.grid import OccupancyGrid, occupied_mask

@@ -32,12 +32,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import logsumexp
+
 from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.localization.grid import OccupancyGrid, free_mask
 from lampsam.localization.likelihood import MeasurementModel, valid_beams
-from scipy.special import logsumexp
 
 log = logging.getLogger(__name__)
 

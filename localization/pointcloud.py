@@ -14,6 +14,7 @@ import logging
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
 from lampsam.datasets.rgbd import RgbdCamera, RgbdSequence
 from lampsam.errors import LocalizationError

@@ -29,10 +29,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
+
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, free_mask, occupied_mask
-from scipy import ndimage
 
 log = logging.getLogger(__name__)
 

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import FloatArray, ImageU8, ImageU16, IntArray
 from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.errors import LocalizationError

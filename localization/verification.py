@@ -41,6 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.ceiling import project_point

@@ -22,6 +22,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import wrap_angle

@@ -33,6 +33,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+
 from lampsam.datasets.carmen import LaserScans, read_carmen
 from lampsam.datasets.paths import shared_dataset
 from lampsam.localization.grid import OccupancyGrid, free_mask, grid_from_scans

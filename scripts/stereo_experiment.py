@@ -21,6 +21,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+
 from lampsam.backend.stereo import ESTIMATORS, estimate
 from lampsam.datasets.stereo_sim import SCENARIOS, simulate_stereo
 from lampsam.evaluation.stereo_report import (
@@ -33,6 +34,8 @@ from lampsam.evaluation.stereo_report import (
 
 def kitti_part(out: Path) -> str:
     """Two-point relative pose on the shared KITTI sequence; returns a markdown section."""
+    from matplotlib.figure import Figure
+
     from lampsam.backend.stereo_kitti import track_sequence, two_point_on_kitti
     from lampsam.datasets.kitti import read_kitti_sequence
     from lampsam.datasets.paths import shared_dataset
@@ -41,7 +44,6 @@ def kitti_part(out: Path) -> str:
         plot_kitti_errors,
         plot_kitti_trajectory,
     )
-    from matplotlib.figure import Figure
 
     path = shared_dataset("kitti_stereo_seq1")
     if path is None:

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from lampsam.datasets.kinect_sim import KinectConfig, KinectRenderer, simulate_kinect_run
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.rgbd import RgbdCamera, camera_from_yaml

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from lampsam.localization.alignment import (
     AlignmentError,
     RansacConfig,
@@ -13,7 +15,6 @@ from lampsam.localization.alignment import (
     ransac_align,
     ransac_iterations,
 )
-from scipy.spatial.transform import Rotation
 
 
 def _scene(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lampsam.factors.geometry import wrap_angle
 from lampsam.localization.candidates import (
     CandidateCollector,

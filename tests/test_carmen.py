@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
+
 from lampsam.datasets.carmen import LaserScans, carmen_beam_angles, read_carmen, scan_endpoints
 from lampsam.errors import DatasetError
 from lampsam.localization.grid import grid_from_scans, occupied_mask
-from scipy import ndimage
-
 from tests.conftest import require_shared
 
 N = 4  # beams in the hand-made logs

@@ -19,9 +19,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+
 from lampsam.angles import wrap_angle
 from lampsam.cli import main
-
 from tests.conftest import require_shared
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lampsam.cli import main
 from lampsam.datasets.kinect_sim import (
     KinectConfig,

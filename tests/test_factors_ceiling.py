@@ -15,6 +15,7 @@ from gtsam.utils.numerical_derivative import (
     numericalDerivative32,
     numericalDerivative33,
 )
+
 from lampsam.factors.ceiling import (
     HeightPrior,
     init_inverse_depth,

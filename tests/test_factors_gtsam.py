@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import A, C, L, X
 from gtsam.utils.numerical_derivative import numericalDerivative11
+
 from lampsam.factors.ceiling import HeightPrior, project_inverse_depth, project_point
 from lampsam.factors.geometry import FactorError, wrap_angle
 from lampsam.factors.gtsam_factors import (

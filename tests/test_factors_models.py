@@ -12,6 +12,7 @@ from gtsam.utils.numerical_derivative import (
     numericalDerivative21,
     numericalDerivative22,
 )
+
 from lampsam.factors.geometry import (
     FactorError,
     between,

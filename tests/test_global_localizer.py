@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.geometry import compose, wrap_angle
 from lampsam.localization.global_localizer import (

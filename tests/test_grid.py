@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+
 from lampsam.localization.grid import (
     PGM_FREE,
     PGM_OCCUPIED,

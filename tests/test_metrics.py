@@ -5,6 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+
 from lampsam.evaluation import metrics as M
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lampsam.backend.slam import errors_vs_truth, run_slam
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.mrclam import (
@@ -15,7 +16,6 @@ from lampsam.datasets.mrclam import (
 )
 from lampsam.errors import DatasetError
 from lampsam.factors.motion import accumulate_odometry
-
 from tests.conftest import require_shared
 
 

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.likelihood import (
     BeamModelConfig,

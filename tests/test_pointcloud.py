@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from lampsam.datasets.rgbd import RgbdCamera, read_slambook2
 from lampsam.localization.envmap import DepthGridConfig, EnvMapConfig, build_depth_layers, fit_floor
 from lampsam.localization.grid import free_mask, occupied_mask
@@ -17,8 +19,6 @@ from lampsam.localization.pointcloud import (
     overlap_agreement,
     rgbd_to_cloud,
 )
-from scipy.spatial.transform import Rotation
-
 from tests.conftest import require_shared
 
 CAM = RgbdCamera(

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from lampsam.localization.grid import LogOddsConfig, OccupancyGrid
 from lampsam.localization.raycast import RangeTable, RaycastError, cast_rays, distance_field
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig, SlamConfig
 from lampsam.backend.slam import frames_from_range_bearing
 from lampsam.evaluation.scaling_plots import (

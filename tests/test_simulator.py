@@ -15,6 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.motion import dead_reckoning, follow_waypoints, noisy_wheel_travel
 from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 from gtsam.utils.numerical_derivative import numericalDerivative11
+
 from lampsam.datasets.stereo_sim import (
     StereoRig,
     read_stereo_run,

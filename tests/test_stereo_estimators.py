@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+
 from lampsam.angles import wrap_angle
 from lampsam.backend.stereo import (
     BAD_DISPARITY,

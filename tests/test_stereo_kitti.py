@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lampsam.backend.stereo_kitti import KittiTwoPointResult, two_point_on_kitti
 from lampsam.datasets.kitti import KittiError, KittiStereoSequence, read_kitti_sequence
 from lampsam.frontend.stereo_tracking import track_sequence
-
 from tests.conftest import require_shared
 
 NAME = "kitti_stereo_seq1"

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
+
 from lampsam.frontend.stereo_tracking import TrackConfig, paper_coords, track_sequence
 
 SHIFT_PX = 2

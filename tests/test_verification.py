@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from lampsam.factors.ceiling import project_point
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation
 from lampsam.localization.verification import (

@@ -35,6 +35,7 @@ from typing import Any
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import A, C, L, X
+
 from lampsam.factors.ceiling import (
     HeightPrior,
     init_point_from_observation,

@@ -20,6 +20,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+
 from lampsam.localization.grid import OccupancyGrid, free_mask
 from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel, RayCastModel
 from lampsam.localization.particle_filter import sample_free_space

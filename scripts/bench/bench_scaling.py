@@ -62,6 +62,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig, SlamConfig
 from lampsam.backend.slam import frames_from_range_bearing, iter_steps, make_backend

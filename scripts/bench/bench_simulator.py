@@ -23,6 +23,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
 from lampsam.datasets.simulator import simulate_trajectory, simulate_world
 from lampsam.datasets.world import load_world, world_landmarks

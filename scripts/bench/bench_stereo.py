@@ -14,6 +14,7 @@ import argparse
 import time
 
 import numpy as np
+
 from lampsam.backend.stereo import ESTIMATORS, estimate
 from lampsam.datasets.stereo_sim import SCENARIOS, simulate_stereo
 
