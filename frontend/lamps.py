@@ -551,6 +551,49 @@ def to_observation(
     )
 
 
+def to_observations(
+    moments: list[BlobMoments], m: FloatArray, m_D_px: FloatArray, config: LampDetectorConfig
+) -> tuple[LampObservation, ...]:
+    """:func:`to_observation` of many blobs at once (the same formulas, batched).
+
+    Args:
+        moments: N pixel measurements.
+        m: shape (N, 2), their centroids in normalised ceiling coordinates.
+        m_D_px: shape (N, 2, 2), Jacobians of ``m`` with respect to the pixel.
+        config: detector settings (ratio threshold).
+
+    Returns:
+        N observations, same order; equal to :func:`to_observation` up to
+        floating-point rounding (the 2x2 determinant is expanded, not LU).
+    """
+    cov_c = np.array([mo.cov_centroid for mo in moments])
+    cov_m = m_D_px @ cov_c @ m_D_px.transpose(0, 2, 1)
+    theta = np.array([mo.theta for mo in moments])
+    e = np.column_stack([np.cos(theta), np.sin(theta)])
+    je = np.einsum("nij,nj->ni", m_D_px, e)
+    axes = wrap_axis(np.arctan2(je[:, 1], je[:, 0]))
+    det = m_D_px[:, 0, 0] * m_D_px[:, 1, 1] - m_D_px[:, 0, 1] * m_D_px[:, 1, 0]
+    gain = det / (je[:, 0] * je[:, 0] + je[:, 1] * je[:, 1])
+    var_axes = gain * gain * np.array([mo.var_theta for mo in moments])
+    out = []
+    for i, mo in enumerate(moments):
+        oriented = mo.ratio > config.ratio_threshold
+        out.append(
+            LampObservation(
+                m=np.asarray(m[i], dtype=np.float64),
+                cov_m=cov_m[i],
+                axis=float(axes[i]) if oriented else None,
+                var_axis=float(var_axes[i]) if oriented else math.inf,
+                ratio=mo.ratio,
+                area_px=mo.area_px,
+                pixel=mo.centroid,
+                landmark_id=None,
+                touches_border=mo.touches_border,
+            )
+        )
+    return tuple(out)
+
+
 def _pixels(mask: np.ndarray) -> tuple[IntArray, IntArray, IntArray]:
     """Flat index, row and column of the non-zero pixels of a 2-D array.
 
@@ -810,7 +853,7 @@ def measure_blobs(
             binary[box],
             comp2,
             good_ids.size,
-            border[np.r_[0, good_ids]],
+            border[np.concatenate(([0], good_ids))],
             config,
             origin=(bx0, by0),
         )
@@ -869,5 +912,4 @@ def detect_lamps(
         return LampDetections((), (), k, mask, n_rej)
     px = np.array([mo.centroid for mo in moments])
     m, jac = ceiling_jacobians(camera, px, config.jacobian_step_px)
-    lamps = tuple(to_observation(mo, m[i], jac[i], config) for i, mo in enumerate(moments))
-    return LampDetections(lamps, tuple(moments), k, mask, n_rej)
+    return LampDetections(to_observations(moments, m, jac, config), tuple(moments), k, mask, n_rej)
