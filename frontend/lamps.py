@@ -845,7 +845,7 @@ def measure_blobs(
     remap2 = np.zeros(keep.size + 1, dtype=np.uint16)
     good_ids = np.flatnonzero(good)
     remap2[good_ids] = np.arange(1, good_ids.size + 1, dtype=np.uint16)
-    comp2 = remap2[comp]
+    comp2 = comp if good_ids.size == keep.size else remap2[comp]  # identity when all pass
     out: list[BlobMoments] = []
     if good_ids.size:
         res = _measure_labels(
@@ -864,7 +864,7 @@ def measure_blobs(
                 out.append(mom)
         ok_lab = np.zeros(good_ids.size + 1, dtype=bool)
         ok_lab[1:] = [mom is not None for mom in res]
-        mask[box] |= ok_lab[comp2]
+        mask[box] |= (comp2 > 0) if ok_lab[1:].all() else ok_lab[comp2]
     # Glare-merger candidates: per region, re-thresholded higher.
     for j in np.flatnonzero(merged & ~too_dim):
         if j == 0:
