@@ -258,15 +258,12 @@ def detect_corners(
         return ()
     m, jac = ceiling_jacobians(camera, det.pixels, config.jacobian_step_px)
     cov = config.sigma_px**2 * np.einsum("nij,nkj->nik", jac, jac)
+    # Iterating the arrays (row views) is cheaper than indexing them per corner.
     return tuple(
-        CornerObservation(
-            m=m[i],
-            cov_m=cov[i],
-            pixel=det.pixels[i],
-            patch=det.patches[i],
-            score=float(det.scores[i]),
+        CornerObservation(m=mi, cov_m=ci, pixel=pi, patch=qi, score=si)
+        for mi, ci, pi, qi, si in zip(
+            m, cov, det.pixels, det.patches, det.scores.tolist(), strict=True
         )
-        for i in range(det.pixels.shape[0])
     )
 
 

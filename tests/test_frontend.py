@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from lampsam.datasets.logrun import CameraModel
@@ -22,14 +23,18 @@ from lampsam.frontend.corners import (
     CornerDetectorConfig,
     detect_corner_pixels,
     extract_patches,
+    margin_kernel,
     match_ncc,
 )
 from lampsam.frontend.lamps import (
     LampDetectorConfig,
     auto_threshold,
+    ceiling_jacobians,
     detect_lamps,
     measure_blobs,
     otsu_level,
+    to_observation,
+    to_observations,
     wrap_axis,
 )
 from lampsam.frontend.measurements import CeilingFrame, LampObservation
@@ -309,3 +314,45 @@ def test_lamp_observation_is_frozen() -> None:
     with pytest.raises(AttributeError):
         lamp.ratio = 2.0  # type: ignore[misc]
     assert not lamp.oriented
+
+
+# --------------------------------------------------------------------------- fast paths
+def test_margin_kernel_matches_distance_transform(rng: np.random.Generator) -> None:
+    """Dilating with ``margin_kernel`` marks exactly the pixels with 3x3-L2 distance <= margin."""
+    for margin in (0, 1, 2.5, 4, 7):
+        kernel = margin_kernel(margin)
+        for _ in range(20):
+            mask = rng.random((50, 70)) < 0.005
+            for _ in range(3):
+                r, c = rng.integers(0, 50), rng.integers(0, 70)
+                mask[r : r + rng.integers(1, 9), c : c + rng.integers(1, 9)] = True
+            ref = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3) <= margin
+            got = cv2.dilate(mask.view(np.uint8), kernel) > 0
+            assert np.array_equal(got, ref), margin
+
+
+def test_batched_lamp_observations_match_per_lamp(rng: np.random.Generator) -> None:
+    """``to_observations`` equals ``to_observation`` lamp by lamp (to 1e-12 relative)."""
+    cfg = LampDetectorConfig()
+    image = np.full((240, 320), 40, np.uint8)
+    for r, c, hh, ww in ((40, 50, 8, 40), (150, 200, 30, 9), (100, 120, 12, 12)):
+        image[r : r + hh, c : c + ww] = 250
+    image = cv2.GaussianBlur(image, (5, 5), 1.0)
+    noisy = np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+    camera = CameraModel.from_fov(320, 240, 70.0)
+    moments, _, _, _ = measure_blobs(noisy, cfg)
+    assert len(moments) == 3
+    px = np.array([mo.centroid for mo in moments])
+    m, jac = ceiling_jacobians(camera, px, cfg.jacobian_step_px)
+    batch = to_observations(moments, m, jac, cfg)
+    assert sum(ob.axis is not None for ob in batch) == 2
+    for i, mo in enumerate(moments):
+        one = to_observation(mo, m[i], jac[i], cfg)
+        np.testing.assert_allclose(batch[i].m, one.m, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(batch[i].cov_m, one.cov_m, rtol=1e-12, atol=1e-20)
+        assert (batch[i].axis is None) == (one.axis is None)
+        if one.axis is not None:
+            assert batch[i].axis == pytest.approx(one.axis, abs=1e-12)
+            assert batch[i].var_axis == pytest.approx(one.var_axis, rel=1e-12)
+        else:
+            assert math.isinf(batch[i].var_axis)
