@@ -257,7 +257,24 @@ def detect_corners(
     if det.pixels.shape[0] == 0:
         return ()
     m, jac = ceiling_jacobians(camera, det.pixels, config.jacobian_step_px)
-    cov = config.sigma_px**2 * np.einsum("nij,nkj->nik", jac, jac)
+    return corner_observations(det, m, jac, config)
+
+
+def corner_observations(
+    det: CornerDetections, m: FloatArray, m_D_px: FloatArray, config: CornerDetectorConfig
+) -> tuple[CornerObservation, ...]:
+    """Wrap detected corners as observations, given their camera conversion.
+
+    Args:
+        det: N corners in pixels.
+        m: shape (N, 2), their normalised ceiling coordinates.
+        m_D_px: shape (N, 2, 2), Jacobians of ``m`` with respect to the pixel.
+        config: detector settings (``sigma_px``).
+
+    Returns:
+        N observations, strongest first; ``cov_m = J (sigma_px^2 I) J^T``.
+    """
+    cov = config.sigma_px**2 * np.einsum("nij,nkj->nik", m_D_px, m_D_px)
     # Iterating the arrays (row views) is cheaper than indexing them per corner.
     return tuple(
         CornerObservation(m=mi, cov_m=ci, pixel=pi, patch=qi, score=si)

@@ -20,9 +20,21 @@ from typing import Any
 import numpy as np
 from lampsam.arrays import ImageU8
 from lampsam.errors import FrontendError
-from lampsam.frontend.corners import CornerDetectorConfig, detect_corners
-from lampsam.frontend.lamps import LampDetectorConfig, PixelToCeiling, detect_lamps
-from lampsam.frontend.measurements import CeilingFrame
+from lampsam.frontend.corners import (
+    CornerDetectorConfig,
+    corner_observations,
+    detect_corner_pixels,
+    detect_corners,
+)
+from lampsam.frontend.lamps import (
+    LampDetectorConfig,
+    PixelToCeiling,
+    ceiling_jacobians,
+    detect_lamps,
+    measure_blobs,
+    to_observations,
+)
+from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation
 
 log = logging.getLogger(__name__)
 
@@ -109,14 +121,48 @@ def process_image(
     if hi - lo < config.min_contrast_grey:
         log.debug("frame %d: flat image (grey %d..%d): no detections", index, lo, hi)
         return CeilingFrame(t=float(t), index=int(index))
-    det = detect_lamps(img, camera, config.lamps)
+    if config.lamps.jacobian_step_px != config.corners.jacobian_step_px:
+        det = detect_lamps(img, camera, config.lamps)
+        all_lamps = det.lamps
+        corners = (
+            detect_corners(img, camera, det.mask, config.corners) if config.detect_corners else ()
+        )
+    else:
+        all_lamps, corners = _lamps_and_corners(img, camera, config)
     lamps = (
-        det.lamps
+        all_lamps
         if config.keep_border_lamps
-        else tuple(lm for lm in det.lamps if not lm.touches_border)
+        else tuple(lm for lm in all_lamps if not lm.touches_border)
     )
-    corners = detect_corners(img, camera, det.mask, config.corners) if config.detect_corners else ()
     return CeilingFrame(t=float(t), index=int(index), lamps=lamps, corners=corners)
+
+
+def _lamps_and_corners(
+    img: ImageU8, camera: PixelToCeiling, config: FrontendConfig
+) -> tuple[tuple[LampObservation, ...], tuple[CornerObservation, ...]]:
+    """Lamps (border ones included) and corners with one camera conversion for both.
+
+    The same as :func:`detect_lamps` then :func:`detect_corners`, but the
+    pixel -> ``m`` map and its Jacobians (:func:`ceiling_jacobians`) are
+    evaluated once on the lamp centroids and corner pixels together (both
+    configs must use the same Jacobian step).
+    """
+    moments, _, mask, _ = measure_blobs(img, config.lamps)
+    det = detect_corner_pixels(img, mask, config.corners) if config.detect_corners else None
+    n_lamps = len(moments)
+    px = np.zeros((0, 2))
+    if n_lamps:
+        px = np.array([mo.centroid for mo in moments])
+    if det is not None and det.pixels.shape[0]:
+        px = np.concatenate([px, det.pixels])
+    if px.shape[0] == 0:
+        return (), ()
+    m, jac = ceiling_jacobians(camera, px, config.lamps.jacobian_step_px)
+    lamps = to_observations(moments, m[:n_lamps], jac[:n_lamps], config.lamps) if n_lamps else ()
+    corners: tuple[CornerObservation, ...] = ()
+    if det is not None and det.pixels.shape[0]:
+        corners = corner_observations(det, m[n_lamps:], jac[n_lamps:], config.corners)
+    return lamps, corners
 
 
 def iter_run(run: Any, config: FrontendConfig | None = None) -> Iterator[CeilingFrame]:
