@@ -26,10 +26,8 @@ DEMO_WORLD = "lab"
 DEMO_SEED = 0
 DEMO_DURATION = 40.0
 """Seconds of the lab path simulated by the demo (the whole path is about 3 minutes)."""
-DEMO_FEATURES: tuple[str, ...] = ("lamps",)
-"""Ceiling features the demo's SLAM uses. Lamps only: with FAST corners from the real
-frontend the smoothers are still too slow for a demo (about 2 s per frame, measured
-2026-11-22) and could stop on a landmark pushed below the camera."""
+DEMO_FEATURES: tuple[str, ...] = ("lamps", "corners")
+"""Ceiling features the demo's SLAM uses: lamps and FAST corners, as in paper 1."""
 
 
 @dataclass(frozen=True)

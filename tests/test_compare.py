@@ -67,7 +67,7 @@ def test_thread_variables_restored(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_map_error_associates_by_position_when_ids_are_the_backends() -> None:
     from types import SimpleNamespace
 
-    lm = lambda i, x, y: SimpleNamespace(id=i, position=np.array([x, y, 2.5]))  # noqa: E731
+    lm = lambda i, x, y: SimpleNamespace(id=i, type="lamp", position=np.array([x, y, 2.5]))  # noqa: E731
     # Backend ids 0, 1 collide with true ids 0, 1 but name other landmarks.
     result = SimpleNamespace(landmarks=[lm(0, 5.02, 0.0), lm(1, 0.0, 0.03)])
     truth = (np.array([0, 1]), np.array(["lamp", "lamp"]), np.array([[0.0, 0.0, 2.5], [5.0, 0.0, 2.5]]))
@@ -76,3 +76,19 @@ def test_map_error_associates_by_position_when_ids_are_the_backends() -> None:
     assert by_position["map_rms_m"] == pytest.approx(np.sqrt((0.02**2 + 0.03**2) / 2))
     by_id = C._map_error(result, truth, ids_are_true=True)
     assert by_id["map_rms_m"] > 4.9  # the same ids taken at face value pair the wrong landmarks
+
+
+def test_map_error_is_per_type_with_lamps_as_headline() -> None:
+    from types import SimpleNamespace
+
+    result = SimpleNamespace(landmarks=[
+        SimpleNamespace(id=0, type="lamp", position=np.array([0.01, 0.0, 2.5])),
+        SimpleNamespace(id=1, type="corner", position=np.array([0.0, 0.3, 2.7])),  # near the lamp only
+        SimpleNamespace(id=2, type="corner", position=np.array([2.0, 0.04, 2.7])),
+    ])
+    truth = (np.array([0, 1000]), np.array(["lamp", "corner"]),
+             np.array([[0.0, 0.0, 2.5], [2.0, 0.0, 2.7]]))
+    out = C._map_error(result, truth, ids_are_true=False)
+    assert out["map_type"] == "lamp" and out["map_rms_m"] == pytest.approx(0.01)
+    # the corner at (0, 0.3) must not be paired with the lamp; only the true corner counts
+    assert out["map_corner_associated"] == 1 and out["map_corner_rms_m"] == pytest.approx(0.04)
