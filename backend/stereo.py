@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
+
 from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.datasets.stereo_sim import StereoRig, StereoRun

@@ -21,6 +21,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+
 from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.stereo import OK, StereoEstimatorConfig, triangulate_two_points

@@ -27,10 +27,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
+
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.frontend.lamps import PixelToCeiling, ceiling_jacobians
 from lampsam.frontend.measurements import CornerObservation
-from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
 

@@ -79,6 +79,7 @@ from typing import Protocol
 
 import cv2
 import numpy as np
+
 from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.frontend.measurements import LampObservation

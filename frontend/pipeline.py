@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
 from lampsam.arrays import ImageU8
 from lampsam.errors import FrontendError
 from lampsam.frontend.corners import (

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from lampsam.arrays import BoolArray, FloatArray, ImageU8
 from lampsam.datasets.kitti import KittiStereoSequence
 

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 import pytest
+
 from lampsam.backend.association import associate, mahalanobis2
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler

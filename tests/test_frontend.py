@@ -11,6 +11,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import FrontendError, LampsamError
 from lampsam.evaluation.frontend_eval import (

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from lampsam.evaluation.frontend_eval import evaluate_run
 from lampsam.evaluation.gallery import load_photo, make_gallery, run_photo
 from lampsam.frontend.pipeline import iter_run
-
 from tests.conftest import require_shared
 
 

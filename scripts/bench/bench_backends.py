@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.slam import (

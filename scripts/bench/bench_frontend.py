@@ -31,6 +31,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import cv2
+
 from lampsam.arrays import ImageU8
 from lampsam.datasets.logrun import CameraModel
 from lampsam.datasets.paths import shared_dataset
