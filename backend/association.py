@@ -130,6 +130,7 @@ def associate(
             continue
         gate = config.gate(len(obs.z))
         best = float("inf")
+        items: Iterable[tuple[int, tuple[float, bool]]]
         if screened is not None and i in screened:
             items = screened[i].items()
         else:

@@ -302,7 +302,7 @@ class GraphSlam(SlamBackend):
         drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
         entered = {lid for lid in bad if self._new_values.exists(L(lid))}
         try:
-            old = self.isam.calculateEstimate()
+            old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
         except RuntimeError:
             old = gtsam.Values()
         if self.ceiling is not None:  # landmarks the failed step put under the lens
