@@ -249,12 +249,12 @@ def run_job(job: Job) -> JobResult:
     ids_are_true = job.frames == "truth" or (job.frames in ("auto", "rangebearing")
                                              and run.range_bearing is not None
                                              and bool(np.any(run.range_bearing.landmark_id >= 0)))
-    m.update(_map_error(result, _truth_landmarks(Path(job.run_dir), run), ids_are_true))
+    truth_lm = _truth_landmarks(Path(job.run_dir), run)
+    m.update(_map_error(result, truth_lm, ids_are_true))
     if result.landmarks:
         arrays["lm_xy"] = np.array([lm.position[:2] for lm in result.landmarks], float)
         arrays["lm_cov"] = np.array([np.asarray(lm.cov)[:2, :2] for lm in result.landmarks], float)
         arrays["lm_type"] = np.array([lm.type for lm in result.landmarks])
-    truth_lm = _truth_landmarks(Path(job.run_dir), run)
     if truth_lm is not None:
         arrays["true_lm_xy"] = truth_lm[2][:, :2]
     m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.evaluation.metrics import chi2_bounds
 
@@ -177,7 +178,7 @@ def make_figures(fig_dir: Path, results: list[JobResult]) -> list[Path]:
                 inside = np.isin(d["t"], t)
                 covs = d["covs"][inside]
                 e = d["truth"] - d["poses"][inside]
-                e[:, 2] = np.degrees(np.angle(np.exp(1j * e[:, 2])))
+                e[:, 2] = np.degrees(wrap_angle(e[:, 2]))
                 sig = np.sqrt(np.clip(np.diagonal(covs, axis1=1, axis2=2), 0, None))
                 sig[:, 2] = np.degrees(sig[:, 2])
                 for i, (name, unit) in enumerate((("x", "m"), ("y", "m"), ("heading", "deg"))):

@@ -93,6 +93,8 @@ def pose_errors(estimate: FloatArray, truth: FloatArray) -> tuple[FloatArray, Fl
 def interpolate_poses(t_query: FloatArray, t: FloatArray, poses: FloatArray) -> FloatArray:
     """Linearly interpolate planar poses (heading along the shorter arc).
 
+    The same as :meth:`lampsam.datasets.logrun.Trajectory.interpolate`, for arrays.
+
     Args:
         t_query: (M,) times, inside ``[t[0], t[-1]]`` (clamped otherwise).
         t: (N,) increasing times of ``poses``.
@@ -101,15 +103,10 @@ def interpolate_poses(t_query: FloatArray, t: FloatArray, poses: FloatArray) -> 
     Returns:
         (M, 3) interpolated poses.
     """
+    from lampsam.datasets.logrun import Trajectory
+
     p = _check_poses("poses", poses)
-    t = np.asarray(t, dtype=np.float64)
-    tq = np.asarray(t_query, dtype=np.float64)
-    unwrapped = np.unwrap(p[:, 2])
-    out = np.empty((tq.size, 3))
-    out[:, 0] = np.interp(tq, t, p[:, 0])
-    out[:, 1] = np.interp(tq, t, p[:, 1])
-    out[:, 2] = wrap_angle(np.interp(tq, t, unwrapped))
-    return out
+    return Trajectory(t=np.asarray(t, dtype=np.float64), poses=p).interpolate(t_query)
 
 
 def se2_log(poses: FloatArray) -> FloatArray:
