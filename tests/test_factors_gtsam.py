@@ -352,3 +352,24 @@ def test_lamps_and_inverse_depth_corners_solve_to_truth() -> None:
     for j in anchors:
         idp = result.atVector(C(j))
         assert 1.0 / idp[2] == pytest.approx(corners[j][2] - OFFSET[2], abs=1e-2)
+
+
+def test_positive_definite_matches_eigenvalues() -> None:
+    """The closed-form Sylvester test agrees with eigvalsh on random 1x1..4x4 matrices."""
+    from lampsam.factors.gtsam_factors import _positive_definite
+
+    rng = np.random.default_rng(11)
+    for d in (1, 2, 3, 4):
+        for _ in range(300):
+            a = rng.normal(size=(d, d))
+            s = a @ a.T - rng.uniform(0.0, 2.0) * np.eye(d)
+            lam = np.linalg.eigvalsh(s)[0]
+            if abs(lam) < 1e-9:  # too close to call in floating point
+                continue
+            assert _positive_definite(s) == (lam > 0.0)
+    with pytest.raises(FactorError, match="positive definite"):
+        projection_factor(X(0), L(0), np.zeros(2), np.array([[1.0, 2.0], [2.0, 1.0]]),
+                          np.array([0.0, 0.0, 0.3]))
+    with pytest.raises(FactorError, match="finite"):
+        projection_factor(X(0), L(0), np.zeros(2), np.array([[np.nan, 0.0], [0.0, 1.0]]),
+                          np.array([0.0, 0.0, 0.3]))
