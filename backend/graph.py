@@ -126,6 +126,37 @@ def compose_cov(delta: FloatArray, cov_a: FloatArray, cov_b: FloatArray) -> Floa
     return ad @ cov_a @ ad.T + cov_b
 
 
+def corner_budget(matches: list[tuple[Any, Obs]], budget: int | None
+                  ) -> tuple[list[tuple[Any, Obs]], int]:
+    """Keep at most ``budget`` corner landmarks already in the graph per keyframe.
+
+    Every landmark in the graph that a keyframe observes becomes a variable of
+    iSAM2's root clique (GTSAM orders the newly observed keys last), so the update
+    and the pose marginal grow with the cube of the number observed: about 100
+    ceiling corners per frame on the lab world made both 20-100 ms. The corners
+    with the longest tracks (most observations, then the oldest id) are kept: they
+    tie the keyframe to the most of the map. Lamps, planar points and corners not
+    yet in the graph (pending, delayed initialisation) always pass.
+
+    Args:
+        matches: ``(landmark, observation)`` pairs of one keyframe; a landmark has
+            ``kind``, ``in_graph``, ``n_obs`` and ``id``.
+        budget: the most in-graph corners kept, or None for no limit.
+
+    Returns:
+        ``(kept pairs in their input order, corners that may still enter the graph
+        this keyframe = max(2, budget - in-graph corners kept))``; with no budget
+        the second is unbounded.
+    """
+    if budget is None:
+        return matches, 1 << 30
+    in_graph = [j for j, (lm, _) in enumerate(matches) if lm.kind == "corner" and lm.in_graph]
+    ranked = sorted(in_graph, key=lambda j: (-matches[j][0].n_obs, matches[j][0].id))
+    drop = set(ranked[budget:])
+    kept = [m for j, m in enumerate(matches) if j not in drop]
+    return kept, max(2, budget - min(len(in_graph), budget))
+
+
 @dataclass
 class _Landmark:
     """A landmark known to a graph backend."""
@@ -235,6 +266,7 @@ class GraphSlam(SlamBackend):
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
+        self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._flush()
 
     # ------------------------------------------------------------------ graph building
@@ -587,16 +619,21 @@ class GraphSlam(SlamBackend):
             assignments = associate(
                 obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                 self.config.association, lambda i: i in self._landmarks, patches, screened)
+            matches: list[tuple[_Landmark, Obs]] = []
             for a in assignments:
                 o = obs[a.obs_index]
                 if a.status == "matched" and a.landmark_id in self._landmarks:
                     lm = self._landmarks[a.landmark_id]
                     if lm.kind != o.kind:
                         continue
-                    self._observe(lm, k, o)
-                    n_matched += 1
+                    matches.append((lm, o))
                 elif a.status == "new":
                     n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
+            matches, self._entries_left = corner_budget(
+                matches, self.config.isam2.max_corner_factors)
+            for lm, o in matches:
+                self._observe(lm, k, o)
+                n_matched += 1
         if k % 10 == 0:
             self._forget_pending(k)
         for handler in {id(h): h for h in self.handlers.values()}.values():
@@ -704,8 +741,9 @@ class GraphSlam(SlamBackend):
             return
         lm.pending.append((k, obs))
         if lm.kind == "corner" and self.ceiling is not None:
-            if self._try_triangulate(lm):
+            if self._entries_left > 0 and self._try_triangulate(lm):
                 self._enter_graph(lm)
+                self._entries_left -= 1
         elif lm.n_obs >= self.config.association.min_observations:
             self._enter_graph(lm)
 

@@ -24,7 +24,7 @@ from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
-from lampsam.backend.graph import BatchSlam, Isam2Slam, _Landmark
+from lampsam.backend.graph import BatchSlam, Isam2Slam, _Landmark, corner_budget
 from lampsam.backend.slam import (
     drive,
     errors_vs_truth,
@@ -212,3 +212,21 @@ def test_triangulate_recovers_corner_and_flags_no_parallax() -> None:
     assert np.linalg.norm(point - p) < 4 * math.sqrt(np.trace(cov))
     _, cov0 = model.triangulate(poses[[0, 0]], ms[[0, 0]], covs)
     assert math.sqrt(cov0[2, 2]) > 1.0  # no baseline: height undetermined
+
+
+def test_corner_budget_keeps_longest_tracks() -> None:
+    """In-graph corners over the budget are dropped, longest tracks kept; others pass."""
+    def lm(lid: int, kind: str, in_graph: bool, n_obs: int) -> _Landmark:
+        return _Landmark(lid, kind, in_graph, n_obs, np.zeros(3), np.eye(3))
+
+    marks = [lm(0, "corner", True, 5), lm(1, "corner", True, 9), lm(2, "lamp", True, 1),
+             lm(3, "corner", False, 1), lm(4, "corner", True, 9), lm(5, "corner", True, 2)]
+    pairs = [(m, None) for m in marks]
+    kept, entries = corner_budget(pairs, 2)  # type: ignore[arg-type]
+    assert [m.id for m, _ in kept] == [1, 2, 3, 4]  # ids 1 and 4 (9 sights) win, order kept
+    assert entries == 2  # budget used up: the floor of 2 new entries
+    kept, entries = corner_budget(pairs, 10)  # type: ignore[arg-type]
+    assert [m.id for m, _ in kept] == [0, 1, 2, 3, 4, 5]
+    assert entries == 10 - 4
+    kept, entries = corner_budget(pairs, None)  # type: ignore[arg-type]
+    assert len(kept) == 6 and entries > 1000
