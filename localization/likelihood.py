@@ -171,11 +171,15 @@ class RayCastModel:
         method: ``"march"`` (cast every update) or ``"table"`` (precompute).
         n_angles: heading bins of the table (``method="table"``), default 360.
         march: sphere-tracing settings (default ``RayMarchConfig()``).
+        table: a table already built for ``grid`` (``method="table"``; its
+            ``max_range`` must be at least ``config.max_range``). Default None:
+            build one over every non-occupied cell (free and unknown, where the
+            marcher casts too), so both methods cover the same poses.
     """
 
     def __init__(self, grid: OccupancyGrid, config: BeamModelConfig,
                  method: Literal["march", "table"] = "march", n_angles: int = 360,
-                 march: RayMarchConfig | None = None) -> None:
+                 march: RayMarchConfig | None = None, table: RangeTable | None = None) -> None:
         self.grid = grid
         self.config = config
         self.method = method
@@ -184,14 +188,24 @@ class RayCastModel:
         self.dist = distance_field(self.occupied)
         self.table: RangeTable | None = None
         if method == "table":
-            self.table = RangeTable.build(grid, n_angles, config.max_range, config=self.march)
+            if table is None:
+                table = RangeTable.build(grid, n_angles, config.max_range, cells=~self.occupied,
+                                         config=self.march)
+            elif table.grid_shape != (grid.height, grid.width) or table.max_range < config.max_range - 1e-9:
+                raise LikelihoodError(
+                    f"range table {table.grid_shape} up to {table.max_range} m does not fit "
+                    f"the grid {(grid.height, grid.width)} and max_range {config.max_range} m")
+            self.table = table
         elif method != "march":
             raise LikelihoodError(f"unknown ray-casting method {method!r}")
 
     def expected_ranges(self, poses: FloatArray, angles: FloatArray) -> FloatArray:
         """(P, B) expected ranges, metres."""
         if self.table is not None:
-            return self.table.lookup(poses, angles)
+            r = self.table.lookup(poses, angles)
+            if self.table.max_range > self.config.max_range:
+                np.minimum(r, np.float32(self.config.max_range), out=r)
+            return r
         return cast_rays(self.grid, poses, angles, self.config.max_range, self.march,
                          self.occupied, self.dist)
 

@@ -107,6 +107,15 @@ class VerificationConfig:
             twin shift for more than this fraction of its features (a periodic
             tile-corner lattice: about 1.0) cannot tell a pose from its twins
             and does not vote in a frame's outcome. Default 0.5.
+        early_decision: the paper's verifier decides as soon as its verdict at
+            ``verify_distance`` is certain (default True): ``R_loc`` at
+            ``d = verify_distance`` is the matched distance over
+            ``verify_distance``, so it will be at least ``r_loc_threshold`` once
+            ``r_loc_threshold * verify_distance`` metres have matched (0.5 m
+            with the defaults), and below it once more than ``(1 -
+            r_loc_threshold) * verify_distance`` metres have failed (1.5 m).
+            The verdict is the one the full drive would give; only the robot
+            stops driving sooner. False: always drive ``verify_distance``.
         accept_without_evidence: when the whole verification drive produced no
             discriminating evidence, accept the pose unverified (True) or start
             over (False). Default False: verification must not accept on
@@ -127,6 +136,7 @@ class VerificationConfig:
     twin_radius: float = 1.0
     twin_min_shift: float = 0.3
     max_self_similarity: float = 0.5
+    early_decision: bool = True
     accept_without_evidence: bool = False
 
 
@@ -303,6 +313,15 @@ class RlocVerifier:
             old_ds, old_fail = self._window.popleft()
             self.d -= old_ds
             self.d_fail -= old_ds if old_fail else 0.0
+        c = self.config
+        if c.early_decision and self.verdict is Verdict.PENDING:
+            # The verdict at d = verify_distance is already certain (see VerificationConfig).
+            if self.d_fail > (1.0 - c.r_loc_threshold) * c.verify_distance + 1e-9:
+                self.verdict = Verdict.FAILED
+                return self.verdict
+            if self.d - self.d_fail >= c.r_loc_threshold * c.verify_distance - 1e-9:
+                self.verdict = Verdict.ACCEPTED
+                return self.verdict
         if self.d >= self.config.verify_distance - 1e-9 or self.verdict is Verdict.ACCEPTED:
             if self.r_loc < self.config.r_loc_threshold:
                 self.verdict = Verdict.FAILED

@@ -103,7 +103,7 @@ class OfficeRobot:
     rng: np.random.Generator
     odom_sigma: float = 0.01
     ceiling_rate: float = 10.0
-    speed: float = 0.3
+    speed: float = 0.4  # m/s, the paper's driving speed (400 mm/s; turning 30 deg/s)
 
     def __post_init__(self) -> None:
         self.odom = np.zeros(3)
