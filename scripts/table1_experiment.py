@@ -23,7 +23,8 @@ Localisation time = robot time (turning + verification driving) + compute time
 
 Output: ``OUT/trials.w<k>.jsonl`` (one line per finished trial and
 configuration, written as it finishes; a rerun resumes), ``OUT/table1.md``
-(the table), ``OUT/table1.png`` (errors and success rates), ``OUT/trials.json``
+(the table), ``OUT/table1.png`` (errors, success rates and times,
+``lampsam.evaluation.table1_plots``), ``OUT/trials.json``
 (every trial). ``--jobs 2`` runs two worker processes on interleaved trials
 (each runs every configuration on its trials, so an interrupted run has about
 the same number of trials per configuration).
@@ -45,6 +46,7 @@ from lampsam.datasets.kinect_sim import KinectConfig, KinectRenderer, simulate_k
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.rgbd import RgbdCamera, camera_from_yaml
 from lampsam.datasets.scene3d import apply_changes, load_scene, obstacle_footprints
+from lampsam.evaluation.table1_plots import save_table1_figure
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.geometry import compose, wrap_angle, wrap_axis
 from lampsam.localization.envmap import build_map, footprint_mask, load_env_map
@@ -344,81 +346,14 @@ def table(rows: list[dict[str, object]], modes: list[Mode]) -> str:
     return "\n".join(lines)
 
 
-def plot_errors(ax: object, rows: list[dict[str, object]], modes: list[Mode]) -> None:
-    """Per-configuration final error scatter (log axes) with the 30 cm / 10 deg failure box.
-
-    Trials that ran over 60 s are drawn as crosses (failures despite a small error).
-    """
-    colours = {"grid_only": "tab:grey", "no_ceiling": "tab:orange", "proposed": "tab:blue",
-               "ours": "tab:green"}  # fmt: skip
-    for k, mode in enumerate(modes):
-        r = [x for x in rows if x["mode"] == mode.value]
-        if not r:
-            continue
-        e = np.array([[float(x["error_m"]) * 100, float(x["error_deg"])] for x in r])  # type: ignore[arg-type]
-        e = np.maximum(e, [0.3, 0.03])
-        slow = np.array([float(x["total_s"]) > 60.0 for x in r])  # type: ignore[arg-type]
-        jitter = 1.0 + 0.04 * (k - 1.5)
-        c = colours.get(mode.value, None)
-        ax.scatter(e[~slow, 0] * jitter, e[~slow, 1], s=14, alpha=0.7, color=c,  # type: ignore[attr-defined]
-                   label=f"{mode.value} (n={len(r)})")  # fmt: skip
-        if slow.any():
-            ax.scatter(e[slow, 0] * jitter, e[slow, 1], s=30, marker="x", color=c)  # type: ignore[attr-defined]
-    ax.axvline(30.0, color="red", lw=1, ls="--")  # type: ignore[attr-defined]
-    ax.axhline(10.0, color="red", lw=1, ls="--")  # type: ignore[attr-defined]
-    ax.fill_between([0.1, 30.0], 0.01, 10.0, color="green", alpha=0.06, lw=0)  # type: ignore[attr-defined]
-    ax.set_xscale("log")  # type: ignore[attr-defined]
-    ax.set_yscale("log")  # type: ignore[attr-defined]
-    ax.set_xlim(0.2, 2000)  # type: ignore[attr-defined]
-    ax.set_ylim(0.02, 300)  # type: ignore[attr-defined]
-    ax.set_xlabel("final position error (cm, log; below 0.3 cm drawn at 0.3)")  # type: ignore[attr-defined]
-    ax.set_ylabel("final heading error (deg, log)")  # type: ignore[attr-defined]
-    ax.set_title("errors; success box 30 cm / 10 deg (x: over 60 s)")  # type: ignore[attr-defined]
-    ax.legend(fontsize=7, loc="upper left")  # type: ignore[attr-defined]
-
-
-def plot_success(ax: object, rows: list[dict[str, object]], modes: list[Mode]) -> None:
-    """Success rate per configuration (bars) with the paper's rates (black ticks)."""
-    names, rates, counts = [], [], []
-    for mode in modes:
-        r = [x for x in rows if x["mode"] == mode.value]
-        if not r:
-            continue
-        names.append(mode.value)
-        rates.append(100.0 * sum(bool(x["success"]) for x in r) / len(r))
-        counts.append(len(r))
-    xs = np.arange(len(names))
-    ax.bar(xs, rates, color="tab:blue", alpha=0.7, label="this run")  # type: ignore[attr-defined]
-    for x, rate, n in zip(xs, rates, counts, strict=True):
-        ax.text(x, rate + 1.5, f"{rate:.0f} %\nn={n}", ha="center", fontsize=7)  # type: ignore[attr-defined]
-    px = [x for x, n in zip(xs, names, strict=True) if n in PAPER]
-    py = [PAPER[n][0] for n in names if n in PAPER]
-    ax.scatter(px, py, marker="_", s=400, color="black", label="paper 2, Table 1")  # type: ignore[attr-defined]
-    ax.set_xticks(xs, names, fontsize=8)  # type: ignore[attr-defined]
-    ax.set_ylim(0, 115)  # type: ignore[attr-defined]
-    ax.set_ylabel("success rate (%)")  # type: ignore[attr-defined]
-    ax.set_xlabel("configuration")  # type: ignore[attr-defined]
-    ax.set_title("success (error < 30 cm / 10 deg, < 60 s)")  # type: ignore[attr-defined]
-    ax.legend(fontsize=7, loc="lower right")  # type: ignore[attr-defined]
-
-
 def write_report(rows: list[dict[str, object]], modes: list[Mode], out: Path) -> str:
     """``OUT/trials.json``, ``OUT/table1.md`` and ``OUT/table1.png`` from the finished rows."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = sorted(rows, key=lambda x: (int(x["trial"]), str(x["mode"])))  # type: ignore[arg-type]
     (out / "trials.json").write_text(json.dumps(rows, indent=1))
     md = table(rows, modes)
     (out / "table1.md").write_text(md + "\n")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2), gridspec_kw={"width_ratios": [1.4, 1]})
-    plot_errors(axes[0], rows, modes)
-    plot_success(axes[1], rows, modes)
-    fig.tight_layout()
-    fig.savefig(out / "table1.png", dpi=90)
-    plt.close(fig)
+    save_table1_figure(rows, [m.value for m in modes], out / "table1.png",
+                       {k: v[0] for k, v in PAPER.items()})  # fmt: skip
     return md
 
 
