@@ -321,3 +321,30 @@ def test_refine_pose_corrects_a_biased_pose_on_a_tiled_ceiling() -> None:
     same, n0 = refine_pose(start, obs[only], kinds[vis][only], lm, kinds, CAM)
     assert n0 == 0
     np.testing.assert_array_equal(same, start)
+
+
+def test_rloc_early_decision_gives_the_full_drive_verdict() -> None:
+    """Deciding as soon as the 2 m verdict is certain changes only when, never what."""
+    rng = np.random.default_rng(31)
+    late = VerificationConfig(early_decision=False)
+    early = VerificationConfig()
+    decided_at = []
+    for p_match in (0.05, 0.2, 0.3, 0.5, 0.9):
+        for _ in range(40):
+            outcomes = [None if rng.uniform() < 0.1 else bool(rng.uniform() < p_match)
+                        for _ in range(120)]  # fmt: skip
+            full, quick = RlocVerifier(late), RlocVerifier(early)
+            v_full = v_quick = Verdict.PENDING
+            d = 0.0
+            for o in outcomes:
+                if v_full is Verdict.PENDING:
+                    v_full = full.update(0.03, o)
+                if v_quick is Verdict.PENDING:
+                    v_quick = quick.update(0.03, o)
+                    d += 0.03
+            assert v_quick is v_full
+            if v_full is not Verdict.PENDING:
+                decided_at.append(d)
+    # all-match drives accept after 0.5 m of matches (0.25 x 2 m), all-fail ones fail after 1.5 m
+    assert min(decided_at) == pytest.approx(0.51, abs=0.031)
+    assert max(decided_at) < 3.6

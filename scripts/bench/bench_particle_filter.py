@@ -8,7 +8,12 @@ seed; ``--intel`` uses the Intel lab map instead (from the shared data).
 Prints the median of several runs per method and its ratio to the likelihood
 field measured in the same run; also the one-off build times and memory.
 
-Usage: ``python scripts/bench/bench_particle_filter.py [--runs 7] [--intel]``
+``--env-map DIR`` uses the grid layer of an environment map directory (e.g. the
+Table-1 office map cached by ``scripts/table1_experiment.py``).
+Also prints how closely the range table's expected ranges agree with marching
+(per beam, over the same particles).
+
+Usage: ``python scripts/bench/bench_particle_filter.py [--runs 7] [--intel | --env-map DIR]``
 """
 
 from __future__ import annotations
@@ -77,10 +82,16 @@ def main() -> None:
     ap.add_argument("--particles", type=int, default=10_000)
     ap.add_argument("--march-runs", type=int, default=1, help="runs for ray marching (slow)")
     ap.add_argument("--intel", action="store_true", help="use the Intel lab map")
+    ap.add_argument("--env-map", default=None, help="use the grid of this environment map dir")
     args = ap.parse_args()
 
     rng = np.random.default_rng(7)
-    grid = intel_grid() if args.intel else office_grid(rng)
+    if args.env_map is not None:
+        from lampsam.localization.envmap import load_env_map
+
+        grid = load_env_map(args.env_map).grid
+    else:
+        grid = intel_grid() if args.intel else office_grid(rng)
     cfg = BeamModelConfig(sigma_hit=0.1, max_range=10.0)
     angles = np.radians(np.arange(360.0))
     particles = sample_free_space(grid, args.particles, rng)
@@ -120,6 +131,12 @@ def main() -> None:
         flag = "" if wall < 50 else "  (wall over 50 ms)"
         print(f"{name:<30}{wall:>10.1f}{cpu:>10.1f}{wall / ref_wall:>16.2f}{cpu / ref_cpu:>15.2f}"
               f"{flag}")
+    # Agreement of the expected ranges themselves (nearest cell and 1-deg bin vs exact).
+    diff = np.abs(table.expected_ranges(particles, angles) - march.expected_ranges(particles, angles))
+    p50, p95, p99 = np.percentile(diff, [50, 95, 99])
+    print(f"table vs marching expected ranges: {100 * np.mean(diff <= grid.resolution):.1f} % of "
+          f"beams within one cell; |difference| median {100 * p50:.1f} cm, 95 % {100 * p95:.1f} cm, "
+          f"99 % {100 * p99:.1f} cm")
     # Agreement: the table and marching rank the particles alike (Spearman-free check).
     best_lf = int(np.argmax(lf.log_likelihood(particles, ranges, angles)))
     best_tab = int(np.argmax(table.log_likelihood(particles, ranges, angles)))
