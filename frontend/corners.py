@@ -65,6 +65,9 @@ class CornerDetectorConfig:
     jacobian_step_px: float = 0.5
 
 
+_DEFAULT_CONFIG = CornerDetectorConfig()  # frozen: one shared instance
+
+
 @dataclass(frozen=True)
 class CornerDetections:
     """Corners of one image in array form (for matching and drawing).
@@ -145,11 +148,42 @@ def _windows(image: ImageU8, pixels: IntArray, size: int) -> np.ndarray:
     return image[rows, cols].astype(np.float32)
 
 
+def _centre_patches(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-mean copies of (N, P, P) float32 patches and their norms, shape (N,) float32."""
+    patches = raw - raw.mean(axis=(1, 2), keepdims=True)
+    return patches, np.sqrt((patches * patches).sum(axis=(1, 2)))
+
+
 def _normalise_patches(raw: np.ndarray) -> np.ndarray:
     """Zero-mean, unit-norm copies of (N, P, P) float32 patches (flat ones all zero)."""
-    patches = raw - raw.mean(axis=(1, 2), keepdims=True)
-    norms = np.sqrt((patches * patches).sum(axis=(1, 2), keepdims=True))
-    return np.divide(patches, norms, out=np.zeros_like(patches), where=norms > 0)
+    patches, norms = _centre_patches(raw)
+    nn = norms[:, None, None]
+    return np.divide(patches, nn, out=np.zeros_like(patches), where=nn > 0)
+
+
+def _forbid_near(allowed: np.ndarray, lamp_mask: BoolArray, margin: float) -> None:
+    """Zero ``allowed`` within ``margin`` of the lamp mask (3x3 L2 distance), in place.
+
+    One dilation with the exact footprint of OpenCV's 3x3 L2 distance
+    (:func:`margin_kernel`: the same pixels as thresholding the distance
+    transform, about 8x faster), restricted to the mask's bounding box grown
+    by the footprint's radius (lamps cover a small part of a frame).
+
+    Args:
+        allowed: shape (H, W) uint8 detection mask (modified).
+        lamp_mask: shape (H, W) bool lamp pixels.
+        margin: distance, px.
+    """
+    mask_u8 = np.ascontiguousarray(lamp_mask, dtype=bool).view(np.uint8)
+    x, y, bw, bh = cv2.boundingRect(mask_u8)
+    if bw == 0:
+        return
+    kernel = margin_kernel(margin)
+    r = kernel.shape[0] // 2
+    h, w = mask_u8.shape
+    c0, r0, c1, r1 = max(x - r, 0), max(y - r, 0), min(x + bw + r, w), min(y + bh + r, h)
+    near = cv2.dilate(mask_u8[r0:r1, c0:c1], kernel)
+    allowed[r0:r1, c0:c1][near > 0] = 0
 
 
 def extract_patches(image: ImageU8, pixels: IntArray, size: int) -> np.ndarray:
@@ -185,15 +219,8 @@ def detect_corner_pixels(
     half = p // 2
     allowed = np.zeros((h, w), np.uint8)
     allowed[half : h - half, half : w - half] = 255
-    if lamp_mask is not None and lamp_mask.any():
-        # Pixels within the margin of a lamp: one dilation with the exact footprint
-        # of OpenCV's 3x3 L2 distance (same pixels as thresholding the distance
-        # transform, about 8x faster on a 320x240 frame).
-        near = cv2.dilate(
-            np.ascontiguousarray(lamp_mask, dtype=bool).view(np.uint8),
-            margin_kernel(config.lamp_margin_px),
-        )
-        allowed[near > 0] = 0
+    if lamp_mask is not None:
+        _forbid_near(allowed, lamp_mask, config.lamp_margin_px)
     fast = cv2.FastFeatureDetector.create(config.fast_threshold, True)
     kps = fast.detect(image, allowed)
     if not kps:
@@ -228,12 +255,15 @@ def detect_corner_pixels(
             (ij[:, 0] >= half) & (ij[:, 0] < w - half) & (ij[:, 1] >= half) & (ij[:, 1] < h - half)
         )
         ij, pix, resp = ij[inside], pix[inside], resp[inside]
-    raw = _windows(image, ij, p)
-    patches = _normalise_patches(raw)
-    # Flat patches (std below the floor) are useless for NCC.
-    raw_std = np.sqrt(raw.reshape(len(ij), -1).var(axis=1))
-    ok = raw_std >= config.min_patch_std_grey
-    return CornerDetections(pix[ok], resp[ok].astype(np.float64), patches[ok])
+    # Flat patches (std below the floor) are useless for NCC; the std is the
+    # zero-mean patch's norm / P.
+    centred, norms = _centre_patches(_windows(image, ij, p))
+    ok = norms >= config.min_patch_std_grey * p
+    nn = norms[ok][:, None, None]
+    patches = np.divide(
+        centred[ok], nn, out=np.zeros((nn.shape[0], p, p), np.float32), where=nn > 0
+    )
+    return CornerDetections(pix[ok], resp[ok], patches)
 
 
 def detect_corners(
@@ -253,7 +283,7 @@ def detect_corners(
     Returns:
         The corners, strongest first; ``cov_m = J (sigma_px^2 I) J^T``.
     """
-    config = config or CornerDetectorConfig()
+    config = config or _DEFAULT_CONFIG
     det = detect_corner_pixels(image, lamp_mask, config)
     if det.pixels.shape[0] == 0:
         return ()
@@ -275,7 +305,7 @@ def corner_observations(
     Returns:
         N observations, strongest first; ``cov_m = J (sigma_px^2 I) J^T``.
     """
-    cov = config.sigma_px**2 * np.einsum("nij,nkj->nik", m_D_px, m_D_px)
+    cov = config.sigma_px**2 * (m_D_px @ m_D_px.transpose(0, 2, 1))
     # Iterating the arrays (row views) is cheaper than indexing them per corner.
     return tuple(
         CornerObservation(m=mi, cov_m=ci, pixel=pi, patch=qi, score=si)

@@ -74,8 +74,9 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import cv2
 import numpy as np
@@ -170,6 +171,9 @@ class LampDetectorConfig:
     jacobian_step_px: float = 0.5
 
 
+_DEFAULT_CONFIG = LampDetectorConfig()  # frozen: one shared instance
+
+
 @dataclass(frozen=True)
 class BlobMoments:
     """Pixel-space measurement of one blob (before the camera model).
@@ -240,20 +244,23 @@ def otsu_level(hist: FloatArray, lo: int = 0) -> float:
         (OpenCV's rule); ``lo`` when fewer than two levels are occupied.
     """
     h = hist[lo:]
-    levels = np.arange(lo, 256, dtype=np.float64)
-    w0 = np.cumsum(h)
+    return _otsu_cumulative(np.cumsum(h), np.cumsum(h * np.arange(lo, 256, dtype=np.float64)), lo)
+
+
+def _otsu_cumulative(w0: FloatArray, s0: FloatArray, lo: int) -> float:
+    """:func:`otsu_level` from the cumulative counts ``w0`` and level sums ``s0`` of levels ``lo..255``."""
     total = w0[-1]
     if total <= 0:
         return float(lo)
-    s0 = np.cumsum(h * levels)
     w1 = total - w0
     # Both classes non-empty (counts are exact integers in float64); elsewhere -1.
     valid = (w0 > 0) & (w1 > 0)
     w0s, w1s = np.where(valid, w0, 1.0), np.where(valid, w1, 1.0)
     between = np.where(valid, w0 * w1 * (s0 / w0s - (s0[-1] - s0) / w1s) ** 2, -1.0)
-    if between.max() <= 0:
+    best = int(np.argmax(between))
+    if between[best] <= 0:
         return float(lo)
-    return float(levels[int(np.argmax(between))])
+    return float(lo + best)
 
 
 def peak_level(hist: FloatArray, min_count: int) -> float:
@@ -292,18 +299,42 @@ def auto_threshold(
     """
     if hist is None:
         hist = grey_histogram(image)
+    return _threshold_and_peak(hist, config)[0]
+
+
+def _threshold_and_peak(hist: FloatArray, config: LampDetectorConfig) -> tuple[float | None, float]:
+    """:func:`auto_threshold` (or the fixed threshold) and :func:`peak_level` from one histogram.
+
+    The cumulative sums are computed once: those of an upper class ``lo..255``
+    are differences of the whole image's, exact because pixel counts and
+    count x level sums are integers far below 2^53 in float64.
+
+    Args:
+        hist: shape (256,) integer counts per grey level.
+        config: detector settings.
+
+    Returns:
+        ``(k, peak)``: the threshold (None: no lamp can be told from the
+        background) and the lamp peak level.
+    """
     cum = np.cumsum(hist)
     total = cum[-1]
+    above_or_at = total - cum + hist  # pixels >= level
+    hits = np.flatnonzero(above_or_at >= config.min_area_px)
+    peak = float(hits[-1]) if hits.size else 0.0
+    if config.threshold is not None:
+        return float(config.threshold), peak
     median = float(np.searchsorted(cum, 0.5 * total))
-    peak = peak_level(hist, config.min_area_px)
     if peak - median < config.min_contrast_grey:
-        return None
-    k = otsu_level(hist)
+        return None, peak
+    sums = np.cumsum(hist * np.arange(256, dtype=np.float64))
+    k = _otsu_cumulative(cum, sums, 0)
     for _ in range(config.max_otsu_iterations):
         above = total - cum[int(k)]
         if above <= config.max_bright_fraction * total:
             break
-        k_next = otsu_level(hist, int(k) + 1)
+        lo = int(k) + 1
+        k_next = _otsu_cumulative(cum[lo:] - cum[lo - 1], sums[lo:] - sums[lo - 1], lo)
         if k_next <= k:
             break
         k = k_next
@@ -311,7 +342,7 @@ def auto_threshold(
     floor = median + max(
         config.min_relative_level * (peak - median), 0.5 * config.min_contrast_grey
     )
-    return max(k, floor)
+    return max(k, floor), peak
 
 
 def _hist(grey: FloatArray, mask: np.ndarray) -> FloatArray:
@@ -570,192 +601,280 @@ def to_observations(
     cov_c = np.array([mo.cov_centroid for mo in moments])
     cov_m = m_D_px @ cov_c @ m_D_px.transpose(0, 2, 1)
     theta = np.array([mo.theta for mo in moments])
-    e = np.column_stack([np.cos(theta), np.sin(theta)])
-    je = np.einsum("nij,nj->ni", m_D_px, e)
-    axes = wrap_axis(np.arctan2(je[:, 1], je[:, 0]))
-    det = m_D_px[:, 0, 0] * m_D_px[:, 1, 1] - m_D_px[:, 0, 1] * m_D_px[:, 1, 0]
-    gain = det / (je[:, 0] * je[:, 0] + je[:, 1] * je[:, 1])
-    var_axes = gain * gain * np.array([mo.var_theta for mo in moments])
-    out = []
-    for i, mo in enumerate(moments):
-        oriented = mo.ratio > config.ratio_threshold
-        out.append(
-            LampObservation(
-                m=np.asarray(m[i], dtype=np.float64),
-                cov_m=cov_m[i],
-                axis=float(axes[i]) if oriented else None,
-                var_axis=float(var_axes[i]) if oriented else math.inf,
-                ratio=mo.ratio,
-                area_px=mo.area_px,
-                pixel=mo.centroid,
-                landmark_id=None,
-                touches_border=mo.touches_border,
-            )
+    cos_t, sin_t = np.cos(theta), np.sin(theta)
+    j00, j01, j10, j11 = m_D_px[:, 0, 0], m_D_px[:, 0, 1], m_D_px[:, 1, 0], m_D_px[:, 1, 1]
+    je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
+    axes = wrap_axis(np.arctan2(je1, je0)).tolist()
+    gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
+    var_axes = (gain * gain * np.array([mo.var_theta for mo in moments])).tolist()
+    m = np.asarray(m, dtype=np.float64)
+    threshold = config.ratio_threshold
+    return tuple(
+        LampObservation(
+            m=mi,
+            cov_m=ci,
+            axis=ax if mo.ratio > threshold else None,
+            var_axis=va if mo.ratio > threshold else math.inf,
+            ratio=mo.ratio,
+            area_px=mo.area_px,
+            pixel=mo.centroid,
+            landmark_id=None,
+            touches_border=mo.touches_border,
         )
-    return tuple(out)
+        for mo, mi, ci, ax, va in zip(moments, m, cov_m, axes, var_axes, strict=True)
+    )
 
 
-def _pixels(mask: np.ndarray) -> tuple[IntArray, IntArray, IntArray]:
-    """Flat index, row and column of the non-zero pixels of a 2-D array.
+class _Reach(NamedTuple):
+    """The pixels within reach of the labelled blobs of a box, gathered in one pass.
 
-    ``np.flatnonzero`` on the flattened boolean mask is about 10x faster than
-    the 2-D ``np.nonzero``.
+    One entry per pixel within ``support_px + ring_px`` of a blob, in
+    row-major order of the box; labels are those of the label image given to
+    :func:`_gather_reach` (0: none).
+
+    Attributes:
+        rr: shape (P,) row in the box, px.
+        cc: shape (P,) column in the box, px.
+        grey: shape (P,) grey level.
+        sup: shape (P,) label of the support the pixel lies in.
+        ring: shape (P,) label of the background ring the pixel lies in.
     """
-    idx = np.flatnonzero(mask.ravel() > 0)
-    rr, cc = np.divmod(idx, mask.shape[1])
-    return idx, rr, cc
+
+    rr: IntArray
+    cc: IntArray
+    grey: IntArray
+    sup: IntArray
+    ring: IntArray
 
 
-def _row_median(hist: FloatArray) -> FloatArray:
-    """Lower median level of each row of a (R, 256) histogram (0 for empty rows)."""
-    cum = np.cumsum(hist, axis=1)
-    return np.argmax(cum >= 0.5 * cum[:, -1:], axis=1).astype(np.float64)
+def _gather_reach(
+    comp: np.ndarray, binary: np.ndarray, image: ImageU8, config: LampDetectorConfig
+) -> _Reach:
+    """Support and ring labels of every pixel near a blob (one pass over the box).
+
+    Support: the blob dilated by ``support_px``; ring: dilated by
+    ``support_px + ring_px`` minus the support (elliptic disks). Where the
+    dilations of two blobs overlap the larger label wins (grey dilation of the
+    label image); a blob's own pixels keep its label, and other thresholded
+    pixels belong to no support and no ring.
+
+    Args:
+        comp: shape (H, W) uint8 or uint16 labels of the blobs to measure, 0 elsewhere.
+        binary: shape (H, W) uint8, non-zero where thresholded (measured blobs or not).
+        image: shape (H, W) uint8 grey levels.
+        config: detector settings (``support_px``, ``ring_px``).
+
+    Returns:
+        The gathered pixels.
+    """
+    outer = cv2.dilate(comp, _disk(config.support_px + config.ring_px)).ravel()
+    near = cv2.dilate(comp, _disk(config.support_px)).ravel()
+    # Flat nonzero of a flat boolean array: about 10x faster than the 2-D np.nonzero.
+    idx = (outer > 0).nonzero()[0]
+    rr, cc = np.divmod(idx, comp.shape[1])
+    free = binary.ravel().take(idx) == 0
+    near_v = near.take(idx)
+    sup = np.where(free, near_v, comp.ravel().take(idx)).astype(np.intp)
+    ring = np.where(free & (near_v == 0), outer.take(idx), 0).astype(np.intp)
+    return _Reach(rr, cc, image.ravel().take(idx).astype(np.intp), sup, ring)
 
 
-def _label_sums(lab: IntArray, values: list[FloatArray], n: int) -> list[FloatArray]:
-    """Per-label sums of several per-pixel arrays (``np.bincount`` with weights)."""
-    return [np.bincount(lab, weights=v, minlength=n) for v in values]
+# Per-label sums accumulate into this many interleaved bins per label: the
+# pixels of a blob come in long runs, and np.bincount adding each into the same
+# bin as the one before waits on that addition (about 2.5x slower here).
+_LANES = 4
 
 
-def _label_hist(lab: IntArray, grey: IntArray, n: int) -> FloatArray:
-    """Per-label grey-level histograms, shape (n, 256)."""
-    flat = np.bincount(lab * 256 + grey, minlength=n * 256)
-    return flat.reshape(n, 256).astype(np.float64)
+def _lanes(lab: IntArray) -> IntArray:
+    """Bin indices spreading consecutive pixels of a label over :data:`_LANES` bins."""
+    return lab * _LANES + (np.arange(lab.size) & (_LANES - 1))
+
+
+def _label_sums(lanes: IntArray, values: list[FloatArray], n: int) -> FloatArray:
+    """Per-label sums of several per-pixel arrays.
+
+    Args:
+        lanes: shape (P,) :func:`_lanes` of the pixels' labels ``0..n-1``.
+        values: k arrays of shape (P,).
+        n: number of labels.
+
+    Returns:
+        shape (k, n): the sums (integer-valued inputs sum exactly; others differ
+        from a sequential sum by rounding only).
+    """
+    out = np.empty((len(values), n * _LANES))
+    for row, v in zip(out, values, strict=True):
+        row[:] = np.bincount(lanes, weights=v, minlength=n * _LANES)
+    return out.reshape(len(values), n, _LANES).sum(axis=2)
+
+
+def _ranked_levels(
+    lab: IntArray, grey: IntArray, count: IntArray, ranks: list[IntArray]
+) -> list[FloatArray]:
+    """Per-label order statistics of integer grey levels, by one sort.
+
+    Sorting ``256 label + grey`` groups the pixels by label with each group's
+    levels ascending (numpy's sort of a few thousand integers is cheaper than
+    cumulating per-label 256-bin histograms).
+
+    Args:
+        lab: shape (P,) labels ``0..n-1``.
+        grey: shape (P,) levels ``0..255``.
+        count: shape (n,) pixels per label (``np.bincount(lab)``).
+        ranks: arrays of shape (n,): the 0-based rank (ascending) wanted in
+            each label's group; labels without pixels get an arbitrary level.
+
+    Returns:
+        One shape (n,) float array of levels per entry of ``ranks``.
+    """
+    key = np.sort(lab * 256 + grey)
+    start = count.cumsum() - count
+    base = 256 * np.arange(count.size)
+    last = key.size - 1
+    return [(key.take(np.minimum(start + r, last)) - base).astype(np.float64) for r in ranks]
+
+
+def _lower_median_rank(count: IntArray) -> IntArray:
+    """0-based rank of the lower median of ``count`` values (0 for empty groups).
+
+    The first level at which the cumulative count reaches half the total, as
+    for a histogram.
+    """
+    return np.maximum((count + 1) // 2 - 1, 0)
 
 
 def _shape_checks(
-    comp: np.ndarray, image: ImageU8, m: int, peak: float, config: LampDetectorConfig
-) -> tuple[BoolArray, BoolArray]:
+    lab: IntArray,
+    x: FloatArray,
+    y: FloatArray,
+    grey: IntArray,
+    n: int,
+    peak: float,
+    config: LampDetectorConfig,
+) -> tuple[BoolArray, BoolArray, FloatArray]:
     """Vectorised per-blob checks on the thresholded regions.
 
     Args:
-        comp: shape (H, W) compact labels ``1..m`` of the size-accepted blobs, 0 elsewhere.
-        image: the grey image.
-        m: number of blobs.
+        lab: shape (P,) label ``1..n-1`` of each candidate-blob pixel.
+        x: shape (P,) its column, px.
+        y: shape (P,) its row, px.
+        grey: shape (P,) its grey level.
+        n: number of labels (one more than the largest).
         peak: the image's lamp peak level (:func:`peak_level`).
         config: detector settings.
 
     Returns:
-        ``(too_dim (m + 1,), merged (m + 1,))``: too dim to be a light source
-        (``max_peak_drop_grey``), and glare-merger candidates (fill below ``min_fill``).
+        ``(too_dim (n,), merged (n,), top (n,))``: too dim to be a light
+        source (``max_peak_drop_grey``), glare-merger candidates (fill below
+        ``min_fill``), and each blob's level (lower median of its grey levels).
+        Row 0 is meaningless.
     """
-    idx, rr, cc = _pixels(comp)
-    lab = comp.ravel()[idx].astype(np.int64)
-    x, y = cc.astype(np.float64), rr.astype(np.float64)
-    s0, sx, sy, sxx, sxy, syy = _label_sums(
-        lab, [np.ones_like(x), x, y, x * x, x * y, y * y], m + 1
-    )
-    s0 = np.maximum(s0, 1.0)
+    lanes = _lanes(lab)
+    count = np.bincount(lanes, minlength=n * _LANES).reshape(n, _LANES).sum(axis=1)
+    s0 = np.maximum(count, 1).astype(np.float64)
+    sx, sy, sxx, sxy, syy = _label_sums(lanes, [x, y, x * x, x * y, y * y], n)
     cx, cy = sx / s0, sy / s0
     a = sxx / s0 - cx * cx + 1.0 / 12.0
     b = sxy / s0 - cx * cy
     c = syy / s0 - cy * cy + 1.0 / 12.0
     det = np.maximum(a * c - b * b, 1e-12)
     fill = s0 / (4.0 * math.pi * np.sqrt(det))
-    lam_min = 0.5 * (a + c - np.sqrt(np.maximum((a - c) ** 2 + 4 * b * b, 0.0)))
-    thin = np.sqrt(12.0 * np.maximum(lam_min, 0.0)) < config.thin_width_px
-    too_dim = np.zeros(m + 1, dtype=bool)
-    if config.max_peak_drop_grey is not None:
-        hist = _label_hist(lab, image.ravel()[idx].astype(np.int64), m + 1)
-        from_top = np.cumsum(hist[:, ::-1], axis=1)  # pixels >= level (255 - j)
-        fifth = 255.0 - np.argmax(from_top >= np.minimum(5.0, s0)[:, None], axis=1)
-        brightest = 255.0 - np.argmax(from_top >= 1.0, axis=1)
+    too_dim = np.zeros(n, dtype=bool)
+    if config.max_peak_drop_grey is None:
+        (top,) = _ranked_levels(lab, grey, count, [_lower_median_rank(count)])
+    else:
+        # The fifth-brightest level (or the brightest, for thin blobs).
+        fifth_rank = count - np.minimum(5, np.maximum(count, 1))
+        top, fifth, brightest = _ranked_levels(
+            lab, grey, count, [_lower_median_rank(count), fifth_rank, count - 1]
+        )
+        lam_min = 0.5 * (a + c - np.sqrt(np.maximum((a - c) ** 2 + 4 * b * b, 0.0)))
+        thin = np.sqrt(12.0 * np.maximum(lam_min, 0.0)) < config.thin_width_px
         level = np.where(thin, brightest, fifth)
         drop = np.where(thin, config.max_peak_drop_thin_grey, config.max_peak_drop_grey)
         too_dim = level < peak - drop
     too_dim[0] = False
-    return too_dim, fill < config.min_fill
+    return too_dim, fill < config.min_fill, top
 
 
 def _measure_labels(
-    image: ImageU8,
-    binary: np.ndarray,
-    comp: np.ndarray,
-    m: int,
+    reach: _Reach,
+    top: FloatArray,
+    ids: IntArray,
     border: BoolArray,
+    default_bg: Callable[[], float],
     config: LampDetectorConfig,
-    origin: tuple[int, int] = (0, 0),
+    origin: tuple[int, int],
 ) -> list[BlobMoments | None]:
     """Coverage moments of many blobs at once (see the module docstring).
 
     The same computation as :func:`coverage_moments`, vectorised over blobs with
-    per-label ``np.bincount`` sums: support and ring regions come from grey
-    dilations of the label image (a blob's own pixels keep its label; other
-    thresholded pixels belong to no support and no ring).
+    per-label ``np.bincount`` sums over the gathered pixels.
 
     Args:
-        image: shape (H, W) uint8.
-        binary: shape (H, W) uint8 thresholded image.
-        comp: shape (H, W) uint16 compact labels ``1..m`` of the blobs to measure.
-        m: number of blobs.
-        border: shape (m + 1,) bool, blob touches the image border.
+        reach: the pixels near the blobs to measure (:func:`_gather_reach`).
+        top: shape (n,) each blob's level (median grey level inside).
+        ids: shape (B,) the labels to measure, increasing.
+        border: shape (n,) bool, blob touches the image border.
+        default_bg: background level of a blob without any ring pixel.
         config: detector settings.
-        origin: ``(col, row)`` of ``image[0, 0]`` in the full image (a crop).
+        origin: ``(col, row)`` of the box's ``[0, 0]`` in the full image.
 
     Returns:
-        One :class:`BlobMoments` (or None: no contrast) per label ``1..m``,
+        One :class:`BlobMoments` (or None: no contrast) per label of ``ids``,
         centroids in full-image pixels.
     """
-    own_img = comp > 0
-    other_img = (binary > 0) & ~own_img
-    sup_img = cv2.dilate(comp, _disk(config.support_px))
-    sup_img[own_img] = comp[own_img]
-    sup_img[other_img] = 0
-    outer_img = cv2.dilate(comp, _disk(config.support_px + config.ring_px))
-    # One pass over the image: the pixels within reach of a blob, then small arrays.
-    idx, rr, cc = _pixels(outer_img)
-    own_lab = comp.ravel()[idx].astype(np.int64)
-    sup_lab = sup_img.ravel()[idx].astype(np.int64)
-    ring_lab = np.where(
-        (sup_lab == 0) & (binary.ravel()[idx] == 0), outer_img.ravel()[idx], 0
-    ).astype(np.int64)
-    grey = image.ravel()[idx].astype(np.int64)
-    n = m + 1
-    # Lamp level (median inside) and background (median of the ring) per blob.
-    own = own_lab > 0
-    top = _row_median(_label_hist(own_lab[own], grey[own], n))
-    ring = ring_lab > 0
-    ring_hist = _label_hist(ring_lab[ring], grey[ring], n)
-    has_ring = ring_hist.sum(axis=1) > 0
-    bg = _row_median(ring_hist)
-    if not has_ring[1:].all():
-        bg = np.where(has_ring, bg, float(np.median(image)))
-    dev = np.abs(np.arange(256)[None, :] - bg[:, None].astype(np.int64))
-    folded = np.bincount(
-        (np.arange(n)[:, None] * 256 + dev).ravel(), weights=ring_hist.ravel(), minlength=n * 256
-    ).reshape(n, 256)
-    sigma_n = np.maximum(1.4826 * _row_median(folded), config.noise_floor_grey)
+    n = top.size
+    # Background (median of the ring) and its spread (1.4826 MAD) per blob.
+    in_ring = reach.ring > 0
+    ring_lab, ring_grey = reach.ring[in_ring], reach.grey[in_ring]
+    ring_count = np.bincount(ring_lab, minlength=n)
+    has_ring = ring_count > 0
+    median_rank = _lower_median_rank(ring_count)
+    if ring_lab.size:
+        (bg,) = _ranked_levels(ring_lab, ring_grey, ring_count, [median_rank])
+        dev = np.abs(ring_grey - bg.astype(np.intp).take(ring_lab))
+        (mad,) = _ranked_levels(ring_lab, dev, ring_count, [median_rank])
+    else:
+        bg, mad = np.zeros(n), np.zeros(n)
+    if not has_ring.take(ids).all():
+        bg = np.where(has_ring, bg, default_bg())
+        mad = np.where(has_ring, mad, 0.0)
+    sigma_n = np.maximum(1.4826 * mad, config.noise_floor_grey)
     span = top - bg
     ok = span >= config.min_blob_contrast_grey
     span_safe = np.where(ok, span, 1.0)
     # Coverage weights on the support pixels.
-    sup = sup_lab > 0
-    rr, cc, lab = rr[sup], cc[sup], sup_lab[sup]
-    wv = np.clip((grey[sup] - bg[lab]) / span_safe[lab], 0.0, 1.0)
-    x, y = cc.astype(np.float64), rr.astype(np.float64)
-    s0, sx, sy = _label_sums(lab, [wv, wv * x, wv * y], n)
+    sup = reach.sup > 0
+    lab = reach.sup[sup]
+    wv = ((reach.grey[sup] - bg.take(lab)) / span_safe.take(lab)).clip(0.0, 1.0)
+    x, y = reach.cc[sup].astype(np.float64), reach.rr[sup].astype(np.float64)
+    lanes = _lanes(lab)
+    s0, sx, sy = _label_sums(lanes, [wv, wv * x, wv * y], n)
     s0 = np.maximum(s0, 1e-12)
     cx, cy = sx / s0, sy / s0
-    dx, dy = x - cx[lab], y - cy[lab]
-    a, b, c = (v / s0 for v in _label_sums(lab, [wv * dx * dx, wv * dx * dy, wv * dy * dy], n))
+    dx, dy = x - cx.take(lab), y - cy.take(lab)
+    dxx, dxy, dyy = dx * dx, dx * dy, dy * dy
+    a, b, c = _label_sums(lanes, [wv * dxx, wv * dxy, wv * dyy], n) / s0
     theta = 0.5 * np.arctan2(2.0 * b, a - c)
     free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
-    fxx, fxy, fyy = _label_sums(lab, [free * dx * dx, free * dx * dy, free * dy * dy], n)
+    fxx, fxy, fyy = _label_sums(lanes, [free * dxx, free * dxy, free * dyy], n)
     sigma_w2 = (sigma_n / span_safe) ** 2
     xx, yy = a - c, 2.0 * b
     den = xx * xx + yy * yy
     den_safe = np.where(den > 1e-18, den, 1.0)
-    num = xx[lab] * (2.0 * dx * dy - 2.0 * b[lab]) - yy[lab] * (
-        (dx * dx - a[lab]) - (dy * dy - c[lab])
+    num = xx.take(lab) * (2.0 * dxy - 2.0 * b.take(lab)) - yy.take(lab) * (
+        (dxx - a.take(lab)) - (dyy - c.take(lab))
     )
-    (dth2,) = _label_sums(lab, [free * num * num], n)
+    (dth2,) = _label_sums(lanes, [free * num * num], n)
     dth2 = dth2 / (2.0 * s0 * den_safe) ** 2
     # Per-blob results, still vectorised; Python only builds the dataclasses.
+    floor2 = config.sigma_centroid_floor_px**2
+    scale = sigma_w2 / (s0 * s0)
     cov_c = np.empty((n, 2, 2))
-    cov_c[:, 0, 0], cov_c[:, 0, 1], cov_c[:, 1, 1] = fxx, fxy, fyy
-    cov_c[:, 1, 0] = fxy
-    cov_c = sigma_w2[:, None, None] * cov_c / (s0**2)[:, None, None]
-    cov_c += config.sigma_centroid_floor_px**2 * np.eye(2)
+    cov_c[:, 0, 0] = scale * fxx + floor2
+    cov_c[:, 0, 1] = cov_c[:, 1, 0] = scale * fxy
+    cov_c[:, 1, 1] = scale * fyy + floor2
     var_theta = np.where(den > 1e-18, sigma_w2 * dth2 + config.sigma_axis_floor**2, math.inf)
     a12, c12 = a + 1.0 / 12.0, c + 1.0 / 12.0
     cov_s = np.empty((n, 2, 2))
@@ -763,30 +882,41 @@ def _measure_labels(
     disc = np.sqrt(np.maximum((a12 - c12) * (a12 - c12) + 4.0 * b * b, 0.0))
     lam1 = 0.5 * (a12 + c12 + disc)
     lam2 = np.maximum(0.5 * (a12 + c12 - disc), 1e-12)
-    sig1, sig2, ratio = np.sqrt(lam1), np.sqrt(lam2), np.sqrt(lam1 / lam2)
-    theta_w = wrap_axis(theta)
-    centroid = np.column_stack([cx + origin[0], cy + origin[1]])
-    out: list[BlobMoments | None] = []
-    for i in range(1, n):
-        if not ok[i]:
-            out.append(None)
-            continue
-        out.append(
-            BlobMoments(
-                centroid=centroid[i],
-                cov_centroid=cov_c[i],
-                cov_shape=cov_s[i],
-                theta=float(theta_w[i]),
-                var_theta=float(var_theta[i]),
-                sigma1=float(sig1[i]),
-                sigma2=float(sig2[i]),
-                ratio=float(ratio[i]),
-                area_px=float(s0[i]),
-                touches_border=bool(border[i]),
-                contrast=float(span[i]),
-            )
+    sig1, sig2 = np.sqrt(lam1), np.sqrt(lam2)
+    centroid = np.empty((n, 2))
+    centroid[:, 0], centroid[:, 1] = cx + origin[0], cy + origin[1]
+    # Python floats once per array (cheaper than float() per element).
+    rows = zip(
+        ids.tolist(),
+        ok.take(ids).tolist(),
+        wrap_axis(theta.take(ids)).tolist(),
+        var_theta.take(ids).tolist(),
+        sig1.take(ids).tolist(),
+        sig2.take(ids).tolist(),
+        np.sqrt(lam1 / lam2).take(ids).tolist(),
+        s0.take(ids).tolist(),
+        border.take(ids).tolist(),
+        span.take(ids).tolist(),
+        strict=True,
+    )
+    return [
+        BlobMoments(
+            centroid=centroid[i],
+            cov_centroid=cov_c[i],
+            cov_shape=cov_s[i],
+            theta=th,
+            var_theta=vt,
+            sigma1=s1,
+            sigma2=s2,
+            ratio=ra,
+            area_px=ar,
+            touches_border=bo,
+            contrast=sp,
         )
-    return out
+        if good
+        else None
+        for i, good, th, vt, s1, s2, ra, ar, bo, sp in rows
+    ]
 
 
 def measure_blobs(
@@ -798,6 +928,11 @@ def measure_blobs(
     vectorised over blobs; only glare-merger candidates go through the
     per-region path (:func:`_split_glare`, :func:`_measure_region`).
 
+    Everything after the threshold works inside the bounding box of the
+    thresholded pixels, grown by the reach of a blob (support + ring + 1 px).
+    The box starts at even coordinates: OpenCV labels 2x2 blocks in raster
+    order, so the blobs are numbered (and listed) as on the whole image.
+
     Args:
         image: shape (H, W) uint8 grey image.
         config: detector settings.
@@ -807,73 +942,91 @@ def measure_blobs(
     """
     h, w = image.shape
     hist = grey_histogram(image)  # one histogram for the threshold and the lamp peak
-    k = (
-        float(config.threshold)
-        if config.threshold is not None
-        else auto_threshold(image, config, hist)
-    )
+    k, peak = _threshold_and_peak(hist, config)
     mask = np.zeros((h, w), dtype=bool)
     if k is None:
         return [], None, mask, 0
     _, binary = cv2.threshold(image, k, 1, cv2.THRESH_BINARY)  # 1 where image > k
-    n, labels, stats = label_blobs(binary)
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    size_ok = (areas >= config.min_area_px) & (areas <= config.max_area_fraction * h * w)
-    keep = np.flatnonzero(size_ok) + 1
-    n_rejected = int(n - 1 - keep.size)
-    if keep.size == 0:
-        return [], k, mask, n_rejected
-    if keep.size >= 65535:  # pathological noise: far more blobs than lamps
-        log.warning("%d candidate blobs: image too noisy for lamp detection", keep.size)
-        return [], k, mask, n_rejected + int(keep.size)
-    x0, y0 = stats[keep, cv2.CC_STAT_LEFT], stats[keep, cv2.CC_STAT_TOP]
-    x1 = x0 + stats[keep, cv2.CC_STAT_WIDTH]
-    y1 = y0 + stats[keep, cv2.CC_STAT_HEIGHT]
-    border = np.concatenate([[False], (x0 == 0) | (y0 == 0) | (x1 == w) | (y1 == h)])
-    remap = np.zeros(n, dtype=np.uint16)
-    remap[keep] = np.arange(1, keep.size + 1, dtype=np.uint16)
-    # Work inside the union box of the candidates (plus the ring): lamps are sparse.
     pad = config.support_px + config.ring_px + 1
-    bx0, by0 = max(int(x0.min()) - pad, 0), max(int(y0.min()) - pad, 0)
-    bx1, by1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
+    x, y, bw, bh = cv2.boundingRect(binary)
+    if bw == 0:
+        return [], k, mask, 0
+    bx0, by0 = max(x - pad, 0) & ~1, max(y - pad, 0) & ~1
+    bx1, by1 = min(x + bw + pad, w), min(y + bh + pad, h)
     box = (slice(by0, by1), slice(bx0, bx1))
-    comp = remap[labels[box]]
-    peak = peak_level(hist, config.min_area_px)
-    too_dim, merged = _shape_checks(comp, image[box], keep.size, peak, config)
-    n_rejected += int(too_dim.sum())
+    bin_box, img_box = binary[box], image[box]
+    n, labels, stats = label_blobs(bin_box)
+    areas = stats[:, cv2.CC_STAT_AREA]
+    valid = (areas >= config.min_area_px) & (areas <= config.max_area_fraction * h * w)
+    valid[0] = False
+    n_keep = int(np.count_nonzero(valid))
+    n_rejected = n - 1 - n_keep
+    if n_keep == 0:
+        return [], k, mask, n_rejected
+    if n_keep >= 65535:  # pathological noise: far more blobs than lamps
+        log.warning("%d candidate blobs: image too noisy for lamp detection", n_keep)
+        return [], k, mask, n_rejected + n_keep
+    # Candidates renumbered 1..m in label order (the others 0) with one pass over
+    # the thresholded pixels; uint8 labels dilate about twice as fast as uint16.
+    cand = np.flatnonzero(valid)
+    lut = np.zeros(n, dtype=np.intp)
+    lut[cand] = np.arange(1, n_keep + 1)
+    pix = np.flatnonzero(labels.ravel() > 0)
+    pix_lab = lut[labels.ravel()[pix]]
+    comp = np.zeros(labels.shape, dtype=np.uint8 if n_keep < 256 else np.uint16)
+    comp_flat = comp.reshape(-1)  # a view: comp is contiguous
+    comp_flat[pix] = pix_lab
+    x0 = stats[cand, cv2.CC_STAT_LEFT] + bx0
+    y0 = stats[cand, cv2.CC_STAT_TOP] + by0
+    x1 = x0 + stats[cand, cv2.CC_STAT_WIDTH]
+    y1 = y0 + stats[cand, cv2.CC_STAT_HEIGHT]
+    border = np.concatenate(([False], (x0 == 0) | (y0 == 0) | (x1 == w) | (y1 == h)))
+    # Measure inside the union box of the candidates (plus the reach): lamps are sparse.
+    mx0, my0 = max(int(x0.min()) - pad, 0), max(int(y0.min()) - pad, 0)
+    mx1, my1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
+    sub = (slice(my0 - by0, my1 - by0), slice(mx0 - bx0, mx1 - bx0))
+    comp_m, bin_m, img_m = comp[sub], bin_box[sub], img_box[sub]
+    own = pix_lab > 0
+    own_pix, own_lab = pix[own], pix_lab[own]
+    rr, cc = np.divmod(own_pix, labels.shape[1])
+    too_dim, merged, top = _shape_checks(
+        own_lab,
+        (cc - (mx0 - bx0)).astype(np.float64),
+        (rr - (my0 - by0)).astype(np.float64),
+        image[rr + by0, cc + bx0].astype(np.intp),
+        n_keep + 1,
+        peak,
+        config,
+    )
+    n_rejected += int(np.count_nonzero(too_dim))
     good = ~too_dim & ~merged
     good[0] = False
-    remap2 = np.zeros(keep.size + 1, dtype=np.uint16)
-    good_ids = np.flatnonzero(good)
-    remap2[good_ids] = np.arange(1, good_ids.size + 1, dtype=np.uint16)
-    comp2 = comp if good_ids.size == keep.size else remap2[comp]  # identity when all pass
+    if not good[1:].all():  # the others leave the label image
+        comp_flat[own_pix[~good[own_lab]]] = 0
+
+    def default_bg() -> float:
+        """Median grey level of the candidates' box (background of a blob without ring)."""
+        return float(np.median(img_m))
+
     out: list[BlobMoments] = []
-    if good_ids.size:
-        res = _measure_labels(
-            image[box],
-            binary[box],
-            comp2,
-            good_ids.size,
-            border[np.concatenate(([0], good_ids))],
-            config,
-            origin=(bx0, by0),
-        )
-        for mom in res:
+    ids = np.flatnonzero(good)
+    if ids.size:
+        reach = _gather_reach(comp_m, bin_m, img_m, config)
+        res = _measure_labels(reach, top, ids, border, default_bg, config, (mx0, my0))
+        ok_lab = np.zeros(n_keep + 1, dtype=bool)
+        for i, mom in zip(ids.tolist(), res, strict=True):
             if mom is None:
                 n_rejected += 1
             else:
                 out.append(mom)
-        ok_lab = np.zeros(good_ids.size + 1, dtype=bool)
-        ok_lab[1:] = [mom is not None for mom in res]
-        mask[box] |= (comp2 > 0) if ok_lab[1:].all() else ok_lab[comp2]
+                ok_lab[i] = True
+        mask[my0:my1, mx0:mx1] |= (comp_m > 0) if len(out) == ids.size else ok_lab[comp_m]
     # Glare-merger candidates: per region, re-thresholded higher.
-    for j in np.flatnonzero(merged & ~too_dim):
-        if j == 0:
-            continue
-        idx = int(keep[j - 1])
-        c0, r0 = max(int(x0[j - 1]) - pad, 0), max(int(y0[j - 1]) - pad, 0)
-        c1, r1 = min(int(x1[j - 1]) + pad, w), min(int(y1[j - 1]) + pad, h)
-        lab_roi = labels[r0:r1, c0:c1]
+    for j in np.flatnonzero(merged[1:] & ~too_dim[1:]).tolist():
+        idx = int(cand[j])
+        c0, r0 = max(int(x0[j]) - pad, 0), max(int(y0[j]) - pad, 0)
+        c1, r1 = min(int(x1[j]) + pad, w), min(int(y1[j]) + pad, h)
+        lab_roi = labels[r0 - by0 : r1 - by0, c0 - bx0 : c1 - bx0]
         core = lab_roi == idx
         others = (lab_roi != 0) & ~core
         grey = image[r0:r1, c0:c1].astype(np.float64)
@@ -884,7 +1037,9 @@ def measure_blobs(
             continue
         for reg in split:
             others_reg = others | (core & ~cv2.dilate(reg.astype(np.uint8), _disk(1)).astype(bool))
-            mom = _measure_region(grey, reg, others_reg & ~reg, (c0, r0), bool(border[j]), config)
+            mom = _measure_region(
+                grey, reg, others_reg & ~reg, (c0, r0), bool(border[j + 1]), config
+            )
             if mom is None:
                 n_rejected += 1
                 continue
@@ -907,7 +1062,7 @@ def detect_lamps(
     Returns:
         All accepted lamps, border blobs included and flagged.
     """
-    config = config or LampDetectorConfig()
+    config = config or _DEFAULT_CONFIG
     moments, k, mask, n_rej = measure_blobs(image, config)
     if not moments:
         return LampDetections((), (), k, mask, n_rej)
