@@ -161,29 +161,43 @@ def _normalise_patches(raw: np.ndarray) -> np.ndarray:
     return np.divide(patches, nn, out=np.zeros_like(patches), where=nn > 0)
 
 
-def _forbid_near(allowed: np.ndarray, lamp_mask: BoolArray, margin: float) -> None:
-    """Zero ``allowed`` within ``margin`` of the lamp mask (3x3 L2 distance), in place.
-
-    One dilation with the exact footprint of OpenCV's 3x3 L2 distance
-    (:func:`margin_kernel`: the same pixels as thresholding the distance
-    transform, about 8x faster), restricted to the mask's bounding box grown
-    by the footprint's radius (lamps cover a small part of a frame).
-
-    Args:
-        allowed: shape (H, W) uint8 detection mask (modified).
-        lamp_mask: shape (H, W) bool lamp pixels.
-        margin: distance, px.
-    """
-    mask_u8 = np.ascontiguousarray(lamp_mask, dtype=bool).view(np.uint8)
-    x, y, bw, bh = cv2.boundingRect(mask_u8)
-    if bw == 0:
-        return
+@functools.lru_cache(maxsize=8)
+def _margin_offsets(margin: float) -> IntArray:
+    """Offsets ``(d_col, d_row)`` of the :func:`margin_kernel` footprint, shape (K, 2)."""
     kernel = margin_kernel(margin)
     r = kernel.shape[0] // 2
-    h, w = mask_u8.shape
-    c0, r0, c1, r1 = max(x - r, 0), max(y - r, 0), min(x + bw + r, w), min(y + bh + r, h)
-    near = cv2.dilate(mask_u8[r0:r1, c0:c1], kernel)
-    allowed[r0:r1, c0:c1][near > 0] = 0
+    rows, cols = np.nonzero(kernel)
+    return np.column_stack([cols - r, rows - r]).astype(np.intp)
+
+
+def _near_mask(mask: BoolArray, pixels: IntArray, margin: float) -> BoolArray:
+    """Which pixels lie within ``margin`` of the mask (3x3 L2 distance).
+
+    The same test as dilating the mask with :func:`margin_kernel` and reading
+    the pixels (the footprint is symmetric), done only at the pixels: one
+    gather of the mask at every footprint offset around each.
+
+    Args:
+        mask: shape (H, W) bool.
+        pixels: shape (N, 2) int ``(col, row)`` inside the image.
+        margin: distance, px.
+
+    Returns:
+        shape (N,) bool.
+    """
+    offsets = _margin_offsets(margin)
+    m = np.ascontiguousarray(mask, dtype=bool)
+    h, w = m.shape
+    if pixels.shape[0] == 0 or offsets.shape[0] == 0:
+        return np.zeros(pixels.shape[0], dtype=bool)
+    r = int(np.abs(offsets).max())
+    lo, hi = pixels.min(axis=0), pixels.max(axis=0)
+    if min(lo[0], lo[1]) < r or hi[0] >= w - r or hi[1] >= h - r:
+        m = np.pad(m, r)  # outside the image is not lamp
+        pixels = pixels + r
+        w += 2 * r
+    flat = (pixels[:, 1] * w + pixels[:, 0])[:, None] + (offsets[:, 1] * w + offsets[:, 0])
+    return m.reshape(-1).take(flat).any(axis=1)
 
 
 def extract_patches(image: ImageU8, pixels: IntArray, size: int) -> np.ndarray:
@@ -217,24 +231,29 @@ def detect_corner_pixels(
     h, w = image.shape
     p = config.patch_size
     half = p // 2
-    allowed = np.zeros((h, w), np.uint8)
-    allowed[half : h - half, half : w - half] = 255
-    if lamp_mask is not None:
-        _forbid_near(allowed, lamp_mask, config.lamp_margin_px)
-    fast = cv2.FastFeatureDetector.create(config.fast_threshold, True)
-    kps = fast.detect(image, allowed)
+    # FAST over the whole image, then the border and lamp-margin filter on the
+    # keypoints (what OpenCV does with a detection mask, without building one).
+    kps = cv2.FastFeatureDetector.create(config.fast_threshold, True).detect(image)
     if not kps:
         return _empty(p)
     pts = np.asarray(cv2.KeyPoint.convert(kps), dtype=np.float64).reshape(-1, 2)
     resp = np.array([kp.response for kp in kps], dtype=np.float64)
+    ij = pts.astype(np.intp)  # FAST keypoints lie on pixel centres
+    keep = (ij[:, 0] >= half) & (ij[:, 0] < w - half) & (ij[:, 1] >= half) & (ij[:, 1] < h - half)
+    # (compress: boolean-mask indexing of 2-D arrays is several times slower)
+    if lamp_mask is not None:
+        keep[keep] = ~_near_mask(lamp_mask, ij.compress(keep, axis=0), config.lamp_margin_px)
+    if not keep.any():
+        return _empty(p)
+    pts, resp = pts.compress(keep, axis=0), resp.compress(keep)
     # Bound the work on large images: the strongest candidates only.
     cap = 20 * config.max_corners
     if resp.size > cap:
         top = np.argpartition(-resp, cap)[:cap]
         pts, resp = pts[top], resp[top]
     keep = spacing_nms(pts, resp, config.min_spacing_px)
-    ij = np.round(pts[keep]).astype(np.int64)
-    resp = resp[keep]
+    ij = np.round(pts.compress(keep, axis=0)).astype(np.int64)
+    resp = resp.compress(keep)
     order = np.argsort(-resp, kind="stable")[: config.max_corners]
     ij, resp = ij[order], resp[order]
     pix = ij.astype(np.float64)
@@ -249,21 +268,25 @@ def detect_corner_pixels(
             .astype(np.float64)
         )
         moved = np.abs(ref - pix).max(axis=1) <= win
-        pix[moved] = ref[moved]
+        pix = np.where(moved[:, None], ref, pix)
         ij = np.round(pix).astype(np.int64)
         inside = (
             (ij[:, 0] >= half) & (ij[:, 0] < w - half) & (ij[:, 1] >= half) & (ij[:, 1] < h - half)
         )
-        ij, pix, resp = ij[inside], pix[inside], resp[inside]
+        ij, pix = ij.compress(inside, axis=0), pix.compress(inside, axis=0)
+        resp = resp.compress(inside)
     # Flat patches (std below the floor) are useless for NCC; the std is the
     # zero-mean patch's norm / P.
     centred, norms = _centre_patches(_windows(image, ij, p))
     ok = norms >= config.min_patch_std_grey * p
-    nn = norms[ok][:, None, None]
+    nn = norms.compress(ok)[:, None, None]
     patches = np.divide(
-        centred[ok], nn, out=np.zeros((nn.shape[0], p, p), np.float32), where=nn > 0
+        centred.compress(ok, axis=0),
+        nn,
+        out=np.zeros((nn.shape[0], p, p), np.float32),
+        where=nn > 0,
     )
-    return CornerDetections(pix[ok], resp[ok], patches)
+    return CornerDetections(pix.compress(ok, axis=0), resp.compress(ok), patches)
 
 
 def detect_corners(

@@ -248,19 +248,26 @@ def otsu_level(hist: FloatArray, lo: int = 0) -> float:
 
 
 def _otsu_cumulative(w0: FloatArray, s0: FloatArray, lo: int) -> float:
-    """:func:`otsu_level` from the cumulative counts ``w0`` and level sums ``s0`` of levels ``lo..255``."""
+    """:func:`otsu_level` from the cumulative counts ``w0`` and level sums ``s0`` of levels ``lo..255``.
+
+    Both classes are non-empty exactly on ``first <= t < last`` (``first``: the
+    first occupied level, ``last``: the first level holding every pixel), so
+    only that range is scored.
+    """
     total = w0[-1]
     if total <= 0:
         return float(lo)
-    w1 = total - w0
-    # Both classes non-empty (counts are exact integers in float64); elsewhere -1.
-    valid = (w0 > 0) & (w1 > 0)
-    w0s, w1s = np.where(valid, w0, 1.0), np.where(valid, w1, 1.0)
-    between = np.where(valid, w0 * w1 * (s0 / w0s - (s0[-1] - s0) / w1s) ** 2, -1.0)
-    best = int(np.argmax(between))
+    first = int(np.searchsorted(w0, 0.0, side="right"))
+    last = int(np.searchsorted(w0, total, side="left"))
+    if last <= first:
+        return float(lo)
+    w0v, s0v = w0[first:last], s0[first:last]
+    w1v = total - w0v
+    between = w0v * w1v * (s0v / w0v - (s0[-1] - s0v) / w1v) ** 2
+    best = int(between.argmax())
     if between[best] <= 0:
         return float(lo)
-    return float(lo + best)
+    return float(lo + first + best)
 
 
 def peak_level(hist: FloatArray, min_count: int) -> float:
@@ -317,17 +324,21 @@ def _threshold_and_peak(hist: FloatArray, config: LampDetectorConfig) -> tuple[f
         ``(k, peak)``: the threshold (None: no lamp can be told from the
         background) and the lamp peak level.
     """
-    cum = np.cumsum(hist)
+    cum = hist.cumsum()
     total = cum[-1]
-    above_or_at = total - cum + hist  # pixels >= level
-    hits = np.flatnonzero(above_or_at >= config.min_area_px)
-    peak = float(hits[-1]) if hits.size else 0.0
+    # The brightest level reached by min_area_px pixels: a few steps down from 255.
+    peak, above = 0.0, 0.0
+    for level, count in zip(range(255, -1, -1), hist[::-1].tolist(), strict=True):
+        above += count
+        if above >= config.min_area_px:
+            peak = float(level)
+            break
     if config.threshold is not None:
         return float(config.threshold), peak
     median = float(np.searchsorted(cum, 0.5 * total))
     if peak - median < config.min_contrast_grey:
         return None, peak
-    sums = np.cumsum(hist * np.arange(256, dtype=np.float64))
+    sums = (hist * np.arange(256, dtype=np.float64)).cumsum()
     k = _otsu_cumulative(cum, sums, 0)
     for _ in range(config.max_otsu_iterations):
         above = total - cum[int(k)]
@@ -633,15 +644,13 @@ class _Reach(NamedTuple):
     :func:`_gather_reach` (0: none).
 
     Attributes:
-        rr: shape (P,) row in the box, px.
-        cc: shape (P,) column in the box, px.
+        xy: shape (2, P) float ``(col, row)`` in the box, px.
         grey: shape (P,) grey level.
         sup: shape (P,) label of the support the pixel lies in.
         ring: shape (P,) label of the background ring the pixel lies in.
     """
 
-    rr: IntArray
-    cc: IntArray
+    xy: FloatArray
     grey: IntArray
     sup: IntArray
     ring: IntArray
@@ -671,12 +680,13 @@ def _gather_reach(
     near = cv2.dilate(comp, _disk(config.support_px)).ravel()
     # Flat nonzero of a flat boolean array: about 10x faster than the 2-D np.nonzero.
     idx = (outer > 0).nonzero()[0]
-    rr, cc = np.divmod(idx, comp.shape[1])
+    xy = np.empty((2, idx.size))
+    np.divmod(idx, comp.shape[1], out=(xy[1], xy[0]))
     free = binary.ravel().take(idx) == 0
     near_v = near.take(idx)
     sup = np.where(free, near_v, comp.ravel().take(idx)).astype(np.intp)
     ring = np.where(free & (near_v == 0), outer.take(idx), 0).astype(np.intp)
-    return _Reach(rr, cc, image.ravel().take(idx).astype(np.intp), sup, ring)
+    return _Reach(xy, image.ravel().take(idx).astype(np.intp), sup, ring)
 
 
 # Per-label sums accumulate into this many interleaved bins per label: the
@@ -690,12 +700,12 @@ def _lanes(lab: IntArray) -> IntArray:
     return lab * _LANES + (np.arange(lab.size) & (_LANES - 1))
 
 
-def _label_sums(lanes: IntArray, values: list[FloatArray], n: int) -> FloatArray:
+def _label_sums(lanes: IntArray, values: list[FloatArray] | FloatArray, n: int) -> FloatArray:
     """Per-label sums of several per-pixel arrays.
 
     Args:
         lanes: shape (P,) :func:`_lanes` of the pixels' labels ``0..n-1``.
-        values: k arrays of shape (P,).
+        values: k arrays of shape (P,) (or the rows of a (k, P) array).
         n: number of labels.
 
     Returns:
@@ -826,8 +836,9 @@ def _measure_labels(
     """
     n = top.size
     # Background (median of the ring) and its spread (1.4826 MAD) per blob.
-    in_ring = reach.ring > 0
-    ring_lab, ring_grey = reach.ring[in_ring], reach.grey[in_ring]
+    # (index arrays: boolean-mask indexing is several times slower here)
+    in_ring = (reach.ring > 0).nonzero()[0]
+    ring_lab, ring_grey = reach.ring.take(in_ring), reach.grey.take(in_ring)
     ring_count = np.bincount(ring_lab, minlength=n)
     has_ring = ring_count > 0
     median_rank = _lower_median_rank(ring_count)
@@ -845,27 +856,28 @@ def _measure_labels(
     ok = span >= config.min_blob_contrast_grey
     span_safe = np.where(ok, span, 1.0)
     # Coverage weights on the support pixels.
-    sup = reach.sup > 0
-    lab = reach.sup[sup]
-    wv = ((reach.grey[sup] - bg.take(lab)) / span_safe.take(lab)).clip(0.0, 1.0)
-    x, y = reach.cc[sup].astype(np.float64), reach.rr[sup].astype(np.float64)
+    sup = (reach.sup > 0).nonzero()[0]
+    lab = reach.sup.take(sup)
+    xy = reach.xy.take(sup, axis=1)
+    level = np.array([bg, span_safe]).take(lab, axis=1)
+    wv = ((reach.grey.take(sup) - level[0]) / level[1]).clip(0.0, 1.0)
     lanes = _lanes(lab)
-    s0, sx, sy = _label_sums(lanes, [wv, wv * x, wv * y], n)
+    wxy = wv * xy
+    s0, sx, sy = _label_sums(lanes, [wv, wxy[0], wxy[1]], n)
     s0 = np.maximum(s0, 1e-12)
     cx, cy = sx / s0, sy / s0
-    dx, dy = x - cx.take(lab), y - cy.take(lab)
-    dxx, dxy, dyy = dx * dx, dx * dy, dy * dy
-    a, b, c = _label_sums(lanes, [wv * dxx, wv * dxy, wv * dyy], n) / s0
+    d = xy - np.array([cx, cy]).take(lab, axis=1)
+    q = d[(0, 0, 1),] * d[(0, 1, 1),]  # dx^2, dx dy, dy^2
+    a, b, c = _label_sums(lanes, wv * q, n) / s0
     theta = 0.5 * np.arctan2(2.0 * b, a - c)
     free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
-    fxx, fxy, fyy = _label_sums(lanes, [free * dxx, free * dxy, free * dyy], n)
+    fxx, fxy, fyy = _label_sums(lanes, free * q, n)
     sigma_w2 = (sigma_n / span_safe) ** 2
     xx, yy = a - c, 2.0 * b
     den = xx * xx + yy * yy
     den_safe = np.where(den > 1e-18, den, 1.0)
-    num = xx.take(lab) * (2.0 * dxy - 2.0 * b.take(lab)) - yy.take(lab) * (
-        (dxx - a.take(lab)) - (dyy - c.take(lab))
-    )
+    px, pb, py, pa, pc = np.array([xx, b, yy, a, c]).take(lab, axis=1)
+    num = px * (2.0 * q[1] - 2.0 * pb) - py * ((q[0] - pa) - (q[2] - pc))
     (dth2,) = _label_sums(lanes, [free * num * num], n)
     dth2 = dth2 / (2.0 * s0 * den_safe) ** 2
     # Per-blob results, still vectorised; Python only builds the dataclasses.
@@ -967,33 +979,41 @@ def measure_blobs(
         log.warning("%d candidate blobs: image too noisy for lamp detection", n_keep)
         return [], k, mask, n_rejected + n_keep
     # Candidates renumbered 1..m in label order (the others 0) with one pass over
-    # the thresholded pixels; uint8 labels dilate about twice as fast as uint16.
-    cand = np.flatnonzero(valid)
-    lut = np.zeros(n, dtype=np.intp)
-    lut[cand] = np.arange(1, n_keep + 1)
-    pix = np.flatnonzero(labels.ravel() > 0)
-    pix_lab = lut[labels.ravel()[pix]]
-    comp = np.zeros(labels.shape, dtype=np.uint8 if n_keep < 256 else np.uint16)
-    comp_flat = comp.reshape(-1)  # a view: comp is contiguous
-    comp_flat[pix] = pix_lab
-    x0 = stats[cand, cv2.CC_STAT_LEFT] + bx0
-    y0 = stats[cand, cv2.CC_STAT_TOP] + by0
-    x1 = x0 + stats[cand, cv2.CC_STAT_WIDTH]
-    y1 = y0 + stats[cand, cv2.CC_STAT_HEIGHT]
-    border = np.concatenate(([False], (x0 == 0) | (y0 == 0) | (x1 == w) | (y1 == h)))
+    # their pixels; uint8 labels dilate about twice as fast as uint16.
+    label_dtype: type[np.unsignedinteger] = np.uint8 if n_keep < 256 else np.uint16
+    flat = labels.reshape(-1)
+    pix = (flat > 0).nonzero()[0]
+    if n_rejected == 0:  # every blob is a candidate: the labels already are 1..m
+        comp: np.ndarray = labels.astype(label_dtype)
+        pix_lab = flat.take(pix).astype(np.intp)
+        cand = np.arange(1, n)
+    else:
+        cand = valid.nonzero()[0]
+        lut = np.zeros(n, dtype=np.intp)
+        lut[cand] = np.arange(1, n_keep + 1)
+        pix_lab = lut.take(flat.take(pix))
+        comp = np.zeros(labels.shape, dtype=label_dtype)
+        comp.reshape(-1)[pix] = pix_lab  # comp is contiguous: reshape is a view
+        keep = pix_lab > 0
+        pix, pix_lab = pix.compress(keep), pix_lab.compress(keep)
+    box_stats = stats[cand]
+    x0 = box_stats[:, cv2.CC_STAT_LEFT] + bx0
+    y0 = box_stats[:, cv2.CC_STAT_TOP] + by0
+    x1 = x0 + box_stats[:, cv2.CC_STAT_WIDTH]
+    y1 = y0 + box_stats[:, cv2.CC_STAT_HEIGHT]
+    border = np.zeros(n_keep + 1, dtype=bool)
+    border[1:] = (x0 == 0) | (y0 == 0) | (x1 == w) | (y1 == h)
     # Measure inside the union box of the candidates (plus the reach): lamps are sparse.
     mx0, my0 = max(int(x0.min()) - pad, 0), max(int(y0.min()) - pad, 0)
     mx1, my1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
     sub = (slice(my0 - by0, my1 - by0), slice(mx0 - bx0, mx1 - bx0))
     comp_m, bin_m, img_m = comp[sub], bin_box[sub], img_box[sub]
-    own = pix_lab > 0
-    own_pix, own_lab = pix[own], pix_lab[own]
-    rr, cc = np.divmod(own_pix, labels.shape[1])
+    rr, cc = np.divmod(pix, labels.shape[1])
     too_dim, merged, top = _shape_checks(
-        own_lab,
+        pix_lab,
         (cc - (mx0 - bx0)).astype(np.float64),
         (rr - (my0 - by0)).astype(np.float64),
-        image[rr + by0, cc + bx0].astype(np.intp),
+        image.reshape(-1).take((rr + by0) * w + (cc + bx0)).astype(np.intp),
         n_keep + 1,
         peak,
         config,
@@ -1002,7 +1022,7 @@ def measure_blobs(
     good = ~too_dim & ~merged
     good[0] = False
     if not good[1:].all():  # the others leave the label image
-        comp_flat[own_pix[~good[own_lab]]] = 0
+        comp.reshape(-1)[pix.compress(~good.take(pix_lab))] = 0
 
     def default_bg() -> float:
         """Median grey level of the candidates' box (background of a blob without ring)."""

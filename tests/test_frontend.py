@@ -22,6 +22,7 @@ from lampsam.evaluation.frontend_eval import (
 )
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
+    _near_mask,
     detect_corner_pixels,
     extract_patches,
     margin_kernel,
@@ -29,6 +30,11 @@ from lampsam.frontend.corners import (
 )
 from lampsam.frontend.lamps import (
     LampDetectorConfig,
+    _label_sums,
+    _lanes,
+    _lower_median_rank,
+    _measure_region,
+    _ranked_levels,
     auto_threshold,
     ceiling_jacobians,
     detect_lamps,
@@ -357,3 +363,96 @@ def test_batched_lamp_observations_match_per_lamp(rng: np.random.Generator) -> N
             assert batch[i].var_axis == pytest.approx(one.var_axis, rel=1e-12)
         else:
             assert math.isinf(batch[i].var_axis)
+
+
+def _lamp_image(rng: np.random.Generator, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Blurred, noisy tubes and discs (one touching the border), shifted by (cols, rows)."""
+    image = np.full((240, 320), 45, np.uint8)
+    for r, c, hh, ww in ((41, 51, 7, 40), (151, 201, 30, 9), (101, 121, 12, 12), (0, 280, 9, 30)):
+        image[r : r + hh, c : c + ww] = 250
+    image[200:205, 20:60] = 190  # dimmer than the lamps: rejected as too dim
+    image = cv2.GaussianBlur(image, (5, 5), 1.0)
+    image[10:12, 10:12] = 250  # a speck: rejected by size
+    image = np.roll(image, shift, axis=(1, 0))
+    return np.clip(image + rng.normal(0.0, 2.0, image.shape), 0, 255).astype(np.uint8)
+
+
+def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> None:
+    """``measure_blobs`` (all blobs at once, inside a box of the thresholded pixels)
+    equals the one-region reference ``_measure_region`` blob by blob (1e-9), in the
+    label order of the whole image, whatever the box offset (odd shifts included)."""
+    cfg = LampDetectorConfig()
+    for shift in ((0, 0), (1, 0), (0, 1), (3, 5), (-7, 2)):
+        image = _lamp_image(rng, shift)
+        moments, k, mask, n_rejected = measure_blobs(image, cfg)
+        assert k is not None and len(moments) == 4 and n_rejected == 2
+        _, binary = cv2.threshold(image, k, 1, cv2.THRESH_BINARY)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+        big = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= cfg.min_area_px]
+        big = [i for i in big if image[labels == i].max() > 200]  # the lamps, label order
+        assert len(big) == 4
+        pad = cfg.support_px + cfg.ring_px + 1
+        for mom, i in zip(moments, big, strict=True):
+            x, y, w, h = stats[i, :4]
+            c0, r0 = max(x - pad, 0), max(y - pad, 0)
+            roi = labels[r0 : y + h + pad, c0 : x + w + pad]
+            grey = image[r0 : y + h + pad, c0 : x + w + pad].astype(np.float64)
+            border = x == 0 or y == 0 or x + w == 320 or y + h == 240
+            ref = _measure_region(grey, roi == i, (roi != 0) & (roi != i), (c0, r0), border, cfg)
+            assert ref is not None
+            np.testing.assert_allclose(mom.centroid, ref.centroid, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(mom.cov_centroid, ref.cov_centroid, rtol=1e-9, atol=1e-15)
+            np.testing.assert_allclose(mom.cov_shape, ref.cov_shape, rtol=0, atol=1e-9)
+            assert mom.theta == pytest.approx(ref.theta, abs=1e-9)
+            assert mom.var_theta == pytest.approx(ref.var_theta, rel=1e-9)
+            assert mom.area_px == pytest.approx(ref.area_px, rel=1e-12)
+            assert mom.contrast == ref.contrast and mom.touches_border == ref.touches_border
+            assert mask[labels == i].all()
+
+
+def test_per_label_order_statistics_and_sums(rng: np.random.Generator) -> None:
+    """Sort-based per-label medians / ranks and interleaved per-label sums against
+    direct per-label numpy on pixels that come in long runs of one label."""
+    lab = np.repeat(rng.integers(0, 6, 40), rng.integers(1, 200, 40))
+    grey = rng.integers(0, 256, lab.size)
+    values = rng.normal(0.0, 100.0, (3, lab.size))
+    count = np.bincount(lab, minlength=7)
+    median, top = _ranked_levels(lab, grey, count, [_lower_median_rank(count), count - 1])
+    sums = _label_sums(_lanes(lab), values, 7)
+    for j in range(7):
+        g = np.sort(grey[lab == j])
+        if g.size:
+            assert median[j] == g[(g.size + 1) // 2 - 1] and top[j] == g[-1]
+        np.testing.assert_allclose(sums[:, j], values[:, lab == j].sum(axis=1), atol=1e-9)
+
+
+def test_otsu_level_matches_exhaustive_search(rng: np.random.Generator) -> None:
+    """Otsu scored on the occupied range equals the exhaustive between-class maximum."""
+    for trial in range(200):
+        hist = np.zeros(256)
+        levels = rng.integers(0, 256, rng.integers(1, 6))
+        hist[levels] = rng.integers(1, 500, levels.size)
+        lo = int(rng.integers(0, 200)) if trial % 2 else 0
+        best, arg = 0.0, float(lo)
+        h = hist[lo:]
+        for t in range(h.size):
+            w0, w1 = h[: t + 1].sum(), h[t + 1 :].sum()
+            if w0 > 0 and w1 > 0:
+                m0 = (h[: t + 1] * np.arange(lo, lo + t + 1)).sum() / w0
+                m1 = (h[t + 1 :] * np.arange(lo + t + 1, 256)).sum() / w1
+                score = w0 * w1 * (m0 - m1) ** 2
+                if score > best * (1 + 1e-12):
+                    best, arg = score, float(lo + t)
+        assert otsu_level(hist, lo) == arg
+
+
+def test_lamp_margin_filter_matches_dilation(rng: np.random.Generator) -> None:
+    """The keypoint-side margin test equals reading the dilated lamp mask, borders included."""
+    for margin in (1, 4, 7.5):
+        mask = np.zeros((60, 80), bool)
+        for _ in range(4):
+            r, c = rng.integers(-3, 60), rng.integers(-3, 80)
+            mask[max(r, 0) : r + rng.integers(1, 12), max(c, 0) : c + rng.integers(1, 12)] = True
+        near = cv2.dilate(mask.view(np.uint8), margin_kernel(margin)) > 0
+        pixels = np.column_stack([rng.integers(0, 80, 300), rng.integers(0, 60, 300)])
+        assert np.array_equal(_near_mask(mask, pixels, margin), near[pixels[:, 1], pixels[:, 0]])
