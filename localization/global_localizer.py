@@ -256,6 +256,18 @@ class FilterConfig:
             map the two agree to within one cell (5 cm) on 95 % of the beams
             and to 0.25 m on 99 %, and a 20,000-particle x 180-beam update takes
             0.08 s instead of 2.8 s (docs/table1.md).
+        keep_scans_on_restart: after a failed verification, the virtual scans
+            of the earlier turns stay in the filter of the next attempt (in
+            :attr:`Mode.PROPOSED` and :attr:`Mode.OURS`): a particle at pose
+            ``x`` now is scored on an earlier scan at ``x`` composed with the
+            odometry from now back to the end of that turn (the filter's motion
+            model, without noise: the robot turned once and drove about 2 m in
+            between). The paper only says the process is repeated, so the
+            default is False (start from scratch, as the paper). Tried on
+            office trial 7 (three turns without SIFT candidates in a row, each
+            scan fitting a 90-degree twin of the near-square room best): the
+            second estimate moved from 3.7 m to 0.5 m off, not enough to pass
+            verification, so it did not save the trial; off in docs/table1.md.
     """
 
     particles_per_candidate: int = 300
@@ -280,6 +292,7 @@ class FilterConfig:
     recheck_radius: float = 0.25
     recheck_particles: int = 200
     expected_ranges: Literal["table", "march"] = "table"
+    keep_scans_on_restart: bool = False
 
 
 @dataclass(frozen=True)
@@ -522,6 +535,57 @@ def _turn_stage(
     return collector.candidates, scan, odom_end, robot_s, compute
 
 
+@dataclass(frozen=True)
+class KeptScan:
+    """A virtual scan of an earlier turn, kept for the next attempt.
+
+    Attributes:
+        ranges: (B,) ranges of the scan's used beams (m, NaN = no return).
+        angles: (B,) their bearings (rad, body frame).
+        odom: (3,) the odometry pose at the end of that turn.
+    """
+
+    ranges: FloatArray
+    angles: FloatArray
+    odom: FloatArray
+
+
+class JointScanModel:
+    """A measurement model that also scores earlier scans through the odometry.
+
+    ``log p(z, z_1..z_K | x) = log p(z | x) + sum_k log p(z_k | x (+) delta_k)``
+    with ``delta_k = between(odom_now, odom_k)``: the pose at the end of turn
+    ``k`` seen from the current one (odometry frame), so ``x (+) delta_k`` is
+    where a particle now was then.
+
+    Args:
+        model: the per-scan model (ray casting or likelihood field).
+        kept: the earlier scans.
+        odom_now: (3,) the odometry pose the particles refer to.
+    """
+
+    def __init__(self, model: Any, kept: Sequence[KeptScan], odom_now: FloatArray) -> None:
+        self.model = model
+        self.config = model.config
+        self.kept = list(kept)
+        self.deltas = [between(np.asarray(odom_now, dtype=float), k.odom) for k in self.kept]
+
+    def log_likelihood(self, poses: FloatArray, ranges: FloatArray,
+                       angles: FloatArray) -> FloatArray:
+        """(P,) joint log-likelihood of the current scan and the kept ones (see class)."""
+        ll = np.asarray(self.model.log_likelihood(poses, ranges, angles), dtype=np.float64)
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        for k, delta in zip(self.kept, self.deltas, strict=True):
+            c, sn = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+            then = np.column_stack([
+                poses[:, 0] + c * delta[0] - sn * delta[1],
+                poses[:, 1] + sn * delta[0] + c * delta[1],
+                wrap_angle(poses[:, 2] + delta[2]),
+            ])  # fmt: skip
+            ll = ll + self.model.log_likelihood(then, k.ranges, k.angles)
+        return ll
+
+
 def _filter_stage(
     cands: Sequence[PoseCandidate],
     scan: FloatArray,
@@ -529,14 +593,21 @@ def _filter_stage(
     maps: EnvironmentMaps,
     config: GlobalLocalizerConfig,
     rng: np.random.Generator,
+    kept: Sequence[KeptScan] = (),
+    odom_now: FloatArray | None = None,
 ) -> tuple[ParticleFilter, int, bool]:
     """Particle filter on the virtual scan until the spread is below the bound.
 
     The robot stands still after the turn, so the same scan is applied
     repeatedly, resampling (with roughening) in between, as the paper's
-    "repeated process" (sec. 4.1) does.
+    "repeated process" (sec. 4.1) does. ``kept`` scans of earlier turns
+    (``odom_now``: the odometry at the end of this turn) are scored along
+    with it (:class:`JointScanModel`).
     """
     fc = config.filter
+    if kept:
+        assert odom_now is not None
+        model = JointScanModel(model, kept, odom_now)
     pf_config = fc.pf
     if config.mode is Mode.OURS and fc.kld_in_ours and pf_config.kld is None:
         pf_config = replace(pf_config, kld=KldConfig())
@@ -584,7 +655,9 @@ def _filter_stage(
             fc.recheck_modes_in_ours,
             fc.mode_separation,
         )
-        pf, n_more, converged = _recheck_modes(modes, ranges, angles, maps, config, rng)
+        pf, n_more, converged = _recheck_modes(
+            modes, ranges, angles, maps, config, rng, kept, odom_now
+        )
         n_updates += n_more
     return pf, n_updates, converged
 
@@ -628,6 +701,8 @@ def _recheck_modes(
     maps: EnvironmentMaps,
     config: GlobalLocalizerConfig,
     rng: np.random.Generator,
+    kept: Sequence[KeptScan] = (),
+    odom_now: FloatArray | None = None,
 ) -> tuple[ParticleFilter, int, bool]:
     """Ours: a short ray-casting particle filter over discs around the given modes.
 
@@ -635,7 +710,11 @@ def _recheck_modes(
     candidates), updated on the virtual scan until converged.
     """
     fc = config.filter
-    pf = ParticleFilter(_ray_model(maps, config), fc.pf, rng)
+    model: Any = _ray_model(maps, config)
+    if kept:
+        assert odom_now is not None
+        model = JointScanModel(model, kept, odom_now)
+    pf = ParticleFilter(model, fc.pf, rng)
     pf.init_candidates(
         [(m, fc.recheck_radius) for m in modes], fc.recheck_particles, config.candidates.sigma_theta
     )
@@ -800,6 +879,9 @@ def localize(
     cov = np.full((3, 3), np.nan)
     success = False
     verifies = config.mode in (Mode.PROPOSED, Mode.OURS)
+    fc = config.filter
+    keep = verifies and fc.keep_scans_on_restart
+    kept: list[KeptScan] = []
     if initial is not None and verifies:
         verdict, r_loc, d, pose, odom, rs, cs = _verify_stage(
             robot, initial.pose, initial.odom, maps, config, monitoring=True
@@ -817,10 +899,13 @@ def localize(
         if success:
             break
         cands, scan, odom, rs, cs = _turn_stage(robot, maps, config, rng)
+        odom_turn = odom
         robot_time["turn"] += rs
         compute_time["candidates"] += cs
         t0 = time.perf_counter()
-        pf, n_upd, converged = _filter_stage(cands, scan, model, maps, config, rng)
+        pf, n_upd, converged = _filter_stage(
+            cands, scan, model, maps, config, rng, kept if keep else (), odom
+        )
         pose = mode_estimate(pf.particles, pf.log_weights)
         _, cov = pf.estimate()
         compute_time["filter"] += time.perf_counter() - t0
@@ -849,6 +934,8 @@ def localize(
         success = verdict is Verdict.ACCEPTED
         if not success:
             log.info("attempt %d failed verification (R_loc %.2f): starting over", attempt, r_loc)
+            kept.append(KeptScan(scan[:: fc.beam_step].copy(), beam_angles()[:: fc.beam_step],
+                                 np.asarray(odom_turn, dtype=float).copy()))  # fmt: skip
             more = config.relocate_in_ours - d
             if (
                 config.mode is Mode.OURS

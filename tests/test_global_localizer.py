@@ -210,3 +210,35 @@ def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
     np.testing.assert_allclose(modes[:, :2], centres[:, :2], atol=0.2)
     assert abs(np.cos(modes[1, 2] - np.pi) - 1.0) < 0.01
     assert len(distinct_modes(parts, logw, 2, (0.5, 0.5))) == 2
+
+
+
+def test_joint_scan_model_scores_kept_scans_at_the_earlier_pose() -> None:
+    """A kept scan is scored at x composed with the odometry back to its turn."""
+    from lampsam.factors.geometry import between
+    from lampsam.localization.global_localizer import JointScanModel, KeptScan
+    from lampsam.localization.likelihood import BeamModelConfig, RayCastModel
+
+    grid = _grid(MAP_BOXES)
+    model = RayCastModel(grid, BeamModelConfig(sigma_hit=0.1, max_range=4.5), method="march")
+    angles = np.deg2rad(np.arange(0.0, 360.0, 4.0))
+    then_true = np.array([2.0, 3.0, 0.4])
+    now_true = np.array([4.5, 2.2, -1.0])
+    r_then = cast_rays(grid, then_true[None], angles, 4.5)[0]
+    r_now = cast_rays(grid, now_true[None], angles, 4.5)[0]
+    # odometry with an arbitrary origin: only the relative motion matters
+    odom_then = np.array([10.0, -3.0, 2.0])
+    odom_now = compose(odom_then, between(then_true, now_true))
+    joint = JointScanModel(model, [KeptScan(r_then, angles, odom_then)], odom_now)
+    back = between(odom_now, odom_then)
+    np.testing.assert_allclose(compose(now_true, back), then_true, atol=1e-9)
+    poses = np.array([now_true, now_true + [0.5, 0.0, 0.0], now_true + [0.0, 0.0, 0.3]])
+    earlier = np.array([compose(p, back) for p in poses])
+    expected = model.log_likelihood(poses, r_now, angles) + model.log_likelihood(
+        earlier, r_then, angles
+    )
+    got = joint.log_likelihood(poses, r_now, angles)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-6)
+    assert np.argmax(got) == 0  # the true pose explains both scans best
+    # the kept scan widens the margin between the truth and a shifted pose
+    assert got[0] - got[1] > model.log_likelihood(poses[:2], r_now, angles) @ [1, -1]
