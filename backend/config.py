@@ -189,13 +189,16 @@ class BatchConfig:
         huber_k: Huber threshold in sigmas for measurement factors, or None for
             plain Gaussian noise (default None).
         max_iterations: LM iterations (default 100).
-        relative_error_tol: LM relative error decrease to stop (default 1e-6).
+        relative_error_tol: LM relative error decrease to stop (default 1e-4).
+            From the iSAM2 start the whole lab graph's error settles within 1e-4
+            after three iterations (1e-6 took six, with no change in the
+            estimate's accuracy: each iteration is about a second on the lab run).
     """
 
     init: str = "isam2"
     huber_k: float | None = None
     max_iterations: int = 100
-    relative_error_tol: float = 1e-6
+    relative_error_tol: float = 1e-4
 
     def to_gtsam(self) -> gtsam.LevenbergMarquardtParams:
         """The ``gtsam.LevenbergMarquardtParams`` for this config."""
