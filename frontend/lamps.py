@@ -657,7 +657,12 @@ class _Reach(NamedTuple):
 
 
 def _gather_reach(
-    comp: np.ndarray, binary: np.ndarray, image: ImageU8, config: LampDetectorConfig
+    comp: np.ndarray,
+    sub: tuple[int, int, int, int],
+    origin: tuple[int, int],
+    binary: np.ndarray,
+    image: ImageU8,
+    config: LampDetectorConfig,
 ) -> _Reach:
     """Support and ring labels of every pixel near a blob (one pass over the box).
 
@@ -668,80 +673,110 @@ def _gather_reach(
     pixels belong to no support and no ring.
 
     Args:
-        comp: shape (H, W) uint8 or uint16 labels of the blobs to measure, 0 elsewhere.
+        comp: shape (h, w) C-contiguous uint8 or uint16 labels of the blobs to
+            measure (0 elsewhere), a crop of the image.
+        sub: ``(row0, row1, col0, col1)``, the box to work in, in ``comp``.
+        origin: ``(col, row)`` of ``comp[0, 0]`` in the image.
         binary: shape (H, W) uint8, non-zero where thresholded (measured blobs or not).
         image: shape (H, W) uint8 grey levels.
         config: detector settings (``support_px``, ``ring_px``).
 
     Returns:
-        The gathered pixels.
+        The gathered pixels, coordinates in the box.
     """
-    outer = cv2.dilate(comp, _disk(config.support_px + config.ring_px)).ravel()
-    near = cv2.dilate(comp, _disk(config.support_px)).ravel()
+    r0, r1, c0, c1 = sub
+    region = comp[r0:r1, c0:c1]
+    outer = cv2.dilate(region, _disk(config.support_px + config.ring_px)).ravel()
+    near = cv2.dilate(region, _disk(config.support_px)).ravel()
     # Flat nonzero of a flat boolean array: about 10x faster than the 2-D np.nonzero.
     idx = (outer > 0).nonzero()[0]
-    xy = np.empty((2, idx.size))
-    np.divmod(idx, comp.shape[1], out=(xy[1], xy[0]))
-    free = binary.ravel().take(idx) == 0
+    rows, cols = np.divmod(idx, c1 - c0)
+    # Flat indices in the crop and in the image (no copies of the box views).
+    in_comp = idx + rows * (comp.shape[1] - (c1 - c0)) + (r0 * comp.shape[1] + c0)
+    width = image.shape[1]
+    in_image = idx + rows * (width - (c1 - c0)) + ((r0 + origin[1]) * width + c0 + origin[0])
+    free = binary.reshape(-1).take(in_image) == 0
     near_v = near.take(idx)
-    sup = np.where(free, near_v, comp.ravel().take(idx)).astype(np.intp)
+    sup = np.where(free, near_v, comp.reshape(-1).take(in_comp)).astype(np.intp)
     ring = np.where(free & (near_v == 0), outer.take(idx), 0).astype(np.intp)
-    return _Reach(xy, image.ravel().take(idx).astype(np.intp), sup, ring)
+    xy = np.array([cols, rows], dtype=np.float64)
+    return _Reach(xy, image.reshape(-1).take(in_image).astype(np.intp), sup, ring)
 
 
-# Per-label sums accumulate into this many interleaved bins per label: the
-# pixels of a blob come in long runs, and np.bincount adding each into the same
-# bin as the one before waits on that addition (about 2.5x slower here).
-_LANES = 4
+class _Groups(NamedTuple):
+    """Pixels grouped by label (a stable permutation) for segment sums.
+
+    Attributes:
+        order: shape (P,) permutation listing the pixels label by label (row-major within).
+        starts: shape (G,) start of each non-empty group in that order.
+        present: shape (G,) the label of each non-empty group.
+    """
+
+    order: IntArray
+    starts: IntArray
+    present: IntArray
 
 
-def _lanes(lab: IntArray) -> IntArray:
-    """Bin indices spreading consecutive pixels of a label over :data:`_LANES` bins."""
-    return lab * _LANES + (np.arange(lab.size) & (_LANES - 1))
+def _group_by_label(lab: IntArray, n: int) -> _Groups:
+    """Group pixels by label ``0..n-1`` (stable argsort).
+
+    Per-label sums are then ``np.add.reduceat`` over contiguous segments:
+    ``np.bincount`` with weights adds each pixel into the bin the previous one
+    went to (a blob's pixels come in long runs) and waits on that addition,
+    several times slower here.
+    """
+    order = np.argsort(lab, kind="stable")
+    edges = np.searchsorted(lab.take(order), np.arange(n + 1))
+    present = (edges[1:] > edges[:-1]).nonzero()[0]
+    return _Groups(order, edges.take(present), present)
 
 
-def _label_sums(lanes: IntArray, values: list[FloatArray] | FloatArray, n: int) -> FloatArray:
-    """Per-label sums of several per-pixel arrays.
+def _label_sums(groups: _Groups, values: FloatArray, n: int) -> FloatArray:
+    """Per-label sums of the rows of ``values``.
 
     Args:
-        lanes: shape (P,) :func:`_lanes` of the pixels' labels ``0..n-1``.
-        values: k arrays of shape (P,) (or the rows of a (k, P) array).
+        groups: the pixels' grouping (:func:`_group_by_label`).
+        values: shape (k, P), per-pixel values already in ``groups.order``.
         n: number of labels.
 
     Returns:
-        shape (k, n): the sums (integer-valued inputs sum exactly; others differ
-        from a sequential sum by rounding only).
+        shape (k, n): the sums, 0 for absent labels (integer-valued inputs sum
+        exactly; others differ from a sequential sum by rounding only).
     """
-    out = np.empty((len(values), n * _LANES))
-    for row, v in zip(out, values, strict=True):
-        row[:] = np.bincount(lanes, weights=v, minlength=n * _LANES)
-    return out.reshape(len(values), n, _LANES).sum(axis=2)
+    out = np.zeros((values.shape[0], n))
+    if groups.present.size:
+        out[:, groups.present] = np.add.reduceat(values, groups.starts, axis=1)
+    return out
 
 
-def _ranked_levels(
-    lab: IntArray, grey: IntArray, count: IntArray, ranks: list[IntArray]
-) -> list[FloatArray]:
-    """Per-label order statistics of integer grey levels, by one sort.
-
-    Sorting ``256 label + grey`` groups the pixels by label with each group's
-    levels ascending (numpy's sort of a few thousand integers is cheaper than
-    cumulating per-label 256-bin histograms).
-
-    Args:
-        lab: shape (P,) labels ``0..n-1``.
-        grey: shape (P,) levels ``0..255``.
-        count: shape (n,) pixels per label (``np.bincount(lab)``).
-        ranks: arrays of shape (n,): the 0-based rank (ascending) wanted in
-            each label's group; labels without pixels get an arbitrary level.
+def _sorted_levels(lab: IntArray, grey: IntArray, n: int) -> tuple[IntArray, IntArray, IntArray]:
+    """Sort ``256 label + grey``: pixels grouped by label, levels ascending within.
 
     Returns:
-        One shape (n,) float array of levels per entry of ``ranks``.
+        ``(keys (P,), start (n,), count (n,))``: the sorted keys and each
+        label's first position and pixel count (numpy's sort of a few thousand
+        integers is cheaper than cumulating per-label 256-bin histograms).
     """
     key = np.sort(lab * 256 + grey)
-    start = count.cumsum() - count
-    base = 256 * np.arange(count.size)
-    last = key.size - 1
-    return [(key.take(np.minimum(start + r, last)) - base).astype(np.float64) for r in ranks]
+    edges = np.searchsorted(key, 256 * np.arange(n + 1))
+    start = edges[:-1]
+    return key, start, edges[1:] - start
+
+
+def _levels_at(key: IntArray, start: IntArray, rank: IntArray) -> FloatArray:
+    """Per-label order statistics from :func:`_sorted_levels`.
+
+    Args:
+        key: sorted keys.
+        start: shape (n,) first position of each label.
+        rank: shape (n,) 0-based rank (ascending) wanted in each label's group;
+            labels without pixels get an arbitrary level.
+
+    Returns:
+        shape (n,) grey levels.
+    """
+    pos = np.minimum(start + rank, key.size - 1)
+    return (key.take(pos) - 256 * np.arange(start.size)).astype(np.float64)
 
 
 def _lower_median_rank(count: IntArray) -> IntArray:
@@ -779,10 +814,11 @@ def _shape_checks(
         ``min_fill``), and each blob's level (lower median of its grey levels).
         Row 0 is meaningless.
     """
-    lanes = _lanes(lab)
-    count = np.bincount(lanes, minlength=n * _LANES).reshape(n, _LANES).sum(axis=1)
+    key, start, count = _sorted_levels(lab, grey, n)
     s0 = np.maximum(count, 1).astype(np.float64)
-    sx, sy, sxx, sxy, syy = _label_sums(lanes, [x, y, x * x, x * y, y * y], n)
+    groups = _group_by_label(lab, n)
+    xg, yg = x.take(groups.order), y.take(groups.order)
+    sx, sy, sxx, sxy, syy = _label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
     cx, cy = sx / s0, sy / s0
     a = sxx / s0 - cx * cx + 1.0 / 12.0
     b = sxy / s0 - cx * cy
@@ -790,14 +826,11 @@ def _shape_checks(
     det = np.maximum(a * c - b * b, 1e-12)
     fill = s0 / (4.0 * math.pi * np.sqrt(det))
     too_dim = np.zeros(n, dtype=bool)
-    if config.max_peak_drop_grey is None:
-        (top,) = _ranked_levels(lab, grey, count, [_lower_median_rank(count)])
-    else:
+    top = _levels_at(key, start, _lower_median_rank(count))
+    if config.max_peak_drop_grey is not None:
         # The fifth-brightest level (or the brightest, for thin blobs).
-        fifth_rank = count - np.minimum(5, np.maximum(count, 1))
-        top, fifth, brightest = _ranked_levels(
-            lab, grey, count, [_lower_median_rank(count), fifth_rank, count - 1]
-        )
+        fifth = _levels_at(key, start, count - np.minimum(5, np.maximum(count, 1)))
+        brightest = _levels_at(key, start, count - 1)
         lam_min = 0.5 * (a + c - np.sqrt(np.maximum((a - c) ** 2 + 4 * b * b, 0.0)))
         thin = np.sqrt(12.0 * np.maximum(lam_min, 0.0)) < config.thin_width_px
         level = np.where(thin, brightest, fifth)
@@ -839,13 +872,14 @@ def _measure_labels(
     # (index arrays: boolean-mask indexing is several times slower here)
     in_ring = (reach.ring > 0).nonzero()[0]
     ring_lab, ring_grey = reach.ring.take(in_ring), reach.grey.take(in_ring)
-    ring_count = np.bincount(ring_lab, minlength=n)
+    key, start, ring_count = _sorted_levels(ring_lab, ring_grey, n)
     has_ring = ring_count > 0
     median_rank = _lower_median_rank(ring_count)
     if ring_lab.size:
-        (bg,) = _ranked_levels(ring_lab, ring_grey, ring_count, [median_rank])
+        bg = _levels_at(key, start, median_rank)
         dev = np.abs(ring_grey - bg.astype(np.intp).take(ring_lab))
-        (mad,) = _ranked_levels(ring_lab, dev, ring_count, [median_rank])
+        key, start, _ = _sorted_levels(ring_lab, dev, n)
+        mad = _levels_at(key, start, median_rank)
     else:
         bg, mad = np.zeros(n), np.zeros(n)
     if not has_ring.take(ids).all():
@@ -855,80 +889,119 @@ def _measure_labels(
     span = top - bg
     ok = span >= config.min_blob_contrast_grey
     span_safe = np.where(ok, span, 1.0)
-    # Coverage weights on the support pixels.
+    # Coverage weights on the support pixels, grouped by label.
     sup = (reach.sup > 0).nonzero()[0]
+    groups = _group_by_label(reach.sup.take(sup), n)
+    sup = sup.take(groups.order)
     lab = reach.sup.take(sup)
     xy = reach.xy.take(sup, axis=1)
     level = np.array([bg, span_safe]).take(lab, axis=1)
     wv = ((reach.grey.take(sup) - level[0]) / level[1]).clip(0.0, 1.0)
-    lanes = _lanes(lab)
     wxy = wv * xy
-    s0, sx, sy = _label_sums(lanes, [wv, wxy[0], wxy[1]], n)
+    s0, sx, sy = _label_sums(groups, np.array([wv, wxy[0], wxy[1]]), n)
     s0 = np.maximum(s0, 1e-12)
     cx, cy = sx / s0, sy / s0
     d = xy - np.array([cx, cy]).take(lab, axis=1)
     q = d[(0, 0, 1),] * d[(0, 1, 1),]  # dx^2, dx dy, dy^2
-    a, b, c = _label_sums(lanes, wv * q, n) / s0
-    theta = 0.5 * np.arctan2(2.0 * b, a - c)
     free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
-    fxx, fxy, fyy = _label_sums(lanes, free * q, n)
-    sigma_w2 = (sigma_n / span_safe) ** 2
+    sums = _label_sums(groups, np.concatenate([wv * q, free * q]), n)
+    a, b, c = sums[:3] / s0
+    fxx, fxy, fyy = sums[3:]
     xx, yy = a - c, 2.0 * b
-    den = xx * xx + yy * yy
-    den_safe = np.where(den > 1e-18, den, 1.0)
     px, pb, py, pa, pc = np.array([xx, b, yy, a, c]).take(lab, axis=1)
     num = px * (2.0 * q[1] - 2.0 * pb) - py * ((q[0] - pa) - (q[2] - pc))
-    (dth2,) = _label_sums(lanes, [free * num * num], n)
-    dth2 = dth2 / (2.0 * s0 * den_safe) ** 2
-    # Per-blob results, still vectorised; Python only builds the dataclasses.
-    floor2 = config.sigma_centroid_floor_px**2
-    scale = sigma_w2 / (s0 * s0)
-    cov_c = np.empty((n, 2, 2))
-    cov_c[:, 0, 0] = scale * fxx + floor2
-    cov_c[:, 0, 1] = cov_c[:, 1, 0] = scale * fxy
-    cov_c[:, 1, 1] = scale * fyy + floor2
-    var_theta = np.where(den > 1e-18, sigma_w2 * dth2 + config.sigma_axis_floor**2, math.inf)
-    a12, c12 = a + 1.0 / 12.0, c + 1.0 / 12.0
-    cov_s = np.empty((n, 2, 2))
-    cov_s[:, 0, 0], cov_s[:, 0, 1], cov_s[:, 1, 0], cov_s[:, 1, 1] = a12, b, b, c12
-    disc = np.sqrt(np.maximum((a12 - c12) * (a12 - c12) + 4.0 * b * b, 0.0))
-    lam1 = 0.5 * (a12 + c12 + disc)
-    lam2 = np.maximum(0.5 * (a12 + c12 - disc), 1e-12)
-    sig1, sig2 = np.sqrt(lam1), np.sqrt(lam2)
-    centroid = np.empty((n, 2))
-    centroid[:, 0], centroid[:, 1] = cx + origin[0], cy + origin[1]
-    # Python floats once per array (cheaper than float() per element).
-    rows = zip(
-        ids.tolist(),
-        ok.take(ids).tolist(),
-        wrap_axis(theta.take(ids)).tolist(),
-        var_theta.take(ids).tolist(),
-        sig1.take(ids).tolist(),
-        sig2.take(ids).tolist(),
-        np.sqrt(lam1 / lam2).take(ids).tolist(),
-        s0.take(ids).tolist(),
-        border.take(ids).tolist(),
-        span.take(ids).tolist(),
-        strict=True,
-    )
-    return [
-        BlobMoments(
-            centroid=centroid[i],
-            cov_centroid=cov_c[i],
-            cov_shape=cov_s[i],
-            theta=th,
-            var_theta=vt,
-            sigma1=s1,
-            sigma2=s2,
-            ratio=ra,
-            area_px=ar,
-            touches_border=bo,
-            contrast=sp,
+    (dth2,) = _label_sums(groups, (free * num * num)[None, :], n)
+    theta = wrap_axis(0.5 * np.arctan2(2.0 * b, a - c))
+    # The closing formulas per blob on Python floats (a handful of blobs: cheaper
+    # than another twenty numpy calls).
+    table = np.array([s0, cx, cy, a, b, c, fxx, fxy, fyy, dth2, sigma_n, span, theta])
+    out: list[BlobMoments | None] = []
+    for i, row in zip(ids.tolist(), table.take(ids, axis=1).T.tolist(), strict=True):
+        w_i, cx_i, cy_i, a_i, b_i, c_i, fxx_i, fxy_i, fyy_i, dth_i, sn_i, sp_i, th_i = row
+        out.append(
+            _blob_moments(
+                w_i,
+                (cx_i, cy_i),
+                (a_i, b_i, c_i),
+                (fxx_i, fxy_i, fyy_i),
+                dth_i,
+                sn_i,
+                sp_i,
+                th_i,
+                origin,
+                bool(border[i]),
+                config,
+            )
+            if ok[i]
+            else None
         )
-        if good
-        else None
-        for i, good, th, vt, s1, s2, ra, ar, bo, sp in rows
-    ]
+    return out
+
+
+def _blob_moments(
+    w: float,
+    centroid: tuple[float, float],
+    moments: tuple[float, float, float],
+    free_moments: tuple[float, float, float],
+    dth_sum: float,
+    sigma_n: float,
+    span: float,
+    theta: float,
+    origin: tuple[int, int],
+    touches_border: bool,
+    config: LampDetectorConfig,
+) -> BlobMoments:
+    """One blob's measurement from its coverage sums (the end of :func:`coverage_moments`).
+
+    Args:
+        w: ``W = sum w_i`` (coverage area), px.
+        centroid: weighted centroid ``(col, row)`` in the box, px.
+        moments: ``(a, b, c) = (mu20, mu11, mu02) / W``, px^2 (eqs. 2-4).
+        free_moments: ``sum (d_x^2, d_x d_y, d_y^2)`` over the unclipped pixels
+            (``0 < w_i < 1``), px^2.
+        dth_sum: ``sum num_i^2`` over them (``dtheta/dw_i = num_i / (2 W (x^2 + y^2))``).
+        sigma_n: grey-level noise sigma.
+        span: lamp level minus background (``top - bg``), grey levels.
+        theta: long-axis angle (eq. 5), wrapped to ``(-pi/2, pi/2]``.
+        origin: ``(col, row)`` of the box in the image.
+        touches_border: the blob touches the image border.
+        config: detector settings (floors).
+
+    Returns:
+        The blob's :class:`BlobMoments` (eqs. 2-7 with the pixel-box term).
+    """
+    (cx, cy), (a, b, c), (free_xx, free_xy, free_yy) = centroid, moments, free_moments
+    sigma_w = sigma_n / span
+    sigma_w2 = sigma_w * sigma_w
+    scale = sigma_w2 / (w * w)
+    floor2 = config.sigma_centroid_floor_px**2
+    cov_xy = scale * free_xy
+    cov_c = np.array([[scale * free_xx + floor2, cov_xy], [cov_xy, scale * free_yy + floor2]])
+    xx, yy = a - c, 2.0 * b
+    den = xx * xx + yy * yy
+    if den > 1e-18:
+        norm = 2.0 * w * den
+        var_theta = sigma_w2 * (dth_sum / (norm * norm)) + config.sigma_axis_floor**2
+    else:
+        var_theta = math.inf
+    # Pixel-box term: the coverage of a pixel is spread uniformly over it.
+    a12, c12 = a + 1.0 / 12.0, c + 1.0 / 12.0
+    disc = math.sqrt(max((a12 - c12) * (a12 - c12) + 4.0 * b * b, 0.0))
+    lam1 = 0.5 * (a12 + c12 + disc)
+    lam2 = max(0.5 * (a12 + c12 - disc), 1e-12)
+    return BlobMoments(
+        centroid=np.array([cx + origin[0], cy + origin[1]]),
+        cov_centroid=cov_c,
+        cov_shape=np.array([[a12, b], [b, c12]]),
+        theta=theta,
+        var_theta=var_theta,
+        sigma1=math.sqrt(lam1),
+        sigma2=math.sqrt(lam2),
+        ratio=math.sqrt(lam1 / lam2),
+        area_px=w,
+        touches_border=touches_border,
+        contrast=span,
+    )
 
 
 def measure_blobs(
@@ -966,8 +1039,7 @@ def measure_blobs(
     bx0, by0 = max(x - pad, 0) & ~1, max(y - pad, 0) & ~1
     bx1, by1 = min(x + bw + pad, w), min(y + bh + pad, h)
     box = (slice(by0, by1), slice(bx0, bx1))
-    bin_box, img_box = binary[box], image[box]
-    n, labels, stats = label_blobs(bin_box)
+    n, labels, stats = label_blobs(binary[box])
     areas = stats[:, cv2.CC_STAT_AREA]
     valid = (areas >= config.min_area_px) & (areas <= config.max_area_fraction * h * w)
     valid[0] = False
@@ -1006,14 +1078,13 @@ def measure_blobs(
     # Measure inside the union box of the candidates (plus the reach): lamps are sparse.
     mx0, my0 = max(int(x0.min()) - pad, 0), max(int(y0.min()) - pad, 0)
     mx1, my1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
-    sub = (slice(my0 - by0, my1 - by0), slice(mx0 - bx0, mx1 - bx0))
-    comp_m, bin_m, img_m = comp[sub], bin_box[sub], img_box[sub]
     rr, cc = np.divmod(pix, labels.shape[1])
+    pix_image = (rr + by0) * w + (cc + bx0)  # flat index in the image
     too_dim, merged, top = _shape_checks(
         pix_lab,
         (cc - (mx0 - bx0)).astype(np.float64),
         (rr - (my0 - by0)).astype(np.float64),
-        image.reshape(-1).take((rr + by0) * w + (cc + bx0)).astype(np.intp),
+        image.reshape(-1).take(pix_image).astype(np.intp),
         n_keep + 1,
         peak,
         config,
@@ -1026,12 +1097,13 @@ def measure_blobs(
 
     def default_bg() -> float:
         """Median grey level of the candidates' box (background of a blob without ring)."""
-        return float(np.median(img_m))
+        return float(np.median(image[my0:my1, mx0:mx1]))
 
     out: list[BlobMoments] = []
     ids = np.flatnonzero(good)
     if ids.size:
-        reach = _gather_reach(comp_m, bin_m, img_m, config)
+        sub = (my0 - by0, my1 - by0, mx0 - bx0, mx1 - bx0)
+        reach = _gather_reach(comp, sub, (bx0, by0), binary, image, config)
         res = _measure_labels(reach, top, ids, border, default_bg, config, (mx0, my0))
         ok_lab = np.zeros(n_keep + 1, dtype=bool)
         for i, mom in zip(ids.tolist(), res, strict=True):
@@ -1040,7 +1112,7 @@ def measure_blobs(
             else:
                 out.append(mom)
                 ok_lab[i] = True
-        mask[my0:my1, mx0:mx1] |= (comp_m > 0) if len(out) == ids.size else ok_lab[comp_m]
+        mask.reshape(-1)[pix_image.compress(ok_lab.take(pix_lab))] = True
     # Glare-merger candidates: per region, re-thresholded higher.
     for j in np.flatnonzero(merged[1:] & ~too_dim[1:]).tolist():
         idx = int(cand[j])

@@ -30,11 +30,12 @@ from lampsam.frontend.corners import (
 )
 from lampsam.frontend.lamps import (
     LampDetectorConfig,
+    _group_by_label,
     _label_sums,
-    _lanes,
+    _levels_at,
     _lower_median_rank,
     _measure_region,
-    _ranked_levels,
+    _sorted_levels,
     auto_threshold,
     ceiling_jacobians,
     detect_lamps,
@@ -411,14 +412,17 @@ def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> N
 
 
 def test_per_label_order_statistics_and_sums(rng: np.random.Generator) -> None:
-    """Sort-based per-label medians / ranks and interleaved per-label sums against
+    """Sort-based per-label medians / ranks and grouped per-label sums against
     direct per-label numpy on pixels that come in long runs of one label."""
     lab = np.repeat(rng.integers(0, 6, 40), rng.integers(1, 200, 40))
     grey = rng.integers(0, 256, lab.size)
     values = rng.normal(0.0, 100.0, (3, lab.size))
-    count = np.bincount(lab, minlength=7)
-    median, top = _ranked_levels(lab, grey, count, [_lower_median_rank(count), count - 1])
-    sums = _label_sums(_lanes(lab), values, 7)
+    key, start, count = _sorted_levels(lab, grey, 7)
+    assert np.array_equal(count, np.bincount(lab, minlength=7))
+    median = _levels_at(key, start, _lower_median_rank(count))
+    top = _levels_at(key, start, count - 1)
+    groups = _group_by_label(lab, 7)
+    sums = _label_sums(groups, values.take(groups.order, axis=1), 7)
     for j in range(7):
         g = np.sort(grey[lab == j])
         if g.size:
