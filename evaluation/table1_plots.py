@@ -117,7 +117,7 @@ def plot_table1_success(
     bars = ax.bar(xs, rates, color=[COLORS.get(m, "tab:blue") for m in names], alpha=0.7,
                   label="this run")  # fmt: skip
     for x, m, rate in zip(xs, names, rates, strict=True):
-        ax.text(x, rate + 1.5, f"{rate:.0f} %\nn={len(_of_mode(records, m))}", ha="center",
+        ax.text(float(x), 0.5 * rate, f"{rate:.0f} %\nn={len(_of_mode(records, m))}", ha="center",
                 fontsize=7)  # fmt: skip
     paper = paper_rates or {}
     px = [x for x, m in zip(xs, names, strict=True) if m in paper]

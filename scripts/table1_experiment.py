@@ -348,7 +348,7 @@ def table(rows: list[dict[str, object]], modes: list[Mode]) -> str:
 
 def write_report(rows: list[dict[str, object]], modes: list[Mode], out: Path) -> str:
     """``OUT/trials.json``, ``OUT/table1.md`` and ``OUT/table1.png`` from the finished rows."""
-    rows = sorted(rows, key=lambda x: (int(x["trial"]), str(x["mode"])))  # type: ignore[arg-type]
+    rows = sorted(rows, key=lambda x: (int(str(x["trial"])), str(x["mode"])))
     (out / "trials.json").write_text(json.dumps(rows, indent=1))
     md = table(rows, modes)
     (out / "table1.md").write_text(md + "\n")
