@@ -17,6 +17,10 @@ the last keyframe; the smoothers do not use other frames' observations. Between
 keyframes the current pose is the last keyframe estimate composed with the odometry
 since then, with the covariance propagated to first order
 (``Sigma = Ad(delta^-1) Sigma_k Ad(delta^-1)^T + Sigma_delta`` in the right tangent).
+Each keyframe gives factors to at most ``Isam2Config.max_corner_factors`` corners
+already in the graph, those with the longest tracks first (:func:`corner_budget`):
+iSAM2 puts every newly observed variable in the root clique, so the update and the
+pose marginal grow with the cube of their number, and a frame carries 50-150 corners.
 
 New variables are initialised from the current estimate plus odometry, never from a
 file's dead reckoning (DESIGN sec. 6). Lamps (and planar points) enter the graph at
