@@ -769,11 +769,11 @@ def _levels_at(key: IntArray, start: IntArray, rank: IntArray) -> FloatArray:
     Args:
         key: sorted keys.
         start: shape (n,) first position of each label.
-        rank: shape (n,) 0-based rank (ascending) wanted in each label's group;
-            labels without pixels get an arbitrary level.
+        rank: shape (n,) or (k, n), 0-based ranks (ascending) wanted in each
+            label's group; labels without pixels get an arbitrary level.
 
     Returns:
-        shape (n,) grey levels.
+        grey levels, the shape of ``rank``.
     """
     pos = np.minimum(start + rank, key.size - 1)
     return (key.take(pos) - 256 * np.arange(start.size)).astype(np.float64)
@@ -815,29 +815,32 @@ def _shape_checks(
         Row 0 is meaningless.
     """
     key, start, count = _sorted_levels(lab, grey, n)
-    s0 = np.maximum(count, 1).astype(np.float64)
     groups = _group_by_label(lab, n)
     xg, yg = x.take(groups.order), y.take(groups.order)
-    sx, sy, sxx, sxy, syy = _label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
-    cx, cy = sx / s0, sy / s0
-    a = sxx / s0 - cx * cx + 1.0 / 12.0
-    b = sxy / s0 - cx * cy
-    c = syy / s0 - cy * cy + 1.0 / 12.0
-    det = np.maximum(a * c - b * b, 1e-12)
-    fill = s0 / (4.0 * math.pi * np.sqrt(det))
-    too_dim = np.zeros(n, dtype=bool)
-    top = _levels_at(key, start, _lower_median_rank(count))
-    if config.max_peak_drop_grey is not None:
-        # The fifth-brightest level (or the brightest, for thin blobs).
-        fifth = _levels_at(key, start, count - np.minimum(5, np.maximum(count, 1)))
-        brightest = _levels_at(key, start, count - 1)
-        lam_min = 0.5 * (a + c - np.sqrt(np.maximum((a - c) ** 2 + 4 * b * b, 0.0)))
-        thin = np.sqrt(12.0 * np.maximum(lam_min, 0.0)) < config.thin_width_px
-        level = np.where(thin, brightest, fifth)
-        drop = np.where(thin, config.max_peak_drop_thin_grey, config.max_peak_drop_grey)
-        too_dim = level < peak - drop
-    too_dim[0] = False
-    return too_dim, fill < config.min_fill, top
+    sums = _label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
+    # Lamp level (lower median), fifth-brightest and brightest level of each blob.
+    fifth_rank = count - np.minimum(5, np.maximum(count, 1))
+    levels = _levels_at(key, start, np.array([_lower_median_rank(count), fifth_rank, count - 1]))
+    too_dim, merged = [False] * n, [False] * n
+    # Per blob on Python floats (a handful of blobs: cheaper than thirty numpy calls).
+    rows = zip(count.tolist(), *sums.tolist(), *levels[1:].tolist(), strict=True)
+    for j, (cnt, sx, sy, sxx, sxy, syy, fifth, brightest) in enumerate(rows):
+        if j == 0:
+            continue
+        s0 = float(max(cnt, 1))
+        cx, cy = sx / s0, sy / s0
+        a = sxx / s0 - cx * cx + 1.0 / 12.0
+        b = sxy / s0 - cx * cy
+        c = syy / s0 - cy * cy + 1.0 / 12.0
+        merged[j] = s0 / (4.0 * math.pi * math.sqrt(max(a * c - b * b, 1e-12))) < config.min_fill
+        if config.max_peak_drop_grey is not None:
+            # Thin blobs (area sampling dims them) are judged by their brightest pixel.
+            lam_min = 0.5 * (a + c - math.sqrt(max((a - c) * (a - c) + 4 * b * b, 0.0)))
+            if math.sqrt(12.0 * max(lam_min, 0.0)) < config.thin_width_px:
+                too_dim[j] = brightest < peak - config.max_peak_drop_thin_grey
+            else:
+                too_dim[j] = fifth < peak - config.max_peak_drop_grey
+    return np.array(too_dim), np.array(merged), levels[0]
 
 
 def _measure_labels(

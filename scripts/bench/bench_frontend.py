@@ -12,9 +12,9 @@ to 320x240. For each, median over ``--repeats`` calls of:
 * ``process_image``: both, with validation, as the estimators call it.
 
 Wall and CPU medians are printed with the ratio to the reference and the frame
-rate the ``process_image`` median allows (from wall and from CPU time). The
-machine is shared by several engineers: wall times are inflated by their load,
-the ratio is steadier. OpenCV runs single-threaded by default here
+rate the ``process_image`` median allows (from wall and from CPU time), and the
+load average before and after. The machine is shared by several engineers:
+wall times are inflated by their load, the ratio is steadier. OpenCV runs single-threaded by default here
 (``--cv-threads``): on a busy 2-core machine its thread pool mostly waits for a
 core, and one frame is too small to gain from two.
 
@@ -24,6 +24,7 @@ Usage: ``.venv/bin/python scripts/bench/bench_frontend.py [--repeats 300]``
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import tempfile
 import time
@@ -112,6 +113,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     cv2.setNumThreads(args.cv_threads)
+    print("load average (1, 5, 15 min) before: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
     img, camera = _lab_frame()
     bench("simulated lab frame 320x240", img, camera, args.repeats)
     photo = _photo_frame()
@@ -121,6 +123,7 @@ def main() -> None:
         )
     else:
         print("(shared ceiling_photos absent: real-photo case skipped)")
+    print("load average (1, 5, 15 min) after: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
 
 
 if __name__ == "__main__":
