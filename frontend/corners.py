@@ -6,7 +6,7 @@ among the gated candidates (DESIGN.md sec. 1).
 
 * Detection: OpenCV's FAST with its non-maximum suppression, never within
   ``lamp_margin_px`` of the lamp mask (3x3 L2 distance; glare edges move with exposure and
-  are not ceiling structure), then a minimum spacing: a corner survives only
+  are not ceiling structure; tested at the keypoints, :func:`_near_mask`), then a minimum spacing: a corner survives only
   if it has the largest response within ``min_spacing_px`` (a second, wider
   non-maximum suppression over k-d tree pairs), then the
   ``max_corners`` strongest are kept and refined to sub-pixel with

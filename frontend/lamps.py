@@ -64,9 +64,11 @@ above their ring, and blobs too dim to be a light source (their fifth-brightest
 pixel more than ``max_peak_drop_grey`` below the image's lamp peak: smoke
 detectors, specular highlights on ducts).
 
-All per-blob sums are vectorised over the blobs (``np.bincount`` by label), so
-the cost hardly grows with the number of lamps; only glare splits go region by
-region.
+All per-blob sums are vectorised over the blobs (segment sums over the pixels
+grouped by label, medians from one sort), so the cost hardly grows with the
+number of lamps; only glare splits go region by region. Labelling, checks and
+moments work inside the bounding box of the thresholded pixels (lamps are
+sparse); a benchmark is ``scripts/bench/bench_frontend.py``.
 """
 
 from __future__ import annotations
@@ -855,7 +857,7 @@ def _measure_labels(
     """Coverage moments of many blobs at once (see the module docstring).
 
     The same computation as :func:`coverage_moments`, vectorised over blobs with
-    per-label ``np.bincount`` sums over the gathered pixels.
+    per-label sums over the gathered pixels (:func:`_label_sums`).
 
     Args:
         reach: the pixels near the blobs to measure (:func:`_gather_reach`).
