@@ -5,8 +5,9 @@ predicted position (Mahalanobis, eqs. 19-20) followed by NCC of image patches
 among the gated candidates (DESIGN.md sec. 1).
 
 * Detection: OpenCV's FAST with its non-maximum suppression, never within
-  ``lamp_margin_px`` of the lamp mask (3x3 L2 distance; glare edges move with exposure and
-  are not ceiling structure; tested at the keypoints, :func:`_near_mask`), then a minimum spacing: a corner survives only
+  ``lamp_margin_px`` of the lamp mask (3x3 L2 distance; glare edges move with
+  exposure and are not ceiling structure; tested at the keypoints,
+  :func:`_near_mask`), then a minimum spacing: a corner survives only
   if it has the largest response within ``min_spacing_px`` (a second, wider
   non-maximum suppression over k-d tree pairs), then the
   ``max_corners`` strongest are kept and refined to sub-pixel with

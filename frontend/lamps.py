@@ -250,7 +250,7 @@ def otsu_level(hist: FloatArray, lo: int = 0) -> float:
 
 
 def _otsu_cumulative(w0: FloatArray, s0: FloatArray, lo: int) -> float:
-    """:func:`otsu_level` from the cumulative counts ``w0`` and level sums ``s0`` of levels ``lo..255``.
+    """:func:`otsu_level` from cumulative counts ``w0`` and level sums ``s0`` of levels ``lo..255``.
 
     Both classes are non-empty exactly on ``first <= t < last`` (``first``: the
     first occupied level, ``last``: the first level holding every pixel), so
@@ -308,10 +308,12 @@ def auto_threshold(
     """
     if hist is None:
         hist = grey_histogram(image)
-    return _threshold_and_peak(hist, config)[0]
+    return _threshold_and_peak(hist, config, use_fixed=False)[0]
 
 
-def _threshold_and_peak(hist: FloatArray, config: LampDetectorConfig) -> tuple[float | None, float]:
+def _threshold_and_peak(
+    hist: FloatArray, config: LampDetectorConfig, use_fixed: bool = True
+) -> tuple[float | None, float]:
     """:func:`auto_threshold` (or the fixed threshold) and :func:`peak_level` from one histogram.
 
     The cumulative sums are computed once: those of an upper class ``lo..255``
@@ -321,6 +323,8 @@ def _threshold_and_peak(hist: FloatArray, config: LampDetectorConfig) -> tuple[f
     Args:
         hist: shape (256,) integer counts per grey level.
         config: detector settings.
+        use_fixed: return ``config.threshold`` when it is set (False: always
+            the automatic threshold).
 
     Returns:
         ``(k, peak)``: the threshold (None: no lamp can be told from the
@@ -335,7 +339,7 @@ def _threshold_and_peak(hist: FloatArray, config: LampDetectorConfig) -> tuple[f
         if above >= config.min_area_px:
             peak = float(level)
             break
-    if config.threshold is not None:
+    if use_fixed and config.threshold is not None:
         return float(config.threshold), peak
     median = float(np.searchsorted(cum, 0.5 * total))
     if peak - median < config.min_contrast_grey:
