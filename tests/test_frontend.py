@@ -30,6 +30,9 @@ from lampsam.frontend.corners import (
 )
 from lampsam.frontend.lamps import (
     LampDetectorConfig,
+    _dilate_disk,
+    _disk,
+    _disk_factors,
     _group_by_label,
     _label_sums,
     _levels_at,
@@ -460,3 +463,18 @@ def test_lamp_margin_filter_matches_dilation(rng: np.random.Generator) -> None:
         near = cv2.dilate(mask.view(np.uint8), margin_kernel(margin)) > 0
         pixels = np.column_stack([rng.integers(0, 80, 300), rng.integers(0, 60, 300)])
         assert np.array_equal(_near_mask(mask, pixels, margin), near[pixels[:, 1], pixels[:, 0]])
+
+
+def test_factorised_disk_dilation_matches_direct(rng: np.random.Generator) -> None:
+    """Chained dilations by the disk's small factors equal one dilation by the disk,
+    labels touching the image border included (max of labels, nothing outside)."""
+    for radius in range(8):
+        assert sum(int(f.sum()) for f in _disk_factors(radius)) <= int(_disk(radius).sum())
+        for _ in range(10):
+            shape = (int(rng.integers(5, 50)), int(rng.integers(5, 50)))
+            labels = rng.integers(0, 200, shape) * (rng.random(shape) < 0.03)
+            labels[0, rng.integers(0, shape[1])] = 7  # on the border
+            for dtype in (np.uint8, np.uint16):
+                img = labels.astype(dtype)
+                assert np.array_equal(_dilate_disk(img, radius), cv2.dilate(img, _disk(radius)))
+    assert len(_disk_factors(5)) > 1  # the ring reach of the default detector is factorised
