@@ -72,6 +72,8 @@ def one_run(name: str, run: LoggedRun, frames: list[Any], config: SlamConfig,
     if upd:
         row["update_median_ms"] = float(np.median(upd) * 1e3)
         row["update_p95_ms"] = float(np.percentile(upd, 95) * 1e3)
+        est = getattr(be, "estimate_times", [])
+        row["estimate_median_ms"] = float(np.median(est) * 1e3) if est else float("nan")
     return row
 
 
@@ -84,7 +86,9 @@ def median_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None) -> None:
+def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
+              backends: tuple[str, ...] = BACKENDS, features: tuple[str, ...] = tuple(FEATURES)
+              ) -> None:
     run = read_run(run_dir)
     t0 = time.perf_counter()
     frames, ceiling = make_frames(run, source)
@@ -98,9 +102,11 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None) 
     base = SlamConfig()
     table = []
     for label, feats in FEATURES.items():
+        if label not in features:
+            continue
         cfg = dataclasses.replace(base, features=feats)
-        for name in BACKENDS:
-            reps = repeats if label == "lamps+corners" else 1
+        for name in backends:
+            reps = repeats if label == features[0] else 1
             row = median_rows([one_run(name, run, frames, cfg, ceiling) for _ in range(reps)])
             row["features"] = label
             table.append(row)
@@ -108,17 +114,18 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None) 
                   f"({row['status']}, {row['total_s']:.1f} s)", flush=True)
     dr = drive(EkfSlam(run.rig.odometry, base, start_pose_of(run)), iter_steps(run.odometry, []))
     table.append({"features": "none (dead reckoning)", "backend": "-", **_errors(dr, run)})
-    ref = next(r for r in table if r["backend"] == "ekf")["frame_median_ms"]
+    ekf_rows = [r for r in table if r["backend"] == "ekf"]
     for r in table:
-        if "frame_median_ms" in r:
-            r["frame_ratio_vs_ekf"] = r["frame_median_ms"] / ref
+        if "frame_median_ms" in r and ekf_rows:
+            r["frame_ratio_vs_ekf"] = r["frame_median_ms"] / ekf_rows[0]["frame_median_ms"]
     print(markdown_table(table, ["features", "backend", "pos_rms_m", "pos_max_m", "head_rms_deg",
                                  "landmarks", "keyframes"]))
     print()
     print(f"timings (median of {repeats} runs for lamps+corners; wall clock, machine shared):")
-    print(markdown_table([r for r in table if r.get("features") == "lamps+corners"],
+    print(markdown_table([r for r in table if r.get("features") == features[0]],
                          ["backend", "frame_median_ms", "frame_p95_ms", "frame_ratio_vs_ekf",
-                          "update_median_ms", "update_p95_ms", "final_s", "total_s", "cpu_s"]))
+                          "update_median_ms", "update_p95_ms", "estimate_median_ms", "final_s",
+                          "total_s", "cpu_s"]))
 
 
 def bench_mrclam(duration: float | None) -> None:
@@ -153,13 +160,17 @@ def main() -> None:
     p.add_argument("--frames", choices=("images", "truth"), default="images")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--max-frames", type=int, default=None, help="lab: first frames only")
+    p.add_argument("--backends", default=",".join(BACKENDS), help="lab: comma-separated subset")
+    p.add_argument("--features", default=",".join(FEATURES),
+                   help="lab: comma-separated subset of " + ", ".join(FEATURES))
     p.add_argument("--mrclam", action="store_true")
     p.add_argument("--duration", type=float, default=None, help="MRCLAM: first seconds only")
     args = p.parse_args()
     logging.basicConfig(level=logging.WARNING)
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
     if args.lab is not None:
-        bench_lab(args.lab, args.frames, args.repeats, args.max_frames)
+        bench_lab(args.lab, args.frames, args.repeats, args.max_frames,
+                  tuple(args.backends.split(",")), tuple(args.features.split(",")))
     if args.mrclam:
         bench_mrclam(args.duration)
     if args.lab is None and not args.mrclam:
