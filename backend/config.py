@@ -67,6 +67,10 @@ class AssociationConfig:
             position sigma above ``prune_sigma``, is removed (default 30).
         prune_sigma: largest acceptable horizontal position sigma of a settled
             landmark, m (default 1.0).
+        lamp_min_separation: the smoothers start no new lamp where a mapped lamp
+            is predicted within this distance in normalised ceiling coordinates
+            (default 0.1, about 25 cm on a 2.5 m ceiling; lamps do not overlap), see
+            :meth:`lampsam.backend.graph.GraphSlam._near_known_lamp`; 0 disables.
     """
 
     use_known_ids: bool = True
@@ -78,6 +82,7 @@ class AssociationConfig:
     min_observations: int = 2
     prune_after_steps: int = 30
     prune_sigma: float = 1.0
+    lamp_min_separation: float = 0.1
 
     def height_prior(self) -> HeightPrior:
         """The factors' :class:`HeightPrior` for ``[height_min, height_max]``."""

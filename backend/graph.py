@@ -587,6 +587,26 @@ class GraphSlam(SlamBackend):
                 out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
         return out
 
+    def _near_known_lamp(self, pose: FloatArray, obs: Obs, lamp_ids: Any) -> bool:
+        """Whether a mapped lamp is predicted within ``lamp_min_separation`` of ``obs``.
+
+        Two lamps cannot overlap in the image, so such an observation is of that
+        lamp even when its gate rejects it. A lamp's centroid can be off by a few
+        tenths of a pixel near the image edge (lens distortion across a large blob),
+        several times its nominal sigma; while iSAM2 waits to relinearise a young
+        lamp, its exact gate then rejected such sights and the smoothers mapped one
+        strip lamp two to four times, every later sight of it becoming ambiguous
+        (and costing joint marginals). The observation is dropped instead.
+        """
+        sep = self.config.association.lamp_min_separation
+        ids = [lid for lid in lamp_ids if lid in self._landmarks]
+        if self.ceiling is None or not ids or sep <= 0.0:
+            return False
+        pts = np.array([self._landmarks[lid].state[:3] for lid in ids])
+        m, _, _, vis = self.ceiling.project_many(pose, pts)
+        d = np.hypot(m[:, 0] - obs.z[0], m[:, 1] - obs.z[1])
+        return bool(np.any(vis & (d < sep)))
+
     def _new_id(self) -> int:
         while self._next_id in self._landmarks:
             self._next_id += 1
@@ -635,6 +655,9 @@ class GraphSlam(SlamBackend):
                         continue
                     matches.append((lm, o))
                 elif a.status == "new":
+                    if o.kind == "lamp" and a.landmark_id is None and self._near_known_lamp(
+                            pose, o, cands.get("lamp", ())):
+                        continue
                     n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
             matches, self._entries_left = corner_budget(
                 matches, self.config.isam2.max_corner_factors)
@@ -779,6 +802,11 @@ class GraphSlam(SlamBackend):
         if h >= MIN_USABLE_HEIGHT and math.sqrt(max(cov[2, 2], 0.0)) <= (
                 self.config.isam2.corner_init_max_rel_sigma * h):
             lm.cov_rel = cov
+            # The screen's fallback for a lamp not seen for many keyframes: as for a
+            # triangulated corner, not the first sight's covariance, which spans most
+            # of the height range and let lamps metres apart all pass the cheap gate
+            # (each such sight then cost joint marginals).
+            lm.cov = cov + np.diag([*np.diag(self._kf_cov)[:2], 0.0])
 
     def _enter_graph(self, lm: _Landmark) -> None:
         """Insert a landmark's variables, priors and its buffered factors."""
