@@ -723,12 +723,7 @@ class GraphSlam(SlamBackend):
         ks = {k for k, _ in lm.pending}
         if len(ks) < cfg.corner_init_min_sights:
             return False
-        poses = np.array([self._kf_poses[k] if k == self._k else self._pose_of(k)
-                          for k, _ in lm.pending])
-        ms = np.array([o.z[:2] for _, o in lm.pending])
-        covs = np.array([o.R[:2, :2] for _, o in lm.pending])
-        point, cov = self.ceiling.triangulate(poses, ms, covs)
-        h = point[2] - self.ceiling.body_t_camera[2]
+        poses, ms, covs, point, cov, h = self._triangulate_sights(lm.pending)
         if h < MIN_USABLE_HEIGHT or h > 2.0 * self.config.association.height_max:
             return False
         chi2 = 0.0
@@ -747,9 +742,30 @@ class GraphSlam(SlamBackend):
         if math.sqrt(max(cov[2, 2], 0.0)) > cfg.corner_init_max_rel_sigma * h:
             return False
         lm.state = point
-        lm.cov = cov + np.diag([*np.diag(self._kf_cov)[:2], 0.0])
+        lm.cov = self._placed_cov(cov)
         lm.cov_rel = cov
         return True
+
+    def _triangulate_sights(self, sights: list[tuple[int, Obs]]
+                            ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray,
+                                       FloatArray, float]:
+        """Triangulate a ceiling point from ``(keyframe, observation)`` sights.
+
+        Returns:
+            ``(poses (n, 3), ms (n, 2), covs (n, 2, 2), point (3,), cov (3, 3),
+            height above the camera in m)``; the poses are the keyframes' current
+            estimates.
+        """
+        poses = np.array([self._kf_poses[k] if k == self._k else self._pose_of(k)
+                          for k, _ in sights])
+        ms = np.array([o.z[:2] for _, o in sights])
+        covs = np.array([o.R[:2, :2] for _, o in sights])
+        point, cov = self.ceiling.triangulate(poses, ms, covs)
+        return poses, ms, covs, point, cov, float(point[2] - self.ceiling.body_t_camera[2])
+
+    def _placed_cov(self, cov_rel: FloatArray) -> FloatArray:
+        """A triangulated point's covariance (3, 3) plus the current keyframe's x, y variance."""
+        return cov_rel + np.diag([*np.diag(self._kf_cov)[:2], 0.0])
 
     def _forget_pending(self, k: int) -> None:
         """Forget pending corners not seen for ``corner_pending_keyframes`` keyframes."""
@@ -793,12 +809,7 @@ class GraphSlam(SlamBackend):
         lm.sights.append((k, obs))
         if len({kk for kk, _ in lm.sights}) < 2:
             return
-        poses = np.array([self._kf_poses[kk] if kk == self._k else self._pose_of(kk)
-                          for kk, _ in lm.sights])
-        ms = np.array([o.z[:2] for _, o in lm.sights])
-        covs = np.array([o.R[:2, :2] for _, o in lm.sights])
-        point, cov = self.ceiling.triangulate(poses, ms, covs)
-        h = point[2] - self.ceiling.body_t_camera[2]
+        _, _, _, _, cov, h = self._triangulate_sights(lm.sights)
         if h >= MIN_USABLE_HEIGHT and math.sqrt(max(cov[2, 2], 0.0)) <= (
                 self.config.isam2.corner_init_max_rel_sigma * h):
             lm.cov_rel = cov
@@ -806,7 +817,7 @@ class GraphSlam(SlamBackend):
             # triangulated corner, not the first sight's covariance, which spans most
             # of the height range and let lamps metres apart all pass the cheap gate
             # (each such sight then cost joint marginals).
-            lm.cov = cov + np.diag([*np.diag(self._kf_cov)[:2], 0.0])
+            lm.cov = self._placed_cov(cov)
 
     def _enter_graph(self, lm: _Landmark) -> None:
         """Insert a landmark's variables, priors and its buffered factors."""
