@@ -112,6 +112,7 @@ class OfficeRobot:
         self.t = 0.0
         self.sift = make_sift()
         self.body_T_cam = self.kinect.body_T_camera()
+        self.turn_starts: list[list[float]] = []  # true pose at the start of every turn
 
     def _move(self, delta: np.ndarray) -> None:
         self.pose = compose(self.pose, delta)
@@ -129,6 +130,7 @@ class OfficeRobot:
 
     def turn(self, angle: float, rate: float) -> list[TurnFrame]:
         dt = 1.0 / self.kinect.rate_hz
+        self.turn_starts.append([float(v) for v in self.pose])
         n = int(math.ceil(abs(angle) / (rate * dt) - 1e-9))
         frames = [self._kinect()]
         for _ in range(n):
@@ -193,8 +195,12 @@ def run_trials(
     worker: int = 0,
     n_workers: int = 1,
     sink: Path | None = None,
+    only: set[int] | None = None,
 ) -> list[dict[str, object]]:
     """Trials ``i >= skip`` with ``i % n_workers == worker``, all modes; one dict per (trial, mode).
+
+    ``only``: run just these trial indices (the starts are still drawn for
+    ``trials`` trials, so trial ``i`` has the same start as in a full run).
 
     Every finished (trial, mode) is appended as one JSON line to ``sink`` at
     once (an interrupted run keeps what finished); pairs already in ``sink``
@@ -227,7 +233,7 @@ def run_trials(
     starts = random_starts(grid_now, trials, clearance, np.random.default_rng(seed))
     rows: list[dict[str, object]] = []
     for i, start in enumerate(starts):
-        if i < skip or i % n_workers != worker:
+        if i < skip or i % n_workers != worker or (only is not None and i not in only):
             continue
         for mode in modes:
             if (i, mode.value) in done:
@@ -275,9 +281,15 @@ def run_trials(
                 "compute_stages_s": dict(res.compute_time),
                 "compute_after_turn_s": compute - float(res.compute_time["candidates"]),
                 "attempts": [
-                    {"n_candidates": a.n_candidates, "verdict": a.verdict, "pose": a.pose}
+                    {
+                        "n_candidates": a.n_candidates,
+                        "verdict": a.verdict,
+                        "pose": a.pose,
+                        "verify_m": a.verify_distance,
+                    }
                     for a in res.attempts
-                ],
+                ],  # fmt: skip
+                "turn_starts": robot.turn_starts,
             }
             rows.append(row)
             if sink is not None:
@@ -378,6 +390,8 @@ def main() -> None:
     ap.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m")
     ap.add_argument("--modes", default=",".join(m.value for m in Mode))
     ap.add_argument("--skip", type=int, default=0, help="skip the first trials (debugging)")
+    ap.add_argument("--trials-list", default="",
+                    help="comma-separated trial indices to run (same starts as a full run)")  # fmt: skip
     ap.add_argument("--jobs", type=int, default=1,
                     help="worker processes (trials interleaved: worker k runs i %% jobs == k)")  # fmt: skip
     ap.add_argument("--worker", type=int, default=-1, help=argparse.SUPPRESS)
@@ -386,17 +400,18 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     modes = [Mode(m) for m in args.modes.split(",")]
+    only = {int(v) for v in args.trials_list.split(",") if v.strip()} or None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.worker >= 0:
         run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes, args.skip,
-                   args.worker, args.jobs, out / f"trials.w{args.worker}.jsonl")  # fmt: skip
+                   args.worker, args.jobs, out / f"trials.w{args.worker}.jsonl", only)  # fmt: skip
         return
     if not args.report_only:
         build_maps(Path(args.work), args.seed)  # once, before the workers share the cache
         if args.jobs <= 1:
             run_trials(args.trials, Path(args.work), args.seed, args.clearance, modes, args.skip,
-                       0, 1, out / "trials.w0.jsonl")  # fmt: skip
+                       0, 1, out / "trials.w0.jsonl", only)  # fmt: skip
         else:
             import os
             import subprocess

@@ -157,7 +157,8 @@ def test_end_to_end_small_world(rng: np.random.Generator, mode: Mode, tmp_path: 
     assert res.success
     assert e_xy < 0.15 and e_th < np.deg2rad(5.0)
     assert res.restarts == 0
-    assert res.robot_time["turn"] == pytest.approx(12.0, abs=0.5)
+    # one full turn, plus at most half a turn towards open space (the start faces a box)
+    assert 12.0 - 0.5 <= res.robot_time["turn"] <= 18.0 + 0.5
     data = json.loads(write_result(res, tmp_path).read_text())
     assert data["success"] and len(data["covariance"]) == 3
 
@@ -212,7 +213,6 @@ def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
     assert len(distinct_modes(parts, logw, 2, (0.5, 0.5))) == 2
 
 
-
 def test_joint_scan_model_scores_kept_scans_at_the_earlier_pose() -> None:
     """A kept scan is scored at x composed with the odometry back to its turn."""
     from lampsam.factors.geometry import between
@@ -242,3 +242,42 @@ def test_joint_scan_model_scores_kept_scans_at_the_earlier_pose() -> None:
     assert np.argmax(got) == 0  # the true pose explains both scans best
     # the kept scan widens the margin between the truth and a shifted pose
     assert got[0] - got[1] > model.log_likelihood(poses[:2], r_now, angles) @ [1, -1]
+
+
+def _scan_like_kinect(grid: OccupancyGrid, pose: np.ndarray) -> np.ndarray:
+    """(360,) virtual scan: ray-cast ranges, NaN beyond 4.5 m and nearer than 0.5 m."""
+    from lampsam.localization.virtual_scan import beam_angles
+
+    r = cast_rays(grid, pose[None], beam_angles(), 6.0)[0]
+    return np.where((r > 4.5) | (r < 0.5), np.nan, r)
+
+
+@pytest.mark.parametrize(
+    "pose",
+    [
+        np.array([0.45, 3.0, np.pi]),  # facing the west wall, 0.35 m off it
+        np.array([0.45, 3.0, 2.0]),  # along it, too close to pass
+        np.array([7.4, 5.4, 0.8]),  # in the north-east corner
+        np.array([4.2, 2.6, -1.2]),  # towards the box at the south wall
+    ],
+)
+def test_open_heading_turns_to_a_free_corridor(pose: np.ndarray) -> None:
+    """Blocked ahead: the chosen heading has the needed free distance (true ray casting)."""
+    from lampsam.localization.global_localizer import open_heading
+
+    grid = _grid(MAP_BOXES)
+    need = 2.7
+    angle = open_heading(_scan_like_kinect(grid, pose), need)
+    assert abs(angle) > np.deg2rad(10.0)
+    corridor = pose[2] + angle + np.deg2rad(np.arange(-12.0, 13.0, 3.0))
+    free = cast_rays(grid, np.repeat(pose[None], len(corridor), 0) * [1, 1, 0], corridor, 6.0)[0]
+    assert free.min() >= need - 0.05
+
+
+def test_open_heading_keeps_a_free_heading_and_handles_an_empty_scan() -> None:
+    from lampsam.localization.global_localizer import open_heading
+
+    grid = _grid(MAP_BOXES)
+    pose = np.array([2.5, 3.0, 0.0])  # the box 15 deg to the left is 2.6 m away
+    assert open_heading(_scan_like_kinect(grid, pose), 2.4) == 0.0
+    assert open_heading(np.full(360, np.nan), 2.7) == 0.0
