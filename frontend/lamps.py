@@ -690,17 +690,18 @@ def to_observations(
     var_axes = (gain * gain * np.array([mo.var_theta for mo in moments])).tolist()
     m = np.asarray(m, dtype=np.float64)
     threshold = config.ratio_threshold
+    # (positional: the frozen dataclass's __init__ is about twice as fast)
     return tuple(
         LampObservation(
-            m=mi,
-            cov_m=ci,
-            axis=ax if mo.ratio > threshold else None,
-            var_axis=va if mo.ratio > threshold else math.inf,
-            ratio=mo.ratio,
-            area_px=mo.area_px,
-            pixel=mo.centroid,
-            landmark_id=None,
-            touches_border=mo.touches_border,
+            mi,
+            ci,
+            ax if mo.ratio > threshold else None,
+            va if mo.ratio > threshold else math.inf,
+            mo.ratio,
+            mo.area_px,
+            mo.centroid,
+            None,
+            mo.touches_border,
         )
         for mo, mi, ci, ax, va in zip(moments, m, cov_m, axes, var_axes, strict=True)
     )
@@ -787,18 +788,26 @@ class _Groups(NamedTuple):
     present: IntArray
 
 
-def _group_by_label(lab: IntArray, n: int) -> _Groups:
+def _group_by_label(lab: IntArray, n: int, count: IntArray | None = None) -> _Groups:
     """Group pixels by label ``0..n-1`` (stable argsort).
 
     Per-label sums are then ``np.add.reduceat`` over contiguous segments:
     ``np.bincount`` with weights adds each pixel into the bin the previous one
     went to (a blob's pixels come in long runs) and waits on that addition,
-    several times slower here.
+    several times slower here. The sort runs on 8- or 16-bit labels (numpy's
+    radix sort); the group starts come from the label counts.
+
+    Args:
+        lab: shape (P,) labels ``0..n-1`` (any integer dtype).
+        n: number of labels.
+        count: shape (n,) pixels per label when the caller has them.
     """
-    order = np.argsort(lab, kind="stable")
-    edges = np.searchsorted(lab.take(order), np.arange(n + 1))
-    present = (edges[1:] > edges[:-1]).nonzero()[0]
-    return _Groups(order, edges.take(present), present)
+    small = lab.astype(np.uint8 if n <= 256 else np.uint16 if n <= 65536 else np.intp)
+    order = np.argsort(small, kind="stable")
+    if count is None:
+        count = np.bincount(lab, minlength=n)
+    present = count.nonzero()[0]
+    return _Groups(order, (count.cumsum() - count).take(present), present)
 
 
 def _label_sums(groups: _Groups, values: FloatArray, n: int) -> FloatArray:
@@ -819,34 +828,66 @@ def _label_sums(groups: _Groups, values: FloatArray, n: int) -> FloatArray:
     return out
 
 
-def _sorted_levels(lab: IntArray, grey: IntArray, n: int) -> tuple[IntArray, IntArray, IntArray]:
-    """Sort ``256 label + grey``: pixels grouped by label, levels ascending within.
+_HIST_MAX_LABELS = 1024  # per-label level histograms up to this many labels, a sort above
 
-    Returns:
-        ``(keys (P,), start (n,), count (n,))``: the sorted keys and each
-        label's first position and pixel count (numpy's sort of a few thousand
-        integers is cheaper than cumulating per-label 256-bin histograms).
+
+class _Levels(NamedTuple):
+    """Per-label grey-level distributions, for order statistics (:func:`_levels_at`).
+
+    Up to ``_HIST_MAX_LABELS`` labels: cumulative 256-bin histograms per label
+    (one ``bincount``, cheaper than a sort); above, the sorted keys
+    ``256 label + level`` (memory linear in the pixels, not the labels).
+
+    Attributes:
+        cum: shape (n, 256) cumulative counts per label, or None (sort path).
+        key: shape (P,) sorted keys, or None (histogram path).
+        start: shape (n,) first position of each label in ``key`` (histogram path: zeros).
+        count: shape (n,) pixels per label.
     """
-    key = np.sort(lab * 256 + grey)
-    edges = np.searchsorted(key, 256 * np.arange(n + 1))
-    start = edges[:-1]
-    return key, start, edges[1:] - start
+
+    cum: IntArray | None
+    key: IntArray | None
+    start: IntArray
+    count: IntArray
 
 
-def _levels_at(key: IntArray, start: IntArray, rank: IntArray) -> FloatArray:
-    """Per-label order statistics from :func:`_sorted_levels`.
+def _label_levels(lab: IntArray, grey: IntArray, n: int) -> _Levels:
+    """The grey levels of the pixels grouped per label (see :class:`_Levels`).
 
     Args:
-        key: sorted keys.
-        start: shape (n,) first position of each label.
+        lab: shape (P,) int labels ``0..n-1``.
+        grey: shape (P,) int grey levels ``0..255``.
+        n: number of labels.
+    """
+    key = lab * 256 + grey
+    if n <= _HIST_MAX_LABELS:
+        cum = np.bincount(key, minlength=256 * n).reshape(n, 256).cumsum(axis=1)
+        count = cum[:, -1]
+        return _Levels(cum, None, np.zeros_like(count), count)
+    key.sort()
+    edges = np.searchsorted(key, 256 * np.arange(n + 1))
+    start = edges[:-1]
+    return _Levels(None, key, start, edges[1:] - start)
+
+
+def _levels_at(levels: _Levels, rank: IntArray) -> IntArray:
+    """Per-label order statistics.
+
+    Args:
+        levels: from :func:`_label_levels`.
         rank: shape (n,) or (k, n), 0-based ranks (ascending) wanted in each
-            label's group; labels without pixels get an arbitrary level.
+            label's group; labels without pixels (or ranks past the end) get
+            an arbitrary level.
 
     Returns:
-        grey levels, the shape of ``rank``.
+        int grey levels, the shape of ``rank``. On the histogram path the level
+        of rank ``r`` is the first whose cumulative count exceeds ``r``.
     """
-    pos = np.minimum(start + rank, key.size - 1)
-    return (key.take(pos) - 256 * np.arange(start.size)).astype(np.float64)
+    if levels.cum is not None:
+        return (levels.cum < rank[..., None] + 1).sum(axis=-1)
+    assert levels.key is not None
+    pos = np.minimum(levels.start + rank, levels.key.size - 1)
+    return levels.key.take(pos) - 256 * np.arange(levels.start.size)
 
 
 def _lower_median_rank(count: IntArray) -> IntArray:
@@ -884,13 +925,14 @@ def _shape_checks(
         ``min_fill``), and each blob's level (lower median of its grey levels).
         Row 0 is meaningless.
     """
-    key, start, count = _sorted_levels(lab, grey, n)
-    groups = _group_by_label(lab, n)
+    dist = _label_levels(lab, grey, n)
+    count = dist.count
+    groups = _group_by_label(lab, n, count)
     xg, yg = x.take(groups.order), y.take(groups.order)
     sums = _label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
     # Lamp level (lower median), fifth-brightest and brightest level of each blob.
     fifth_rank = count - np.minimum(5, np.maximum(count, 1))
-    levels = _levels_at(key, start, np.array([_lower_median_rank(count), fifth_rank, count - 1]))
+    levels = _levels_at(dist, np.array([_lower_median_rank(count), fifth_rank, count - 1]))
     too_dim, merged = [False] * n, [False] * n
     # Per blob on Python floats (a handful of blobs: cheaper than thirty numpy calls).
     rows = zip(count.tolist(), *sums.tolist(), *levels[1:].tolist(), strict=True)
@@ -910,7 +952,7 @@ def _shape_checks(
                 too_dim[j] = brightest < peak - config.max_peak_drop_thin_grey
             else:
                 too_dim[j] = fifth < peak - config.max_peak_drop_grey
-    return np.array(too_dim), np.array(merged), levels[0]
+    return np.array(too_dim), np.array(merged), levels[0].astype(np.float64)
 
 
 def _measure_labels(
@@ -941,20 +983,17 @@ def _measure_labels(
         centroids in full-image pixels.
     """
     n = top.size
-    # Background (median of the ring) and its spread (1.4826 MAD) per blob.
-    # (index arrays: boolean-mask indexing is several times slower here)
-    in_ring = (reach.ring > 0).nonzero()[0]
-    ring_lab, ring_grey = reach.ring.take(in_ring), reach.grey.take(in_ring)
-    key, start, ring_count = _sorted_levels(ring_lab, ring_grey, n)
-    has_ring = ring_count > 0
-    median_rank = _lower_median_rank(ring_count)
-    if ring_lab.size:
-        bg = _levels_at(key, start, median_rank)
-        dev = np.abs(ring_grey - bg.astype(np.intp).take(ring_lab))
-        key, start, _ = _sorted_levels(ring_lab, dev, n)
-        mad = _levels_at(key, start, median_rank)
-    else:
-        bg, mad = np.zeros(n), np.zeros(n)
+    # Background (median of the ring) and its spread (1.4826 MAD) per blob, from
+    # the level distributions of all gathered pixels by ring label (label 0: the
+    # pixels in no ring, never used; it always has pixels: the supports).
+    ring = reach.ring
+    dist = _label_levels(ring, reach.grey, n)
+    has_ring = dist.count > 0
+    median_rank = _lower_median_rank(dist.count)
+    bg_level = _levels_at(dist, median_rank)
+    dev = np.abs(reach.grey - bg_level.take(ring))
+    mad = _levels_at(_label_levels(ring, dev, n), median_rank).astype(np.float64)
+    bg = bg_level.astype(np.float64)
     if not has_ring.take(ids).all():
         bg = np.where(has_ring, bg, default_bg())
         mad = np.where(has_ring, mad, 0.0)
@@ -984,72 +1023,61 @@ def _measure_labels(
     px, pb, py, pa, pc = np.array([xx, b, yy, a, c]).take(lab, axis=1)
     num = px * (2.0 * q[1] - 2.0 * pb) - py * ((q[0] - pa) - (q[2] - pc))
     (dth2,) = _label_sums(groups, (free * num * num)[None, :], n)
-    theta = wrap_axis(0.5 * np.arctan2(2.0 * b, a - c))
     # The closing formulas per blob on Python floats (a handful of blobs: cheaper
-    # than another twenty numpy calls).
-    table = np.array([s0, cx, cy, a, b, c, fxx, fxy, fyy, dth2, sigma_n, span, theta])
+    # than another twenty numpy calls); the blobs' small arrays are built at once.
+    table = np.array([s0, cx, cy, a, b, c, fxx, fxy, fyy, dth2, sigma_n, span])
+    closed = [
+        _close_blob(row, config) if good else None
+        for row, good in zip(table.take(ids, axis=1).T.tolist(), ok.take(ids).tolist(), strict=True)
+    ]
+    done = [cl for cl in closed if cl is not None]
+    if not done:
+        return [None] * len(closed)
+    ox, oy = origin
+    centroids = np.array([(cl[0] + ox, cl[1] + oy) for cl in done])
+    covs = np.array([cl[2] for cl in done])
+    shapes = np.array([cl[3] for cl in done])
+    touches = border.take(ids).tolist()
     out: list[BlobMoments | None] = []
-    for i, row in zip(ids.tolist(), table.take(ids, axis=1).T.tolist(), strict=True):
-        w_i, cx_i, cy_i, a_i, b_i, c_i, fxx_i, fxy_i, fyy_i, dth_i, sn_i, sp_i, th_i = row
-        out.append(
-            _blob_moments(
-                w_i,
-                (cx_i, cy_i),
-                (a_i, b_i, c_i),
-                (fxx_i, fxy_i, fyy_i),
-                dth_i,
-                sn_i,
-                sp_i,
-                th_i,
-                origin,
-                bool(border[i]),
-                config,
-            )
-            if ok[i]
-            else None
-        )
+    j = 0
+    for cl, edge in zip(closed, touches, strict=True):
+        if cl is None:
+            out.append(None)
+            continue
+        # (positional: the frozen dataclass's __init__ is about twice as fast)
+        out.append(BlobMoments(centroids[j], covs[j], shapes[j], *cl[4:10], edge, cl[10]))
+        j += 1
     return out
 
 
-def _blob_moments(
-    w: float,
-    centroid: tuple[float, float],
-    moments: tuple[float, float, float],
-    free_moments: tuple[float, float, float],
-    dth_sum: float,
-    sigma_n: float,
-    span: float,
-    theta: float,
-    origin: tuple[int, int],
-    touches_border: bool,
-    config: LampDetectorConfig,
-) -> BlobMoments:
+def _close_blob(
+    row: list[float], config: LampDetectorConfig
+) -> tuple[float, float, tuple, tuple, float, float, float, float, float, float, float]:
     """One blob's measurement from its coverage sums (the end of :func:`coverage_moments`).
 
     Args:
-        w: ``W = sum w_i`` (coverage area), px.
-        centroid: weighted centroid ``(col, row)`` in the box, px.
-        moments: ``(a, b, c) = (mu20, mu11, mu02) / W``, px^2 (eqs. 2-4).
-        free_moments: ``sum (d_x^2, d_x d_y, d_y^2)`` over the unclipped pixels
-            (``0 < w_i < 1``), px^2.
-        dth_sum: ``sum num_i^2`` over them (``dtheta/dw_i = num_i / (2 W (x^2 + y^2))``).
-        sigma_n: grey-level noise sigma.
-        span: lamp level minus background (``top - bg``), grey levels.
-        theta: long-axis angle (eq. 5), wrapped to ``(-pi/2, pi/2]``.
-        origin: ``(col, row)`` of the box in the image.
-        touches_border: the blob touches the image border.
+        row: ``[W, cx, cy, a, b, c, free_xx, free_xy, free_yy, dth_sum, sigma_n, span]``:
+            ``W = sum w_i`` (coverage area, px); the weighted centroid in the
+            box, px; ``(a, b, c) = (mu20, mu11, mu02) / W``, px^2 (eqs. 2-4);
+            ``sum (d_x^2, d_x d_y, d_y^2)`` over the unclipped pixels
+            (``0 < w_i < 1``), px^2; ``sum num_i^2`` over them
+            (``dtheta/dw_i = num_i / (2 W (x^2 + y^2))``); the grey-level noise
+            sigma; the lamp level minus background (``top - bg``), grey levels.
         config: detector settings (floors).
 
     Returns:
-        The blob's :class:`BlobMoments` (eqs. 2-7 with the pixel-box term).
+        ``(cx, cy, cov_centroid 2x2 rows, cov_shape 2x2 rows, theta, var_theta,
+        sigma1, sigma2, ratio, area_px, contrast)``, the fields of
+        :class:`BlobMoments` (eqs. 2-7 with the pixel-box term; ``theta``
+        (eq. 5) wrapped to ``(-pi/2, pi/2]`` as :func:`lampsam.angles.wrap_axis`).
     """
-    (cx, cy), (a, b, c), (free_xx, free_xy, free_yy) = centroid, moments, free_moments
+    w, cx, cy, a, b, c, free_xx, free_xy, free_yy, dth_sum, sigma_n, span = row
     sigma_w = sigma_n / span
     sigma_w2 = sigma_w * sigma_w
     scale = sigma_w2 / (w * w)
     floor2 = config.sigma_centroid_floor_px**2
     cov_xy = scale * free_xy
-    cov_c = np.array([[scale * free_xx + floor2, cov_xy], [cov_xy, scale * free_yy + floor2]])
+    cov_c = ((scale * free_xx + floor2, cov_xy), (cov_xy, scale * free_yy + floor2))
     xx, yy = a - c, 2.0 * b
     den = xx * xx + yy * yy
     if den > 1e-18:
@@ -1057,24 +1085,17 @@ def _blob_moments(
         var_theta = sigma_w2 * (dth_sum / (norm * norm)) + config.sigma_axis_floor**2
     else:
         var_theta = math.inf
+    half = 0.5 * math.pi
+    theta = half - (half - 0.5 * math.atan2(yy, xx)) % math.pi
     # Pixel-box term: the coverage of a pixel is spread uniformly over it.
     a12, c12 = a + 1.0 / 12.0, c + 1.0 / 12.0
     disc = math.sqrt(max((a12 - c12) * (a12 - c12) + 4.0 * b * b, 0.0))
     lam1 = 0.5 * (a12 + c12 + disc)
     lam2 = max(0.5 * (a12 + c12 - disc), 1e-12)
-    return BlobMoments(
-        centroid=np.array([cx + origin[0], cy + origin[1]]),
-        cov_centroid=cov_c,
-        cov_shape=np.array([[a12, b], [b, c12]]),
-        theta=theta,
-        var_theta=var_theta,
-        sigma1=math.sqrt(lam1),
-        sigma2=math.sqrt(lam2),
-        ratio=math.sqrt(lam1 / lam2),
-        area_px=w,
-        touches_border=touches_border,
-        contrast=span,
-    )
+    cov_shape = ((a12, b), (b, c12))
+    sigma1, sigma2 = math.sqrt(lam1), math.sqrt(lam2)
+    return (cx, cy, cov_c, cov_shape, theta, var_theta, sigma1, sigma2,
+            math.sqrt(lam1 / lam2), w, span)  # fmt: skip
 
 
 def measure_blobs(

@@ -34,11 +34,11 @@ from lampsam.frontend.lamps import (
     _disk,
     _disk_factors,
     _group_by_label,
+    _label_levels,
     _label_sums,
     _levels_at,
     _lower_median_rank,
     _measure_region,
-    _sorted_levels,
     auto_threshold,
     ceiling_jacobians,
     detect_lamps,
@@ -415,22 +415,25 @@ def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> N
 
 
 def test_per_label_order_statistics_and_sums(rng: np.random.Generator) -> None:
-    """Sort-based per-label medians / ranks and grouped per-label sums against
-    direct per-label numpy on pixels that come in long runs of one label."""
-    lab = np.repeat(rng.integers(0, 6, 40), rng.integers(1, 200, 40))
-    grey = rng.integers(0, 256, lab.size)
-    values = rng.normal(0.0, 100.0, (3, lab.size))
-    key, start, count = _sorted_levels(lab, grey, 7)
-    assert np.array_equal(count, np.bincount(lab, minlength=7))
-    median = _levels_at(key, start, _lower_median_rank(count))
-    top = _levels_at(key, start, count - 1)
-    groups = _group_by_label(lab, 7)
-    sums = _label_sums(groups, values.take(groups.order, axis=1), 7)
-    for j in range(7):
-        g = np.sort(grey[lab == j])
-        if g.size:
-            assert median[j] == g[(g.size + 1) // 2 - 1] and top[j] == g[-1]
-        np.testing.assert_allclose(sums[:, j], values[:, lab == j].sum(axis=1), atol=1e-9)
+    """Per-label medians / ranks (histogram path for few labels, sort path for many)
+    and grouped per-label sums against direct per-label numpy on pixels that come
+    in long runs of one label."""
+    for n in (7, 1500):  # 1500 > _HIST_MAX_LABELS: the sort path
+        lab = np.repeat(rng.integers(0, n, 40), rng.integers(1, 200, 40))
+        grey = rng.integers(0, 256, lab.size)
+        values = rng.normal(0.0, 100.0, (3, lab.size))
+        levels = _label_levels(lab, grey, n)
+        assert (levels.cum is None) == (n > 1024)
+        assert np.array_equal(levels.count, np.bincount(lab, minlength=n))
+        ranks = np.array([_lower_median_rank(levels.count), levels.count - 1])
+        median, top = _levels_at(levels, ranks)
+        groups = _group_by_label(lab, n)
+        sums = _label_sums(groups, values.take(groups.order, axis=1), n)
+        for j in np.unique(np.append(lab, [0, n - 1])).tolist():
+            g = np.sort(grey[lab == j])
+            if g.size:
+                assert median[j] == g[(g.size + 1) // 2 - 1] and top[j] == g[-1]
+            np.testing.assert_allclose(sums[:, j], values[:, lab == j].sum(axis=1), atol=1e-9)
 
 
 def test_otsu_level_matches_exhaustive_search(rng: np.random.Generator) -> None:
