@@ -81,12 +81,16 @@ class Mode(enum.Enum):
     GRID_ONLY: particles everywhere in free space, no candidates, no verification.
     NO_CEILING: candidates + particle filter, no ceiling verification.
     PROPOSED: candidates + particle filter + ``R_loc`` verification (the paper).
-    OURS: candidates plus a few uniform particles (5 % prior mass), particle
-        filter with the likelihood field and an adaptive (KLD) sample size;
-        its estimate and the best distinct modes of the first update re-scored
-        by a short ray-casting filter; the pose refined by the first ceiling
-        frame with two lamps (2-D alignment to the ceiling map); sequential
-        verification (decides after about 0.3 m instead of 2 m).
+    OURS: the proposed pipeline (ray casting by table, ``R_loc``), plus: an
+        adaptive (KLD) sample size; after a turn without candidates, the
+        estimate checked against its half-turn twin by the scan; the pose
+        refined by the first ceiling frame with two lamps (2-D alignment to
+        the ceiling map) before the frames are tested; after a failed attempt
+        without candidates, driving on to 1.5 m before turning again.
+        Earlier parts of ours (likelihood field, uniform particles beside the
+        candidates, re-scoring distinct modes, the sequential verifier) are
+        still available through :class:`FilterConfig` and
+        :class:`GlobalLocalizerConfig`, off by default (docs/table1.md).
     """
 
     GRID_ONLY = "grid_only"
@@ -228,11 +232,14 @@ class FilterConfig:
             Default True.
         likelihood_field_in_ours: :attr:`Mode.OURS` weighs particles with the
             likelihood field (:class:`LikelihoodFieldModel`) instead of the
-            ray-casting model. Default True.
+            ray-casting model. Default False: the field ignores occlusion and,
+            in the changed office, ranked twins of the true pose higher; the
+            range table made ray casting fast enough (docs/table1.md).
         uniform_in_ours: in :attr:`Mode.OURS`, particles spread over the free
             space in addition to the candidates' (when a changed environment
             leaves only wrong candidates, the paper's filter cannot recover
-            until verification fails). Default 5000.
+            until verification fails). Default 0 (off): they were the source
+            of ours' wrong poses (office trial 42: the half-turn twin won).
         uniform_share_in_ours: prior probability mass of those uniform
             particles (the candidates share the rest): the SIFT candidates are
             evidence, a uniform particle must out-score them by a large
@@ -240,7 +247,8 @@ class FilterConfig:
         recheck_modes_in_ours: in :attr:`Mode.OURS`, the converged estimate and
             the best distinct modes of the first update (up to this many in
             all) are re-scored by a short particle filter with the ray-casting
-            model (0 = off). Default 8. The likelihood field ignores occlusion
+            model (0 = off). Default 0: needed only with the likelihood
+            field. The likelihood field ignores occlusion
             and is fast, but in the changed office it preferred a pose's
             half-turn twin (the ceiling is symmetric under a half turn, so
             verification cannot tell them apart either); ray casting preferred
@@ -259,6 +267,16 @@ class FilterConfig:
             map the two agree to within one cell (5 cm) on 95 % of the beams
             and to 0.25 m on 99 %, and a 20,000-particle x 180-beam update takes
             0.08 s instead of 2.8 s (docs/table1.md).
+        twin_margin_in_ours: in :attr:`Mode.OURS`, after a turn without SIFT
+            candidates, when the ceiling map is symmetric under a half turn
+            (:func:`half_turn_centre`; the office's is), the estimate ``x`` and
+            its half-turn twin (``x`` rotated by pi about the centre) are each
+            refined by a short ray-casting filter and their scan
+            log-likelihoods compared: the better one is kept if it wins by
+            this margin (nats, after the beams' tempering), else the attempt
+            fails without a verification drive (no ceiling test can tell the
+            two apart) and the robot drives on and turns again. 0 = off.
+            Default 3.0.
         keep_scans_on_restart: after a failed verification, the virtual scans
             of the earlier turns stay in the filter of the next attempt (in
             :attr:`Mode.PROPOSED` and :attr:`Mode.OURS`): a particle at pose
@@ -288,14 +306,15 @@ class FilterConfig:
         )
     )
     kld_in_ours: bool = True
-    likelihood_field_in_ours: bool = True
-    uniform_in_ours: int = 5000
+    likelihood_field_in_ours: bool = False
+    uniform_in_ours: int = 0
     uniform_share_in_ours: float = 0.05
-    recheck_modes_in_ours: int = 8
+    recheck_modes_in_ours: int = 0
     mode_separation: tuple[float, float] = (0.5, 0.5)
     recheck_radius: float = 0.25
     recheck_particles: int = 200
     expected_ranges: Literal["table", "march"] = "table"
+    twin_margin_in_ours: float = 3.0
     keep_scans_on_restart: bool = False
 
 
@@ -319,7 +338,9 @@ class GlobalLocalizerConfig:
             the ceiling test then rejected, restart after restart.
         sequential_in_ours: :attr:`Mode.OURS` verifies with the sequential test
             (:class:`SequentialVerifier`) instead of the paper's ``R_loc``.
-            Default True.
+            Default False: it decides after about 0.3 m instead of 0.5 m, but
+            three short runs of missed frames fail a pose 15 cm off (office
+            trial 42), and a restart costs a 12 s turn.
         relocate_in_ours: in :attr:`Mode.OURS`, after a failed attempt whose
             turn found no candidate, drive on until this distance (m) since the
             turn before turning again. Default 1.5 m. Without SIFT matches the
@@ -357,7 +378,7 @@ class GlobalLocalizerConfig:
     max_verify_distance: float = 3.0
     max_restarts: int = 3
     refine_in_ours: bool = True
-    sequential_in_ours: bool = True
+    sequential_in_ours: bool = False
     relocate_in_ours: float = 1.5
     head_for_open_space: bool = True
     open_space_need: float = 2.7
@@ -761,6 +782,52 @@ def _recheck_modes(
     return pf, n_updates, converged
 
 
+def half_turn_centre(
+    xy: FloatArray, phi: FloatArray | None = None, tol: float = 0.15
+) -> FloatArray | None:
+    """Centre of a half-turn symmetry of a ceiling map, if it has one.
+
+    The map is half-turn symmetric about its centroid ``c`` when every feature
+    ``p`` has a feature within ``tol`` of ``2 c - p`` (and, with axes, with
+    the same axis mod pi: a half turn keeps a line's direction). A pose and
+    its half-turn twin then see the same ceiling.
+
+    Args:
+        xy: (L, 2) feature positions, world frame (m).
+        phi: (L,) long axes (rad, mod pi), NaN for none; None: not checked.
+        tol: position tolerance (m).
+
+    Returns:
+        (2,) the centre (m), or None (no symmetry, or fewer than 2 features).
+    """
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if len(xy) < 2:
+        return None
+    c = xy.mean(axis=0)
+    mirrored = 2.0 * c - xy
+    d = np.hypot(*(mirrored[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+    j = np.argmin(d, axis=1)
+    if not np.all(d[np.arange(len(xy)), j] <= tol):
+        return None
+    if phi is not None:
+        a = np.asarray(phi, dtype=float).reshape(-1)
+        both = np.isfinite(a) & np.isfinite(a[j])
+        if np.any(np.isfinite(a) != np.isfinite(a[j])):
+            return None
+        diff = np.abs(np.asarray(wrap_angle(2.0 * (a[both] - a[j][both])))) / 2.0
+        if np.any(diff > np.deg2rad(10.0)):
+            return None
+    return c
+
+
+def half_turn_twin(pose: FloatArray, centre: FloatArray) -> FloatArray:
+    """(3,) the pose rotated by pi about ``centre`` (m): ``(2c - xy, theta + pi)``."""
+    p = np.asarray(pose, dtype=float)
+    return np.array(
+        [2.0 * centre[0] - p[0], 2.0 * centre[1] - p[1], float(wrap_angle(p[2] + np.pi))]
+    )
+
+
 def open_heading(
     scan: FloatArray,
     need: float,
@@ -933,6 +1000,53 @@ def _verify_stage(
     return verdict, r_loc, d, pose, prev, robot_s, compute
 
 
+def resolve_half_turn(
+    pose: FloatArray,
+    scan: FloatArray,
+    centre: FloatArray,
+    maps: EnvironmentMaps,
+    config: GlobalLocalizerConfig,
+    rng: np.random.Generator,
+) -> tuple[FloatArray, float]:
+    """Ours: the estimate or its half-turn twin, whichever the scan prefers, and by how much.
+
+    Each of the two poses is refined by a short ray-casting particle filter
+    (:func:`_recheck_modes`, one disc) and scored by the ray-casting model
+    (eqs. 8-9, tempered); the ceiling cannot tell them apart when the map is
+    half-turn symmetric about ``centre``.
+
+    Args:
+        pose: (3,) the filter's estimate (m, m, rad).
+        scan: (360,) the virtual scan (m, NaN = no return).
+        centre: (2,) the symmetry centre (m), :func:`half_turn_centre`.
+        maps: the map layers.
+        config: the configuration.
+        rng: generator of the refinement.
+
+    Returns:
+        The preferred pose (3,) and its log-likelihood margin over the other (nats, >= 0).
+    """
+    fc = config.filter
+    angles = beam_angles()[:: fc.beam_step]
+    ranges = scan[:: fc.beam_step]
+    model = _ray_model(maps, config)
+    refined, scores = [], []
+    for h in (np.asarray(pose, dtype=float), half_turn_twin(pose, centre)):
+        pf, _, _ = _recheck_modes(h[None], ranges, angles, maps, config, rng)
+        est = mode_estimate(pf.particles, pf.log_weights)
+        refined.append(est)
+        scores.append(float(model.log_likelihood(est[None], ranges, angles)[0]))
+    best = int(np.argmax(scores))
+    margin = abs(scores[0] - scores[1])
+    log.info(
+        "half-turn twin check: estimate %.1f, twin %.1f (log-likelihood): %s",
+        scores[0],
+        scores[1],
+        "twin" if best == 1 else "estimate",
+    )
+    return refined[best], margin
+
+
 def _face_open_space(
     robot: Robot,
     scan: FloatArray,
@@ -995,6 +1109,19 @@ def localize(
     verifies = config.mode in (Mode.PROPOSED, Mode.OURS)
     fc = config.filter
     keep = verifies and fc.keep_scans_on_restart
+    twin_centre = None
+    if config.mode is Mode.OURS and fc.twin_margin_in_ours > 0 and len(maps.ceiling_xyz) >= 2:
+        lamps = (
+            np.ones(len(maps.ceiling_xyz), bool)
+            if maps.ceiling_is_lamp is None
+            else np.asarray(maps.ceiling_is_lamp, bool)
+        )
+        twin_centre = half_turn_centre(
+            maps.ceiling_xyz[lamps, :2],
+            None if maps.ceiling_phi is None else np.asarray(maps.ceiling_phi)[lamps],
+        )
+        if twin_centre is not None:
+            log.info("the ceiling map is half-turn symmetric about (%.2f, %.2f)", *twin_centre)
     kept: list[KeptScan] = []
     if initial is not None and verifies:
         verdict, r_loc, d, pose, odom, rs, cs = _verify_stage(
@@ -1022,6 +1149,10 @@ def localize(
         )
         pose = mode_estimate(pf.particles, pf.log_weights)
         _, cov = pf.estimate()
+        ambiguous = False
+        if twin_centre is not None and not cands:
+            pose, margin = resolve_half_turn(pose, scan, twin_centre, maps, config, rng)
+            ambiguous = margin < fc.twin_margin_in_ours
         compute_time["filter"] += time.perf_counter() - t0
         if not verifies:
             attempts.append(
@@ -1039,9 +1170,13 @@ def localize(
             break
         if config.head_for_open_space:
             pose, odom = _face_open_space(robot, scan, pose, odom, config, robot_time)
-        verdict, r_loc, d, pose, odom, rs, cs = _verify_stage(robot, pose, odom, maps, config)
-        robot_time["verification"] += rs
-        compute_time["verification"] += cs
+        if ambiguous:
+            verdict, r_loc, d = Verdict.FAILED, float("nan"), 0.0
+            log.info("the scan cannot tell the estimate from its half-turn twin: not verified")
+        else:
+            verdict, r_loc, d, pose, odom, rs, cs = _verify_stage(robot, pose, odom, maps, config)
+            robot_time["verification"] += rs
+            compute_time["verification"] += cs
         attempts.append(
             AttemptRecord(
                 len(cands), n_upd, converged, verdict.value, r_loc, d, [float(v) for v in pose]

@@ -281,3 +281,54 @@ def test_open_heading_keeps_a_free_heading_and_handles_an_empty_scan() -> None:
     pose = np.array([2.5, 3.0, 0.0])  # the box 15 deg to the left is 2.6 m away
     assert open_heading(_scan_like_kinect(grid, pose), 2.4) == 0.0
     assert open_heading(np.full(360, np.nan), 2.7) == 0.0
+
+
+def test_half_turn_centre_finds_the_symmetry_of_a_lamp_layout() -> None:
+    from lampsam.localization.global_localizer import half_turn_centre, half_turn_twin
+
+    rng = np.random.default_rng(5)
+    half = rng.uniform(0.0, 4.0, (5, 2))
+    centre = np.array([4.2, 3.1])
+    xy = np.vstack([half, 2.0 * centre - half, centre[None]])  # symmetric pairs + one at the centre
+    phi = np.concatenate([rng.uniform(0, np.pi, 5)] * 2 + [[np.nan]])
+    noisy = xy + rng.normal(0, 0.02, xy.shape)
+    got = half_turn_centre(noisy, phi)
+    assert got is not None
+    np.testing.assert_allclose(got, centre, atol=0.03)
+    # a half turn keeps a lamp's axis mod pi: axes turned by 90 deg break the symmetry
+    assert half_turn_centre(xy, np.concatenate([phi[:5], phi[5:10] + np.pi / 2, [np.nan]])) is None
+    assert half_turn_centre(np.vstack([xy, [[0.3, 0.2]]])) is None  # an unmatched lamp
+    assert half_turn_centre(xy[:1]) is None
+    # the twin of a pose sees the ceiling from the mirrored place, turned by pi
+    pose = np.array([1.0, 2.0, 0.3])
+    twin = half_turn_twin(pose, centre)
+    np.testing.assert_allclose(twin[:2], [7.4, 4.2], atol=1e-12)
+    assert abs(wrap_angle(twin[2] - 0.3 - np.pi)) < 1e-12
+    lamp = xy[0]
+    body = lambda p, q: np.array(  # noqa: E731
+        [np.cos(p[2]) * (q[0] - p[0]) + np.sin(p[2]) * (q[1] - p[1]),
+         -np.sin(p[2]) * (q[0] - p[0]) + np.cos(p[2]) * (q[1] - p[1])]
+    )  # fmt: skip
+    np.testing.assert_allclose(body(pose, lamp), body(twin, xy[5]), atol=1e-9)
+
+
+def test_resolve_half_turn_prefers_the_scan_side_and_flags_a_symmetric_room() -> None:
+    from lampsam.localization.global_localizer import half_turn_twin, resolve_half_turn
+    from lampsam.localization.virtual_scan import beam_angles
+
+    cfg = GlobalLocalizerConfig(mode=Mode.OURS, filter=FilterConfig(expected_ranges="march"))
+    truth = np.array([2.3, 2.4, 0.6])
+    centre = np.array([4.0, 3.0])  # of the 8 m x 6 m room
+    for boxes, symmetric in ((MAP_BOXES, False), ([], True)):
+        grid = _grid(boxes)
+        r = cast_rays(grid, truth[None], beam_angles(), 4.5)[0]
+        scan = np.where(r >= 4.5 - 1e-6, np.nan, r)
+        maps = EnvironmentMaps(grid, np.zeros((0, 3)), np.zeros((0, 128)), np.zeros((0, 3)), CAM)
+        twin = half_turn_twin(truth, centre)
+        pose, margin = resolve_half_turn(twin, scan, centre, maps, cfg, np.random.default_rng(2))
+        if symmetric:  # an empty rectangle looks the same from both: ambiguous
+            assert margin < cfg.filter.twin_margin_in_ours
+        else:  # the boxes tell: the truth is chosen although the filter gave its twin
+            e_xy, e_th = _error(pose, truth)
+            assert e_xy < 0.1 and e_th < np.deg2rad(3.0)
+            assert margin > 10.0 * cfg.filter.twin_margin_in_ours
