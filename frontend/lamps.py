@@ -679,31 +679,33 @@ def to_observations(
         N observations, same order; equal to :func:`to_observation` up to
         floating-point rounding (the 2x2 determinant is expanded, not LU).
     """
-    cov_c = np.array([mo.cov_centroid for mo in moments])
-    cov_m = m_D_px @ cov_c @ m_D_px.transpose(0, 2, 1)
-    theta = np.array([mo.theta for mo in moments])
-    cos_t, sin_t = np.cos(theta), np.sin(theta)
-    j00, j01, j10, j11 = m_D_px[:, 0, 0], m_D_px[:, 0, 1], m_D_px[:, 1, 0], m_D_px[:, 1, 1]
-    je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
-    axes = wrap_axis(np.arctan2(je1, je0)).tolist()
-    gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
-    var_axes = (gain * gain * np.array([mo.var_theta for mo in moments])).tolist()
-    m = np.asarray(m, dtype=np.float64)
     threshold = config.ratio_threshold
+    half = 0.5 * math.pi
+    cov_c = np.array([mo.cov_centroid for mo in moments]).tolist()
+    # Per lamp on Python floats (a handful of 2x2 products: cheaper than numpy calls).
+    covs, axes, var_axes = [], [], []
+    for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)) in zip(
+        moments, m_D_px.tolist(), cov_c, strict=True
+    ):
+        # cov_m = J cov_c J^T
+        t00, t01 = j00 * c00 + j01 * c10, j00 * c01 + j01 * c11
+        t10, t11 = j10 * c00 + j11 * c10, j10 * c01 + j11 * c11
+        covs.append(((t00 * j00 + t01 * j01, t00 * j10 + t01 * j11),
+                     (t10 * j00 + t11 * j01, t10 * j10 + t11 * j11)))  # fmt: skip
+        if mo.ratio > threshold:
+            cos_t, sin_t = math.cos(mo.theta), math.sin(mo.theta)
+            je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
+            axes.append(half - (half - math.atan2(je1, je0)) % math.pi)  # wrap_axis
+            gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
+            var_axes.append(gain * gain * mo.var_theta)
+        else:
+            axes.append(None)
+            var_axes.append(math.inf)
+    m = np.asarray(m, dtype=np.float64)
     # (positional: the frozen dataclass's __init__ is about twice as fast)
     return tuple(
-        LampObservation(
-            mi,
-            ci,
-            ax if mo.ratio > threshold else None,
-            va if mo.ratio > threshold else math.inf,
-            mo.ratio,
-            mo.area_px,
-            mo.centroid,
-            None,
-            mo.touches_border,
-        )
-        for mo, mi, ci, ax, va in zip(moments, m, cov_m, axes, var_axes, strict=True)
+        LampObservation(mi, ci, ax, va, mo.ratio, mo.area_px, mo.centroid, None, mo.touches_border)
+        for mo, mi, ci, ax, va in zip(moments, m, np.array(covs), axes, var_axes, strict=True)
     )
 
 
@@ -716,9 +718,10 @@ class _Reach(NamedTuple):
 
     Attributes:
         xy: shape (2, P) float ``(col, row)`` in the box, px.
-        grey: shape (P,) grey level.
-        sup: shape (P,) label of the support the pixel lies in.
-        ring: shape (P,) label of the background ring the pixel lies in.
+        grey: shape (P,) uint8 grey level.
+        sup: shape (P,) label of the support the pixel lies in (the label
+            image's 8- or 16-bit dtype).
+        ring: shape (P,) int label of the background ring the pixel lies in.
     """
 
     xy: FloatArray
@@ -768,10 +771,10 @@ def _gather_reach(
     in_image = idx + rows * (width - (c1 - c0)) + ((r0 + origin[1]) * width + c0 + origin[0])
     free = binary.reshape(-1).take(in_image) == 0
     near_v = near.take(idx)
-    sup = np.where(free, near_v, comp.reshape(-1).take(in_comp)).astype(np.intp)
+    sup = np.where(free, near_v, comp.reshape(-1).take(in_comp))
     ring = np.where(free & (near_v == 0), outer.take(idx), 0).astype(np.intp)
     xy = np.array([cols, rows], dtype=np.float64)
-    return _Reach(xy, image.reshape(-1).take(in_image).astype(np.intp), sup, ring)
+    return _Reach(xy, image.reshape(-1).take(in_image), sup, ring)
 
 
 class _Groups(NamedTuple):
@@ -802,7 +805,7 @@ def _group_by_label(lab: IntArray, n: int, count: IntArray | None = None) -> _Gr
         n: number of labels.
         count: shape (n,) pixels per label when the caller has them.
     """
-    small = lab.astype(np.uint8 if n <= 256 else np.uint16 if n <= 65536 else np.intp)
+    small = lab.astype(np.uint8 if n <= 256 else np.uint16 if n <= 65536 else np.intp, copy=False)
     order = np.argsort(small, kind="stable")
     if count is None:
         count = np.bincount(lab, minlength=n)
@@ -1162,23 +1165,21 @@ def measure_blobs(
         comp.reshape(-1)[pix] = pix_lab  # comp is contiguous: reshape is a view
         keep = pix_lab > 0
         pix, pix_lab = pix.compress(keep), pix_lab.compress(keep)
-    box_stats = stats[cand]
-    x0 = box_stats[:, cv2.CC_STAT_LEFT] + bx0
-    y0 = box_stats[:, cv2.CC_STAT_TOP] + by0
-    x1 = x0 + box_stats[:, cv2.CC_STAT_WIDTH]
-    y1 = y0 + box_stats[:, cv2.CC_STAT_HEIGHT]
+    # Candidate boxes in the image: (left, top) and (right, bottom) exclusive, (m, 2) each.
+    lo = stats[cand, :2] + (bx0, by0)
+    hi = lo + stats[cand, 2:4]
     border = np.zeros(n_keep + 1, dtype=bool)
-    border[1:] = (x0 == 0) | (y0 == 0) | (x1 == w) | (y1 == h)
+    border[1:] = (lo == 0).any(axis=1) | (hi == (w, h)).any(axis=1)
     # Measure inside the union box of the candidates (plus the reach): lamps are sparse.
-    mx0, my0 = max(int(x0.min()) - pad, 0), max(int(y0.min()) - pad, 0)
-    mx1, my1 = min(int(x1.max()) + pad, w), min(int(y1.max()) + pad, h)
+    (mx0, my0), (mx1, my1) = lo.min(axis=0).tolist(), hi.max(axis=0).tolist()
+    mx0, my0, mx1, my1 = max(mx0 - pad, 0), max(my0 - pad, 0), min(mx1 + pad, w), min(my1 + pad, h)
     rr, cc = np.divmod(pix, labels.shape[1])
     pix_image = (rr + by0) * w + (cc + bx0)  # flat index in the image
     too_dim, merged, top = _shape_checks(
         pix_lab,
         (cc - (mx0 - bx0)).astype(np.float64),
         (rr - (my0 - by0)).astype(np.float64),
-        image.reshape(-1).take(pix_image).astype(np.intp),
+        image.reshape(-1).take(pix_image),
         n_keep + 1,
         peak,
         config,
@@ -1210,8 +1211,8 @@ def measure_blobs(
     # Glare-merger candidates: per region, re-thresholded higher.
     for j in np.flatnonzero(merged[1:] & ~too_dim[1:]).tolist():
         idx = int(cand[j])
-        c0, r0 = max(int(x0[j]) - pad, 0), max(int(y0[j]) - pad, 0)
-        c1, r1 = min(int(x1[j]) + pad, w), min(int(y1[j]) + pad, h)
+        (c0, r0), (c1, r1) = lo[j].tolist(), hi[j].tolist()
+        c0, r0, c1, r1 = max(c0 - pad, 0), max(r0 - pad, 0), min(c1 + pad, w), min(r1 + pad, h)
         lab_roi = labels[r0 - by0 : r1 - by0, c0 - bx0 : c1 - bx0]
         core = lab_roi == idx
         others = (lab_roi != 0) & ~core

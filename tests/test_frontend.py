@@ -27,6 +27,8 @@ from lampsam.frontend.corners import (
     extract_patches,
     margin_kernel,
     match_ncc,
+    spacing_nms,
+    strongest_spaced,
 )
 from lampsam.frontend.lamps import (
     LampDetectorConfig,
@@ -454,6 +456,25 @@ def test_otsu_level_matches_exhaustive_search(rng: np.random.Generator) -> None:
                 if score > best * (1 + 1e-12):
                     best, arg = score, float(lo + t)
         assert otsu_level(hist, lo) == arg
+
+
+def test_spacing_keeps_local_maxima_strongest_first(rng: np.random.Generator) -> None:
+    """Minimum spacing (all pairs for few points, k-d tree for many) equals the rule
+    checked pair by pair: a point goes when a stronger one (ties: lower index) lies
+    within the spacing; the kept ones come strongest first, ties in index order."""
+    for n in (2, 60, 256, 257, 700):  # 256 / 257: either side of the all-pairs limit
+        pts = rng.integers(0, 120, (n, 2)).astype(np.float64)  # pixel centres: exact distances
+        score = rng.integers(20, 30, n).astype(np.float64)  # many ties
+        d2 = ((pts[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
+        beats = (score[None, :] > score[:, None]) | (
+            (score[None, :] == score[:, None]) & (np.arange(n)[None, :] < np.arange(n)[:, None])
+        )
+        expected = ~((d2 <= 64.0) & beats).any(axis=1)
+        assert np.array_equal(spacing_nms(pts, score, 8.0), expected)
+        kept = strongest_spaced(pts, score, 8.0)
+        assert np.array_equal(np.sort(kept), np.flatnonzero(expected))
+        assert np.array_equal(kept, sorted(kept.tolist(), key=lambda i: (-score[i], i)))
+    assert np.array_equal(strongest_spaced(pts[:3], np.array([1.0, 3.0, 2.0]), 0.0), [1, 2, 0])
 
 
 def test_lamp_margin_filter_matches_dilation(rng: np.random.Generator) -> None:
