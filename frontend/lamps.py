@@ -683,7 +683,9 @@ def to_observations(
     half = 0.5 * math.pi
     cov_c = np.array([mo.cov_centroid for mo in moments]).tolist()
     # Per lamp on Python floats (a handful of 2x2 products: cheaper than numpy calls).
-    covs, axes, var_axes = [], [], []
+    covs: list[tuple[tuple[float, float], tuple[float, float]]] = []
+    axes: list[float | None] = []
+    var_axes: list[float] = []
     for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)) in zip(
         moments, m_D_px.tolist(), cov_c, strict=True
     ):
