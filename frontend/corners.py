@@ -87,7 +87,9 @@ class CornerDetections:
     patches: np.ndarray
 
 
-_BRUTE_FORCE_MAX = 256  # spacing by all pairs up to this many points, by a k-d tree above
+_BRUTE_FORCE_MAX = (
+    128  # spacing by all pairs up to this many points (measured crossover), k-d tree above
+)
 
 
 def spacing_nms(pts: FloatArray, score: FloatArray, spacing: float) -> BoolArray:

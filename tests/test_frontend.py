@@ -462,7 +462,7 @@ def test_spacing_keeps_local_maxima_strongest_first(rng: np.random.Generator) ->
     """Minimum spacing (all pairs for few points, k-d tree for many) equals the rule
     checked pair by pair: a point goes when a stronger one (ties: lower index) lies
     within the spacing; the kept ones come strongest first, ties in index order."""
-    for n in (2, 60, 256, 257, 700):  # 256 / 257: either side of the all-pairs limit
+    for n in (2, 60, 128, 129, 700):  # 128 / 129: either side of the all-pairs limit
         pts = rng.integers(0, 120, (n, 2)).astype(np.float64)  # pixel centres: exact distances
         score = rng.integers(20, 30, n).astype(np.float64)  # many ties
         d2 = ((pts[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
