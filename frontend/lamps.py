@@ -846,7 +846,7 @@ class _Levels(NamedTuple):
     Attributes:
         cum: shape (n, 256) cumulative counts per label, or None (sort path).
         key: shape (P,) sorted keys, or None (histogram path).
-        start: shape (n,) first position of each label in ``key`` (histogram path: zeros).
+        start: shape (n,) first position of each label in ``key`` (histogram path: unused).
         count: shape (n,) pixels per label.
     """
 
@@ -868,7 +868,7 @@ def _label_levels(lab: IntArray, grey: IntArray, n: int) -> _Levels:
     if n <= _HIST_MAX_LABELS:
         cum = np.bincount(key, minlength=256 * n).reshape(n, 256).cumsum(axis=1)
         count = cum[:, -1]
-        return _Levels(cum, None, np.zeros_like(count), count)
+        return _Levels(cum, None, count, count)
     key.sort()
     edges = np.searchsorted(key, 256 * np.arange(n + 1))
     start = edges[:-1]
@@ -888,8 +888,8 @@ def _levels_at(levels: _Levels, rank: IntArray) -> IntArray:
         int grey levels, the shape of ``rank``. On the histogram path the level
         of rank ``r`` is the first whose cumulative count exceeds ``r``.
     """
-    if levels.cum is not None:
-        return (levels.cum < rank[..., None] + 1).sum(axis=-1)
+    if levels.cum is not None:  # (integer counts: cum < rank + 1 is cum <= rank)
+        return (levels.cum <= rank[..., None]).sum(axis=-1)
     assert levels.key is not None
     pos = np.minimum(levels.start + rank, levels.key.size - 1)
     return levels.key.take(pos) - 256 * np.arange(levels.start.size)
@@ -1019,7 +1019,9 @@ def _measure_labels(
     s0 = np.maximum(s0, 1e-12)
     cx, cy = sx / s0, sy / s0
     d = xy - np.array([cx, cy]).take(lab, axis=1)
-    q = d[(0, 0, 1),] * d[(0, 1, 1),]  # dx^2, dx dy, dy^2
+    q = np.empty((3, d.shape[1]))  # dx^2, dx dy, dy^2 (no fancy-indexed copies of d)
+    np.multiply(d[0], d, out=q[:2])
+    np.multiply(d[1], d[1], out=q[2])
     free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
     sums = _label_sums(groups, np.concatenate([wv * q, free * q]), n)
     a, b, c = sums[:3] / s0
