@@ -1331,6 +1331,8 @@ def localize_run(
         out_dir: where ``result.json`` goes.
         config: the pipeline configuration.
         seed: seed of RANSAC and the particle filter.
+            ``config.head_for_open_space`` is switched off: a replayed log
+            cannot turn where the localizer asks.
 
     Returns:
         The result (also written).
@@ -1341,6 +1343,8 @@ def localize_run(
     from lampsam.localization.envmap import load_env_map
 
     env = load_env_map(map_dir)
+    # a log cannot be steered: the recorded drive decides where the robot went
+    config = replace(config, head_for_open_space=False)
     robot = ReplayRobot(run_dir)
     cam = robot.run.rig.camera
     maps = EnvironmentMaps.from_env_map(env, cam.body_t_camera, cam)
