@@ -9,7 +9,7 @@ among the gated candidates (DESIGN.md sec. 1).
   exposure and are not ceiling structure; tested at the keypoints,
   :func:`_near_mask`), then a minimum spacing: a corner survives only
   if it has the largest response within ``min_spacing_px`` (a second, wider
-  non-maximum suppression over k-d tree pairs), then the
+  non-maximum suppression over all pairs, k-d tree pairs for many points), then the
   ``max_corners`` strongest are kept and refined to sub-pixel with
   ``cv2.cornerSubPix`` (moves of more than ``subpix_win`` px are undone).
 * Patches: ``P x P`` grey levels centred on the corner, stored zero-mean and
@@ -87,9 +87,9 @@ class CornerDetections:
     patches: np.ndarray
 
 
-_BRUTE_FORCE_MAX = (
-    128  # spacing by all pairs up to this many points (measured crossover), k-d tree above
-)
+# Spacing by all pairs up to this many points, by a k-d tree above (the measured
+# crossover; all-pairs arrays past it also outgrow the cache).
+_BRUTE_FORCE_MAX = 128
 
 
 def spacing_nms(pts: FloatArray, score: FloatArray, spacing: float) -> BoolArray:

@@ -65,8 +65,10 @@ pixel more than ``max_peak_drop_grey`` below the image's lamp peak: smoke
 detectors, specular highlights on ducts).
 
 All per-blob sums are vectorised over the blobs (segment sums over the pixels
-grouped by label, medians from one sort), so the cost hardly grows with the
-number of lamps; only glare splits go region by region. Labelling, checks and
+grouped by label, medians from per-label cumulative level histograms), so the
+cost hardly grows with the number of lamps; only glare splits go region by
+region, and the closing formulas of each blob run on Python floats (a handful
+of blobs: cheaper than numpy calls on tiny arrays). Labelling, checks and
 moments work inside the bounding box of the thresholded pixels (lamps are
 sparse); a benchmark is ``scripts/bench/bench_frontend.py``.
 """
