@@ -1,8 +1,9 @@
 """Benchmark: the ceiling frontend on one 320x240 frame (issue 3: lamps + corners < 3 ms).
 
 Frames: a frame of the simulated ``lab`` world (rendered here, 2 s of driving,
-in-process) and, when the shared data is present, a real ceiling photo reduced
-to 320x240. Cases:
+in-process; the issue's case) and, when the shared data is present, a real
+ceiling photo reduced to 320x240 (for information: 10 lamps, 125 corners, 29
+candidate blobs and glare checks, about 2.5 times the lab frame's work). Cases:
 
 * reference: ``cv2.threshold`` + ``cv2.connectedComponentsWithStats`` (the bare
   labelling step of paper 1, eq. 1 and the grassfire labelling);
