@@ -147,6 +147,69 @@ def strongest_spaced(pts: FloatArray, score: FloatArray, spacing: float) -> IntA
 
 
 @functools.lru_cache(maxsize=8)
+def _disk_rects(spacing: float) -> tuple[np.ndarray, ...]:
+    """Rectangles whose union is the disk of integer offsets ``dx^2 + dy^2 <= spacing^2``.
+
+    One per step of the disk's staircase: rows ``|dy| <= d`` with the half-width
+    of row ``d``. A dilation by each (OpenCV filters rectangles separably) and
+    the maximum of the results is a dilation by the disk.
+    """
+    s2 = float(spacing) * float(spacing)
+    r = int(math.floor(float(spacing)))
+    half = []
+    for dy in range(r + 1):
+        w = int(math.floor(math.sqrt(max(s2 - dy * dy, 0.0))))
+        while (w + 1) * (w + 1) + dy * dy <= s2:
+            w += 1
+        while w > 0 and w * w + dy * dy > s2:
+            w -= 1
+        half.append(w)
+    return tuple(
+        np.ones((2 * d + 1, 2 * half[d] + 1), np.uint8)
+        for d in range(r + 1)
+        if d == r or half[d + 1] < half[d]
+    )
+
+
+def strongest_spaced_pixels(
+    ij: IntArray, score: FloatArray, spacing: float, shape: tuple[int, int]
+) -> IntArray | None:
+    """:func:`strongest_spaced` for distinct integer pixels, by dilating a rank image.
+
+    Each pixel gets its priority (``N`` for the strongest down to 1); after a
+    grey dilation by the disk of radius ``spacing``, a point is beaten exactly
+    when the dilated priority at it exceeds its own. The cost is a few
+    separable passes over the image, whatever the number of points (a k-d
+    tree's pairs grow with their density).
+
+    Args:
+        ij: shape (N, 2) int pixels ``(col, row)`` inside an image of ``shape``.
+        score: shape (N,) scores.
+        spacing: minimum distance, px.
+        shape: ``(H, W)`` of the image.
+
+    Returns:
+        As :func:`strongest_spaced`, or None when two points share a pixel.
+    """
+    rank = np.argsort(-score, kind="stable")
+    n = rank.shape[0]
+    if n < 2 or spacing <= 0:
+        return rank
+    cols, rows = ij.take(rank, axis=0).T
+    priority = np.zeros(shape, np.uint16 if n < 65535 else np.float32)
+    priority[rows, cols] = np.arange(n, 0, -1)
+    if cv2.countNonZero(priority) != n:
+        return None
+    near = None
+    for rect in _disk_rects(spacing):
+        grown = cv2.dilate(priority, rect)
+        near = grown if near is None else np.maximum(near, grown, out=near)
+    assert near is not None
+    beaten = near[rows, cols] > priority[rows, cols]
+    return rank.compress(~beaten)
+
+
+@functools.lru_cache(maxsize=8)
 def margin_kernel(margin: float) -> np.ndarray:
     """Footprint of the pixels within ``margin`` of a pixel, by OpenCV's 3x3 L2 distance.
 
@@ -297,8 +360,14 @@ def detect_corner_pixels(
     if resp.size > cap:
         top = np.argpartition(-resp, cap)[:cap]
         pts, resp = pts[top], resp[top]
-    # Spacing, strongest first (the stable order of the kept ones), then the cap.
-    order = strongest_spaced(pts, resp, config.min_spacing_px)[: config.max_corners]
+    # Spacing, strongest first (the stable order of the kept ones), then the cap. FAST
+    # keypoints are distinct pixel centres: many are spaced on the image grid.
+    order = None
+    if resp.size > _BRUTE_FORCE_MAX:
+        order = strongest_spaced_pixels(pts.astype(np.intp), resp, config.min_spacing_px, (h, w))
+    if order is None:
+        order = strongest_spaced(pts, resp, config.min_spacing_px)
+    order = order[: config.max_corners]
     ij = np.round(pts.take(order, axis=0)).astype(np.int64)
     resp = resp.take(order)
     pix = ij.astype(np.float64)

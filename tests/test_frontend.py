@@ -29,6 +29,7 @@ from lampsam.frontend.corners import (
     match_ncc,
     spacing_nms,
     strongest_spaced,
+    strongest_spaced_pixels,
 )
 from lampsam.frontend.lamps import (
     LampDetectorConfig,
@@ -475,6 +476,22 @@ def test_spacing_keeps_local_maxima_strongest_first(rng: np.random.Generator) ->
         assert np.array_equal(np.sort(kept), np.flatnonzero(expected))
         assert np.array_equal(kept, sorted(kept.tolist(), key=lambda i: (-score[i], i)))
     assert np.array_equal(strongest_spaced(pts[:3], np.array([1.0, 3.0, 2.0]), 0.0), [1, 2, 0])
+
+
+def test_spacing_on_the_pixel_grid_matches_pairs(rng: np.random.Generator) -> None:
+    """The rank-image dilation keeps exactly the points the pair test keeps (dense,
+    many ties, points at the image border), for integer and fractional spacings;
+    two points on one pixel are refused (None)."""
+    h, w = 60, 90
+    for spacing in (8.0, 4.5, 1.0, 0.5):
+        flat = rng.choice(h * w, 900, replace=False)
+        ij = np.column_stack([flat % w, flat // w])
+        score = rng.integers(20, 26, ij.shape[0]).astype(np.float64)
+        expected = strongest_spaced(ij.astype(np.float64), score, spacing)
+        got = strongest_spaced_pixels(ij, score, spacing, (h, w))
+        assert got is not None and np.array_equal(got, expected)
+    twice = np.array([[3, 4], [3, 4], [10, 10]])
+    assert strongest_spaced_pixels(twice, np.array([1.0, 2.0, 3.0]), 8.0, (h, w)) is None
 
 
 def test_lamp_margin_filter_matches_dilation(rng: np.random.Generator) -> None:
