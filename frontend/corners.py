@@ -9,7 +9,8 @@ among the gated candidates (DESIGN.md sec. 1).
   exposure and are not ceiling structure; tested at the keypoints,
   :func:`_near_mask`), then a minimum spacing: a corner survives only
   if it has the largest response within ``min_spacing_px`` (a second, wider
-  non-maximum suppression over all pairs, k-d tree pairs for many points), then the
+  non-maximum suppression: all pairs for a few points, a dilation of the
+  rank image by the disk for many, :func:`strongest_spaced_pixels`), then the
   ``max_corners`` strongest are kept and refined to sub-pixel with
   ``cv2.cornerSubPix`` (moves of more than ``subpix_win`` px are undone).
 * Patches: ``P x P`` grey levels centred on the corner, stored zero-mean and
