@@ -22,6 +22,7 @@ import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -242,3 +243,37 @@ def screen_pairs(observations: list[Obs], kind: str, lids: list[int], z_hat: Flo
         fin = exact and dof == 2
         out[i] = {lids[j]: (float(d2[row, j]), fin) for j in keep}
     return out
+
+
+def corner_budget(matches: list[tuple[Any, Obs]], budget: int | None
+                  ) -> tuple[list[tuple[Any, Obs]], int]:
+    """Keep at most ``budget`` mapped corner landmarks per frame (all backends).
+
+    Every landmark in the graph that a keyframe observes becomes a variable of
+    iSAM2's root clique (GTSAM orders the newly observed keys last), so the update
+    and the pose marginal grow with the cube of the number observed: about 100
+    ceiling corners per frame on the lab world made both 20-100 ms. The EKF's
+    update costs ``O(n^2 K)`` for ``K`` measurement rows. The corners with the
+    longest tracks (most observations, then the oldest id) are kept: they tie the
+    frame to the most of the map. Lamps, planar points and corners not yet in the
+    graph (pending, delayed initialisation) always pass. A landmark without an
+    ``in_graph`` attribute (an EKF slot) counts as mapped.
+
+    Args:
+        matches: ``(landmark, observation)`` pairs of one keyframe; a landmark has
+            ``kind``, ``n_obs``, ``id`` and optionally ``in_graph``.
+        budget: the most in-graph corners kept, or None for no limit.
+
+    Returns:
+        ``(kept pairs in their input order, corners that may still enter the graph
+        this frame = max(2, budget - mapped corners kept))``; with no budget
+        the second is unbounded.
+    """
+    if budget is None:
+        return matches, 1 << 30
+    in_graph = [j for j, (lm, _) in enumerate(matches)
+                if lm.kind == "corner" and getattr(lm, "in_graph", True)]
+    ranked = sorted(in_graph, key=lambda j: (-matches[j][0].n_obs, matches[j][0].id))
+    drop = set(ranked[budget:])
+    kept = [m for j, m in enumerate(matches) if j not in drop]
+    return kept, max(2, budget - min(len(in_graph), budget))

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate, screen_pairs
+from lampsam.backend.association import associate, corner_budget, screen_pairs
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import (
     Frame,
@@ -463,10 +463,18 @@ class EkfSlam(SlamBackend):
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
+                budget = (self.config.association.max_corner_updates
+                          if self.config.ekf.corner_budget else None)
+                pairs, entries = corner_budget(pairs, budget)
                 n_matched = self._update(pairs)
                 for a in assignments:
-                    if a.status == "new":
-                        n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
+                    if a.status != "new":
+                        continue
+                    if obs[a.obs_index].kind == "corner":
+                        if entries <= 0:
+                            continue
+                        entries -= 1
+                    n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
         self._prune()
         if self._step % 50 == 0:  # keep P symmetric against round-off
             P = self.P

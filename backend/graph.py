@@ -17,7 +17,7 @@ the last keyframe; the smoothers do not use other frames' observations. Between
 keyframes the current pose is the last keyframe estimate composed with the odometry
 since then, with the covariance propagated to first order
 (``Sigma = Ad(delta^-1) Sigma_k Ad(delta^-1)^T + Sigma_delta`` in the right tangent).
-Each keyframe gives factors to at most ``Isam2Config.max_corner_factors`` corners
+Each keyframe gives factors to at most ``AssociationConfig.max_corner_updates`` corners
 already in the graph, those with the longest tracks first (:func:`corner_budget`):
 iSAM2 puts every newly observed variable in the root clique, so the update and the
 pose marginal grow with the cube of their number, and a frame carries 50-150 corners.
@@ -65,7 +65,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate, screen_pairs
+from lampsam.backend.association import associate, corner_budget, screen_pairs
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import WheelParams, check_wheel, landmark_estimate
@@ -128,37 +128,6 @@ def compose_cov(delta: FloatArray, cov_a: FloatArray, cov_b: FloatArray) -> Floa
     """
     ad = gtsam.Pose2(*delta).inverse().AdjointMap()
     return ad @ cov_a @ ad.T + cov_b
-
-
-def corner_budget(matches: list[tuple[Any, Obs]], budget: int | None
-                  ) -> tuple[list[tuple[Any, Obs]], int]:
-    """Keep at most ``budget`` corner landmarks already in the graph per keyframe.
-
-    Every landmark in the graph that a keyframe observes becomes a variable of
-    iSAM2's root clique (GTSAM orders the newly observed keys last), so the update
-    and the pose marginal grow with the cube of the number observed: about 100
-    ceiling corners per frame on the lab world made both 20-100 ms. The corners
-    with the longest tracks (most observations, then the oldest id) are kept: they
-    tie the keyframe to the most of the map. Lamps, planar points and corners not
-    yet in the graph (pending, delayed initialisation) always pass.
-
-    Args:
-        matches: ``(landmark, observation)`` pairs of one keyframe; a landmark has
-            ``kind``, ``in_graph``, ``n_obs`` and ``id``.
-        budget: the most in-graph corners kept, or None for no limit.
-
-    Returns:
-        ``(kept pairs in their input order, corners that may still enter the graph
-        this keyframe = max(2, budget - in-graph corners kept))``; with no budget
-        the second is unbounded.
-    """
-    if budget is None:
-        return matches, 1 << 30
-    in_graph = [j for j, (lm, _) in enumerate(matches) if lm.kind == "corner" and lm.in_graph]
-    ranked = sorted(in_graph, key=lambda j: (-matches[j][0].n_obs, matches[j][0].id))
-    drop = set(ranked[budget:])
-    kept = [m for j, m in enumerate(matches) if j not in drop]
-    return kept, max(2, budget - min(len(in_graph), budget))
 
 
 @dataclass
@@ -272,6 +241,7 @@ class GraphSlam(SlamBackend):
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
+        self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
         self._flush()
 
     # ------------------------------------------------------------------ graph building
@@ -548,9 +518,12 @@ class GraphSlam(SlamBackend):
 
         Composes the odometry factors' covariances (eqs. 13-15, with their floor)
         backwards from the current keyframe ``k`` over the last
-        :data:`_RELATIVE_GATE_KEYFRAMES` keyframes: ``{j: cov(x_j^-1 x_k)}``.
+        :data:`_RELATIVE_GATE_KEYFRAMES` keyframes: ``{j: cov(x_j^-1 x_k)}``. Cached
+        for the keyframe (the screen asks once per landmark kind).
         """
         k = self._k
+        if self._rel_cache is not None and self._rel_cache[0] == k:
+            return self._rel_cache[1]
         out: dict[int, FloatArray] = {k: np.zeros((3, 3))}
         delta = np.zeros(3)
         cov = np.zeros((3, 3))
@@ -559,6 +532,7 @@ class GraphSlam(SlamBackend):
             cov = compose_cov(delta, c_j, cov)
             delta = _pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
             out[j] = cov
+        self._rel_cache = (k, out)
         return out
 
     def _mark_ambiguous(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
@@ -660,7 +634,7 @@ class GraphSlam(SlamBackend):
                         continue
                     n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
             matches, self._entries_left = corner_budget(
-                matches, self.config.isam2.max_corner_factors)
+                matches, self.config.association.max_corner_updates)
             for lm, o in matches:
                 self._observe(lm, k, o)
                 n_matched += 1

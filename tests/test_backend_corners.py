@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import L, X
 
-from lampsam.backend.association import mahalanobis2, pairwise_d2
+from lampsam.backend.association import corner_budget, mahalanobis2, pairwise_d2
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
-from lampsam.backend.graph import BatchSlam, Isam2Slam, _Landmark, corner_budget
+from lampsam.backend.graph import BatchSlam, Isam2Slam, _Landmark
 from lampsam.backend.slam import (
     drive,
     errors_vs_truth,
@@ -230,3 +230,14 @@ def test_corner_budget_keeps_longest_tracks() -> None:
     assert entries == 10 - 4
     kept, entries = corner_budget(pairs, None)  # type: ignore[arg-type]
     assert len(kept) == 6 and entries > 1000
+
+
+def test_corner_budget_counts_ekf_slots_as_mapped() -> None:
+    """Landmarks without ``in_graph`` (EKF slots: always in the state) all count."""
+    from lampsam.backend.ekf import _Slot
+
+    slots = [_Slot(i, "corner", 3 * i, 3, n, 0, 0) for i, n in enumerate([4, 1, 7, 2])]
+    slots.append(_Slot(9, "lamp", 12, 4, 1, 0, 0))
+    kept, entries = corner_budget([(s, None) for s in slots], 2)  # type: ignore[misc]
+    assert [s.id for s, _ in kept] == [0, 2, 9]  # 7 and 4 sights win; the lamp passes
+    assert entries == 2
