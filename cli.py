@@ -263,13 +263,15 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
 
 # --------------------------------------------------------------------------- compare
 def _cmd_compare(args: argparse.Namespace) -> int:
+    from lampsam.backend.config import SlamConfig
     from lampsam.evaluation.compare import compare, markdown_table
 
     backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
     features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
+    config = SlamConfig.from_dict(load_toml(Path(args.config) if args.config else None))
     rows = compare(args.runs, backends=backends, seeds=args.seeds, out=Path(args.out),
                    workers=args.workers, frames=args.frames, features=features,
-                   duration=args.duration, progress=not args.no_progress)
+                   duration=args.duration, progress=not args.no_progress, config=config)
     print(markdown_table(rows))
     print(f"report: {Path(args.out) / 'report.md'} (also report.html, summary.json, figures/)")
     return 1 if any(r["failed"] for r in rows) else 0
@@ -286,6 +288,8 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
                    help="measurements: auto (frontend on images / range-bearing), images, truth projections")
     p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners (default: backend config)")
     p.add_argument("--duration", type=float, default=None, help="seconds per simulated run (default whole path)")
+    p.add_argument("--config", default=None,
+                   help="TOML file with the SLAM settings of every job (as for `lampsam slam --config`)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_compare)
 

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.config import SlamConfig
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
 from lampsam.evaluation.outputs import ensure_dir
@@ -65,6 +66,7 @@ class Job:
     out_dir: str
     frames: str = "auto"
     features: tuple[str, ...] | None = None
+    config: SlamConfig | None = None  # None: the defaults
 
 
 @dataclass
@@ -210,7 +212,7 @@ def run_job(job: Job) -> JobResult:
         run = read_run(job.run_dir)
         t0 = time.perf_counter()
         result = run_slam(job.run_dir, job.backend, features=job.features, out=out,
-                          frames=job.frames, run=run)
+                          config=job.config, frames=job.frames, run=run)
         total = time.perf_counter() - t0
     except LampsamError as exc:
         return JobResult(job, f"failed: {exc}")
@@ -473,6 +475,7 @@ def compare(
     features: tuple[str, ...] | None = None,
     duration: float | None = None,
     progress: bool = True,
+    config: SlamConfig | None = None,
 ) -> list[dict[str, Any]]:
     """Run every backend on every run; write the report; return the table rows.
 
@@ -486,6 +489,7 @@ def compare(
         features: ceiling features (None: the backend default).
         duration: simulated seconds per world run (None: the whole path).
         progress: show a progress bar (tqdm, on stderr).
+        config: the SLAM configuration of every job (None: the defaults).
 
     Returns:
         The aggregated rows (as in ``summary.json``).
@@ -502,7 +506,8 @@ def compare(
     t_start = time.perf_counter()
     resolved = prepare_runs(runs, seeds, out, duration)
     jobs = [
-        Job(group, seed, str(run_dir), b, str(out / "jobs" / f"{run_dir.name}-{b}"), frames, features)
+        Job(group, seed, str(run_dir), b, str(out / "jobs" / f"{run_dir.name}-{b}"), frames, features,
+            config)
         for group, seed, run_dir in resolved
         for b in backends
     ]

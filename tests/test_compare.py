@@ -92,3 +92,25 @@ def test_map_error_is_per_type_with_lamps_as_headline() -> None:
     assert out["map_type"] == "lamp" and out["map_rms_m"] == pytest.approx(0.01)
     # the corner at (0, 0.3) must not be paired with the lamp; only the true corner counts
     assert out["map_corner_associated"] == 1 and out["map_corner_rms_m"] == pytest.approx(0.04)
+
+
+def test_job_passes_its_config_to_the_backend(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``compare(config=...)`` reaches ``run_slam`` in the worker (here: a stub that fails)."""
+    import lampsam.backend.slam as slam
+    import lampsam.datasets.logrun as logrun
+    from lampsam.backend.config import EkfConfig, SlamConfig
+    from lampsam.errors import EstimationError
+
+    seen: list[SlamConfig | None] = []
+
+    def fake_run_slam(*args: object, config: SlamConfig | None = None, **kw: object) -> None:
+        seen.append(config)
+        raise EstimationError("stub")
+
+    monkeypatch.setattr(logrun, "read_run", lambda path: object())
+    monkeypatch.setattr(slam, "run_slam", fake_run_slam)
+    cfg = SlamConfig(ekf=EkfConfig(corner_budget=True))
+    job = C.Job("x", 0, str(tmp_path), "ekf", str(tmp_path / "out"), config=cfg)
+    res = C.run_job(job)
+    assert res.status == "failed: stub"
+    assert seen == [cfg] and seen[0] is not None and seen[0].ekf.corner_budget
