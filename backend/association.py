@@ -247,7 +247,7 @@ def screen_pairs(observations: list[Obs], kind: str, lids: list[int], z_hat: Flo
 
 def corner_budget(matches: list[tuple[Any, Obs]], budget: int | None
                   ) -> tuple[list[tuple[Any, Obs]], int]:
-    """Keep at most ``budget`` mapped corner landmarks per frame (all backends).
+    """Keep at most ``budget`` mapped corner landmarks per frame (smoothers; EKF optional).
 
     Every landmark in the graph that a keyframe observes becomes a variable of
     iSAM2's root clique (GTSAM orders the newly observed keys last), so the update

@@ -82,8 +82,8 @@ class AssociationConfig:
             152 variables per update (17.6 ms, loaded), 10 corners 56 (5.3 ms); with
             all corners the whole lab run took 3.5x longer than with 25 for no
             accuracy. In the EKF the update is ``O(n^2 K)`` in the state size ``n``
-            and the rows ``K``. Over 10 seeds of 60 s of lab (images), 10 corners gave
-            batch 6.5 mm mean position RMS (25: see the README).
+            and the rows ``K``. Over 10 seeds of 60 s of lab (images, odometry floor
+            1e-8) the batch smoother's mean position RMS was 6.5 mm with 10 and with 25.
     """
 
     use_known_ids: bool = True
