@@ -38,6 +38,8 @@ def wrap_angle(angle: float | FloatArray) -> float | FloatArray:
         A float for a scalar (or 0-d) input, else an array of the same shape;
         each value in ``(-pi, pi]`` (``pi`` and ``-pi`` both map to ``pi``).
     """
+    if type(angle) is float:  # plain floats: Python's modulo is numpy's, minus the call cost
+        return math.pi - (math.pi - angle) % TWO_PI
     wrapped = math.pi - np.mod(math.pi - np.asarray(angle, dtype=float), TWO_PI)
     if np.ndim(wrapped) == 0:
         return float(wrapped)
@@ -65,6 +67,8 @@ def wrap_axis(angle: float | FloatArray) -> float | FloatArray:
         each value in ``(-pi/2, pi/2]``.
     """
     half = 0.5 * math.pi
+    if type(angle) is float:  # plain floats: Python's modulo is numpy's, minus the call cost
+        return half - (half - angle) % math.pi
     wrapped = half - np.mod(half - np.asarray(angle, dtype=float), math.pi)
     if np.ndim(wrapped) == 0:
         return float(wrapped)

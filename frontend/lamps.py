@@ -682,7 +682,6 @@ def to_observations(
         floating-point rounding (the 2x2 determinant is expanded, not LU).
     """
     threshold = config.ratio_threshold
-    half = 0.5 * math.pi
     cov_c = np.array([mo.cov_centroid for mo in moments]).tolist()
     # Per lamp on Python floats (a handful of 2x2 products: cheaper than numpy calls).
     covs: list[tuple[tuple[float, float], tuple[float, float]]] = []
@@ -699,7 +698,7 @@ def to_observations(
         if mo.ratio > threshold:
             cos_t, sin_t = math.cos(mo.theta), math.sin(mo.theta)
             je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
-            axes.append(half - (half - math.atan2(je1, je0)) % math.pi)  # wrap_axis
+            axes.append(wrap_axis(math.atan2(je1, je0)))
             gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
             var_axes.append(gain * gain * mo.var_theta)
         else:
@@ -1094,8 +1093,7 @@ def _close_blob(
         var_theta = sigma_w2 * (dth_sum / (norm * norm)) + config.sigma_axis_floor**2
     else:
         var_theta = math.inf
-    half = 0.5 * math.pi
-    theta = half - (half - 0.5 * math.atan2(yy, xx)) % math.pi
+    theta = wrap_axis(0.5 * math.atan2(yy, xx))
     # Pixel-box term: the coverage of a pixel is spread uniformly over it.
     a12, c12 = a + 1.0 / 12.0, c + 1.0 / 12.0
     disc = math.sqrt(max((a12 - c12) * (a12 - c12) + 4.0 * b * b, 0.0))
