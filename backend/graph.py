@@ -416,6 +416,10 @@ class GraphSlam(SlamBackend):
         except RuntimeError:
             self._joint_cache[lm.id] = None
             return None
+        sel = getattr(self.handlers[lm.kind], "state_index", None)
+        if sel is not None:  # graph tangent -> EKF-form state (e.g. a Pose2 axis's angle)
+            idx = np.r_[0:3, 3 + np.asarray(sel(lm), int)]
+            full = full[np.ix_(idx, idx)]
         out = full[:3, :3], full[:3, 3:], full[3:, 3:]
         self._joint_cache[lm.id] = out
         return out
@@ -640,16 +644,16 @@ class GraphSlam(SlamBackend):
                 n_matched += 1
         if k % 10 == 0:
             self._forget_pending(k)
-        for handler in {id(h): h for h in self.handlers.values()}.values():
-            if hasattr(handler, "flush"):
-                for f in handler.flush(self.robust):
-                    self._add_factor(f)
         # The keyframe's own estimate: the prediction until iSAM2 updates it.
         self._kf_pose = pose
         self._kf_cov = pose_cov
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf = []
+        for handler in {id(h): h for h in self.handlers.values()}.values():
+            if hasattr(handler, "flush"):
+                for f in handler.flush(self.robust, self._pose_of):
+                    self._add_factor(f)
         self._flush()
         return n_matched, n_new
 
@@ -896,7 +900,8 @@ class GraphSlam(SlamBackend):
 
         def get(key: int, kind: str) -> Any:
             return {"point2": values.atPoint2, "point3": values.atPoint3,
-                    "rot2": values.atRot2, "vector": values.atVector}[kind](key)
+                    "rot2": values.atRot2, "vector": values.atVector,
+                    "pose2": values.atPose2}[kind](key)
 
         lms: list[LandmarkEstimate] = []
         for lm in self._landmarks.values():
@@ -1003,13 +1008,11 @@ class _Adder:
 
 
 def _value_at(values: gtsam.Values, key: int) -> Any:
-    """The value of ``key`` in its own type (Pose2, Point2/3, Rot2 or Vector)."""
+    """The value of ``key`` in its own type (Pose2, Point2/3 or Vector)."""
     sym = gtsam.Symbol(key)
     ch = chr(sym.chr())
-    if ch == "x":
+    if ch in ("x", "a"):
         return values.atPose2(key)
-    if ch == "a":
-        return values.atRot2(key)
     for getter in (values.atPoint3, values.atPoint2, values.atVector):
         try:
             return getter(key)

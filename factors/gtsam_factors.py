@@ -100,12 +100,14 @@ from lampsam.factors.range_bearing import range_bearing
 __all__ = [
     "AxisObservation",
     "InverseDepthObservation",
+    "axis_anchor_prior",
     "bearing_range_factor",
     "height_prior_factor",
     "huber_sqrt",
     "inverse_depth_factor",
     "inverse_depth_first_sight_prior",
     "inverse_depth_frame_factor",
+    "lamp_axis_between_factor",
     "lamp_axis_factor",
     "lamp_axis_frame_factor",
     "noise_model",
@@ -161,6 +163,14 @@ def _check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
     return arr
 
 
+def _robust_wrap(base: gtsam.noiseModel.Base, robust: float | None) -> gtsam.noiseModel.Base:
+    if robust is None:
+        return base
+    if not robust > 0.0:
+        raise FactorError(f"Huber threshold must be > 0, got {robust}")
+    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust), base)
+
+
 def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseModel.Base:
     """Gaussian noise model from a covariance, optionally wrapped in Huber.
 
@@ -172,12 +182,7 @@ def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseMode
     Returns:
         A ``gtsam.noiseModel`` (``Gaussian`` or ``Robust``).
     """
-    base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float))
-    if robust is None:
-        return base
-    if not robust > 0.0:
-        raise FactorError(f"Huber threshold must be > 0, got {robust}")
-    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust), base)
+    return _robust_wrap(gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float)), robust)
 
 
 def huber_sqrt(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:
@@ -435,6 +440,78 @@ def lamp_axis_frame_factor(
         return res
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), keys, error)
+
+
+@lru_cache(maxsize=1)
+def _axis_anchor_noise() -> gtsam.noiseModel.Base:
+    return gtsam.noiseModel.Diagonal.Precisions(np.array([1.0, 1.0, 0.0]))
+
+
+def lamp_axis_between_factor(
+    pose_key: int,
+    axis_key: int,
+    alpha: float,
+    sigma: float,
+    predicted: float,
+    robust: float | None = None,
+) -> gtsam.BetweenFactorPose2:
+    """Lamp axis observation as GTSAM's built-in ``BetweenFactorPose2`` (no callback).
+
+    The axis variable ``A(j)`` is then a ``Pose2`` whose rotation is the axis ``phi``
+    and whose translation carries no information: the factor's noise model has zero
+    precision on ``x, y`` and ``1/sigma^2`` on the angle, and :func:`axis_anchor_prior`
+    holds the translation. With GTSAM's default ``Pose2`` chart the angle row of
+    ``Local(measured, X^-1 A)`` is ``wrap_angle(phi - theta - alpha)`` and its
+    Jacobians are ``-1`` on ``theta`` and ``+1`` on ``phi``, exactly those of
+    :func:`lamp_axis_factor` (paper III.4, ``phi_i = phi - theta``); the ``x, y``
+    rows are whitened to zero, so the two factors have the same error, gradient and
+    Hessian (checked in ``tests/test_factors_gtsam.py``).
+
+    A line's angle is known mod pi, a ``Pose2`` angle mod 2 pi: the representative
+    of ``alpha`` nearest to ``predicted`` is fixed here, once. The residual stays
+    right while the estimate moves by less than pi/2 from that prediction (a gated
+    match is within a few sigma).
+
+    Args:
+        pose_key: ``X(k)``.
+        axis_key: ``A(j)``, a ``gtsam.Pose2`` anchored by :func:`axis_anchor_prior`.
+        alpha: measured axis in the image, radians (any representative mod pi).
+        sigma: its standard deviation, radians (> 0).
+        predicted: current prediction of ``phi - theta`` in the graph's own
+            representative of ``phi``, radians.
+        robust: optional Huber threshold (on the angle residual alone, since the
+            other rows whiten to zero).
+
+    Returns:
+        ``gtsam.BetweenFactorPose2`` on ``(X(k), A(j))``.
+    """
+    if not sigma > 0.0:
+        raise FactorError(f"axis sigma must be > 0, got {sigma}")
+    a = float(alpha)
+    a += math.pi * round((float(predicted) - a) / math.pi)
+    base = gtsam.noiseModel.Diagonal.Precisions(np.array([0.0, 0.0, 1.0 / (sigma * sigma)]))
+    return gtsam.BetweenFactorPose2(pose_key, axis_key, gtsam.Pose2(0.0, 0.0, a),
+                                    _robust_wrap(base, robust))
+
+
+def axis_anchor_prior(axis_key: int, xy: FloatArray, phi: float) -> gtsam.PriorFactorPose2:
+    """Fix the information-free translation of a ``Pose2`` axis variable.
+
+    Unit precision on ``x, y`` (metres), zero on the angle, so the prior says nothing
+    about the axis itself. Put its mean at the variable's initial value: the
+    translation then never moves (it is decoupled from the angle in ``Pose2``'s
+    chart, see :func:`lamp_axis_between_factor`).
+
+    Args:
+        axis_key: ``A(j)``.
+        xy: (2,) the translation the variable was inserted with, metres.
+        phi: the angle it was inserted with, radians (unused by the error).
+
+    Returns:
+        ``gtsam.PriorFactorPose2``.
+    """
+    return gtsam.PriorFactorPose2(axis_key, gtsam.Pose2(float(xy[0]), float(xy[1]), float(phi)),
+                                  _axis_anchor_noise())
 
 
 # --- corners: inverse depth -----------------------------------------------------------

@@ -17,12 +17,14 @@ from lampsam.factors.geometry import FactorError, wrap_angle
 from lampsam.factors.gtsam_factors import (
     AxisObservation,
     InverseDepthObservation,
+    axis_anchor_prior,
     bearing_range_factor,
     height_prior_factor,
     huber_sqrt,
     inverse_depth_factor,
     inverse_depth_first_sight_prior,
     inverse_depth_frame_factor,
+    lamp_axis_between_factor,
     lamp_axis_factor,
     lamp_axis_frame_factor,
     odometry_factor,
@@ -217,6 +219,54 @@ def test_lamp_axis_factors_linearize(seed: int, robust: float | None) -> None:
     for o in obs:
         graph.add(lamp_axis_factor(X(0), o.axis_key, o.alpha, o.sigma, robust=robust))
     assert frame.error(values) == pytest.approx(graph.error(values), rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("robust", [None, 1.0])
+def test_lamp_axis_between_factor_equals_custom(seed: int, robust: float | None) -> None:
+    """The built-in Pose2 form has the custom factor's error and whitened Jacobian row.
+
+    ``A(j)`` as a ``Pose2``: its angle row must match the ``Rot2`` custom factor (itself
+    checked against numerical derivatives above); its ``x, y`` rows must be zero, and
+    the anchor prior must carry nothing on the angle. The measurement is given with a
+    random representative mod pi and a prediction off by up to 1 rad.
+    """
+    rng = np.random.default_rng(seed)
+    pose = _random_pose(rng)
+    phi = rng.uniform(-3, 3)
+    sigma = rng.uniform(0.02, 0.1)
+    r_true = rng.normal(0.0, 3 * sigma)  # residual phi - theta - alpha, mod pi
+    alpha = phi - pose.theta() - r_true + math.pi * rng.integers(-3, 4)
+    predicted = phi - pose.theta() + rng.uniform(-1.0, 1.0)
+    custom = lamp_axis_factor(X(0), A(0), alpha, sigma, robust=robust)
+    between = lamp_axis_between_factor(X(0), A(0), alpha, sigma, predicted, robust=robust)
+    v_rot = gtsam.Values()
+    v_rot.insert(X(0), pose)
+    v_rot.insert(A(0), gtsam.Rot2(phi))
+    xy = rng.uniform(-5, 5, 2)
+    v_pose = gtsam.Values()
+    v_pose.insert(X(0), pose)
+    v_pose.insert(A(0), gtsam.Pose2(xy[0], xy[1], phi))
+    assert between.error(v_pose) == pytest.approx(custom.error(v_rot), rel=1e-9, abs=1e-12)
+    a_c, b_c = custom.linearize(v_rot).jacobian()
+    a_b, b_b = between.linearize(v_pose).jacobian()
+    assert a_b.shape == (3, 6)
+    np.testing.assert_allclose(a_b[:2], 0.0, atol=1e-12)  # x, y rows carry nothing
+    np.testing.assert_allclose(b_b[:2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(a_b[2, :3], a_c[0, :3], rtol=1e-9, atol=1e-9)  # pose
+    np.testing.assert_allclose(a_b[2, 3:5], 0.0, atol=1e-12)  # A's translation
+    np.testing.assert_allclose(a_b[2, 5], a_c[0, 3], rtol=1e-9)  # A's angle
+    np.testing.assert_allclose(abs(b_b[2]), abs(b_c[0]), rtol=1e-9, atol=1e-12)
+    anchor = axis_anchor_prior(A(0), xy, phi + 0.3)
+    assert anchor.error(v_pose) == pytest.approx(0.0, abs=1e-20)
+    a_p, _ = anchor.linearize(v_pose).jacobian()
+    np.testing.assert_allclose(a_p[:, 2], 0.0, atol=1e-12)  # no information on the axis
+    np.testing.assert_allclose(a_p[2], 0.0, atol=1e-12)
+
+
+def test_lamp_axis_between_factor_rejects_bad_sigma() -> None:
+    with pytest.raises(FactorError, match="sigma"):
+        lamp_axis_between_factor(X(0), A(0), 0.1, 0.0, 0.1)
 
 
 @pytest.mark.parametrize("seed", SEEDS)
