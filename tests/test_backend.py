@@ -156,6 +156,28 @@ def test_backend_accuracy_short_ceiling_run(name: str, tol_rms: float) -> None:
     assert np.all(np.linalg.eigvalsh(c) > 0)
 
 
+def test_distance_keyframes_keep_first_frame_and_accuracy() -> None:
+    """The distance/angle policy: the first frame is a keyframe, later ones are sparse.
+
+    The first frame is seen from the known start pose and anchors the map's heading;
+    a run that skipped it lost ~3x in accuracy on lab (see ``GraphSlam._is_keyframe``).
+    Same world and tolerance as the every-frame iSAM2 case above.
+    """
+    cfg = SlamConfig(isam2=dataclasses.replace(SlamConfig().isam2, every_frame=False,
+                                               keyframe_distance=0.2, keyframe_angle=0.3))
+    result, dr, gt = _run_ceiling("isam2", np.random.default_rng(7), config=cfg)
+    assert result.status == "ok"
+    kf_steps = np.flatnonzero(result.keyframes)
+    frame_times = {round(f.t, 9) for f in ceiling_world(np.random.default_rng(7))[2]}
+    first_frame_step = next(i for i, t in enumerate(result.times) if round(t, 9) in frame_times)
+    assert kf_steps[0] == first_frame_step
+    n_frames = len(frame_times)
+    assert len(kf_steps) < n_frames / 2  # 0.2 m at 0.4 m/s, frames at 10 Hz: ~1 in 5
+    pos, head = errors_vs_truth(result, gt)
+    assert _rms(pos) < 0.03
+    assert _rms(pos) < _rms(errors_vs_truth(dr, gt)[0])
+
+
 def test_smoothers_beat_ekf_on_same_run() -> None:
     """Batch RMS is below the EKF's on the same simulated data (same seed)."""
     ekf, _, gt = _run_ceiling("ekf", np.random.default_rng(11))
