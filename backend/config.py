@@ -141,10 +141,15 @@ class Isam2Config:
     Attributes:
         keyframe_distance: make a keyframe after this much travel, m (default 0.1).
         keyframe_angle: or after this much rotation, rad (default 0.15).
-        every_frame: make every frame with observations a keyframe (default True:
-            frames skipped by the distance/angle policy lose their observations,
-            which on the test worlds costs more accuracy than the EKF gives away;
-            set False to use the distance/angle policy).
+        every_frame: make every frame with observations a keyframe (default False:
+            the first frame, then the distance/angle policy above). Frames between
+            keyframes are used for gating the odometry-propagated pose only; their
+            observations are dropped. Over 10 seeds of 60 s of lab (frontend images),
+            iSAM2's mean position RMS was 6.3 mm with every frame, 5.6 mm with 0.05 m
+            and 5.4 mm with 0.1 m; on the whole lab path (2,601 frames, 663
+            keyframes at 0.1 m) its ``update()`` took a median 3.5 ms and p95 9.5 ms
+            against 7.5 / 43 ms with every frame. (Before the first frame was always a
+            keyframe, the policy cost 3x in accuracy: see ``GraphSlam._is_keyframe``.)
         relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's).
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
@@ -188,7 +193,7 @@ class Isam2Config:
 
     keyframe_distance: float = 0.1
     keyframe_angle: float = 0.15
-    every_frame: bool = True
+    every_frame: bool = False
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
     extra_updates: int = 0

@@ -11,10 +11,10 @@ Both build the same graph (DESIGN sec. 4):
   ``BearingRangeFactor2D``; :class:`lampsam.backend.ceiling_graph.CeilingHandler`
   for lamps and corners).
 
-Keyframes: every frame with observations (``every_frame``, the default), or the first
-frame and then a frame after the robot has moved ``keyframe_distance`` or turned
-``keyframe_angle`` since the last keyframe; the smoothers do not use other frames'
-observations. Between
+Keyframes: the first frame, then a frame after the robot has moved
+``keyframe_distance`` or turned ``keyframe_angle`` since the last keyframe (the
+default; 0.1 m, 0.15 rad), or every frame with observations (``every_frame``); the
+smoothers do not use other frames' observations. Between
 keyframes the current pose is the last keyframe estimate composed with the odometry
 since then, with the covariance propagated to first order
 (``Sigma = Ad(delta^-1) Sigma_k Ad(delta^-1)^T + Sigma_delta`` in the right tangent).
