@@ -139,17 +139,22 @@ class Isam2Config:
     """Online smoothing with iSAM2.
 
     Attributes:
-        keyframe_distance: make a keyframe after this much travel, m (default 0.1).
+        keyframe_distance: make a keyframe after this much travel, m (default 0.05).
         keyframe_angle: or after this much rotation, rad (default 0.15).
         every_frame: make every frame with observations a keyframe (default False:
             the first frame, then the distance/angle policy above). Frames between
             keyframes are used for gating the odometry-propagated pose only; their
-            observations are dropped. Over 10 seeds of 60 s of lab (frontend images),
-            iSAM2's mean position RMS was 6.3 mm with every frame, 5.6 mm with 0.05 m
-            and 5.4 mm with 0.1 m; on the whole lab path (2,601 frames, 663
-            keyframes at 0.1 m) its ``update()`` took a median 3.5 ms and p95 9.5 ms
-            against 7.5 / 43 ms with every frame. (Before the first frame was always a
-            keyframe, the policy cost 3x in accuracy: see ``GraphSlam._is_keyframe``.)
+            observations are dropped, and in the final trajectory their poses are the
+            odometry conditioned on both neighbouring keyframes
+            (:func:`lampsam.backend.graph.odometry_bridge`). Over 10 seeds of 60 s of
+            lab (frontend images), iSAM2's mean position / heading RMS: every frame
+            6.3 mm / 0.043 deg; 0.05 m 5.6 mm / 0.089 deg; 0.1 m 5.4 mm / 0.124 deg
+            (heading between keyframes is the wheels' alone: 0.13-0.21 deg at 0.1 m,
+            against 0.04-0.06 deg at the keyframes). On the whole lab path (2,601
+            frames) ``update()`` took a median / p95 of 4.0 / 15.5 ms at 0.05 m
+            (1,218 keyframes), 3.5 / 9.5 ms at 0.1 m and 7.5 / 43 ms with every frame.
+            (Before the first frame was always a keyframe, the policy cost 3x in
+            accuracy: see ``GraphSlam._is_keyframe``.)
         relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's).
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
@@ -191,7 +196,7 @@ class Isam2Config:
             is forgotten (default 30).
     """
 
-    keyframe_distance: float = 0.1
+    keyframe_distance: float = 0.05
     keyframe_angle: float = 0.15
     every_frame: bool = False
     relinearize_threshold: float = 0.1

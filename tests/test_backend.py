@@ -13,6 +13,7 @@ import json
 import logging
 import math
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -337,3 +338,49 @@ def test_cli_slam_writes_tum_landmarks_summary(tmp_path) -> None:
     assert (out / "slam.png").stat().st_size > 1000
     # a bad backend name is a usage error, a missing run a clear one
     assert main(["slam", str(tmp_path / "nope"), "--out", str(out)]) == 2
+
+
+def test_odometry_bridge_is_the_gaussian_conditional() -> None:
+    """The bridge's correction and covariance match a Monte Carlo regression.
+
+    Samples of the odometry to the step (``a ~ N(0, A)``) and on to the next keyframe
+    (``b ~ N(0, B)``) are composed exactly with GTSAM's ``Pose2``; the linear regression
+    of ``a`` on the end residual ``r`` is the conditional the bridge must give. Along
+    a curved path, so the heading couples into the translation.
+    """
+    from lampsam.backend.graph import odometry_bridge
+
+    rng = np.random.default_rng(3)
+    sigma0 = np.diag([4e-6, 1e-6, 9e-6])
+    d_hat = gtsam.Pose2(0.04, 0.002, 0.05)
+    e_hat = gtsam.Pose2(0.06, 0.004, 0.08)
+    big = d_hat.compose(e_hat)
+    a_cov, b_cov = 0.4 * sigma0, 0.6 * sigma0
+    n = 20000
+    a = rng.multivariate_normal(np.zeros(3), a_cov, n)
+    b = rng.multivariate_normal(np.zeros(3), b_cov, n)
+    r = np.array([gtsam.Pose2.Logmap(big.inverse().compose(
+        d_hat.compose(gtsam.Pose2.Expmap(ai)).compose(e_hat).compose(gtsam.Pose2.Expmap(bi))))
+        for ai, bi in zip(a, b, strict=True)])
+    cov_r = np.cov(r.T)
+    gain_mc = np.linalg.lstsq(r, a, rcond=None)[0].T  # E[a | r] = G r
+    pose_k = np.array([1.0, 2.0, 0.3])
+    r_obs = np.array([3e-3, -2e-3, 4e-3])
+    end = gtsam.Pose2(*pose_k).compose(big).compose(gtsam.Pose2.Expmap(r_obs))
+    d, c = odometry_bridge(np.array([d_hat.x(), d_hat.y(), d_hat.theta()]), a_cov,
+                           np.array([big.x(), big.y(), big.theta()]), cov_r, pose_k,
+                           np.array([end.x(), end.y(), end.theta()]))
+    got = gtsam.Pose2.Logmap(d_hat.inverse().compose(gtsam.Pose2(*d)))
+    np.testing.assert_allclose(got, gain_mc @ r_obs, rtol=0.03, atol=2e-5)
+    resid = a - r @ gain_mc.T
+    np.testing.assert_allclose(np.diag(c), np.diag(np.cov(resid.T)), rtol=0.05)
+    # at the keyframe itself the step is pinned; at the start nothing moves
+    d, c = odometry_bridge(np.array([big.x(), big.y(), big.theta()]), cov_r,
+                           np.array([big.x(), big.y(), big.theta()]), cov_r, pose_k,
+                           np.array([end.x(), end.y(), end.theta()]))
+    rel = gtsam.Pose2(*pose_k).inverse().compose(end)
+    np.testing.assert_allclose(d, [rel.x(), rel.y(), rel.theta()], atol=1e-6)
+    np.testing.assert_allclose(c, 0.0, atol=1e-12)
+    d, _ = odometry_bridge(np.zeros(3), np.zeros((3, 3)), np.array([big.x(), big.y(), big.theta()]),
+                           cov_r, pose_k, np.array([end.x(), end.y(), end.theta()]))
+    np.testing.assert_allclose(d, 0.0, atol=1e-15)

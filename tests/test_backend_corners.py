@@ -133,7 +133,7 @@ def test_lamp_first_seen_without_axis_then_with_axis(name: str) -> None:
     lamps = [lm for lm in result.landmarks if lm.type == "lamp"]
     assert len(lamps) == 1
     assert np.linalg.norm(lamps[0].position[:2] - lamp[:2]) < 0.05
-    # every frame for the EKF; the smoothers' keyframes (first frame, then every 0.1 m)
+    # every frame for the EKF; the smoothers' keyframes (first frame, then every 0.05 m)
     expected = len(frames) if name == "ekf" else int(result.keyframes.sum())
     assert expected > 3
     assert lamps[0].n_obs == expected
