@@ -11,8 +11,9 @@ no information and is held by a prior). Factors:
   :func:`~lampsam.factors.gtsam_factors.axis_anchor_prior` per lamp. It replaced one
   ``CustomFactor`` per keyframe (:func:`~lampsam.factors.gtsam_factors.lamp_axis_frame_factor`):
   each Python callback from inside an optimiser copies the whole ``Values``, so their
-  cost grew with the run. On the whole lab path (2,601 frames, frontend images) the
-  batch LM went from 41.6 s to the figure in the README, with the same estimate;
+  cost grew with the run. On the whole lab path (2,601 frames, frontend images, a
+  keyframe per frame) one LM iteration went from 1.7 s to 0.3 s, with the same error
+  at every iteration;
 - the 0-5 m height prior on every point:
   :func:`~lampsam.factors.gtsam_factors.height_prior_factor`.
 

@@ -4,7 +4,9 @@ Variables (keys from ``gtsam.symbol_shorthand``):
 
 * ``X(k)`` -- robot pose, ``gtsam.Pose2``.
 * ``L(j)`` -- lamp position, ``Point3`` (numpy (3,)) in the world, ``z`` above the floor.
-* ``A(j)`` -- lamp long axis, ``gtsam.Rot2`` (angle ``phi`` in the world, used mod pi).
+* ``A(j)`` -- lamp long axis: angle ``phi`` in the world, used mod pi; a ``gtsam.Pose2``
+  with an information-free translation for :func:`lamp_axis_between_factor` (the
+  smoothers), a ``gtsam.Rot2`` for the custom-factor forms.
   A separate variable so that the same lamp can be oriented or not: a round lamp, or
   a frame in which the lamp's ratio falls below the threshold, simply gets no axis
   factor (paper III.4), and ``A(j)`` exists only once an axis has been seen.
@@ -21,8 +23,12 @@ lamp / corner position      ``PlanarProjectionFactor2`` (built-in C++), in
                             normalised coordinates: identity calibration and a
                             virtual camera with body axes; equals
                             :func:`lampsam.factors.ceiling.project_point`
-lamp axis                   ``CustomFactor`` on ``(X, A)``; per observation or one
-                            per frame (:func:`lamp_axis_frame_factor`)
+lamp axis                   ``BetweenFactorPose2`` (built-in) on ``(X, A)`` with
+                            ``A`` a ``Pose2`` whose translation has zero precision
+                            (:func:`lamp_axis_between_factor`, used by the
+                            smoothers); ``CustomFactor`` on ``(X, A)`` with ``A`` a
+                            ``Rot2``, per observation or per frame
+                            (:func:`lamp_axis_frame_factor`), kept as the reference
 corner, inverse depth       ``CustomFactor`` on ``(X(k), X(anchor), C)``; per
                             observation or one per frame; the first sight and the
                             height prior are one built-in ``PriorFactorVector``

@@ -46,10 +46,12 @@ from lampsam.factors.ceiling import (
 from lampsam.factors.gtsam_factors import (
     AxisObservation,
     InverseDepthObservation,
+    axis_anchor_prior,
     height_prior_factor,
     inverse_depth_factor,
     inverse_depth_first_sight_prior,
     inverse_depth_frame_factor,
+    lamp_axis_between_factor,
     lamp_axis_factor,
     lamp_axis_frame_factor,
     noise_model,
@@ -122,12 +124,23 @@ def _lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, iterations: in
     gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
 
 
+def _is_pose2(values: gtsam.Values, key: int) -> bool:
+    try:
+        values.atPose2(key)
+    except RuntimeError:
+        return False
+    return True
+
+
 def _perturbed(values: gtsam.Values, rng: np.random.Generator) -> gtsam.Values:
     out = gtsam.Values()
     for key in values.keys():
         ch = chr(gtsam.Symbol(key).chr())
         if ch == "x":
             out.insert(key, values.atPose2(key).retract(rng.normal(0, 0.01, 3)))
+        elif ch == "a" and _is_pose2(values, key):
+            a = values.atPose2(key)
+            out.insert(key, gtsam.Pose2(a.x(), a.y(), a.theta() + rng.normal(0, 0.02)))
         elif ch == "a":
             out.insert(key, gtsam.Rot2(values.atRot2(key).theta() + rng.normal(0, 0.02)))
         else:
@@ -336,7 +349,7 @@ def main() -> None:
         )
 
     if "axis" in cases:
-        print("3. lamp axes (CustomFactor), every observed landmark oriented")
+        print("3. lamp axes, every observed landmark oriented")
         values = gtsam.Values(base)
         phis = rng.uniform(-np.pi / 2, np.pi / 2, len(lms))
         for j, phi in enumerate(phis):
@@ -351,11 +364,24 @@ def main() -> None:
                 g_obs.add(lamp_axis_factor(X(i), A(j), alpha, 0.02))
                 frame_obs.append(AxisObservation(A(j), alpha, 0.02))
             g_frame.add(lamp_axis_frame_factor(X(i), frame_obs))
+        values_p = gtsam.Values(base)  # A(j) as a Pose2 for the built-in form
+        g_between = gtsam.NonlinearFactorGraph()
+        _odometry(g_between, poses)
+        for j, phi in enumerate(phis):
+            values_p.insert(A(j), gtsam.Pose2(float(lms[j][0]), float(lms[j][1]), float(phi)))
+            g_between.add(axis_anchor_prior(A(j), lms[j][:2], float(phi)))
+        for i, p in enumerate(poses):
+            for j in (int(v) for v in vis[i]):
+                alpha = phis[j] - p[2]
+                g_between.add(lamp_axis_between_factor(X(i), A(j), alpha, 0.02, alpha))
         ref = _time_case("one CustomFactor per observation (ref)", g_obs, values, args, rng)
         fr = _time_case("one CustomFactor per frame", g_frame, values, args, rng)
+        bt = _time_case("built-in BetweenFactorPose2 per observation", g_between, values_p,
+                        args, rng)
         print(
             f"  ratio per-frame/per-observation: linearize {fr[0] / ref[0]:.2f}x, "
-            f"LM {fr[1] / ref[1]:.2f}x"
+            f"LM {fr[1] / ref[1]:.2f}x; built-in/per-observation: linearize "
+            f"{bt[0] / ref[0]:.2f}x, LM {bt[1] / ref[1]:.3f}x"
         )
 
     if "corners" in cases:
