@@ -226,6 +226,10 @@ class Point2Handler:
         """Covariance of the EKF-form state from a marginal source."""
         return np.asarray(marginal_of(L(lm.id)))
 
+    def state_index(self, lm: _Landmark) -> list[int]:
+        """Rows of the EKF-form state in the tangent of :meth:`keys` (all of them)."""
+        return [0, 1]
+
     def keys(self, lm: _Landmark) -> list[int]:
         """Graph keys of the landmark."""
         return [L(lm.id)]
@@ -414,8 +418,6 @@ class GraphSlam(SlamBackend):
                 return self.isam.calculateEstimatePoint2(key)
             if kind == "point3":
                 return self.isam.calculateEstimatePoint3(key)
-            if kind == "rot2":
-                return self.isam.calculateEstimateRot2(key)
             if kind == "vector":
                 return self.isam.calculateEstimateVector(key)
             if kind == "pose2":
@@ -425,8 +427,6 @@ class GraphSlam(SlamBackend):
             return values.atPoint2(key)
         if kind == "point3":
             return values.atPoint3(key)
-        if kind == "rot2":
-            return values.atRot2(key)
         if kind == "vector":
             return values.atVector(key)
         return values.atPose2(key)
@@ -468,10 +468,9 @@ class GraphSlam(SlamBackend):
         except RuntimeError:
             self._joint_cache[lm.id] = None
             return None
-        sel = getattr(self.handlers[lm.kind], "state_index", None)
-        if sel is not None:  # graph tangent -> EKF-form state (e.g. a Pose2 axis's angle)
-            idx = np.r_[0:3, 3 + np.asarray(sel(lm), int)]
-            full = full[np.ix_(idx, idx)]
+        # graph tangent -> EKF-form state (e.g. only the angle of a Pose2 axis)
+        idx = np.r_[0:3, 3 + np.asarray(self.handlers[lm.kind].state_index(lm), int)]
+        full = full[np.ix_(idx, idx)]
         out = full[:3, :3], full[:3, 3:], full[3:, 3:]
         self._joint_cache[lm.id] = out
         return out
@@ -960,8 +959,7 @@ class GraphSlam(SlamBackend):
 
         def get(key: int, kind: str) -> Any:
             return {"point2": values.atPoint2, "point3": values.atPoint3,
-                    "rot2": values.atRot2, "vector": values.atVector,
-                    "pose2": values.atPose2}[kind](key)
+                    "vector": values.atVector, "pose2": values.atPose2}[kind](key)
 
         lms: list[LandmarkEstimate] = []
         for lm in self._landmarks.values():
