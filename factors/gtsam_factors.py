@@ -57,12 +57,17 @@ absolute times are inflated; median of 3)::
     lamp axis, CustomFactor per obs              1889 ms         89.4  s   (ref)
     lamp axis, CustomFactor per frame             808 ms 0.43x   25.4  s   0.28x
 
+Re-measured later on an idle machine, same case (``--cases axis``): lamp axis per
+observation 282 ms / 17.2 s, per frame 133 ms / 4.0 s, and the built-in
+``BetweenFactorPose2`` form (:func:`lamp_axis_between_factor`) 15 ms / 0.11 s.
+
 ``linearize`` is ``graph.linearize(values)`` called from Python on its own ``Values``
 (no copy); inside an optimizer every callback gets a copy of the whole ``Values``,
 which is what makes custom factors 100x dearer there. Hence:
 
 * positions (lamps, Cartesian corners): always the built-in;
-* lamp axes and inverse-depth corners: the **per-frame** factors when a GTSAM
+* lamp axes: the built-in ``BetweenFactorPose2`` form in the smoothers;
+* inverse-depth corners (and the custom axis forms): the **per-frame** factors when a GTSAM
   optimizer (LM, iSAM2) evaluates them (2.5-3.6x faster); from a Python-driven loop
   the two are about equal (the inverse-depth frame factor's re-run alone: 1.1-1.5 s);
 * corners in the smoothers: ``Point3`` + built-in projection + :func:`height_prior_factor`
