@@ -422,14 +422,7 @@ class GraphSlam(SlamBackend):
                 return self.isam.calculateEstimateVector(key)
             if kind == "pose2":
                 return self.isam.calculateEstimatePose2(key)
-        values = self.initial
-        if kind == "point2":
-            return values.atPoint2(key)
-        if kind == "point3":
-            return values.atPoint3(key)
-        if kind == "vector":
-            return values.atVector(key)
-        return values.atPose2(key)
+        return _value_of_kind(self.initial, key, kind)
 
     def _pose_of(self, k: int) -> FloatArray:
         """Current estimate of keyframe ``k``."""
@@ -957,10 +950,6 @@ class GraphSlam(SlamBackend):
             poses[i] = p
             covs[i] = tangent_to_coords_cov(p, c)
 
-        def get(key: int, kind: str) -> Any:
-            return {"point2": values.atPoint2, "point3": values.atPoint3,
-                    "vector": values.atVector, "pose2": values.atPose2}[kind](key)
-
         lms: list[LandmarkEstimate] = []
         for lm in self._landmarks.values():
             if not lm.in_graph or lm.id in pruned:
@@ -968,7 +957,7 @@ class GraphSlam(SlamBackend):
             handler = self.handlers[lm.kind]
             if not all(values.exists(key) for key in handler.keys(lm)):
                 continue
-            state = handler.read(lm, get)
+            state = handler.read(lm, lambda key, kind: _value_of_kind(values, key, kind))
             cov = np.full((len(state), len(state)), np.nan)
             if marginal is not None:
                 try:
@@ -1063,6 +1052,15 @@ class _Adder:
 
     def add(self, factor: gtsam.NonlinearFactor) -> None:
         self.owner._add_factor(factor)
+
+
+def _value_of_kind(values: gtsam.Values, key: int, kind: str) -> Any:
+    """The value of ``key`` read as ``kind`` (``"point2"``, ``"point3"``, ``"vector"``, ``"pose2"``)."""
+    getters = {"point2": values.atPoint2, "point3": values.atPoint3,
+               "vector": values.atVector, "pose2": values.atPose2}
+    if kind not in getters:
+        raise EstimationError(f"unknown graph value kind {kind!r}")
+    return getters[kind](key)
 
 
 def _value_at(values: gtsam.Values, key: int) -> Any:
