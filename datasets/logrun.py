@@ -23,18 +23,28 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import cv2
 import numpy as np
 import yaml
 
+from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.datasets.camera import CameraModel
+from lampsam.datasets.textio import (
+    check_time,
+    columns,
+    open_text,
+    parse_float,
+    parse_int,
+    read_csv,
+    read_yaml,
+    str_field,
+)
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -140,29 +150,12 @@ class Rig:
             DatasetError: missing file, invalid YAML or invalid rig.
         """
         path = Path(path)
-        return cls.from_dict(_read_yaml(path), path)
+        return cls.from_dict(read_yaml(path), path)
 
     def to_yaml(self, path: str | Path) -> None:
         """Write ``rig.yaml``."""
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
 
-
-def _read_yaml(path: Path) -> Any:
-    """Parse a YAML file, or DatasetError naming it."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError as exc:
-        raise DatasetError("file not found", path) from exc
-    except OSError as exc:
-        raise DatasetError(f"cannot read: {exc}", path) from exc
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        line = None
-        mark = getattr(exc, "problem_mark", None)
-        if mark is not None:
-            line = int(mark.line) + 1
-        raise DatasetError(f"invalid YAML: {exc}", path, line) from exc
 
 
 # --------------------------------------------------------------------------- tables
@@ -217,7 +210,7 @@ class Trajectory:
             np.interp(t, self.t, self.poses[:, 1]),
             np.interp(t, self.t, th),
         ])  # fmt: skip
-        out[:, 2] = _wrap(out[:, 2])
+        out[:, 2] = wrap_angle(out[:, 2])
         return out
 
 
@@ -406,228 +399,6 @@ class LoggedRun:
     meta: dict[str, Any] = field(default_factory=dict)
 
 
-# --------------------------------------------------------------------------- CSV parsing
-def _wrap(a: FloatArray) -> FloatArray:
-    """Wrap angles to (-pi, pi]."""
-    w = np.mod(np.asarray(a, dtype=np.float64) + np.pi, 2 * np.pi) - np.pi
-    return np.where(w == -np.pi, np.pi, w)
-
-
-def _open_text(path: Path) -> TextIO:
-    """Open a text file, or DatasetError naming it."""
-    try:
-        return open(path, encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise DatasetError("file not found", path) from exc
-    except OSError as exc:
-        raise DatasetError(f"cannot read: {exc}", path) from exc
-
-
-def _parse_float(text: str, path: Path, line: int, column: str) -> float:
-    """A finite float, or DatasetError naming file, line and column."""
-    try:
-        value = float(text)
-    except ValueError as exc:
-        raise DatasetError(f"column {column!r}: not a number: {text!r}", path, line) from exc
-    if not math.isfinite(value):
-        raise DatasetError(f"column {column!r}: non-finite value {text!r}", path, line)
-    return value
-
-
-def _parse_int(text: str, path: Path, line: int, column: str) -> int:
-    """An integer, or DatasetError naming file, line and column."""
-    try:
-        return int(text)
-    except ValueError as exc:
-        raise DatasetError(f"column {column!r}: not an integer: {text!r}", path, line) from exc
-
-
-def _read_csv(
-    path: Path,
-    header: Sequence[str],
-    parsers: Sequence[Callable[[str, Path, int, str], Any]],
-    allow_empty: bool = False,
-) -> tuple[list[list[Any]], list[int]]:
-    """Read a comma-separated table with an exact header line.
-
-    Blank lines and lines starting with ``#`` are skipped.
-
-    Returns:
-        The parsed rows and their 1-based line numbers.
-
-    Raises:
-        DatasetError: missing file, wrong header, wrong column count, bad value,
-            or no data rows (unless ``allow_empty``).
-    """
-    rows: list[list[Any]] = []
-    lines: list[int] = []
-    with _open_text(path) as fh:
-        header_seen = False
-        for lineno, raw in enumerate(fh, start=1):
-            text = raw.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = [f.strip() for f in text.split(",")]
-            if not header_seen:
-                if tuple(fields) != tuple(header):
-                    raise DatasetError(
-                        f"expected header {','.join(header)!r}, got {text!r}", path, lineno
-                    )
-                header_seen = True
-                continue
-            if len(fields) != len(header):
-                raise DatasetError(
-                    f"malformed line: expected {len(header)} fields, got {len(fields)}",
-                    path,
-                    lineno,
-                )
-            rows.append(
-                [p(f, path, lineno, c) for p, f, c in zip(parsers, fields, header, strict=True)]
-            )
-            lines.append(lineno)
-    if not header_seen:
-        raise DatasetError(f"empty file (expected header {','.join(header)!r})", path)
-    if not rows and not allow_empty:
-        raise DatasetError("no data lines (empty log)", path)
-    return rows, lines
-
-
-def _check_time(
-    t: FloatArray, lines: Sequence[int] | None, path: Path, strict: bool = True
-) -> None:
-    """DatasetError at the first time stamp that does not increase (or decreases if not strict).
-
-    ``lines`` are the data lines' numbers; None re-scans ``path`` for them on error.
-    """
-    if len(t) < 2:
-        return
-    dt = np.diff(t)
-    bad = np.flatnonzero(dt <= 0 if strict else dt < 0)
-    if len(bad):
-        k = int(bad[0]) + 1
-        what = "does not increase" if strict else "goes backwards"
-        line_nos = lines if lines is not None else _data_line_numbers(path)
-        raise DatasetError(f"time stamp {t[k]!r} {what} (previous {t[k - 1]!r})", path, line_nos[k])
-
-
-def _str_field(text: str, path: Path, line: int, column: str) -> str:
-    """A non-empty string field."""
-    if not text:
-        raise DatasetError(f"column {column!r}: empty", path, line)
-    return text
-
-
-# --------------------------------------------------------------------------- readers
-def _fast_columns(path: Path, header: Sequence[str], kinds: str) -> tuple[list[Any], None] | None:
-    """Parse a well-formed table with ``np.loadtxt`` (C speed); None when anything is off.
-
-    ``kinds`` has one letter per column: ``f`` finite float, ``n`` float allowing NaN,
-    ``i`` integer, ``s`` non-empty string, ``b`` 0/1. On None the caller re-reads the
-    file line by line with :func:`_read_csv`, which names the offending line. Line
-    numbers are not returned (see :func:`_data_line_numbers`).
-    """
-    skip = 0
-    try:
-        with open(path, encoding="utf-8") as fh:
-            for raw in fh:
-                skip += 1
-                line = raw.strip()
-                if line and not line.startswith("#"):
-                    if line != ",".join(header):
-                        return None
-                    break
-            else:
-                return None
-    except (OSError, UnicodeDecodeError):
-        return None
-    num_idx = [j for j, k in enumerate(kinds) if k != "s"]
-    str_idx = [j for j, k in enumerate(kinds) if k == "s"]
-    cols: list[Any] = [None] * len(kinds)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")  # "empty input file" and friends -> slow path
-            if num_idx:
-                a = np.loadtxt(path, delimiter=",", skiprows=skip, usecols=num_idx, ndmin=2,
-                               dtype=np.float64, comments="#", encoding="utf-8")  # fmt: skip
-            if str_idx:
-                st = np.loadtxt(path, delimiter=",", skiprows=skip, usecols=str_idx, ndmin=2,
-                                dtype=str, comments="#", encoding="utf-8")  # fmt: skip
-    except (ValueError, UserWarning):
-        return None
-    rows = len(a) if num_idx else len(st)
-    if rows == 0:
-        return None
-    for c, j in enumerate(num_idx):
-        col = a[:, c]
-        kind = kinds[j]
-        if kind == "n":
-            if np.any(np.isinf(col)):
-                return None
-            cols[j] = col.copy()
-            continue
-        if not np.all(np.isfinite(col)):
-            return None
-        if kind == "f":
-            cols[j] = col.copy()
-        elif kind == "i":
-            if not np.all(col == np.round(col)) or np.any(np.abs(col) > 2**53):
-                return None
-            cols[j] = col.astype(np.int64)
-        else:  # "b"
-            if not np.all((col == 0) | (col == 1)):
-                return None
-            cols[j] = col == 1
-    for c, j in enumerate(str_idx):
-        strs = [x.strip() for x in st[:, c].tolist()]
-        if not all(strs):
-            return None
-        cols[j] = strs
-    if num_idx and str_idx and len(st) != len(a):
-        return None
-    return cols, None
-
-
-def _data_line_numbers(path: Path) -> list[int]:
-    """1-based line numbers of a table's data lines (after the header; no blanks/comments)."""
-    out: list[int] = []
-    header_seen = False
-    with _open_text(path) as fh:
-        for n, raw in enumerate(fh, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            if header_seen:
-                out.append(n)
-            header_seen = True
-    return out
-
-
-def _columns(
-    path: Path,
-    header: Sequence[str],
-    kinds: str,
-    parsers: Sequence[Callable[[str, Path, int, str], Any]],
-    allow_empty: bool = False,
-) -> tuple[list[Any], list[int] | None]:
-    """Columns of a table: the fast path, else the line-by-line parser (precise errors)."""
-    fast = _fast_columns(path, header, kinds)
-    if fast is not None:
-        return fast
-    rows, lines = _read_csv(path, header, parsers, allow_empty)
-    cols: list[Any] = []
-    for j, kind in enumerate(kinds):
-        col = [r[j] for r in rows]
-        if kind in "fn":
-            cols.append(np.array(col, dtype=np.float64))
-        elif kind == "i":
-            cols.append(np.array(col, dtype=np.int64))
-        elif kind == "b":
-            cols.append(np.array(col, dtype=bool))
-        else:
-            cols.append(col)
-    return cols, lines
-
-
 def read_odometry(path: str | Path) -> OdometryLog:
     """Read ``odometry.csv`` (``t,d_left,d_right``).
 
@@ -635,8 +406,8 @@ def read_odometry(path: str | Path) -> OdometryLog:
         DatasetError: missing, malformed, non-finite, empty, or time not increasing.
     """
     path = Path(path)
-    (t, dl, dr), lines = _columns(path, ODOMETRY_HEADER, "fff", [_parse_float] * 3)
-    _check_time(t, lines, path)
+    (t, dl, dr), lines = columns(path, ODOMETRY_HEADER, "fff", [parse_float] * 3)
+    check_time(t, lines, path)
     return OdometryLog(t=t, d_left=dl, d_right=dr)
 
 
@@ -649,8 +420,8 @@ def read_image_index(path: str | Path, shape: tuple[int, int] | None = None) -> 
         DatasetError: missing, malformed, empty, or time not increasing.
     """
     path = Path(path)
-    (t, names), lines = _columns(path, IMAGES_HEADER, "fs", [_parse_float, _str_field])
-    _check_time(t, lines, path)
+    (t, names), lines = columns(path, IMAGES_HEADER, "fs", [parse_float, str_field])
+    check_time(t, lines, path)
     files = [path.parent / name for name in names]
     return ImageIndex(t=t, files=files, shape=shape, index_path=path)
 
@@ -669,7 +440,7 @@ def read_landmarks(path: str | Path) -> LandmarkTable:
             raise DatasetError(f"column {column!r}: unknown landmark type {text!r}", p, line)
         return text
 
-    rows, lines = _read_csv(path, LANDMARKS_HEADER, [_parse_int, _type] + [_parse_float] * 6, True)
+    rows, lines = read_csv(path, LANDMARKS_HEADER, [parse_int, _type] + [parse_float] * 6, True)
     ids = np.array([r[0] for r in rows], dtype=np.int64)
     _, first = np.unique(ids, return_index=True)
     if len(first) != len(ids):
@@ -689,9 +460,9 @@ def read_range_bearing(path: str | Path) -> RangeBearingLog:
         DatasetError: missing, malformed, non-finite, empty or time going backwards.
     """
     path = Path(path)
-    parsers = [_parse_float, _parse_int, _parse_float, _parse_float]
-    (t, lid, rng, brg), lines = _columns(path, RANGE_BEARING_HEADER, "fiff", parsers)
-    _check_time(t, lines, path, strict=False)
+    parsers = [parse_float, parse_int, parse_float, parse_float]
+    (t, lid, rng, brg), lines = columns(path, RANGE_BEARING_HEADER, "fiff", parsers)
+    check_time(t, lines, path, strict=False)
     return RangeBearingLog(t=t, landmark_id=lid, range=rng, bearing=brg)
 
 
@@ -707,7 +478,7 @@ def read_projections(path: str | Path) -> ProjectionTable:
         """A float that may be ``nan`` (but not inf)."""
         if text.lower() == "nan":
             return math.nan
-        return _parse_float(text, p, line, column)
+        return parse_float(text, p, line, column)
 
     def _bool(text: str, p: Path, line: int, column: str) -> bool:
         """``0``/``1`` as a bool, or DatasetError."""
@@ -716,19 +487,19 @@ def read_projections(path: str | Path) -> ProjectionTable:
         return text == "1"
 
     parsers = [
-        _parse_int,
-        _parse_float,
-        _parse_int,
-        _str_field,
-        _parse_float,
-        _parse_float,
+        parse_int,
+        parse_float,
+        parse_int,
+        str_field,
+        parse_float,
+        parse_float,
         _nan_ok,
         _bool,
         _bool,
     ]
-    cols, lines = _columns(path, PROJECTIONS_HEADER, "ifisffnbb", parsers, allow_empty=True)
+    cols, lines = columns(path, PROJECTIONS_HEADER, "ifisffnbb", parsers, allow_empty=True)
     frame, t, ids, types, col, row, angle, vis, full = cols
-    _check_time(frame.astype(np.float64), lines, path, strict=False)
+    check_time(frame.astype(np.float64), lines, path, strict=False)
     return ProjectionTable(
         frame=frame, t=t, ids=ids, types=tuple(types),
         pixel=np.column_stack([col, row]).reshape(-1, 2), angle_px=angle,
@@ -751,7 +522,7 @@ def read_tum(path: str | Path) -> Trajectory:
     t_list: list[float] = []
     rows: list[list[float]] = []
     lines: list[int] = []
-    with _open_text(path) as fh:
+    with open_text(path) as fh:
         for lineno, raw in enumerate(fh, start=1):
             text = raw.strip()
             if not text or text.startswith("#"):
@@ -764,7 +535,7 @@ def read_tum(path: str | Path) -> Trajectory:
                     lineno,
                 )
             vals = [
-                _parse_float(f, path, lineno, c)
+                parse_float(f, path, lineno, c)
                 for f, c in zip(fields, "t x y z qx qy qz qw".split(), strict=True)
             ]
             qx, qy, qz, qw = vals[4:]
@@ -777,9 +548,9 @@ def read_tum(path: str | Path) -> Trajectory:
     if not rows:
         raise DatasetError("no poses (empty trajectory)", path)
     t = np.array(t_list)
-    _check_time(t, lines, path)
+    check_time(t, lines, path)
     poses = np.array(rows)
-    poses[:, 2] = _wrap(poses[:, 2])
+    poses[:, 2] = wrap_angle(poses[:, 2])
     return Trajectory(t=t, poses=poses)
 
 
@@ -815,7 +586,7 @@ def read_run(path: str | Path) -> LoggedRun:
     )
     meta: dict[str, Any] = {}
     if (path / META_FILE).exists():
-        loaded = _read_yaml(path / META_FILE)
+        loaded = read_yaml(path / META_FILE)
         if loaded is not None and not isinstance(loaded, dict):
             raise DatasetError("meta.yaml must be a mapping", path / META_FILE)
         meta = loaded or {}
