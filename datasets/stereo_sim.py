@@ -35,6 +35,8 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import BoolArray, FloatArray
+from lampsam.datasets.tables import Trajectory
+from lampsam.datasets.tum import read_tum, write_tum
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -336,14 +338,8 @@ def write_stereo_run(run: StereoRun, out: Path) -> Path:
         for k in range(len(run)):
             w.writerow([f"{run.t[k]:.6f}", int(run.seen[k])] + [f"{c:.6g}" for c in run.z[k]])
     if run.truth is not None:
-        with open(out / GROUNDTRUTH_TUM, "w") as fh:
-            fh.write("# t x y z qx qy qz qw (rig pose in the target frame)\n")
-            for k in range(len(run)):
-                x, y, th = run.truth[k]
-                fh.write(
-                    f"{run.t[k]:.6f} {x:.9f} {y:.9f} 0 0 0 "
-                    f"{math.sin(th / 2):.12f} {math.cos(th / 2):.12f}\n"
-                )
+        write_tum(out / GROUNDTRUTH_TUM, Trajectory(t=run.t, poses=run.truth),
+                  comment="t x y z qx qy qz qw (rig pose in the target frame)")
     return out
 
 
@@ -388,28 +384,6 @@ def _read_csv(path: Path, header: list[str]) -> FloatArray:
     return out
 
 
-def _read_tum_planar(path: Path) -> FloatArray:
-    """TUM file -> (N, 4) ``t, x, y, theta`` (yaw from the quaternion)."""
-    rows = []
-    with open(path) as fh:
-        for i, line in enumerate(fh, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.split()
-            if len(parts) != 8:
-                raise DatasetError(f"expected 8 TUM fields, got {len(parts)}", path, i)
-            try:
-                t, x, y, _z, qx, qy, qz, qw = (float(p) for p in parts)
-            except ValueError as exc:
-                raise DatasetError(f"not a number: {exc}", path, i) from exc
-            yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-            rows.append([t, x, y, yaw])
-    if not rows:
-        raise DatasetError("no poses", path)
-    return np.array(rows)
-
-
 def read_stereo_run(path: Path) -> StereoRun:
     """Read a run directory written by :func:`write_stereo_run`.
 
@@ -438,10 +412,10 @@ def read_stereo_run(path: Path) -> StereoRun:
     truth = None
     gt_path = path / GROUNDTRUTH_TUM
     if gt_path.is_file():
-        gt = _read_tum_planar(gt_path)
-        if len(gt) != len(odo) or not np.allclose(gt[:, 0], odo[:, 0], atol=1e-6):
+        gt = read_tum(gt_path)
+        if len(gt) != len(odo) or not np.allclose(gt.t, odo[:, 0], atol=1e-6):
             raise DatasetError("ground-truth times differ from the frames", gt_path)
-        truth = gt[:, 1:]
+        truth = gt.poses
     return StereoRun(
         path, rig, noise, points, odo[:, 0], odo[:, 1], odo[:, 2], meas[:, 2:6],
         meas[:, 1] > 0.5, truth, str(meta.get("scenario", "")), int(meta.get("seed", -1)),
