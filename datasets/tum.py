@@ -88,12 +88,14 @@ def yaw_from_quaternions(quat_xyzw: FloatArray) -> FloatArray:
     """Yaw (rotation about ``z``, ZYX Euler) of quaternions, rad in (-pi, pi].
 
     Args:
-        quat_xyzw: (K, 4) ``(qx, qy, qz, qw)``, any non-zero norm.
+        quat_xyzw: (K, 4) ``(qx, qy, qz, qw)``, any non-zero norm (normalised here:
+            the formula below holds for unit quaternions only).
 
     Returns:
-        (K,) ``atan2(2 (qw qz + qx qy), 1 - 2 (qy^2 + qz^2))`` (exact for unit quaternions).
+        (K,) ``atan2(2 (qw qz + qx qy), 1 - 2 (qy^2 + qz^2))``.
     """
     q = np.asarray(quat_xyzw, dtype=np.float64).reshape(-1, 4)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
     qx, qy, qz, qw = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     return np.asarray(
         wrap_angle(np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz)))
