@@ -28,8 +28,8 @@ from lampsam.frontend.corners import (
     detect_corner_pixels,
     detect_corners,
 )
+from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    LampDetectorConfig,
     PixelToCeiling,
     ceiling_jacobians,
     detect_lamps,

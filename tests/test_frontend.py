@@ -31,8 +31,8 @@ from lampsam.frontend.corners import (
     strongest_spaced,
     strongest_spaced_pixels,
 )
+from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    LampDetectorConfig,
     _dilate_disk,
     _disk,
     _disk_factors,
