@@ -42,17 +42,16 @@ from lampsam.frontend.lamps import (
     _levels_at,
     _lower_median_rank,
     _measure_region,
-    auto_threshold,
     ceiling_jacobians,
     detect_lamps,
     measure_blobs,
-    otsu_level,
     to_observation,
     to_observations,
     wrap_axis,
 )
 from lampsam.frontend.measurements import CeilingFrame, LampObservation
 from lampsam.frontend.pipeline import FrontendConfig, process_image
+from lampsam.frontend.threshold import auto_threshold, otsu_level
 
 
 def _scene(
