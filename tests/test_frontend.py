@@ -31,11 +31,9 @@ from lampsam.frontend.corners import (
     strongest_spaced,
     strongest_spaced_pixels,
 )
+from lampsam.frontend.dilation import dilate_disk, disk, disk_factors
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    _dilate_disk,
-    _disk,
-    _disk_factors,
     _group_by_label,
     _label_levels,
     _label_sums,
@@ -509,12 +507,12 @@ def test_factorised_disk_dilation_matches_direct(rng: np.random.Generator) -> No
     """Chained dilations by the disk's small factors equal one dilation by the disk,
     labels touching the image border included (max of labels, nothing outside)."""
     for radius in range(8):
-        assert sum(int(f.sum()) for f in _disk_factors(radius)) <= int(_disk(radius).sum())
+        assert sum(int(f.sum()) for f in disk_factors(radius)) <= int(disk(radius).sum())
         for _ in range(10):
             shape = (int(rng.integers(5, 50)), int(rng.integers(5, 50)))
             labels = rng.integers(0, 200, shape) * (rng.random(shape) < 0.03)
             labels[0, rng.integers(0, shape[1])] = 7  # on the border
             for dtype in (np.uint8, np.uint16):
                 img = labels.astype(dtype)
-                assert np.array_equal(_dilate_disk(img, radius), cv2.dilate(img, _disk(radius)))
-    assert len(_disk_factors(5)) > 1  # the ring reach of the default detector is factorised
+                assert np.array_equal(dilate_disk(img, radius), cv2.dilate(img, disk(radius)))
+    assert len(disk_factors(5)) > 1  # the ring reach of the default detector is factorised
