@@ -87,6 +87,14 @@ import numpy as np
 from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.frontend.dilation import dilate_disk, disk
+from lampsam.frontend.label_stats import (
+    group_by_label,
+    label_blobs,
+    label_levels,
+    label_sums,
+    levels_at,
+    lower_median_rank,
+)
 from lampsam.frontend.lamp_config import DEFAULT_CONFIG, LampDetectorConfig
 from lampsam.frontend.measurements import LampObservation
 from lampsam.frontend.threshold import grey_histogram, threshold_and_peak
@@ -293,24 +301,6 @@ def _measure_region(
     )
 
 
-def label_blobs(binary: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
-    """8-connected labelling with statistics (the paper's grassfire labelling).
-
-    Uses 16-bit labels whenever the image cannot hold 65535 components (at most
-    one per 2x2 block): OpenCV computes the statistics about 3x faster then.
-
-    Args:
-        binary: shape (H, W) uint8, non-zero = foreground.
-
-    Returns:
-        ``(n, labels (H, W), stats (n, 5))`` as ``cv2.connectedComponentsWithStats``.
-    """
-    h, w = binary.shape
-    ltype = cv2.CV_16U if ((h + 1) // 2) * ((w + 1) // 2) < 65535 else cv2.CV_32S
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, None, None, None, 8, ltype)
-    return int(n), labels, stats
-
-
 def _split_glare(
     grey_roi: FloatArray, core: np.ndarray, k: float, config: LampDetectorConfig
 ) -> list[np.ndarray] | None:
@@ -503,131 +493,6 @@ def _gather_reach(
     return _Reach(xy, image.reshape(-1).take(in_image), sup, ring)
 
 
-class _Groups(NamedTuple):
-    """Pixels grouped by label (a stable permutation) for segment sums.
-
-    Attributes:
-        order: shape (P,) permutation listing the pixels label by label (row-major within).
-        starts: shape (G,) start of each non-empty group in that order.
-        present: shape (G,) the label of each non-empty group.
-    """
-
-    order: IntArray
-    starts: IntArray
-    present: IntArray
-
-
-def _group_by_label(lab: IntArray, n: int, count: IntArray | None = None) -> _Groups:
-    """Group pixels by label ``0..n-1`` (stable argsort).
-
-    Per-label sums are then ``np.add.reduceat`` over contiguous segments:
-    ``np.bincount`` with weights adds each pixel into the bin the previous one
-    went to (a blob's pixels come in long runs) and waits on that addition,
-    several times slower here. The sort runs on 8- or 16-bit labels (numpy's
-    radix sort); the group starts come from the label counts.
-
-    Args:
-        lab: shape (P,) labels ``0..n-1`` (any integer dtype).
-        n: number of labels.
-        count: shape (n,) pixels per label when the caller has them.
-    """
-    small = lab.astype(np.uint8 if n <= 256 else np.uint16 if n <= 65536 else np.intp, copy=False)
-    order = np.argsort(small, kind="stable")
-    if count is None:
-        count = np.bincount(lab, minlength=n)
-    present = count.nonzero()[0]
-    return _Groups(order, (count.cumsum() - count).take(present), present)
-
-
-def _label_sums(groups: _Groups, values: FloatArray, n: int) -> FloatArray:
-    """Per-label sums of the rows of ``values``.
-
-    Args:
-        groups: the pixels' grouping (:func:`_group_by_label`).
-        values: shape (k, P), per-pixel values already in ``groups.order``.
-        n: number of labels.
-
-    Returns:
-        shape (k, n): the sums, 0 for absent labels (integer-valued inputs sum
-        exactly; others differ from a sequential sum by rounding only).
-    """
-    out = np.zeros((values.shape[0], n))
-    if groups.present.size:
-        out[:, groups.present] = np.add.reduceat(values, groups.starts, axis=1)
-    return out
-
-
-_HIST_MAX_LABELS = 1024  # per-label level histograms up to this many labels, a sort above
-
-
-class _Levels(NamedTuple):
-    """Per-label grey-level distributions, for order statistics (:func:`_levels_at`).
-
-    Up to ``_HIST_MAX_LABELS`` labels: cumulative 256-bin histograms per label
-    (one ``bincount``, cheaper than a sort); above, the sorted keys
-    ``256 label + level`` (memory linear in the pixels, not the labels).
-
-    Attributes:
-        cum: shape (n, 256) cumulative counts per label, or None (sort path).
-        key: shape (P,) sorted keys, or None (histogram path).
-        start: shape (n,) first position of each label in ``key`` (histogram path: unused).
-        count: shape (n,) pixels per label.
-    """
-
-    cum: IntArray | None
-    key: IntArray | None
-    start: IntArray
-    count: IntArray
-
-
-def _label_levels(lab: IntArray, grey: IntArray, n: int) -> _Levels:
-    """The grey levels of the pixels grouped per label (see :class:`_Levels`).
-
-    Args:
-        lab: shape (P,) int labels ``0..n-1``.
-        grey: shape (P,) int grey levels ``0..255``.
-        n: number of labels.
-    """
-    key = lab * 256 + grey
-    if n <= _HIST_MAX_LABELS:
-        cum = np.bincount(key, minlength=256 * n).reshape(n, 256).cumsum(axis=1)
-        count = cum[:, -1]
-        return _Levels(cum, None, count, count)
-    key.sort()
-    edges = np.searchsorted(key, 256 * np.arange(n + 1))
-    start = edges[:-1]
-    return _Levels(None, key, start, edges[1:] - start)
-
-
-def _levels_at(levels: _Levels, rank: IntArray) -> IntArray:
-    """Per-label order statistics.
-
-    Args:
-        levels: from :func:`_label_levels`.
-        rank: shape (n,) or (k, n), 0-based ranks (ascending) wanted in each
-            label's group; labels without pixels (or ranks past the end) get
-            an arbitrary level.
-
-    Returns:
-        int grey levels, the shape of ``rank``. On the histogram path the level
-        of rank ``r`` is the first whose cumulative count exceeds ``r``.
-    """
-    if levels.cum is not None:  # (integer counts: cum < rank + 1 is cum <= rank)
-        return (levels.cum <= rank[..., None]).sum(axis=-1)
-    assert levels.key is not None
-    pos = np.minimum(levels.start + rank, levels.key.size - 1)
-    return levels.key.take(pos) - 256 * np.arange(levels.start.size)
-
-
-def _lower_median_rank(count: IntArray) -> IntArray:
-    """0-based rank of the lower median of ``count`` values (0 for empty groups).
-
-    The first level at which the cumulative count reaches half the total, as
-    for a histogram.
-    """
-    return np.maximum((count + 1) // 2 - 1, 0)
-
-
 def _shape_checks(
     lab: IntArray,
     x: FloatArray,
@@ -654,14 +519,14 @@ def _shape_checks(
         ``min_fill``), and each blob's level (lower median of its grey levels).
         Row 0 is meaningless.
     """
-    dist = _label_levels(lab, grey, n)
+    dist = label_levels(lab, grey, n)
     count = dist.count
-    groups = _group_by_label(lab, n, count)
+    groups = group_by_label(lab, n, count)
     xg, yg = x.take(groups.order), y.take(groups.order)
-    sums = _label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
+    sums = label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
     # Lamp level (lower median), fifth-brightest and brightest level of each blob.
     fifth_rank = count - np.minimum(5, np.maximum(count, 1))
-    levels = _levels_at(dist, np.array([_lower_median_rank(count), fifth_rank, count - 1]))
+    levels = levels_at(dist, np.array([lower_median_rank(count), fifth_rank, count - 1]))
     too_dim, merged = [False] * n, [False] * n
     # Per blob on Python floats (a handful of blobs: cheaper than thirty numpy calls).
     rows = zip(count.tolist(), *sums.tolist(), *levels[1:].tolist(), strict=True)
@@ -696,7 +561,7 @@ def _measure_labels(
     """Coverage moments of many blobs at once (see the module docstring).
 
     The same computation as :func:`coverage_moments`, vectorised over blobs with
-    per-label sums over the gathered pixels (:func:`_label_sums`).
+    per-label sums over the gathered pixels (:func:`label_sums`).
 
     Args:
         reach: the pixels near the blobs to measure (:func:`_gather_reach`).
@@ -716,12 +581,12 @@ def _measure_labels(
     # the level distributions of all gathered pixels by ring label (label 0: the
     # pixels in no ring, never used; it always has pixels: the supports).
     ring = reach.ring
-    dist = _label_levels(ring, reach.grey, n)
+    dist = label_levels(ring, reach.grey, n)
     has_ring = dist.count > 0
-    median_rank = _lower_median_rank(dist.count)
-    bg_level = _levels_at(dist, median_rank)
+    median_rank = lower_median_rank(dist.count)
+    bg_level = levels_at(dist, median_rank)
     dev = np.abs(reach.grey - bg_level.take(ring))
-    mad = _levels_at(_label_levels(ring, dev, n), median_rank).astype(np.float64)
+    mad = levels_at(label_levels(ring, dev, n), median_rank).astype(np.float64)
     bg = bg_level.astype(np.float64)
     if not has_ring.take(ids).all():
         bg = np.where(has_ring, bg, default_bg())
@@ -732,14 +597,14 @@ def _measure_labels(
     span_safe = np.where(ok, span, 1.0)
     # Coverage weights on the support pixels, grouped by label.
     sup = (reach.sup > 0).nonzero()[0]
-    groups = _group_by_label(reach.sup.take(sup), n)
+    groups = group_by_label(reach.sup.take(sup), n)
     sup = sup.take(groups.order)
     lab = reach.sup.take(sup)
     xy = reach.xy.take(sup, axis=1)
     level = np.array([bg, span_safe]).take(lab, axis=1)
     wv = ((reach.grey.take(sup) - level[0]) / level[1]).clip(0.0, 1.0)
     wxy = wv * xy
-    s0, sx, sy = _label_sums(groups, np.array([wv, wxy[0], wxy[1]]), n)
+    s0, sx, sy = label_sums(groups, np.array([wv, wxy[0], wxy[1]]), n)
     s0 = np.maximum(s0, 1e-12)
     cx, cy = sx / s0, sy / s0
     d = xy - np.array([cx, cy]).take(lab, axis=1)
@@ -747,13 +612,13 @@ def _measure_labels(
     np.multiply(d[0], d, out=q[:2])
     np.multiply(d[1], d[1], out=q[2])
     free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
-    sums = _label_sums(groups, np.concatenate([wv * q, free * q]), n)
+    sums = label_sums(groups, np.concatenate([wv * q, free * q]), n)
     a, b, c = sums[:3] / s0
     fxx, fxy, fyy = sums[3:]
     xx, yy = a - c, 2.0 * b
     px, pb, py, pa, pc = np.array([xx, b, yy, a, c]).take(lab, axis=1)
     num = px * (2.0 * q[1] - 2.0 * pb) - py * ((q[0] - pa) - (q[2] - pc))
-    (dth2,) = _label_sums(groups, (free * num * num)[None, :], n)
+    (dth2,) = label_sums(groups, (free * num * num)[None, :], n)
     # The closing formulas per blob on Python floats (a handful of blobs: cheaper
     # than another twenty numpy calls); the blobs' small arrays are built at once.
     table = np.array([s0, cx, cy, a, b, c, fxx, fxy, fyy, dth2, sigma_n, span])

@@ -32,13 +32,15 @@ from lampsam.frontend.corners import (
     strongest_spaced_pixels,
 )
 from lampsam.frontend.dilation import dilate_disk, disk, disk_factors
+from lampsam.frontend.label_stats import (
+    group_by_label,
+    label_levels,
+    label_sums,
+    levels_at,
+    lower_median_rank,
+)
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    _group_by_label,
-    _label_levels,
-    _label_sums,
-    _levels_at,
-    _lower_median_rank,
     _measure_region,
     ceiling_jacobians,
     detect_lamps,
@@ -422,13 +424,13 @@ def test_per_label_order_statistics_and_sums(rng: np.random.Generator) -> None:
         lab = np.repeat(rng.integers(0, n, 40), rng.integers(1, 200, 40))
         grey = rng.integers(0, 256, lab.size)
         values = rng.normal(0.0, 100.0, (3, lab.size))
-        levels = _label_levels(lab, grey, n)
+        levels = label_levels(lab, grey, n)
         assert (levels.cum is None) == (n > 1024)
         assert np.array_equal(levels.count, np.bincount(lab, minlength=n))
-        ranks = np.array([_lower_median_rank(levels.count), levels.count - 1])
-        median, top = _levels_at(levels, ranks)
-        groups = _group_by_label(lab, n)
-        sums = _label_sums(groups, values.take(groups.order, axis=1), n)
+        ranks = np.array([lower_median_rank(levels.count), levels.count - 1])
+        median, top = levels_at(levels, ranks)
+        groups = group_by_label(lab, n)
+        sums = label_sums(groups, values.take(groups.order, axis=1), n)
         for j in np.unique(np.append(lab, [0, n - 1])).tolist():
             g = np.sort(grey[lab == j])
             if g.size:
