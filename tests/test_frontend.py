@@ -20,6 +20,7 @@ from lampsam.evaluation.frontend_eval import (
     render_view,
     synthetic_sequence,
 )
+from lampsam.frontend.blob_moments import measure_region
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     _near_mask,
@@ -41,7 +42,6 @@ from lampsam.frontend.label_stats import (
 )
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    _measure_region,
     ceiling_jacobians,
     detect_lamps,
     measure_blobs,
@@ -385,7 +385,7 @@ def _lamp_image(rng: np.random.Generator, shift: tuple[int, int] = (0, 0)) -> np
 
 def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> None:
     """``measure_blobs`` (all blobs at once, inside a box of the thresholded pixels)
-    equals the one-region reference ``_measure_region`` blob by blob (1e-9), in the
+    equals the one-region reference ``measure_region`` blob by blob (1e-9), in the
     label order of the whole image, whatever the box offset (odd shifts included)."""
     cfg = LampDetectorConfig()
     for shift in ((0, 0), (1, 0), (0, 1), (3, 5), (-7, 2)):
@@ -404,7 +404,7 @@ def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> N
             roi = labels[r0 : y + h + pad, c0 : x + w + pad]
             grey = image[r0 : y + h + pad, c0 : x + w + pad].astype(np.float64)
             border = x == 0 or y == 0 or x + w == 320 or y + h == 240
-            ref = _measure_region(grey, roi == i, (roi != 0) & (roi != i), (c0, r0), border, cfg)
+            ref = measure_region(grey, roi == i, (roi != 0) & (roi != i), (c0, r0), border, cfg)
             assert ref is not None
             np.testing.assert_allclose(mom.centroid, ref.centroid, rtol=0, atol=1e-9)
             np.testing.assert_allclose(mom.cov_centroid, ref.cov_centroid, rtol=1e-9, atol=1e-15)
