@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from lampsam.angles import wrap_axis
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import FrontendError, LampsamError
 from lampsam.evaluation.frontend_eval import (
@@ -21,6 +22,7 @@ from lampsam.evaluation.frontend_eval import (
     synthetic_sequence,
 )
 from lampsam.frontend.blob_moments import measure_region
+from lampsam.frontend.ceiling_coords import ceiling_jacobians, to_observation, to_observations
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     _near_mask,
@@ -42,12 +44,8 @@ from lampsam.frontend.label_stats import (
 )
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    ceiling_jacobians,
     detect_lamps,
     measure_blobs,
-    to_observation,
-    to_observations,
-    wrap_axis,
 )
 from lampsam.frontend.measurements import CeilingFrame, LampObservation
 from lampsam.frontend.pipeline import FrontendConfig, process_image
