@@ -81,7 +81,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lampsam.arrays import BoolArray, FloatArray, ImageU8
+from lampsam.arrays import BoolArray, ImageU8
 from lampsam.frontend.blob_moments import (
     BlobMoments,
     gather_reach,
@@ -91,6 +91,7 @@ from lampsam.frontend.blob_moments import (
 )
 from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
 from lampsam.frontend.dilation import disk
+from lampsam.frontend.glare import split_glare
 from lampsam.frontend.label_stats import (
     label_blobs,
 )
@@ -120,24 +121,6 @@ class LampDetections:
     n_rejected: int
 
 
-def _split_glare(
-    grey_roi: FloatArray, core: np.ndarray, k: float, config: LampDetectorConfig
-) -> list[np.ndarray] | None:
-    """Try to separate a glare-merged region by thresholding it higher.
-
-    Returns:
-        Two or more bool masks (one per lamp) or None when no split is found.
-    """
-    peak = float(grey_roi[core].max())
-    for frac in (0.35, 0.6, 0.8):
-        level = k + frac * (peak - k)
-        n, lab, stats = label_blobs((core & (grey_roi > level)).astype(np.uint8))
-        big = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= config.min_area_px]
-        if len(big) >= 2:
-            return [lab == i for i in big]
-    return None
-
-
 def measure_blobs(
     image: ImageU8, config: LampDetectorConfig
 ) -> tuple[list[BlobMoments], float | None, BoolArray, int]:
@@ -145,7 +128,7 @@ def measure_blobs(
 
     Size, dimness and glare checks and the moments of ordinary blobs are
     vectorised over blobs; only glare-merger candidates go through the
-    per-region path (:func:`_split_glare`, :func:`measure_region`).
+    per-region path (:func:`split_glare`, :func:`measure_region`).
 
     Everything after the threshold works inside the bounding box of the
     thresholded pixels, grown by the reach of a blob (support + ring + 1 px).
@@ -254,7 +237,7 @@ def measure_blobs(
         core = lab_roi == idx
         others = (lab_roi != 0) & ~core
         grey = image[r0:r1, c0:c1].astype(np.float64)
-        split = _split_glare(grey, core, k, config)
+        split = split_glare(grey, core, k, config)
         if split is None:
             log.debug("rejected a glare-merged region at (%d, %d)", c0, r0)
             n_rejected += 1
