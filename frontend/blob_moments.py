@@ -325,7 +325,7 @@ def shape_checks(
         Row 0 is meaningless.
     """
     dist = label_levels(lab, grey, n)
-    count = dist.count
+    count = dist.counts
     groups = group_by_label(lab, n, count)
     xg, yg = x.take(groups.order), y.take(groups.order)
     sums = label_sums(groups, np.array([xg, yg, xg * xg, xg * yg, yg * yg]), n)
@@ -387,8 +387,8 @@ def measure_labels(
     # pixels in no ring, never used; it always has pixels: the supports).
     ring = reach.ring
     dist = label_levels(ring, reach.grey, n)
-    has_ring = dist.count > 0
-    median_rank = lower_median_rank(dist.count)
+    has_ring = dist.counts > 0
+    median_rank = lower_median_rank(dist.counts)
     bg_level = levels_at(dist, median_rank)
     dev = np.abs(reach.grey - bg_level.take(ring))
     mad = levels_at(label_levels(ring, dev, n), median_rank).astype(np.float64)

@@ -31,8 +31,15 @@ from lampsam.frontend.measurements import LampObservation
 class PixelToCeiling(Protocol):
     """What the frontend needs from a camera model (``lampsam.datasets.logrun.CameraModel``)."""
 
-    width: int
-    height: int
+    @property
+    def width(self) -> int:
+        """Image width, px."""
+        ...
+
+    @property
+    def height(self) -> int:
+        """Image height, px."""
+        ...
 
     def normalized_from_pixels(self, px: FloatArray) -> FloatArray:
         """Pixels ``(N, 2)`` (col, row) -> normalised ceiling coordinates ``(N, 2)``."""

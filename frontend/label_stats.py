@@ -103,13 +103,13 @@ class Levels(NamedTuple):
         cum: shape (n, 256) cumulative counts per label, or None (sort path).
         key: shape (P,) sorted keys, or None (histogram path).
         start: shape (n,) first position of each label in ``key`` (histogram path: unused).
-        count: shape (n,) pixels per label.
+        counts: shape (n,) pixels per label.
     """
 
     cum: IntArray | None
     key: IntArray | None
     start: IntArray
-    count: IntArray
+    counts: IntArray
 
 
 def label_levels(lab: IntArray, grey: IntArray, n: int) -> Levels:

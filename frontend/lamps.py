@@ -1,76 +1,35 @@
-"""Ceiling-lamp detection: threshold, connected components, second moments.
+"""Ceiling-lamp detection on one grey image: the stages of paper 1, eqs. 1-7, in order.
 
-Paper 1 (``seeds/ceiling-lamp-ekf-slam.txt``), eqs. 1-7, with the corrections of
-DESIGN.md sec. 1:
+Paper 1 (``seeds/ceiling-lamp-ekf-slam.txt``) with the corrections of DESIGN.md
+sec. 1. :func:`detect_lamps` runs, each stage in its own module:
 
-1. Threshold the grey image at ``k`` (eq. 1): the paper's fixed ``k``, or an
-   automatic ``k`` (:func:`auto_threshold`) for real images whose ceilings are
-   bright too.
-2. Label connected regions (the paper's grassfire labelling is
-   ``cv2.connectedComponentsWithStats``, 8-connected).
-3. Per region, the centroid and the central second moments ``a = mu20``,
-   ``b = mu11``, ``c = mu02`` (eqs. 2-4); the long-axis angle
-   ``theta = 0.5 atan2(2b, a - c)`` modulo pi (eq. 5 with the quadrant kept);
-   the axis lengths from the covariance eigenvalues (eq. 6) and
-   ``R_ori = sigma1 / sigma2`` (eq. 7). ``R_ori > ratio_threshold`` (1.5): an
-   oriented lamp, else a point lamp.
+1. threshold at ``k`` (eq. 1): the paper's fixed ``k`` or an automatic one for
+   bright real ceilings (:mod:`lampsam.frontend.threshold`);
+2. label 8-connected regions (the paper's grassfire labelling,
+   :func:`lampsam.frontend.label_stats.label_blobs`);
+3. reject what is not a lamp (below), flag glare mergers and split them by
+   thresholding higher (:mod:`lampsam.frontend.glare`);
+4. coverage-weighted centroid, second moments, axis ``theta`` (eq. 5),
+   ``R_ori`` (eq. 7) and their uncertainty, in pixels
+   (:mod:`lampsam.frontend.blob_moments`); ``R_ori > ratio_threshold`` (1.5):
+   an oriented lamp, else a point lamp;
+5. conversion to normalised ceiling coordinates with the camera model
+   (:mod:`lampsam.frontend.ceiling_coords`).
 
-Sub-pixel accuracy: the moments are not taken over the binary region but over
-*coverage weights* ``w = clip((I - bg) / (top - bg), 0, 1)`` inside the region
-dilated by ``support_px``, where ``bg`` is the median grey level of a ring
-around the blob and ``top`` the median inside it. On an anti-aliased (area
-sampled) edge the grey level is ``bg + coverage (top - bg)``, so ``w`` is the
-fraction of the pixel the lamp covers and the weighted centroid is the true
-area centroid.
-
-Uncertainty (first-order propagation of independent grey-level noise
-``sigma_n`` through the weights; only unclipped pixels, ``0 < w < 1``, carry
-it): with ``W = sum w``, ``d_i = x_i - c``,
-
-* centroid: ``cov_c = sigma_w^2 sum_i d_i d_i^T / W^2 + sigma_floor^2 I``,
-  ``sigma_w = sigma_n / (top - bg)``;
-* axis: ``var_theta = sigma_w^2 sum_i (dtheta/dw_i)^2 + sigma_axis_floor^2`` with
-  ``dtheta/dw_i = [x (2 d_xi d_yi - 2b) - y ((d_xi^2 - a) - (d_yi^2 - c))]
-  / (2 W (x^2 + y^2))``, ``x = a - c``, ``y = 2b``.
-
-``sigma_n`` is the robust spread (1.4826 MAD) of the ring, floored at
-``noise_floor_grey``. The floors stand for what the model leaves out (blur,
-non-flat lamps, compression).
-
-Pixel quantities are converted to normalised ceiling coordinates
-(docs/conventions.md) with the camera model and the local Jacobian
-``J = dm/dpx`` of its pixel -> ``m`` map at the centroid (central differences):
-``cov_m = J cov_c J^T``; the axis direction ``e = (cos theta, sin theta)``
-becomes ``J e`` (this undoes the image mirroring of the default mounting and
-the distortion), and ``var_alpha = (det J / |J e|^2)^2 var_theta``.
+Not lamps: blobs smaller than ``min_area_px`` or larger than
+``max_area_fraction`` of the image (glare, a window), blobs less than
+``min_blob_contrast_grey`` above their ring, blobs too dim to be a light
+source (their fifth-brightest pixel more than ``max_peak_drop_grey`` below the
+image's lamp peak: smoke detectors, specular highlights on ducts), and glare
+mergers that no higher threshold separates.
 
 Border blobs: a blob touching the image border is cut, so its centroid and
 axis are biased; it is flagged (``touches_border``) and left out by
 :func:`lampsam.frontend.pipeline.process_image` unless asked for.
 
-Glare: a saturated halo can bridge two lamps into one region. Such a region
-fills its moment ellipse poorly (``fill = area / (4 pi sqrt(det Sigma)) < min_fill``;
-about 0.95 for a rectangle, 1 for a disc). It is re-thresholded at higher
-levels between ``k`` and its maximum (the halo is dimmer than the tubes); if
-that separates it into at least two large-enough parts each is measured on
-its own, otherwise the region is rejected (its centroid would be of the
-union, not of a lamp) and a debug message is logged. Two lamps joined end to
-end fill their ellipse like one long lamp and are not split; glare that grows
-a region past ``max_area_fraction`` of the image rejects it.
-
-Not lamps: blobs smaller than ``min_area_px`` or larger than
-``max_area_fraction`` of the image, blobs less than ``min_blob_contrast_grey``
-above their ring, and blobs too dim to be a light source (their fifth-brightest
-pixel more than ``max_peak_drop_grey`` below the image's lamp peak: smoke
-detectors, specular highlights on ducts).
-
-All per-blob sums are vectorised over the blobs (segment sums over the pixels
-grouped by label, medians from per-label cumulative level histograms), so the
-cost hardly grows with the number of lamps; only glare splits go region by
-region, and the closing formulas of each blob run on Python floats (a handful
-of blobs: cheaper than numpy calls on tiny arrays). Labelling, checks and
-moments work inside the bounding box of the thresholded pixels (lamps are
-sparse); a benchmark is ``scripts/bench/bench_frontend.py``.
+Cost: the per-blob work is vectorised over blobs and done inside the bounding
+box of the thresholded pixels (lamps are sparse); only glare splits go region
+by region. Benchmark: ``scripts/bench/bench_frontend.py``.
 """
 
 from __future__ import annotations
@@ -92,9 +51,7 @@ from lampsam.frontend.blob_moments import (
 from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
 from lampsam.frontend.dilation import disk
 from lampsam.frontend.glare import split_glare
-from lampsam.frontend.label_stats import (
-    label_blobs,
-)
+from lampsam.frontend.label_stats import label_blobs
 from lampsam.frontend.lamp_config import DEFAULT_CONFIG, LampDetectorConfig
 from lampsam.frontend.measurements import LampObservation
 from lampsam.frontend.threshold import grey_histogram, threshold_and_peak
