@@ -146,7 +146,7 @@ class Isam2Config:
             keyframes are used for gating the odometry-propagated pose only; their
             observations are dropped, and in the final trajectory their poses are the
             odometry conditioned on both neighbouring keyframes
-            (:func:`lampsam.backend.graph.odometry_bridge`). Over 10 seeds of 60 s of
+            (:func:`lampsam.backend.pose_cov.odometry_bridge`). Over 10 seeds of 60 s of
             lab (frontend images), iSAM2's mean position / heading RMS: every frame
             6.3 mm / 0.043 deg; 0.05 m 5.6 mm / 0.089 deg; 0.1 m 5.4 mm / 0.124 deg
             (heading between keyframes is the wheels' alone: 0.13-0.21 deg at 0.1 m,

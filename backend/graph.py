@@ -85,8 +85,8 @@ from lampsam.backend.models import (
     predict,
     residual,
 )
+from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
 from lampsam.errors import EstimationError
-from lampsam.factors.geometry import coords_D_tangent, wrap_angle
 from lampsam.factors.gtsam_factors import bearing_range_factor, odometry_factor
 from lampsam.factors.motion import accumulate_odometry
 
@@ -101,85 +101,6 @@ _RELATIVE_GATE_KEYFRAMES = 30
 #: Variance floor used for the per-step odometry composition (the factor's own floor
 #: is added once per keyframe).
 _STEP_FLOOR = 1e-14
-
-
-def tangent_to_coords_cov(pose: FloatArray, cov_t: FloatArray) -> FloatArray:
-    """Covariance in GTSAM's right tangent -> over plain coordinates (x, y, theta).
-
-    Args:
-        pose: (3,) the pose; cov_t: (3, 3) tangent covariance.
-
-    Returns:
-        (3, 3) ``J cov_t J^T`` with ``J = blockdiag(R(theta), 1)``.
-    """
-    j = coords_D_tangent(float(pose[2]))
-    return j @ cov_t @ j.T
-
-
-def compose_cov(delta: FloatArray, cov_a: FloatArray, cov_b: FloatArray) -> FloatArray:
-    """Right-tangent covariance of ``a * b`` from those of ``a`` and ``b`` (first order).
-
-    Args:
-        delta: (3,) the pose ``b``.
-        cov_a: (3, 3) covariance of ``a`` (tangent at ``a``).
-        cov_b: (3, 3) covariance of ``b`` (tangent at ``b``), independent of ``a``.
-
-    Returns:
-        (3, 3) ``Ad(b^-1) cov_a Ad(b^-1)^T + cov_b``.
-    """
-    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
-    return ad @ cov_a @ ad.T + cov_b
-
-
-def odometry_bridge(delta: FloatArray, cov_delta: FloatArray, delta_kf: FloatArray,
-                    cov_kf: FloatArray, pose_k: FloatArray, pose_k1: FloatArray
-                    ) -> tuple[FloatArray, FloatArray]:
-    """A step between keyframes ``k`` and ``k+1``, conditioned on both final estimates.
-
-    The odometry from keyframe ``k`` to the step, ``delta = delta_hat Exp(a)``
-    (``a ~ N(0, A)``), and on to keyframe ``k+1``, ``eps = eps_hat Exp(b)``, compose to
-    ``Delta ~ Delta_hat Exp(M a + b)`` with ``M = Ad(eps_hat^-1)`` and covariance
-    ``Sigma = M A M^T + B``. The smoother fixes ``Delta`` to
-    ``pose_k^-1 pose_k1``, i.e. the residual ``r = Log(Delta_hat^-1 Delta)``, and
-    the Gaussian conditional (first order, a Brownian bridge along the odometry) is
-    ``a | r ~ N(G r, A - G M A)`` with ``G = A M^T Sigma^-1``. Without it, the steps
-    between keyframes would carry the whole odometry drift since keyframe ``k``: with
-    keyframes every 0.1 m on 10 seeds of 60 s of lab, the heading RMS over all steps
-    was 0.18 deg, with the bridge 0.12 deg (0.04 deg with a keyframe at every frame).
-
-    The covariance assumes the wheel model is right. On lab it is (keyframes every
-    0.05 m: batch NEES 3.00, inside the band; the unconditioned ``A`` gave 2.25,
-    conservative). On MRCLAM, whose odometry is commanded ``(v, w)`` turned into wheel
-    travel with an assumed noise, the steps between keyframes come out overconfident
-    (iSAM2 NEES 14.2 against 4.6 with the unconditioned ``A``, same means).
-
-    Args:
-        delta, cov_delta: (3,), (3, 3) odometry from keyframe ``k`` to the step and
-            its right-tangent covariance.
-        delta_kf, cov_kf: (3,), (3, 3) odometry from keyframe ``k`` to ``k+1`` (the
-            odometry factor's) and its covariance.
-        pose_k, pose_k1: (3,) final estimates of the two keyframes.
-
-    Returns:
-        ``(delta', cov')``: the conditioned odometry to the step and its covariance;
-        the inputs unchanged if the system is degenerate.
-    """
-    d_hat = gtsam.Pose2(*delta)
-    big = gtsam.Pose2(*delta_kf)
-    eps = d_hat.inverse().compose(big)
-    m = eps.inverse().AdjointMap()
-    observed = gtsam.Pose2(*pose_k).inverse().compose(gtsam.Pose2(*pose_k1))
-    r = gtsam.Pose2.Logmap(big.inverse().compose(observed))
-    a_mt = cov_delta @ m.T
-    try:
-        gain = np.linalg.solve(np.asarray(cov_kf, float), a_mt.T).T
-    except np.linalg.LinAlgError:
-        return delta, cov_delta
-    if not np.all(np.isfinite(gain)):
-        return delta, cov_delta
-    out = d_hat.compose(gtsam.Pose2.Expmap(gain @ r))
-    cov = cov_delta - gain @ m @ cov_delta
-    return np.array([out.x(), out.y(), out.theta()]), 0.5 * (cov + cov.T)
 
 
 @dataclass
@@ -340,7 +261,7 @@ class GraphSlam(SlamBackend):
         self._new_graph = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._update_factor_lids = []
-        self._kf_pose = _pose_array(self.isam.calculateEstimatePose2(X(self._k)))
+        self._kf_pose = pose_array(self.isam.calculateEstimatePose2(X(self._k)))
         if self.config.isam2.pose_cov_every_step:
             self._kf_cov = np.asarray(self.isam.marginalCovariance(X(self._k)))
         self.update_times.append(t1 - t0)
@@ -429,14 +350,14 @@ class GraphSlam(SlamBackend):
         if k == self._k:
             return self._kf_pose
         if self.isam is not None:
-            return _pose_array(self.isam.calculateEstimatePose2(X(k)))
+            return pose_array(self.isam.calculateEstimatePose2(X(k)))
         return self._kf_poses[k]
 
     def current(self) -> tuple[FloatArray, FloatArray]:
         """Current pose (3,) and its tangent covariance (3, 3)."""
         pose = gtsam.Pose2(*self._kf_pose).compose(gtsam.Pose2(*self._delta))
         cov = compose_cov(self._delta, self._kf_cov, self._delta_cov)
-        return _pose_array(pose), cov
+        return pose_array(pose), cov
 
     def _refresh_landmark(self, lm: _Landmark) -> None:
         """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""
@@ -578,7 +499,7 @@ class GraphSlam(SlamBackend):
         for j in range(k - 1, max(k - _RELATIVE_GATE_KEYFRAMES, 0) - 1, -1):
             d_j, c_j = self._odo[j + 1]
             cov = compose_cov(delta, c_j, cov)
-            delta = _pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
+            delta = pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
             out[j] = cov
         self._rel_cache = (k, out)
         return out
@@ -890,7 +811,7 @@ class GraphSlam(SlamBackend):
             d, c = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
                                        _STEP_FLOOR)
             self._delta_cov = compose_cov(d, self._delta_cov, c)
-            self._delta = _pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
+            self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
             self._wheel_since_kf.append(wheel)
         n_matched = n_new = 0
         is_kf = False
@@ -927,7 +848,7 @@ class GraphSlam(SlamBackend):
             status = status if status.startswith("failed") else f"failed: {exc}"
         final_time = time.perf_counter() - t0
         n_kf = self._k + 1
-        kf_pose = np.array([_pose_array(values.atPose2(X(k))) if values.exists(X(k))
+        kf_pose = np.array([pose_array(values.atPose2(X(k))) if values.exists(X(k))
                             else self._kf_poses[k] for k in range(n_kf)])
         kf_cov = np.full((n_kf, 3, 3), np.nan)
         if marginal is not None and self.config.isam2.final_covariances:
@@ -945,7 +866,7 @@ class GraphSlam(SlamBackend):
             if k + 1 < n_kf:  # between two keyframes: condition the odometry on both
                 delta, cov_delta = odometry_bridge(delta, cov_delta, *self._odo[k + 1],
                                                    kf_pose[k], kf_pose[k + 1])
-            p = _pose_array(gtsam.Pose2(*kf_pose[k]).compose(gtsam.Pose2(*delta)))
+            p = pose_array(gtsam.Pose2(*kf_pose[k]).compose(gtsam.Pose2(*delta)))
             c = compose_cov(delta, kf_cov[k], cov_delta)
             poses[i] = p
             covs[i] = tangent_to_coords_cov(p, c)
@@ -1075,7 +996,3 @@ def _value_at(values: gtsam.Values, key: int) -> Any:
         except RuntimeError:
             continue
     raise EstimationError(f"cannot read graph value {gtsam.DefaultKeyFormatter(key)}")
-
-
-def _pose_array(p: gtsam.Pose2) -> FloatArray:
-    return np.array([p.x(), p.y(), wrap_angle(p.theta())])

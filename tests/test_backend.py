@@ -348,7 +348,7 @@ def test_odometry_bridge_is_the_gaussian_conditional() -> None:
     of ``a`` on the end residual ``r`` is the conditional the bridge must give. Along
     a curved path, so the heading couples into the translation.
     """
-    from lampsam.backend.graph import odometry_bridge
+    from lampsam.backend.pose_cov import odometry_bridge
 
     rng = np.random.default_rng(3)
     sigma0 = np.diag([4e-6, 1e-6, 9e-6])
