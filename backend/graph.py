@@ -69,7 +69,6 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate, corner_budget, screen_pairs
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.ekf import WheelParams, check_wheel, landmark_estimate
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
@@ -81,10 +80,12 @@ from lampsam.backend.models import (
     Obs,
     for_landmark,
     initialize,
+    landmark_estimate,
     observations_from_frame,
     predict,
     residual,
 )
+from lampsam.backend.odometry import WheelParams, check_wheel
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
 from lampsam.errors import EstimationError
 from lampsam.factors.gtsam_factors import bearing_range_factor, odometry_factor

@@ -28,6 +28,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig
+from lampsam.backend.interface import LandmarkEstimate
 from lampsam.factors.geometry import coords_D_tangent, wrap_angle, wrap_axis
 from lampsam.factors.range_bearing import range_bearing
 from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
@@ -216,3 +217,22 @@ def initialize(pose: FloatArray, obs: Obs, assoc: AssociationConfig,
     if ceiling is None:
         raise ValueError(f"ceiling landmark kind {obs.kind!r} needs a CeilingModel")
     return ceiling.initialize(pose, obs, assoc.height_prior())
+
+
+def landmark_estimate(lid: int, kind: str, state: FloatArray, cov: FloatArray, n_obs: int,
+                      ceiling: Any = None) -> LandmarkEstimate:
+    """A :class:`LandmarkEstimate` from a landmark state in EKF form.
+
+    Args:
+        lid: id; kind: landmark kind; state: (d,) EKF-form state; cov: (d, d).
+        n_obs: observations used.
+        ceiling: the ceiling model (its ``world_position`` maps a ceiling state to
+            world (x, y, z)), or None.
+    """
+    if kind == "point2":
+        return LandmarkEstimate(lid, kind, np.array([state[0], state[1], np.nan]), None, cov, n_obs)
+    position = np.asarray(state[:3], float)
+    if ceiling is not None and hasattr(ceiling, "world_position"):
+        position = ceiling.world_position(state)
+    orient = float(wrap_axis(float(state[3]))) if len(state) == 4 else None
+    return LandmarkEstimate(lid, kind, position, orient, cov, n_obs)
