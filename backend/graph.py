@@ -58,8 +58,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Iterable
 
 import gtsam
 import numpy as np
@@ -67,11 +66,22 @@ from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate, corner_budget, screen_pairs
-from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
+from lampsam.backend.ceiling import MIN_USABLE_HEIGHT, CeilingModel
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.handlers import (
+    GraphLandmark,
+    GraphValue,
+    LandmarkHandler,
+    MarginalSource,
+    Point2Handler,
+    ValueKind,
+    value_at,
+    value_of_kind,
+)
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
+    LandmarkKind,
     SlamBackend,
     SlamResult,
     StepEstimate,
@@ -88,7 +98,7 @@ from lampsam.backend.models import (
 from lampsam.backend.odometry import WheelParams, check_wheel
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
 from lampsam.errors import EstimationError
-from lampsam.factors.gtsam_factors import bearing_range_factor, odometry_factor
+from lampsam.factors.gtsam_factors import odometry_factor
 from lampsam.factors.motion import accumulate_odometry
 
 log = logging.getLogger(__name__)
@@ -102,59 +112,6 @@ _RELATIVE_GATE_KEYFRAMES = 30
 #: Variance floor used for the per-step odometry composition (the factor's own floor
 #: is added once per keyframe).
 _STEP_FLOOR = 1e-14
-
-
-@dataclass
-class _Landmark:
-    """A landmark known to a graph backend."""
-
-    id: int
-    kind: str
-    in_graph: bool
-    n_obs: int
-    state: FloatArray  # EKF-form estimate (refreshed from iSAM2 when gating)
-    cov: FloatArray  # first-sight covariance (eq. 25 marginal), used without iSAM2
-    pending: list[tuple[int, Obs]] = field(default_factory=list)  # (keyframe, obs) to add
-    patch: Any = None
-    oriented: bool = False
-    last_kf: int = 0  # last keyframe that observed it
-    cov_rel: Any = None  # (3, 3) position covariance relative to that keyframe's pose
-    sights: list[tuple[int, Obs]] = field(default_factory=list)  # first sights of a lamp
-
-
-class Point2Handler:
-    """Planar range-bearing landmarks in the graph: ``Point2`` + ``BearingRangeFactor2D``."""
-
-    kind = "point2"
-
-    def insert(self, lm: _Landmark, values: gtsam.Values) -> None:
-        """Insert the landmark's variable(s) with its current estimate."""
-        values.insert(L(lm.id), np.asarray(lm.state[:2], float))
-
-    def priors(self, lm: _Landmark, graph: Any, pose_of: Any, config: SlamConfig) -> None:
-        """No prior is needed for a planar landmark seen twice."""
-
-    def factors(self, lm: _Landmark, k: int, obs: Obs, robust: float | None
-                ) -> list[gtsam.NonlinearFactor]:
-        """``BearingRangeFactor2D(X(k), L(id))`` (built-in C++, via the factors adapter)."""
-        return [bearing_range_factor(X(k), L(lm.id), float(obs.z[0]), float(obs.z[1]), obs.R,
-                                     robust=robust)]
-
-    def read(self, lm: _Landmark, get: Any) -> FloatArray:
-        """EKF-form state from an estimate source (``get(key, "point2")``)."""
-        return np.asarray(get(L(lm.id), "point2"), float)
-
-    def marginal(self, lm: _Landmark, marginal_of: Any) -> FloatArray:
-        """Covariance of the EKF-form state from a marginal source."""
-        return np.asarray(marginal_of(L(lm.id)))
-
-    def state_index(self, lm: _Landmark) -> list[int]:
-        """Rows of the EKF-form state in the tangent of :meth:`keys` (all of them)."""
-        return [0, 1]
-
-    def keys(self, lm: _Landmark) -> list[int]:
-        """Graph keys of the landmark."""
-        return [L(lm.id)]
 
 
 class GraphSlam(SlamBackend):
@@ -172,14 +129,15 @@ class GraphSlam(SlamBackend):
     name = "graph"
 
     def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
-                 ceiling: Any = None, ceiling_handler: Any = None, online: bool = True) -> None:
+                 ceiling: CeilingModel | None = None,
+                 ceiling_handler: LandmarkHandler | None = None, online: bool = True) -> None:
         self.wheel = wheel
         self.config = config
         self.ceiling = ceiling
-        self.handlers: dict[str, Any] = {"point2": Point2Handler()}
+        self.handlers: dict[LandmarkKind, LandmarkHandler] = {LandmarkKind.POINT2: Point2Handler()}
         if ceiling_handler is not None:
-            self.handlers["lamp"] = ceiling_handler
-            self.handlers["corner"] = ceiling_handler
+            self.handlers[LandmarkKind.LAMP] = ceiling_handler
+            self.handlers[LandmarkKind.CORNER] = ceiling_handler
         self.online = online
         self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
@@ -199,7 +157,7 @@ class GraphSlam(SlamBackend):
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf: list[FloatArray] = []
-        self._landmarks: dict[int, _Landmark] = {}
+        self._landmarks: dict[int, GraphLandmark] = {}
         self._next_id = 0
         self._last_t = -math.inf
         # per-step records
@@ -223,7 +181,7 @@ class GraphSlam(SlamBackend):
         self._flush()
 
     # ------------------------------------------------------------------ graph building
-    def _add_value(self, key: int, value: Any) -> None:
+    def _add_value(self, key: int, value: GraphValue) -> None:
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
@@ -233,6 +191,12 @@ class GraphSlam(SlamBackend):
         self.graph.add(factor)
         if lid is not None:
             self._update_factor_lids.append((self.graph.size() - 1, lid))
+
+    def _require_ceiling(self) -> CeilingModel:
+        """The ceiling model; an EstimationError for a ceiling kind without one."""
+        if self.ceiling is None:
+            raise EstimationError("ceiling landmarks need a CeilingModel (make_backend camera=)")
+        return self.ceiling
 
     @property
     def robust(self) -> float | None:
@@ -317,11 +281,11 @@ class GraphSlam(SlamBackend):
             if key in removed_keys:
                 continue
             src = old if old.exists(key) else self.initial
-            values.insert(key, _value_at(src, key))
+            values.insert(key, value_at(src, key))
         initial = gtsam.Values()
         for key in self.initial.keys():
             if key not in removed_keys:
-                initial.insert(key, _value_at(self.initial, key))
+                initial.insert(key, value_at(self.initial, key))
         self.graph = graph
         self.initial = initial
         self.isam = gtsam.ISAM2(self.config.isam2.to_gtsam())
@@ -334,17 +298,18 @@ class GraphSlam(SlamBackend):
         self.n_recoveries += 1
 
     # ------------------------------------------------------------------ estimates
-    def _get(self, key: int, kind: str) -> Any:
+    def _get(self, key: int, kind: ValueKind) -> GraphValue:
+        """Current estimate of a variable: iSAM2's if it has it, else the initial value."""
         if self.isam is not None and self.isam.valueExists(key):
             if kind == "point2":
-                return self.isam.calculateEstimatePoint2(key)
+                return np.asarray(self.isam.calculateEstimatePoint2(key), float)
             if kind == "point3":
-                return self.isam.calculateEstimatePoint3(key)
+                return np.asarray(self.isam.calculateEstimatePoint3(key), float)
             if kind == "vector":
-                return self.isam.calculateEstimateVector(key)
+                return np.asarray(self.isam.calculateEstimateVector(key), float)
             if kind == "pose2":
                 return self.isam.calculateEstimatePose2(key)
-        return _value_of_kind(self.initial, key, kind)
+        return value_of_kind(self.initial, key, kind)
 
     def _pose_of(self, k: int) -> FloatArray:
         """Current estimate of keyframe ``k``."""
@@ -360,14 +325,14 @@ class GraphSlam(SlamBackend):
         cov = compose_cov(self._delta, self._kf_cov, self._delta_cov)
         return pose_array(pose), cov
 
-    def _refresh_landmark(self, lm: _Landmark) -> None:
+    def _refresh_landmark(self, lm: GraphLandmark) -> None:
         """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""
         if not lm.in_graph or self.isam is None:
             return
         lm.state = self.handlers[lm.kind].read(lm, self._get)
 
     # ------------------------------------------------------------------ association
-    def _joint_cov(self, lm: _Landmark, k: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    def _joint_cov(self, lm: GraphLandmark, k: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """Joint marginal blocks ``(S_kk, S_kl, S_ll)`` of keyframe ``k`` and a landmark.
 
         From iSAM2's ``jointMarginalCovariance``; the landmark block is over the
@@ -442,7 +407,7 @@ class GraphSlam(SlamBackend):
         """
         cands: dict[str, list[int]] = {}
         screened: dict[int, dict[int, tuple[float, bool]]] = {}
-        by_kind: dict[str, list[_Landmark]] = {}
+        by_kind: dict[str, list[GraphLandmark]] = {}
         for lid, lm in self._landmarks.items():
             if self.ceiling is None or lm.kind == "point2":
                 cands.setdefault(lm.kind, []).append(lid)
@@ -450,7 +415,8 @@ class GraphSlam(SlamBackend):
                 by_kind.setdefault(lm.kind, []).append(lm)
         for kind, lms in by_kind.items():
             pts = np.array([lm.state[:3] for lm in lms])
-            vis = self.ceiling.in_view_many(pose, pts)
+            ceiling = self._require_ceiling()
+            vis = ceiling.in_view_many(pose, pts)
             visible = [lms[j] for j in np.flatnonzero(vis)]
             for lm in visible:
                 self._refresh_landmark(lm)
@@ -458,7 +424,7 @@ class GraphSlam(SlamBackend):
                 cands[kind] = []
                 continue
             pts = np.array([lm.state[:3] for lm in visible])
-            m, h_p, h_l, vis = self.ceiling.project_many(pose, pts)
+            m, h_p, h_l, vis = ceiling.project_many(pose, pts)
             keep = np.flatnonzero(vis)
             lids = [visible[j].id for j in keep]
             cands[kind] = lids
@@ -531,7 +497,7 @@ class GraphSlam(SlamBackend):
                 out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
         return out
 
-    def _near_known_lamp(self, pose: FloatArray, obs: Obs, lamp_ids: Any) -> bool:
+    def _near_known_lamp(self, pose: FloatArray, obs: Obs, lamp_ids: Iterable[int]) -> bool:
         """Whether a mapped lamp is predicted within ``lamp_min_separation`` of ``obs``.
 
         Two lamps cannot overlap in the image, so such an observation is of that
@@ -595,7 +561,7 @@ class GraphSlam(SlamBackend):
             assignments = associate(
                 obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                 self.config.association, lambda i: i in self._landmarks, patches, screened)
-            matches: list[tuple[_Landmark, Obs]] = []
+            matches: list[tuple[GraphLandmark, Obs]] = []
             for a in assignments:
                 o = obs[a.obs_index]
                 if a.status == "matched" and a.landmark_id in self._landmarks:
@@ -622,9 +588,8 @@ class GraphSlam(SlamBackend):
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf = []
         for handler in {id(h): h for h in self.handlers.values()}.values():
-            if hasattr(handler, "flush"):
-                for f in handler.flush(self.robust, self._pose_of):
-                    self._add_factor(f)
+            for f in handler.flush(self.robust, self._pose_of):
+                self._add_factor(f)
         self._flush()
         return n_matched, n_new
 
@@ -643,7 +608,7 @@ class GraphSlam(SlamBackend):
         else:
             self._next_id = max(self._next_id, lid + 1)
         oriented = obs.kind == "lamp" and obs.has_axis
-        lm = _Landmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented, k,
+        lm = GraphLandmark(lid, obs.kind, False, 1, state, cov, [(k, obs)], obs.patch, oriented, k,
                        cov_meas[:3, :3])
         self._landmarks[lid] = lm
         if lm.kind == "lamp":
@@ -652,7 +617,7 @@ class GraphSlam(SlamBackend):
             self._enter_graph(lm)
         return 1
 
-    def _try_triangulate(self, lm: _Landmark) -> bool:
+    def _try_triangulate(self, lm: GraphLandmark) -> bool:
         """Delayed initialisation of a pending corner (see :class:`Isam2Config`).
 
         Triangulates from the pending sights' keyframe estimates
@@ -678,7 +643,7 @@ class GraphSlam(SlamBackend):
         chi2 = 0.0
         for pose, m, c in zip(poses, ms, covs, strict=True):
             try:
-                m_hat, _, _ = self.ceiling.predict(pose, point, with_axis=False)
+                m_hat, _, _ = self._require_ceiling().predict(pose, point, with_axis=False)
             except Exception:
                 return False
             r = m - m_hat
@@ -709,8 +674,9 @@ class GraphSlam(SlamBackend):
                           for k, _ in sights])
         ms = np.array([o.z[:2] for _, o in sights])
         covs = np.array([o.R[:2, :2] for _, o in sights])
-        point, cov = self.ceiling.triangulate(poses, ms, covs)
-        return poses, ms, covs, point, cov, float(point[2] - self.ceiling.body_t_camera[2])
+        ceiling = self._require_ceiling()
+        point, cov = ceiling.triangulate(poses, ms, covs)
+        return poses, ms, covs, point, cov, float(point[2] - ceiling.body_t_camera[2])
 
     def _placed_cov(self, cov_rel: FloatArray) -> FloatArray:
         """A triangulated point's covariance (3, 3) plus the current keyframe's x, y variance."""
@@ -725,7 +691,7 @@ class GraphSlam(SlamBackend):
             del self._landmarks[lid]
         self.n_pruned += len(stale)
 
-    def _observe(self, lm: _Landmark, k: int, obs: Obs) -> None:
+    def _observe(self, lm: GraphLandmark, k: int, obs: Obs) -> None:
         lm.n_obs += 1
         lm.last_kf = k
         if lm.in_graph:
@@ -742,7 +708,7 @@ class GraphSlam(SlamBackend):
         elif lm.n_obs >= self.config.association.min_observations:
             self._enter_graph(lm)
 
-    def _tighten_lamp_gate(self, lm: _Landmark, k: int, obs: Obs) -> None:
+    def _tighten_lamp_gate(self, lm: GraphLandmark, k: int, obs: Obs) -> None:
         """Replace a lamp's first-sight gating covariance by a triangulated one.
 
         A lamp enters the graph at its first sight with eq. 25's covariance (long
@@ -768,21 +734,18 @@ class GraphSlam(SlamBackend):
             # (each such sight then cost joint marginals).
             lm.cov = self._placed_cov(cov)
 
-    def _enter_graph(self, lm: _Landmark) -> None:
+    def _enter_graph(self, lm: GraphLandmark) -> None:
         """Insert a landmark's variables, priors and its buffered factors."""
         handler = self.handlers.get(lm.kind)
         if handler is None:
             raise EstimationError(f"no graph handler for landmark kind {lm.kind!r}")
-        handler.insert(lm, self._new_values_and_initial())
+        handler.insert(lm, _ValuesPair(self))
         handler.priors(lm, _Adder(self), self._pose_of, self.config)
         for k, o in lm.pending:
             for f in handler.factors(lm, k, o, self._robust_for(lm.kind)):
                 self._add_factor(f, lm.id)
         lm.pending = []
         lm.in_graph = True
-
-    def _new_values_and_initial(self) -> Any:
-        return _ValuesPair(self)
 
     # ------------------------------------------------------------------ pruning
     def _prune_once_seen(self) -> list[int]:
@@ -833,7 +796,7 @@ class GraphSlam(SlamBackend):
         self._keyframes.append(is_kf)
         return StepEstimate(t, pose, tangent_to_coords_cov(pose, cov), is_kf, n_matched, n_new, dt)
 
-    def _final_values(self) -> tuple[gtsam.Values, Any]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
         """Final estimate and a marginal-covariance function (subclasses)."""
         raise NotImplementedError
 
@@ -879,7 +842,7 @@ class GraphSlam(SlamBackend):
             handler = self.handlers[lm.kind]
             if not all(values.exists(key) for key in handler.keys(lm)):
                 continue
-            state = handler.read(lm, lambda key, kind: _value_of_kind(values, key, kind))
+            state = handler.read(lm, lambda key, kind: value_of_kind(values, key, kind))
             cov = np.full((len(state), len(state)), np.nan)
             if marginal is not None:
                 try:
@@ -914,10 +877,11 @@ class Isam2Slam(GraphSlam):
     name = "isam2"
 
     def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
-                 ceiling: Any = None, ceiling_handler: Any = None) -> None:
+                 ceiling: CeilingModel | None = None,
+                 ceiling_handler: LandmarkHandler | None = None) -> None:
         super().__init__(wheel, config, start_pose, ceiling, ceiling_handler, online=True)
 
-    def _final_values(self) -> tuple[gtsam.Values, Any]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
         assert self.isam is not None
         return self.isam.calculateEstimate(), self.isam.marginalCovariance
 
@@ -928,13 +892,14 @@ class BatchSlam(GraphSlam):
     name = "batch"
 
     def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
-                 ceiling: Any = None, ceiling_handler: Any = None) -> None:
+                 ceiling: CeilingModel | None = None,
+                 ceiling_handler: LandmarkHandler | None = None) -> None:
         if config.batch.init not in ("isam2", "odometry"):
             raise EstimationError(f"batch.init must be 'isam2' or 'odometry', got {config.batch.init!r}")
         super().__init__(wheel, config, start_pose, ceiling, ceiling_handler,
                          online=config.batch.init == "isam2")
 
-    def _final_values(self) -> tuple[gtsam.Values, Any]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
         start = self.isam.calculateEstimate() if self.isam is not None else self.initial
         try:
             opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
@@ -962,7 +927,7 @@ class _ValuesPair:
     def __init__(self, owner: GraphSlam) -> None:
         self.owner = owner
 
-    def insert(self, key: int, value: Any) -> None:
+    def insert(self, key: int, value: GraphValue) -> None:
         self.owner._add_value(key, value)
 
 
@@ -974,26 +939,3 @@ class _Adder:
 
     def add(self, factor: gtsam.NonlinearFactor) -> None:
         self.owner._add_factor(factor)
-
-
-def _value_of_kind(values: gtsam.Values, key: int, kind: str) -> Any:
-    """The value of ``key`` read as ``kind`` (``"point2"``, ``"point3"``, ``"vector"``, ``"pose2"``)."""
-    getters = {"point2": values.atPoint2, "point3": values.atPoint3,
-               "vector": values.atVector, "pose2": values.atPose2}
-    if kind not in getters:
-        raise EstimationError(f"unknown graph value kind {kind!r}")
-    return getters[kind](key)
-
-
-def _value_at(values: gtsam.Values, key: int) -> Any:
-    """The value of ``key`` in its own type (Pose2, Point2/3 or Vector)."""
-    sym = gtsam.Symbol(key)
-    ch = chr(sym.chr())
-    if ch in ("x", "a"):
-        return values.atPose2(key)
-    for getter in (values.atPoint3, values.atPoint2, values.atVector):
-        try:
-            return getter(key)
-        except RuntimeError:
-            continue
-    raise EstimationError(f"cannot read graph value {gtsam.DefaultKeyFormatter(key)}")

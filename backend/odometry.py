@@ -25,9 +25,14 @@ class WheelParams(Protocol):
             ``var(d) = k |d|``).
     """
 
-    wheel_base: float
-    k_r: float
-    k_l: float
+    @property
+    def wheel_base(self) -> float: ...  # noqa: D102
+
+    @property
+    def k_r(self) -> float: ...  # noqa: D102
+
+    @property
+    def k_l(self) -> float: ...  # noqa: D102
 
 
 def check_wheel(t: float, wheel: FloatArray) -> FloatArray:

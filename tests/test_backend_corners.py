@@ -24,7 +24,8 @@ from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
-from lampsam.backend.graph import BatchSlam, Isam2Slam, _Landmark
+from lampsam.backend.graph import BatchSlam, Isam2Slam
+from lampsam.backend.handlers import GraphLandmark as _Landmark
 from lampsam.backend.slam import (
     drive,
     errors_vs_truth,
