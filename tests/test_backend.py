@@ -161,7 +161,7 @@ def test_distance_keyframes_keep_first_frame_and_accuracy() -> None:
     """The distance/angle policy: the first frame is a keyframe, later ones are sparse.
 
     The first frame is seen from the known start pose and anchors the map's heading;
-    a run that skipped it lost ~3x in accuracy on lab (see ``GraphSlam._is_keyframe``).
+    a run that skipped it lost ~3x in accuracy on lab (see :func:`lampsam.backend.keyframes.is_keyframe`).
     Same world and tolerance as the every-frame iSAM2 case above.
     """
     cfg = SlamConfig(isam2=dataclasses.replace(SlamConfig().isam2, every_frame=False,

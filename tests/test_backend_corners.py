@@ -156,7 +156,7 @@ def test_failed_isam2_update_is_recovered(caplog: pytest.LogCaptureFixture) -> N
     be._add_value(L(bad), below)
     be._add_factor(projection_factor(X(k), L(bad), np.array([0.1, 0.0]), 1e-6 * np.eye(2),
                                      model.body_t_camera), bad)
-    with caplog.at_level(logging.WARNING, logger="lampsam.backend.graph"):
+    with caplog.at_level(logging.WARNING, logger="lampsam.backend.isam2_update"):
         be._flush()
     assert "rebuilding iSAM2" in caplog.text
     assert be.n_recoveries == 1 and bad not in be._landmarks
