@@ -67,7 +67,8 @@ def test_corners_from_frontend_finish_and_track(name: str, lab: tuple) -> None:
     base = SlamConfig()  # defaults, but no final marginals (test time)
     cfg = dataclasses.replace(base, isam2=dataclasses.replace(base.isam2,
                                                               final_covariances=False))
-    be = make_backend(name, run, cfg, start_pose_of(run), ceiling)
+    be = make_backend(name, run.rig.odometry, cfg, start_pose_of(run),
+                      run.rig.camera if ceiling else None)
     result = drive(be, iter_steps(run.odometry, frames))
     assert result.status == "ok"
     pos, head = errors_vs_truth(result, run.groundtruth)
