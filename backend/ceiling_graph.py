@@ -10,10 +10,8 @@ no information and is held by a prior). Factors:
   built-in ``BetweenFactorPose2`` with zero precision on ``x, y``, plus one
   :func:`~lampsam.factors.gtsam_factors.axis_anchor_prior` per lamp. It replaced one
   ``CustomFactor`` per keyframe (:func:`~lampsam.factors.gtsam_factors.lamp_axis_frame_factor`):
-  each Python callback from inside an optimiser copies the whole ``Values``, so their
-  cost grew with the run. On the whole lab path (2,601 frames, frontend images, a
-  keyframe per frame) one LM iteration went from 1.7 s to 0.3 s, with the same error
-  at every iteration;
+  each Python callback from inside an optimiser copies the whole ``Values``, so its
+  cost grows with the run (measured: docs/graph-backend.md);
 - the 0-5 m height prior on every point:
   :func:`~lampsam.factors.gtsam_factors.height_prior_factor`.
 
