@@ -298,7 +298,8 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from lampsam.localization.global_localizer import GlobalLocalizerConfig, Mode, localize_run
+    from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
+    from lampsam.localization.replay import localize_run
 
     table = load_toml(Path(args.config) if args.config else None).get("localize", {})
     try:

@@ -14,7 +14,7 @@ Usage::
    Kinect (colour + depth, Open3D ray casting) while it turns, and sees the
    ceiling's true lamps and corners (in the upward camera's image, with
    0.005 noise in normalised coordinates) while it drives.
-3. Every configuration of :class:`lampsam.localization.global_localizer.Mode`
+3. Every configuration of :class:`lampsam.localization.filter_config.Mode`
    runs on the same start poses with the same sensor noise seed.
 
 Failure (paper): localisation time over 60 s, or final error over 30 cm or 10 deg.
@@ -50,18 +50,14 @@ from lampsam.evaluation.table1_plots import save_table1_figure
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.geometry import compose, wrap_angle, wrap_axis
 from lampsam.localization.envmap import build_map, footprint_mask, load_env_map
-from lampsam.localization.global_localizer import (
-    DriveFrame,
-    EnvironmentMaps,
-    GlobalLocalizerConfig,
-    LocalizationResult,
-    Mode,
-    TurnFrame,
-    localize,
-)
+from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
 from lampsam.localization.grid import OccupancyGrid
+from lampsam.localization.localizer import localize
+from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.raycast import cast_rays, distance_field
+from lampsam.localization.result import LocalizationResult
+from lampsam.localization.robot import DriveFrame, TurnFrame
 from lampsam.localization.spatial_map import frame_features, make_sift
 
 log = logging.getLogger("table1")
@@ -90,7 +86,7 @@ def truth_grid(scene_now: object, resolution: float = 0.05) -> OccupancyGrid:
 
 @dataclass
 class OfficeRobot:
-    """The simulated robot in the changed office (implements ``global_localizer.Robot``)."""
+    """The simulated robot in the changed office (implements ``localization.robot.Robot``)."""
 
     renderer: KinectRenderer
     kinect: KinectConfig

@@ -11,18 +11,13 @@ import pytest
 
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.geometry import compose, wrap_angle
-from lampsam.localization.global_localizer import (
-    DriveFrame,
-    EnvironmentMaps,
-    FilterConfig,
-    GlobalLocalizerConfig,
-    Mode,
-    TurnFrame,
-    localize,
-    write_result,
-)
+from lampsam.localization.filter_config import FilterConfig, GlobalLocalizerConfig, Mode
 from lampsam.localization.grid import OccupancyGrid, occupied_mask
+from lampsam.localization.localizer import localize
+from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.raycast import cast_rays
+from lampsam.localization.result import write_result
+from lampsam.localization.robot import DriveFrame, TurnFrame
 
 RES = 0.05
 CAM = np.array([0.1, 0.0, 0.3])
@@ -199,7 +194,7 @@ def test_cli_localize_reports_a_missing_map(
 
 
 def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
-    from lampsam.localization.global_localizer import distinct_modes
+    from lampsam.localization.stages import distinct_modes
 
     rng = np.random.default_rng(3)
     centres = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, np.pi], [4.0, 2.0, 1.0]])
@@ -216,8 +211,8 @@ def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
 def test_joint_scan_model_scores_kept_scans_at_the_earlier_pose() -> None:
     """A kept scan is scored at x composed with the odometry back to its turn."""
     from lampsam.factors.geometry import between
-    from lampsam.localization.global_localizer import JointScanModel, KeptScan
     from lampsam.localization.likelihood import BeamModelConfig, RayCastModel
+    from lampsam.localization.stages import JointScanModel, KeptScan
 
     grid = _grid(MAP_BOXES)
     model = RayCastModel(grid, BeamModelConfig(sigma_hit=0.1, max_range=4.5), method="march")
@@ -263,7 +258,7 @@ def _scan_like_kinect(grid: OccupancyGrid, pose: np.ndarray) -> np.ndarray:
 )
 def test_open_heading_turns_to_a_free_corridor(pose: np.ndarray) -> None:
     """Blocked ahead: the chosen heading has the needed free distance (true ray casting)."""
-    from lampsam.localization.global_localizer import open_heading
+    from lampsam.localization.open_space import open_heading
 
     grid = _grid(MAP_BOXES)
     need = 2.7
@@ -275,7 +270,7 @@ def test_open_heading_turns_to_a_free_corridor(pose: np.ndarray) -> None:
 
 
 def test_open_heading_keeps_a_free_heading_and_handles_an_empty_scan() -> None:
-    from lampsam.localization.global_localizer import open_heading
+    from lampsam.localization.open_space import open_heading
 
     grid = _grid(MAP_BOXES)
     pose = np.array([2.5, 3.0, 0.0])  # the box 15 deg to the left is 2.6 m away
@@ -284,7 +279,7 @@ def test_open_heading_keeps_a_free_heading_and_handles_an_empty_scan() -> None:
 
 
 def test_half_turn_centre_finds_the_symmetry_of_a_lamp_layout() -> None:
-    from lampsam.localization.global_localizer import half_turn_centre, half_turn_twin
+    from lampsam.localization.symmetry import half_turn_centre, half_turn_twin
 
     rng = np.random.default_rng(5)
     half = rng.uniform(0.0, 4.0, (5, 2))
@@ -313,7 +308,8 @@ def test_half_turn_centre_finds_the_symmetry_of_a_lamp_layout() -> None:
 
 
 def test_resolve_half_turn_prefers_the_scan_side_and_flags_a_symmetric_room() -> None:
-    from lampsam.localization.global_localizer import half_turn_twin, resolve_half_turn
+    from lampsam.localization.filter_config import OURS_TWIN_MARGIN
+    from lampsam.localization.symmetry import half_turn_twin, resolve_half_turn
     from lampsam.localization.virtual_scan import beam_angles
 
     cfg = GlobalLocalizerConfig(mode=Mode.OURS, filter=FilterConfig(expected_ranges="march"))
@@ -327,8 +323,8 @@ def test_resolve_half_turn_prefers_the_scan_side_and_flags_a_symmetric_room() ->
         twin = half_turn_twin(truth, centre)
         pose, margin = resolve_half_turn(twin, scan, centre, maps, cfg, np.random.default_rng(2))
         if symmetric:  # an empty rectangle looks the same from both: ambiguous
-            assert margin < cfg.filter.twin_margin_in_ours
+            assert margin < OURS_TWIN_MARGIN
         else:  # the boxes tell: the truth is chosen although the filter gave its twin
             e_xy, e_th = _error(pose, truth)
             assert e_xy < 0.1 and e_th < np.deg2rad(3.0)
-            assert margin > 10.0 * cfg.filter.twin_margin_in_ours
+            assert margin > 10.0 * OURS_TWIN_MARGIN
