@@ -11,9 +11,11 @@ import logging
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from lampsam.arrays import FloatArray
+from lampsam.arrays import FloatArray, ImageU8, ImageU16
+from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.localization.filter_config import GlobalLocalizerConfig
 from lampsam.localization.localizer import localize
 from lampsam.localization.map_layers import EnvironmentMaps
@@ -21,6 +23,30 @@ from lampsam.localization.result import LocalizationResult, write_result
 from lampsam.localization.robot import DriveFrame, GlobalLocalizationError, TurnFrame
 
 log = logging.getLogger(__name__)
+
+
+def kinect_turn_data(
+    rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, sift: cv2.SIFT
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """What the turn stage needs of one Kinect frame, in the body frame.
+
+    Args:
+        rgb: (H, W, 3) colour image.
+        depth: (H, W) depth image (``camera.depth_scale`` units per metre).
+        camera: the Kinect, with its mounting ``body_T_camera``.
+        sift: the SIFT detector (:func:`~lampsam.localization.spatial_map.make_sift`).
+
+    Returns:
+        SIFT keypoints with valid depth (N, 3) (m), their descriptors (N, 128),
+        and the depth points (P, 3) (m, every 4th pixel), all in the body frame.
+    """
+    from lampsam.localization.pointcloud import depth_to_points
+    from lampsam.localization.spatial_map import frame_features
+
+    R, t = camera.body_T_camera[:3, :3], camera.body_T_camera[:3, 3]
+    ff = frame_features(rgb, depth, camera, sift)
+    pts = depth_to_points(depth, camera, stride=4)
+    return ff.camera_xyz @ R.T + t, ff.descriptors, pts @ R.T + t
 
 
 class ReplayRobot:
@@ -74,22 +100,14 @@ class ReplayRobot:
 
     def turn(self, angle: float, rate: float) -> list[TurnFrame]:
         """Kinect frames until the recorded heading has changed by ``|angle|``."""
-        from lampsam.localization.pointcloud import depth_to_points
-        from lampsam.localization.spatial_map import frame_features
-
         cam = self.kinect.camera
-        R, t = cam.body_T_camera[:3, :3], cam.body_T_camera[:3, 3]
         h0 = self.heading[self._index_at(self.cursor)]
         frames: list[TurnFrame] = []
         for i in np.nonzero(self.kinect.t >= self.cursor)[0]:
             ti = float(self.kinect.t[i])
             rgb, depth = self.kinect.load_rgb(int(i)), self.kinect.load_depth(int(i))
-            ff = frame_features(rgb, depth, cam, self.sift)
-            pts = depth_to_points(depth, cam, stride=4)
-            frames.append(
-                TurnFrame(ti, self._odom_at(ti), ff.camera_xyz @ R.T + t, ff.descriptors,
-                          pts @ R.T + t)
-            )  # fmt: skip
+            frames.append(TurnFrame(ti, self._odom_at(ti), *kinect_turn_data(rgb, depth, cam,
+                                                                            self.sift)))
             self.cursor = ti + 1e-6
             if abs(self.heading[self._index_at(ti)] - h0) >= abs(angle) - 1e-3:
                 break

@@ -35,8 +35,15 @@ log = logging.getLogger(__name__)
 class PixelCamera(Protocol):
     """The part of a camera model the image-interior test needs."""
 
-    width: int
-    height: int
+    @property
+    def width(self) -> int:
+        """Image width (px)."""
+        ...
+
+    @property
+    def height(self) -> int:
+        """Image height (px)."""
+        ...
 
     def pixels_from_normalized(self, m: FloatArray) -> FloatArray:
         """(N, 2) pixels of (N, 2) normalised coordinates."""
