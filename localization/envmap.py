@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lampsam.arrays import BoolArray, FloatArray
+from lampsam.arrays import FloatArray
 from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.errors import LocalizationError
 from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
@@ -48,8 +48,8 @@ from lampsam.localization.grid import (
     OccupancyGrid,
     integrate_points,
     integrate_scan,
-    occupied_mask,
 )
+from lampsam.localization.map_quality import FloorPlan, grid_checks
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.spatial_map import (
     SPATIAL_FILE,
@@ -526,115 +526,6 @@ def build_laser_grid(
     return grid, used
 
 
-# ---------------------------------------------------------------------------- truth checks
-def footprint_mask(grid: OccupancyGrid, polygons: list[FloatArray]) -> BoolArray:
-    """(H, W) cells whose centres lie inside any world polygon ((K, 2) metres each)."""
-    import cv2
-
-    img = np.zeros((grid.height, grid.width), np.uint8)
-    shift = 4
-    for poly in polygons:
-        uv = grid.world_to_map(poly) - 0.5  # pixel (ix, iy) centre at integer coords
-        pts = np.rint(uv * (1 << shift)).astype(np.int32)
-        cv2.fillPoly(img, [pts], 1, lineType=cv2.LINE_8, shift=shift)
-    return img.astype(bool)
-
-
-def occupancy_truth(
-    grid: OccupancyGrid, scene: Any, band: tuple[float, float]
-) -> tuple[BoolArray, BoolArray]:
-    """True occupied cells and the visible-surface cells of a :class:`Scene3D`.
-
-    Args:
-        grid: defines the cells.
-        scene: the world's ``Scene3D``.
-        band: the obstacle height band, metres above the floor.
-
-    Returns:
-        ``occupied`` (H, W): cells inside an obstacle footprint in the band;
-        ``surface`` (H, W): occupied cells with a 4-neighbour that is free and inside
-        the room (what a sensor in the room can see).
-    """
-    from lampsam.datasets.scene3d import obstacle_footprints
-
-    occ = footprint_mask(grid, obstacle_footprints(scene, band[0], band[1]))
-    centres = grid.cell_centres()
-    x0, y0, x1, y1 = scene.bounds
-    inside = (
-        (centres[..., 0] > x0)
-        & (centres[..., 0] < x1)
-        & (centres[..., 1] > y0)
-        & (centres[..., 1] < y1)
-    )
-    free_in = inside & ~occ
-    nb = np.zeros_like(occ)
-    nb[1:, :] |= free_in[:-1, :]
-    nb[:-1, :] |= free_in[1:, :]
-    nb[:, 1:] |= free_in[:, :-1]
-    nb[:, :-1] |= free_in[:, 1:]
-    return occ, occ & nb
-
-
-def _dilate(mask: BoolArray, cells: int) -> BoolArray:
-    """Square dilation of a mask by ``cells`` (Chebyshev radius)."""
-    if cells <= 0:
-        return mask
-    import cv2
-
-    k = np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)
-    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
-
-
-def grid_precision_recall(
-    occupied: BoolArray,
-    truth_occupied: BoolArray,
-    truth_surface: BoolArray,
-    tolerance_cells: int = 0,
-) -> tuple[float, float]:
-    """Occupied-cell precision and recall of a grid map against the truth.
-
-    precision = share of the map's occupied cells within ``tolerance_cells`` of a true
-    obstacle cell; recall = share of the true visible-surface cells within
-    ``tolerance_cells`` of a map occupied cell.
-
-    Args:
-        occupied: (H, W) the map's occupied cells.
-        truth_occupied: (H, W) true obstacle cells.
-        truth_surface: (H, W) true visible-surface cells.
-        tolerance_cells: Chebyshev distance allowed, cells.
-
-    Returns:
-        ``(precision, recall)`` in [0, 1] (NaN when undefined).
-    """
-    n_occ = int(occupied.sum())
-    n_surf = int(truth_surface.sum())
-    precision = (
-        float((occupied & _dilate(truth_occupied, tolerance_cells)).sum() / n_occ)
-        if n_occ
-        else math.nan
-    )
-    recall = (
-        float((truth_surface & _dilate(occupied, tolerance_cells)).sum() / n_surf)
-        if n_surf
-        else math.nan
-    )
-    return precision, recall
-
-
-def grid_checks(
-    grid: OccupancyGrid, scene: Any, band: tuple[float, float], config: LogOddsConfig
-) -> dict[str, float]:
-    """Precision/recall at 0 and 1 cell tolerance (``grid_precision_recall``)."""
-    occ, surf = occupancy_truth(grid, scene, band)
-    mask = occupied_mask(grid, config)
-    out: dict[str, float] = {"resolution": float(grid.resolution)}
-    for tol in (0, 1):
-        p, r = grid_precision_recall(mask, occ, surf, tol)
-        out[f"precision_tol{tol}"] = round(p, 4)
-        out[f"recall_tol{tol}"] = round(r, 4)
-    return out
-
-
 # ---------------------------------------------------------------------------- build_map
 def _detect_source(run: Path) -> tuple[str, Path]:
     """Kind of input (``run``, ``slambook2``, ``tum_rgbd``, ``laser``) and the path to read."""
@@ -658,26 +549,6 @@ def _detect_source(run: Path) -> tuple[str, Path]:
     )
 
 
-def _scene_of_run(run: Path) -> Any:
-    """The Scene3D of the run's world (from meta.yaml), or None."""
-    meta_path = run / "meta.yaml"
-    if not meta_path.is_file():
-        return None
-    try:
-        meta = yaml.safe_load(meta_path.read_text(encoding="utf-8")) or {}
-        world = meta.get("world")
-        if not world:
-            return None
-        from lampsam.datasets.scene3d import scene_from_dict
-        from lampsam.datasets.world import load_world
-
-        w = load_world(world)
-        return scene_from_dict(w.extra["scene3d"]) if "scene3d" in w.extra else None
-    except Exception as exc:  # noqa: BLE001 - the truth check is optional; say why it is skipped
-        log.warning("%s: no truth geometry for the checks (%s)", run, exc)
-        return None
-
-
 def _package_version() -> str:
     """The installed lampsam version, or ``unknown``."""
     try:
@@ -693,6 +564,7 @@ def build_map(
     out: str | Path,
     poses: str = "groundtruth",
     config: EnvMapConfig = EnvMapConfig(),
+    truth: FloorPlan | None = None,
 ) -> BuildReport:
     """Build the environment map of a mapping run (module docstring).
 
@@ -703,6 +575,10 @@ def build_map(
         poses: ``"groundtruth"`` or ``"slam:PATH"`` (a planar TUM trajectory; a
             ``landmarks.csv`` beside it gives the ceiling layer).
         config: parameters.
+        truth: the world's true floor plan (for a simulated run:
+            :func:`lampsam.evaluation.map_truth.floor_plan_of_run` with the config's
+            height band); when given, the grid of a ``run`` source is checked against
+            it (``checks["grid_vs_world"]``).
 
     Returns:
         The :class:`BuildReport` (also written into the manifest).
@@ -819,9 +695,8 @@ def build_map(
                 ceiling = from_landmark_table(
                     read_landmarks(src / "landmarks.csv"), source="groundtruth"
                 )
-            scene = _scene_of_run(src)
-            if scene is not None:
-                checks["grid_vs_world"] = grid_checks(grid, scene, cfg.depth.height_band, lo)
+            if truth is not None:
+                checks["grid_vs_world"] = grid_checks(grid, truth, lo)
                 checks["grid_vs_world"]["poses"] = poses
 
     out.mkdir(parents=True, exist_ok=True)
