@@ -27,7 +27,6 @@ World frame: docs/conventions.md (``x, y`` on the floor, ``z`` up, metres).
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import logging
 import math
 import time
@@ -37,12 +36,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from lampsam.arrays import FloatArray
 from lampsam.datasets.rgbd import RgbdSequence
-from lampsam.errors import LocalizationError
-from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
+from lampsam.localization.ceiling_map import CeilingFeatureMap
 from lampsam.localization.grid import (
     LogOddsConfig,
     OccupancyGrid,
@@ -50,25 +47,21 @@ from lampsam.localization.grid import (
     integrate_scan,
 )
 from lampsam.localization.map_quality import FloorPlan, grid_checks
+from lampsam.localization.map_store import (
+    EnvironmentMap,  # noqa: F401 - re-exported while callers move to map_store
+    EnvMapError,
+    load_env_map,  # noqa: F401 - re-exported while callers move to map_store
+    save_layers,
+    write_manifest,
+)
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.spatial_map import (
-    SPATIAL_FILE,
     SpatialFeatureMap,
     SpatialMapBuilder,
     SpatialMapConfig,
 )
 
 log = logging.getLogger(__name__)
-
-MANIFEST_FILE = "manifest.yaml"
-GRID_STEM = "map"
-ENVMAP_FORMAT = "lampsam-envmap"
-ENVMAP_VERSION = 1
-
-
-class EnvMapError(LocalizationError):
-    """The environment map could not be built or read (bad source, missing pose, ...)."""
-
 
 @dataclass(frozen=True)
 class DepthGridConfig:
@@ -159,23 +152,6 @@ class BuildReport:
     n_frames: int
     timings: dict[str, float]
     checks: dict[str, Any]
-
-
-@dataclass(frozen=True, eq=False)
-class EnvironmentMap:
-    """A loaded map directory.
-
-    Attributes:
-        grid: the grid map.
-        spatial: the spatial feature map, or None.
-        ceiling: the ceiling feature map, or None.
-        manifest: the parsed manifest.
-    """
-
-    grid: OccupancyGrid
-    spatial: SpatialFeatureMap | None
-    ceiling: CeilingFeatureMap | None
-    manifest: dict[str, Any]
 
 
 # ---------------------------------------------------------------------------- small pure helpers
@@ -549,16 +525,6 @@ def _detect_source(run: Path) -> tuple[str, Path]:
     )
 
 
-def _package_version() -> str:
-    """The installed lampsam version, or ``unknown``."""
-    try:
-        from importlib.metadata import version
-
-        return version("lampsam")
-    except Exception:  # noqa: BLE001
-        return "unknown"
-
-
 def build_map(
     run: str | Path,
     out: str | Path,
@@ -590,7 +556,6 @@ def build_map(
     from lampsam.datasets.logrun import read_landmarks, read_tum
     from lampsam.datasets.rgbd import read_slambook2, read_tum_rgbd
     from lampsam.localization.ceiling_map import from_landmark_table, read_landmark_csv
-    from lampsam.localization.grid import save_map_server
 
     t_start = time.perf_counter()
     run = Path(run)
@@ -699,114 +664,12 @@ def build_map(
                 checks["grid_vs_world"] = grid_checks(grid, truth, lo)
                 checks["grid_vs_world"]["poses"] = poses
 
-    out.mkdir(parents=True, exist_ok=True)
-    save_map_server(grid, out / GRID_STEM, lo)
-    layers: dict[str, Any] = {
-        "grid": {
-            "file": f"{GRID_STEM}.yaml",
-            "image": f"{GRID_STEM}.pgm",
-            "format": "ROS map_server (trinary)",
-            "resolution_m": float(grid.resolution),
-            "origin": [float(v) for v in grid.origin],
-            "size_cells": [grid.width, grid.height],
-            **grid_info,
-        }
-    }
-    if spatial is not None:
-        spatial.save(out / SPATIAL_FILE)
-        layers["spatial_features"] = {
-            "file": SPATIAL_FILE,
-            "count": len(spatial),
-            "descriptor": "OpenCV SIFT, 128 float32, L2",
-            "arrays": {
-                "xyz": "(N, 3) world m",
-                "descriptors": "(N, 128)",
-                "size_px": "(N,)",
-                "angle_deg": "(N,)",
-                "n_obs": "(N,)",
-            },
-            "merge_radius_m": config.spatial.merge_radius,
-            "merge_descriptor_dist": config.spatial.merge_descriptor_dist,
-        }
-    if ceiling is not None:
-        ceiling.save(out / CEILING_FILE)
-        layers["ceiling_features"] = {
-            "file": CEILING_FILE,
-            "count": len(ceiling),
-            "lamps": int(ceiling.is_lamp().sum()),
-            "corners": int((~ceiling.is_lamp()).sum()),
-            "source": ceiling.source,
-            "z_reference": "height above the floor, m",
-        }
+    layers = save_layers(out, grid, lo, grid_info, spatial, config.spatial, ceiling)
     timings["total"] = time.perf_counter() - t_start
     timings = {k: round(v, 3) for k, v in timings.items()}
-    manifest = {
-        "format": ENVMAP_FORMAT,
-        "format_version": ENVMAP_VERSION,
-        "created_by": f"lampsam {_package_version()}",
-        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "source": {"kind": kind, "path": str(src), "poses": poses, "frames_used": int(n_frames)},
-        "frames": {
-            "world": "x, y on the floor, z up, metres (docs/conventions.md)",
-            "grid": "ROS map_server: origin = world pose of the lower-left cell corner",
-            "camera": "OpenCV: x right, y down, z optical axis",
-        },
-        "units": {"length": "m", "angle": "rad (suffix _deg: degrees)", "time": "s"},
-        "layers": layers,
-        "config": _plain(asdict(config)),
-        "timings_s": timings,
-        "checks": _plain(checks),
-    }
-    with open(out / MANIFEST_FILE, "w", encoding="utf-8") as fh:
-        yaml.safe_dump(manifest, fh, sort_keys=False)
+    source = {"kind": kind, "path": str(src), "poses": poses, "frames_used": int(n_frames)}
+    write_manifest(out, source, layers, asdict(config), timings, checks)
     log.info("environment map %s: %s, %d frames, %.1f s", out, kind, n_frames, timings["total"])
     return BuildReport(out, kind, int(n_frames), timings, checks)
 
 
-def _plain(obj: Any) -> Any:
-    """Tuples -> lists, numpy scalars -> Python, for YAML."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
-
-
-def load_env_map(path: str | Path) -> EnvironmentMap:
-    """Read a map directory written by :func:`build_map`.
-
-    Raises:
-        EnvMapError: no manifest or wrong format.
-    """
-    from lampsam.localization.grid import load_map_server
-
-    path = Path(path)
-    mf = path / MANIFEST_FILE
-    if not mf.is_file():
-        raise EnvMapError(f"{mf}: manifest not found (not a lampsam map directory)")
-    manifest = yaml.safe_load(mf.read_text(encoding="utf-8"))
-    if not isinstance(manifest, dict) or manifest.get("format") != ENVMAP_FORMAT:
-        raise EnvMapError(f"{mf}: not a {ENVMAP_FORMAT} manifest")
-    if int(manifest.get("format_version", 0)) > ENVMAP_VERSION:
-        raise EnvMapError(
-            f"{mf}: format_version {manifest['format_version']} is newer than "
-            f"this lampsam's ({ENVMAP_VERSION})"
-        )
-    layers = manifest.get("layers", {})
-    grid = load_map_server(path / layers.get("grid", {}).get("file", f"{GRID_STEM}.yaml"))
-    spatial = (
-        SpatialFeatureMap.load(path / layers["spatial_features"]["file"])
-        if "spatial_features" in layers
-        else None
-    )
-    ceiling = (
-        CeilingFeatureMap.load(
-            path / layers["ceiling_features"]["file"],
-            source=layers["ceiling_features"].get("source"),
-        )
-        if "ceiling_features" in layers
-        else None
-    )
-    return EnvironmentMap(grid, spatial, ceiling, manifest)
