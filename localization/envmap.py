@@ -31,7 +31,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,10 +41,14 @@ from lampsam.arrays import FloatArray
 from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.localization.ceiling_map import CeilingFeatureMap
 from lampsam.localization.grid import (
-    LogOddsConfig,
     OccupancyGrid,
     integrate_points,
     integrate_scan,
+)
+from lampsam.localization.map_config import (
+    DepthGridConfig,
+    EnvMapConfig,
+    LaserGridConfig,
 )
 from lampsam.localization.map_quality import FloorPlan, grid_checks
 from lampsam.localization.map_store import (
@@ -58,82 +62,9 @@ from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.spatial_map import (
     SpatialFeatureMap,
     SpatialMapBuilder,
-    SpatialMapConfig,
 )
 
 log = logging.getLogger(__name__)
-
-@dataclass(frozen=True)
-class DepthGridConfig:
-    """Grid map from depth images.
-
-    Attributes:
-        resolution: cell size, metres (default 0.05).
-        height_band: ``(lo, hi)`` heights of obstacle points, metres above the floor
-            (default ``(0.08, 1.8)``: above floor noise, up to the robot's height).
-        band_reference: ``"floor"`` (``z = 0``, simulated runs), ``"fit"`` (the floor
-            plane fitted to the fused cloud with Open3D RANSAC: sets "up" and the
-            floor height, for hand-held data) or ``"camera"`` (heights relative to
-            the first camera).
-        depth_stride: use every n-th pixel in both directions (default 2).
-        free_bucket: floor rays clear free space to within this distance of the
-            farthest floor point of their bearing, metres (default 0.25).
-        bearing_bin_deg: bearing bin of the floor rays, degrees (default 0.5).
-        margin: grid border beyond the sensor positions' reach, metres (default 0.3).
-        log_odds: the inverse sensor model (grid.py's defaults).
-    """
-
-    resolution: float = 0.05
-    height_band: tuple[float, float] = (0.08, 1.8)
-    band_reference: str = "floor"
-    depth_stride: int = 2
-    free_bucket: float = 0.25
-    bearing_bin_deg: float = 0.5
-    margin: float = 0.3
-    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
-
-
-@dataclass(frozen=True)
-class LaserGridConfig:
-    """Grid map from planar laser scans.
-
-    Attributes:
-        resolution: cell size, metres (default 0.1).
-        max_range: ranges beyond are no obstacle, metres (default 25).
-        min_move: use a scan when the pose moved this far since the last used one,
-            metres (default 0.1) ...
-        min_turn: ... or turned this much, rad (default 0.1).
-        margin: grid border, metres (default 1.0).
-        log_odds: the inverse sensor model.
-    """
-
-    resolution: float = 0.1
-    max_range: float = 25.0
-    min_move: float = 0.1
-    min_turn: float = 0.1
-    margin: float = 1.0
-    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
-
-
-@dataclass(frozen=True)
-class EnvMapConfig:
-    """Everything ``build_map`` needs.
-
-    Attributes:
-        depth: grid from depth.
-        laser: grid from laser scans.
-        spatial: SIFT extraction and merging.
-        feature_every: SIFT on every n-th frame (default 1).
-        pose_tolerance: a frame may lie this far outside the trajectory's time span, s
-            (default 0.2); farther is a missing pose.
-    """
-
-    depth: DepthGridConfig = field(default_factory=DepthGridConfig)
-    laser: LaserGridConfig = field(default_factory=LaserGridConfig)
-    spatial: SpatialMapConfig = field(default_factory=SpatialMapConfig)
-    feature_every: int = 1
-    pose_tolerance: float = 0.2
-
 
 @dataclass(frozen=True)
 class BuildReport:
@@ -393,7 +324,7 @@ def fit_floor(
 def build_depth_layers(
     seq: RgbdSequence,
     world_T_cameras: FloatArray,  # noqa: N803
-    config: EnvMapConfig = EnvMapConfig(),
+    config: EnvMapConfig | None = None,
     with_features: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[OccupancyGrid, SpatialFeatureMap | None, dict[str, float]]:
@@ -402,7 +333,7 @@ def build_depth_layers(
     Args:
         seq: the frames (camera, depth scale).
         world_T_cameras: (N, 4, 4) camera poses, one per frame.
-        config: parameters.
+        config: parameters (default: the dataclass defaults).
         with_features: also build the spatial feature map.
         progress: called with ``(i, N)`` after each frame.
 
@@ -412,6 +343,7 @@ def build_depth_layers(
     Raises:
         EnvMapError: pose count differs from the frame count, or a pose is not finite.
     """
+    config = config if config is not None else EnvMapConfig()
     n = len(seq)
     poses = np.asarray(world_T_cameras, float)
     if poses.shape != (n, 4, 4):
@@ -465,7 +397,7 @@ def build_depth_layers(
 
 
 def build_laser_grid(
-    scans: Any, poses: FloatArray, config: LaserGridConfig = LaserGridConfig()
+    scans: Any, poses: FloatArray, config: LaserGridConfig | None = None
 ) -> tuple[OccupancyGrid, int]:
     """Grid map from planar scans at given poses (keyframes by motion).
 
@@ -473,11 +405,12 @@ def build_laser_grid(
         scans: :class:`lampsam.datasets.carmen.LaserScans` (``ranges`` (N, B), ``angles`` (B,),
             ``max_range``).
         poses: (N, 3) laser poses ``(x, y, theta)``, metres/rad.
-        config: parameters.
+        config: parameters (default: the dataclass defaults).
 
     Returns:
         The grid and the number of scans used.
     """
+    config = config if config is not None else LaserGridConfig()
     # the grid holds the poses and every endpoint that returned within max_range
     r = np.where(scans.ranges < min(config.max_range, scans.max_range), scans.ranges, np.nan)
     phi = poses[:, 2:3] + scans.angles[None, :]
@@ -529,7 +462,7 @@ def build_map(
     run: str | Path,
     out: str | Path,
     poses: str = "groundtruth",
-    config: EnvMapConfig = EnvMapConfig(),
+    config: EnvMapConfig | None = None,
     truth: FloorPlan | None = None,
 ) -> BuildReport:
     """Build the environment map of a mapping run (module docstring).
@@ -540,7 +473,7 @@ def build_map(
         out: the map directory to write.
         poses: ``"groundtruth"`` or ``"slam:PATH"`` (a planar TUM trajectory; a
             ``landmarks.csv`` beside it gives the ceiling layer).
-        config: parameters.
+        config: parameters (default: the dataclass defaults).
         truth: the world's true floor plan (for a simulated run:
             :func:`lampsam.evaluation.map_truth.floor_plan_of_run` with the config's
             height band); when given, the grid of a ``run`` source is checked against
@@ -553,6 +486,7 @@ def build_map(
         EnvMapError: unknown source, missing pose, unusable input.
         DatasetError: unreadable files (naming file and line).
     """
+    config = config if config is not None else EnvMapConfig()
     from lampsam.datasets.logrun import read_landmarks, read_tum
     from lampsam.datasets.rgbd import read_slambook2, read_tum_rgbd
     from lampsam.localization.ceiling_map import from_landmark_table, read_landmark_csv
