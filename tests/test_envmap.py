@@ -20,17 +20,13 @@ from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.datasets.scene3d import scene_from_dict
 from lampsam.evaluation.map_truth import floor_plan_of_run
 from lampsam.localization.ceiling_map import CeilingFeatureMap, read_landmark_csv
-from lampsam.localization.envmap import (
-    DepthGridConfig,
-    EnvMapError,
-    build_map,
-    integrate_depth_frame,
-    load_env_map,
-    planar_poses_at,
-    split_by_height,
-)
+from lampsam.localization.depth_grid import integrate_depth_frame, split_by_height
+from lampsam.localization.envmap import build_map
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
+from lampsam.localization.map_config import DepthGridConfig
+from lampsam.localization.map_poses import planar_poses_at
 from lampsam.localization.map_quality import FloorPlan, grid_precision_recall
+from lampsam.localization.map_store import EnvMapError, load_env_map
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.spatial_map import SpatialMapConfig, merge_duplicates
 
@@ -221,7 +217,8 @@ def test_ceiling_map_round_trip(tmp_path: Path) -> None:
 def test_laser_grid_of_a_square_room() -> None:
     """Scans from inside a 6 m x 4 m room: walls occupied, the inside free, outside unknown."""
     from lampsam.datasets.carmen import LaserScans, carmen_beam_angles
-    from lampsam.localization.envmap import LaserGridConfig, build_laser_grid
+    from lampsam.localization.laser_grid import build_laser_grid
+    from lampsam.localization.map_config import LaserGridConfig
 
     angles = carmen_beam_angles(180)
     four = [[2.0, 2.0, 0.0], [2.0, 2.0, math.pi], [4.0, 2.0, math.pi / 2], [4.0, 2.0, -math.pi / 2]]

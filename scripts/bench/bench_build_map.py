@@ -29,7 +29,9 @@ from pathlib import Path
 from lampsam.datasets.kinect_sim import simulate_kinect_run
 from lampsam.datasets.rgbd import read_tum_rgbd
 from lampsam.evaluation.map_truth import floor_plan_of_run
-from lampsam.localization.envmap import EnvMapConfig, build_depth_layers, build_map
+from lampsam.localization.depth_grid import build_depth_layers
+from lampsam.localization.envmap import build_map
+from lampsam.localization.map_config import EnvMapConfig
 
 
 def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
