@@ -154,7 +154,8 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
 def _cmd_build_map(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from lampsam.localization.envmap import EnvMapConfig, build_map
+    from lampsam.localization.map_build import build_map
+    from lampsam.localization.map_config import EnvMapConfig
 
     cfg = EnvMapConfig()
     table = load_toml(Path(args.config) if args.config else None).get("envmap", {})

@@ -49,7 +49,6 @@ from lampsam.datasets.scene3d import apply_changes, load_scene, obstacle_footpri
 from lampsam.evaluation.table1_plots import save_table1_figure
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.geometry import compose, wrap_angle, wrap_axis
-from lampsam.localization.envmap import build_map, load_env_map
 from lampsam.localization.global_localizer import (
     DriveFrame,
     EnvironmentMaps,
@@ -60,7 +59,9 @@ from lampsam.localization.global_localizer import (
     localize,
 )
 from lampsam.localization.grid import OccupancyGrid
+from lampsam.localization.map_build import build_map
 from lampsam.localization.map_quality import footprint_mask
+from lampsam.localization.map_store import load_env_map
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.raycast import cast_rays, distance_field
 from lampsam.localization.spatial_map import frame_features, make_sift

@@ -21,8 +21,8 @@ from lampsam.datasets.scene3d import scene_from_dict
 from lampsam.evaluation.map_truth import floor_plan_of_run
 from lampsam.localization.ceiling_map import CeilingFeatureMap, read_landmark_csv
 from lampsam.localization.depth_grid import integrate_depth_frame, split_by_height
-from lampsam.localization.envmap import build_map
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
+from lampsam.localization.map_build import build_map
 from lampsam.localization.map_config import DepthGridConfig
 from lampsam.localization.map_poses import planar_poses_at
 from lampsam.localization.map_quality import FloorPlan, grid_precision_recall

@@ -30,7 +30,7 @@ from lampsam.datasets.kinect_sim import simulate_kinect_run
 from lampsam.datasets.rgbd import read_tum_rgbd
 from lampsam.evaluation.map_truth import floor_plan_of_run
 from lampsam.localization.depth_grid import build_depth_layers
-from lampsam.localization.envmap import build_map
+from lampsam.localization.map_build import build_map
 from lampsam.localization.map_config import EnvMapConfig
 
 
