@@ -151,7 +151,8 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
     import dataclasses
 
     from lampsam.config_loader import load_config
-    from lampsam.localization.envmap import EnvMapConfig, build_map
+    from lampsam.localization.map_build import build_map
+    from lampsam.localization.map_config import EnvMapConfig
 
     cfg = load_config(EnvMapConfig, _config_path(args), table="envmap")
     if args.resolution is not None:
@@ -159,7 +160,10 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
     if args.feature_every is not None:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
-    report = build_map(Path(args.run), Path(args.out), poses=args.poses, config=cfg)
+    from lampsam.evaluation.map_truth import floor_plan_of_run
+
+    truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
+    report = build_map(Path(args.run), Path(args.out), poses=args.poses, config=cfg, truth=truth)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
