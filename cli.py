@@ -116,6 +116,27 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_stereo)
 
 
+def _cmd_stereo_experiment(args: argparse.Namespace) -> int:
+    from lampsam.datasets.paths import shared_dataset
+    from lampsam.evaluation.stereo_experiment import stereo_experiment
+
+    kitti = None if args.no_kitti else shared_dataset("kitti_stereo_seq1")
+    if kitti is None and not args.no_kitti:
+        log.warning("shared dataset kitti_stereo_seq1 not found (set LAMPSAM_DATA): "
+                    "the KITTI check is skipped")
+    print(stereo_experiment(Path(args.out), args.seeds, kitti))
+    return 0
+
+
+def _add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stereo-experiment",
+                       help="paper 3's experiment: seeds x scenarios x estimators, and KITTI")
+    p.add_argument("--out", required=True, help="output directory (stereo_rms.md/.json, figures)")
+    p.add_argument("--seeds", type=int, default=20, help="seeds per scenario (default 20)")
+    p.add_argument("--no-kitti", action="store_true", help="skip the KITTI real-data check")
+    p.set_defaults(func=_cmd_stereo_experiment)
+
+
 # --------------------------------------------------------------------------- kinect-sim, build-map, show-map
 def _cmd_kinect_sim(args: argparse.Namespace) -> int:
     import dataclasses
@@ -399,6 +420,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_demo,
     _add_stereo_sim,
     _add_stereo,
+    _add_stereo_experiment,
     _add_kinect_sim,
     _add_build_map,
     _add_show_map,
