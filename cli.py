@@ -232,6 +232,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         run = read_run(args.run)
     result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     write_slam_plot(out / "slam.png", result, run.groundtruth)
+    if args.g2o:
+        _write_slam_g2o(Path(args.g2o), result, run)
     s = summary(result, run.groundtruth)
     err = s.get("error")
     msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
@@ -240,6 +242,37 @@ def _cmd_slam(args: argparse.Namespace) -> int:
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")
     print(msg + f"; written to {out}")
     return 0 if result.status == "ok" else 1
+
+
+def _write_slam_g2o(path: Path, result: Any, run: Any) -> None:
+    """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
+    odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
+
+    Landmark observation factors are not in :class:`SlamResult`, so none are written.
+    """
+    import numpy as np
+
+    from lampsam.datasets.g2o_writer import write_g2o
+    from lampsam.factors.motion import accumulate_odometry
+
+    kf = np.flatnonzero(result.keyframes) if np.any(result.keyframes) else np.arange(len(result.times))
+    odo, wheel = run.odometry, run.rig.odometry
+    edges = []
+    for i in range(len(kf) - 1):
+        ta, tb = result.times[kf[i]], result.times[kf[i + 1]]
+        sel = (odo.t > ta) & (odo.t <= tb)
+        delta, cov = accumulate_odometry(odo.d_left[sel], odo.d_right[sel], wheel.wheel_base,
+                                         wheel.k_r, wheel.k_l)  # fmt: skip
+        edges.append((i, i + 1, delta, np.linalg.inv(cov)))
+    lms = result.landmarks
+    notes = [f"{lm.type} id {lm.id} z {lm.position[2]:.4f} m"
+             + (f" phi {lm.orientation:.6f} rad" if lm.orientation is not None else "") for lm in lms]
+    write_g2o(path, np.arange(len(kf)), result.poses[kf], edges,
+              landmark_ids=len(kf) + np.arange(len(lms)),
+              landmarks=np.array([lm.position[:2] for lm in lms]).reshape(-1, 2),
+              fixed=(0,) if len(kf) else (), landmark_notes=notes)  # fmt: skip
+    print(f"g2o graph written to {path}: {len(kf)} poses, {len(edges)} odometry factors, "
+          f"{len(lms)} landmarks")
 
 
 def _add_slam(sub: argparse._SubParsersAction) -> None:
@@ -256,6 +289,8 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gate-only", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--g2o", default=None, metavar="OUT.g2o",
+                   help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
     p.add_argument("--duration", type=float, default=None,
                    help="with --mrclam: use only the first seconds")
     p.set_defaults(func=_cmd_slam)

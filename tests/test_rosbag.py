@@ -238,3 +238,19 @@ def test_cli_export_then_import(sim_run: Path, tmp_path: Path, capsys: pytest.Ca
     assert "joints: /joint_states (31 messages used)" in printed
     assert main(["import-bag", str(bag), "--out", str(out), "--topic", "image"]) == 2
     assert "--topic expects KIND=NAME" in capsys.readouterr().err
+
+
+def test_slam_writes_its_graph_as_g2o(sim_run: Path, tmp_path: Path) -> None:
+    """``lampsam slam --g2o``: GTSAM reads one pose per keyframe, the landmarks and the
+    odometry factors; the poses are the result's keyframe poses."""
+    import gtsam
+
+    g2o = tmp_path / "graph.g2o"
+    assert main(["slam", str(sim_run), "--out", str(tmp_path / "s"), "--g2o", str(g2o)]) == 0
+    graph, values = gtsam.readG2o(str(g2o), False)
+    res = run_slam(sim_run, "isam2", frames="images")
+    kf = np.flatnonzero(res.keyframes)
+    assert graph.size() == len(kf) - 1
+    assert values.size() == len(kf) + len(res.landmarks)
+    np.testing.assert_allclose([values.atPose2(len(kf) - 1).x(), values.atPose2(len(kf) - 1).y()],
+                               res.poses[kf[-1], :2], atol=1e-8)
