@@ -1,8 +1,14 @@
 """The sensor rig of a logged run (``rig.yaml``): ceiling camera and wheel odometry.
 
 ``rig.yaml`` has two sections, ``camera`` (:class:`~lampsam.datasets.camera.CameraModel`
-fields, or ``hfov_deg`` instead of ``fx, fy, cx, cy``) and ``odometry``
-(:class:`OdometryModel` fields); see ``docs/log-format.md``.
+fields; or ``hfov_deg`` instead of ``fx, fy, cx, cy``; or ``calibration``, a ROS /
+OpenCV calibration file) and ``odometry`` (:class:`OdometryModel` fields); see
+``docs/log-format.md``. A run's ``rig.yaml`` is read strictly: every key of
+:data:`REQUIRED` must be there (a rig that silently ran on the simulator's wheel
+base is worse than an error), only :data:`CAMERA_DEFAULTS` have defaults, and
+unknown keys or wrong types are errors naming the key and the file. The checks
+are a key table (:data:`REQUIRED`, ``_KINDS``) so that they can move onto a
+project-wide strict config loader.
 """
 
 from __future__ import annotations

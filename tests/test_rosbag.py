@@ -139,6 +139,10 @@ def _independent_bag(run: LoggedRun, path: Path, ros1: bool) -> None:
                      T["sensor_msgs/msg/CompressedImage"](
                          header=header(ns, "ceiling_optical"), format="png",
                          data=np.frombuffer(run.images.files[k].read_bytes(), dtype=np.uint8))))
+        depth = (1000 + 10 * k + np.arange(12, dtype=np.uint16).reshape(3, 4)).astype("<u2")
+        msgs.append((ns, "/camera/depth/image_raw", "sensor_msgs/msg/Image", T["sensor_msgs/msg/Image"](
+            header=header(ns, "depth_optical"), height=3, width=4, encoding="16UC1", is_bigendian=0,
+            step=8, data=np.frombuffer(depth.tobytes(), dtype=np.uint8))))
         arrays = dict(zip(info_fields, (np.zeros(5), np.array(kk), np.eye(3).ravel(),
                                         np.array(kk[:3] + [0.0] + kk[3:6] + [0.0] + kk[6:] + [0.0])),
                           strict=True))
@@ -183,6 +187,13 @@ def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool)
     assert report.chosen["odometry"] == "/wheel/odometry"
     assert report.chosen["image"] == "/ceiling/image/compressed"
     assert report.chosen["scan"] == "/scan"
+    assert report.chosen["depth"] == "/camera/depth/image_raw"
+    import cv2
+
+    depth_rows = (out / "depth.csv").read_text().splitlines()
+    assert len(depth_rows) == 1 + len(run.images.t)  # type: ignore[union-attr]
+    d5 = cv2.imread(str(out / depth_rows[6].split(",")[1]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(d5, 1050 + np.arange(12).reshape(3, 4))
     got = read_run(out)
     np.testing.assert_allclose(got.odometry.t, run.odometry.t + 1.7e9, rtol=0, atol=2e-6)
     np.testing.assert_allclose(got.odometry.d_left, run.odometry.d_left, atol=1e-9)
