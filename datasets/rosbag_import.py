@@ -149,7 +149,9 @@ class ImportReport:
                for kind, topic in self.chosen.items()]  # fmt: skip
         for topic, reasons in self.skipped.items():
             out += [f"skipped {n} on {topic}: {r}" for r, n in reasons.items()]
-        out += [f"ignored {t} ({ty}): no lampsam kind reads it" for t, ty in self.ignored.items()]
+        readable = {ty for types in KIND_TYPES.values() for ty in types}
+        out += [f"not used: {t} ({ty})" + ("" if ty in readable else ", a type no lampsam kind reads")
+                for t, ty in self.ignored.items()]  # fmt: skip
         return out + self.notes
 
     def to_dict(self) -> dict[str, Any]:
