@@ -19,8 +19,13 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lampsam.errors import LampsamError
+
+if TYPE_CHECKING:
+    from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
 
@@ -235,7 +240,7 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     return 0 if result.status == "ok" else 1
 
 
-def _write_slam_g2o(path: Path, result: Any, run: Any) -> None:
+def _write_slam_g2o(path: Path, result: SlamResult, run: LoggedRun) -> None:
     """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
     odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
 
