@@ -19,8 +19,13 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lampsam.errors import LampsamError
+
+if TYPE_CHECKING:
+    from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
 
@@ -244,6 +249,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         run = read_run(args.run)
     result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     write_slam_plot(out / "slam.png", result, run.groundtruth)
+    if args.g2o:
+        _write_slam_g2o(Path(args.g2o), result, run)
     s = summary(result, run.groundtruth)
     err = s.get("error")
     msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
@@ -252,6 +259,37 @@ def _cmd_slam(args: argparse.Namespace) -> int:
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")
     print(msg + f"; written to {out}")
     return 0 if result.status == "ok" else 1
+
+
+def _write_slam_g2o(path: Path, result: SlamResult, run: LoggedRun) -> None:
+    """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
+    odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
+
+    Landmark observation factors are not in :class:`SlamResult`, so none are written.
+    """
+    import numpy as np
+
+    from lampsam.datasets.g2o_writer import write_g2o
+    from lampsam.factors.motion import accumulate_odometry
+
+    kf = np.flatnonzero(result.keyframes) if np.any(result.keyframes) else np.arange(len(result.times))
+    odo, wheel = run.odometry, run.rig.odometry
+    edges = []
+    for i in range(len(kf) - 1):
+        ta, tb = result.times[kf[i]], result.times[kf[i + 1]]
+        sel = (odo.t > ta) & (odo.t <= tb)
+        delta, cov = accumulate_odometry(odo.d_left[sel], odo.d_right[sel], wheel.wheel_base,
+                                         wheel.k_r, wheel.k_l)  # fmt: skip
+        edges.append((i, i + 1, delta, np.linalg.inv(cov)))
+    lms = result.landmarks
+    notes = [f"{lm.type} id {lm.id} z {lm.position[2]:.4f} m"
+             + (f" phi {lm.orientation:.6f} rad" if lm.orientation is not None else "") for lm in lms]
+    write_g2o(path, np.arange(len(kf)), result.poses[kf], edges,
+              landmark_ids=len(kf) + np.arange(len(lms)),
+              landmarks=np.array([lm.position[:2] for lm in lms]).reshape(-1, 2),
+              fixed=(0,) if len(kf) else (), landmark_notes=notes)  # fmt: skip
+    print(f"g2o graph written to {path}: {len(kf)} poses, {len(edges)} odometry factors, "
+          f"{len(lms)} landmarks")
 
 
 def _add_slam(sub: argparse._SubParsersAction) -> None:
@@ -268,6 +306,8 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gate-only", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--g2o", default=None, metavar="OUT.g2o",
+                   help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
     p.add_argument("--duration", type=float, default=None,
                    help="with --mrclam: use only the first seconds")
     p.set_defaults(func=_cmd_slam)
@@ -415,6 +455,78 @@ def _add_gallery(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_gallery)
 
 
+# --------------------------------------------------------------------------- ROS bags
+def _cmd_import_bag(args: argparse.Namespace) -> int:
+    from lampsam.datasets.rosbag_import import ImportOptions, import_bag
+    from lampsam.errors import DatasetError
+
+    topics: dict[str, str] = {}
+    for item in args.topic:
+        kind, sep, name = item.partition("=")
+        if not sep or not kind or not name:
+            raise DatasetError(f"--topic expects KIND=NAME, got {item!r}")
+        topics[kind.strip()] = name.strip()
+    joints = None
+    if args.wheel_joints:
+        names = [j.strip() for j in args.wheel_joints.split(",")]
+        if len(names) != 2 or not all(names):
+            raise DatasetError(f"--wheel-joints expects LEFT,RIGHT, got {args.wheel_joints!r}")
+        joints = (names[0], names[1])
+    opts = ImportOptions(
+        topics=topics, wheel_joints=joints, wheel_radius=args.wheel_radius,
+        wheel_base=args.wheel_base, k_wheel=args.k_wheel,
+        rig=Path(args.rig) if args.rig else None, base_frame=args.base_frame,
+    )  # fmt: skip
+    report = import_bag(Path(args.bag), Path(args.out), opts)
+    for line in report.lines():
+        print(line)
+    print(f"logged run written to {args.out}")
+    return 0
+
+
+def _add_import_bag(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import-bag", help="ROS1 .bag / ROS2 bag -> logged run (docs/log-format.md)")
+    p.add_argument("bag", help="ROS1 .bag file, or ROS2 bag directory (or its .db3 / .mcap file)")
+    p.add_argument("--out", required=True, help="run directory to write")
+    p.add_argument("--topic", action="append", default=[], metavar="KIND=NAME",
+                   help="use topic NAME for KIND (joints, odometry, image, camera_info, tf_static, "
+                        "depth, scan, groundtruth, rig); NAME 'none' skips the kind; repeatable")
+    p.add_argument("--wheel-joints", default=None, metavar="L,R",
+                   help="odometry from sensor_msgs/JointState: the left and right wheel joints")
+    p.add_argument("--wheel-radius", type=float, default=None, help="wheel radius, m (with --wheel-joints)")
+    p.add_argument("--wheel-base", type=float, default=None, help="distance between the wheels, m")
+    p.add_argument("--k-wheel", type=float, default=None, help="wheel slip constant k_r = k_l, m")
+    p.add_argument("--rig", default=None, help="rig.yaml to use instead of the bag's camera_info / tf")
+    p.add_argument("--base-frame", default="base_link", help="robot body frame in tf (default base_link)")
+    p.set_defaults(func=_cmd_import_bag)
+
+
+def _cmd_export_bag(args: argparse.Namespace) -> int:
+    from lampsam.datasets.rosbag_export import export_bag
+
+    summary = export_bag(Path(args.run), Path(args.out), ros1=args.ros1, compressed=args.compressed,
+                         wheel_radius=args.wheel_radius, mcap=args.mcap)  # fmt: skip
+    for topic, n in summary.counts.items():
+        print(f"{topic}: {n} messages")
+    print(f"bag written to {summary.path}")
+    return 0
+
+
+def _add_export_bag(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export-bag", help="logged run -> ROS1 .bag or ROS2 bag")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--out", required=True, help="ROS1: the .bag file; ROS2: the bag directory")
+    ver = p.add_mutually_exclusive_group()
+    ver.add_argument("--ros1", action="store_true", help="ROS1 (Noetic) .bag")
+    ver.add_argument("--ros2", action="store_true", help="ROS2 (Humble) bag (the default)")
+    p.add_argument("--mcap", action="store_true", help="ROS2 storage MCAP instead of SQLite (.db3)")
+    p.add_argument("--compressed", action="store_true",
+                   help="images as sensor_msgs/CompressedImage (the run's PNG files)")
+    p.add_argument("--wheel-radius", type=float, default=0.05,
+                   help="wheel radius for the joint angles, m (default 0.05)")
+    p.set_defaults(func=_cmd_export_bag)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
@@ -430,6 +542,8 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_table1,
     _add_frontend_eval,
     _add_gallery,
+    _add_import_bag,
+    _add_export_bag,
 ]
 
 
