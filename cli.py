@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -516,6 +517,14 @@ def _num(value: object) -> str:
     return plain(value)
 
 
+_NUMPY_SCALAR = re.compile(r"np\.(?:float|int|uint|bool_?)\d*\(([^()]*)\)")
+
+
+def _plain_text(message: str) -> str:
+    """A message with numpy scalar reprs (``np.float64(5.0)``) shown as plain numbers."""
+    return _NUMPY_SCALAR.sub(r"\1", message)
+
+
 def _warn_partial(meta: dict[str, object], run: Path) -> None:
     """Warn when a run's ``meta.yaml`` says it is partial (``complete: false``)."""
     if meta.get("complete") is False:
@@ -546,7 +555,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "see docs/failures.md for what was written", file=sys.stderr)
             return EXIT_INTERRUPTED
         except LampsamError as exc:
-            print(f"lampsam {args.command}: error: {exc}", file=sys.stderr)
+            print(f"lampsam {args.command}: error: {_plain_text(str(exc))}", file=sys.stderr)
             return EXIT_USAGE
         except OSError as exc:  # the file system refused (disk full, permissions...)
             where = f"{exc.filename}: " if exc.filename else ""
