@@ -614,11 +614,13 @@ def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobRe
     ) as pool:
         futures = {pool.submit(run_job, j): j for j in jobs}
         pending = set(futures)
+        collected: set[cf.Future[JobResult]] = set()
         try:
             while pending:
                 done, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
                 for fut in done:
                     _collect(fut, futures[fut], results, unfinished)
+                    collected.add(fut)
                     if bar is not None:
                         bar.update(1)
                 if stop_requested() is not None:
@@ -630,9 +632,11 @@ def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobRe
             for child in mp.active_children():
                 child.terminate()
         for fut, job in futures.items():
-            if fut.done() and not fut.cancelled() and not any(r.job is job for r in results):
+            if fut in collected:
+                continue
+            if fut.done() and not fut.cancelled():
                 _collect(fut, job, results, unfinished)
-            elif not fut.done() or fut.cancelled():
+            else:
                 unfinished.append(job)
     if bar is not None:
         bar.close()
