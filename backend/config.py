@@ -76,7 +76,7 @@ class AssociationConfig:
         lamp_min_separation: the smoothers start no new lamp where a mapped lamp
             is predicted within this distance in normalised ceiling coordinates
             (default 0.1, about 25 cm on a 2.5 m ceiling; lamps do not overlap), see
-            :meth:`lampsam.backend.graph.GraphSlam._near_known_lamp`; 0 disables.
+            :meth:`lampsam.backend.gating.Gating._near_known_lamp`; 0 disables.
         max_corner_updates: per frame (keyframe), at most this many corners already
             in the map are used, longest tracks first, and at most
             ``max(2, budget - kept)`` new corners enter it
@@ -163,7 +163,7 @@ class Isam2Config:
             keyframes are used for gating the odometry-propagated pose only; their
             observations are dropped, and in the final trajectory their poses are the
             odometry conditioned on both neighbouring keyframes
-            (:func:`lampsam.backend.graph.odometry_bridge`). Over 10 seeds of 60 s of
+            (:func:`lampsam.backend.pose_cov.odometry_bridge`). Over 10 seeds of 60 s of
             lab (frontend images), iSAM2's mean position / heading RMS: every frame
             6.3 mm / 0.043 deg; 0.05 m 5.6 mm / 0.089 deg; 0.1 m 5.4 mm / 0.124 deg
             (heading between keyframes is the wheels' alone: 0.13-0.21 deg at 0.1 m,
@@ -171,7 +171,7 @@ class Isam2Config:
             frames) ``update()`` took a median / p95 of 4.0 / 15.5 ms at 0.05 m
             (1,218 keyframes), 3.5 / 9.5 ms at 0.1 m and 7.5 / 43 ms with every frame.
             (Before the first frame was always a keyframe, the policy cost 3x in
-            accuracy: see ``GraphSlam._is_keyframe``.)
+            accuracy: see :func:`lampsam.backend.keyframes.is_keyframe`.)
         relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's).
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
