@@ -237,7 +237,8 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
     import dataclasses
 
     from lampsam.config_loader import load_config
-    from lampsam.localization.envmap import EnvMapConfig, build_map
+    from lampsam.localization.map_build import build_map
+    from lampsam.localization.map_config import EnvMapConfig
 
     cfg = load_config(EnvMapConfig, _config_path(args), table="envmap")
     if args.resolution is not None:
@@ -247,7 +248,11 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
     if not Path(args.run).exists():
         raise LampsamError(f"{args.run}: run not found")
-    report = build_map(Path(args.run), _out_dir(args), poses=args.poses, config=cfg)
+    out = _out_dir(args)
+    from lampsam.evaluation.map_truth import floor_plan_of_run
+
+    truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
+    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
@@ -401,7 +406,8 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
 
     from lampsam.config_loader import load_config
-    from lampsam.localization.global_localizer import GlobalLocalizerConfig, Mode, localize_run
+    from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
+    from lampsam.localization.replay import localize_run
 
     cfg = load_config(GlobalLocalizerConfig, _config_path(args), table="localize")
     if args.mode is not None:
@@ -429,6 +435,36 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="TOML/YAML file with a [localize] table (nested tables too: "
                         "[localize.filter], [localize.verification], ...)")
     p.set_defaults(func=_cmd_localize)
+
+
+# --------------------------------------------------------------------------- table1
+def _cmd_table1(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.table1 import run_table1
+    from lampsam.localization.filter_config import Mode
+
+    try:
+        modes = [Mode(m.strip()) for m in args.modes.split(",") if m.strip()]
+        only = {int(v) for v in args.trials_list.split(",") if v.strip()} or None
+    except ValueError as exc:
+        raise LampsamError(f"--modes / --trials-list: {exc}") from exc
+    md = run_table1(Path(args.out), args.trials, Path(args.work) if args.work else None, args.seed,
+                    args.clearance, modes, args.jobs, only, args.report_only)
+    print(md)
+    return 0
+
+
+def _add_table1(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("table1", help="paper 2's Table 1 on the simulated office (global localization trials)")
+    p.add_argument("--out", required=True, help="output directory (trials, table1.md, table1.png); a rerun resumes")
+    p.add_argument("--trials", type=int, default=50, help="start poses (default 50)")
+    p.add_argument("--work", default=None, help="cache of the mapping run and map (default OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the map, starts and noise (default 1)")
+    p.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m (default 0.6)")
+    p.add_argument("--modes", default="grid_only,no_ceiling,proposed,ours", help="comma-separated configurations")
+    p.add_argument("--trials-list", default="", help="comma-separated trial indices to run (same starts as a full run)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes (trial i goes to worker i %% jobs)")
+    p.add_argument("--report-only", action="store_true", help="only rebuild the report from OUT/trials.w*.jsonl")
+    p.set_defaults(func=_cmd_table1)
 
 
 # --------------------------------------------------------------------------- frontend-eval
@@ -495,6 +531,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_slam,
     _add_compare,
     _add_localize,
+    _add_table1,
     _add_frontend_eval,
     _add_gallery,
 ]
