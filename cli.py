@@ -106,15 +106,11 @@ def _add_stereo_sim(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_stereo(args: argparse.Namespace) -> int:
-    from lampsam.evaluation.stereo_report import stereo_job
+    from lampsam.evaluation.stereo_report import stereo_job, summary_table
 
     summary = stereo_job(Path(args.run), args.estimator, Path(args.out))
-    rms = summary.get("rms")
-    line = f"{args.estimator}: {summary['status_counts']}"
-    if rms:
-        line += (f"; RMS x {rms['x_m']:.4f} m, y {rms['y_m']:.4f} m, "
-                 f"heading {rms['heading_rad']:.5f} rad over {rms['frames']} frames")
-    print(line)
+    print(summary_table(summary))
+    print(f"written to {args.out} (estimate.tum, status.csv, summary.json, errors.png)")
     return 0
 
 
@@ -234,7 +230,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     write_slam_plot(out / "slam.png", result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
-    msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
+    msg = (f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks "
+           f"({s['landmarks_pruned']} pruned)")
     if err:
         msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")

@@ -76,6 +76,7 @@ from lampsam.backend.interface import (
     SlamBackend,
     SlamResult,
     StepEstimate,
+    log_pruned,
 )
 from lampsam.backend.models import (
     Obs,
@@ -292,6 +293,7 @@ class GraphSlam(SlamBackend):
         self.update_times: list[float] = []  # iSAM2 update() per keyframe, s
         self.estimate_times: list[float] = []  # then the pose estimate + marginal, s
         self.n_pruned = 0
+        self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self.n_recoveries = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
@@ -384,6 +386,7 @@ class GraphSlam(SlamBackend):
             lm = self._landmarks.pop(lid)
             removed_keys.update(self.handlers[lm.kind].keys(lm))
             self.n_pruned += 1
+            self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
         graph = gtsam.NonlinearFactorGraph()
         for i in range(self.graph.size()):
             f = self.graph.at(i)
@@ -802,6 +805,8 @@ class GraphSlam(SlamBackend):
         for lid in stale:
             del self._landmarks[lid]
         self.n_pruned += len(stale)
+        if stale:
+            self.pruned["pending_stale"] = self.pruned.get("pending_stale", 0) + len(stale)
 
     def _observe(self, lm: _Landmark, k: int, obs: Obs) -> None:
         lm.n_obs += 1
@@ -871,10 +876,10 @@ class GraphSlam(SlamBackend):
         """
         cfg = self.config.association
         drop = [lid for lid, lm in self._landmarks.items() if lm.n_obs < cfg.min_observations]
-        if drop:
-            log.warning("%d landmarks seen fewer than %d times were pruned from the map",
-                        len(drop), cfg.min_observations)
         self.n_pruned += len(drop)
+        if drop:
+            self.pruned["seen_too_few"] = self.pruned.get("seen_too_few", 0) + len(drop)
+        log_pruned(self.n_pruned, self.pruned, cfg.min_observations)
         return drop
 
     # ------------------------------------------------------------------ interface
@@ -976,8 +981,8 @@ class GraphSlam(SlamBackend):
             status=status,
             final_time_s=final_time,
             n_pruned=self.n_pruned,
-            extra={"n_keyframes": float(n_kf),
-                   "update_median_ms": float(np.median(self.update_times) * 1e3)
+            pruned=dict(self.pruned),
+            extra={"update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
                    "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)
                    if self.update_times else float("nan"),

@@ -419,6 +419,7 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
         "keyframes": int(result.keyframes.sum()),
         "landmarks": len(result.landmarks),
         "landmarks_pruned": int(result.n_pruned),
+        "landmarks_pruned_by_reason": {k: int(v) for k, v in sorted(result.pruned.items())},
         "time_per_frame_ms": {
             "median": float(np.median(frames_ms)) if len(frames_ms) else None,
             "p95": float(np.percentile(frames_ms, 95)) if len(frames_ms) else None,
