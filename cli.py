@@ -78,6 +78,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"contact sheet:      {result.contact_sheet}")
     print(f"comparison report:  {result.report} (and report.html, summary.json, figures/)")
     print(f"per-backend output: {result.out / 'compare' / 'jobs'} (trajectory.tum, landmarks.csv, summary.json)")
+    if result.recording is not None:
+        print(f"live recording:     {result.recording} (open with: rerun {result.recording})")
     return 1 if any(r["failed"] for r in result.rows) else 0
 
 
@@ -106,9 +108,17 @@ def _add_stereo_sim(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_stereo(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.live import live_view, rerun_target
     from lampsam.evaluation.stereo_report import stereo_job, summary_table
 
-    summary = stereo_job(Path(args.run), args.estimator, Path(args.out))
+    target = rerun_target(args.rerun, args.out)
+    truth = None
+    if target:
+        from lampsam.datasets.stereo_sim import read_stereo_run
+
+        truth = read_stereo_run(Path(args.run)).truth
+    with live_view(target, f"stereo {args.estimator} {args.run}", stereo_truth=truth, kind="stereo"):
+        summary = stereo_job(Path(args.run), args.estimator, Path(args.out))
     print(summary_table(summary))
     print(f"written to {args.out} (estimate.tum, status.csv, summary.json, errors.png)")
     return 0
@@ -120,6 +130,9 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", required=True, choices=["raw", "ekf", "isam2", "batch"],
                    help="raw triangulation, the paper's EKF, iSAM2 online, batch smoother")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_stereo)
 
 
@@ -226,7 +239,10 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         from lampsam.datasets.logrun import read_run
 
         run = read_run(args.run)
-    result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run):
+        result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     write_slam_plot(out / "slam.png", result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
@@ -255,6 +271,9 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
     p.add_argument("--duration", type=float, default=None,
                    help="with --mrclam: use only the first seconds")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_slam)
 
 
@@ -303,7 +322,16 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     except TypeError as exc:
         raise LampsamError(f"{args.config}: bad [localize] table: {exc}") from exc
     cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
-    result = localize_run(Path(args.run), Path(args.map), Path(args.out), cfg, seed=args.seed)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    target = rerun_target(args.rerun, args.out)
+    run = None
+    if target:
+        from lampsam.datasets.logrun import read_run
+
+        run = read_run(args.run)
+    with live_view(target, f"localize {args.mode} {args.run}", run=run, kind="localize"):
+        result = localize_run(Path(args.run), Path(args.map), Path(args.out), cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
           f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
@@ -319,6 +347,9 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
                    help="configuration of the paper's Table 1, or ours (default proposed)")
     p.add_argument("--seed", type=int, default=0, help="seed of RANSAC and the particle filter (default 0)")
     p.add_argument("--config", default=None, help="TOML file with a [localize] table (scalar settings)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_localize)
 
 

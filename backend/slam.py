@@ -53,6 +53,7 @@ from lampsam.frontend.measurements import (
     RangeBearingFrame,
     RangeBearingObservation,
 )
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
 
@@ -299,7 +300,8 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
     try:
         for t, wheel, frame in steps:
             t_step = t
-            backend.step(t, wheel, frame)
+            estimate = backend.step(t, wheel, frame)
+            emit("slam.step", t=t, frame=frame, estimate=estimate, backend=backend)
     except KeyboardInterrupt:
         status = "interrupted"
         log.warning("interrupted: writing the steps finished so far")
@@ -312,7 +314,9 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
         log.error("step%s failed: %s: %s (run with -vv for the traceback); "
                   "the steps finished so far are kept", where, type(exc).__name__, exc)
         log.debug("traceback", exc_info=True)
-    return backend.finish(status)
+    result = backend.finish(status)
+    emit("slam.finish", result=result)
+    return result
 
 
 def run_slam(run_dir: str | Path, backend: str = "isam2",

@@ -64,6 +64,7 @@ from lampsam.localization.verification import (
     refine_pose,
 )
 from lampsam.localization.virtual_scan import VirtualScan, VirtualScanConfig, beam_angles
+from lampsam.observe import emit
 
 if TYPE_CHECKING:
     from lampsam.localization.envmap import EnvironmentMap
@@ -577,6 +578,7 @@ def _turn_stage(
         len(collector.candidates),
         int(np.count_nonzero(np.isfinite(scan))),
     )
+    emit("localize.candidates", candidates=list(collector.candidates))
     return collector.candidates, scan, odom_end, robot_s, compute
 
 
@@ -684,6 +686,8 @@ def _filter_stage(
     while n_updates < fc.max_updates:
         n_updates += 1
         pf.update(ranges, angles)
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
         if recheck and n_updates == 1:
             first_modes = distinct_modes(
                 pf.particles, pf.log_weights, fc.recheck_modes_in_ours, fc.mode_separation
@@ -769,6 +773,8 @@ def _recheck_modes(
     while n_updates < fc.max_updates:
         n_updates += 1
         pf.update(ranges, angles)
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
         if pf.converged():
             converged = True
             break
@@ -1100,6 +1106,7 @@ def localize(
         including the re-check of ``initial``.
     """
     model = _make_model(maps, config)
+    emit("localize.start", grid=maps.grid)
     robot_time = {"turn": 0.0, "verification": 0.0}
     compute_time = {"candidates": 0.0, "filter": 0.0, "verification": 0.0}
     attempts: list[AttemptRecord] = []
@@ -1154,6 +1161,7 @@ def localize(
             pose, margin = resolve_half_turn(pose, scan, twin_centre, maps, config, rng)
             ambiguous = margin < fc.twin_margin_in_ours
         compute_time["filter"] += time.perf_counter() - t0
+        emit("localize.estimate", pose=pose, attempt=attempt)
         if not verifies:
             attempts.append(
                 AttemptRecord(
