@@ -7,9 +7,11 @@
   odometry and image noise), or ``mrclam`` / ``mrclam-gated`` (the shared MRCLAM
   data with known association, or association by the gate alone).
 * Every (run, backend) job runs in a fresh process (so its peak memory is its own),
-  in parallel, with a progress bar. A job that fails (indeterminate system,
-  unusable input, a crash) is recorded as failed with its reason; it is never
-  dropped from the table.
+  in parallel, with a progress bar; or, with ``dask``, on a Dask ``distributed``
+  cluster (:mod:`lampsam.evaluation.fleet`: the same results; the peak memory is
+  then the worker process's so far). A job that fails (indeterminate system,
+  unusable input, a crash, a lost worker) is recorded as failed with its reason;
+  it is never dropped from the table.
 * Metrics (``evaluation.metrics``; trajectory statistics through evo): position
   and heading error without alignment (the start pose is known), RPE per metre,
   map error after association with the truth, pose NEES over time with the
@@ -24,16 +26,11 @@ one directory per job with the backend's own outputs (``trajectory.tum``,
 from __future__ import annotations
 
 import base64
-import concurrent.futures as cf
-import contextlib
 import json
 import logging
-import multiprocessing as mp
-import os
 import resource
 import time
 import traceback
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,6 +41,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
+from lampsam.evaluation.fleet import run_jobs
 from lampsam.evaluation.outputs import ensure_dir
 
 log = logging.getLogger(__name__)
@@ -440,29 +438,9 @@ def _json_default(x: Any) -> Any:
 
 
 # --------------------------------------------------------------------------- driver
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-@contextlib.contextmanager
-def _single_threaded_children() -> Iterator[None]:
-    """One BLAS/OpenMP thread in processes spawned inside the block; restored after.
-
-    Parallelism comes from the worker processes, and a threaded BLAS on the EKF's
-    small matrices was measured ~7x slower on 2 cores (scripts/bench/bench_scaling.py).
-    Spawned children read these variables when they import numpy. A value the user
-    set is kept.
-    """
-    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
-    for v in _THREAD_VARS:
-        os.environ.setdefault(v, "1")
-    try:
-        yield
-    finally:
-        for v, old in saved.items():
-            if old is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = old
+def _failed_job(job: Job, reason: str) -> JobResult:
+    """The result of a job whose worker raised or died."""
+    return JobResult(job, reason)
 
 
 def compare(
@@ -476,6 +454,7 @@ def compare(
     duration: float | None = None,
     progress: bool = True,
     config: SlamConfig | None = None,
+    dask: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run every backend on every run; write the report; return the table rows.
 
@@ -484,12 +463,14 @@ def compare(
         backends: subset of ``ekf, isam2, batch``.
         seeds: Monte Carlo seeds per simulated world.
         out: report directory.
-        workers: parallel processes.
+        workers: parallel processes (local pool, or the workers of ``dask="local"``).
         frames: measurement source for every job (``auto``, ``images``, ``truth``).
         features: ceiling features (None: the backend default).
         duration: simulated seconds per world run (None: the whole path).
         progress: show a progress bar (tqdm, on stderr).
         config: the SLAM configuration of every job (None: the defaults).
+        dask: None (local process pool), ``"local"`` (a Dask ``LocalCluster``) or the
+            address of a Dask scheduler (:mod:`lampsam.evaluation.fleet`).
 
     Returns:
         The aggregated rows (as in ``summary.json``).
@@ -511,23 +492,8 @@ def compare(
         for group, seed, run_dir in resolved
         for b in backends
     ]
-    results: list[JobResult] = []
-    ctx = mp.get_context("spawn")
-    with _single_threaded_children(), cf.ProcessPoolExecutor(
-        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
-    ) as pool:
-        futures = {pool.submit(run_job, j): j for j in jobs}
-        iterator = cf.as_completed(futures)
-        if progress:
-            from tqdm import tqdm
-
-            iterator = tqdm(iterator, total=len(jobs), desc="compare", unit="job")
-        for fut in iterator:
-            job = futures[fut]
-            try:
-                results.append(fut.result())
-            except Exception as exc:  # the worker process itself died
-                results.append(JobResult(job, f"failed: worker died: {type(exc).__name__}: {exc}"))
+    results = run_jobs(run_job, jobs, _failed_job, workers=workers, dask=dask,
+                       progress=progress, desc="compare")
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures
