@@ -337,7 +337,7 @@ def time_one_run(backend: str, run: LoggedRun, config: SlamConfig, tail: float,
     assert run.groundtruth is not None
     start = run.groundtruth.poses[0]
     with covariance_storage(dense_reference):
-        be = make_backend(backend, run, config, start, ceiling=False)
+        be = make_backend(backend, run.rig.odometry, config, start)
     wall: list[float] = []
     cpu: list[float] = []
     n_state: list[int] = []
