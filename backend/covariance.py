@@ -90,10 +90,21 @@ def syrk_lower_inplace(c: FloatArray, n: int, w: FloatArray, alpha: float = -1.0
        ref(ctypes.c_int(c.shape[1])))
 
 
+@functools.cache
+def _strict_upper(d: int) -> tuple[IntArray, IntArray]:
+    """Row and column indices of the strict upper triangle of a d x d matrix (cached)."""
+    return np.triu_indices(d, 1)
+
+
 def _sym_from_lower(block: FloatArray) -> FloatArray:
     """Full symmetric matrix from the lower triangle of a square block (a new array)."""
-    low = np.tril(block)
-    return low + np.tril(block, -1).T
+    d = block.shape[0]
+    if d > 32:  # large (dense() for checks): no cached index arrays of n^2 entries
+        return np.tril(block) + np.tril(block, -1).T
+    out = block.copy()
+    iu = _strict_upper(d)
+    out[iu] = block.T[iu]
+    return out
 
 
 class LowerCovariance:
