@@ -7,7 +7,7 @@ the results in job order.
 - Default: a local ``ProcessPoolExecutor`` (spawned processes, one fresh process per
   job so its peak memory is its own, one BLAS thread each).
 - ``dask="local"``: a ``distributed.LocalCluster`` on this machine with ``workers``
-  single-threaded worker processes (no dashboard).
+  single-threaded worker processes (dashboard on a free port, see ``client.dashboard_link``).
 - ``dask="tcp://host:8786"``: an existing scheduler. Its workers must import the same
   ``lampsam`` version, and the run directories and the output directory must be at
   the same paths on every worker (a shared file system): the jobs read their run
@@ -124,7 +124,9 @@ def dask_client(address: str, workers: int = 2) -> Iterator[Client]:
     if address == DASK_LOCAL:
         with single_threaded_children(), LocalCluster(
             n_workers=max(1, workers), threads_per_worker=1, processes=True,
-            dashboard_address=None, host="127.0.0.1",
+            # ":0": a free port (None does not disable it: dask/distributed#8136), so
+            # several clusters on one machine do not fight over 8787
+            dashboard_address=":0", host="127.0.0.1",
         ) as cluster, Client(cluster) as client:
             yield client
         return

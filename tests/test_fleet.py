@@ -81,7 +81,7 @@ def local_batch(runs: list[str], tmp_path_factory: pytest.TempPathFactory
 def scheduler() -> Iterator[str]:
     """A real scheduler and two worker processes on loopback; its address."""
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  host="127.0.0.1", dashboard_address=None,
+                                  host="127.0.0.1", dashboard_address=":0",
                                   timeout=60) as cluster:
         with distributed.Client(cluster, timeout=60) as client:
             client.wait_for_workers(2, timeout=60)
