@@ -446,7 +446,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     rows = compare(args.runs, backends=backends, seeds=args.seeds, out=out,
                    workers=args.workers, frames=args.frames, features=features,
                    duration=args.duration, progress=not args.no_progress, config=config,
-                   resume=args.resume)
+                   resume=args.resume, dask=args.dask)
     print(markdown_table(rows))
     print(f"report: {out / 'report.md'} (also report.html, summary.json, figures/)")
     if stop_requested() is not None:
@@ -473,7 +473,48 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue an earlier compare into the same --out: skip its finished jobs")
     _add_force(p)
+    _add_dask_option(p)
     p.set_defaults(func=_cmd_compare, graceful=True)
+
+
+def _add_dask_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the jobs on a Dask distributed scheduler (e.g. tcp://10.0.0.5:8786; "
+                        "workers need lampsam and the same paths) or 'local' (a LocalCluster "
+                        "with --workers processes); default: a local process pool")
+
+
+# --------------------------------------------------------------------------- batch
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from lampsam.backend.config import SlamConfig
+    from lampsam.config_loader import load_config
+    from lampsam.evaluation.batch import batch, markdown_table
+
+    features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
+    config = load_config(SlamConfig, _config_path(args))
+    rows = batch(args.runs, Path(args.out), backend=args.backend, workers=args.workers,
+                 dask=args.dask, progress=not args.no_progress, config=config,
+                 frames=args.frames, features=features)
+    print(markdown_table(rows))
+    print(f"summary: {Path(args.out) / 'summary.json'} (and summary.csv); one folder per run")
+    return 1 if any(r["status"] != "ok" for r in rows) else 0
+
+
+def _add_batch(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help="offline optimisation of many logs: one result folder each")
+    p.add_argument("runs", nargs="+", help="run directories")
+    p.add_argument("--out", required=True, help="output directory (one folder per run + summary)")
+    p.add_argument("--backend", choices=("batch", "isam2", "ekf"), default="batch",
+                   help="estimator (default batch: Levenberg-Marquardt over the whole log)")
+    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--frames", default="auto", choices=["auto", "images", "truth", "rangebearing"],
+                   help="measurement source (default auto)")
+    p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with the SLAM settings of every run (as for `lampsam slam --config`)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_dask_option(p)
+    p.set_defaults(func=_cmd_batch)
 
 
 # --------------------------------------------------------------------------- localize
@@ -691,6 +732,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_show_map,
     _add_slam,
     _add_compare,
+    _add_batch,
     _add_localize,
     _add_table1,
     _add_frontend_eval,
