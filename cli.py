@@ -2,8 +2,10 @@
 
 Each subcommand is a thin wrapper over a library function that also works from
 Python; heavy modules are imported inside the wrappers so ``lampsam --help``
-stays fast. Only this module reads configuration files (TOML); it passes
-config dataclasses down explicitly.
+stays fast. Only this module reads configuration files (TOML or YAML, through
+the strict loader :func:`lampsam.config_loader.load_config`: unknown keys,
+wrong types and values out of range are errors naming the file and the dotted
+key); it passes config dataclasses down explicitly.
 
 Exit codes: 0 success, 1 the job ran but failed (e.g. localization failed),
 2 bad input or usage (a :class:`lampsam.errors.LampsamError` is printed, no
@@ -17,34 +19,16 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
-
-import tomllib
 
 from lampsam.errors import LampsamError
 
 log = logging.getLogger("lampsam")
 
 
-def load_toml(path: Path | None) -> dict[str, Any]:
-    """Read a TOML config file; an absent path gives an empty dict.
-
-    Args:
-        path: the file, or None.
-
-    Returns:
-        The parsed tables. Unknown keys are rejected by the dataclass that
-        consumes each table.
-    """
-    if path is None:
-        return {}
-    try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError as exc:
-        raise LampsamError(f"{path}: config file not found") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise LampsamError(f"{path}: invalid TOML: {exc}") from exc
+def _config_path(args: argparse.Namespace) -> Path | None:
+    """The ``--config`` file of a command, or None."""
+    value = getattr(args, "config", None)
+    return Path(value) if value else None
 
 
 # --------------------------------------------------------------------------- simulate
@@ -106,9 +90,12 @@ def _add_stereo_sim(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_stereo(args: argparse.Namespace) -> int:
+    from lampsam.backend.stereo import StereoEstimatorConfig
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.stereo_report import stereo_job
 
-    summary = stereo_job(Path(args.run), args.estimator, Path(args.out))
+    cfg = load_config(StereoEstimatorConfig, _config_path(args), table="stereo")
+    summary = stereo_job(Path(args.run), args.estimator, Path(args.out), cfg)
     rms = summary.get("rms")
     line = f"{args.estimator}: {summary['status_counts']}"
     if rms:
@@ -124,14 +111,21 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", required=True, choices=["raw", "ekf", "isam2", "batch"],
                    help="raw triangulation, the paper's EKF, iSAM2 online, batch smoother")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with a [stereo] table (StereoEstimatorConfig)")
     p.set_defaults(func=_cmd_stereo)
 
 
 # --------------------------------------------------------------------------- kinect-sim, build-map, show-map
 def _cmd_kinect_sim(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.config_loader import load_config
     from lampsam.datasets.kinect_sim import KinectConfig, simulate_kinect_run
 
-    cfg = KinectConfig(width=args.width, height=args.height, rate_hz=args.rate)
+    cfg = load_config(KinectConfig, _config_path(args), table="kinect")
+    given = {"width": args.width, "height": args.height, "rate_hz": args.rate}
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
     out = simulate_kinect_run(args.world, Path(args.out), seed=args.seed, config=cfg, duration=args.duration,
                               ceiling_images=args.ceiling)
     print(f"Kinect mapping run written to {out}")
@@ -144,9 +138,11 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="run directory to write (RGB-D frames in OUT/kinect)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--duration", type=float, default=None, help="seconds to simulate (default: whole drive)")
-    p.add_argument("--width", type=int, default=320, help="image width (default 320; 640 for full Kinect)")
-    p.add_argument("--height", type=int, default=240, help="image height (default 240)")
-    p.add_argument("--rate", type=float, default=3.0, help="Kinect frame rate, Hz (default 3)")
+    p.add_argument("--width", type=int, default=None, help="image width (default 320; 640 for full Kinect)")
+    p.add_argument("--height", type=int, default=None, help="image height (default 240)")
+    p.add_argument("--rate", type=float, default=None, help="Kinect frame rate, Hz (default 3)")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with a [kinect] table (KinectConfig; the options above override it)")
     p.add_argument("--ceiling", action="store_true", help="also render the ceiling camera (the ceiling simulator)")
     p.set_defaults(func=_cmd_kinect_sim)
 
@@ -154,22 +150,11 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
 def _cmd_build_map(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from lampsam.config_loader import load_config
     from lampsam.localization.map_build import build_map
     from lampsam.localization.map_config import EnvMapConfig
 
-    cfg = EnvMapConfig()
-    table = load_toml(Path(args.config) if args.config else None).get("envmap", {})
-    try:
-        cfg = dataclasses.replace(
-            cfg,
-            depth=dataclasses.replace(cfg.depth, **table.get("depth", {})),
-            laser=dataclasses.replace(cfg.laser, **table.get("laser", {})),
-            spatial=dataclasses.replace(cfg.spatial, **table.get("spatial", {})),
-            tables=dataclasses.replace(cfg.tables, **table.get("tables", {})),
-            **{k: v for k, v in table.items() if k not in ("depth", "laser", "spatial", "tables")},
-        )
-    except TypeError as exc:
-        raise LampsamError(f"{args.config}: bad [envmap] table: {exc}") from exc
+    cfg = load_config(EnvMapConfig, _config_path(args), table="envmap")
     if args.resolution is not None:
         cfg = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, resolution=args.resolution),
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
@@ -204,7 +189,7 @@ def _add_build_map(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-tables", action="store_true",
                    help="do not precompute the localizer's range table and distance field")
     p.add_argument("--config", default=None,
-                   help="TOML file with an [envmap] table ([envmap.depth], [envmap.laser], [envmap.tables], ...)")
+                   help="TOML/YAML file with an [envmap] table ([envmap.depth], [envmap.laser], [envmap.tables], ...)")
     p.set_defaults(func=_cmd_build_map)
 
 
@@ -229,9 +214,10 @@ def _cmd_slam(args: argparse.Namespace) -> int:
 
     from lampsam.backend.config import SlamConfig
     from lampsam.backend.slam import run_slam, summary
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.slam_report import write_slam_plot
 
-    config = SlamConfig.from_dict(load_toml(Path(args.config) if args.config else None))
+    config = load_config(SlamConfig, _config_path(args))
     if args.gate_only:
         config = dataclasses.replace(
             config, association=dataclasses.replace(config.association, use_known_ids=False))
@@ -265,7 +251,7 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--features", default="lamps,corners",
                    help="ceiling features to use: lamps,corners (default both)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--config", default=None, help="TOML config ([association], [ekf], [isam2], ...)")
+    p.add_argument("--config", default=None, help="TOML/YAML config ([association], [ekf], [isam2], ...)")
     p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
                    help="measurement source (default auto: range-bearing log, else images)")
     p.add_argument("--gate-only", action="store_true",
@@ -279,11 +265,12 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
 # --------------------------------------------------------------------------- compare
 def _cmd_compare(args: argparse.Namespace) -> int:
     from lampsam.backend.config import SlamConfig
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.compare import compare, markdown_table
 
     backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
     features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
-    config = SlamConfig.from_dict(load_toml(Path(args.config) if args.config else None))
+    config = load_config(SlamConfig, _config_path(args))
     rows = compare(args.runs, backends=backends, seeds=args.seeds, out=Path(args.out),
                    workers=args.workers, frames=args.frames, features=features,
                    duration=args.duration, progress=not args.no_progress, config=config)
@@ -304,7 +291,7 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners (default: backend config)")
     p.add_argument("--duration", type=float, default=None, help="seconds per simulated run (default whole path)")
     p.add_argument("--config", default=None,
-                   help="TOML file with the SLAM settings of every job (as for `lampsam slam --config`)")
+                   help="TOML/YAML file with the SLAM settings of every job (as for `lampsam slam --config`)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_compare)
 
@@ -313,14 +300,13 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from lampsam.localization.global_localizer import GlobalLocalizerConfig, Mode, localize_run
+    from lampsam.config_loader import load_config
+    from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
+    from lampsam.localization.replay import localize_run
 
-    table = load_toml(Path(args.config) if args.config else None).get("localize", {})
-    try:
-        cfg = dataclasses.replace(GlobalLocalizerConfig(), **table)
-    except TypeError as exc:
-        raise LampsamError(f"{args.config}: bad [localize] table: {exc}") from exc
-    cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
+    cfg = load_config(GlobalLocalizerConfig, _config_path(args), table="localize")
+    if args.mode is not None:
+        cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
     result = localize_run(Path(args.run), Path(args.map), Path(args.out), cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
@@ -333,18 +319,53 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images")
     p.add_argument("--map", required=True, help="environment map directory (build-map)")
     p.add_argument("--out", required=True, help="output directory for result.json")
-    p.add_argument("--mode", default="proposed", choices=["grid_only", "no_ceiling", "proposed", "ours"],
-                   help="configuration of the paper's Table 1, or ours (default proposed)")
+    p.add_argument("--mode", default=None, choices=["grid_only", "no_ceiling", "proposed", "ours"],
+                   help="configuration of the paper's Table 1, or ours (default: the config's "
+                        "[localize] mode, else proposed)")
     p.add_argument("--seed", type=int, default=0, help="seed of RANSAC and the particle filter (default 0)")
-    p.add_argument("--config", default=None, help="TOML file with a [localize] table (scalar settings)")
+    p.add_argument("--config", default=None, help="TOML/YAML file with a [localize] table (nested tables too: "
+                        "[localize.filter], [localize.verification], ...)")
     p.set_defaults(func=_cmd_localize)
+
+
+# --------------------------------------------------------------------------- table1
+def _cmd_table1(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.table1 import run_table1
+    from lampsam.localization.filter_config import Mode
+
+    try:
+        modes = [Mode(m.strip()) for m in args.modes.split(",") if m.strip()]
+        only = {int(v) for v in args.trials_list.split(",") if v.strip()} or None
+    except ValueError as exc:
+        raise LampsamError(f"--modes / --trials-list: {exc}") from exc
+    md = run_table1(Path(args.out), args.trials, Path(args.work) if args.work else None, args.seed,
+                    args.clearance, modes, args.jobs, only, args.report_only)
+    print(md)
+    return 0
+
+
+def _add_table1(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("table1", help="paper 2's Table 1 on the simulated office (global localization trials)")
+    p.add_argument("--out", required=True, help="output directory (trials, table1.md, table1.png); a rerun resumes")
+    p.add_argument("--trials", type=int, default=50, help="start poses (default 50)")
+    p.add_argument("--work", default=None, help="cache of the mapping run and map (default OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the map, starts and noise (default 1)")
+    p.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m (default 0.6)")
+    p.add_argument("--modes", default="grid_only,no_ceiling,proposed,ours", help="comma-separated configurations")
+    p.add_argument("--trials-list", default="", help="comma-separated trial indices to run (same starts as a full run)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes (trial i goes to worker i %% jobs)")
+    p.add_argument("--report-only", action="store_true", help="only rebuild the report from OUT/trials.w*.jsonl")
+    p.set_defaults(func=_cmd_table1)
 
 
 # --------------------------------------------------------------------------- frontend-eval
 def _cmd_frontend_eval(args: argparse.Namespace) -> int:
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.frontend_eval import evaluate_run
+    from lampsam.frontend.pipeline import FrontendConfig
 
-    res = evaluate_run(Path(args.run), out=args.out, max_frames=args.max_frames)
+    cfg = load_config(FrontendConfig, _config_path(args), table="frontend")
+    res = evaluate_run(Path(args.run), out=args.out, config=cfg, max_frames=args.max_frames)
     print(res.summary())
     return 0 if all(res.targets_met.values()) else 1
 
@@ -356,6 +377,8 @@ def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
     p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with a [frontend] table ([frontend.lamps], [frontend.corners])")
     p.set_defaults(func=_cmd_frontend_eval)
 
 
@@ -392,6 +415,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_slam,
     _add_compare,
     _add_localize,
+    _add_table1,
     _add_frontend_eval,
     _add_gallery,
 ]

@@ -32,11 +32,14 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
+from lampsam.backend.odometry import WheelParams
 from lampsam.datasets.logrun import (
+    CameraModel,
     LoggedRun,
     OdometryLog,
     RangeBearingLog,
@@ -60,34 +63,33 @@ BACKENDS = ("ekf", "isam2", "batch")
 FRAME_SOURCES = ("auto", "images", "truth", "rangebearing")
 
 
-def make_backend(name: str, run: LoggedRun, config: SlamConfig, start_pose: FloatArray,
-                 ceiling: bool) -> SlamBackend:
-    """Construct a backend by name for a run.
+def make_backend(name: str, odometry: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 camera: CameraModel | None = None) -> SlamBackend:
+    """Construct a backend by name.
 
     Args:
         name: ``"ekf"``, ``"isam2"`` or ``"batch"``.
-        run: the run (its rig gives the wheel model and the camera).
+        odometry: the odometry model's constants (e.g. ``run.rig.odometry``).
         config: the SLAM config.
-        start_pose: (3,) known start pose.
-        ceiling: True for ceiling frames (builds the camera model and graph handler).
+        start_pose: (3,) known start pose ``world_T_body``, m and rad.
+        camera: the upward camera for ceiling frames (builds the ceiling observation
+            model and graph handler), or None for range-bearing frames.
 
     Raises:
         EstimationError: an unknown backend name.
     """
-    model = handler = None
-    if ceiling:
-        model = CeilingModel.from_camera(run.rig.camera)
+    model = None
+    handler: CeilingHandler | None = None
+    if camera is not None:
+        model = CeilingModel.from_camera(camera)
         if name != "ekf":
-            from lampsam.backend.ceiling_graph import CeilingHandler
-
             handler = CeilingHandler(model)
-    wheel = run.rig.odometry
     if name == "ekf":
-        return EkfSlam(wheel, config, start_pose, model)
+        return EkfSlam(odometry, config, start_pose, model)
     if name == "isam2":
-        return Isam2Slam(wheel, config, start_pose, model, handler)
+        return Isam2Slam(odometry, config, start_pose, model, handler)
     if name == "batch":
-        return BatchSlam(wheel, config, start_pose, model, handler)
+        return BatchSlam(odometry, config, start_pose, model, handler)
     raise EstimationError(f"unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
 
 
@@ -318,7 +320,8 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
 def run_slam(run_dir: str | Path, backend: str = "isam2",
              features: tuple[str, ...] | None = None, out: str | Path | None = None,
              config: SlamConfig | None = None, frames: str = "auto",
-             max_dt: float = 0.5, run: LoggedRun | None = None) -> SlamResult:
+             max_dt: float = 0.5, run: LoggedRun | None = None,
+             start_pose: FloatArray | None = None) -> SlamResult:
     """Run one backend over a logged run and write the results.
 
     Args:
@@ -331,6 +334,9 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         frames: frame source, see :func:`make_frames`.
         max_dt: longest interval without a step, s (see :func:`iter_steps`).
         run: an already loaded run (e.g. from :func:`lampsam.datasets.mrclam.mrclam_run`).
+        start_pose: (3,) known start pose ``world_T_body``; None takes it from the
+            run (:func:`start_pose_of`: ground truth at the first odometry time, else
+            the origin).
 
     Returns:
         The result (also written to ``out``).
@@ -352,8 +358,9 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
     if backend not in BACKENDS:
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
     frame_list, is_ceiling = make_frames(run, frames)
-    start = start_pose_of(run)
-    be = make_backend(backend, run, config, start, is_ceiling)
+    start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
+    be = make_backend(backend, run.rig.odometry, config, start,
+                      run.rig.camera if is_ceiling else None)
     t0 = time.perf_counter()
     result = drive(be, iter_steps(run.odometry, frame_list, max_dt))
     total = time.perf_counter() - t0

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray, ImageU8
+from lampsam.datasets.stereo_types import StereoRig
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -103,6 +104,10 @@ class KittiStereoSequence:
     def baseline(self) -> float:
         """Stereo baseline ``B``, m: ``-(P_right[0, 3] - P_left[0, 3]) / fx``."""
         return float(-(self.P_right[0, 3] - self.P_left[0, 3]) / self.fx)
+
+    def stereo_rig(self) -> StereoRig:
+        """The calibrated pair as a :class:`StereoRig` (baseline, ``fx`` and width in px)."""
+        return StereoRig.from_pixels(baseline=self.baseline, f_px=self.fx, width_px=self.width)
 
     def load_pair(self, i: int) -> tuple[ImageU8, ImageU8]:
         """Left and right grey images of frame ``i``, uint8 (H, W) each.

@@ -513,7 +513,7 @@ def _project(
     px, _ = cv2.projectPoints(
         points.reshape(-1, 1, 3).astype(np.float64), rvec, tvec, camera.K(), camera.dist
     )
-    px = px.reshape(-1, 2)
+    px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
     pc = (points - w_t_c) @ w_R_c  # camera-frame coordinates
     ok = pc[:, 2] > 1e-6
     if np.any(camera.dist) and ok.any():
