@@ -278,13 +278,16 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
     if args.feature_every is not None:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
+    if args.no_tables:
+        cfg = dataclasses.replace(cfg, tables=dataclasses.replace(
+            cfg.tables, range_table=False, laser_range_table=False, distance_field=False))
     if not Path(args.run).exists():
         raise LampsamError(f"{args.run}: run not found")
     out = _out_dir(args)
     from lampsam.evaluation.map_truth import floor_plan_of_run
 
     truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
-    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth)
+    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth, scans=args.scans)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
@@ -293,15 +296,21 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
 
 
 def _add_build_map(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run")
+    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run "
+                       "or a CARMEN laser log, with the localizer's precomputed lookups")
     p.add_argument("run", help="run directory with kinect/, a TUM RGB-D or slambook2 folder, or a CARMEN log")
     p.add_argument("--out", required=True, help="map directory to write")
     p.add_argument("--poses", default="groundtruth",
                    help="mapping poses: 'groundtruth' (default) or 'slam:PATH_TO_TUM' (a SLAM trajectory)")
     p.add_argument("--resolution", type=_positive, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
     p.add_argument("--feature-every", type=_positive_int, default=None, help="SIFT on every n-th frame (default 1)")
+    p.add_argument("--scans", choices=("all", "even", "odd"), default="all",
+                   help="laser logs: map from all, the even or the odd scans (the others left for localization)")
+    p.add_argument("--no-tables", action="store_true",
+                   help="do not precompute the localizer's range table and distance field")
     _add_force(p)
-    p.add_argument("--config", default=None, help="TOML/YAML file with an [envmap] table ([envmap.depth], ...)")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with an [envmap] table ([envmap.depth], [envmap.laser], [envmap.tables], ...)")
     p.set_defaults(func=_cmd_build_map)
 
 
