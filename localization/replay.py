@@ -178,7 +178,7 @@ def localize_run(
     config = replace(config, head_for_open_space=False)
     robot = ReplayRobot(run_dir)
     cam = robot.run.rig.camera
-    maps = EnvironmentMaps.from_env_map(env, cam.body_t_camera, cam)
+    maps = EnvironmentMaps.from_env_map(env, cam.body_t_camera, cam, cache_dir=Path(map_dir))
     result = localize(robot, maps, config, np.random.default_rng(seed))
     path = write_result(result, out_dir, score_run(robot, result))
     log.info("localization %s: result in %s", "succeeded" if result.success else "failed", path)
