@@ -51,7 +51,7 @@ from lampsam.localization.localizer import localize
 from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.raycast import cast_rays, distance_field
 from lampsam.localization.replay import kinect_turn_data
-from lampsam.localization.result import LocalizationResult
+from lampsam.localization.result import LocalizationResult, json_safe
 from lampsam.localization.spatial_map import make_sift
 
 log = logging.getLogger(__name__)
@@ -172,6 +172,9 @@ def trial_row(
         "truth": robot.pose.tolist(),
         "pose": [float(v) for v in res.pose],
         "claimed_success": res.success,
+        "status": res.status,
+        "correct_pose": bool(e_xy <= SUCCESS_XY and e_th <= SUCCESS_THETA),
+        "evidence": json_safe(res.evidence),
         "success": trial_success(res.success, e_xy, e_th, total),
         "error_m": e_xy,
         "error_deg": math.degrees(e_th),

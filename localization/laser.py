@@ -15,7 +15,7 @@ Frames: scan beams are in the laser frame (rad, CCW from forward), poses are
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -77,6 +77,7 @@ class LaserEstimate:
         margin: the likelihood-ratio margin over the best competitor (nats).
         competitor: (3,) the best competitor's pose at the last scan, or None.
         scans_used: scans used.
+        score: the estimate's fit, log-likelihood per used beam (nats).
     """
 
     pose: FloatArray
@@ -89,6 +90,7 @@ class LaserEstimate:
     margin: float = math.nan
     competitor: FloatArray | None = None
     scans_used: int = 0
+    score: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,8 @@ class LaserAcceptConfig:
         min_margin: accept (``localized``) when the estimate's joint scan
             log-likelihood exceeds the best competing hypothesis' by this many
             nats (tempered). Calibrated on tuning trials (docs/localization.md).
+        min_score: and when the scans fit the map at the estimate: joint
+            log-likelihood per used beam (nats, untempered) at least this.
         modes: competing hypotheses: the distinct modes of the first update.
         separation: two hypotheses are distinct when this far apart (m, rad).
         refine: half-width of the grid search refining each hypothesis'
@@ -108,6 +112,7 @@ class LaserAcceptConfig:
     """
 
     min_margin: float = 8.0
+    min_score: float = 0.45
     modes: int = 8
     separation: tuple[float, float] = (1.0, 0.5)
     refine: tuple[float, float] = (0.2, 0.1)
@@ -156,7 +161,7 @@ def chain_log_likelihood(
 def hypothesis_margin(
     model: LikelihoodFieldModel, ranges: FloatArray, angles: FloatArray, odom: FloatArray,
     estimate: FloatArray, first_modes: FloatArray, accept: LaserAcceptConfig,
-) -> tuple[float, FloatArray | None]:
+) -> tuple[float, FloatArray | None, float, FloatArray]:
     """The estimate's joint log-likelihood margin over the best distinct competing hypothesis.
 
     The estimate (at the last scan) and every first-update mode (at the first
@@ -164,11 +169,17 @@ def hypothesis_margin(
     a small grid search, and scored on all scans jointly.
 
     Returns:
-        The margin (nats; +inf without a competitor) and the competitor's pose at
-        the last scan (or None).
+        The margin (nats; +inf without a competitor), the competitor's pose at
+        the last scan (or None), and the estimate's fit: its joint
+        log-likelihood per used beam (nats, untempered), and the estimate
+        refined by the grid search (two levels) at the last scan (3,).
     """
     last = len(odom) - 1
     ll_est, a_est = chain_log_likelihood(model, estimate, last, odom, ranges, angles, accept)
+    fine = replace(accept, refine=(accept.refine[0] / 4, accept.refine[1] / 4))
+    ll_est, a_est = chain_log_likelihood(model, a_est, last, odom, ranges, angles, fine)
+    n_beams = max(int(np.count_nonzero(np.isfinite(ranges) & (ranges < model.config.max_range))), 1)
+    score = ll_est / (model.config.beam_weight * n_beams)
     best_ll, best_pose = -math.inf, None
     for m in np.asarray(first_modes).reshape(-1, 3):
         ll, a = chain_log_likelihood(model, m, 0, odom, ranges, angles, accept)
@@ -178,8 +189,8 @@ def hypothesis_margin(
         if ll > best_ll:
             best_ll, best_pose = ll, at_last
     if best_pose is None:
-        return math.inf, None
-    return ll_est - best_ll, best_pose
+        return math.inf, None, score, a_est
+    return ll_est - best_ll, best_pose, score, a_est
 
 
 def _near(a: FloatArray, b: FloatArray, separation: tuple[float, float]) -> bool:
@@ -224,7 +235,8 @@ def localize_scans(
     pf = ParticleFilter(model, config.pf, rng)
     pf.init_uniform(grid, config.particles)
     first_modes = np.zeros((0, 3))
-    margin, competitor = math.nan, None
+    margin, competitor, score = math.nan, None, math.nan
+    refined = np.full(3, np.nan)
     k = 0
     while True:
         if k > 0:
@@ -236,16 +248,22 @@ def localize_scans(
         k += 1
         if k >= k_min:
             mean, _ = pf.estimate()
-            margin, competitor = hypothesis_margin(model, ranges[:k], angles, odom[:k], mean,
-                                                   first_modes, accept)  # fmt: skip
-            if (margin >= accept.min_margin and pf.converged()) or k >= k_max:
+            margin, competitor, score, refined = hypothesis_margin(model, ranges[:k], angles, odom[:k],
+                                                          mean, first_modes, accept)  # fmt: skip
+            if _accepted(pf.converged(), margin, score, accept) or k >= k_max:
                 break
         pf.resample_if_needed()
     mean, cov = pf.estimate()
     sxy, sth = pf.spread()
     converged = bool(pf.converged())
-    status = ("localized" if converged and margin >= accept.min_margin
+    if np.all(np.isfinite(refined)):
+        mean = refined  # the joint scan match of the last scans refines the particles' mean
+    status = ("localized" if _accepted(converged, margin, score, accept)
               else "ambiguous" if converged else "failed")  # fmt: skip
     return LaserEstimate(np.asarray(mean, dtype=float), np.asarray(cov, dtype=float), converged,
                          float(sxy), float(sth), int(pf.n), status, float(margin), competitor,
-                         k)  # fmt: skip
+                         k, float(score))  # fmt: skip
+
+
+def _accepted(converged: bool, margin: float, score: float, accept: LaserAcceptConfig) -> bool:
+    return bool(converged and margin >= accept.min_margin and score >= accept.min_score)
