@@ -158,6 +158,30 @@ def chain_log_likelihood(
     return float(total[i]), anchors[i]
 
 
+def scan_fit(
+    model: LikelihoodFieldModel, poses: FloatArray, ranges: FloatArray, angles: FloatArray,
+    accept: LaserAcceptConfig,
+) -> float:
+    """How well the scans fit the map near ``poses``: log-likelihood per used beam (nats, untempered).
+
+    Each scan is matched on its own over the small grid of
+    :attr:`LaserAcceptConfig.refine` around its pose, so that odometry drift
+    along a hypothesis does not lower the fit (Cartographer's ``min_score`` of a
+    scan match, with the beam model's likelihood as the score).
+    """
+    n = accept.refine_steps
+    dxy, dth = accept.refine
+    g = np.linspace(-1.0, 1.0, n)
+    ox, oy, ot = np.meshgrid(g * dxy, g * dxy, g * dth, indexing="ij")
+    offsets = np.column_stack([ox.ravel(), oy.ravel(), ot.ravel()])
+    total, n_beams = 0.0, 0
+    for k in range(len(poses)):
+        ll = model.log_likelihood(np.asarray(poses[k], dtype=float) + offsets, ranges[k], angles)
+        total += float(np.max(ll))
+        n_beams += int(np.count_nonzero(np.isfinite(ranges[k]) & (ranges[k] < model.config.max_range)))
+    return total / (model.config.beam_weight * max(n_beams, 1))
+
+
 def hypothesis_margin(
     model: LikelihoodFieldModel, ranges: FloatArray, angles: FloatArray, odom: FloatArray,
     estimate: FloatArray, first_modes: FloatArray, accept: LaserAcceptConfig,
@@ -178,8 +202,7 @@ def hypothesis_margin(
     ll_est, a_est = chain_log_likelihood(model, estimate, last, odom, ranges, angles, accept)
     fine = replace(accept, refine=(accept.refine[0] / 4, accept.refine[1] / 4))
     ll_est, a_est = chain_log_likelihood(model, a_est, last, odom, ranges, angles, fine)
-    n_beams = max(int(np.count_nonzero(np.isfinite(ranges) & (ranges < model.config.max_range))), 1)
-    score = ll_est / (model.config.beam_weight * n_beams)
+    score = scan_fit(model, chain(a_est, last, odom), ranges, angles, accept)
     best_ll, best_pose = -math.inf, None
     for m in np.asarray(first_modes).reshape(-1, 3):
         ll, a = chain_log_likelihood(model, m, 0, odom, ranges, angles, accept)
