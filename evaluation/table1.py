@@ -2,7 +2,7 @@
 
 1. **Mapping**: the Kinect zig-zag drive of the office
    (:func:`lampsam.datasets.kinect_sim.simulate_kinect_run`) and the environment
-   map built from it with the true poses (:func:`lampsam.localization.envmap.build_map`),
+   map built from it with the true poses (:func:`lampsam.localization.map_build.build_map`),
    both cached in ``work``.
 2. **Trials** in the *changed* office (all of the world's ``changes``: furniture
    moved and removed, pictures taken down): random start poses with at least
@@ -44,11 +44,13 @@ from lampsam.datasets.steerable_robot import CeilingLandmarkSensor, SimulatedRob
 from lampsam.errors import DatasetError
 from lampsam.evaluation.table1_report import read_rows, write_report
 from lampsam.factors.geometry import wrap_angle
-from lampsam.localization.envmap import build_map, footprint_mask, load_env_map
 from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
 from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.localizer import localize
+from lampsam.localization.map_build import build_map
 from lampsam.localization.map_layers import EnvironmentMaps
+from lampsam.localization.map_quality import footprint_mask
+from lampsam.localization.map_store import load_env_map
 from lampsam.localization.raycast import cast_rays, distance_field
 from lampsam.localization.replay import kinect_turn_data
 from lampsam.localization.result import LocalizationResult, json_safe

@@ -2,7 +2,7 @@
 
 :class:`EnvironmentMaps` holds the grid map, the spatial (SIFT) feature map and
 the ceiling feature map, adapted from a map directory
-(:func:`lampsam.localization.envmap.load_env_map`) or built directly (tests,
+(:func:`lampsam.localization.map_store.load_env_map`) or built directly (tests,
 experiments). It also owns the map's precomputed expected-range table, which
 is map preparation: built once on first use and reused by every localization
 on the same maps object (and stored in the map directory when one is given).
@@ -24,7 +24,7 @@ from lampsam.localization.grid import OccupancyGrid, occupied_mask
 from lampsam.localization.raycast import RangeTable
 
 if TYPE_CHECKING:
-    from lampsam.localization.envmap import EnvironmentMap
+    from lampsam.localization.map_store import EnvironmentMap
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ class EnvironmentMaps:
         cls, env: EnvironmentMap, body_t_camera: FloatArray, camera: Any = None,
         cache_dir: Path | None = None,
     ) -> EnvironmentMaps:
-        """Adapt a loaded map directory (:func:`lampsam.localization.envmap.load_env_map`).
+        """Adapt a loaded map directory (:func:`lampsam.localization.map_store.load_env_map`).
 
         Args:
             env: the map; a missing spatial or ceiling layer gives empty arrays

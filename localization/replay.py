@@ -158,7 +158,7 @@ def localize_run(
 
     Args:
         run_dir: the run (see :class:`ReplayRobot`).
-        map_dir: the environment map (``lampsam.localization.envmap``).
+        map_dir: the environment map (``lampsam.localization.map_store``).
         out_dir: where ``result.json`` goes.
         config: the pipeline configuration.
         seed: seed of RANSAC and the particle filter.
@@ -171,7 +171,7 @@ def localize_run(
     Raises:
         LampsamError subclasses: unreadable run or map, no usable data.
     """
-    from lampsam.localization.envmap import load_env_map
+    from lampsam.localization.map_store import load_env_map
 
     env = load_env_map(map_dir)
     # a log cannot be steered: the recorded drive decides where the robot went
