@@ -31,6 +31,7 @@ from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
     from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.kinect_sim import KinectConfig
     from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
@@ -234,6 +235,25 @@ def _add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------- kinect-sim, build-map, show-map
+def _kinect_localization_run(args: argparse.Namespace, cfg: KinectConfig, out: Path) -> Path:
+    import numpy as np
+
+    from lampsam.datasets.localization_run import LocalizationDrive, simulate_localization_run
+
+    start = None
+    if args.localize_from != "random":
+        try:
+            start = np.array([float(v) for v in args.localize_from.split(",")])
+            if len(start) != 3:
+                raise ValueError("need three values")
+        except ValueError as exc:
+            raise LampsamError(f"--localize-from {args.localize_from!r}: X,Y,THETA or random ({exc})") from exc
+    if args.rounds < 1:
+        raise LampsamError(f"--rounds must be at least 1, got {args.rounds}")
+    return simulate_localization_run(args.world, out, start, seed=args.seed, config=cfg,
+                                     drive=LocalizationDrive(rounds=args.rounds), changed=args.changed)
+
+
 def _cmd_kinect_sim(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -243,6 +263,9 @@ def _cmd_kinect_sim(args: argparse.Namespace) -> int:
     cfg = load_config(KinectConfig, _config_path(args), table="kinect")
     given = {"width": args.width, "height": args.height, "rate_hz": args.rate}
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
+    if args.localize_from is not None:
+        print(f"Kinect localization run written to {_kinect_localization_run(args, cfg, _out_dir(args))}")
+        return 0
     out = simulate_kinect_run(args.world, _out_dir(args), seed=args.seed, config=cfg, duration=args.duration,
                               ceiling_images=args.ceiling)
     print(f"Kinect mapping run written to {out}")
@@ -262,6 +285,13 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [kinect] table (KinectConfig; the options above override it)")
     p.add_argument("--ceiling", action="store_true", help="also render the ceiling camera (the ceiling simulator)")
+    p.add_argument("--localize-from", default=None, metavar="X,Y,THETA|random",
+                   help="instead of the mapping drive: a global-localization run from this true start (m, m, rad) "
+                        "or a random one: full turns in place, each followed by a drive (for `lampsam localize`)")
+    p.add_argument("--rounds", type=int, default=4,
+                   help="with --localize-from: full turns, each followed by a drive (default 4: 3 restarts)")
+    p.add_argument("--changed", action="store_true",
+                   help="with --localize-from: apply the world's scene changes (moved furniture, as in Table 1)")
     p.set_defaults(func=_cmd_kinect_sim)
 
 
@@ -527,8 +557,37 @@ def _add_batch(sub: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------- localize
+def _localize_laser_log(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.evaluation.laser_trials import LaserTrialsConfig, laser_trials, write_json
+
+    if args.scans not in ("odd", "even", "all"):
+        raise LampsamError(f"--scans must be odd, even or all, not {args.scans!r}")
+    if args.trials < 1 or args.updates < 1:
+        raise LampsamError("--trials and --updates must be at least 1")
+    if not Path(args.run).is_file():
+        raise LampsamError(f"{args.run}: CARMEN log not found")
+    if not Path(args.map).is_dir():
+        raise LampsamError(f"{args.map}: map directory not found")
+    out = _out_dir(args)
+    cfg = dataclasses.replace(LaserTrialsConfig(), trials=args.trials, updates=args.updates,
+                              seed=args.seed, scans=args.scans)
+    result = laser_trials(Path(args.run), cfg, progress=args.verbose > 0, map_dir=Path(args.map))
+    path = write_json(result, out / "result.json")
+    s = result["summary"]
+    assert isinstance(s, dict)
+    print(f"{s['trials']} trials: {s['localized']} localized ({s['correct']} correct, "
+          f"{s['wrong_accepted']} wrong), {s['ambiguous']} ambiguous, {s['failed']} failed; "
+          f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s per trial; {path}")
+    return 0 if s["wrong_accepted"] == 0 else 1
+
+
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
+
+    if args.run.endswith((".log", ".log.gz")):
+        return _localize_laser_log(args)
 
     from lampsam.config_loader import load_config
     from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
@@ -552,14 +611,14 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     with live_view(target, f"localize {cfg.mode.value} {args.run}", run=run, kind="localize"):
         result = localize_run(Path(args.run), Path(args.map), out, cfg, seed=args.seed)
     x, y, th = result.pose
-    print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
-          f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
-    return 0 if result.success else 1
+    print(f"{result.status} after {result.restarts} restart(s): x {x:.3f} m, y {y:.3f} m, "
+          f"heading {math.degrees(th):.1f} deg; {out / 'result.json'}")
+    return 0 if result.status == "localized" else 1
 
 
 def _add_localize(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("localize", help="global localization of a run on an environment map")
-    p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images")
+    p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images, or a CARMEN log (.log, .log.gz)")
     p.add_argument("--map", required=True, help="environment map directory (build-map)")
     p.add_argument("--out", required=True, help="output directory for result.json")
     p.add_argument("--mode", default=None, choices=["grid_only", "no_ceiling", "proposed", "ours"],
@@ -572,6 +631,10 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
                    help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
                         "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
+    p.add_argument("--scans", default="odd", help="CARMEN log: scans the trials use: odd (default), even or all")
+    p.add_argument("--trials", type=int, default=50, help="CARMEN log: trials from evenly spread scans (default 50)")
+    p.add_argument("--updates", type=int, default=4,
+                   help="CARMEN log: scans before the first acceptance test (more follow while ambiguous; default 4)")
     p.set_defaults(func=_cmd_localize)
 
 
