@@ -327,6 +327,24 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
 
 # --------------------------------------------------------------------------- frontend-eval
 def _cmd_frontend_eval(args: argparse.Namespace) -> int:
+    if args.photos is not None or args.labels is not None:
+        if args.photos is None or args.labels is None or args.run is not None:
+            raise LampsamError("frontend-eval: give RUN, or both --photos DIR and --labels FILE")
+        from lampsam.evaluation.photo_eval import (
+            PhotoEvalSettings,
+            evaluate_photos,
+            format_table,
+            write_scores,
+        )
+
+        settings = PhotoEvalSettings(width=args.width)
+        scores = evaluate_photos(Path(args.photos), Path(args.labels), settings)
+        print(format_table(scores))
+        if args.out is not None:
+            write_scores(scores, Path(args.out), settings)
+        return 0
+    if args.run is None:
+        raise LampsamError("frontend-eval: give RUN, or both --photos DIR and --labels FILE")
     from lampsam.evaluation.frontend_eval import evaluate_run
 
     res = evaluate_run(Path(args.run), out=args.out, max_frames=args.max_frames)
@@ -336,10 +354,18 @@ def _cmd_frontend_eval(args: argparse.Namespace) -> int:
 
 def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "frontend-eval", help="measure the ceiling frontend against a simulated run's truth"
+        "frontend-eval",
+        help="measure the ceiling frontend against a simulated run's truth or labelled photos",
     )
-    p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
-    p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
+    p.add_argument("run", nargs="?", default=None,
+                   help="simulated run directory (with truth/projections.csv)")
+    p.add_argument("--photos", default=None, help="folder of real ceiling photos")
+    p.add_argument("--labels", default=None,
+                   help="label file of those photos (tests/data/ceiling_photo_labels.json)")
+    p.add_argument("--width", type=int, default=320,
+                   help="photos: working image width in px (default 320)")
+    p.add_argument("--out", default=None,
+                   help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
     p.set_defaults(func=_cmd_frontend_eval)
 
