@@ -347,7 +347,9 @@ def _cmd_frontend_eval(args: argparse.Namespace) -> int:
         raise LampsamError("frontend-eval: give RUN, or both --photos DIR and --labels FILE")
     from lampsam.evaluation.frontend_eval import evaluate_run
 
-    res = evaluate_run(Path(args.run), out=args.out, max_frames=args.max_frames)
+    res = evaluate_run(
+        Path(args.run), out=args.out, max_frames=args.max_frames, lamp_models=args.lamp_models
+    )
     print(res.summary())
     return 0 if all(res.targets_met.values()) else 1
 
@@ -367,6 +369,8 @@ def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None,
                    help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    p.add_argument("--lamp-models", action="store_true",
+                   help="RUN: reject blobs whose size and shape fit none of the run's lamps")
     p.set_defaults(func=_cmd_frontend_eval)
 
 

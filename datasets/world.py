@@ -26,6 +26,8 @@ A world is a YAML mapping (built-in ones live in ``datasets/worlds/``)::
            yaw_deg: 0, brightness: 320}
         - {id: 2, shape: round, center: [x, y], height: 2.7, diameter: 0.35}
         - {id: 3, shape: square, center: [x, y], height: 2.7, size: 0.6, yaw_deg: 0}
+      openings:               # daylight: skylights and windows (lampsam.datasets.openings)
+        - {kind: skylight, center: [x, y], size: [sx, sy], height: 2.9, brightness: 240}
 
 Unknown top-level sections (e.g. ``scene3d`` of the office world) are kept in
 :attr:`World.extra`, never rejected. Unknown keys inside the sections above are
@@ -50,6 +52,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.datasets.logrun import LandmarkTable, Rig, _read_yaml
+from lampsam.datasets.openings import OPENING_KEYS, Opening, parse_opening
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -242,6 +245,7 @@ class World:
         simulation: rates.
         corner_id_start: first id of derived corner landmarks.
         description: free text.
+        openings: daylight openings (skylights, windows), not landmarks.
         extra: unknown top-level sections, kept as parsed (e.g. ``scene3d``).
     """
 
@@ -258,6 +262,7 @@ class World:
     corner_id_start: int = 1000
     description: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    openings: tuple[Opening, ...] = ()
 
 
 # --------------------------------------------------------------------------- parsing
@@ -444,7 +449,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         raise ctx.fail("path.waypoints", "must be finite")
     start = pd.get("start_heading_deg")
     cd = doc.get("ceiling") or {}
-    _check_keys(ctx, cd, "ceiling", {"surfaces", "lamps", "corner_id_start"}, set())
+    _check_keys(ctx, cd, "ceiling", {"surfaces", "lamps", "corner_id_start", "openings"}, set())
     surfaces = tuple(
         _parse_surface(ctx, s, f"ceiling.surfaces[{k}]")
         for k, s in enumerate(cd.get("surfaces") or [])
@@ -452,6 +457,19 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
     lamps = tuple(
         _parse_lamp(ctx, s, f"ceiling.lamps[{k}]") for k, s in enumerate(cd.get("lamps") or [])
     )
+    openings = []
+    for k, od in enumerate(cd.get("openings") or []):
+        where = f"ceiling.openings[{k}]"
+        _check_keys(ctx, od, where, OPENING_KEYS, {"kind", "center", "size", "height"})
+        openings.append(
+            parse_opening(
+                od,
+                where,
+                lambda d, key, w, default=None, **kw: _num(ctx, d, key, w, default, **kw),
+                lambda value, n, w: _vec(ctx, value, n, w),
+                ctx.fail,
+            )
+        )
     ids = [lp.id for lp in lamps]
     if len(set(ids)) != len(ids):
         raise ctx.fail("ceiling.lamps", "duplicate lamp ids")
@@ -479,6 +497,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         corner_id_start=corner_start,
         description=str(doc.get("description", "")),
         extra={k: v for k, v in doc.items() if k not in _KNOWN_TOP},
+        openings=tuple(openings),
     )
 
 
@@ -582,6 +601,8 @@ def world_landmarks(world: World) -> LandmarkTable:
             for lp in world.lamps:
                 if abs(lp.height - s.height) < 1e-6:
                     keep &= ~lp.contains(g, 0.05)
+            for op in world.openings:  # no tile grid across the sky
+                keep &= ~op.contains(g, 0.05)
             pts.append(g[keep])
         for it in s.items:
             if it.kind == "rect" and it.corners:
