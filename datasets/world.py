@@ -4,7 +4,8 @@ A world is a YAML mapping (built-in ones live in ``datasets/worlds/``)::
 
     name: lab
     rig:                      # as rig.yaml; the camera may give hfov_deg instead of fx..cy
-      camera: {width: 320, height: 240, hfov_deg: 120, body_t_camera: [0.1, 0, 0.3]}
+      camera: {width: 320, height: 240, hfov_deg: 120, body_t_camera: [0.1, 0, 0.3],
+               mount_rpy_deg: [0, 0, 0]}   # optional tilt (lampsam.datasets.mounting)
       odometry: {wheel_base: 0.4, k_r: 2.0e-5, k_l: 2.0e-5}
     render: {supersample: 2, texel: 0.005, noise_sigma: 2.0, bloom: 0.0, background: 60}
     simulation: {odometry_rate_hz: 30, image_rate_hz: 15}
@@ -51,7 +52,8 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.datasets.logrun import LandmarkTable, Rig, _read_yaml
+from lampsam.datasets.logrun import DEFAULT_BODY_R_CAMERA, LandmarkTable, Rig, _read_yaml
+from lampsam.datasets.mounting import mounted
 from lampsam.datasets.openings import OPENING_KEYS, Opening, parse_opening
 from lampsam.errors import DatasetError
 
@@ -281,6 +283,25 @@ class _Ctx:
         return DatasetError(f"{where}: {msg}", self.path)
 
 
+def _with_mount(ctx: _Ctx, rig: Any) -> Any:
+    """The rig mapping with ``camera.mount_rpy_deg`` turned into ``body_R_camera``.
+
+    See :mod:`lampsam.datasets.mounting`; other rigs are returned unchanged.
+    """
+    if not isinstance(rig, Mapping) or not isinstance(rig.get("camera"), Mapping):
+        return rig
+    cam = dict(rig["camera"])
+    if "mount_rpy_deg" not in cam:
+        return rig
+    rpy = _vec(ctx, cam.pop("mount_rpy_deg"), 3, "rig.camera.mount_rpy_deg")
+    up = cam.get("body_R_camera", DEFAULT_BODY_R_CAMERA)
+    try:
+        cam["body_R_camera"] = mounted(np.asarray(up, dtype=np.float64).reshape(3, 3), rpy).tolist()
+    except ValueError as exc:
+        raise ctx.fail("rig.camera.body_R_camera", f"expected a 3x3 matrix, got {up!r}") from exc
+    return {**rig, "camera": cam}
+
+
 def _check_keys(ctx: _Ctx, d: Any, where: str, allowed: set[str], required: set[str]) -> None:
     """DatasetError unless ``d`` is a mapping with the required and only allowed keys."""
     if not isinstance(d, Mapping):
@@ -417,7 +438,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
     ctx = _Ctx(source)
     if not isinstance(doc, Mapping):
         raise ctx.fail("world", "must be a mapping")
-    rig = Rig.from_dict(doc.get("rig") or {}, source)
+    rig = Rig.from_dict(_with_mount(ctx, doc.get("rig") or {}), source)
     rd = doc.get("render") or {}
     _check_keys(ctx, rd, "render", {"supersample", "texel", "noise_sigma", "bloom", "bloom_sigma",
                                     "background"}, set())  # fmt: skip
