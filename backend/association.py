@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -92,11 +92,11 @@ def patch_ncc(a: np.ndarray | None, b: np.ndarray | None) -> float:
 
 def associate(
     observations: list[Obs],
-    candidates: dict[str, Iterable[int]],
+    candidates: Mapping[str, Iterable[int]],
     innovation: InnovationFn,
     config: AssociationConfig,
     existing: Callable[[int], bool],
-    patches: dict[int, np.ndarray] | None = None,
+    patches: Mapping[int, np.ndarray | None] | None = None,
     screened: dict[int, dict[int, tuple[float, bool]]] | None = None,
 ) -> list[Assignment]:
     """Associate one frame's observations with the map (paper eqs. 19-20, NCC for corners).

@@ -15,7 +15,7 @@ position.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from lampsam.factors.ceiling import (
     project_point,
 )
 from lampsam.factors.geometry import FactorError, wrap_axis
+
+if TYPE_CHECKING:  # models.py imports this module: the record type for annotations only
+    from lampsam.backend.models import Obs
 
 #: Smallest usable height of a landmark above the camera, m (conventions.md).
 MIN_USABLE_HEIGHT = 0.1
@@ -52,8 +55,9 @@ class CeilingModel:
         w, h = camera.width, camera.height
         corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1],
                             [w / 2, 0], [0, h / 2], [w - 1, h / 2], [w / 2, h - 1]], float)
-        m = camera.normalized_from_pixels(corners)
-        return cls(camera.body_t_camera, float(np.max(np.linalg.norm(m, axis=1))))
+        r = np.linalg.norm(camera.normalized_from_pixels(corners), axis=1)
+        # NaN: a (fisheye) border pixel sees at or beyond the horizon; no bound on |m|
+        return cls(camera.body_t_camera, math.inf if np.isnan(r).any() else float(np.max(r)))
 
     def predict(self, pose: FloatArray, state: FloatArray, with_axis: bool
                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -82,7 +86,7 @@ class CeilingModel:
         h_l[2, 3] = a_D_phi[0, 0]
         return np.array([m[0], m[1], alpha]), np.vstack([m_D_pose, a_D_pose]), h_l
 
-    def initialize(self, pose: FloatArray, obs: Any, prior: HeightPrior
+    def initialize(self, pose: FloatArray, obs: Obs, prior: HeightPrior
                    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Undelayed initialisation along the viewing ray at the prior height (eqs. 24-25).
 
@@ -221,7 +225,7 @@ class CeilingModel:
         if not np.all(np.isfinite(cov_s)) or np.min(np.linalg.eigvalsh(cov_s)) < 0:
             cov_s = 1e6 * np.eye(3)
         point = np.array([sol[0], sol[1], sol[2] + o[2]])
-        return point, cov_s
+        return point.astype(float), np.asarray(cov_s, dtype=np.float64)
 
     def world_position(self, state: FloatArray) -> FloatArray:
         """(3,) world position of a landmark state, m."""

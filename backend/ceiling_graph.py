@@ -10,10 +10,8 @@ no information and is held by a prior). Factors:
   built-in ``BetweenFactorPose2`` with zero precision on ``x, y``, plus one
   :func:`~lampsam.factors.gtsam_factors.axis_anchor_prior` per lamp. It replaced one
   ``CustomFactor`` per keyframe (:func:`~lampsam.factors.gtsam_factors.lamp_axis_frame_factor`):
-  each Python callback from inside an optimiser copies the whole ``Values``, so their
-  cost grew with the run. On the whole lab path (2,601 frames, frontend images, a
-  keyframe per frame) one LM iteration went from 1.7 s to 0.3 s, with the same error
-  at every iteration;
+  each Python callback from inside an optimiser copies the whole ``Values``, so its
+  cost grows with the run (measured: docs/graph-backend.md);
 - the 0-5 m height prior on every point:
   :func:`~lampsam.factors.gtsam_factors.height_prior_factor`.
 
@@ -30,8 +28,6 @@ The EKF-form state (:mod:`lampsam.backend.ceiling`) is ``(x, y, z)`` or
 
 from __future__ import annotations
 
-from typing import Any
-
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import A, L, X
@@ -39,6 +35,17 @@ from gtsam.symbol_shorthand import A, L, X
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.handlers import (
+    FactorSink,
+    GraphLandmark,
+    MarginalSource,
+    PoseSource,
+    ValueSink,
+    ValueSource,
+)
+from lampsam.backend.interface import LandmarkKind
+from lampsam.backend.models import Obs
+from lampsam.errors import EstimationError
 from lampsam.factors.geometry import wrap_axis
 from lampsam.factors.gtsam_factors import (
     AxisObservation,
@@ -50,7 +57,7 @@ from lampsam.factors.gtsam_factors import (
 
 
 class CeilingHandler:
-    """Graph handler for ``lamp`` and ``corner`` landmarks (see module docstring).
+    """Graph handler (:class:`~lampsam.backend.handlers.LandmarkHandler`) for ``lamp`` and ``corner`` landmarks (see module docstring).
 
     Args:
         model: the rig's ceiling model (camera offset).
@@ -63,10 +70,10 @@ class CeilingHandler:
         self._phi0: dict[int, float] = {}
 
     @staticmethod
-    def _oriented(lm: Any) -> bool:
-        return bool(lm.kind == "lamp" and len(lm.state) == 4)
+    def _oriented(lm: GraphLandmark) -> bool:
+        return bool(lm.kind == LandmarkKind.LAMP and len(lm.state) == 4)
 
-    def insert(self, lm: Any, values: Any) -> None:
+    def insert(self, lm: GraphLandmark, values: ValueSink) -> None:
         """Insert ``L(j)`` (and ``A(j)``) with the landmark's current estimate."""
         values.insert(L(lm.id), np.asarray(lm.state[:3], float))
         if self._oriented(lm):
@@ -74,14 +81,15 @@ class CeilingHandler:
             self._phi0[A(lm.id)] = phi
             values.insert(A(lm.id), gtsam.Pose2(float(lm.state[0]), float(lm.state[1]), phi))
 
-    def priors(self, lm: Any, graph: Any, pose_of: Any, config: SlamConfig) -> None:
+    def priors(self, lm: GraphLandmark, graph: FactorSink, pose_of: PoseSource,
+               config: SlamConfig) -> None:
         """The height prior on ``L(j)`` (eqs. 24-25's 0-5 m range); an axis's anchor."""
         graph.add(height_prior_factor(L(lm.id), lm.state[:2], self.model.body_t_camera,
                                       config.association.height_prior()))
         if self._oriented(lm):
             graph.add(axis_anchor_prior(A(lm.id), lm.state[:2], float(lm.state[3])))
 
-    def factors(self, lm: Any, k: int, obs: Any, robust: float | None
+    def factors(self, lm: GraphLandmark, k: int, obs: Obs, robust: float | None
                 ) -> list[gtsam.NonlinearFactor]:
         """Projection factor; an axis observation is buffered for :meth:`flush`."""
         if self._oriented(lm) and obs.has_axis:
@@ -90,7 +98,7 @@ class CeilingHandler:
         return [projection_factor(X(k), L(lm.id), obs.z[:2], obs.R[:2, :2],
                                   self.model.body_t_camera, robust)]
 
-    def flush(self, robust: float | None, pose_of: Any) -> list[gtsam.NonlinearFactor]:
+    def flush(self, robust: float | None, pose_of: PoseSource) -> list[gtsam.NonlinearFactor]:
         """The buffered axis observations as factors.
 
         Args:
@@ -107,15 +115,18 @@ class CeilingHandler:
         self._axis = {}
         return out
 
-    def read(self, lm: Any, get: Any) -> FloatArray:
+    def read(self, lm: GraphLandmark, get: ValueSource) -> FloatArray:
         """EKF-form state from an estimate source ``get(key, kind)``."""
         p = np.asarray(get(L(lm.id), "point3"), float)
         if self._oriented(lm):
-            phi = float(wrap_axis(get(A(lm.id), "pose2").theta()))
+            axis = get(A(lm.id), "pose2")
+            if not isinstance(axis, gtsam.Pose2):
+                raise EstimationError(f"lamp axis A({lm.id}) is not a Pose2")
+            phi = float(wrap_axis(axis.theta()))
             return np.array([*p, phi])
         return p
 
-    def marginal(self, lm: Any, marginal_of: Any) -> FloatArray:
+    def marginal(self, lm: GraphLandmark, marginal_of: MarginalSource) -> FloatArray:
         """``blockdiag(cov(L), var(A))`` from a marginal-covariance source."""
         c = np.asarray(marginal_of(L(lm.id)))
         if not self._oriented(lm):
@@ -125,10 +136,10 @@ class CeilingHandler:
         out[3, 3] = float(np.asarray(marginal_of(A(lm.id)))[2, 2])
         return out
 
-    def state_index(self, lm: Any) -> list[int]:
+    def state_index(self, lm: GraphLandmark) -> list[int]:
         """Rows of the EKF-form state in the tangent of :meth:`keys` (``L``: 3, ``A``: 3)."""
         return [0, 1, 2, 5] if self._oriented(lm) else [0, 1, 2]
 
-    def keys(self, lm: Any) -> list[int]:
+    def keys(self, lm: GraphLandmark) -> list[int]:
         """Graph keys of the landmark."""
         return [L(lm.id), A(lm.id)] if self._oriented(lm) else [L(lm.id)]

@@ -28,7 +28,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -47,23 +47,17 @@ from lampsam.backend.models import (
     Obs,
     for_landmark,
     initialize,
+    landmark_estimate,
     observations_from_frame,
     predict,
     residual,
 )
+from lampsam.backend.odometry import WheelParams, check_wheel
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
 
 log = logging.getLogger(__name__)
-
-
-class WheelParams(Protocol):
-    """What the backends need of the odometry model (``lampsam.datasets.logrun.OdometryModel``)."""
-
-    wheel_base: float
-    k_r: float
-    k_l: float
 
 
 @dataclass
@@ -91,25 +85,6 @@ def _max_sigma_2x2(cov: FloatArray) -> float:
     a, b, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
     lam = 0.5 * (a + d) + math.sqrt(max(0.25 * (a - d) ** 2 + b * b, 0.0))
     return math.sqrt(max(lam, 0.0))
-
-
-def check_wheel(t: float, wheel: FloatArray) -> FloatArray:
-    """Validate a step's wheel travels.
-
-    Args:
-        t: step time, s (for the message).
-        wheel: (K, 2) ``(d_left, d_right)`` travels, m.
-
-    Returns:
-        The travels as a float (K, 2) array.
-
-    Raises:
-        EstimationError: wrong shape or NaN / inf.
-    """
-    arr = np.asarray(wheel, dtype=float).reshape(-1, 2)
-    if not np.all(np.isfinite(arr)):
-        raise EstimationError(f"t={t:.3f} s: odometry increment is NaN or inf")
-    return arr
 
 
 class EkfSlam(SlamBackend):
@@ -521,22 +496,3 @@ class EkfSlam(SlamBackend):
             status=status,
             n_pruned=self.n_pruned,
         )
-
-
-def landmark_estimate(lid: int, kind: str, state: FloatArray, cov: FloatArray, n_obs: int,
-                      ceiling: Any = None) -> LandmarkEstimate:
-    """A :class:`LandmarkEstimate` from a landmark state in EKF form.
-
-    Args:
-        lid: id; kind: landmark kind; state: (d,) EKF-form state; cov: (d, d).
-        n_obs: observations used.
-        ceiling: the ceiling model (its ``world_position`` maps a ceiling state to
-            world (x, y, z)), or None.
-    """
-    if kind == "point2":
-        return LandmarkEstimate(lid, kind, np.array([state[0], state[1], np.nan]), None, cov, n_obs)
-    position = np.asarray(state[:3], float)
-    if ceiling is not None and hasattr(ceiling, "world_position"):
-        position = ceiling.world_position(state)
-    orient = float(wrap_axis(float(state[3]))) if len(state) == 4 else None
-    return LandmarkEstimate(lid, kind, position, orient, cov, n_obs)

@@ -15,6 +15,7 @@ with ``coords_D_tangent = blockdiag(R(theta), 1)``.
 from __future__ import annotations
 
 import abc
+import enum
 from dataclasses import dataclass, field
 from typing import TypeAlias
 
@@ -26,8 +27,23 @@ from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
 #: A measurement frame the backends accept.
 Frame: TypeAlias = CeilingFrame | RangeBearingFrame
 
+
+
+class LandmarkKind(enum.StrEnum):
+    """Kinds of landmark the backends estimate (a ``str``: compares equal to its value).
+
+    - ``POINT2``: planar range-bearing landmark, state ``(x, y)``, m;
+    - ``LAMP``: ceiling lamp, state ``(x, y, z)`` or ``(x, y, z, phi)`` (paper 1, sec. III);
+    - ``CORNER``: ceiling corner, state ``(x, y, z)``.
+    """
+
+    POINT2 = "point2"
+    LAMP = "lamp"
+    CORNER = "corner"
+
+
 #: Landmark types written to ``landmarks.csv``.
-LANDMARK_TYPES = ("lamp", "corner", "point2")
+LANDMARK_TYPES = (LandmarkKind.LAMP.value, LandmarkKind.CORNER.value, LandmarkKind.POINT2.value)
 
 
 @dataclass(frozen=True)
@@ -71,7 +87,7 @@ class LandmarkEstimate:
     """
 
     id: int
-    type: str
+    type: LandmarkKind
     position: FloatArray
     orientation: float | None
     cov: FloatArray

@@ -22,15 +22,19 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig
+from lampsam.backend.interface import LandmarkEstimate, LandmarkKind
 from lampsam.factors.geometry import coords_D_tangent, wrap_angle, wrap_axis
 from lampsam.factors.range_bearing import range_bearing
 from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
+
+if TYPE_CHECKING:  # ceiling.py takes Obs records: import its type for annotations only
+    from lampsam.backend.ceiling import CeilingModel
 
 
 @dataclass(frozen=True)
@@ -46,12 +50,12 @@ class Obs:
         patch: corner image patch for NCC (zero mean, unit norm), or None.
     """
 
-    kind: str
+    kind: LandmarkKind
     z: FloatArray
     R: FloatArray
     landmark_id: int | None = None
     has_axis: bool = False
-    patch: Any = None
+    patch: np.ndarray | None = None
 
 
 def observations_from_frame(
@@ -79,7 +83,7 @@ def observations_from_frame(
         for o in frame.observations:
             if not (math.isfinite(o.range) and math.isfinite(o.bearing)) or o.range <= 0:
                 continue
-            out.append(Obs("point2", np.array([o.bearing, o.range]), r, o.landmark_id))
+            out.append(Obs(LandmarkKind.POINT2, np.array([o.bearing, o.range]), r, o.landmark_id))
         return out
     if "lamps" in features:
         for lamp in frame.lamps:
@@ -90,13 +94,13 @@ def observations_from_frame(
                 cov[:2, :2] = lamp.cov_m
                 cov[2, 2] = max(lamp.var_axis, noise.var_axis_min)
                 z = np.array([lamp.m[0], lamp.m[1], lamp.axis])
-                out.append(Obs("lamp", z, cov, lamp.landmark_id, has_axis=True))
+                out.append(Obs(LandmarkKind.LAMP, z, cov, lamp.landmark_id, has_axis=True))
             else:
-                out.append(Obs("lamp", np.asarray(lamp.m, float), np.asarray(lamp.cov_m, float),
+                out.append(Obs(LandmarkKind.LAMP, np.asarray(lamp.m, float), np.asarray(lamp.cov_m, float),
                                lamp.landmark_id))
     if "corners" in features:
         for c in frame.corners:
-            out.append(Obs("corner", np.asarray(c.m, float), np.asarray(c.cov_m, float),
+            out.append(Obs(LandmarkKind.CORNER, np.asarray(c.m, float), np.asarray(c.cov_m, float),
                            c.landmark_id, patch=c.patch))
     return out
 
@@ -170,8 +174,8 @@ def init_point2(pose: FloatArray, z: FloatArray) -> tuple[FloatArray, FloatArray
     return l, l_D_coords @ coords_D_tangent(pose[2]), l_D_z
 
 
-def predict(kind: str, pose: FloatArray, state: FloatArray, obs: Obs | None,
-            ceiling: Any = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+def predict(kind: LandmarkKind | str, pose: FloatArray, state: FloatArray, obs: Obs | None,
+            ceiling: CeilingModel | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Predicted measurement of one landmark and its Jacobians.
 
     Args:
@@ -194,7 +198,7 @@ def predict(kind: str, pose: FloatArray, state: FloatArray, obs: Obs | None,
 
 
 def initialize(pose: FloatArray, obs: Obs, assoc: AssociationConfig,
-               ceiling: Any = None) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+               ceiling: CeilingModel | None = None) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Undelayed landmark initialisation from one observation (paper eqs. 24-25).
 
     Ceiling landmarks get the height prior (``assoc.height_prior()``) as an extra "measurement" so that the first estimate is
@@ -216,3 +220,23 @@ def initialize(pose: FloatArray, obs: Obs, assoc: AssociationConfig,
     if ceiling is None:
         raise ValueError(f"ceiling landmark kind {obs.kind!r} needs a CeilingModel")
     return ceiling.initialize(pose, obs, assoc.height_prior())
+
+
+def landmark_estimate(lid: int, kind: str, state: FloatArray, cov: FloatArray, n_obs: int,
+                      ceiling: CeilingModel | None = None) -> LandmarkEstimate:
+    """A :class:`LandmarkEstimate` from a landmark state in EKF form.
+
+    Args:
+        lid: id; kind: landmark kind; state: (d,) EKF-form state; cov: (d, d).
+        n_obs: observations used.
+        ceiling: the ceiling model (its ``world_position`` maps a ceiling state to
+            world (x, y, z)), or None.
+    """
+    kind = LandmarkKind(kind)
+    if kind == LandmarkKind.POINT2:
+        return LandmarkEstimate(lid, kind, np.array([state[0], state[1], np.nan]), None, cov, n_obs)
+    position = np.asarray(state[:3], float)
+    if ceiling is not None:
+        position = ceiling.world_position(state)
+    orient = float(wrap_axis(float(state[3]))) if len(state) == 4 else None
+    return LandmarkEstimate(lid, kind, position, orient, cov, n_obs)

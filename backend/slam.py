@@ -13,14 +13,17 @@ into time-ordered steps, feeds a backend and writes:
   when the run has ground truth, position and heading errors (RMS, max) with no
   alignment (the start pose is known).
 
-If the run is interrupted (KeyboardInterrupt) or a step fails, the steps finished so
-far are still written (status ``"interrupted"`` / ``"failed: ..."``).
+If the run is interrupted (SIGINT or SIGTERM, see :mod:`lampsam.interrupt`: the
+current step finishes) or a step fails, the steps finished so far are still written
+(status ``"interrupted"`` / ``"failed: ..."``). If the final optimisation fails or
+is interrupted, the online per-step estimates are written under the name of the
+estimator that made them (batch: ``isam2`` or ``odometry``) with status
+``"final optimisation failed: ..."``. Files are written atomically.
 """
 
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 import time
@@ -32,11 +35,14 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
-from lampsam.backend.interface import Frame, SlamBackend, SlamResult
+from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate, empty_result
+from lampsam.backend.odometry import WheelParams
 from lampsam.datasets.logrun import (
+    CameraModel,
     LoggedRun,
     OdometryLog,
     RangeBearingLog,
@@ -53,6 +59,8 @@ from lampsam.frontend.measurements import (
     RangeBearingFrame,
     RangeBearingObservation,
 )
+from lampsam.interrupt import interruptible
+from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -60,34 +68,33 @@ BACKENDS = ("ekf", "isam2", "batch")
 FRAME_SOURCES = ("auto", "images", "truth", "rangebearing")
 
 
-def make_backend(name: str, run: LoggedRun, config: SlamConfig, start_pose: FloatArray,
-                 ceiling: bool) -> SlamBackend:
-    """Construct a backend by name for a run.
+def make_backend(name: str, odometry: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 camera: CameraModel | None = None) -> SlamBackend:
+    """Construct a backend by name.
 
     Args:
         name: ``"ekf"``, ``"isam2"`` or ``"batch"``.
-        run: the run (its rig gives the wheel model and the camera).
+        odometry: the odometry model's constants (e.g. ``run.rig.odometry``).
         config: the SLAM config.
-        start_pose: (3,) known start pose.
-        ceiling: True for ceiling frames (builds the camera model and graph handler).
+        start_pose: (3,) known start pose ``world_T_body``, m and rad.
+        camera: the upward camera for ceiling frames (builds the ceiling observation
+            model and graph handler), or None for range-bearing frames.
 
     Raises:
         EstimationError: an unknown backend name.
     """
-    model = handler = None
-    if ceiling:
-        model = CeilingModel.from_camera(run.rig.camera)
+    model = None
+    handler: CeilingHandler | None = None
+    if camera is not None:
+        model = CeilingModel.from_camera(camera)
         if name != "ekf":
-            from lampsam.backend.ceiling_graph import CeilingHandler
-
             handler = CeilingHandler(model)
-    wheel = run.rig.odometry
     if name == "ekf":
-        return EkfSlam(wheel, config, start_pose, model)
+        return EkfSlam(odometry, config, start_pose, model)
     if name == "isam2":
-        return Isam2Slam(wheel, config, start_pose, model, handler)
+        return Isam2Slam(odometry, config, start_pose, model, handler)
     if name == "batch":
-        return BatchSlam(wheel, config, start_pose, model, handler)
+        return BatchSlam(odometry, config, start_pose, model, handler)
     raise EstimationError(f"unknown backend {name!r}; choose from {', '.join(BACKENDS)}")
 
 
@@ -296,13 +303,16 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
     """
     status = "ok"
     t_step: float | None = None
+    online: list[StepEstimate] = []
+    log.info("%s: stepping through the run", backend.name)
     try:
-        for t, wheel, frame in steps:
+        for t, wheel, frame in interruptible(steps):
             t_step = t
-            backend.step(t, wheel, frame)
-    except KeyboardInterrupt:
+            online.append(backend.step(t, wheel, frame))
+    except KeyboardInterrupt as exc:  # SIGINT or SIGTERM (lampsam.interrupt), between steps
         status = "interrupted"
-        log.warning("interrupted: writing the steps finished so far")
+        log.warning("interrupted (%s): writing the %d steps finished so far",
+                    exc or "KeyboardInterrupt", len(online))
     except LampsamError as exc:  # estimation failure, or bad input met mid-run (names the file)
         status = f"failed: {exc}"
         log.error("%s", exc)
@@ -312,13 +322,49 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
         log.error("step%s failed: %s: %s (run with -vv for the traceback); "
                   "the steps finished so far are kept", where, type(exc).__name__, exc)
         log.debug("traceback", exc_info=True)
-    return backend.finish(status)
+    try:
+        return backend.finish(status)
+    except (KeyboardInterrupt, Exception) as exc:  # keep the online estimate, say what it is
+        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        source = online_source(backend)
+        log.error("final optimisation failed (%s): writing the online %s estimate of %d steps",
+                  reason, source, len(online))
+        log.debug("traceback", exc_info=True)
+        return online_result(source, online, f"final optimisation failed: {reason}")
+
+
+def online_source(backend: SlamBackend) -> str:
+    """The estimator behind a backend's per-step estimates (batch: its online pass)."""
+    if isinstance(backend, BatchSlam):
+        return "isam2" if backend.online else "odometry"
+    return backend.name
+
+
+def online_result(source: str, online: list[StepEstimate], status: str) -> SlamResult:
+    """A result made of the per-step (online) estimates alone: no map, labelled ``source``.
+
+    Used when the final optimisation fails or is interrupted: the steps are kept,
+    as estimated online, under the name of the estimator that produced them.
+    """
+    if not online:
+        return empty_result(source, status)
+    return SlamResult(
+        backend=source,
+        times=np.array([e.t for e in online], float),
+        poses=np.array([e.pose for e in online], float),
+        pose_covs=np.array([e.cov for e in online], float),
+        landmarks=[],
+        step_times_s=np.array([e.time_s for e in online], float),
+        keyframes=np.array([e.keyframe for e in online], bool),
+        status=status,
+    )
 
 
 def run_slam(run_dir: str | Path, backend: str = "isam2",
              features: tuple[str, ...] | None = None, out: str | Path | None = None,
              config: SlamConfig | None = None, frames: str = "auto",
-             max_dt: float = 0.5, run: LoggedRun | None = None) -> SlamResult:
+             max_dt: float = 0.5, run: LoggedRun | None = None,
+             start_pose: FloatArray | None = None) -> SlamResult:
     """Run one backend over a logged run and write the results.
 
     Args:
@@ -331,6 +377,9 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         frames: frame source, see :func:`make_frames`.
         max_dt: longest interval without a step, s (see :func:`iter_steps`).
         run: an already loaded run (e.g. from :func:`lampsam.datasets.mrclam.mrclam_run`).
+        start_pose: (3,) known start pose ``world_T_body``; None takes it from the
+            run (:func:`start_pose_of`: ground truth at the first odometry time, else
+            the origin).
 
     Returns:
         The result (also written to ``out``).
@@ -352,8 +401,9 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
     if backend not in BACKENDS:
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
     frame_list, is_ceiling = make_frames(run, frames)
-    start = start_pose_of(run)
-    be = make_backend(backend, run, config, start, is_ceiling)
+    start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
+    be = make_backend(backend, run.rig.odometry, config, start,
+                      run.rig.camera if is_ceiling else None)
     t0 = time.perf_counter()
     result = drive(be, iter_steps(run.odometry, frame_list, max_dt))
     total = time.perf_counter() - t0
@@ -442,16 +492,21 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
 
 
 def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
-    """Write ``trajectory.tum``, ``landmarks.csv`` and ``summary.json`` to ``out``."""
+    """Write ``trajectory.tum``, ``landmarks.csv`` and ``summary.json`` to ``out``.
+
+    Each file is written atomically (:func:`lampsam.safe_io.atomic_path`), the
+    summary last: a complete ``summary.json`` means the other two are complete.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    write_trajectory(out / "trajectory.tum", result)
-    write_landmarks(out / "landmarks.csv", result)
-    with open(out / "summary.json", "w") as fh:
-        json.dump(summary(result, run.groundtruth), fh, indent=2, default=_json_default)
+    with atomic_path(out / "trajectory.tum") as tmp:
+        write_trajectory(tmp, result)
+    with atomic_path(out / "landmarks.csv") as tmp:
+        write_landmarks(tmp, result)
+    write_json_atomic(out / "summary.json", summary(result, run.groundtruth), default=_json_default)
     log.info("results written to %s", out)
 
 
-def _json_default(x: Any) -> Any:
+def _json_default(x: object) -> object:
     if isinstance(x, np.generic):
         return x.item()
     raise TypeError(type(x))

@@ -52,9 +52,11 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.datasets.logrun import DEFAULT_BODY_R_CAMERA, LandmarkTable, Rig, _read_yaml
+from lampsam.datasets.camera import DEFAULT_BODY_R_CAMERA
+from lampsam.datasets.logrun import LandmarkTable, Rig
 from lampsam.datasets.mounting import mounted
 from lampsam.datasets.openings import OPENING_KEYS, Opening, parse_opening
+from lampsam.datasets.textio import read_yaml as _read_yaml
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)

@@ -161,7 +161,7 @@ def test_distance_keyframes_keep_first_frame_and_accuracy() -> None:
     """The distance/angle policy: the first frame is a keyframe, later ones are sparse.
 
     The first frame is seen from the known start pose and anchors the map's heading;
-    a run that skipped it lost ~3x in accuracy on lab (see ``GraphSlam._is_keyframe``).
+    a run that skipped it lost ~3x in accuracy on lab (see :func:`lampsam.backend.keyframes.is_keyframe`).
     Same world and tolerance as the every-frame iSAM2 case above.
     """
     cfg = SlamConfig(isam2=dataclasses.replace(SlamConfig().isam2, every_frame=False,
@@ -232,6 +232,20 @@ def test_gate_only_association_finds_the_landmarks(name: str) -> None:
     for lm in result.landmarks:
         assert np.min(np.linalg.norm(marks - lm.position[:2], axis=1)) < 0.15
     assert _rms(errors_vs_truth(result, gt)[0]) < 0.1
+
+
+def test_run_slam_start_pose_argument_sets_the_first_pose() -> None:
+    """``run_slam(start_pose=...)`` starts the estimate there (not at the run's truth)."""
+    rng = np.random.default_rng(5)
+    rig, odo, rb, gt, _ = range_bearing_world(rng)
+    run = LoggedRun(path=__import__("pathlib").Path("mem"), rig=rig, odometry=odo,
+                    groundtruth=gt, range_bearing=rb)
+    start = gt.poses[0] + np.array([0.3, -0.2, 0.1])
+    result = run_slam(None, "ekf", run=run, start_pose=start)
+    # the first step carries the first odometry samples (~1.3 cm here): within 5 cm
+    np.testing.assert_allclose(result.poses[0], start, atol=0.05)
+    default = run_slam(None, "ekf", run=run)
+    np.testing.assert_allclose(default.poses[0], gt.poses[0], atol=0.05)
 
 
 def test_mahalanobis_gate_and_one_to_one_association() -> None:
@@ -348,7 +362,7 @@ def test_odometry_bridge_is_the_gaussian_conditional() -> None:
     of ``a`` on the end residual ``r`` is the conditional the bridge must give. Along
     a curved path, so the heading couples into the translation.
     """
-    from lampsam.backend.graph import odometry_bridge
+    from lampsam.backend.pose_cov import odometry_bridge
 
     rng = np.random.default_rng(3)
     sigma0 = np.diag([4e-6, 1e-6, 9e-6])

@@ -24,7 +24,8 @@ from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
-from lampsam.backend.graph import BatchSlam, Isam2Slam, _Landmark
+from lampsam.backend.graph import BatchSlam, Isam2Slam
+from lampsam.backend.handlers import GraphLandmark as _Landmark
 from lampsam.backend.slam import (
     drive,
     errors_vs_truth,
@@ -66,7 +67,8 @@ def test_corners_from_frontend_finish_and_track(name: str, lab: tuple) -> None:
     base = SlamConfig()  # defaults, but no final marginals (test time)
     cfg = dataclasses.replace(base, isam2=dataclasses.replace(base.isam2,
                                                               final_covariances=False))
-    be = make_backend(name, run, cfg, start_pose_of(run), ceiling)
+    be = make_backend(name, run.rig.odometry, cfg, start_pose_of(run),
+                      run.rig.camera if ceiling else None)
     result = drive(be, iter_steps(run.odometry, frames))
     assert result.status == "ok"
     pos, head = errors_vs_truth(result, run.groundtruth)
@@ -155,7 +157,7 @@ def test_failed_isam2_update_is_recovered(caplog: pytest.LogCaptureFixture) -> N
     be._add_value(L(bad), below)
     be._add_factor(projection_factor(X(k), L(bad), np.array([0.1, 0.0]), 1e-6 * np.eye(2),
                                      model.body_t_camera), bad)
-    with caplog.at_level(logging.WARNING, logger="lampsam.backend.graph"):
+    with caplog.at_level(logging.WARNING, logger="lampsam.backend.isam2_update"):
         be._flush()
     assert "rebuilding iSAM2" in caplog.text
     assert be.n_recoveries == 1 and bad not in be._landmarks

@@ -58,7 +58,8 @@ def one_run(name: str, run: LoggedRun, frames: list[Any], config: SlamConfig,
     """Run one backend on prepared frames; errors and timings."""
     t0 = time.perf_counter()
     c0 = time.process_time()
-    be = make_backend(name, run, config, start_pose_of(run), ceiling)
+    be = make_backend(name, run.rig.odometry, config, start_pose_of(run),
+                      run.rig.camera if ceiling else None)
     res = drive(be, iter_steps(run.odometry, frames))
     total = time.perf_counter() - t0
     cpu = time.process_time() - c0

@@ -244,7 +244,7 @@ def time_one_run(backend: str, run: LoggedRun, config: SlamConfig, tail: float
     frames = frames_from_range_bearing(run.range_bearing)  # type: ignore[arg-type]
     assert run.groundtruth is not None
     start = run.groundtruth.poses[0]
-    be = make_backend(backend, run, config, start, ceiling=False)
+    be = make_backend(backend, run.rig.odometry, config, start)
     wall: list[float] = []
     cpu: list[float] = []
     n_state: list[int] = []

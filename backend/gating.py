@@ -1,0 +1,216 @@
+"""Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
+
+Planar points use iSAM2's joint marginal of the last keyframe pose and each
+candidate landmark, propagated to the current pose, so the pose-landmark
+cross-covariance is kept (without it the gate is far too wide: a landmark
+initialised from a pose is strongly correlated with it). Ceiling landmarks are
+screened all at once in numpy with a relative gate (:meth:`Gating._screen`: the
+odometry covariance since the landmark's last observing keyframe plus its
+measurement-only covariance, which stands in for the cross term); corners are then
+decided by that gate and the NCC, and only lamps with two or more gated candidates
+pay for joint marginals (each costs several ms on a corner-dense graph).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.association import screen_pairs
+from lampsam.backend.graph_state import GraphState
+from lampsam.backend.handlers import GraphLandmark
+from lampsam.backend.models import Obs, for_landmark, predict, residual
+from lampsam.backend.pose_cov import compose_cov, pose_array
+
+#: Keyframes back over which the smoothers' screen uses the relative gate.
+RELATIVE_GATE_KEYFRAMES = 30
+
+
+class Gating(GraphState):
+    """Innovations and gates (mixin of :class:`~lampsam.backend.graph.GraphSlam`)."""
+
+    def _joint_cov(self, lm: GraphLandmark, k: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Joint marginal blocks ``(S_kk, S_kl, S_ll)`` of keyframe ``k`` and a landmark.
+
+        From iSAM2's ``jointMarginalCovariance``; the landmark block is over the
+        EKF-form state (the handler's keys, in order). None without iSAM2.
+        """
+        if self.isam is None or not lm.in_graph:
+            return None
+        if lm.id in self._joint_cache:
+            return self._joint_cache[lm.id]
+        keys = [X(k), *self.handlers[lm.kind].keys(lm)]
+        try:
+            full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
+        except RuntimeError:
+            self._joint_cache[lm.id] = None
+            return None
+        # graph tangent -> EKF-form state (e.g. only the angle of a Pose2 axis)
+        idx = np.r_[0:3, 3 + np.asarray(self.handlers[lm.kind].state_index(lm), int)]
+        full = full[np.ix_(idx, idx)]
+        out = full[:3, :3], full[:3, 3:], full[3:, 3:]
+        self._joint_cache[lm.id] = out
+        return out
+
+    def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
+                    obs: Obs) -> tuple[FloatArray, FloatArray] | None:
+        """``(nu, Psi)`` (eq. 19) with the pose-landmark cross-covariance.
+
+        The current pose is ``x = x_k * delta`` (``k`` the last keyframe in iSAM2), so
+        in the right tangent ``dx = Ad(delta^-1) dx_k + d_delta``: its covariance and
+        cross-covariance with a landmark follow from the joint marginal of
+        ``(X(k), landmark)``. Without the cross term the gate is far too wide: a
+        landmark initialised from the pose is strongly correlated with it.
+        """
+        k, pose, delta, delta_cov = gate_ctx
+        lm = self._landmarks[lid]
+        obs = for_landmark(obs, len(lm.state))
+        try:
+            z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
+        except Exception:
+            return None
+        joint = self._joint_cov(lm, k)
+        if joint is None:  # no joint marginal: independent pose and landmark
+            _, pose_cov = self.current()
+            psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + obs.R
+            return residual(obs, z_hat), psi
+        s_kk, s_kl, s_ll = joint
+        ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+        s_xx = ad @ s_kk @ ad.T + delta_cov
+        s_xl = ad @ s_kl
+        cross = h_p @ s_xl @ h_l.T
+        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + obs.R
+        return residual(obs, z_hat), psi
+
+    def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
+                ) -> tuple[dict[str, list[int]], dict[int, dict[int, tuple[float, bool]]]]:
+        """Candidates per kind and a cheap vectorised gate for ceiling observations.
+
+        Ceiling landmarks are projected all at once
+        (:meth:`~lampsam.backend.ceiling.CeilingModel.project_many`) from their
+        cached states; the visible ones that are in the graph are refreshed from
+        iSAM2. The screen uses ``S = H_p Sigma_x H_p^T + H_l Sigma_l H_l^T`` (pose
+        and landmark marginals, no cross term: wider than eq. 19's true
+        covariance, since a landmark is positively correlated with the pose that
+        placed it), with ``Sigma_x`` the current pose marginal and ``Sigma_l`` the
+        landmark's initialisation covariance (eq. 25 or the triangulation; an
+        upper bound of its marginal, and free, where iSAM2's landmark marginals cost
+        several ms each). Only ambiguous observations then cost joint marginals
+        (:meth:`_mark_ambiguous`, :meth:`_joint_cov`, cached per keyframe). Planar
+        landmarks go the per-pair way (joint marginal per pair, as before).
+
+        Returns:
+            ``(candidates, screened)`` for :func:`associate`.
+        """
+        cands: dict[str, list[int]] = {}
+        screened: dict[int, dict[int, tuple[float, bool]]] = {}
+        by_kind: dict[str, list[GraphLandmark]] = {}
+        for lid, lm in self._landmarks.items():
+            if self.ceiling is None or lm.kind == "point2":
+                cands.setdefault(lm.kind, []).append(lid)
+            else:
+                by_kind.setdefault(lm.kind, []).append(lm)
+        for kind, lms in by_kind.items():
+            pts = np.array([lm.state[:3] for lm in lms])
+            ceiling = self._require_ceiling()
+            vis = ceiling.in_view_many(pose, pts)
+            visible = [lms[j] for j in np.flatnonzero(vis)]
+            for lm in visible:
+                self._refresh_landmark(lm)
+            if not visible:
+                cands[kind] = []
+                continue
+            pts = np.array([lm.state[:3] for lm in visible])
+            m, h_p, h_l, vis = ceiling.project_many(pose, pts)
+            keep = np.flatnonzero(vis)
+            lids = [visible[j].id for j in keep]
+            cands[kind] = lids
+            if not keep.size or not any(o.kind == kind for o in obs):
+                continue
+            rel = self._relative_covs()
+            cov_l = np.empty((len(keep), 3, 3))
+            cov_x = np.empty((len(keep), 3, 3))
+            for n, j in enumerate(keep):
+                lm = visible[j]
+                if lm.cov_rel is not None and lm.last_kf in rel:
+                    cov_l[n] = lm.cov_rel
+                    cov_x[n] = rel[lm.last_kf]
+                else:
+                    cov_l[n] = lm.cov[:3, :3]
+                    cov_x[n] = pose_cov
+            hp, hl = h_p[keep], h_l[keep]
+            s_pred = (hp @ cov_x @ np.transpose(hp, (0, 2, 1))
+                      + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
+            sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
+                              exact=True)
+            screened.update(self._mark_ambiguous(obs, sc))
+        return cands, screened
+
+    def _relative_covs(self) -> dict[int, FloatArray]:
+        """Tangent covariance of the current keyframe relative to each recent keyframe.
+
+        Composes the odometry factors' covariances (eqs. 13-15, with their floor)
+        backwards from the current keyframe ``k`` over the last
+        :data:`RELATIVE_GATE_KEYFRAMES` keyframes: ``{j: cov(x_j^-1 x_k)}``. Cached
+        for the keyframe (the screen asks once per landmark kind).
+        """
+        k = self._k
+        if self._rel_cache is not None and self._rel_cache[0] == k:
+            return self._rel_cache[1]
+        out: dict[int, FloatArray] = {k: np.zeros((3, 3))}
+        delta = np.zeros(3)
+        cov = np.zeros((3, 3))
+        for j in range(k - 1, max(k - RELATIVE_GATE_KEYFRAMES, 0) - 1, -1):
+            d_j, c_j = self._odo[j + 1]
+            cov = compose_cov(delta, c_j, cov)
+            delta = pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
+            out[j] = cov
+        self._rel_cache = (k, out)
+        return out
+
+    def _mark_ambiguous(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
+                        ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Keep the cheap distance where it decides alone; ask for the joint marginal otherwise.
+
+        Corners: the NCC picks the winner among the gated candidates (paper), so the
+        cheap (wider) gate is final; a wrong match that it lets through is bounded by
+        the Huber loss on corner factors (``isam2.corner_huber_k``). Lamps: an
+        observation with at most one landmark inside the cheap gate is decided by
+        it (the true eq.-19 covariance could only reject the match); with two or
+        more, the exact distances (iSAM2 joint marginal with the pose-landmark cross
+        term, :meth:`_joint_cov`) pick the winner. iSAM2's joint marginals cost
+        several ms each on a graph dense with corners (17 ms on the lab run), so
+        this keeps them to the few ambiguous lamp observations.
+        """
+        cfg = self.config.association
+        out: dict[int, dict[int, tuple[float, bool]]] = {}
+        for i, pairs in screened.items():
+            o = obs[i]
+            gate = cfg.gate(len(o.z))
+            inside = [lid for lid, (d2, _) in pairs.items() if d2 < gate]
+            if o.kind == "corner" or len(inside) <= 1:
+                out[i] = {lid: (d2, len(o.z) == 2) for lid, (d2, _) in pairs.items()}
+            else:
+                out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
+        return out
+
+    def _near_known_lamp(self, pose: FloatArray, obs: Obs, lamp_ids: Iterable[int]) -> bool:
+        """Whether a mapped lamp is predicted within ``lamp_min_separation`` of ``obs``.
+
+        Two lamps cannot overlap in the image, so such an observation is of that
+        lamp even when its gate rejects it (a centroid biased by lens distortion near
+        the image edge, while iSAM2 waits to relinearise a young lamp); it is
+        dropped rather than mapped as a new lamp (docs/graph-backend.md).
+        """
+        sep = self.config.association.lamp_min_separation
+        ids = [lid for lid in lamp_ids if lid in self._landmarks]
+        if self.ceiling is None or not ids or sep <= 0.0:
+            return False
+        pts = np.array([self._landmarks[lid].state[:3] for lid in ids])
+        m, _, _, vis = self.ceiling.project_many(pose, pts)
+        d = np.hypot(m[:, 0] - obs.z[0], m[:, 1] - obs.z[1])
+        return bool(np.any(vis & (d < sep)))

@@ -1,0 +1,168 @@
+"""The state a factor-graph backend keeps, and the primitives every part of it uses.
+
+:class:`GraphState` holds the growing graph (everything, for batch LM, and the
+pending part for the next iSAM2 update), the initial values, the iSAM2 instance,
+the keyframe estimates and odometry, the landmarks and the per-step records. The
+parts of the smoother are mixins over it, one job each:
+
+- :class:`lampsam.backend.isam2_update.Isam2Updates`: one iSAM2 update per keyframe,
+  and the rebuild after a failed one;
+- :class:`lampsam.backend.gating.Gating`: innovations and gates (eqs. 19-20);
+- :class:`lampsam.backend.landmarks.LandmarkLifecycle`: start, observe, triangulate,
+  insert and prune landmarks;
+- :class:`lampsam.backend.graph.GraphSlam`: keyframes, steps and the final result.
+
+Poses are ``world_T_body`` ``(x, y, theta)``; pose covariances here are in GTSAM's
+right tangent (:mod:`lampsam.backend.pose_cov`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.handlers import (
+    GraphLandmark,
+    GraphValue,
+    LandmarkHandler,
+    Point2Handler,
+    ValueKind,
+    value_of_kind,
+)
+from lampsam.backend.interface import LandmarkKind, SlamBackend
+from lampsam.backend.odometry import WheelParams
+from lampsam.backend.pose_cov import compose_cov, pose_array
+from lampsam.errors import EstimationError
+
+
+class GraphState(SlamBackend):
+    """State and graph-building primitives shared by the smoother's parts.
+
+    Args:
+        wheel: wheel base and noise constants (eq. 15).
+        config: the SLAM config.
+        start_pose: (3,) known start pose ``world_T_body``, m and rad.
+        ceiling: the ceiling observation model (lamps/corners), or None.
+        ceiling_handler: graph handler for ceiling kinds, or None.
+        online: keep an iSAM2 estimate (True) or only odometry (False).
+    """
+
+    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+                 ceiling: CeilingModel | None = None,
+                 ceiling_handler: LandmarkHandler | None = None, online: bool = True) -> None:
+        self.wheel = wheel
+        self.config = config
+        self.ceiling = ceiling
+        self.handlers: dict[LandmarkKind, LandmarkHandler] = {LandmarkKind.POINT2: Point2Handler()}
+        if ceiling_handler is not None:
+            self.handlers[LandmarkKind.LAMP] = ceiling_handler
+            self.handlers[LandmarkKind.CORNER] = ceiling_handler
+        self.online = online
+        self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
+        self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
+        self.initial = gtsam.Values()  # initial guesses of every variable
+        self._new_graph = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        cfg = config.isam2
+        start = np.asarray(start_pose, float)
+        prior_sigmas = np.array([cfg.sigma_start_xy, cfg.sigma_start_xy, cfg.sigma_start_theta])
+        self._add_value(X(0), gtsam.Pose2(*start))
+        self._add_factor(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*start),
+                                                gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
+        self._kf_pose = start.copy()  # current estimate of the last keyframe
+        self._kf_cov = np.diag(prior_sigmas**2)  # its tangent covariance
+        self._kf_poses: list[FloatArray] = [start.copy()]  # running (odometry-pass) estimates
+        self._k = 0
+        self._delta = np.zeros(3)
+        self._delta_cov = np.zeros((3, 3))
+        self._wheel_since_kf: list[FloatArray] = []
+        self._landmarks: dict[int, GraphLandmark] = {}
+        self._next_id = 0
+        self._last_t = -math.inf
+        # per-step records
+        self._times: list[float] = []
+        self._step_kf: list[int] = []
+        self._step_delta: list[FloatArray] = []
+        self._step_delta_cov: list[FloatArray] = []
+        self._step_online_pose: list[FloatArray] = []
+        self._step_online_cov: list[FloatArray] = []
+        self._step_times: list[float] = []
+        self._keyframes: list[bool] = []
+        self.update_times: list[float] = []  # iSAM2 update() per keyframe, s
+        self.estimate_times: list[float] = []  # then the pose estimate + marginal, s
+        self.n_pruned = 0
+        self.n_recoveries = 0
+        self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
+        self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
+        self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
+        self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
+        self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
+
+    # ------------------------------------------------------------------ graph building
+    def _add_value(self, key: int, value: GraphValue) -> None:
+        self._new_values.insert(key, value)
+        self.initial.insert(key, value)
+
+    def _add_factor(self, factor: gtsam.NonlinearFactor, lid: int | None = None) -> None:
+        """Add to the pending update and the full graph; ``lid``: the measured landmark."""
+        self._new_graph.add(factor)
+        self.graph.add(factor)
+        if lid is not None:
+            self._update_factor_lids.append((self.graph.size() - 1, lid))
+
+    def _require_ceiling(self) -> CeilingModel:
+        """The ceiling model; an EstimationError for a ceiling kind without one."""
+        if self.ceiling is None:
+            raise EstimationError("ceiling landmarks need a CeilingModel (make_backend camera=)")
+        return self.ceiling
+
+    @property
+    def robust(self) -> float | None:
+        """Huber threshold for measurement factors (batch with ``huber_k`` set), else None."""
+        return self.config.batch.huber_k if self.name == "batch" else None
+
+    def _robust_for(self, kind: str) -> float | None:
+        """Huber threshold for a kind's factors: corners get ``isam2.corner_huber_k``."""
+        if kind == "corner" and self.config.isam2.corner_huber_k is not None:
+            return self.config.isam2.corner_huber_k
+        return self.robust
+
+    # ------------------------------------------------------------------ estimates
+    def _get(self, key: int, kind: ValueKind) -> GraphValue:
+        """Current estimate of a variable: iSAM2's if it has it, else the initial value."""
+        if self.isam is not None and self.isam.valueExists(key):
+            if kind == "point2":
+                return np.asarray(self.isam.calculateEstimatePoint2(key), float)
+            if kind == "point3":
+                return np.asarray(self.isam.calculateEstimatePoint3(key), float)
+            if kind == "vector":
+                return np.asarray(self.isam.calculateEstimateVector(key), float)
+            if kind == "pose2":
+                return self.isam.calculateEstimatePose2(key)
+        return value_of_kind(self.initial, key, kind)
+
+    def _pose_of(self, k: int) -> FloatArray:
+        """Current estimate of keyframe ``k``."""
+        if k == self._k:
+            return self._kf_pose
+        if self.isam is not None:
+            return pose_array(self.isam.calculateEstimatePose2(X(k)))
+        return self._kf_poses[k]
+
+    def current(self) -> tuple[FloatArray, FloatArray]:
+        """Current pose (3,) and its tangent covariance (3, 3)."""
+        pose = gtsam.Pose2(*self._kf_pose).compose(gtsam.Pose2(*self._delta))
+        cov = compose_cov(self._delta, self._kf_cov, self._delta_cov)
+        return pose_array(pose), cov
+
+    def _refresh_landmark(self, lm: GraphLandmark) -> None:
+        """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""
+        if not lm.in_graph or self.isam is None:
+            return
+        lm.state = self.handlers[lm.kind].read(lm, self._get)

@@ -1,0 +1,118 @@
+"""iSAM2 updates of a factor-graph backend, and recovery from a failed one.
+
+One ``ISAM2.update`` per keyframe (Kaess et al. 2012, "iSAM2: Incremental smoothing
+and mapping using the Bayes tree") with the keyframe's new factors and values. A
+failed update (e.g. GTSAM's CheiralityException: a relinearised landmark below the
+camera) is not fatal: the offending measurements are dropped and iSAM2 is rebuilt
+from the remaining graph (:meth:`Isam2Updates._recover`, logged).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
+from lampsam.backend.graph_state import GraphState
+from lampsam.backend.handlers import value_at
+from lampsam.backend.pose_cov import pose_array
+from lampsam.errors import EstimationError
+
+log = logging.getLogger(__name__)
+
+
+class Isam2Updates(GraphState):
+    """Sending a keyframe's factors to iSAM2 (mixin of :class:`~lampsam.backend.graph.GraphSlam`)."""
+
+    def _flush(self) -> None:
+        """Send the new factors and values to iSAM2 (one update)."""
+        if self.isam is None:
+            self._new_graph = gtsam.NonlinearFactorGraph()
+            self._new_values = gtsam.Values()
+            return
+        t0 = time.perf_counter()
+        try:
+            self.isam.update(self._new_graph, self._new_values)
+            for _ in range(self.config.isam2.extra_updates):
+                self.isam.update()
+        except RuntimeError as exc:
+            self._recover(exc)
+        t1 = time.perf_counter()
+        self._new_graph = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._update_factor_lids = []
+        self._kf_pose = pose_array(self.isam.calculateEstimatePose2(X(self._k)))
+        if self.config.isam2.pose_cov_every_step:
+            self._kf_cov = np.asarray(self.isam.marginalCovariance(X(self._k)))
+        self.update_times.append(t1 - t0)
+        self.estimate_times.append(time.perf_counter() - t1)
+
+    def _recover(self, exc: RuntimeError) -> None:
+        """Rebuild iSAM2 after a failed update, without the offending measurements.
+
+        A failed ``update()`` (e.g. GTSAM's CheiralityException: a relinearised
+        landmark below the camera) leaves iSAM2 in an unknown state. The landmark
+        named in the message (else every landmark measured in this update) loses
+        the factors added in this update; one that entered the graph in this update
+        is removed altogether, and so is any ceiling landmark whose estimate is
+        now below the camera (no usable linearisation point). A fresh iSAM2 is then
+        built from the whole remaining graph, started from the last estimate (each
+        removed landmark's factors go too). Logged as a warning.
+
+        Raises:
+            EstimationError: the rebuilt graph fails too.
+        """
+        named = {int(m.group(1)) for m in re.finditer(r"\bl(\d+)\b", str(exc))}
+        new_lids = {lid for _, lid in self._update_factor_lids}
+        bad = (named & set(self._landmarks)) or new_lids
+        drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
+        entered = {lid for lid in bad if self._new_values.exists(L(lid))}
+        try:
+            old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
+        except RuntimeError:
+            old = gtsam.Values()
+        if self.ceiling is not None:  # landmarks the failed step put under the lens
+            z_min = float(self.ceiling.body_t_camera[2]) + MIN_USABLE_HEIGHT
+            for lid, lm in self._landmarks.items():
+                if lm.in_graph and lm.kind in ("lamp", "corner") and old.exists(L(lid)):
+                    if float(old.atPoint3(L(lid))[2]) < z_min:
+                        entered.add(lid)
+        log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
+                    "factors of %d landmarks (%d removed) and rebuilding iSAM2",
+                    self._k, type(exc).__name__, str(exc).strip()[:120], len(bad), len(entered))
+        removed_keys = set()
+        for lid in entered:
+            lm = self._landmarks.pop(lid)
+            removed_keys.update(self.handlers[lm.kind].keys(lm))
+            self.n_pruned += 1
+        graph = gtsam.NonlinearFactorGraph()
+        for i in range(self.graph.size()):
+            f = self.graph.at(i)
+            if f is None or i in drop_idx or any(key in removed_keys for key in f.keys()):
+                continue
+            graph.add(f)
+        values = gtsam.Values()
+        for key in self.initial.keys():
+            if key in removed_keys:
+                continue
+            src = old if old.exists(key) else self.initial
+            values.insert(key, value_at(src, key))
+        initial = gtsam.Values()
+        for key in self.initial.keys():
+            if key not in removed_keys:
+                initial.insert(key, value_at(self.initial, key))
+        self.graph = graph
+        self.initial = initial
+        self.isam = gtsam.ISAM2(self.config.isam2.to_gtsam())
+        try:
+            self.isam.update(graph, values)
+        except RuntimeError as exc2:
+            raise EstimationError(f"iSAM2 rebuild failed at keyframe {self._k}: "
+                                  f"{type(exc2).__name__} {exc2}") from exc2
+        self._joint_cache = {}
+        self.n_recoveries += 1
