@@ -225,7 +225,10 @@ def evaluate_frames(
         n_corners.append(cd.pixels.shape[0])
         corner_rows = np.flatnonzero(~lamp & truth.visible)
         jc, dc = _nearest(cd.pixels, truth.pixel[corner_rows])
-        ids = np.where(dc <= settings.corner_gate_px, truth.ids[corner_rows[np.maximum(jc, 0)]], -1)
+        if corner_rows.size:
+            ids = np.where(dc <= settings.corner_gate_px, truth.ids[corner_rows[np.maximum(jc, 0)]], -1)
+        else:  # no truth corner in view (the camera sees past the ceiling's edge)
+            ids = np.full(cd.pixels.shape[0], -1)
         n_true_corners += int(np.sum(ids >= 0))
         if prev is not None:
             p_pix, p_patch, p_ids, _ = prev
