@@ -52,7 +52,12 @@ from lampsam.frontend.blob_moments import (
     measure_region,
     shape_checks,
 )
-from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
+from lampsam.frontend.ceiling_coords import (
+    PixelToCeiling,
+    ceiling_jacobians,
+    perspective_terms,
+    to_observations,
+)
 from lampsam.frontend.dilation import disk
 from lampsam.frontend.glare import split_glare
 from lampsam.frontend.label_stats import label_blobs
@@ -244,4 +249,9 @@ def detect_lamps(
         m, jac = m[keep], jac[keep]
         if not moments:
             return LampDetections((), (), k, mask, n_rej)
-    return LampDetections(to_observations(moments, m, jac, config), tuple(moments), k, mask, n_rej)
+    dm, axes = perspective_terms(
+        camera, np.array([mo.centroid for mo in moments]),
+        np.array([mo.cov_shape for mo in moments]), jac, config.jacobian_step_px,
+    )
+    obs = to_observations(moments, m + dm, jac, config, axes)
+    return LampDetections(obs, tuple(moments), k, mask, n_rej)

@@ -22,7 +22,12 @@ import numpy as np
 
 from lampsam.arrays import ImageU8
 from lampsam.errors import FrontendError
-from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
+from lampsam.frontend.ceiling_coords import (
+    PixelToCeiling,
+    ceiling_jacobians,
+    perspective_terms,
+    to_observations,
+)
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     corner_observations,
@@ -172,7 +177,13 @@ def _lamps_and_corners(
         keep = within_size_gate(moments, jac_l, config.lamps.size_gate)
         moments = [mo for mo, ok in zip(moments, keep, strict=True) if ok]
         m_l, jac_l = m_l[keep], jac_l[keep]
-    lamps = to_observations(moments, m_l, jac_l, config.lamps) if moments else ()
+    lamps: tuple[LampObservation, ...] = ()
+    if moments:
+        dm, axes = perspective_terms(
+            camera, np.array([mo.centroid for mo in moments]),
+            np.array([mo.cov_shape for mo in moments]), jac_l, config.lamps.jacobian_step_px,
+        )
+        lamps = to_observations(moments, m_l + dm, jac_l, config.lamps, axes)
     corners: tuple[CornerObservation, ...] = ()
     if det is not None and det.pixels.shape[0]:
         corners = corner_observations(det, m[n_lamps:], jac[n_lamps:], config.corners)
