@@ -671,25 +671,58 @@ def _add_table1(sub: argparse._SubParsersAction) -> None:
 # --------------------------------------------------------------------------- frontend-eval
 def _cmd_frontend_eval(args: argparse.Namespace) -> int:
     from lampsam.config_loader import load_config
-    from lampsam.evaluation.frontend_eval import evaluate_run
     from lampsam.frontend.pipeline import FrontendConfig
 
+    photos = args.photos is not None or args.labels is not None
+    if (photos and (args.photos is None or args.labels is None or args.run is not None)) or (
+        not photos and args.run is None
+    ):
+        raise LampsamError("frontend-eval: give RUN, or both --photos DIR and --labels FILE")
     cfg = load_config(FrontendConfig, _config_path(args), table="frontend")
+    if photos:
+        from lampsam.evaluation.photo_eval import (
+            PhotoEvalSettings,
+            evaluate_photos,
+            format_table,
+            write_scores,
+        )
+
+        settings = PhotoEvalSettings(width=args.width)
+        out_file = _out_file(args) if args.out is not None else None
+        scores = evaluate_photos(Path(args.photos), Path(args.labels), settings, cfg.lamps)
+        print(format_table(scores))
+        if out_file is not None:
+            write_scores(scores, out_file, settings)
+        return 0
+    from lampsam.evaluation.frontend_eval import evaluate_run
+
     if not Path(args.run).is_dir():
         raise LampsamError(f"{args.run}: run directory not found")
     out = _out_file(args) if args.out is not None else None
-    res = evaluate_run(Path(args.run), out=out, config=cfg, max_frames=args.max_frames)
+    res = evaluate_run(
+        Path(args.run), out=out, config=cfg, max_frames=args.max_frames, lamp_models=args.lamp_models
+    )
     print(res.summary())
     return 0 if all(res.targets_met.values()) else 1
 
 
 def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "frontend-eval", help="measure the ceiling frontend against a simulated run's truth"
+        "frontend-eval",
+        help="measure the ceiling frontend against a simulated run's truth or labelled photos",
     )
-    p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
-    p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
+    p.add_argument("run", nargs="?", default=None,
+                   help="simulated run directory (with truth/projections.csv)")
+    p.add_argument("--photos", default=None, help="folder of real ceiling photos")
+    p.add_argument("--labels", default=None,
+                   help="label file of those photos (tests/data/ceiling_photo_labels.json)")
+    p.add_argument("--width", type=int, default=320,
+                   help="photos: working image width in px (default 320)")
+    p.add_argument("--out", default=None,
+                   help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    p.add_argument("--lamp-models", action="store_true",
+                   help="RUN: reject blobs whose size and shape fit none of the run's lamps")
     _add_force(p)
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [frontend] table ([frontend.lamps], [frontend.corners])")
