@@ -23,10 +23,15 @@ import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lampsam.errors import LampsamError
 from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_requested
 from lampsam.safe_io import atomic_path
+
+if TYPE_CHECKING:
+    from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
 
@@ -201,6 +206,27 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_stereo)
 
 
+def _cmd_stereo_experiment(args: argparse.Namespace) -> int:
+    from lampsam.datasets.paths import shared_dataset
+    from lampsam.evaluation.stereo_experiment import stereo_experiment
+
+    kitti = None if args.no_kitti else shared_dataset("kitti_stereo_seq1")
+    if kitti is None and not args.no_kitti:
+        log.warning("shared dataset kitti_stereo_seq1 not found (set LAMPSAM_DATA): "
+                    "the KITTI check is skipped")
+    print(stereo_experiment(Path(args.out), args.seeds, kitti))
+    return 0
+
+
+def _add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stereo-experiment",
+                       help="paper 3's experiment: seeds x scenarios x estimators, and KITTI")
+    p.add_argument("--out", required=True, help="output directory (stereo_rms.md/.json, figures)")
+    p.add_argument("--seeds", type=int, default=20, help="seeds per scenario (default 20)")
+    p.add_argument("--no-kitti", action="store_true", help="skip the KITTI real-data check")
+    p.set_defaults(func=_cmd_stereo_experiment)
+
+
 # --------------------------------------------------------------------------- kinect-sim, build-map, show-map
 def _cmd_kinect_sim(args: argparse.Namespace) -> int:
     import dataclasses
@@ -318,6 +344,9 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         _warn_partial(run.meta, Path(args.run))
     out = _out_dir(args)
     result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+    if args.g2o:
+        with atomic_path(Path(args.g2o)) as tmp:
+            _write_slam_g2o(tmp, result, run)
     if result.status == "interrupted":
         print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
               f"are written to {out} (status interrupted)", file=sys.stderr)
@@ -338,6 +367,37 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_slam_g2o(path: Path, result: SlamResult, run: LoggedRun) -> None:
+    """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
+    odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
+
+    Landmark observation factors are not in :class:`SlamResult`, so none are written.
+    """
+    import numpy as np
+
+    from lampsam.datasets.g2o_writer import write_g2o
+    from lampsam.factors.motion import accumulate_odometry
+
+    kf = np.flatnonzero(result.keyframes) if np.any(result.keyframes) else np.arange(len(result.times))
+    odo, wheel = run.odometry, run.rig.odometry
+    edges = []
+    for i in range(len(kf) - 1):
+        ta, tb = result.times[kf[i]], result.times[kf[i + 1]]
+        sel = (odo.t > ta) & (odo.t <= tb)
+        delta, cov = accumulate_odometry(odo.d_left[sel], odo.d_right[sel], wheel.wheel_base,
+                                         wheel.k_r, wheel.k_l)  # fmt: skip
+        edges.append((i, i + 1, delta, np.linalg.inv(cov)))
+    lms = result.landmarks
+    notes = [f"{lm.type} id {lm.id} z {lm.position[2]:.4f} m"
+             + (f" phi {lm.orientation:.6f} rad" if lm.orientation is not None else "") for lm in lms]
+    write_g2o(path, np.arange(len(kf)), result.poses[kf], edges,
+              landmark_ids=len(kf) + np.arange(len(lms)),
+              landmarks=np.array([lm.position[:2] for lm in lms]).reshape(-1, 2),
+              fixed=(0,) if len(kf) else (), landmark_notes=notes)  # fmt: skip
+    print(f"g2o graph written to {path}: {len(kf)} poses, {len(edges)} odometry factors, "
+          f"{len(lms)} landmarks")
+
+
 def _add_slam(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("slam", help="run EKF / iSAM2 / batch SLAM over a logged run")
     p.add_argument("run", help="run directory (or the mrclam_ds0 folder with --mrclam)")
@@ -352,6 +412,8 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gate-only", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--g2o", default=None, metavar="OUT.g2o",
+                   help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
     p.add_argument("--duration", type=_positive, default=None,
                    help="with --mrclam: use only the first seconds (an error without --mrclam)")
     _add_force(p)
@@ -519,11 +581,84 @@ def _add_gallery(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_gallery)
 
 
+# --------------------------------------------------------------------------- ROS bags
+def _cmd_import_bag(args: argparse.Namespace) -> int:
+    from lampsam.datasets.rosbag_import import ImportOptions, import_bag
+    from lampsam.errors import DatasetError
+
+    topics: dict[str, str] = {}
+    for item in args.topic:
+        kind, sep, name = item.partition("=")
+        if not sep or not kind or not name:
+            raise DatasetError(f"--topic expects KIND=NAME, got {item!r}")
+        topics[kind.strip()] = name.strip()
+    joints = None
+    if args.wheel_joints:
+        names = [j.strip() for j in args.wheel_joints.split(",")]
+        if len(names) != 2 or not all(names):
+            raise DatasetError(f"--wheel-joints expects LEFT,RIGHT, got {args.wheel_joints!r}")
+        joints = (names[0], names[1])
+    opts = ImportOptions(
+        topics=topics, wheel_joints=joints, wheel_radius=args.wheel_radius,
+        wheel_base=args.wheel_base, k_wheel=args.k_wheel,
+        rig=Path(args.rig) if args.rig else None, base_frame=args.base_frame,
+    )  # fmt: skip
+    report = import_bag(Path(args.bag), Path(args.out), opts)
+    for line in report.lines():
+        print(line)
+    print(f"logged run written to {args.out}")
+    return 0
+
+
+def _add_import_bag(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import-bag", help="ROS1 .bag / ROS2 bag -> logged run (docs/log-format.md)")
+    p.add_argument("bag", help="ROS1 .bag file, or ROS2 bag directory (or its .db3 / .mcap file)")
+    p.add_argument("--out", required=True, help="run directory to write")
+    p.add_argument("--topic", action="append", default=[], metavar="KIND=NAME",
+                   help="use topic NAME for KIND (joints, odometry, image, camera_info, tf_static, "
+                        "depth, scan, groundtruth, rig); NAME 'none' skips the kind; repeatable")
+    p.add_argument("--wheel-joints", default=None, metavar="L,R",
+                   help="odometry from sensor_msgs/JointState: the left and right wheel joints")
+    p.add_argument("--wheel-radius", type=float, default=None, help="wheel radius, m (with --wheel-joints)")
+    p.add_argument("--wheel-base", type=float, default=None, help="distance between the wheels, m")
+    p.add_argument("--k-wheel", type=float, default=None, help="wheel slip constant k_r = k_l, m")
+    p.add_argument("--rig", default=None, help="rig.yaml to use instead of the bag's camera_info / tf")
+    p.add_argument("--base-frame", default="base_link", help="robot body frame in tf (default base_link)")
+    p.set_defaults(func=_cmd_import_bag)
+
+
+def _cmd_export_bag(args: argparse.Namespace) -> int:
+    from lampsam.datasets.rosbag_export import export_bag
+
+    summary = export_bag(Path(args.run), Path(args.out), ros1=args.ros1, compressed=args.compressed,
+                         wheel_radius=args.wheel_radius, mcap=args.mcap)  # fmt: skip
+    for topic, n in summary.counts.items():
+        print(f"{topic}: {n} messages")
+    print(f"bag written to {summary.path}")
+    return 0
+
+
+def _add_export_bag(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export-bag", help="logged run -> ROS1 .bag or ROS2 bag")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--out", required=True, help="ROS1: the .bag file; ROS2: the bag directory")
+    ver = p.add_mutually_exclusive_group()
+    ver.add_argument("--ros1", action="store_true", help="ROS1 (Noetic) .bag")
+    ver.add_argument("--ros2", action="store_true", help="ROS2 (Humble) bag (the default)")
+    p.add_argument("--mcap", action="store_true", help="ROS2 storage MCAP instead of SQLite (.db3)")
+    p.add_argument("--compressed", action="store_true",
+                   help="images as sensor_msgs/CompressedImage (the run's PNG files)")
+    p.add_argument("--wheel-radius", type=float, default=0.05,
+                   help="wheel radius for the joint angles, m (default 0.05)")
+    p.set_defaults(func=_cmd_export_bag)
+
+
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_simulate,
     _add_demo,
     _add_stereo_sim,
     _add_stereo,
+    _add_stereo_experiment,
     _add_kinect_sim,
     _add_build_map,
     _add_show_map,
@@ -533,6 +668,8 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_table1,
     _add_frontend_eval,
     _add_gallery,
+    _add_import_bag,
+    _add_export_bag,
 ]
 
 
