@@ -11,17 +11,15 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from lampsam.evaluation.compare import markdown_table
+from lampsam.evaluation.compare import _json_default, markdown_table
+from lampsam.safe_io import write_json_atomic, write_text_atomic
 
 if TYPE_CHECKING:
-    from lampsam.evaluation.compare import JobResult
+    from lampsam.evaluation.compare import Job, JobResult
     from lampsam.evaluation.compare_plots import SavedFigure
 
 TITLE = "lampsam: EKF against smoothing"
@@ -75,8 +73,13 @@ def _figure_md(fig: SavedFigure) -> list[str]:
 
 
 def report_markdown(rows: list[dict[str, Any]], results: list[JobResult],
-                    figures: list[SavedFigure], wall_s: float) -> str:
-    """The report in Markdown: lead figure, table, verdicts, failures, other figures."""
+                    figures: list[SavedFigure], wall_s: float,
+                    unfinished: list[Job] | None = None) -> str:
+    """The report in Markdown: lead figure, table, verdicts, failures, other figures.
+
+    ``unfinished``: jobs not finished (interrupted); the report says so under the title.
+    """
+    unfinished = unfinished or []
     n_seeds = sorted({r["seeds"] for r in rows})
     seeds_txt = (_plural(n_seeds[0], "seed") if len(n_seeds) == 1
                  else f"{'/'.join(str(s) for s in n_seeds)} seeds")
@@ -88,6 +91,10 @@ def report_markdown(rows: list[dict[str, Any]], results: list[JobResult],
         "from evo; NEES over (x, y, θ), averaged over seeds.",
         "",
     ]
+    if unfinished:
+        md += [f"**Interrupted: {_plural(len(unfinished), 'job')} not finished** ("
+               + ", ".join(f"{j.group} seed {j.seed} / {j.backend}" for j in unfinished)
+               + "); `lampsam compare ... --resume` runs only those.", ""]
     if figures:
         md += _figure_md(figures[0])
     md += ["## Table", "", markdown_table(rows), "", "## Consistency and accuracy", "",
@@ -131,11 +138,14 @@ def markdown_to_html(md: str, base: Path, title: str = TITLE) -> str:
 
 
 def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
-                 figures: list[SavedFigure], wall_s: float) -> None:
-    """Write ``report.md``, ``report.html`` (rendered from it) and ``summary.json``."""
-    md = report_markdown(rows, results, figures, wall_s)
-    (out / "report.md").write_text(md)
-    (out / "report.html").write_text(markdown_to_html(md, out))
+                 figures: list[SavedFigure], wall_s: float,
+                 unfinished: list[Job] | None = None) -> None:
+    """Write ``report.md``, ``report.html`` (rendered from it) and ``summary.json``
+    (atomically, summary last); ``unfinished``: jobs not finished (interrupted)."""
+    unfinished = unfinished or []
+    md = report_markdown(rows, results, figures, wall_s, unfinished)
+    write_text_atomic(out / "report.md", md)
+    write_text_atomic(out / "report.html", markdown_to_html(md, out))
     summary = {
         "rows": rows,
         "jobs": [{"run": r.job.group, "seed": r.job.seed, "backend": r.job.backend,
@@ -143,14 +153,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
                   **{k: v for k, v in r.metrics.items() if k != "traceback"}} for r in results],
         "figures": [{"file": f"figures/{f.path.name}", "caption": f.caption} for f in figures],
         "wall_time_s": wall_s,
+        "complete": not unfinished,
+        "unfinished": [{"run": j.group, "seed": j.seed, "backend": j.backend} for j in unfinished],
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
-
-
-def _json_default(x: Any) -> Any:
-    """JSON fallback for numpy scalars and arrays."""
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(type(x))
+    write_json_atomic(out / "summary.json", summary, default=_json_default)
