@@ -181,9 +181,10 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
         if not (math.isfinite(value) and value > 0):
             raise LampsamError(f"{Path(args.run) / 'stereo_run.yaml'}: rig.{name}: must be a "
                                f"positive number, got {_num(value)}")
-    with live_view(rerun_target(args.rerun, args.out), f"stereo {args.estimator} {args.run}",
+    out = _out_dir(args)  # checked before the live view writes OUT/live.rrd
+    with live_view(rerun_target(args.rerun, out), f"stereo {args.estimator} {args.run}",
                    stereo_truth=run.truth, kind="stereo"):
-        summary = stereo_job(Path(args.run), args.estimator, _out_dir(args), cfg)
+        summary = stereo_job(Path(args.run), args.estimator, out, cfg)
     counts = summary["status_counts"]
     if not any(n for status, n in counts.items() if status == "ok"):
         log.warning("no frame gave a measurement the %s estimator could use (%s): the "
@@ -490,14 +491,15 @@ def _cmd_localize(args: argparse.Namespace) -> int:
             raise LampsamError(f"{path}: {what} directory not found")
     from lampsam.evaluation.live import live_view, rerun_target
 
-    target = rerun_target(args.rerun, args.out)
+    out = _out_dir(args)  # checked before the live view writes OUT/live.rrd
+    target = rerun_target(args.rerun, out)
     run = None
     if target:
         from lampsam.datasets.logrun import read_run
 
         run = read_run(args.run)
     with live_view(target, f"localize {cfg.mode.value} {args.run}", run=run, kind="localize"):
-        result = localize_run(Path(args.run), Path(args.map), _out_dir(args), cfg, seed=args.seed)
+        result = localize_run(Path(args.run), Path(args.map), out, cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
           f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
