@@ -309,8 +309,9 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
     try:
         for t, wheel, frame in interruptible(steps):
             t_step = t
-            online.append(backend.step(t, wheel, frame))
-            emit("slam.step", t=t, frame=frame, estimate=online[-1], backend=backend)
+            estimate = backend.step(t, wheel, frame)
+            online.append(estimate)
+            emit("slam.step", t=t, frame=frame, estimate=estimate, backend=backend)
     except KeyboardInterrupt as exc:  # SIGINT or SIGTERM (lampsam.interrupt), between steps
         status = "interrupted"
         log.warning("interrupted (%s): writing the %d steps finished so far",
@@ -507,11 +508,6 @@ def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
         write_trajectory(tmp, result)
     with atomic_path(out / "landmarks.csv") as tmp:
         write_landmarks(tmp, result)
-    write_json_atomic(out / "summary.json", summary(result, run.groundtruth), default=_json_default)
+    write_json_atomic(out / "summary.json", summary(result, run.groundtruth))
     log.info("results written to %s", out)
 
-
-def _json_default(x: object) -> object:
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(type(x))

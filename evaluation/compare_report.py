@@ -15,7 +15,7 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from lampsam.evaluation.compare import _json_default, markdown_table
+from lampsam.evaluation.compare import markdown_table
 from lampsam.safe_io import write_json_atomic, write_text_atomic
 
 if TYPE_CHECKING:
@@ -77,9 +77,9 @@ def report_markdown(rows: list[dict[str, Any]], results: list[JobResult],
                     unfinished: list[Job] | None = None) -> str:
     """The report in Markdown: lead figure, table, verdicts, failures, other figures.
 
-    ``unfinished``: jobs not finished (interrupted); the report says so under the title.
+    ``unfinished``: jobs an interrupt left unfinished; the report says which, and how
+    to finish them (``--resume``).
     """
-    unfinished = unfinished or []
     n_seeds = sorted({r["seeds"] for r in rows})
     seeds_txt = (_plural(n_seeds[0], "seed") if len(n_seeds) == 1
                  else f"{'/'.join(str(s) for s in n_seeds)} seeds")
@@ -92,9 +92,9 @@ def report_markdown(rows: list[dict[str, Any]], results: list[JobResult],
         "",
     ]
     if unfinished:
-        md += [f"**Interrupted: {_plural(len(unfinished), 'job')} not finished** ("
-               + ", ".join(f"{j.group} seed {j.seed} / {j.backend}" for j in unfinished)
-               + "); `lampsam compare ... --resume` runs only those.", ""]
+        md += [f"**Interrupted: {_plural(len(unfinished), 'job')} not finished** "
+               f"({', '.join(f'{j.group} seed {j.seed} / {j.backend}' for j in unfinished)}); "
+               "`lampsam compare ... --resume` runs only those.", ""]
     if figures:
         md += _figure_md(figures[0])
     md += ["## Table", "", markdown_table(rows), "", "## Consistency and accuracy", "",
@@ -140,8 +140,11 @@ def markdown_to_html(md: str, base: Path, title: str = TITLE) -> str:
 def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
                  figures: list[SavedFigure], wall_s: float,
                  unfinished: list[Job] | None = None) -> None:
-    """Write ``report.md``, ``report.html`` (rendered from it) and ``summary.json``
-    (atomically, summary last); ``unfinished``: jobs not finished (interrupted)."""
+    """Write ``report.md``, ``report.html`` (rendered from it) and ``summary.json``.
+
+    Each file is written atomically, ``summary.json`` last. ``unfinished``: jobs an
+    interrupt left unfinished (named in the report and in ``summary.json``).
+    """
     unfinished = unfinished or []
     md = report_markdown(rows, results, figures, wall_s, unfinished)
     write_text_atomic(out / "report.md", md)
@@ -156,4 +159,5 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
         "complete": not unfinished,
         "unfinished": [{"run": j.group, "seed": j.seed, "backend": j.backend} for j in unfinished],
     }
-    write_json_atomic(out / "summary.json", summary, default=_json_default)
+    write_json_atomic(out / "summary.json", summary)
+
