@@ -106,8 +106,9 @@ def plot_error_norms(ax: Axes, x: FloatArray, err: FloatArray, bound: FloatArray
         err: (N,) error magnitude (position, m, or |heading|, deg).
         bound: (N,) the 3-sigma bound the estimator reports, same unit.
     """
-    artists = ax.plot(x, err, color=color, lw=1.0, label=f"{label}")
-    artists += ax.plot(x, bound, color=color, lw=0.7, ls="--", alpha=0.8)
+    z = 3 if label == "ekf" else 2  # the filter over the two smoothers, which coincide
+    artists = ax.plot(x, err, color=color, lw=0.9, label=f"{label}", zorder=z)
+    artists += ax.plot(x, bound, color=color, lw=0.7, ls="--", alpha=0.8, zorder=z)
     return artists
 
 
