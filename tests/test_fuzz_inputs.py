@@ -138,10 +138,9 @@ RECOVER = {("groundtruth.tum", "missing"), ("landmarks.csv", "missing"),
            *(("meta.yaml", way) for way in WAYS)}  # meta.yaml is free-form provenance
 MIDRUN = {("images.csv", "truncated"), ("images.csv", "nan"), ("images.csv", "wrong_type"),
           *(("images/000003.png", way) for way in WAYS)}
-# rig.yaml is read by Rig.from_dict (datasets/logrun.py), which does not yet go through
-# lampsam.config_loader.from_mapping: a NaN focal length is accepted and a string one
-# fails without naming the key.
-RIG_PENDING = {("rig.yaml", "nan"), ("rig.yaml", "wrong_type")}
+# rig.yaml is read strictly (datasets/rig.py through lampsam.config_loader): NaN and
+# string focal lengths are errors naming camera.fx, so nothing is pending.
+RIG_PENDING: set[tuple[str, str]] = set()
 
 
 def _case(name: str, way: str) -> object:
