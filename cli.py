@@ -137,6 +137,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"contact sheet:      {result.contact_sheet}")
     print(f"comparison report:  {result.report} (and report.html, summary.json, figures/)")
     print(f"per-backend output: {result.out / 'compare' / 'jobs'} (trajectory.tum, landmarks.csv, summary.json)")
+    if result.recording is not None:
+        print(f"live recording:     {result.recording} (open with: rerun {result.recording})")
     return 1 if any(r["failed"] for r in result.rows) else 0
 
 
@@ -169,7 +171,8 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
     from lampsam.backend.stereo import StereoEstimatorConfig
     from lampsam.config_loader import load_config
     from lampsam.datasets.stereo_sim import read_stereo_run
-    from lampsam.evaluation.stereo_report import stereo_job
+    from lampsam.evaluation.live import live_view, rerun_target
+    from lampsam.evaluation.stereo_report import stereo_job, summary_table
 
     cfg = load_config(StereoEstimatorConfig, _config_path(args), table="stereo")
     run = read_stereo_run(Path(args.run))
@@ -178,19 +181,19 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
         if not (math.isfinite(value) and value > 0):
             raise LampsamError(f"{Path(args.run) / 'stereo_run.yaml'}: rig.{name}: must be a "
                                f"positive number, got {_num(value)}")
-    summary = stereo_job(Path(args.run), args.estimator, _out_dir(args), cfg)
+    out = _out_dir(args)
+    target = rerun_target(args.rerun, out)
+    with live_view(target, f"stereo {args.estimator} {args.run}",
+                   stereo_truth=run.truth if target else None, kind="stereo"):
+        summary = stereo_job(Path(args.run), args.estimator, out, cfg)
     counts = summary["status_counts"]
     if not any(n for status, n in counts.items() if status == "ok"):
         log.warning("no frame gave a measurement the %s estimator could use (%s): the "
                     "estimate is empty", args.estimator, counts)
         print(f"{args.estimator}: {counts}; no usable frame", file=sys.stderr)
         return 1
-    rms = summary.get("rms")
-    line = f"{args.estimator}: {summary['status_counts']}"
-    if rms:
-        line += (f"; RMS x {rms['x_m']:.4f} m, y {rms['y_m']:.4f} m, "
-                 f"heading {rms['heading_rad']:.5f} rad over {rms['frames']} frames")
-    print(line)
+    print(summary_table(summary))
+    print(f"written to {out} (estimate.tum, status.csv, summary.json, errors.png)")
     return 0
 
 
@@ -203,6 +206,9 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [stereo] table (StereoEstimatorConfig)")
     _add_force(p)
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_stereo)
 
 
@@ -272,13 +278,16 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
     if args.feature_every is not None:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
+    if args.no_tables:
+        cfg = dataclasses.replace(cfg, tables=dataclasses.replace(
+            cfg.tables, range_table=False, laser_range_table=False, distance_field=False))
     if not Path(args.run).exists():
         raise LampsamError(f"{args.run}: run not found")
     out = _out_dir(args)
     from lampsam.evaluation.map_truth import floor_plan_of_run
 
     truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
-    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth)
+    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth, scans=args.scans)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
@@ -287,15 +296,21 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
 
 
 def _add_build_map(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run")
+    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run "
+                       "or a CARMEN laser log, with the localizer's precomputed lookups")
     p.add_argument("run", help="run directory with kinect/, a TUM RGB-D or slambook2 folder, or a CARMEN log")
     p.add_argument("--out", required=True, help="map directory to write")
     p.add_argument("--poses", default="groundtruth",
                    help="mapping poses: 'groundtruth' (default) or 'slam:PATH_TO_TUM' (a SLAM trajectory)")
     p.add_argument("--resolution", type=_positive, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
     p.add_argument("--feature-every", type=_positive_int, default=None, help="SIFT on every n-th frame (default 1)")
+    p.add_argument("--scans", choices=("all", "even", "odd"), default="all",
+                   help="laser logs: map from all, the even or the odd scans (the others left for localization)")
+    p.add_argument("--no-tables", action="store_true",
+                   help="do not precompute the localizer's range table and distance field")
     _add_force(p)
-    p.add_argument("--config", default=None, help="TOML/YAML file with an [envmap] table ([envmap.depth], ...)")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with an [envmap] table ([envmap.depth], [envmap.laser], [envmap.tables], ...)")
     p.set_defaults(func=_cmd_build_map)
 
 
@@ -343,7 +358,10 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         run = read_run(args.run)
         _warn_partial(run.meta, Path(args.run))
     out = _out_dir(args)
-    result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run):
+        result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     if args.g2o:
         with atomic_path(Path(args.g2o)) as tmp:
             _write_slam_g2o(tmp, result, run)
@@ -355,7 +373,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         write_slam_plot(tmp, result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
-    msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
+    msg = (f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks "
+           f"({s['landmarks_pruned']} pruned)")
     if err:
         msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")
@@ -416,6 +435,9 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
                    help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
     p.add_argument("--duration", type=_positive, default=None,
                    help="with --mrclam: use only the first seconds (an error without --mrclam)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     _add_force(p)
     p.set_defaults(func=_cmd_slam, graceful=True)
 
@@ -433,7 +455,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     rows = compare(args.runs, backends=backends, seeds=args.seeds, out=out,
                    workers=args.workers, frames=args.frames, features=features,
                    duration=args.duration, progress=not args.no_progress, config=config,
-                   resume=args.resume)
+                   resume=args.resume, dask=args.dask)
     print(markdown_table(rows))
     print(f"report: {out / 'report.md'} (also report.html, summary.json, figures/)")
     if stop_requested() is not None:
@@ -460,7 +482,48 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue an earlier compare into the same --out: skip its finished jobs")
     _add_force(p)
+    _add_dask_option(p)
     p.set_defaults(func=_cmd_compare, graceful=True)
+
+
+def _add_dask_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the jobs on a Dask distributed scheduler (e.g. tcp://10.0.0.5:8786; "
+                        "workers need lampsam and the same paths) or 'local' (a LocalCluster "
+                        "with --workers processes); default: a local process pool")
+
+
+# --------------------------------------------------------------------------- batch
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from lampsam.backend.config import SlamConfig
+    from lampsam.config_loader import load_config
+    from lampsam.evaluation.batch import batch, markdown_table
+
+    features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
+    config = load_config(SlamConfig, _config_path(args))
+    rows = batch(args.runs, Path(args.out), backend=args.backend, workers=args.workers,
+                 dask=args.dask, progress=not args.no_progress, config=config,
+                 frames=args.frames, features=features)
+    print(markdown_table(rows))
+    print(f"summary: {Path(args.out) / 'summary.json'} (and summary.csv); one folder per run")
+    return 1 if any(r["status"] != "ok" for r in rows) else 0
+
+
+def _add_batch(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help="offline optimisation of many logs: one result folder each")
+    p.add_argument("runs", nargs="+", help="run directories")
+    p.add_argument("--out", required=True, help="output directory (one folder per run + summary)")
+    p.add_argument("--backend", choices=("batch", "isam2", "ekf"), default="batch",
+                   help="estimator (default batch: Levenberg-Marquardt over the whole log)")
+    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--frames", default="auto", choices=["auto", "images", "truth", "rangebearing"],
+                   help="measurement source (default auto)")
+    p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with the SLAM settings of every run (as for `lampsam slam --config`)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_dask_option(p)
+    p.set_defaults(func=_cmd_batch)
 
 
 # --------------------------------------------------------------------------- localize
@@ -477,7 +540,17 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     for what, path in (("run", Path(args.run)), ("map", Path(args.map))):
         if not path.is_dir():
             raise LampsamError(f"{path}: {what} directory not found")
-    result = localize_run(Path(args.run), Path(args.map), _out_dir(args), cfg, seed=args.seed)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    out = _out_dir(args)
+    target = rerun_target(args.rerun, out)
+    run = None
+    if target:
+        from lampsam.datasets.logrun import read_run
+
+        run = read_run(args.run)
+    with live_view(target, f"localize {cfg.mode.value} {args.run}", run=run, kind="localize"):
+        result = localize_run(Path(args.run), Path(args.map), out, cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
           f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
@@ -496,6 +569,9 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     _add_force(p)
     p.add_argument("--config", default=None, help="TOML/YAML file with a [localize] table (nested tables too: "
                         "[localize.filter], [localize.verification], ...)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_localize)
 
 
@@ -665,6 +741,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_show_map,
     _add_slam,
     _add_compare,
+    _add_batch,
     _add_localize,
     _add_table1,
     _add_frontend_eval,

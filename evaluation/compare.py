@@ -7,15 +7,18 @@
   odometry and image noise), or ``mrclam`` / ``mrclam-gated`` (the shared MRCLAM
   data with known association, or association by the gate alone).
 * Every (run, backend) job runs in a fresh process (so its peak memory is its own),
-  in parallel, with a progress bar. A job that fails (indeterminate system,
-  unusable input, a crash) is recorded as failed with its reason; it is never
-  dropped from the table.
+  in parallel, with a progress bar; or, with ``dask``, on a Dask ``distributed``
+  cluster (:mod:`lampsam.evaluation.fleet`: the same results; the peak memory is
+  then the worker process's so far). A job that fails (indeterminate system,
+  unusable input, a crash, a lost worker) is recorded as failed with its reason;
+  it is never dropped from the table.
 * Metrics (``evaluation.metrics``; trajectory statistics through evo): position
   and heading error without alignment (the start pose is known), RPE per metre,
   map error after association with the truth, pose NEES over time with the
   chi-square 95 % bounds, time per frame, total time, peak memory.
 
-Outputs: ``REPORT/report.md``, ``REPORT/report.html`` (images embedded),
+Outputs (written by ``evaluation.compare_report``): ``REPORT/report.md``,
+``REPORT/report.html`` (rendered from the Markdown, images embedded),
 ``REPORT/summary.json`` (every number in the table), ``REPORT/figures/*.png`` and
 one directory per job with the backend's own outputs (``trajectory.tum``,
 ``landmarks.csv``, ``summary.json``) and ``arrays.npz``.
@@ -23,17 +26,11 @@ one directory per job with the backend's own outputs (``trajectory.tum``,
 
 from __future__ import annotations
 
-import base64
-import concurrent.futures as cf
-import contextlib
 import json
 import logging
-import multiprocessing as mp
-import os
 import resource
 import time
 import traceback
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,9 +41,10 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
+from lampsam.evaluation.fleet import run_jobs
 from lampsam.evaluation.outputs import ensure_dir
-from lampsam.interrupt import stop_on_signals, stop_requested
-from lampsam.safe_io import atomic_path, write_json_atomic, write_text_atomic
+from lampsam.interrupt import stop_on_signals
+from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -215,8 +213,7 @@ def run_job(job: Job) -> JobResult:
     if result.status != "interrupted":
         write_json_atomic(Path(job.out_dir) / JOB_RESULT, {
             "status": result.status, "arrays": result.arrays,
-            "metrics": {k: v for k, v in result.metrics.items() if k != "traceback"}},
-            default=_json_default)
+            "metrics": {k: v for k, v in result.metrics.items() if k != "traceback"}})
     return result
 
 
@@ -298,6 +295,7 @@ def _run_job(job: Job) -> JobResult:
         arrays["lm_type"] = np.array([lm.type for lm in result.landmarks])
     if truth_lm is not None:
         arrays["true_lm_xy"] = truth_lm[2][:, :2]
+        arrays["true_lm_type"] = truth_lm[1]
     m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     with atomic_path(out / "arrays.npz") as tmp:
         np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
@@ -378,142 +376,10 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def consistency_sentences(rows: list[dict[str, Any]]) -> list[str]:
-    """Plain-language verdicts on consistency and on smoother vs EKF accuracy."""
-    out = []
-    for row in rows:
-        if "nees_mean" not in row:
-            continue
-        lo, hi = row["nees_bounds"]
-        verdict = ("overconfident" if row.get("nees_overconfident")
-                   else "underconfident" if row.get("nees_underconfident") else "consistent")
-        out.append(
-            f"- {row['run']} / {row['backend']}: time-averaged NEES {row['nees_mean']:.2f} "
-            f"(ideal 3; per-step 95 % bounds [{lo:.2f}, {hi:.2f}] for {row['seeds'] - row['failed']} runs), "
-            f"{row['nees_inside']:.0%} of steps inside: **{verdict}**"
-            + (f", {row['nees_mean'] / 3.0:.1f}x the ideal" if verdict == "overconfident" else "")
-            + "."
-        )
-    groups = sorted({r["run"] for r in rows})
-    for g in groups:
-        by = {r["backend"]: r for r in rows if r["run"] == g}
-        if "ekf" in by and "pos_rms_m" in by["ekf"]:
-            for b in ("batch", "isam2"):
-                if b in by and "pos_rms_m" in by[b]:
-                    ratio = by[b]["pos_rms_m"] / by["ekf"]["pos_rms_m"]
-                    out.append(f"- {g}: {b} position RMS is {ratio:.2f}x the EKF's "
-                               f"({by[b]['pos_rms_m']:.3f} m vs {by['ekf']['pos_rms_m']:.3f} m).")
-    return out
-
-
-def _img_html(path: Path) -> str:
-    """An HTML figure with the PNG at ``path`` inlined as base64."""
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
-    return f'<figure><img src="data:image/png;base64,{data}" style="max-width:100%"><figcaption>{path.stem}</figcaption></figure>'
-
-
-def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
-                 figures: list[Path], wall_s: float, unfinished: list[Job] | None = None) -> None:
-    """Write report.md, report.html and summary.json (atomically, summary last).
-
-    ``unfinished``: jobs not finished (interrupted); the report says so.
-    """
-    unfinished = unfinished or []
-    partial = (f"Interrupted: {len(unfinished)} jobs not finished "
-               f"({', '.join(f'{j.group} seed {j.seed} / {j.backend}' for j in unfinished)}); "
-               "`lampsam compare ... --resume` runs only those.") if unfinished else ""
-    table = markdown_table(rows)
-    notes = consistency_sentences(rows)
-    failures = [f"- {r.job.group} seed {r.job.seed} / {r.job.backend}: {r.status}"
-                for r in results if r.status.startswith("failed")]
-    md = [
-        "# lampsam: EKF against smoothing",
-        "",
-        f"{len(results)} jobs, wall time {wall_s:.1f} s. Errors without alignment (the start "
-        "pose is known); RPE per metre from evo; NEES over (x, y, theta), averaged over seeds.",
-        *(["", partial] if partial else []),
-        "",
-        table,
-        "",
-        "## Consistency and accuracy",
-        *notes,
-    ]
-    if failures:
-        md += ["", "## Failed jobs", *failures]
-    md += ["", "## Figures", *[f"![{f.stem}](figures/{f.name})" for f in figures], ""]
-    write_text_atomic(out / "report.md", "\n".join(md))
-    html_table = _md_table_to_html(table)
-    html = [
-        "<!doctype html><html><head><meta charset='utf-8'><title>lampsam compare</title>",
-        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse}"
-        "td,th{border:1px solid #999;padding:3px 6px;text-align:right}</style></head><body>",
-        "<h1>lampsam: EKF against smoothing</h1>",
-        f"<p>{len(results)} jobs, wall time {wall_s:.1f} s.</p>",
-        *([f"<p><b>{partial}</b></p>"] if partial else []),
-        html_table,
-        "<h2>Consistency and accuracy</h2><ul>",
-        *[f"<li>{n[2:]}</li>" for n in notes],
-        "</ul>",
-    ]
-    if failures:
-        html += ["<h2>Failed jobs</h2><ul>", *[f"<li>{f[2:]}</li>" for f in failures], "</ul>"]
-    html += ["<h2>Figures</h2>", *[_img_html(f) for f in figures], "</body></html>"]
-    write_text_atomic(out / "report.html", "\n".join(html))
-    summary = {
-        "rows": rows,
-        "jobs": [{"run": r.job.group, "seed": r.job.seed, "backend": r.job.backend,
-                  "run_dir": r.job.run_dir, "status": r.status,
-                  **{k: v for k, v in r.metrics.items() if k != "traceback"}} for r in results],
-        "wall_time_s": wall_s,
-        "complete": not unfinished,
-        "unfinished": [{"run": j.group, "seed": j.seed, "backend": j.backend} for j in unfinished],
-    }
-    write_json_atomic(out / "summary.json", summary, default=_json_default)
-
-
-def _md_table_to_html(table: str) -> str:
-    """A Markdown pipe table (header, rule, rows) as an HTML table."""
-    lines = table.splitlines()
-    head = [c.strip() for c in lines[0].strip("|").split("|")]
-    body = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]
-    out = ["<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"]
-    out += ["<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in body]
-    return "\n".join(out) + "</table>"
-
-
-def _json_default(x: Any) -> Any:
-    """JSON fallback for numpy scalars and arrays."""
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(type(x))
-
-
 # --------------------------------------------------------------------------- driver
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-@contextlib.contextmanager
-def _single_threaded_children() -> Iterator[None]:
-    """One BLAS/OpenMP thread in processes spawned inside the block; restored after.
-
-    Parallelism comes from the worker processes, and a threaded BLAS on the EKF's
-    small matrices was measured ~7x slower on 2 cores (scripts/bench/bench_scaling.py).
-    Spawned children read these variables when they import numpy. A value the user
-    set is kept.
-    """
-    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
-    for v in _THREAD_VARS:
-        os.environ.setdefault(v, "1")
-    try:
-        yield
-    finally:
-        for v, old in saved.items():
-            if old is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = old
+def _failed_job(job: Job, reason: str) -> JobResult:
+    """The result of a job whose worker raised or died."""
+    return JobResult(job, reason)
 
 
 def compare(
@@ -528,6 +394,7 @@ def compare(
     progress: bool = True,
     config: SlamConfig | None = None,
     resume: bool = False,
+    dask: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run every backend on every run; write the report; return the table rows.
 
@@ -536,13 +403,15 @@ def compare(
         backends: subset of ``ekf, isam2, batch``.
         seeds: Monte Carlo seeds per simulated world.
         out: report directory.
-        workers: parallel processes.
+        workers: parallel processes (local pool, or the workers of ``dask="local"``).
         frames: measurement source for every job (``auto``, ``images``, ``truth``).
         features: ceiling features (None: the backend default).
         duration: simulated seconds per world run (None: the whole path).
         progress: show a progress bar (tqdm, on stderr).
         config: the SLAM configuration of every job (None: the defaults).
         resume: skip the jobs an earlier run into ``out`` finished (:func:`finished_job`).
+        dask: None (local process pool), ``"local"`` (a Dask ``LocalCluster``) or the
+            address of a Dask scheduler (:mod:`lampsam.evaluation.fleet`).
 
     On a stop request (SIGINT, SIGTERM) the report of the jobs finished so far is
     written, naming the unfinished ones.
@@ -576,11 +445,15 @@ def compare(
         todo = [j for j in jobs if j.out_dir not in finished_dirs]
         log.warning("--resume: %d of %d jobs already finished, %d to run",
                     len(done), len(jobs), len(todo))
-    unfinished = _run_jobs(todo, workers, progress, results)
-    results = [r for r in results if r.status != "interrupted"]
+    ran = run_jobs(run_job, todo, _failed_job, workers=workers, dask=dask,
+                   progress=progress, desc="compare")
+    results += [r for r in ran if r.status != "interrupted"]
+    finished = {r.job.out_dir for r in results}
+    unfinished = [j for j in todo if j.out_dir not in finished]
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures
+    from lampsam.evaluation.compare_report import write_report
 
     figures = make_figures(out / "figures", results)
     write_report(out, rows, results, figures, time.perf_counter() - t_start, unfinished)
@@ -591,71 +464,3 @@ def compare(
     return rows
 
 
-def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobResult]
-              ) -> list[Job]:
-    """Run jobs in worker processes, appending to ``results``; returns the unfinished jobs.
-
-    A stop request (SIGINT or SIGTERM, :mod:`lampsam.interrupt`) cancels the jobs
-    not started and waits for the running ones (each stops at its next step when
-    the signal reached it too, as Ctrl-C in a terminal does, or finishes); a second
-    signal stops waiting. Interrupted and cancelled jobs are returned, not results.
-    """
-    if not jobs:
-        return []
-    ctx = mp.get_context("spawn")
-    unfinished: list[Job] = []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), desc="compare", unit="job")
-    with _single_threaded_children(), cf.ProcessPoolExecutor(
-        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
-    ) as pool:
-        futures = {pool.submit(run_job, j): j for j in jobs}
-        pending = set(futures)
-        collected: set[cf.Future[JobResult]] = set()
-        try:
-            while pending:
-                done, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
-                for fut in done:
-                    _collect(fut, futures[fut], results, unfinished)
-                    collected.add(fut)
-                    if bar is not None:
-                        bar.update(1)
-                if stop_requested() is not None:
-                    for fut in pending:
-                        fut.cancel()
-                    pending = {f for f in pending if not f.cancelled()}
-        except KeyboardInterrupt:  # a second signal: stop waiting for the running jobs
-            pool.shutdown(wait=False, cancel_futures=True)
-            for child in mp.active_children():
-                child.terminate()
-        for fut, job in futures.items():
-            if fut in collected:
-                continue
-            if fut.done() and not fut.cancelled():
-                _collect(fut, job, results, unfinished)
-            else:
-                unfinished.append(job)
-    if bar is not None:
-        bar.close()
-    return unfinished
-
-
-def _collect(fut: cf.Future[JobResult], job: Job, results: list[JobResult],
-             unfinished: list[Job]) -> None:
-    """Append a finished future's result; interrupted jobs go to ``unfinished`` as well."""
-    if fut.cancelled():
-        unfinished.append(job)
-        return
-    try:
-        res = fut.result()
-    except KeyboardInterrupt:  # stopped at once in the worker (second signal)
-        unfinished.append(job)
-        return
-    except Exception as exc:  # the worker process itself died
-        res = JobResult(job, f"failed: worker died: {type(exc).__name__}: {exc}")
-    results.append(res)
-    if res.status == "interrupted":
-        unfinished.append(job)

@@ -43,6 +43,7 @@ from lampsam.localization.symmetry import half_turn_centre, resolve_half_turn
 from lampsam.localization.verification import Verdict
 from lampsam.localization.verify_drive import verify_stage
 from lampsam.localization.virtual_scan import beam_angles
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,7 @@ def localize(
     """
     config = config.resolved()
     model = scan_model(maps, config)
+    emit("localize.start", grid=maps.grid)
     robot_time = {"turn": 0.0, "verification": 0.0}
     compute_time = {"candidates": 0.0, "filter": 0.0, "verification": 0.0}
     attempts: list[AttemptRecord] = []
@@ -127,6 +129,7 @@ def localize(
             pose, margin = resolve_half_turn(pose, scan, twin_centre, maps, config, rng)
             ambiguous = margin < (fc.twin_margin or 0.0)
         compute_time["filter"] += time.perf_counter() - t0
+        emit("localize.estimate", pose=pose, attempt=attempt)
         if not verifies:
             attempts.append(
                 AttemptRecord(

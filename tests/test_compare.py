@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lampsam.evaluation import compare as C
+from lampsam.evaluation.compare_report import consistency_sentences
 
 
 def _job(backend: str, seed: int, tmp: Path) -> C.Job:
@@ -37,7 +38,7 @@ def test_failed_jobs_are_counted_not_dropped(tmp_path: Path, rng: np.random.Gene
     assert abs(rows["ekf"]["nees_mean"] - 3.0) < 0.3 and not rows["ekf"]["nees_overconfident"]
     table = C.markdown_table(C.aggregate(results))
     assert "| lab | batch | 1/2 |" in table and "| lab | ekf | 2/2 |" in table
-    text = "\n".join(C.consistency_sentences(C.aggregate(results)))
+    text = "\n".join(consistency_sentences(C.aggregate(results)))
     assert "batch position RMS is 0.27x the EKF's" in text
 
 
@@ -51,17 +52,6 @@ def test_unknown_run_and_backend_raise(tmp_path: Path) -> None:
         C.compare(["no-such-thing"], out=tmp_path)
     with pytest.raises(C.CompareError):
         C.compare(["lab"], backends=("kalman",), out=tmp_path)
-
-
-def test_thread_variables_restored(monkeypatch: pytest.MonkeyPatch) -> None:
-    import os
-
-    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
-    with C._single_threaded_children():
-        assert os.environ["OMP_NUM_THREADS"] == "1"
-        assert os.environ["OPENBLAS_NUM_THREADS"] == "4"  # the user's choice is kept
-    assert "OMP_NUM_THREADS" not in os.environ and os.environ["OPENBLAS_NUM_THREADS"] == "4"
 
 
 def test_map_error_associates_by_position_when_ids_are_the_backends() -> None:
