@@ -206,6 +206,7 @@ def two_point_on_kitti(
                 est[k] = est[last_ok]
                 continue
             n_pairs += 1
+        assert pose is not None  # a usable pair was found above
         est[k] = compose(est[a], pose)
         anchor[k] = a
         last_ok = k

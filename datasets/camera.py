@@ -1,9 +1,19 @@
-"""The ceiling camera: intrinsics, lens distortion and mounting on the robot body.
+"""The ceiling camera: intrinsics, lens model and mounting on the robot body.
 
 :class:`CameraModel` converts between pixels and the normalised ceiling
 coordinates ``m = (u, v)`` of ``docs/conventions.md`` (body forward and left per
 metre of height above the camera). Pixel convention: OpenCV, ``(col, row)`` with
 the origin at the centre of the top-left pixel.
+
+Two lens models, both OpenCV's:
+
+- ``pinhole``: ``cv2.undistortPoints`` / ``cv2.projectPoints`` with 4, 5
+  (ROS ``plumb_bob``: ``k1 k2 p1 p2 k3``), 8 (ROS ``rational_polynomial``:
+  ``... k4 k5 k6``), 12 or 14 coefficients.
+- ``fisheye``: the equidistant model of ``cv2.fisheye`` (ROS ``equidistant``):
+  a ray at angle ``theta`` from the optical axis lands at radius
+  ``r = f theta_d``, ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``;
+  4 coefficients. It images rays up to and beyond 90 deg, which a pinhole cannot.
 """
 
 from __future__ import annotations
@@ -32,9 +42,18 @@ def _frozen_array(a: Any, shape: tuple[int, ...], name: str) -> FloatArray:
     return arr
 
 
+CAMERA_MODELS = ("pinhole", "fisheye")
+"""Lens models of :class:`CameraModel` (module docstring)."""
+
+PINHOLE_DIST_SIZES = (4, 5, 8, 12, 14)
+"""Numbers of OpenCV pinhole distortion coefficients accepted."""
+
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+
+
 @dataclass(frozen=True, eq=False)
 class CameraModel:
-    """Pinhole camera with OpenCV distortion, mounted on the robot body.
+    """Camera with an OpenCV lens model, mounted on the robot body.
 
     Attributes:
         width: image width, px (default 320).
@@ -43,11 +62,14 @@ class CameraModel:
         fy: focal length along rows, px.
         cx: principal point column, px (OpenCV: origin at the centre of the top-left pixel).
         cy: principal point row, px.
-        dist: (5,) OpenCV distortion ``(k1, k2, p1, p2, k3)`` (default zeros).
+        dist: OpenCV distortion coefficients: pinhole (4,), (5,) ``(k1, k2, p1, p2, k3)``,
+            (8,), (12,) or (14,); fisheye (4,) ``(k1, k2, k3, k4)`` (default: five zeros,
+            no distortion; a fisheye given no coefficients gets four zeros).
         body_t_camera: (3,) optical centre in the body frame, m; ``z`` is its height
             above the floor (default ``(0.1, 0, 0.3)``).
         body_R_camera: (3, 3) columns = camera ``x, y, z`` axes in body coordinates
             (default: optical axis up, image top = robot forward).
+        model: ``"pinhole"`` (default) or ``"fisheye"`` (equidistant; module docstring).
     """
 
     width: int = 320
@@ -59,10 +81,22 @@ class CameraModel:
     dist: FloatArray = field(default_factory=lambda: np.zeros(5))
     body_t_camera: FloatArray = field(default_factory=lambda: np.array([0.1, 0.0, 0.3]))
     body_R_camera: FloatArray = field(default_factory=lambda: DEFAULT_BODY_R_CAMERA.copy())
+    model: str = "pinhole"
 
     def __post_init__(self) -> None:
         """Validate and freeze the arrays (ValueError on bad values)."""
-        object.__setattr__(self, "dist", _frozen_array(self.dist, (5,), "dist"))
+        if self.model not in CAMERA_MODELS:
+            raise ValueError(f"model must be one of {CAMERA_MODELS}, got {self.model!r}")
+        dist = np.array(self.dist, dtype=np.float64).ravel()
+        if self.model == "fisheye" and dist.shape == (5,) and not np.any(dist):
+            dist = np.zeros(4)  # the default: no distortion, in the fisheye's length
+        sizes = (4,) if self.model == "fisheye" else PINHOLE_DIST_SIZES
+        if len(dist) not in sizes:
+            raise ValueError(
+                f"dist of a {self.model} camera must have {' or '.join(map(str, sizes))} "
+                f"coefficients, got {len(dist)}"
+            )
+        object.__setattr__(self, "dist", _frozen_array(dist, dist.shape, "dist"))
         object.__setattr__(
             self, "body_t_camera", _frozen_array(self.body_t_camera, (3,), "body_t_camera")
         )
@@ -82,10 +116,16 @@ class CameraModel:
         Args:
             width: image width, px.
             height: image height, px.
-            hfov_deg: horizontal field of view of the undistorted pinhole, degrees.
-            **kwargs: other :class:`CameraModel` fields (``dist``, ``body_t_camera``, ...).
+            hfov_deg: horizontal field of view without distortion, degrees: of the
+                pinhole (``f = (W/2) / tan(hfov/2)``) or of the equidistant fisheye
+                (``f = (W/2) / (hfov/2)``, hfov may exceed 180 deg).
+            **kwargs: other :class:`CameraModel` fields (``dist``, ``model``, ...).
         """
-        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        half = math.radians(hfov_deg) / 2.0
+        if kwargs.get("model", "pinhole") == "fisheye":
+            f = (width / 2.0) / half
+        else:
+            f = (width / 2.0) / math.tan(half)
         return cls(
             width=width, height=height, fx=f, fy=f,
             cx=(width - 1) / 2.0, cy=(height - 1) / 2.0, **kwargs,
@@ -100,30 +140,74 @@ class CameraModel:
         """Height of the optical centre above the floor, m."""
         return float(self.body_t_camera[2])
 
-    def camera_rays(self, px: FloatArray) -> FloatArray:
-        """Undistorted camera rays ``(x_n, y_n)`` (z = 1) of pixels, via ``cv2.undistortPoints``.
+    @property
+    def has_distortion(self) -> bool:
+        """False only for a pinhole without distortion (pixels map linearly to rays)."""
+        return self.model != "pinhole" or bool(np.any(self.dist))
+
+    def undistort_points(self, px: FloatArray) -> FloatArray:
+        """Undistorted camera rays ``(x_n, y_n)`` (z = 1) of pixels, with the camera's lens model.
+
+        Pinhole: ``cv2.undistortPoints``; fisheye: ``cv2.fisheye.undistortPoints``.
 
         Args:
             px: (N, 2) pixels ``(col, row)``.
 
         Returns:
-            (N, 2) normalised camera coordinates (camera frame, OpenCV axes).
+            (N, 2) normalised camera coordinates (camera frame, OpenCV axes); NaN rows
+            for fisheye pixels whose ray is 90 deg or more off the optical axis (they
+            have no ``z = 1`` point) or where the iteration does not converge.
         """
         pts = np.ascontiguousarray(np.asarray(px, dtype=np.float64).reshape(-1, 1, 2))
         if pts.shape[0] == 0:
             return np.zeros((0, 2))
-        if not np.any(self.dist):
+        if not self.has_distortion:
             out = np.empty((pts.shape[0], 2))
             out[:, 0] = (pts[:, 0, 0] - self.cx) / self.fx
             out[:, 1] = (pts[:, 0, 1] - self.cy) / self.fy
             return out
-        und = cv2.undistortPoints(
-            pts,
-            self.K(),
-            self.dist,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
+        if self.model == "pinhole":
+            und = cv2.undistortPoints(pts, self.K(), self.dist, criteria=_UNDISTORT_CRITERIA)
+            return np.asarray(und, dtype=np.float64).reshape(-1, 2)
+        und = cv2.fisheye.undistortPoints(
+            pts, self.K(), self.dist.reshape(4, 1), criteria=_UNDISTORT_CRITERIA
         )
-        return np.asarray(und, dtype=np.float64).reshape(-1, 2)
+        rays = np.asarray(und, dtype=np.float64).reshape(-1, 2)
+        # Check by re-projection: beyond 90 deg the equidistant inverse folds back and
+        # non-converged points come back as large sentinels; both fail this test.
+        back, ok = self.project_camera_points(np.column_stack([rays, np.ones(len(rays))]))
+        bad = ~ok | ~np.all(np.abs(back - pts.reshape(-1, 2)) < 1e-3, axis=1)
+        rays[bad] = np.nan
+        return rays
+
+    def camera_rays(self, px: FloatArray) -> FloatArray:
+        """Same as :meth:`undistort_points` (the name the renderer and frontend use)."""
+        return self.undistort_points(px)
+
+    def project_camera_points(self, pc: FloatArray) -> tuple[FloatArray, np.ndarray]:
+        """Pixels of points given in the camera frame, with the lens model.
+
+        Args:
+            pc: (N, 3) points in the camera frame (OpenCV axes), any scale.
+
+        Returns:
+            ``px`` (N, 2) pixels ``(col, row)`` and ``ok`` (N,) bool: the point is in
+            front of the lens plane (``z > 0``). A fisheye also images rays beyond
+            90 deg, but no ceiling coordinate ``m`` describes them, so they count as
+            not imaged here.
+        """
+        pc = np.asarray(pc, dtype=np.float64).reshape(-1, 3)
+        if len(pc) == 0:
+            return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+        ok = pc[:, 2] > 1e-12
+        obj = np.ascontiguousarray(pc.reshape(-1, 1, 3))
+        if self.model == "pinhole":
+            px, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), self.K(), self.dist)
+        else:
+            px, _ = cv2.fisheye.projectPoints(
+                obj, np.zeros((3, 1)), np.zeros((3, 1)), self.K(), self.dist.reshape(4, 1)
+            )
+        return np.asarray(px, dtype=np.float64).reshape(-1, 2), ok
 
     def normalized_from_pixels(self, px: FloatArray) -> FloatArray:
         """Normalised ceiling coordinates ``m = (u, v)`` of pixels (conventions.md).
@@ -153,7 +237,7 @@ class CameraModel:
             m: (N, 2) ``(u, v)`` (body forward, left per metre of height).
 
         Returns:
-            (N, 2) pixels ``(col, row)`` via ``cv2.projectPoints`` (with distortion);
+            (N, 2) pixels ``(col, row)`` via :meth:`project_camera_points` (with distortion);
             rows whose ray is behind the camera are NaN.
         """
         m = np.asarray(m, dtype=np.float64).reshape(-1, 2)
@@ -161,15 +245,8 @@ class CameraModel:
             return np.zeros((0, 2))
         body = np.column_stack([m, np.ones(len(m))])
         cam = body @ self.body_R_camera  # = (body_R_camera.T @ b.T).T
-        px, _ = cv2.projectPoints(
-            np.ascontiguousarray(cam.reshape(-1, 1, 3)),
-            np.zeros(3),
-            np.zeros(3),
-            self.K(),
-            self.dist,
-        )
-        px = np.asarray(px, dtype=np.float64).reshape(-1, 2)
-        px[cam[:, 2] <= 1e-12] = np.nan
+        px, ok = self.project_camera_points(cam)
+        px[~ok] = np.nan
         return px
 
     def to_dict(self) -> dict[str, Any]:
@@ -184,4 +261,5 @@ class CameraModel:
             "dist": [float(x) for x in self.dist],
             "body_t_camera": [float(x) for x in self.body_t_camera],
             "body_R_camera": [[float(x) for x in row] for row in self.body_R_camera],
+            "model": self.model,
         }

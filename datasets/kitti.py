@@ -123,7 +123,7 @@ class KittiStereoSequence:
             if img.shape != (self.height, self.width):
                 raise KittiError(f"image size {img.shape[::-1]} differs from "
                                  f"{(self.width, self.height)}", f)
-            out.append(img)
+            out.append(np.asarray(img, dtype=np.uint8))
         return out[0], out[1]
 
     def planar_rig_poses(self) -> FloatArray:

@@ -112,7 +112,7 @@ class RgbdSequence:
         if img is None:
             raise DatasetError("colour image missing or unreadable", path)
         _check_shape(img, self.camera, path)
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
 
     def load_depth(self, i: int) -> ImageU16:
         """Depth image ``i`` as uint16 (H, W) (metres = value / ``camera.depth_scale``).
@@ -129,7 +129,7 @@ class RgbdSequence:
                 f"depth image must be 16-bit single channel, got {img.dtype} {img.shape}", path
             )
         _check_shape(img, self.camera, path)
-        return img
+        return np.asarray(img, dtype=np.uint16)
 
 
 def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:

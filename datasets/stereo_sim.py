@@ -122,7 +122,7 @@ def true_trajectory(scenario: str, cfg: StereoScenario) -> tuple[FloatArray, Flo
         poses = np.column_stack([np.full(n, x0), np.full(n, y0), theta])
     else:
         raise DatasetError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
-    return t, poses
+    return np.asarray(t, dtype=np.float64), np.asarray(poses, dtype=np.float64)
 
 
 def render_columns(

@@ -256,7 +256,7 @@ class ImageIndex:
             raise DatasetError(
                 f"image size {img.shape} differs from the rig's {self.shape}{where}", path
             )
-        return img
+        return np.asarray(img, dtype=np.uint8)
 
     def __iter__(self) -> Iterator[tuple[float, ImageU8]]:
         """Iterate ``(t, image)``."""

@@ -43,10 +43,13 @@ from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
 from lampsam.evaluation.fleet import run_jobs
 from lampsam.evaluation.outputs import ensure_dir
+from lampsam.interrupt import stop_on_signals
+from lampsam.safe_io import atomic_path, write_json_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
 
 MRCLAM_NAMES = ("mrclam", "mrclam-gated")
+JOB_RESULT = "job_result.json"  #: a finished job's status and metrics, written last
 
 
 class CompareError(LampsamError):
@@ -200,7 +203,43 @@ def _map_error(result: Any, truth: tuple[np.ndarray, np.ndarray, np.ndarray] | N
 
 
 def run_job(job: Job) -> JobResult:
-    """Run one backend on one run and compute its metrics (runs in a worker process)."""
+    """Run one backend on one run and compute its metrics (runs in a worker process).
+
+    Writes ``job_result.json`` last (atomically) unless the job was interrupted, so
+    that ``compare --resume`` can tell finished jobs (:func:`finished_job`).
+    """
+    with stop_on_signals():  # SIGINT/SIGTERM in the worker: finish the step, keep the steps
+        result = _run_job(job)
+    if result.status != "interrupted":
+        write_json_atomic(Path(job.out_dir) / JOB_RESULT, {
+            "status": result.status, "arrays": result.arrays,
+            "metrics": {k: v for k, v in result.metrics.items() if k != "traceback"}},
+            default=_json_default)
+    return result
+
+
+def finished_job(job: Job) -> JobResult | None:
+    """The result of a job finished by an earlier ``compare`` (for ``--resume``), or None.
+
+    A job is finished when its directory holds ``job_result.json`` (written last,
+    atomically, by :func:`run_job`) and, for a successful job, its ``arrays.npz``.
+    Interrupted jobs write no ``job_result.json`` and are run again.
+    """
+    path = Path(job.out_dir) / JOB_RESULT
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        status, arrays, metrics = str(doc["status"]), doc.get("arrays"), dict(doc["metrics"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("%s: unreadable (%s): the job runs again", path, exc)
+        return None
+    if arrays is not None and not Path(arrays).is_file():
+        return None
+    return JobResult(job, status, metrics, arrays)
+
+
+def _run_job(job: Job) -> JobResult:
     from lampsam.backend.slam import run_slam
     from lampsam.datasets.logrun import read_run
 
@@ -258,7 +297,8 @@ def run_job(job: Job) -> JobResult:
     if truth_lm is not None:
         arrays["true_lm_xy"] = truth_lm[2][:, :2]
     m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    np.savez_compressed(out / "arrays.npz", **arrays)
+    with atomic_path(out / "arrays.npz") as tmp:
+        np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
     return JobResult(job, result.status, m, str(out / "arrays.npz"))
 
 
@@ -371,8 +411,15 @@ def _img_html(path: Path) -> str:
 
 
 def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
-                 figures: list[Path], wall_s: float) -> None:
-    """Write report.md, report.html and summary.json."""
+                 figures: list[Path], wall_s: float, unfinished: list[Job] | None = None) -> None:
+    """Write report.md, report.html and summary.json (atomically, summary last).
+
+    ``unfinished``: jobs not finished (interrupted); the report says so.
+    """
+    unfinished = unfinished or []
+    partial = (f"Interrupted: {len(unfinished)} jobs not finished "
+               f"({', '.join(f'{j.group} seed {j.seed} / {j.backend}' for j in unfinished)}); "
+               "`lampsam compare ... --resume` runs only those.") if unfinished else ""
     table = markdown_table(rows)
     notes = consistency_sentences(rows)
     failures = [f"- {r.job.group} seed {r.job.seed} / {r.job.backend}: {r.status}"
@@ -382,6 +429,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
         "",
         f"{len(results)} jobs, wall time {wall_s:.1f} s. Errors without alignment (the start "
         "pose is known); RPE per metre from evo; NEES over (x, y, theta), averaged over seeds.",
+        *(["", partial] if partial else []),
         "",
         table,
         "",
@@ -391,7 +439,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
     if failures:
         md += ["", "## Failed jobs", *failures]
     md += ["", "## Figures", *[f"![{f.stem}](figures/{f.name})" for f in figures], ""]
-    (out / "report.md").write_text("\n".join(md))
+    write_text_atomic(out / "report.md", "\n".join(md))
     html_table = _md_table_to_html(table)
     html = [
         "<!doctype html><html><head><meta charset='utf-8'><title>lampsam compare</title>",
@@ -399,6 +447,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
         "td,th{border:1px solid #999;padding:3px 6px;text-align:right}</style></head><body>",
         "<h1>lampsam: EKF against smoothing</h1>",
         f"<p>{len(results)} jobs, wall time {wall_s:.1f} s.</p>",
+        *([f"<p><b>{partial}</b></p>"] if partial else []),
         html_table,
         "<h2>Consistency and accuracy</h2><ul>",
         *[f"<li>{n[2:]}</li>" for n in notes],
@@ -407,15 +456,17 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
     if failures:
         html += ["<h2>Failed jobs</h2><ul>", *[f"<li>{f[2:]}</li>" for f in failures], "</ul>"]
     html += ["<h2>Figures</h2>", *[_img_html(f) for f in figures], "</body></html>"]
-    (out / "report.html").write_text("\n".join(html))
+    write_text_atomic(out / "report.html", "\n".join(html))
     summary = {
         "rows": rows,
         "jobs": [{"run": r.job.group, "seed": r.job.seed, "backend": r.job.backend,
                   "run_dir": r.job.run_dir, "status": r.status,
                   **{k: v for k, v in r.metrics.items() if k != "traceback"}} for r in results],
         "wall_time_s": wall_s,
+        "complete": not unfinished,
+        "unfinished": [{"run": j.group, "seed": j.seed, "backend": j.backend} for j in unfinished],
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    write_json_atomic(out / "summary.json", summary, default=_json_default)
 
 
 def _md_table_to_html(table: str) -> str:
@@ -438,11 +489,6 @@ def _json_default(x: Any) -> Any:
 
 
 # --------------------------------------------------------------------------- driver
-def _failed_job(job: Job, reason: str) -> JobResult:
-    """The result of a job whose worker raised or died."""
-    return JobResult(job, reason)
-
-
 def compare(
     runs: list[str],
     backends: tuple[str, ...] = ("ekf", "isam2", "batch"),
@@ -454,6 +500,7 @@ def compare(
     duration: float | None = None,
     progress: bool = True,
     config: SlamConfig | None = None,
+    resume: bool = False,
     dask: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run every backend on every run; write the report; return the table rows.
@@ -463,14 +510,18 @@ def compare(
         backends: subset of ``ekf, isam2, batch``.
         seeds: Monte Carlo seeds per simulated world.
         out: report directory.
-        workers: parallel processes (local pool, or the workers of ``dask="local"``).
+        workers: parallel processes.
         frames: measurement source for every job (``auto``, ``images``, ``truth``).
         features: ceiling features (None: the backend default).
         duration: simulated seconds per world run (None: the whole path).
         progress: show a progress bar (tqdm, on stderr).
         config: the SLAM configuration of every job (None: the defaults).
+        resume: skip the jobs an earlier run into ``out`` finished (:func:`finished_job`).
         dask: None (local process pool), ``"local"`` (a Dask ``LocalCluster``) or the
             address of a Dask scheduler (:mod:`lampsam.evaluation.fleet`).
+
+    On a stop request (SIGINT, SIGTERM) the report of the jobs finished so far is
+    written, naming the unfinished ones.
 
     Returns:
         The aggregated rows (as in ``summary.json``).
@@ -492,12 +543,44 @@ def compare(
         for group, seed, run_dir in resolved
         for b in backends
     ]
-    results = run_jobs(run_job, jobs, _failed_job, workers=workers, dask=dask,
-                       progress=progress, desc="compare")
+    results: list[JobResult] = []
+    todo = jobs
+    if resume:
+        done = [r for r in (finished_job(j) for j in jobs) if r is not None]
+        results.extend(done)
+        finished_dirs = {r.job.out_dir for r in done}
+        todo = [j for j in jobs if j.out_dir not in finished_dirs]
+        log.warning("--resume: %d of %d jobs already finished, %d to run",
+                    len(done), len(jobs), len(todo))
+    unfinished = _run_jobs(todo, workers, progress, results, dask)
+    results = [r for r in results if r.status != "interrupted"]
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures
 
     figures = make_figures(out / "figures", results)
-    write_report(out, rows, results, figures, time.perf_counter() - t_start)
+    write_report(out, rows, results, figures, time.perf_counter() - t_start, unfinished)
+    if unfinished:
+        log.warning("interrupted: report of the %d finished jobs written to %s; %d jobs not "
+                    "finished (rerun with --resume to run only those)",
+                    len(results), out, len(unfinished))
     return rows
+
+
+def _failed_job(job: Job, reason: str) -> JobResult:
+    """The result of a job whose worker raised or died."""
+    return JobResult(job, reason)
+
+
+def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobResult],
+              dask: str | None = None) -> list[Job]:
+    """Run jobs (:func:`lampsam.evaluation.fleet.run_jobs`), appending to ``results``.
+
+    Returns the unfinished jobs: those a stop request (SIGINT, SIGTERM) cancelled,
+    and those it interrupted (their ``"interrupted"`` results are appended too).
+    """
+    done, unfinished = run_jobs(run_job, jobs, _failed_job, workers=workers, dask=dask,
+                                progress=progress, desc="compare",
+                                interrupted=lambda r: r.status == "interrupted")
+    results.extend(done)
+    return unfinished
