@@ -536,6 +536,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
                  frames=args.frames, features=features)
     print(markdown_table(rows))
     print(f"summary: {Path(args.out) / 'summary.json'} (and summary.csv); one folder per run")
+    if stop_requested() is not None:
+        return EXIT_INTERRUPTED
     return 1 if any(r["status"] != "ok" for r in rows) else 0
 
 
@@ -553,7 +555,7 @@ def _add_batch(sub: argparse._SubParsersAction) -> None:
                    help="TOML/YAML file with the SLAM settings of every run (as for `lampsam slam --config`)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_dask_option(p)
-    p.set_defaults(func=_cmd_batch)
+    p.set_defaults(func=_cmd_batch, graceful=True)
 
 
 # --------------------------------------------------------------------------- localize

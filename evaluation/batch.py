@@ -8,6 +8,8 @@ a Dask cluster (:mod:`lampsam.evaluation.fleet`). Outputs:
 - ``DIR/<run name>/``: the backend's ``trajectory.tum``, ``landmarks.csv`` and
   ``summary.json`` (:func:`lampsam.backend.slam.write_results`); two runs with the
   same folder name get ``-2``, ``-3``... suffixes in input order.
+- A stop request (SIGINT/SIGTERM) cancels the runs not started: their rows say
+  ``not run: interrupted``; the summary is still written.
 - ``DIR/summary.json`` (one row per run plus how it was run) and ``DIR/summary.csv``
   (the rows). A run that fails (unreadable, no frames, indeterminate system, a crash,
   a lost worker) is a row with ``status = "failed: <reason>"``, never dropped.
@@ -171,9 +173,12 @@ def batch(
     t0 = time.perf_counter()
     jobs = [BatchJob(name, str(run), str(out / name), backend, frames, features, config)
             for name, run in zip(folder_names(runs), runs, strict=True)]
-    results = run_jobs(batch_job, jobs, _failed, workers=workers, dask=dask,
-                       progress=progress, desc="batch")
-    rows = [summary_row(r) for r in results]
+    results, unfinished = run_jobs(batch_job, jobs, _failed, workers=workers, dask=dask,
+                                   progress=progress, desc="batch")
+    by_name = {r.job.name: r for r in results}
+    for job in unfinished:  # cancelled by a stop request: a row saying so
+        by_name.setdefault(job.name, BatchResult(job, "not run: interrupted"))
+    rows = [summary_row(by_name[job.name]) for job in jobs]
     engine = f"dask {dask}" if dask else f"local process pool ({max(1, workers)} processes)"
     doc = {"engine": engine, "elapsed_s": time.perf_counter() - t0, "backend": backend,
            "failed": sum(r["status"] != "ok" for r in rows), "runs": rows}

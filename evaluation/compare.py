@@ -403,7 +403,7 @@ def compare(
         backends: subset of ``ekf, isam2, batch``.
         seeds: Monte Carlo seeds per simulated world.
         out: report directory.
-        workers: parallel processes (local pool, or the workers of ``dask="local"``).
+        workers: parallel processes.
         frames: measurement source for every job (``auto``, ``images``, ``truth``).
         features: ceiling features (None: the backend default).
         duration: simulated seconds per world run (None: the whole path).
@@ -445,11 +445,10 @@ def compare(
         todo = [j for j in jobs if j.out_dir not in finished_dirs]
         log.warning("--resume: %d of %d jobs already finished, %d to run",
                     len(done), len(jobs), len(todo))
-    ran = run_jobs(run_job, todo, _failed_job, workers=workers, dask=dask,
-                   progress=progress, desc="compare")
+    ran, unfinished = run_jobs(run_job, todo, _failed_job, workers=workers, dask=dask,
+                               progress=progress, desc="compare",
+                               interrupted=lambda r: r.status == "interrupted")
     results += [r for r in ran if r.status != "interrupted"]
-    finished = {r.job.out_dir for r in results}
-    unfinished = [j for j in todo if j.out_dir not in finished]
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures

@@ -14,7 +14,9 @@ the results in job order.
   and write their outputs there; only small result records travel back.
 
 Every job yields a result: a job whose function raises, whose worker dies, or whose
-future is lost becomes ``failed(job, reason)``, so a failure stays a failed row.
+future is lost becomes ``failed(job, reason)``, so a failure stays a failed row. A
+stop request (SIGINT/SIGTERM) cancels the jobs not started; they are returned as
+unfinished, never as results.
 A progress bar (tqdm, stderr) follows completion of the pool's or Dask's futures.
 """
 
@@ -25,6 +27,7 @@ import contextlib
 import logging
 import multiprocessing as mp
 import os
+import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -73,12 +76,13 @@ def single_threaded_children() -> Iterator[None]:
                 os.environ[v] = old
 
 
-def _progress(iterator: Iterator[Any], total: int, desc: str, show: bool) -> Iterator[Any]:
+def _bar(total: int, desc: str, show: bool) -> Any:
+    """A tqdm progress bar on stderr, or None."""
     if not show:
-        return iterator
+        return None
     from tqdm import tqdm
 
-    return iter(tqdm(iterator, total=total, desc=desc, unit="job"))
+    return tqdm(total=total, desc=desc, unit="job")
 
 
 def _reason(exc: BaseException) -> str:
@@ -86,21 +90,19 @@ def _reason(exc: BaseException) -> str:
 
 
 def run_local(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str], R],
-              workers: int = 2, progress: bool = True, desc: str = "jobs") -> list[R]:
+              workers: int = 2, progress: bool = True, desc: str = "jobs",
+              interrupted: Callable[[R], bool] | None = None) -> tuple[list[R], list[J]]:
     """Every job in a fresh spawned process, ``workers`` at a time (see :func:`run_jobs`).
 
     A stop request (SIGINT or SIGTERM, :mod:`lampsam.interrupt`) cancels the jobs not
     started and waits for the running ones (each stops at its next step when the
-    signal reached it too, as Ctrl-C in a terminal does, or finishes); a second signal
-    stops waiting. Jobs cancelled or stopped at once give no result.
+    signal reached it too, as Ctrl-C in a terminal does, or finishes); a second
+    signal stops waiting and terminates the workers.
     """
-    results: list[R | None] = [None] * len(jobs)
+    done_results: dict[int, R] = {}
+    unfinished: set[int] = set()
     ctx = mp.get_context("spawn")
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), desc=desc, unit="job")
+    bar = _bar(len(jobs), desc, progress)
     with single_threaded_children(), cf.ProcessPoolExecutor(
         max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
     ) as pool:
@@ -110,7 +112,7 @@ def run_local(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str]
             while pending:
                 done, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
                 for fut in done:
-                    results[futures[fut]] = _outcome(fut, jobs[futures[fut]], failed)
+                    _collect_local(fut, futures[fut], jobs, failed, done_results, unfinished)
                     if bar is not None:
                         bar.update(1)
                 if stop_requested() is not None:
@@ -121,26 +123,42 @@ def run_local(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str]
             pool.shutdown(wait=False, cancel_futures=True)
             for child in mp.active_children():
                 child.terminate()
-            for fut, i in futures.items():
-                if results[i] is None and fut.done():
-                    results[i] = _outcome(fut, jobs[i], failed)
+        for fut, i in futures.items():
+            if i in done_results or i in unfinished:
+                continue
+            if fut.done() and not fut.cancelled():
+                _collect_local(fut, i, jobs, failed, done_results, unfinished)
+            else:
+                unfinished.add(i)
     if bar is not None:
         bar.close()
-    return [r for r in results if r is not None]
+    return _ordered(jobs, done_results, unfinished, interrupted)
 
 
-def _outcome(fut: cf.Future[R], job: J, failed: Callable[[J, str], R]) -> R | None:
-    """A finished future's result; None when it was cancelled or stopped at once."""
+def _collect_local(fut: cf.Future[R], i: int, jobs: Sequence[J], failed: Callable[[J, str], R],
+                   done_results: dict[int, R], unfinished: set[int]) -> None:
+    """Store a finished pool future's result (or its failure) under job index ``i``."""
     if fut.cancelled():
-        return None
+        unfinished.add(i)
+        return
     try:
-        return fut.result()
+        done_results[i] = fut.result()
     except KeyboardInterrupt:  # stopped at once in the worker (second signal)
-        return None
+        unfinished.add(i)
     except cf.process.BrokenProcessPool as exc:  # the worker process itself died
-        return failed(job, f"failed: worker died: {type(exc).__name__}: {exc}")
+        done_results[i] = failed(jobs[i], f"failed: worker died: {type(exc).__name__}: {exc}")
     except Exception as exc:  # raised by the job
-        return failed(job, _reason(exc))
+        done_results[i] = failed(jobs[i], _reason(exc))
+
+
+def _ordered(jobs: Sequence[J], done_results: dict[int, R], unfinished: set[int],
+             interrupted: Callable[[R], bool] | None) -> tuple[list[R], list[J]]:
+    """Results in job order, and the unfinished jobs (not run, or interrupted results)."""
+    results = [done_results[i] for i in sorted(done_results)]
+    stopped = set(unfinished)
+    if interrupted is not None:
+        stopped |= {i for i, r in done_results.items() if interrupted(r)}
+    return results, [jobs[i] for i in sorted(stopped)]
 
 
 @contextlib.contextmanager
@@ -178,29 +196,53 @@ def dask_client(address: str, workers: int = 2) -> Iterator[Client]:
 
 
 def run_dask(client: Client, fn: Callable[[J], R], jobs: Sequence[J],
-             failed: Callable[[J, str], R], progress: bool = True, desc: str = "jobs") -> list[R]:
-    """Every job as one Dask future on ``client`` (see :func:`run_jobs`)."""
-    from distributed import as_completed
+             failed: Callable[[J, str], R], progress: bool = True, desc: str = "jobs",
+             interrupted: Callable[[R], bool] | None = None) -> tuple[list[R], list[J]]:
+    """Every job as one Dask future on ``client`` (see :func:`run_jobs`).
 
+    A stop request cancels the futures not finished yet (they are the unfinished
+    jobs); a second signal stops waiting at once.
+    """
     futures = [client.submit(fn, job, pure=False) for job in jobs]
     index = {fut.key: i for i, fut in enumerate(futures)}
-    results: list[R | None] = [None] * len(jobs)
+    done_results: dict[int, R] = {}
+    unfinished: set[int] = set()
+    bar = _bar(len(jobs), desc, progress)
+    pending = set(futures)
     try:
-        for fut in _progress(as_completed(futures), len(jobs), desc, progress):
-            i = index[fut.key]
-            try:
-                results[i] = fut.result()
-            except Exception as exc:  # raised in the job, or the worker was lost
-                results[i] = failed(jobs[i], _reason(exc))
-    finally:
+        while pending:
+            # futures' states are kept up to date by the client: poll them, so a stop
+            # request is seen within the polling interval
+            done = {f for f in pending if f.done()}
+            pending -= done
+            if not done:
+                time.sleep(0.1)
+            for fut in done:
+                i = index[fut.key]
+                try:
+                    done_results[i] = fut.result()
+                except Exception as exc:  # raised in the job, or the worker was lost
+                    done_results[i] = failed(jobs[i], _reason(exc))
+                if bar is not None:
+                    bar.update(1)
+            if stop_requested() is not None and pending:
+                client.cancel(list(pending))
+                unfinished |= {index[f.key] for f in pending}
+                pending = set()
+    except KeyboardInterrupt:  # a second signal
         client.cancel([f for f in futures if not f.done()])
-    return [r for r in results if r is not None]
+        unfinished |= {i for i in range(len(jobs)) if i not in done_results}
+    finally:
+        if bar is not None:
+            bar.close()
+    return _ordered(jobs, done_results, unfinished, interrupted)
 
 
 def run_jobs(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str], R],
              workers: int = 2, dask: str | None = None, progress: bool = True,
-             desc: str = "jobs") -> list[R]:
-    """Apply ``fn`` to every job in parallel; results in job order, failures included.
+             desc: str = "jobs", interrupted: Callable[[R], bool] | None = None
+             ) -> tuple[list[R], list[J]]:
+    """Apply ``fn`` to every job in parallel; failures included, stop requests honoured.
 
     Args:
         fn: a module-level function (pickled by reference to the workers). It should
@@ -212,14 +254,21 @@ def run_jobs(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str],
         dask: None (local process pool), ``"local"`` or a scheduler address.
         progress: show a progress bar on stderr.
         desc: the progress bar's label.
+        interrupted: tells a result of a job stopped by a signal (it is returned and
+            its job is also listed as unfinished).
+
+    Returns:
+        ``(results, unfinished)``: the results of the jobs that came back, in job
+        order (every job when nothing stopped the run), and the jobs not run or
+        interrupted by a stop request (SIGINT/SIGTERM, :mod:`lampsam.interrupt`).
 
     Raises:
         FleetError: the Dask engine cannot be set up.
     """
     if not jobs:
-        return []
+        return [], []
     if dask is None:
-        return run_local(fn, jobs, failed, workers, progress, desc)
+        return run_local(fn, jobs, failed, workers, progress, desc, interrupted)
     with dask_client(dask, workers) as client:
         log.info("running %d jobs on %s", len(jobs), client)
-        return run_dask(client, fn, jobs, failed, progress, desc)
+        return run_dask(client, fn, jobs, failed, progress, desc, interrupted)

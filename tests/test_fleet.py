@@ -128,8 +128,10 @@ def test_batch_local_pool_writes_folders_and_keeps_failures(
 @pytest.mark.parametrize("engine", ["pool", "dask"])
 def test_exceptions_become_failed_results_in_order(engine: str, scheduler: str) -> None:
     """A job that raises is ``failed(job, reason)`` in its place; the others are untouched."""
-    out = fleet.run_jobs(math.sqrt, [4.0, -1.0, 9.0], lambda job, why: why, workers=2,
-                         dask=scheduler if engine == "dask" else None, progress=False)
+    out, unfinished = fleet.run_jobs(math.sqrt, [4.0, -1.0, 9.0], lambda job, why: why,
+                                     workers=2, dask=scheduler if engine == "dask" else None,
+                                     progress=False)
+    assert unfinished == [] and len(out) == 3
     assert out[0] == 2.0 and out[2] == 3.0
     assert out[1].startswith("failed: ValueError") and "math domain error" in out[1]
 
@@ -156,6 +158,24 @@ def test_compare_on_dask_equals_local_pool(runs: list[str], scheduler: str, tmp_
     on_dask = compare(runs[:1], out=tmp_path / "dask", dask=scheduler, **kw)
     assert len(local) == 1 and local[0]["failed"] == 0 and local[0]["pos_rms_m"] < 0.2
     assert _without_timings(on_dask) == _without_timings(local)
+
+
+@pytest.mark.parametrize("engine", ["pool", "dask"])
+def test_stop_request_cancels_jobs_not_started(engine: str, scheduler: str) -> None:
+    """After a stop request no new job starts: those jobs come back as unfinished."""
+    from lampsam.interrupt import clear_stop, request_stop
+
+    request_stop("test")
+    try:
+        out, unfinished = fleet.run_jobs(math.sqrt, [float(i) for i in range(40)],
+                                         lambda job, why: why, workers=1,
+                                         dask=scheduler if engine == "dask" else None,
+                                         progress=False)
+    finally:
+        clear_stop()
+    assert len(out) + len(unfinished) == 40 and len(unfinished) > 0
+    assert all(r == math.sqrt(i) for i, r in zip(sorted(set(range(40)) - set(unfinished)), out,
+                                                   strict=True))
 
 
 def test_unreachable_scheduler_is_a_clear_error(runs: list[str], tmp_path: Path,

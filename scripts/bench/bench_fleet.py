@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
                 jobs = [BatchJob(name, run, str(out / f"w{c}-r{rep}" / name), args.backend)
                         for name, run in zip(folder_names(args.runs), args.runs, strict=True)]
                 t0 = time.perf_counter()
-                res = run_dask(clients[c], batch_job, jobs, _failed, progress=False)
+                res, _ = run_dask(clients[c], batch_job, jobs, _failed, progress=False)
                 dt = time.perf_counter() - t0
                 times[c].append(dt)
                 statuses[c] = [r.status for r in res]
