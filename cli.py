@@ -30,9 +30,7 @@ from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_re
 from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
-    from lampsam.backend.interface import SlamResult
     from lampsam.datasets.kinect_sim import KinectConfig
-    from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
 
@@ -393,8 +391,12 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run):
         result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     if args.g2o:
+        from lampsam.backend.g2o_export import write_result_g2o
+
         with atomic_path(Path(args.g2o)) as tmp:
-            _write_slam_g2o(tmp, result, run)
+            n_pose, n_edge, n_lm = write_result_g2o(tmp, result, run)
+        print(f"g2o graph written to {args.g2o}: {n_pose} poses, {n_edge} odometry factors, "
+              f"{n_lm} landmarks")
     if result.status == "interrupted":
         print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
               f"are written to {out} (status interrupted)", file=sys.stderr)
@@ -414,37 +416,6 @@ def _cmd_slam(args: argparse.Namespace) -> int:
               f"to {out}", file=sys.stderr)
         return 1
     return 0
-
-
-def _write_slam_g2o(path: Path, result: SlamResult, run: LoggedRun) -> None:
-    """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
-    odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
-
-    Landmark observation factors are not in :class:`SlamResult`, so none are written.
-    """
-    import numpy as np
-
-    from lampsam.datasets.g2o_writer import write_g2o
-    from lampsam.factors.motion import accumulate_odometry
-
-    kf = np.flatnonzero(result.keyframes) if np.any(result.keyframes) else np.arange(len(result.times))
-    odo, wheel = run.odometry, run.rig.odometry
-    edges = []
-    for i in range(len(kf) - 1):
-        ta, tb = result.times[kf[i]], result.times[kf[i + 1]]
-        sel = (odo.t > ta) & (odo.t <= tb)
-        delta, cov = accumulate_odometry(odo.d_left[sel], odo.d_right[sel], wheel.wheel_base,
-                                         wheel.k_r, wheel.k_l)  # fmt: skip
-        edges.append((i, i + 1, delta, np.linalg.inv(cov)))
-    lms = result.landmarks
-    notes = [f"{lm.type} id {lm.id} z {lm.position[2]:.4f} m"
-             + (f" phi {lm.orientation:.6f} rad" if lm.orientation is not None else "") for lm in lms]
-    write_g2o(path, np.arange(len(kf)), result.poses[kf], edges,
-              landmark_ids=len(kf) + np.arange(len(lms)),
-              landmarks=np.array([lm.position[:2] for lm in lms]).reshape(-1, 2),
-              fixed=(0,) if len(kf) else (), landmark_notes=notes)  # fmt: skip
-    print(f"g2o graph written to {path}: {len(kf)} poses, {len(edges)} odometry factors, "
-          f"{len(lms)} landmarks")
 
 
 def _add_slam(sub: argparse._SubParsersAction) -> None:
