@@ -52,10 +52,9 @@ from lampsam.backend.models import (
     predict,
     residual,
 )
-from lampsam.backend.odometry import WheelParams, check_wheel
+from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
-from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +90,8 @@ class EkfSlam(SlamBackend):
     """EKF-SLAM of paper 1 behind the :class:`SlamBackend` interface.
 
     Args:
-        wheel: wheel base and noise constants (eq. 15).
+        odometry: the odometry model's constants (wheel, eq. 15, or Pose2
+            increments; :func:`lampsam.backend.odometry.motion_model`).
         config: the SLAM config (association, noise, EKF part).
         start_pose: (3,) known start pose ``world_T_body``.
         ceiling: the ceiling observation model (for lamps/corners), or None for
@@ -100,9 +100,9 @@ class EkfSlam(SlamBackend):
 
     name = "ekf"
 
-    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+    def __init__(self, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  ceiling: Any = None) -> None:
-        self.wheel = wheel
+        self.motion = motion_model(odometry)
         self.config = config
         self.ceiling = ceiling
         cap = 64
@@ -151,21 +151,15 @@ class EkfSlam(SlamBackend):
 
     # ------------------------------------------------------------------ eqs. 13-15
     def predict(self, wheel: FloatArray) -> None:
-        """Prediction with the wheel travels of several odometry samples (eqs. 13-15).
+        """Prediction with several odometry samples (eqs. 13-15 for wheel travel).
 
         Args:
-            wheel: (K, 2) ``(d_left, d_right)`` per sample, m.
+            wheel: (K, m) odometry samples of the motion model (wheel: (K, 2)
+                ``(d_left, d_right)`` per sample, m).
         """
         if len(wheel) == 0:
             return
-        b, k_r, k_l = self.wheel.wheel_base, self.wheel.k_r, self.wheel.k_l
-        pose = self._x[:3].copy()
-        f_tot = np.eye(3)
-        q_acc = np.zeros((3, 3))
-        for d_left, d_right in wheel:
-            pose, f_x, f_u = diff_drive_step(pose, float(d_left), float(d_right), b)
-            q_acc = f_x @ q_acc @ f_x.T + f_u @ wheel_noise_cov(d_left, d_right, k_r, k_l) @ f_u.T
-            f_tot = f_x @ f_tot
+        pose, f_tot, q_acc = self.motion.ekf_predict(self._x[:3], wheel)
         n = self._n
         P = self._P
         P[:3, :3] = f_tot @ P[:3, :3] @ f_tot.T + q_acc + self.config.ekf.var_floor * np.eye(3)
@@ -423,7 +417,7 @@ class EkfSlam(SlamBackend):
         if t < self._last_t:
             raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
         self._last_t = t
-        self.predict(check_wheel(t, wheel))
+        self.predict(self.motion.check(t, wheel))
         n_matched = n_new = 0
         if frame is not None:
             obs = observations_from_frame(frame, self.config.features, self.config.noise)

@@ -37,7 +37,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
-from lampsam.backend.odometry import WheelParams
+from lampsam.backend.odometry import OdometryConstants
 from lampsam.datasets.logrun import (
     CameraModel,
     LoggedRun,
@@ -47,6 +47,7 @@ from lampsam.datasets.logrun import (
     read_run,
     write_tum,
 )
+from lampsam.datasets.odometry import Pose2OdometryLog, Pose2OdometryModel
 from lampsam.errors import EstimationError, LampsamError
 from lampsam.factors.geometry import wrap_angle, wrap_axis
 from lampsam.frontend.measurements import (
@@ -63,13 +64,14 @@ BACKENDS = ("ekf", "isam2", "batch")
 FRAME_SOURCES = ("auto", "images", "truth", "rangebearing")
 
 
-def make_backend(name: str, odometry: WheelParams, config: SlamConfig, start_pose: FloatArray,
+def make_backend(name: str, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  camera: CameraModel | None = None) -> SlamBackend:
     """Construct a backend by name.
 
     Args:
         name: ``"ekf"``, ``"isam2"`` or ``"batch"``.
-        odometry: the odometry model's constants (e.g. ``run.rig.odometry``).
+        odometry: the odometry model's constants: ``run.rig.odometry`` (wheel) or a
+            :class:`~lampsam.datasets.odometry.Pose2OdometryModel`.
         config: the SLAM config.
         start_pose: (3,) known start pose ``world_T_body``, m and rad.
         camera: the upward camera for ceiling frames (builds the ceiling observation
@@ -186,7 +188,7 @@ def frames_from_projections(run: LoggedRun, sigma_px: float, rng: np.random.Gene
     return frames
 
 
-def iter_steps(odometry: OdometryLog, frames: Iterable[Frame], max_dt: float = 0.5
+def iter_steps(odometry: OdometryLog | Pose2OdometryLog, frames: Iterable[Frame], max_dt: float = 0.5
                ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
     """Merge odometry and frames into time-ordered steps.
 
@@ -195,18 +197,20 @@ def iter_steps(odometry: OdometryLog, frames: Iterable[Frame], max_dt: float = 0
     least every ``max_dt`` seconds of odometry; the last odometry makes a final step.
 
     Args:
-        odometry: wheel odometry (``t``, ``d_left``, ``d_right``).
+        odometry: wheel odometry (``t``, ``d_left``, ``d_right``) or Pose2 increments.
         frames: frames in time order.
         max_dt: longest interval without a step, s.
 
     Yields:
-        ``(t, wheel (K, 2) (d_left, d_right), frame or None)``.
+        ``(t, samples (K, m), frame or None)``: wheel travel ``(d_left, d_right)``
+        (m = 2) or Pose2 increments (m = 12, :meth:`Pose2OdometryLog.samples`).
 
     Raises:
         EstimationError: frames going back in time.
     """
     t_odo = odometry.t
-    wheel = np.column_stack([odometry.d_left, odometry.d_right])
+    wheel = (odometry.samples() if isinstance(odometry, Pose2OdometryLog)
+             else np.column_stack([odometry.d_left, odometry.d_right]))
     n = len(t_odo)
     i = 0
     last_t = float(t_odo[0]) if n else -math.inf
@@ -359,7 +363,9 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
     frame_list, is_ceiling = make_frames(run, frames)
     start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
-    be = make_backend(backend, run.rig.odometry, config, start,
+    odo_model = (Pose2OdometryModel() if isinstance(run.odometry, Pose2OdometryLog)
+                 else run.rig.odometry)
+    be = make_backend(backend, odo_model, config, start,
                       run.rig.camera if is_ceiling else None)
     t0 = time.perf_counter()
     result = drive(be, iter_steps(run.odometry, frame_list, max_dt))
