@@ -17,11 +17,14 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import tomllib
 
 from lampsam.errors import LampsamError
+
+if TYPE_CHECKING:
+    from lampsam.backend.config import SlamConfig
 
 log = logging.getLogger("lampsam")
 
@@ -222,6 +225,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
             config, association=dataclasses.replace(config.association, use_known_ids=False))
     features = tuple(f.strip() for f in args.features.split(",") if f.strip())
     out = Path(args.out)
+    if Path(args.run).is_file():
+        return _slam_graph_text(args, config, out)
     if args.mrclam:
         from lampsam.datasets.mrclam import mrclam_run
 
@@ -242,9 +247,53 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     return 0 if result.status == "ok" else 1
 
 
+def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
+    """``lampsam slam FILE``: an iSAM / g2o text log, one step per pose."""
+    import json
+
+    import numpy as np
+
+    from lampsam.backend.slam import run_graph_log, summary, write_landmarks, write_trajectory
+    from lampsam.datasets.graph_text import read_graph_text, read_vertices
+    from lampsam.datasets.logrun import Trajectory
+    from lampsam.errors import DatasetError
+
+    glog = read_graph_text(args.run)
+    truth = None
+    if args.truth:
+        verts = read_vertices(args.truth)
+        missing = [i for i in glog.pose_ids if i not in verts]
+        if missing:
+            raise DatasetError(f"no VERTEX for pose {missing[0]} ({len(missing)} missing)",
+                               Path(args.truth))
+        truth = Trajectory(t=glog.odometry.t.copy(),
+                           poses=np.array([verts[i] for i in glog.pose_ids]))
+    known = not args.gate_only
+    result = run_graph_log(glog, args.backend, config, known_ids=known)
+    out.mkdir(parents=True, exist_ok=True)
+    write_trajectory(out / "trajectory.tum", result)
+    write_landmarks(out / "landmarks.csv", result)
+    s = summary(result, truth)
+    s["input"] = {"file": str(glog.path), "poses": len(glog.pose_ids),
+                  "landmarks_in_file": glog.n_landmarks, "known_ids": known,
+                  "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
+                                 else "the origin (no VERTEX for the first pose)"),
+                  "skipped_non_odometry_edges": glog.n_skipped_edges}
+    with open(out / "summary.json", "w") as fh:
+        json.dump(s, fh, indent=2, default=float)
+    msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
+           f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
+    err = s.get("error")
+    if err:
+        msg += f"; position error RMS {err['position_rms_m']:.3f} m"
+    print(msg + f"; written to {out}")
+    return 0 if result.status == "ok" else 1
+
+
 def _add_slam(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("slam", help="run EKF / iSAM2 / batch SLAM over a logged run")
-    p.add_argument("run", help="run directory (or the mrclam_ds0 folder with --mrclam)")
+    p.add_argument("run", help="run directory, an iSAM/g2o text log (.txt/.g2o/.graph: one "
+                   "step per pose), or the mrclam_ds0 folder with --mrclam")
     p.add_argument("--backend", choices=("ekf", "isam2", "batch"), default="isam2",
                    help="estimator (default isam2)")
     p.add_argument("--features", default="lamps,corners",
@@ -253,8 +302,10 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="TOML config ([association], [ekf], [isam2], ...)")
     p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
                    help="measurement source (default auto: range-bearing log, else images)")
-    p.add_argument("--gate-only", action="store_true",
+    p.add_argument("--gate-only", "--no-ids", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
+    p.add_argument("--truth", default=None,
+                   help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
     p.add_argument("--duration", type=float, default=None,
                    help="with --mrclam: use only the first seconds")
