@@ -60,8 +60,12 @@ class AssociationConfig:
             the camera, m (paper: 0-5 m; default 0.5-5.0, see
             :class:`lampsam.factors.ceiling.HeightPrior`): a Gaussian whose +-2 sigma
             spans the range is the initialisation prior (eqs. 24-25).
-        min_observations: a landmark needs this many observations to stay in the
-            map (default 2: a landmark seen once is pruned, with a warning).
+        min_observations: a landmark needs this many observations to be in the
+            map (default 2). One seen fewer times is reported apart, flagged
+            (``SlamResult.provisional``, ``flag = seen_once`` in ``landmarks.csv``)
+            unless ``prune_once_seen``.
+        prune_once_seen: drop landmarks seen fewer than ``min_observations`` times
+            from the output altogether (default False: keep them, flagged).
         prune_after_steps: a landmark not re-observed for this many steps after
             creation, with fewer than ``min_observations`` observations or a
             position sigma above ``prune_sigma``, is removed (default 30).
@@ -93,6 +97,7 @@ class AssociationConfig:
     height_min: float = 0.5
     height_max: float = 5.0
     min_observations: int = 2
+    prune_once_seen: bool = False
     prune_after_steps: int = 30
     prune_sigma: float = 1.0
     lamp_min_separation: float = 0.1

@@ -39,6 +39,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
+    LandmarkKind,
     SlamBackend,
     SlamResult,
     StepEstimate,
@@ -71,10 +72,14 @@ class _Slot:
     created: int
     last_seen: int
     patch: Any = None
+    sigma_meas: float = 0.0  # largest horizontal sigma one sighting gives (planar points), m
 
 
 #: Landmarks examined by the EKF's pruning per step (round robin).
 _PRUNE_CHECKS_PER_STEP = 8
+#: A planar landmark is pruned as uncertain only above this many times the sigma of
+#: one sighting (and above ``prune_sigma``).
+_PRUNE_MEAS_SIGMAS = 3.0
 #: Doomed landmarks are removed from the state in batches of this size (or this often).
 _PRUNE_BATCH = 16
 
@@ -125,6 +130,7 @@ class EkfSlam(SlamBackend):
         self._step_times: list[float] = []
         self._keyframes: list[bool] = []
         self.n_pruned = 0
+        self._provisional: list[LandmarkEstimate] = []
 
     # ------------------------------------------------------------------ state
     @property
@@ -346,7 +352,13 @@ class EkfSlam(SlamBackend):
             lid = self._new_id()
         else:
             self._next_id = max(self._next_id, lid + 1)
-        self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch)
+        # A planar landmark's first-sight measurement-only sigma scales the prune
+        # threshold (a sparse outdoor map's landmarks are metres uncertain by nature);
+        # ceiling landmarks keep the fixed ``prune_sigma``.
+        sigma_meas = (_max_sigma_2x2((g_z @ cov_z @ g_z.T)[:2, :2])
+                      if obs.kind == LandmarkKind.POINT2 else 0.0)
+        self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
+                                 sigma_meas)
         self._prune_queue.append(lid)
         self._n = n + d
         return lid
@@ -397,9 +409,12 @@ class EkfSlam(SlamBackend):
             drop = False
             if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
                 drop = True
+                if not cfg.prune_once_seen:
+                    self._provisional.append(self._estimate(s))
             elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
                 cov = self._P[s.offset : s.offset + 2, s.offset : s.offset + 2]
-                drop = _max_sigma_2x2(cov) > cfg.prune_sigma
+                drop = _max_sigma_2x2(cov) > max(cfg.prune_sigma,
+                                                 _PRUNE_MEAS_SIGMAS * s.sigma_meas)
             if drop:
                 self._doomed.add(lid)
             else:
@@ -459,24 +474,30 @@ class EkfSlam(SlamBackend):
         self._keyframes.append(n_matched + n_new > 0)
         return StepEstimate(t, pose, cov, n_matched + n_new > 0, n_matched, n_new, dt)
 
+    def _estimate(self, s: _Slot) -> LandmarkEstimate:
+        """The current estimate of one landmark in the state."""
+        st = self._x[s.offset : s.offset + s.dim].copy()
+        cov = self._P[s.offset : s.offset + s.dim, s.offset : s.offset + s.dim].copy()
+        return landmark_estimate(s.id, s.kind, st, cov, s.n_obs, self.ceiling)
+
     def landmarks(self) -> list[LandmarkEstimate]:
         """The current map (landmarks with at least ``min_observations`` observations)."""
-        out = []
-        for s in self._slots.values():
-            if s.n_obs < self.config.association.min_observations:
-                continue
-            st = self._x[s.offset : s.offset + s.dim].copy()
-            cov = self._P[s.offset : s.offset + s.dim, s.offset : s.offset + s.dim].copy()
-            out.append(landmark_estimate(s.id, s.kind, st, cov, s.n_obs, self.ceiling))
-        return out
+        return [self._estimate(s) for s in self._slots.values()
+                if s.n_obs >= self.config.association.min_observations]
 
     def finish(self, status: str = "ok") -> SlamResult:
-        """See :meth:`SlamBackend.finish`; landmarks seen once are pruned with a warning."""
-        once = [lid for lid, s in self._slots.items()
-                if s.n_obs < self.config.association.min_observations]
+        """See :meth:`SlamBackend.finish`; landmarks seen fewer than ``min_observations``
+        times are reported apart, flagged (``SlamResult.provisional``), unless
+        ``association.prune_once_seen``."""
+        cfg = self.config.association
+        once = [lid for lid, s in self._slots.items() if s.n_obs < cfg.min_observations]
         if once:
-            log.warning("%d landmarks seen fewer than %d times were pruned", len(once),
-                        self.config.association.min_observations)
+            log.warning("%d landmarks seen fewer than %d times are left out of the map (%s)",
+                        len(once), cfg.min_observations,
+                        "pruned" if cfg.prune_once_seen else "reported flagged seen_once")
+            if not cfg.prune_once_seen:
+                self._provisional.extend(self._estimate(self._slots[lid]) for lid in once
+                                         if lid not in self._doomed)
         self._remove(sorted(set(once) | self._doomed))
         self._doomed.clear()
         return SlamResult(
@@ -485,6 +506,7 @@ class EkfSlam(SlamBackend):
             poses=np.asarray(self._poses, float).reshape(-1, 3),
             pose_covs=np.asarray(self._covs, float).reshape(-1, 3, 3),
             landmarks=self.landmarks(),
+            provisional=list(self._provisional),
             step_times_s=np.asarray(self._step_times, float),
             keyframes=np.asarray(self._keyframes, bool),
             status=status,

@@ -234,8 +234,9 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             covs[i] = tangent_to_coords_cov(p, c)
 
         lms: list[LandmarkEstimate] = []
+        provisional: list[LandmarkEstimate] = []
         for lm in self._landmarks.values():
-            if not lm.in_graph or lm.id in pruned:
+            if not lm.in_graph or (lm.id in pruned and self.config.association.prune_once_seen):
                 continue
             handler = self.handlers[lm.kind]
             if not all(values.exists(key) for key in handler.keys(lm)):
@@ -247,19 +248,21 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                     cov = handler.marginal(lm, marginal)
                 except (RuntimeError, IndexError):
                     pass
-            lms.append(landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling))
+            est = landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling)
+            (provisional if lm.id in pruned else lms).append(est)
         return SlamResult(
             backend=self.name,
             times=np.asarray(self._times, float),
             poses=poses,
             pose_covs=covs,
             landmarks=lms,
+            provisional=provisional,
             step_times_s=np.asarray(self._step_times, float),
             keyframes=np.asarray(self._keyframes, bool),
             status=status,
             final_time_s=final_time,
             n_pruned=self.n_pruned,
-            extra={"n_keyframes": float(n_kf),
+            extra={"n_keyframes": float(n_kf), "n_recoveries": float(self.n_recoveries),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
                    "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)

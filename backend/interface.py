@@ -112,6 +112,9 @@ class SlamResult:
         final_time_s: time of the final optimisation in :meth:`SlamBackend.finish`
             (batch LM), s.
         n_pruned: landmarks removed (uncertain, or seen only once).
+        provisional: landmarks seen fewer than ``association.min_observations``
+            times: not in ``landmarks`` (nor in its metrics), written flagged
+            ``seen_once``; empty with ``association.prune_once_seen``.
     """
 
     backend: str
@@ -125,6 +128,7 @@ class SlamResult:
     final_time_s: float = 0.0
     n_pruned: int = 0
     extra: dict[str, float] = field(default_factory=dict)
+    provisional: list[LandmarkEstimate] = field(default_factory=list)
 
 
 class SlamBackend(abc.ABC):

@@ -6,9 +6,11 @@ projections, or the run's range-bearing log), merges them with the wheel odometr
 into time-ordered steps, feeds a backend and writes:
 
 - ``OUT/trajectory.tum``: the estimated pose at every step (TUM, the run's clock);
-- ``OUT/landmarks.csv``: ``id, type, x, y, z, phi, n_obs`` and the covariance
+- ``OUT/landmarks.csv``: ``id, type, x, y, z, phi, n_obs``, the covariance
   entries (``cov_xx, cov_xy, cov_xz, cov_yy, cov_yz, cov_zz, var_phi``; NaN where a
-  landmark kind has no such coordinate);
+  landmark kind has no such coordinate) and ``flag`` (``seen_once`` for landmarks
+  seen fewer than ``association.min_observations`` times, kept unless
+  ``association.prune_once_seen``);
 - ``OUT/summary.json``: counts, per-step time (median / p95 / max), total time and,
   when the run has ground truth, position and heading errors (RMS, max) with no
   alignment (the start pose is known).
@@ -387,13 +389,16 @@ def write_trajectory(path: Path, result: SlamResult) -> None:
 
 
 def write_landmarks(path: Path, result: SlamResult) -> None:
-    """Write the map: ``id, type, x, y, z, phi, n_obs`` and covariance entries."""
+    """Write the map: ``id, type, x, y, z, phi, n_obs``, covariance entries and ``flag``
+    (empty, or ``seen_once`` for :attr:`SlamResult.provisional` landmarks)."""
     header = ["id", "type", "x", "y", "z", "phi", "n_obs",
-              "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz", "var_phi"]
+              "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz", "var_phi", "flag"]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
-        for lm in result.landmarks:
+        flagged = [(lm, "") for lm in result.landmarks] + [(lm, "seen_once")
+                                                          for lm in result.provisional]
+        for lm, flag in flagged:
             c = np.full((4, 4), np.nan)
             k = lm.cov.shape[0]
             c[:k, :k] = lm.cov
@@ -401,7 +406,7 @@ def write_landmarks(path: Path, result: SlamResult) -> None:
             vals = [*lm.position, phi, c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2],
                     c[3, 3] if k == 4 else float("nan")]
             w.writerow([lm.id, lm.type, *(f"{v:.6g}" for v in vals[:4]), lm.n_obs,
-                        *(f"{v:.6g}" for v in vals[4:])])
+                        *(f"{v:.6g}" for v in vals[4:]), flag])
 
 
 def errors_vs_truth(result: SlamResult, truth: Trajectory) -> tuple[FloatArray, FloatArray]:
@@ -433,6 +438,7 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
         "keyframes": int(result.keyframes.sum()),
         "landmarks": len(result.landmarks),
         "landmarks_pruned": int(result.n_pruned),
+        "landmarks_seen_once": len(result.provisional),
         "time_per_frame_ms": {
             "median": float(np.median(frames_ms)) if len(frames_ms) else None,
             "p95": float(np.percentile(frames_ms, 95)) if len(frames_ms) else None,

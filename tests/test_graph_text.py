@@ -125,3 +125,19 @@ def test_cli_slam_on_a_text_log(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert s["steps"] == 120 and s["input"]["start_pose"] == "the first pose's VERTEX"
     assert s["error"]["position_rms_m"] < 0.15
     assert (out / "trajectory.tum").exists() and "one per pose" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", ["ekf", "isam2"])
+def test_landmark_seen_once_stays_in_the_written_map_flagged(name: str, tmp_path: Path) -> None:
+    p = tmp_path / "log.txt"
+    p.write_text(ISAM + "BR 3 8 -0.5 4.0 0.05 0.2\n")
+    out = tmp_path / "out"
+    assert main(["slam", str(p), "--backend", name, "--out", str(out)]) == 0
+    rows = (out / "landmarks.csv").read_text().splitlines()
+    assert rows[0].endswith(",flag")
+    flags = {r.split(",")[0]: r.split(",")[-1] for r in rows[1:]}
+    assert flags == {"7": "", "8": "seen_once"}
+    g = read_graph_text(p)
+    cfg = SlamConfig(association=AssociationConfig(prune_once_seen=True))
+    res = run_graph_log(g, name, cfg)
+    assert [lm.id for lm in res.landmarks] == [7] and res.provisional == []
