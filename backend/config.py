@@ -64,6 +64,10 @@ class AssociationConfig:
             map (default 2). One seen fewer times is reported apart, flagged
             (``SlamResult.provisional``, ``flag = seen_once`` in ``landmarks.csv``)
             unless ``prune_once_seen``.
+        joint_compatibility: without ids, planar (range-bearing) observations of a
+            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`,
+            the EKF) instead of greedy nearest neighbour (default False: on Victoria
+            Park without ids it did not prevent divergence; docs/graph-backend.md).
         prune_once_seen: drop landmarks seen fewer than ``min_observations`` times
             from the output altogether (default False: keep them, flagged).
         prune_after_steps: a landmark not re-observed for this many steps after
@@ -97,6 +101,7 @@ class AssociationConfig:
     height_min: float = 0.5
     height_max: float = 5.0
     min_observations: int = 2
+    joint_compatibility: bool = False
     prune_once_seen: bool = False
     prune_after_steps: int = 30
     prune_sigma: float = 1.0

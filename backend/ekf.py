@@ -34,7 +34,14 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate, corner_budget, screen_pairs
+from lampsam.backend.association import (
+    Assignment,
+    associate,
+    corner_budget,
+    jcbb,
+    mahalanobis2,
+    screen_pairs,
+)
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import (
     Frame,
@@ -329,6 +336,66 @@ class EkfSlam(SlamBackend):
             slot.last_seen = self._step
         return len(rows)
 
+    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment]) -> list[Assignment]:
+        """Re-pair a frame's planar observations without ids by joint compatibility (JCBB).
+
+        Candidates are the landmarks individually inside the gate (eqs. 19-20); the
+        joint innovation covariance of a hypothesis is ``H P H^T + R`` over all its
+        rows (the shared robot block correlates them). An observation JCBB leaves
+        unpaired keeps a greedy ``"new"`` (beyond the new-landmark threshold of every
+        landmark) and is otherwise dropped, so one tree is not mapped twice.
+        """
+        cfg = self.config.association
+        idx = [a.obs_index for a in assignments
+               if obs[a.obs_index].kind == LandmarkKind.POINT2 and obs[a.obs_index].landmark_id is None]
+        if not idx:
+            return assignments
+        gate = cfg.gate(2)
+        cands: dict[int, list[int]] = {}
+        for i in idx:
+            cands[i] = []
+            for lid, s in self._slots.items():
+                if s.kind != LandmarkKind.POINT2 or lid in self._doomed:
+                    continue
+                pred = self._innovation(lid, obs[i])
+                if pred is not None and mahalanobis2(*pred) < gate:
+                    cands[i].append(lid)
+        if not any(cands.values()):
+            return assignments
+        n = self._n
+        P = self._P[:n, :n]
+
+        def joint(hyp: list[tuple[int, int]]) -> tuple[FloatArray, FloatArray] | None:
+            k = 2 * len(hyp)
+            h = np.zeros((k, n))
+            nu = np.empty(k)
+            r = np.zeros((k, k))
+            for row, (i, lid) in enumerate(hyp):
+                slot = self._slots[lid]
+                try:
+                    z_hat, h_r, h_l = self._h(slot, obs[i])
+                except Exception:
+                    return None
+                h[2 * row : 2 * row + 2, :3] = h_r
+                h[2 * row : 2 * row + 2, slot.offset : slot.offset + slot.dim] = h_l
+                nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
+                r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
+            return nu, h @ P @ h.T + r
+
+        paired = dict(jcbb(cands, joint, cfg))
+        out = []
+        for a in assignments:
+            i = a.obs_index
+            if i not in cands:
+                out.append(a)
+            elif i in paired:
+                out.append(Assignment(i, paired[i], "matched"))
+            elif a.status == "new":
+                out.append(a)
+            else:
+                out.append(Assignment(i, None, "dropped"))
+        return out
+
     # ------------------------------------------------------------------ eqs. 24-25
     def _augment(self, obs: Obs, lid: int | None) -> int | None:
         """Add a landmark from one observation with the full cross-covariance (eqs. 24-25)."""
@@ -444,6 +511,8 @@ class EkfSlam(SlamBackend):
                 assignments = associate(obs, cands, self._innovation,
                                         self.config.association, lambda i: i in self._slots,
                                         patches, screened)
+                if self.config.association.joint_compatibility:
+                    assignments = self._joint_point2(obs, assignments)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
