@@ -2,26 +2,36 @@
 
 Each subcommand is a thin wrapper over a library function that also works from
 Python; heavy modules are imported inside the wrappers so ``lampsam --help``
-stays fast. Only this module reads configuration files (TOML); it passes
-config dataclasses down explicitly.
+stays fast. Only this module reads configuration files (TOML or YAML, through
+the strict loader :func:`lampsam.config_loader.load_config`: unknown keys,
+wrong types and values out of range are errors naming the file and the dotted
+key); it passes config dataclasses down explicitly.
 
-Exit codes: 0 success, 1 the job ran but failed (e.g. localization failed),
-2 bad input or usage (a :class:`lampsam.errors.LampsamError` is printed, no
-traceback).
+Exit codes: 0 success, 1 the job ran but failed (e.g. localization failed, or the
+final optimisation failed and the online estimate was written), 2 bad input or
+usage (a :class:`lampsam.errors.LampsamError` is printed, no traceback; checked
+before any computing, including the ``--out`` path), 3 interrupted by SIGINT or
+SIGTERM (finished work written with status ``interrupted``; ``docs/failures.md``).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
-
-import tomllib
+from typing import TYPE_CHECKING
 
 from lampsam.errors import LampsamError
+from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_requested
+from lampsam.safe_io import atomic_path
+
+if TYPE_CHECKING:
+    from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.logrun import LoggedRun
 
 if TYPE_CHECKING:
     from lampsam.backend.config import SlamConfig
@@ -29,33 +39,80 @@ if TYPE_CHECKING:
 log = logging.getLogger("lampsam")
 
 
-def load_toml(path: Path | None) -> dict[str, Any]:
-    """Read a TOML config file; an absent path gives an empty dict.
+def _config_path(args: argparse.Namespace) -> Path | None:
+    """The ``--config`` file of a command, or None."""
+    value = getattr(args, "config", None)
+    return Path(value) if value else None
 
-    Args:
-        path: the file, or None.
 
-    Returns:
-        The parsed tables. Unknown keys are rejected by the dataclass that
-        consumes each table.
-    """
-    if path is None:
-        return {}
+def _positive(text: str) -> float:
+    """argparse type: a finite number > 0."""
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError as exc:
-        raise LampsamError(f"{path}: config file not found") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise LampsamError(f"{path}: invalid TOML: {exc}") from exc
+        value = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from exc
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from exc
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text}")
+    return value
+
+
+def _nonneg_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from exc
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _add_force(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="write into a non-empty output directory / over an existing file")
+
+
+def _out_dir(args: argparse.Namespace, allow_resume: bool = False) -> Path:
+    """``--out`` checked (and created) before any computing; see :mod:`lampsam.safe_io`."""
+    from lampsam.safe_io import check_output_dir
+
+    allow = (lambda _p: True) if allow_resume and getattr(args, "resume", False) else None
+    return check_output_dir(args.out, force=args.force, what="--out", allow=allow)
+
+
+def _out_file(args: argparse.Namespace) -> Path:
+    """``--out`` (a file) checked before any computing."""
+    from lampsam.safe_io import check_output_file
+
+    return check_output_file(args.out, force=args.force, what="--out")
 
 
 # --------------------------------------------------------------------------- simulate
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from lampsam.datasets.simulator import simulate_world
+    from lampsam.datasets.world import load_world
 
-    out = simulate_world(args.world, Path(args.out), seed=args.seed, duration=args.duration)
-    print(f"run written to {out}")
+    world = load_world(args.world)  # bad world: an error before the output is touched
+    out = simulate_world(world, _out_dir(args), seed=args.seed, duration=args.duration)
+    import yaml
+
+    meta = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8")) or {}
+    simulated = float(meta.get("duration", 0.0))
+    if args.duration is not None and args.duration > simulated + 0.1:
+        log.warning("--duration %s s is longer than the world's path: simulated %.1f s "
+                    "(the whole path)", _num(args.duration), simulated)
+    print(f"run written to {out} ({simulated:.1f} s, {meta.get('n_images', '?')} images)")
     return 0
 
 
@@ -63,8 +120,10 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a ceiling-camera run of a world")
     p.add_argument("world", help="built-in world name (lab, corridor, office) or a world YAML file")
     p.add_argument("--out", required=True, help="run directory to write")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to simulate (default: whole path)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="random seed (default 0)")
+    p.add_argument("--duration", type=_positive, default=None,
+                   help="seconds to simulate (default: whole path; longer than the path: a warning)")
+    _add_force(p)
     p.set_defaults(func=_cmd_simulate)
 
 
@@ -94,7 +153,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 def _cmd_stereo_sim(args: argparse.Namespace) -> int:
     from lampsam.datasets.stereo_sim import simulate_stereo_run
 
-    out = simulate_stereo_run(args.scenario, Path(args.out), seed=args.seed)
+    out = simulate_stereo_run(args.scenario, _out_dir(args), seed=args.seed)
     print(f"stereo run written to {out}")
     return 0
 
@@ -104,14 +163,31 @@ def _add_stereo_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", required=True, choices=["straight", "turn"],
                    help="drive toward and past the target, or turn in place")
     p.add_argument("--out", required=True, help="run directory to write")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="random seed (default 0)")
+    _add_force(p)
     p.set_defaults(func=_cmd_stereo_sim)
 
 
 def _cmd_stereo(args: argparse.Namespace) -> int:
+    from lampsam.backend.stereo import StereoEstimatorConfig
+    from lampsam.config_loader import load_config
+    from lampsam.datasets.stereo_sim import read_stereo_run
     from lampsam.evaluation.stereo_report import stereo_job
 
-    summary = stereo_job(Path(args.run), args.estimator, Path(args.out))
+    cfg = load_config(StereoEstimatorConfig, _config_path(args), table="stereo")
+    run = read_stereo_run(Path(args.run))
+    for name in ("baseline", "focal_length", "pixel_pitch"):
+        value = getattr(run.rig, name)
+        if not (math.isfinite(value) and value > 0):
+            raise LampsamError(f"{Path(args.run) / 'stereo_run.yaml'}: rig.{name}: must be a "
+                               f"positive number, got {_num(value)}")
+    summary = stereo_job(Path(args.run), args.estimator, _out_dir(args), cfg)
+    counts = summary["status_counts"]
+    if not any(n for status, n in counts.items() if status == "ok"):
+        log.warning("no frame gave a measurement the %s estimator could use (%s): the "
+                    "estimate is empty", args.estimator, counts)
+        print(f"{args.estimator}: {counts}; no usable frame", file=sys.stderr)
+        return 1
     rms = summary.get("rms")
     line = f"{args.estimator}: {summary['status_counts']}"
     if rms:
@@ -127,15 +203,44 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", required=True, choices=["raw", "ekf", "isam2", "batch"],
                    help="raw triangulation, the paper's EKF, iSAM2 online, batch smoother")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with a [stereo] table (StereoEstimatorConfig)")
+    _add_force(p)
     p.set_defaults(func=_cmd_stereo)
+
+
+def _cmd_stereo_experiment(args: argparse.Namespace) -> int:
+    from lampsam.datasets.paths import shared_dataset
+    from lampsam.evaluation.stereo_experiment import stereo_experiment
+
+    kitti = None if args.no_kitti else shared_dataset("kitti_stereo_seq1")
+    if kitti is None and not args.no_kitti:
+        log.warning("shared dataset kitti_stereo_seq1 not found (set LAMPSAM_DATA): "
+                    "the KITTI check is skipped")
+    print(stereo_experiment(Path(args.out), args.seeds, kitti))
+    return 0
+
+
+def _add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stereo-experiment",
+                       help="paper 3's experiment: seeds x scenarios x estimators, and KITTI")
+    p.add_argument("--out", required=True, help="output directory (stereo_rms.md/.json, figures)")
+    p.add_argument("--seeds", type=int, default=20, help="seeds per scenario (default 20)")
+    p.add_argument("--no-kitti", action="store_true", help="skip the KITTI real-data check")
+    p.set_defaults(func=_cmd_stereo_experiment)
 
 
 # --------------------------------------------------------------------------- kinect-sim, build-map, show-map
 def _cmd_kinect_sim(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.config_loader import load_config
     from lampsam.datasets.kinect_sim import KinectConfig, simulate_kinect_run
 
-    cfg = KinectConfig(width=args.width, height=args.height, rate_hz=args.rate)
-    out = simulate_kinect_run(args.world, Path(args.out), seed=args.seed, config=cfg, duration=args.duration,
+    cfg = load_config(KinectConfig, _config_path(args), table="kinect")
+    given = {"width": args.width, "height": args.height, "rate_hz": args.rate}
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
+    out = simulate_kinect_run(args.world, _out_dir(args), seed=args.seed, config=cfg, duration=args.duration,
                               ceiling_images=args.ceiling)
     print(f"Kinect mapping run written to {out}")
     return 0
@@ -145,11 +250,14 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("kinect-sim", help="simulate the zig-zag Kinect mapping drive of a world with scene3d")
     p.add_argument("world", help="built-in world name (office) or a world YAML file with a scene3d section")
     p.add_argument("--out", required=True, help="run directory to write (RGB-D frames in OUT/kinect)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to simulate (default: whole drive)")
-    p.add_argument("--width", type=int, default=320, help="image width (default 320; 640 for full Kinect)")
-    p.add_argument("--height", type=int, default=240, help="image height (default 240)")
-    p.add_argument("--rate", type=float, default=3.0, help="Kinect frame rate, Hz (default 3)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="random seed (default 0)")
+    p.add_argument("--duration", type=_positive, default=None, help="seconds to simulate (default: whole drive)")
+    p.add_argument("--width", type=_positive_int, default=None, help="image width (default 320; 640 for full Kinect)")
+    p.add_argument("--height", type=_positive_int, default=None, help="image height (default 240)")
+    p.add_argument("--rate", type=_positive, default=None, help="Kinect frame rate, Hz (default 3)")
+    _add_force(p)
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with a [kinect] table (KinectConfig; the options above override it)")
     p.add_argument("--ceiling", action="store_true", help="also render the ceiling camera (the ceiling simulator)")
     p.set_defaults(func=_cmd_kinect_sim)
 
@@ -157,26 +265,23 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
 def _cmd_build_map(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from lampsam.localization.envmap import EnvMapConfig, build_map
+    from lampsam.config_loader import load_config
+    from lampsam.localization.map_build import build_map
+    from lampsam.localization.map_config import EnvMapConfig
 
-    cfg = EnvMapConfig()
-    table = load_toml(Path(args.config) if args.config else None).get("envmap", {})
-    try:
-        cfg = dataclasses.replace(
-            cfg,
-            depth=dataclasses.replace(cfg.depth, **table.get("depth", {})),
-            laser=dataclasses.replace(cfg.laser, **table.get("laser", {})),
-            spatial=dataclasses.replace(cfg.spatial, **table.get("spatial", {})),
-            **{k: v for k, v in table.items() if k not in ("depth", "laser", "spatial")},
-        )
-    except TypeError as exc:
-        raise LampsamError(f"{args.config}: bad [envmap] table: {exc}") from exc
+    cfg = load_config(EnvMapConfig, _config_path(args), table="envmap")
     if args.resolution is not None:
         cfg = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, resolution=args.resolution),
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
     if args.feature_every is not None:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
-    report = build_map(Path(args.run), Path(args.out), poses=args.poses, config=cfg)
+    if not Path(args.run).exists():
+        raise LampsamError(f"{args.run}: run not found")
+    out = _out_dir(args)
+    from lampsam.evaluation.map_truth import floor_plan_of_run
+
+    truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
+    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
@@ -190,16 +295,19 @@ def _add_build_map(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="map directory to write")
     p.add_argument("--poses", default="groundtruth",
                    help="mapping poses: 'groundtruth' (default) or 'slam:PATH_TO_TUM' (a SLAM trajectory)")
-    p.add_argument("--resolution", type=float, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
-    p.add_argument("--feature-every", type=int, default=None, help="SIFT on every n-th frame (default 1)")
-    p.add_argument("--config", default=None, help="TOML file with an [envmap] table ([envmap.depth], ...)")
+    p.add_argument("--resolution", type=_positive, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
+    p.add_argument("--feature-every", type=_positive_int, default=None, help="SIFT on every n-th frame (default 1)")
+    _add_force(p)
+    p.add_argument("--config", default=None, help="TOML/YAML file with an [envmap] table ([envmap.depth], ...)")
     p.set_defaults(func=_cmd_build_map)
 
 
 def _cmd_show_map(args: argparse.Namespace) -> int:
     from lampsam.evaluation.map_plots import show_map
 
-    out = show_map(Path(args.map), Path(args.out))
+    if not Path(args.map).is_dir():
+        raise LampsamError(f"{args.map}: map directory not found")
+    out = show_map(Path(args.map), _out_file(args))
     print(f"map figure written to {out}")
     return 0
 
@@ -208,6 +316,7 @@ def _add_show_map(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("show-map", help="draw an environment map's three layers in one figure")
     p.add_argument("map", help="map directory written by build-map")
     p.add_argument("--out", required=True, help="PNG file to write")
+    _add_force(p)
     p.set_defaults(func=_cmd_show_map)
 
 
@@ -217,16 +326,18 @@ def _cmd_slam(args: argparse.Namespace) -> int:
 
     from lampsam.backend.config import SlamConfig
     from lampsam.backend.slam import run_slam, summary
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.slam_report import write_slam_plot
 
-    config = SlamConfig.from_dict(load_toml(Path(args.config) if args.config else None))
+    config = load_config(SlamConfig, _config_path(args))
     if args.gate_only:
         config = dataclasses.replace(
             config, association=dataclasses.replace(config.association, use_known_ids=False))
     features = tuple(f.strip() for f in args.features.split(",") if f.strip())
-    out = Path(args.out)
     if Path(args.run).is_file():
-        return _slam_graph_text(args, config, out)
+        return _slam_graph_text(args, config, _out_dir(args))
+    if args.duration is not None and not args.mrclam:
+        raise LampsamError("--duration applies only with --mrclam (a logged run is used whole)")
     if args.mrclam:
         from lampsam.datasets.mrclam import mrclam_run
 
@@ -235,8 +346,18 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         from lampsam.datasets.logrun import read_run
 
         run = read_run(args.run)
+        _warn_partial(run.meta, Path(args.run))
+    out = _out_dir(args)
     result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
-    write_slam_plot(out / "slam.png", result, run.groundtruth)
+    if args.g2o:
+        with atomic_path(Path(args.g2o)) as tmp:
+            _write_slam_g2o(tmp, result, run)
+    if result.status == "interrupted":
+        print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
+              f"are written to {out} (status interrupted)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    with atomic_path(out / "slam.png") as tmp:
+        write_slam_plot(tmp, result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
     msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
@@ -244,7 +365,50 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")
     print(msg + f"; written to {out}")
-    return 0 if result.status == "ok" else 1
+    if result.status != "ok":
+        print(f"{args.backend}: {result.status}; the {result.backend} estimate is written "
+              f"to {out}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _write_slam_g2o(path: Path, result: SlamResult, run: LoggedRun) -> None:
+    """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
+    odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
+
+    Landmark observation factors are not in :class:`SlamResult`, so none are written.
+    """
+    import numpy as np
+
+    from lampsam.datasets.g2o_writer import write_g2o
+    from lampsam.factors.motion import accumulate_odometry
+
+    kf = np.flatnonzero(result.keyframes) if np.any(result.keyframes) else np.arange(len(result.times))
+    from lampsam.backend.odometry import Pose2Motion
+    from lampsam.datasets.odometry import Pose2OdometryLog, Pose2OdometryModel
+    from lampsam.factors.motion import DEFAULT_FLOOR_VAR
+
+    odo, wheel = run.odometry, run.rig.odometry
+    edges = []
+    for i in range(len(kf) - 1):
+        ta, tb = result.times[kf[i]], result.times[kf[i + 1]]
+        sel = (odo.t > ta) & (odo.t <= tb)
+        if isinstance(odo, Pose2OdometryLog):
+            delta, cov = Pose2Motion(Pose2OdometryModel()).relative(odo.samples()[sel],
+                                                                    DEFAULT_FLOOR_VAR)
+        else:
+            delta, cov = accumulate_odometry(odo.d_left[sel], odo.d_right[sel], wheel.wheel_base,
+                                             wheel.k_r, wheel.k_l)  # fmt: skip
+        edges.append((i, i + 1, delta, np.linalg.inv(cov)))
+    lms = result.landmarks
+    notes = [f"{lm.type} id {lm.id} z {lm.position[2]:.4f} m"
+             + (f" phi {lm.orientation:.6f} rad" if lm.orientation is not None else "") for lm in lms]
+    write_g2o(path, np.arange(len(kf)), result.poses[kf], edges,
+              landmark_ids=len(kf) + np.arange(len(lms)),
+              landmarks=np.array([lm.position[:2] for lm in lms]).reshape(-1, 2),
+              fixed=(0,) if len(kf) else (), landmark_notes=notes)  # fmt: skip
+    print(f"g2o graph written to {path}: {len(kf)} poses, {len(edges)} odometry factors, "
+          f"{len(lms)} landmarks")
 
 
 def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
@@ -299,7 +463,7 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--features", default="lamps,corners",
                    help="ceiling features to use: lamps,corners (default both)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--config", default=None, help="TOML config ([association], [ekf], [isam2], ...)")
+    p.add_argument("--config", default=None, help="TOML/YAML config ([association], [ekf], [isam2], ...)")
     p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
                    help="measurement source (default auto: range-bearing log, else images)")
     p.add_argument("--gate-only", "--no-ids", action="store_true",
@@ -307,24 +471,34 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth", default=None,
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
-    p.add_argument("--duration", type=float, default=None,
-                   help="with --mrclam: use only the first seconds")
-    p.set_defaults(func=_cmd_slam)
+    p.add_argument("--g2o", default=None, metavar="OUT.g2o",
+                   help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
+    p.add_argument("--duration", type=_positive, default=None,
+                   help="with --mrclam: use only the first seconds (an error without --mrclam)")
+    _add_force(p)
+    p.set_defaults(func=_cmd_slam, graceful=True)
 
 
 # --------------------------------------------------------------------------- compare
 def _cmd_compare(args: argparse.Namespace) -> int:
     from lampsam.backend.config import SlamConfig
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.compare import compare, markdown_table
 
     backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
     features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
-    config = SlamConfig.from_dict(load_toml(Path(args.config) if args.config else None))
-    rows = compare(args.runs, backends=backends, seeds=args.seeds, out=Path(args.out),
+    config = load_config(SlamConfig, _config_path(args))
+    out = _out_dir(args, allow_resume=True)
+    rows = compare(args.runs, backends=backends, seeds=args.seeds, out=out,
                    workers=args.workers, frames=args.frames, features=features,
-                   duration=args.duration, progress=not args.no_progress, config=config)
+                   duration=args.duration, progress=not args.no_progress, config=config,
+                   resume=args.resume)
     print(markdown_table(rows))
-    print(f"report: {Path(args.out) / 'report.md'} (also report.html, summary.json, figures/)")
+    print(f"report: {out / 'report.md'} (also report.html, summary.json, figures/)")
+    if stop_requested() is not None:
+        print("compare: interrupted; the report covers the finished jobs "
+              "(rerun with --resume to run the others)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     return 1 if any(r["failed"] for r in rows) else 0
 
 
@@ -332,32 +506,37 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("compare", help="compare EKF against smoothing over runs and seeds")
     p.add_argument("runs", nargs="+", help="run directories, world names (simulated per seed), or mrclam / mrclam-gated")
     p.add_argument("--backends", default="ekf,isam2,batch", help="comma-separated (default ekf,isam2,batch)")
-    p.add_argument("--seeds", type=int, default=1, help="Monte Carlo seeds per simulated world (default 1)")
+    p.add_argument("--seeds", type=_positive_int, default=1, help="Monte Carlo seeds per simulated world (default 1)")
     p.add_argument("--out", required=True, help="report directory")
-    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--workers", type=_positive_int, default=2, help="parallel processes (default 2)")
     p.add_argument("--frames", default="auto", choices=["auto", "images", "truth"],
                    help="measurements: auto (frontend on images / range-bearing), images, truth projections")
     p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners (default: backend config)")
-    p.add_argument("--duration", type=float, default=None, help="seconds per simulated run (default whole path)")
+    p.add_argument("--duration", type=_positive, default=None, help="seconds per simulated run (default whole path)")
     p.add_argument("--config", default=None,
-                   help="TOML file with the SLAM settings of every job (as for `lampsam slam --config`)")
+                   help="TOML/YAML file with the SLAM settings of every job (as for `lampsam slam --config`)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_compare)
+    p.add_argument("--resume", action="store_true",
+                   help="continue an earlier compare into the same --out: skip its finished jobs")
+    _add_force(p)
+    p.set_defaults(func=_cmd_compare, graceful=True)
 
 
 # --------------------------------------------------------------------------- localize
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from lampsam.localization.global_localizer import GlobalLocalizerConfig, Mode, localize_run
+    from lampsam.config_loader import load_config
+    from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
+    from lampsam.localization.replay import localize_run
 
-    table = load_toml(Path(args.config) if args.config else None).get("localize", {})
-    try:
-        cfg = dataclasses.replace(GlobalLocalizerConfig(), **table)
-    except TypeError as exc:
-        raise LampsamError(f"{args.config}: bad [localize] table: {exc}") from exc
-    cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
-    result = localize_run(Path(args.run), Path(args.map), Path(args.out), cfg, seed=args.seed)
+    cfg = load_config(GlobalLocalizerConfig, _config_path(args), table="localize")
+    if args.mode is not None:
+        cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
+    for what, path in (("run", Path(args.run)), ("map", Path(args.map))):
+        if not path.is_dir():
+            raise LampsamError(f"{path}: {what} directory not found")
+    result = localize_run(Path(args.run), Path(args.map), _out_dir(args), cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
           f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
@@ -369,18 +548,57 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images")
     p.add_argument("--map", required=True, help="environment map directory (build-map)")
     p.add_argument("--out", required=True, help="output directory for result.json")
-    p.add_argument("--mode", default="proposed", choices=["grid_only", "no_ceiling", "proposed", "ours"],
-                   help="configuration of the paper's Table 1, or ours (default proposed)")
-    p.add_argument("--seed", type=int, default=0, help="seed of RANSAC and the particle filter (default 0)")
-    p.add_argument("--config", default=None, help="TOML file with a [localize] table (scalar settings)")
+    p.add_argument("--mode", default=None, choices=["grid_only", "no_ceiling", "proposed", "ours"],
+                   help="configuration of the paper's Table 1, or ours (default: the config's "
+                        "[localize] mode, else proposed)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="seed of RANSAC and the particle filter (default 0)")
+    _add_force(p)
+    p.add_argument("--config", default=None, help="TOML/YAML file with a [localize] table (nested tables too: "
+                        "[localize.filter], [localize.verification], ...)")
     p.set_defaults(func=_cmd_localize)
+
+
+# --------------------------------------------------------------------------- table1
+def _cmd_table1(args: argparse.Namespace) -> int:
+    from lampsam.evaluation.table1 import run_table1
+    from lampsam.localization.filter_config import Mode
+
+    try:
+        modes = [Mode(m.strip()) for m in args.modes.split(",") if m.strip()]
+        only = {int(v) for v in args.trials_list.split(",") if v.strip()} or None
+    except ValueError as exc:
+        raise LampsamError(f"--modes / --trials-list: {exc}") from exc
+    md = run_table1(Path(args.out), args.trials, Path(args.work) if args.work else None, args.seed,
+                    args.clearance, modes, args.jobs, only, args.report_only)
+    print(md)
+    return 0
+
+
+def _add_table1(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("table1", help="paper 2's Table 1 on the simulated office (global localization trials)")
+    p.add_argument("--out", required=True, help="output directory (trials, table1.md, table1.png); a rerun resumes")
+    p.add_argument("--trials", type=int, default=50, help="start poses (default 50)")
+    p.add_argument("--work", default=None, help="cache of the mapping run and map (default OUT/work)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the map, starts and noise (default 1)")
+    p.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m (default 0.6)")
+    p.add_argument("--modes", default="grid_only,no_ceiling,proposed,ours", help="comma-separated configurations")
+    p.add_argument("--trials-list", default="", help="comma-separated trial indices to run (same starts as a full run)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes (trial i goes to worker i %% jobs)")
+    p.add_argument("--report-only", action="store_true", help="only rebuild the report from OUT/trials.w*.jsonl")
+    p.set_defaults(func=_cmd_table1)
 
 
 # --------------------------------------------------------------------------- frontend-eval
 def _cmd_frontend_eval(args: argparse.Namespace) -> int:
+    from lampsam.config_loader import load_config
     from lampsam.evaluation.frontend_eval import evaluate_run
+    from lampsam.frontend.pipeline import FrontendConfig
 
-    res = evaluate_run(Path(args.run), out=args.out, max_frames=args.max_frames)
+    cfg = load_config(FrontendConfig, _config_path(args), table="frontend")
+    if not Path(args.run).is_dir():
+        raise LampsamError(f"{args.run}: run directory not found")
+    out = _out_file(args) if args.out is not None else None
+    res = evaluate_run(Path(args.run), out=out, config=cfg, max_frames=args.max_frames)
     print(res.summary())
     return 0 if all(res.targets_met.values()) else 1
 
@@ -392,6 +610,9 @@ def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
     p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    _add_force(p)
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with a [frontend] table ([frontend.lamps], [frontend.corners])")
     p.set_defaults(func=_cmd_frontend_eval)
 
 
@@ -399,7 +620,9 @@ def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
 def _cmd_gallery(args: argparse.Namespace) -> int:
     from lampsam.evaluation.gallery import make_gallery
 
-    entries = make_gallery(Path(args.photos), Path(args.out), full_size=not args.small_only)
+    if not Path(args.photos).is_dir():
+        raise LampsamError(f"{args.photos}: photo folder not found")
+    entries = make_gallery(Path(args.photos), _out_file(args), full_size=not args.small_only)
     for e in entries:
         print(
             f"{e.name} {e.width}x{e.height}: {e.n_lamps} lamps ({e.n_oriented} oriented), "
@@ -414,7 +637,80 @@ def _add_gallery(sub: argparse._SubParsersAction) -> None:
     p.add_argument("photos", help="folder of .jpg/.png ceiling photos")
     p.add_argument("--out", required=True, help="gallery PNG to write")
     p.add_argument("--small-only", action="store_true", help="only 320x240, not full size")
+    _add_force(p)
     p.set_defaults(func=_cmd_gallery)
+
+
+# --------------------------------------------------------------------------- ROS bags
+def _cmd_import_bag(args: argparse.Namespace) -> int:
+    from lampsam.datasets.rosbag_import import ImportOptions, import_bag
+    from lampsam.errors import DatasetError
+
+    topics: dict[str, str] = {}
+    for item in args.topic:
+        kind, sep, name = item.partition("=")
+        if not sep or not kind or not name:
+            raise DatasetError(f"--topic expects KIND=NAME, got {item!r}")
+        topics[kind.strip()] = name.strip()
+    joints = None
+    if args.wheel_joints:
+        names = [j.strip() for j in args.wheel_joints.split(",")]
+        if len(names) != 2 or not all(names):
+            raise DatasetError(f"--wheel-joints expects LEFT,RIGHT, got {args.wheel_joints!r}")
+        joints = (names[0], names[1])
+    opts = ImportOptions(
+        topics=topics, wheel_joints=joints, wheel_radius=args.wheel_radius,
+        wheel_base=args.wheel_base, k_wheel=args.k_wheel,
+        rig=Path(args.rig) if args.rig else None, base_frame=args.base_frame,
+    )  # fmt: skip
+    report = import_bag(Path(args.bag), Path(args.out), opts)
+    for line in report.lines():
+        print(line)
+    print(f"logged run written to {args.out}")
+    return 0
+
+
+def _add_import_bag(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("import-bag", help="ROS1 .bag / ROS2 bag -> logged run (docs/log-format.md)")
+    p.add_argument("bag", help="ROS1 .bag file, or ROS2 bag directory (or its .db3 / .mcap file)")
+    p.add_argument("--out", required=True, help="run directory to write")
+    p.add_argument("--topic", action="append", default=[], metavar="KIND=NAME",
+                   help="use topic NAME for KIND (joints, odometry, image, camera_info, tf_static, "
+                        "depth, scan, groundtruth, rig); NAME 'none' skips the kind; repeatable")
+    p.add_argument("--wheel-joints", default=None, metavar="L,R",
+                   help="odometry from sensor_msgs/JointState: the left and right wheel joints")
+    p.add_argument("--wheel-radius", type=float, default=None, help="wheel radius, m (with --wheel-joints)")
+    p.add_argument("--wheel-base", type=float, default=None, help="distance between the wheels, m")
+    p.add_argument("--k-wheel", type=float, default=None, help="wheel slip constant k_r = k_l, m")
+    p.add_argument("--rig", default=None, help="rig.yaml to use instead of the bag's camera_info / tf")
+    p.add_argument("--base-frame", default="base_link", help="robot body frame in tf (default base_link)")
+    p.set_defaults(func=_cmd_import_bag)
+
+
+def _cmd_export_bag(args: argparse.Namespace) -> int:
+    from lampsam.datasets.rosbag_export import export_bag
+
+    summary = export_bag(Path(args.run), Path(args.out), ros1=args.ros1, compressed=args.compressed,
+                         wheel_radius=args.wheel_radius, mcap=args.mcap)  # fmt: skip
+    for topic, n in summary.counts.items():
+        print(f"{topic}: {n} messages")
+    print(f"bag written to {summary.path}")
+    return 0
+
+
+def _add_export_bag(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export-bag", help="logged run -> ROS1 .bag or ROS2 bag")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--out", required=True, help="ROS1: the .bag file; ROS2: the bag directory")
+    ver = p.add_mutually_exclusive_group()
+    ver.add_argument("--ros1", action="store_true", help="ROS1 (Noetic) .bag")
+    ver.add_argument("--ros2", action="store_true", help="ROS2 (Humble) bag (the default)")
+    p.add_argument("--mcap", action="store_true", help="ROS2 storage MCAP instead of SQLite (.db3)")
+    p.add_argument("--compressed", action="store_true",
+                   help="images as sensor_msgs/CompressedImage (the run's PNG files)")
+    p.add_argument("--wheel-radius", type=float, default=0.05,
+                   help="wheel radius for the joint angles, m (default 0.05)")
+    p.set_defaults(func=_cmd_export_bag)
 
 
 _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
@@ -422,14 +718,18 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_demo,
     _add_stereo_sim,
     _add_stereo,
+    _add_stereo_experiment,
     _add_kinect_sim,
     _add_build_map,
     _add_show_map,
     _add_slam,
     _add_compare,
     _add_localize,
+    _add_table1,
     _add_frontend_eval,
     _add_gallery,
+    _add_import_bag,
+    _add_export_bag,
 ]
 
 
@@ -443,17 +743,62 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _num(value: object) -> str:
+    """A number as a user reads it (never ``np.float64(...)``)."""
+    from lampsam.config_loader import plain
+
+    return plain(value)
+
+
+_NUMPY_SCALAR = re.compile(r"np\.(?:float|int|uint|bool_?)\d*\(([^()]*)\)")
+
+
+def _plain_text(message: str) -> str:
+    """A message with numpy scalar reprs (``np.float64(5.0)``) shown as plain numbers."""
+    return _NUMPY_SCALAR.sub(r"\1", message)
+
+
+def _warn_partial(meta: dict[str, object], run: Path) -> None:
+    """Warn when a run's ``meta.yaml`` says it is partial (``complete: false``)."""
+    if meta.get("complete") is False:
+        log.warning("%s is a partial run (complete: false in meta.yaml: the simulation was "
+                    "interrupted): only its finished frames are used, and after the last "
+                    "image the estimate is dead reckoning", run)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the CLI; returns the process exit code."""
+    """Run the CLI; returns the process exit code (:mod:`lampsam.interrupt` lists them).
+
+    SIGINT and SIGTERM are handled alike: ``slam`` and ``compare`` finish the
+    current step and write what is finished (status ``interrupted``); the other
+    commands stop at once and write nothing half-finished (their outputs are
+    written at the end, atomically). Either way the exit code is 3.
+    """
+    from lampsam.interrupt import stop_on_signals
+
     parser = build_parser()
     args = parser.parse_args(argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        return int(args.func(args))
-    except LampsamError as exc:
-        print(f"lampsam {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    with stop_on_signals(graceful=getattr(args, "graceful", False)):
+        try:
+            return int(args.func(args))
+        except KeyboardInterrupt as exc:
+            print(f"lampsam {args.command}: interrupted ({exc or 'SIGINT'}); "
+                  "see docs/failures.md for what was written", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except LampsamError as exc:
+            print(f"lampsam {args.command}: error: {_plain_text(str(exc))}", file=sys.stderr)
+            return EXIT_USAGE
+        except OSError as exc:  # the file system refused (disk full, permissions...)
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"lampsam {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+            return EXIT_USAGE
+        except Exception as exc:  # a defect: one line, the traceback with -vv
+            log.debug("traceback", exc_info=True)
+            print(f"lampsam {args.command}: internal error: {type(exc).__name__}: {exc} "
+                  "(a defect; run with -vv for the traceback)", file=sys.stderr)
+            return EXIT_FAILED
 
 
 if __name__ == "__main__":

@@ -1,1 +1,48 @@
-"""lampsam.backend."""
+"""lampsam.backend: SLAM backends behind one interface: the papers' EKF, iSAM2 (online) and batch
+Levenberg-Marquardt (offline) on GTSAM factor graphs; data association; the stereo
+two-point estimators.
+
+Entry points (loaded on first use)::
+
+    make_backend    an EKF, iSAM2 or batch backend, fed step by step (slam)
+    iter_steps      merge odometry and frames into steps (slam)
+    run_slam        one backend over a whole logged run (slam)
+    SlamConfig      the SLAM configuration (config)
+    SlamBackend     the backends' common interface (interface)
+    SlamResult      what a backend returns (interface)
+    estimate        a stereo two-point estimator over a stereo run (stereo)
+
+Modules:
+
+* :mod:`~lampsam.backend.association` -- Data association shared by the EKF, iSAM2 and batch backends (paper 1, eqs. 19-20).
+* :mod:`~lampsam.backend.ceiling` -- The upward-camera observation model as the backends use it (wraps :mod:`lampsam.factors.ceiling`).
+* :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
+* :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+* :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
+* :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
+* :mod:`~lampsam.backend.graph` -- Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
+* :mod:`~lampsam.backend.graph_state` -- The state a factor-graph backend keeps, and the primitives every part of it uses.
+* :mod:`~lampsam.backend.handlers` -- How a landmark kind lives in the factor graph: the handler protocol and its record.
+* :mod:`~lampsam.backend.interface` -- One interface for the three SLAM backends (``ekf``, ``isam2``, ``batch``).
+* :mod:`~lampsam.backend.isam2_update` -- iSAM2 updates of a factor-graph backend, and recovery from a failed one.
+* :mod:`~lampsam.backend.keyframes` -- Keyframe policy of the factor-graph backends.
+* :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
+* :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
+* :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: the model's constants and checked increments.
+* :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
+* :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
+* :mod:`~lampsam.backend.stereo` -- Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.
+* :mod:`~lampsam.backend.stereo_kitti` -- Stereo two-point relative pose on real KITTI images: pair selection and check.
+"""
+
+from lampsam._lazy import lazy_exports
+
+__getattr__, __dir__ = lazy_exports(__name__, {
+    "make_backend": "lampsam.backend.slam",
+    "iter_steps": "lampsam.backend.slam",
+    "run_slam": "lampsam.backend.slam",
+    "SlamConfig": "lampsam.backend.config",
+    "SlamBackend": "lampsam.backend.interface",
+    "SlamResult": "lampsam.backend.interface",
+    "estimate": "lampsam.backend.stereo",
+})

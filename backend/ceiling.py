@@ -55,8 +55,9 @@ class CeilingModel:
         w, h = camera.width, camera.height
         corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1],
                             [w / 2, 0], [0, h / 2], [w - 1, h / 2], [w / 2, h - 1]], float)
-        m = camera.normalized_from_pixels(corners)
-        return cls(camera.body_t_camera, float(np.max(np.linalg.norm(m, axis=1))))
+        r = np.linalg.norm(camera.normalized_from_pixels(corners), axis=1)
+        # NaN: a (fisheye) border pixel sees at or beyond the horizon; no bound on |m|
+        return cls(camera.body_t_camera, math.inf if np.isnan(r).any() else float(np.max(r)))
 
     def predict(self, pose: FloatArray, state: FloatArray, with_axis: bool
                 ) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -1,21 +1,23 @@
 """Configuration of the SLAM backends: frozen dataclasses with documented defaults.
 
-``SlamConfig`` composes the per-part configs; only ``cli.py`` reads TOML and
-builds them (``SlamConfig.from_dict``). GTSAM parameter objects are built in one
-method each (``to_gtsam()``).
+``SlamConfig`` composes the per-part configs; ``cli.py`` reads TOML and builds
+them with the strict loader (:mod:`lampsam.config_loader`). Ranges are declared
+on the fields (``metadata=limits(...)``) and checked on construction, so a
+negative distance fails from Python as from a file. GTSAM parameter objects are
+built in one method each (``to_gtsam()``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
 
 import gtsam
 from scipy.special import chdtri
 
-from lampsam.errors import EstimationError
+from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
 from lampsam.factors.ceiling import HeightPrior
 
 
@@ -36,9 +38,13 @@ class MeasurementNoiseConfig:
         var_axis_min: floor on a lamp axis variance, rad^2 (default 1e-4).
     """
 
-    sigma_range: float = 0.15
-    sigma_bearing: float = 0.05
-    var_axis_min: float = 1e-4
+    sigma_range: float = field(default=0.15, metadata=limits(gt=0.0))
+    sigma_bearing: float = field(default=0.05, metadata=limits(gt=0.0))
+    var_axis_min: float = field(default=1e-4, metadata=limits(ge=0.0))
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
 
 
 @dataclass(frozen=True)
@@ -95,18 +101,25 @@ class AssociationConfig:
     """
 
     use_known_ids: bool = True
-    gate_prob: float = 0.99
-    new_prob: float = 0.9999
-    ncc_min: float = 0.7
-    height_min: float = 0.5
-    height_max: float = 5.0
-    min_observations: int = 2
+    gate_prob: float = field(default=0.99, metadata=limits(gt=0.0, lt=1.0))
+    new_prob: float = field(default=0.9999, metadata=limits(gt=0.0, lt=1.0))
+    ncc_min: float = field(default=0.7, metadata=limits(ge=-1.0, le=1.0))
+    height_min: float = field(default=0.5, metadata=limits(ge=0.0))
+    height_max: float = field(default=5.0, metadata=limits(gt=0.0))
+    min_observations: int = field(default=2, metadata=limits(ge=1))
     joint_compatibility: bool = False
     prune_once_seen: bool = False
-    prune_after_steps: int = 30
-    prune_sigma: float = 1.0
-    lamp_min_separation: float = 0.1
-    max_corner_updates: int | None = 10
+    prune_after_steps: int = field(default=30, metadata=limits(ge=0))
+    prune_sigma: float = field(default=1.0, metadata=limits(gt=0.0))
+    lamp_min_separation: float = field(default=0.1, metadata=limits(ge=0.0))
+    max_corner_updates: int | None = field(default=10, metadata=limits(ge=0))
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+        if self.height_max <= self.height_min:
+            raise FieldValueError("height_max", f"must exceed height_min ({plain(self.height_min)}), "
+                                  f"got {plain(self.height_max)}")
 
     def height_prior(self) -> HeightPrior:
         """The factors' :class:`HeightPrior` for ``[height_min, height_max]``."""
@@ -138,10 +151,14 @@ class EkfConfig:
             reports the paper's EKF unless this is set.
     """
 
-    sigma_start_xy: float = 1e-3
-    sigma_start_theta: float = 1e-3
-    var_floor: float = 1e-10
+    sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
+    sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
+    var_floor: float = field(default=1e-10, metadata=limits(ge=0.0))
     corner_budget: bool = False
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
 
 
 @dataclass(frozen=True)
@@ -206,21 +223,25 @@ class Isam2Config:
             is forgotten (default 30).
     """
 
-    keyframe_distance: float = 0.05
-    keyframe_angle: float = 0.15
+    keyframe_distance: float = field(default=0.05, metadata=limits(ge=0.0))
+    keyframe_angle: float = field(default=0.15, metadata=limits(ge=0.0))
     every_frame: bool = False
-    relinearize_threshold: float = 0.1
-    relinearize_skip: int = 10
-    extra_updates: int = 0
-    sigma_start_xy: float = 1e-3
-    sigma_start_theta: float = 1e-3
+    relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0))
+    relinearize_skip: int = field(default=10, metadata=limits(ge=1))
+    extra_updates: int = field(default=0, metadata=limits(ge=0))
+    sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
+    sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
     pose_cov_every_step: bool = True
-    odometry_floor_var: float = 1e-9
+    odometry_floor_var: float = field(default=1e-9, metadata=limits(ge=0.0))
     final_covariances: bool = True
-    corner_huber_k: float | None = 1.345
-    corner_init_min_sights: int = 4
-    corner_init_max_rel_sigma: float = 0.15
-    corner_pending_keyframes: int = 30
+    corner_huber_k: float | None = field(default=1.345, metadata=limits(gt=0.0))
+    corner_init_min_sights: int = field(default=4, metadata=limits(ge=2))
+    corner_init_max_rel_sigma: float = field(default=0.15, metadata=limits(gt=0.0))
+    corner_pending_keyframes: int = field(default=30, metadata=limits(ge=1))
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
 
     def to_gtsam(self) -> gtsam.ISAM2Params:
         """The ``gtsam.ISAM2Params`` for this config."""
@@ -250,10 +271,18 @@ class BatchConfig:
     """
 
     init: str = "isam2"
-    huber_k: float | None = None
-    max_iterations: int = 100
-    relative_error_tol: float = 1e-4
+    huber_k: float | None = field(default=None, metadata=limits(gt=0.0))
+    max_iterations: int = field(default=100, metadata=limits(ge=1))
+    relative_error_tol: float = field(default=1e-4, metadata=limits(ge=0.0))
     ordering: str = "METIS"
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+        if self.init not in ("isam2", "odometry"):
+            raise FieldValueError("init", f"must be 'isam2' or 'odometry', got {self.init!r}")
+        if self.ordering not in ("METIS", "COLAMD", "NATURAL"):
+            raise FieldValueError("ordering", f"must be 'METIS', 'COLAMD' or 'NATURAL', got {self.ordering!r}")
 
     def to_gtsam(self) -> gtsam.LevenbergMarquardtParams:
         """The ``gtsam.LevenbergMarquardtParams`` for this config."""
@@ -280,30 +309,20 @@ class SlamConfig:
     isam2: Isam2Config = field(default_factory=Isam2Config)
     batch: BatchConfig = field(default_factory=BatchConfig)
 
+    def __post_init__(self) -> None:
+        """Check the feature names (:class:`FieldValueError` naming the key)."""
+        unknown = [f for f in self.features if f not in ("lamps", "corners")]
+        if unknown:
+            raise FieldValueError("features", f"unknown feature {unknown[0]!r} (lamps, corners)")
+
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> SlamConfig:
+    def from_dict(cls, data: Mapping[str, object], source: str | Path | None = None) -> SlamConfig:
         """Build from nested tables (``[association]``, ``[ekf]``, ...; a TOML file's).
 
+        The strict loader :func:`lampsam.config_loader.from_mapping` does the work.
+
         Raises:
-            EstimationError: an unknown table or key.
+            ConfigError: an unknown table or key, a wrong type or a value out of
+                range, naming the dotted key and ``source``.
         """
-        parts: dict[str, Any] = {}
-        sub = {
-            "association": AssociationConfig,
-            "noise": MeasurementNoiseConfig,
-            "ekf": EkfConfig,
-            "isam2": Isam2Config,
-            "batch": BatchConfig,
-        }
-        for key, value in data.items():
-            if key == "features":
-                parts["features"] = tuple(value)
-            elif key in sub:
-                names = {f.name for f in dataclasses.fields(sub[key])}
-                unknown = set(value) - names
-                if unknown:
-                    raise EstimationError(f"config [{key}]: unknown keys {sorted(unknown)}")
-                parts[key] = sub[key](**value)
-            else:
-                raise EstimationError(f"config: unknown table or key {key!r}")
-        return cls(**parts)
+        return from_mapping(cls, data, source=source)

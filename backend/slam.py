@@ -15,14 +15,17 @@ into time-ordered steps, feeds a backend and writes:
   when the run has ground truth, position and heading errors (RMS, max) with no
   alignment (the start pose is known).
 
-If the run is interrupted (KeyboardInterrupt) or a step fails, the steps finished so
-far are still written (status ``"interrupted"`` / ``"failed: ..."``).
+If the run is interrupted (SIGINT or SIGTERM, see :mod:`lampsam.interrupt`: the
+current step finishes) or a step fails, the steps finished so far are still written
+(status ``"interrupted"`` / ``"failed: ..."``). If the final optimisation fails or
+is interrupted, the online per-step estimates are written under the name of the
+estimator that made them (batch: ``isam2`` or ``odometry``) with status
+``"final optimisation failed: ..."``. Files are written atomically.
 """
 
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 import time
@@ -38,7 +41,7 @@ from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
-from lampsam.backend.interface import Frame, SlamBackend, SlamResult
+from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate, empty_result
 from lampsam.backend.odometry import OdometryConstants
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.datasets.logrun import (
@@ -60,6 +63,8 @@ from lampsam.frontend.measurements import (
     RangeBearingFrame,
     RangeBearingObservation,
 )
+from lampsam.interrupt import interruptible
+from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -305,13 +310,16 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
     """
     status = "ok"
     t_step: float | None = None
+    online: list[StepEstimate] = []
+    log.info("%s: stepping through the run", backend.name)
     try:
-        for t, wheel, frame in steps:
+        for t, wheel, frame in interruptible(steps):
             t_step = t
-            backend.step(t, wheel, frame)
-    except KeyboardInterrupt:
+            online.append(backend.step(t, wheel, frame))
+    except KeyboardInterrupt as exc:  # SIGINT or SIGTERM (lampsam.interrupt), between steps
         status = "interrupted"
-        log.warning("interrupted: writing the steps finished so far")
+        log.warning("interrupted (%s): writing the %d steps finished so far",
+                    exc or "KeyboardInterrupt", len(online))
     except LampsamError as exc:  # estimation failure, or bad input met mid-run (names the file)
         status = f"failed: {exc}"
         log.error("%s", exc)
@@ -321,7 +329,42 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
         log.error("step%s failed: %s: %s (run with -vv for the traceback); "
                   "the steps finished so far are kept", where, type(exc).__name__, exc)
         log.debug("traceback", exc_info=True)
-    return backend.finish(status)
+    try:
+        return backend.finish(status)
+    except (KeyboardInterrupt, Exception) as exc:  # keep the online estimate, say what it is
+        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
+        source = online_source(backend)
+        log.error("final optimisation failed (%s): writing the online %s estimate of %d steps",
+                  reason, source, len(online))
+        log.debug("traceback", exc_info=True)
+        return online_result(source, online, f"final optimisation failed: {reason}")
+
+
+def online_source(backend: SlamBackend) -> str:
+    """The estimator behind a backend's per-step estimates (batch: its online pass)."""
+    if isinstance(backend, BatchSlam):
+        return "isam2" if backend.online else "odometry"
+    return backend.name
+
+
+def online_result(source: str, online: list[StepEstimate], status: str) -> SlamResult:
+    """A result made of the per-step (online) estimates alone: no map, labelled ``source``.
+
+    Used when the final optimisation fails or is interrupted: the steps are kept,
+    as estimated online, under the name of the estimator that produced them.
+    """
+    if not online:
+        return empty_result(source, status)
+    return SlamResult(
+        backend=source,
+        times=np.array([e.t for e in online], float),
+        poses=np.array([e.pose for e in online], float),
+        pose_covs=np.array([e.cov for e in online], float),
+        landmarks=[],
+        step_times_s=np.array([e.time_s for e in online], float),
+        keyframes=np.array([e.keyframe for e in online], bool),
+        status=status,
+    )
 
 
 def run_slam(run_dir: str | Path, backend: str = "isam2",
@@ -462,16 +505,21 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
 
 
 def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
-    """Write ``trajectory.tum``, ``landmarks.csv`` and ``summary.json`` to ``out``."""
+    """Write ``trajectory.tum``, ``landmarks.csv`` and ``summary.json`` to ``out``.
+
+    Each file is written atomically (:func:`lampsam.safe_io.atomic_path`), the
+    summary last: a complete ``summary.json`` means the other two are complete.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    write_trajectory(out / "trajectory.tum", result)
-    write_landmarks(out / "landmarks.csv", result)
-    with open(out / "summary.json", "w") as fh:
-        json.dump(summary(result, run.groundtruth), fh, indent=2, default=_json_default)
+    with atomic_path(out / "trajectory.tum") as tmp:
+        write_trajectory(tmp, result)
+    with atomic_path(out / "landmarks.csv") as tmp:
+        write_landmarks(tmp, result)
+    write_json_atomic(out / "summary.json", summary(result, run.groundtruth), default=_json_default)
     log.info("results written to %s", out)
 
 
-def _json_default(x: Any) -> Any:
+def _json_default(x: object) -> object:
     if isinstance(x, np.generic):
         return x.item()
     raise TypeError(type(x))

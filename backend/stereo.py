@@ -1,7 +1,7 @@
 """Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.
 
 One small interface: every estimator is fed the frames of a
-:class:`~lampsam.datasets.stereo_sim.StereoRun` in time order through
+:class:`~lampsam.datasets.stereo_types.StereoRun` in time order through
 ``step(k, run)`` and gives a :class:`StereoStep` (pose, covariance, status); at
 the end :func:`estimate` packs them into a :class:`StereoResult`.
 
@@ -35,7 +35,7 @@ from gtsam.symbol_shorthand import X
 
 from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray
-from lampsam.datasets.stereo_sim import StereoRig, StereoRun
+from lampsam.datasets.stereo_types import StereoRig, StereoRun
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import coords_D_tangent
 from lampsam.factors.stereo import (

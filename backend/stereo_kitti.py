@@ -26,7 +26,7 @@ from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.stereo import OK, StereoEstimatorConfig, triangulate_two_points
 from lampsam.datasets.kitti import KittiStereoSequence
-from lampsam.datasets.stereo_sim import StereoRig
+from lampsam.datasets.stereo_types import StereoRig
 from lampsam.factors.geometry import between, compose
 from lampsam.factors.stereo import (
     camera_point,
@@ -58,9 +58,8 @@ log = logging.getLogger(__name__)
 
 
 def kitti_rig(seq: KittiStereoSequence) -> StereoRig:
-    """The sequence as a :class:`StereoRig` (focal length in px, pixel pitch 1)."""
-    return StereoRig(baseline=seq.baseline, focal_length=seq.fx, pixel_pitch=1.0,
-                     width_px=seq.width)
+    """The sequence's rig (:meth:`KittiStereoSequence.stereo_rig`)."""
+    return seq.stereo_rig()
 
 
 def _points_at(tracks: StereoTracks, k: int, seq: KittiStereoSequence,
@@ -207,6 +206,7 @@ def two_point_on_kitti(
                 est[k] = est[last_ok]
                 continue
             n_pairs += 1
+        assert pose is not None  # a usable pair was found above
         est[k] = compose(est[a], pose)
         anchor[k] = a
         last_ok = k

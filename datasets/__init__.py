@@ -1,1 +1,58 @@
-"""lampsam.datasets."""
+"""lampsam.datasets: Logged runs and where they come from: the run format, its readers and writers, the
+simulators (ceiling camera, Kinect, stereo) and the public-dataset adapters. The
+simulators import no estimator code, so the truth they give is independent.
+
+Entry points (loaded on first use)::
+
+    read_run               read a logged run directory (logrun)
+    write_run              write a logged run directory (logrun)
+    LoggedRun              a logged run in memory (logrun)
+    simulate_world         simulate a ceiling-camera run of a world (simulator)
+    simulate_kinect_run    simulate a Kinect mapping drive (TUM RGB-D layout) (kinect_sim)
+    simulate_stereo_run    simulate a stereo two-point run (stereo_sim)
+    read_stereo_run        read a stereo run directory (stereo_sim)
+    read_carmen            read a CARMEN laser log (carmen)
+    read_mrclam            read the MRCLAM dataset (mrclam)
+    read_tum               read a planar TUM trajectory (tum)
+    write_tum              write a TUM trajectory (tum)
+
+Modules:
+
+* :mod:`~lampsam.datasets.camera` -- The ceiling camera: intrinsics, lens distortion and mounting on the robot body.
+* :mod:`~lampsam.datasets.carmen` -- Reader for CARMEN laser logs (the Intel Research Lab log, ``intel-corrected.log.gz``).
+* :mod:`~lampsam.datasets.kinect_sim` -- A forward-facing Kinect-like RGB-D sensor rendered from a :mod:`scene3d` world.
+* :mod:`~lampsam.datasets.kitti` -- KITTI odometry stereo sequence reader (rectified grey pairs, calib.txt, poses.txt).
+* :mod:`~lampsam.datasets.logrun` -- The logged-run directory: what it holds, and reading or writing it whole (``docs/log-format.md``).
+* :mod:`~lampsam.datasets.motion` -- True motion of a differential-drive robot along waypoints, and wheel-slip noise.
+* :mod:`~lampsam.datasets.mrclam` -- Adapter for the UTIAS MRCLAM dataset (one robot, ``ds0_RS_*`` resampled at 50 Hz).
+* :mod:`~lampsam.datasets.paths` -- Where the shared real-data folder is.
+* :mod:`~lampsam.datasets.render_ceiling` -- Ceiling images by ray casting, and the true projections of landmarks, from geometry only.
+* :mod:`~lampsam.datasets.rgbd` -- Readers of RGB-D sequences: the TUM RGB-D layout and the slambook2 sample.
+* :mod:`~lampsam.datasets.rig` -- The sensor rig of a logged run (``rig.yaml``): ceiling camera and wheel odometry.
+* :mod:`~lampsam.datasets.robot_frames` -- What a robot records while it turns in place and while it drives on (paper 2, sec. 4).
+* :mod:`~lampsam.datasets.scene3d` -- Three-dimensional world content for the forward RGB-D sensor (paper 2, sec. 2).
+* :mod:`~lampsam.datasets.simulator` -- Simulated ceiling-camera runs: ``lampsam simulate WORLD --out RUN``.
+* :mod:`~lampsam.datasets.steerable_robot` -- A simulated robot the global localizer can steer: turn in place, drive on, frames back.
+* :mod:`~lampsam.datasets.stereo_sim` -- Stereo two-point runs: the simulator of paper 3 and the run-directory format.
+* :mod:`~lampsam.datasets.stereo_types` -- Stereo two-point runs as plain data: the rig, the noise model and a run (paper 3).
+* :mod:`~lampsam.datasets.tables` -- The tables of a logged run: in-memory types, readers and writers (``docs/log-format.md``).
+* :mod:`~lampsam.datasets.textio` -- Reading text files with errors that name the file and the 1-based line.
+* :mod:`~lampsam.datasets.tum` -- TUM trajectory files: one parser with a planar and a 3-D view, and the writer.
+* :mod:`~lampsam.datasets.world` -- Ceiling worlds: YAML files describing ceilings, lamps, the rig and the robot's path.
+"""
+
+from lampsam._lazy import lazy_exports
+
+__getattr__, __dir__ = lazy_exports(__name__, {
+    "read_run": "lampsam.datasets.logrun",
+    "write_run": "lampsam.datasets.logrun",
+    "LoggedRun": "lampsam.datasets.logrun",
+    "simulate_world": "lampsam.datasets.simulator",
+    "simulate_kinect_run": "lampsam.datasets.kinect_sim",
+    "simulate_stereo_run": "lampsam.datasets.stereo_sim",
+    "read_stereo_run": "lampsam.datasets.stereo_sim",
+    "read_carmen": "lampsam.datasets.carmen",
+    "read_mrclam": "lampsam.datasets.mrclam",
+    "read_tum": "lampsam.datasets.tum",
+    "write_tum": "lampsam.datasets.tum",
+})

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray, ImageU8
+from lampsam.datasets.stereo_types import StereoRig
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -104,6 +105,10 @@ class KittiStereoSequence:
         """Stereo baseline ``B``, m: ``-(P_right[0, 3] - P_left[0, 3]) / fx``."""
         return float(-(self.P_right[0, 3] - self.P_left[0, 3]) / self.fx)
 
+    def stereo_rig(self) -> StereoRig:
+        """The calibrated pair as a :class:`StereoRig` (baseline, ``fx`` and width in px)."""
+        return StereoRig.from_pixels(baseline=self.baseline, f_px=self.fx, width_px=self.width)
+
     def load_pair(self, i: int) -> tuple[ImageU8, ImageU8]:
         """Left and right grey images of frame ``i``, uint8 (H, W) each.
 
@@ -118,7 +123,7 @@ class KittiStereoSequence:
             if img.shape != (self.height, self.width):
                 raise KittiError(f"image size {img.shape[::-1]} differs from "
                                  f"{(self.width, self.height)}", f)
-            out.append(img)
+            out.append(np.asarray(img, dtype=np.uint8))
         return out[0], out[1]
 
     def planar_rig_poses(self) -> FloatArray:

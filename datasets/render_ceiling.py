@@ -319,7 +319,7 @@ class CeilingRenderer:
             [b[:, [0, 1]], b[:, [2, 1]], b[:, [2, 3]], b[:, [0, 3]]], axis=1
         )  # (L, 4, 2)
         self._h = np.array([lay.height for lay in self.layers]) - self.camera.z_cam
-        self._exact_windows = not np.any(self.camera.dist) and self.all_valid
+        self._exact_windows = not self.camera.has_distortion and self.all_valid
 
     def _windows(self, pose: FloatArray, cxy: FloatArray) -> list[tuple[slice, slice] | None]:
         """Per layer, the sample-grid window that can see it (None: out of view)."""
@@ -503,20 +503,14 @@ def _hidden(points: FloatArray, cam_xyz: FloatArray, occ: tuple[_Occluder, ...])
 def _project(
     camera: CameraModel, points: FloatArray, pose: FloatArray
 ) -> tuple[FloatArray, BoolArray]:
-    """Pixels of world points via ``cv2.projectPoints``; second output: in front and unfolded."""
+    """Pixels of world points with the camera's lens model; second output: in front and unfolded."""
     if len(points) == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     w_R_c, w_t_c = world_T_camera(camera, pose)
-    c_R_w = w_R_c.T
-    rvec, _ = cv2.Rodrigues(c_R_w)
-    tvec = -c_R_w @ w_t_c
-    px, _ = cv2.projectPoints(
-        points.reshape(-1, 1, 3).astype(np.float64), rvec, tvec, camera.K(), camera.dist
-    )
-    px = px.reshape(-1, 2)
     pc = (points - w_t_c) @ w_R_c  # camera-frame coordinates
-    ok = pc[:, 2] > 1e-6
-    if np.any(camera.dist) and ok.any():
+    px, ok = camera.project_camera_points(pc)  # the camera's lens model (pinhole or fisheye)
+    ok &= pc[:, 2] > 1e-6
+    if camera.has_distortion and ok.any():
         # Far outside the field of view a distortion polynomial folds back: keep only
         # projections that undistort to the same ray.
         rays = camera.camera_rays(px[ok])

@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
+from lampsam.datasets.tum import pose_from_tum_fields, read_tum_3d
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -111,7 +112,7 @@ class RgbdSequence:
         if img is None:
             raise DatasetError("colour image missing or unreadable", path)
         _check_shape(img, self.camera, path)
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
 
     def load_depth(self, i: int) -> ImageU16:
         """Depth image ``i`` as uint16 (H, W) (metres = value / ``camera.depth_scale``).
@@ -128,7 +129,7 @@ class RgbdSequence:
                 f"depth image must be 16-bit single channel, got {img.dtype} {img.shape}", path
             )
         _check_shape(img, self.camera, path)
-        return img
+        return np.asarray(img, dtype=np.uint16)
 
 
 def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
@@ -138,16 +139,6 @@ def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
             f"image is {img.shape[1]}x{img.shape[0]}, camera is {camera.width}x{camera.height}",
             path,
         )
-
-
-def pose_from_tum_fields(vals: list[float]) -> FloatArray:
-    """(4, 4) transform from ``tx ty tz qx qy qz qw`` (quaternion normalised)."""
-    from scipy.spatial.transform import Rotation
-
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(vals[3:7]).as_matrix()
-    T[:3, 3] = vals[:3]
-    return T
 
 
 def _read_list(path: Path) -> tuple[list[float], list[Path]]:
@@ -178,48 +169,6 @@ def _read_list(path: Path) -> tuple[list[float], list[Path]]:
     if not times:
         raise DatasetError("no frames listed", path)
     return times, files
-
-
-def read_tum_trajectory_3d(path: Path) -> tuple[FloatArray, FloatArray]:
-    """A TUM trajectory as full 3-D poses.
-
-    Args:
-        path: ``t tx ty tz qx qy qz qw`` per line.
-
-    Returns:
-        ``t`` (K,) seconds and ``world_T_camera`` (K, 4, 4).
-
-    Raises:
-        DatasetError: malformed line, non-finite value, zero quaternion, time not increasing.
-    """
-    if not path.is_file():
-        raise DatasetError("trajectory not found", path)
-    ts: list[float] = []
-    poses: list[FloatArray] = []
-    for lineno, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        text = raw.strip()
-        if not text or text.startswith("#"):
-            continue
-        parts = text.split()
-        if len(parts) != 8:
-            raise DatasetError(
-                f"expected 8 fields 't tx ty tz qx qy qz qw', got {len(parts)}", path, lineno
-            )
-        try:
-            vals = [float(p) for p in parts]
-        except ValueError as exc:
-            raise DatasetError(f"bad number: {exc}", path, lineno) from exc
-        if not all(math.isfinite(v) for v in vals):
-            raise DatasetError("non-finite value", path, lineno)
-        if sum(v * v for v in vals[4:]) < 1e-12:
-            raise DatasetError("zero quaternion", path, lineno)
-        if ts and vals[0] <= ts[-1]:
-            raise DatasetError("time goes backwards", path, lineno)
-        ts.append(vals[0])
-        poses.append(pose_from_tum_fields(vals[1:]))
-    if not ts:
-        raise DatasetError("no poses", path)
-    return np.array(ts), np.stack(poses)
 
 
 def camera_from_yaml(path: Path) -> RgbdCamera:
@@ -304,7 +253,7 @@ def read_tum_rgbd(
     poses = None
     gt = root / "groundtruth.txt"
     if gt.is_file():
-        t_gt, T_gt = read_tum_trajectory_3d(gt)
+        t_gt, T_gt = read_tum_3d(gt)
         idx = np.searchsorted(t_gt, keep_t)
         idx = np.clip(idx, 0, len(t_gt) - 1)
         prev = np.clip(idx - 1, 0, len(t_gt) - 1)

@@ -1,8 +1,10 @@
-"""Stereo two-point runs: rig parameters, the simulator of paper 3 and the run format.
+"""Stereo two-point runs: the simulator of paper 3 and the run-directory format.
 
-The simulator renders the two target points from geometry only (pinhole cameras
-placed at the rig's two optical centres); it imports no estimator code, so the
-truth it writes is independent of ``lampsam.factors.stereo``.
+The run types (:class:`StereoRig`, :class:`StereoNoise`, :class:`StereoRun`) are
+in :mod:`lampsam.datasets.stereo_types`. The simulator renders the two target
+points from geometry only (pinhole cameras placed at the rig's two optical
+centres); it imports no estimator code, so the truth it writes is independent
+of ``lampsam.factors.stereo``.
 
 Run directory format (all times on one clock, seconds):
 
@@ -35,7 +37,26 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import BoolArray, FloatArray
+from lampsam.datasets.stereo_types import StereoNoise, StereoRig, StereoRun
+from lampsam.datasets.tables import Trajectory
+from lampsam.datasets.tum import read_tum, write_tum
 from lampsam.errors import DatasetError
+
+#: The run types live in :mod:`lampsam.datasets.stereo_types`; re-exported here for
+#: callers that import them with the simulator.
+__all__ = [
+    "SCENARIOS",
+    "StereoNoise",
+    "StereoRig",
+    "StereoRun",
+    "StereoScenario",
+    "read_stereo_run",
+    "render_columns",
+    "simulate_stereo",
+    "simulate_stereo_run",
+    "true_trajectory",
+    "write_stereo_run",
+]
 
 log = logging.getLogger(__name__)
 
@@ -44,69 +65,6 @@ RUN_YAML = "stereo_run.yaml"
 ODOMETRY_CSV = "odometry.csv"
 MEASUREMENTS_CSV = "measurements.csv"
 GROUNDTRUTH_TUM = "groundtruth.tum"
-
-
-@dataclass(frozen=True)
-class StereoRig:
-    """A parallel stereo pair (paper 3, Fig. 1).
-
-    Defaults are a Point Grey Bumblebee2 BB2-03S2 with the 3.8 mm lens, from its
-    datasheet as commonly quoted: 12 cm baseline, 7.4 um square pixels, 648 px
-    wide (f/p = 513.5 px, horizontal field of view about 64 deg).
-
-    Attributes:
-        baseline: ``B``, distance between the optical centres, m.
-        focal_length: ``f``, lens to image plane, m.
-        pixel_pitch: ``p``, pixel width, m (square pixels).
-        width_px: image width, px; the principal point is the image centre.
-    """
-
-    baseline: float = 0.12
-    focal_length: float = 3.8e-3
-    pixel_pitch: float = 7.4e-6
-    width_px: int = 648
-
-    @property
-    def f_px(self) -> float:
-        """``f / p``, px."""
-        return self.focal_length / self.pixel_pitch
-
-    @property
-    def cu_px(self) -> float:
-        """Principal point column, px (OpenCV pixel centres: ``(width - 1) / 2``)."""
-        return 0.5 * (self.width_px - 1)
-
-    def half_width_px(self) -> float:
-        """Largest ``|x|`` (px from the principal point) still inside the image."""
-        return self.cu_px + 0.5
-
-
-@dataclass(frozen=True)
-class StereoNoise:
-    """Noise of the simulated sensors.
-
-    Attributes:
-        sigma_detect_px: Gaussian detection noise per coordinate, px (added before
-            rounding).
-        quantise: round the image column to whole pixels (uniform error,
-            variance 1/12 px^2), as the paper's noise model.
-        sigma_v: odometry forward-speed noise, m/s (white per step).
-        sigma_omega: odometry turn-rate noise, rad/s (white per step).
-        sigma_lateral: lateral-slip noise the estimators should assume, m/s
-            (the simulated robot never slips; a floor that keeps the motion
-            covariance full rank).
-    """
-
-    sigma_detect_px: float = 0.3
-    quantise: bool = True
-    sigma_v: float = 0.05
-    sigma_omega: float = 0.05
-    sigma_lateral: float = 0.01
-
-    @property
-    def var_measurement_px2(self) -> float:
-        """Variance of one image coordinate, px^2: ``sigma_detect^2 (+ 1/12)``."""
-        return self.sigma_detect_px**2 + (1.0 / 12.0 if self.quantise else 0.0)
 
 
 @dataclass(frozen=True)
@@ -134,40 +92,6 @@ class StereoScenario:
     turn_amplitude: float = 0.4
     turn_period: float = 8.0
     turn_duration: float = 16.0
-
-
-@dataclass(frozen=True)
-class StereoRun:
-    """One stereo two-point run in memory.
-
-    Attributes:
-        path: run directory (or None for an in-memory run).
-        rig: the stereo rig.
-        noise: the noise the run was made with (the estimators use it as known).
-        target_t_points: (2, 2) target points, m, target frame.
-        t: (N,) frame times, s, strictly increasing.
-        v, omega: (N,) measured odometry over the step ending at ``t[k]``, m/s, rad/s.
-        z: (N, 4) ``[xl1, xr1, xl2, xr2]`` px (0 where not seen).
-        seen: (N,) bool, both points imaged.
-        truth: (N, 3) true ``target_T_camera`` ``(x, y, theta)`` or None.
-        scenario: name; seed: the simulator's seed (or -1).
-    """
-
-    path: Path | None
-    rig: StereoRig
-    noise: StereoNoise
-    target_t_points: FloatArray
-    t: FloatArray
-    v: FloatArray
-    omega: FloatArray
-    z: FloatArray
-    seen: BoolArray
-    truth: FloatArray | None
-    scenario: str = ""
-    seed: int = -1
-
-    def __len__(self) -> int:
-        return len(self.t)
 
 
 # --------------------------------------------------------------------------- simulation
@@ -198,7 +122,7 @@ def true_trajectory(scenario: str, cfg: StereoScenario) -> tuple[FloatArray, Flo
         poses = np.column_stack([np.full(n, x0), np.full(n, y0), theta])
     else:
         raise DatasetError(f"unknown scenario {scenario!r}; choose one of {SCENARIOS}")
-    return t, poses
+    return np.asarray(t, dtype=np.float64), np.asarray(poses, dtype=np.float64)
 
 
 def render_columns(
@@ -336,14 +260,8 @@ def write_stereo_run(run: StereoRun, out: Path) -> Path:
         for k in range(len(run)):
             w.writerow([f"{run.t[k]:.6f}", int(run.seen[k])] + [f"{c:.6g}" for c in run.z[k]])
     if run.truth is not None:
-        with open(out / GROUNDTRUTH_TUM, "w") as fh:
-            fh.write("# t x y z qx qy qz qw (rig pose in the target frame)\n")
-            for k in range(len(run)):
-                x, y, th = run.truth[k]
-                fh.write(
-                    f"{run.t[k]:.6f} {x:.9f} {y:.9f} 0 0 0 "
-                    f"{math.sin(th / 2):.12f} {math.cos(th / 2):.12f}\n"
-                )
+        write_tum(out / GROUNDTRUTH_TUM, Trajectory(t=run.t, poses=run.truth),
+                  comment="t x y z qx qy qz qw (rig pose in the target frame)")
     return out
 
 
@@ -388,28 +306,6 @@ def _read_csv(path: Path, header: list[str]) -> FloatArray:
     return out
 
 
-def _read_tum_planar(path: Path) -> FloatArray:
-    """TUM file -> (N, 4) ``t, x, y, theta`` (yaw from the quaternion)."""
-    rows = []
-    with open(path) as fh:
-        for i, line in enumerate(fh, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.split()
-            if len(parts) != 8:
-                raise DatasetError(f"expected 8 TUM fields, got {len(parts)}", path, i)
-            try:
-                t, x, y, _z, qx, qy, qz, qw = (float(p) for p in parts)
-            except ValueError as exc:
-                raise DatasetError(f"not a number: {exc}", path, i) from exc
-            yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-            rows.append([t, x, y, yaw])
-    if not rows:
-        raise DatasetError("no poses", path)
-    return np.array(rows)
-
-
 def read_stereo_run(path: Path) -> StereoRun:
     """Read a run directory written by :func:`write_stereo_run`.
 
@@ -438,10 +334,10 @@ def read_stereo_run(path: Path) -> StereoRun:
     truth = None
     gt_path = path / GROUNDTRUTH_TUM
     if gt_path.is_file():
-        gt = _read_tum_planar(gt_path)
-        if len(gt) != len(odo) or not np.allclose(gt[:, 0], odo[:, 0], atol=1e-6):
+        gt = read_tum(gt_path)
+        if len(gt) != len(odo) or not np.allclose(gt.t, odo[:, 0], atol=1e-6):
             raise DatasetError("ground-truth times differ from the frames", gt_path)
-        truth = gt[:, 1:]
+        truth = gt.poses
     return StereoRun(
         path, rig, noise, points, odo[:, 0], odo[:, 1], odo[:, 2], meas[:, 2:6],
         meas[:, 1] > 0.5, truth, str(meta.get("scenario", "")), int(meta.get("seed", -1)),

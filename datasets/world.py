@@ -49,7 +49,8 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.datasets.logrun import LandmarkTable, Rig, _read_yaml
+from lampsam.datasets.logrun import LandmarkTable, Rig
+from lampsam.datasets.textio import read_yaml as _read_yaml
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)

@@ -45,10 +45,13 @@ from lampsam.backend.config import SlamConfig
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
 from lampsam.evaluation.outputs import ensure_dir
+from lampsam.interrupt import stop_on_signals, stop_requested
+from lampsam.safe_io import atomic_path, write_json_atomic, write_text_atomic
 
 log = logging.getLogger(__name__)
 
 MRCLAM_NAMES = ("mrclam", "mrclam-gated")
+JOB_RESULT = "job_result.json"  #: a finished job's status and metrics, written last
 
 
 class CompareError(LampsamError):
@@ -202,7 +205,43 @@ def _map_error(result: Any, truth: tuple[np.ndarray, np.ndarray, np.ndarray] | N
 
 
 def run_job(job: Job) -> JobResult:
-    """Run one backend on one run and compute its metrics (runs in a worker process)."""
+    """Run one backend on one run and compute its metrics (runs in a worker process).
+
+    Writes ``job_result.json`` last (atomically) unless the job was interrupted, so
+    that ``compare --resume`` can tell finished jobs (:func:`finished_job`).
+    """
+    with stop_on_signals():  # SIGINT/SIGTERM in the worker: finish the step, keep the steps
+        result = _run_job(job)
+    if result.status != "interrupted":
+        write_json_atomic(Path(job.out_dir) / JOB_RESULT, {
+            "status": result.status, "arrays": result.arrays,
+            "metrics": {k: v for k, v in result.metrics.items() if k != "traceback"}},
+            default=_json_default)
+    return result
+
+
+def finished_job(job: Job) -> JobResult | None:
+    """The result of a job finished by an earlier ``compare`` (for ``--resume``), or None.
+
+    A job is finished when its directory holds ``job_result.json`` (written last,
+    atomically, by :func:`run_job`) and, for a successful job, its ``arrays.npz``.
+    Interrupted jobs write no ``job_result.json`` and are run again.
+    """
+    path = Path(job.out_dir) / JOB_RESULT
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        status, arrays, metrics = str(doc["status"]), doc.get("arrays"), dict(doc["metrics"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("%s: unreadable (%s): the job runs again", path, exc)
+        return None
+    if arrays is not None and not Path(arrays).is_file():
+        return None
+    return JobResult(job, status, metrics, arrays)
+
+
+def _run_job(job: Job) -> JobResult:
     from lampsam.backend.slam import run_slam
     from lampsam.datasets.logrun import read_run
 
@@ -260,7 +299,8 @@ def run_job(job: Job) -> JobResult:
     if truth_lm is not None:
         arrays["true_lm_xy"] = truth_lm[2][:, :2]
     m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    np.savez_compressed(out / "arrays.npz", **arrays)
+    with atomic_path(out / "arrays.npz") as tmp:
+        np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
     return JobResult(job, result.status, m, str(out / "arrays.npz"))
 
 
@@ -373,8 +413,15 @@ def _img_html(path: Path) -> str:
 
 
 def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
-                 figures: list[Path], wall_s: float) -> None:
-    """Write report.md, report.html and summary.json."""
+                 figures: list[Path], wall_s: float, unfinished: list[Job] | None = None) -> None:
+    """Write report.md, report.html and summary.json (atomically, summary last).
+
+    ``unfinished``: jobs not finished (interrupted); the report says so.
+    """
+    unfinished = unfinished or []
+    partial = (f"Interrupted: {len(unfinished)} jobs not finished "
+               f"({', '.join(f'{j.group} seed {j.seed} / {j.backend}' for j in unfinished)}); "
+               "`lampsam compare ... --resume` runs only those.") if unfinished else ""
     table = markdown_table(rows)
     notes = consistency_sentences(rows)
     failures = [f"- {r.job.group} seed {r.job.seed} / {r.job.backend}: {r.status}"
@@ -384,6 +431,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
         "",
         f"{len(results)} jobs, wall time {wall_s:.1f} s. Errors without alignment (the start "
         "pose is known); RPE per metre from evo; NEES over (x, y, theta), averaged over seeds.",
+        *(["", partial] if partial else []),
         "",
         table,
         "",
@@ -393,7 +441,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
     if failures:
         md += ["", "## Failed jobs", *failures]
     md += ["", "## Figures", *[f"![{f.stem}](figures/{f.name})" for f in figures], ""]
-    (out / "report.md").write_text("\n".join(md))
+    write_text_atomic(out / "report.md", "\n".join(md))
     html_table = _md_table_to_html(table)
     html = [
         "<!doctype html><html><head><meta charset='utf-8'><title>lampsam compare</title>",
@@ -401,6 +449,7 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
         "td,th{border:1px solid #999;padding:3px 6px;text-align:right}</style></head><body>",
         "<h1>lampsam: EKF against smoothing</h1>",
         f"<p>{len(results)} jobs, wall time {wall_s:.1f} s.</p>",
+        *([f"<p><b>{partial}</b></p>"] if partial else []),
         html_table,
         "<h2>Consistency and accuracy</h2><ul>",
         *[f"<li>{n[2:]}</li>" for n in notes],
@@ -409,15 +458,17 @@ def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult]
     if failures:
         html += ["<h2>Failed jobs</h2><ul>", *[f"<li>{f[2:]}</li>" for f in failures], "</ul>"]
     html += ["<h2>Figures</h2>", *[_img_html(f) for f in figures], "</body></html>"]
-    (out / "report.html").write_text("\n".join(html))
+    write_text_atomic(out / "report.html", "\n".join(html))
     summary = {
         "rows": rows,
         "jobs": [{"run": r.job.group, "seed": r.job.seed, "backend": r.job.backend,
                   "run_dir": r.job.run_dir, "status": r.status,
                   **{k: v for k, v in r.metrics.items() if k != "traceback"}} for r in results],
         "wall_time_s": wall_s,
+        "complete": not unfinished,
+        "unfinished": [{"run": j.group, "seed": j.seed, "backend": j.backend} for j in unfinished],
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    write_json_atomic(out / "summary.json", summary, default=_json_default)
 
 
 def _md_table_to_html(table: str) -> str:
@@ -476,6 +527,7 @@ def compare(
     duration: float | None = None,
     progress: bool = True,
     config: SlamConfig | None = None,
+    resume: bool = False,
 ) -> list[dict[str, Any]]:
     """Run every backend on every run; write the report; return the table rows.
 
@@ -490,6 +542,10 @@ def compare(
         duration: simulated seconds per world run (None: the whole path).
         progress: show a progress bar (tqdm, on stderr).
         config: the SLAM configuration of every job (None: the defaults).
+        resume: skip the jobs an earlier run into ``out`` finished (:func:`finished_job`).
+
+    On a stop request (SIGINT, SIGTERM) the report of the jobs finished so far is
+    written, naming the unfinished ones.
 
     Returns:
         The aggregated rows (as in ``summary.json``).
@@ -512,26 +568,94 @@ def compare(
         for b in backends
     ]
     results: list[JobResult] = []
-    ctx = mp.get_context("spawn")
-    with _single_threaded_children(), cf.ProcessPoolExecutor(
-        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
-    ) as pool:
-        futures = {pool.submit(run_job, j): j for j in jobs}
-        iterator = cf.as_completed(futures)
-        if progress:
-            from tqdm import tqdm
-
-            iterator = tqdm(iterator, total=len(jobs), desc="compare", unit="job")
-        for fut in iterator:
-            job = futures[fut]
-            try:
-                results.append(fut.result())
-            except Exception as exc:  # the worker process itself died
-                results.append(JobResult(job, f"failed: worker died: {type(exc).__name__}: {exc}"))
+    todo = jobs
+    if resume:
+        done = [r for r in (finished_job(j) for j in jobs) if r is not None]
+        results.extend(done)
+        finished_dirs = {r.job.out_dir for r in done}
+        todo = [j for j in jobs if j.out_dir not in finished_dirs]
+        log.warning("--resume: %d of %d jobs already finished, %d to run",
+                    len(done), len(jobs), len(todo))
+    unfinished = _run_jobs(todo, workers, progress, results)
+    results = [r for r in results if r.status != "interrupted"]
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures
 
     figures = make_figures(out / "figures", results)
-    write_report(out, rows, results, figures, time.perf_counter() - t_start)
+    write_report(out, rows, results, figures, time.perf_counter() - t_start, unfinished)
+    if unfinished:
+        log.warning("interrupted: report of the %d finished jobs written to %s; %d jobs not "
+                    "finished (rerun with --resume to run only those)",
+                    len(results), out, len(unfinished))
     return rows
+
+
+def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobResult]
+              ) -> list[Job]:
+    """Run jobs in worker processes, appending to ``results``; returns the unfinished jobs.
+
+    A stop request (SIGINT or SIGTERM, :mod:`lampsam.interrupt`) cancels the jobs
+    not started and waits for the running ones (each stops at its next step when
+    the signal reached it too, as Ctrl-C in a terminal does, or finishes); a second
+    signal stops waiting. Interrupted and cancelled jobs are returned, not results.
+    """
+    if not jobs:
+        return []
+    ctx = mp.get_context("spawn")
+    unfinished: list[Job] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), desc="compare", unit="job")
+    with _single_threaded_children(), cf.ProcessPoolExecutor(
+        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
+    ) as pool:
+        futures = {pool.submit(run_job, j): j for j in jobs}
+        pending = set(futures)
+        collected: set[cf.Future[JobResult]] = set()
+        try:
+            while pending:
+                done, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
+                for fut in done:
+                    _collect(fut, futures[fut], results, unfinished)
+                    collected.add(fut)
+                    if bar is not None:
+                        bar.update(1)
+                if stop_requested() is not None:
+                    for fut in pending:
+                        fut.cancel()
+                    pending = {f for f in pending if not f.cancelled()}
+        except KeyboardInterrupt:  # a second signal: stop waiting for the running jobs
+            pool.shutdown(wait=False, cancel_futures=True)
+            for child in mp.active_children():
+                child.terminate()
+        for fut, job in futures.items():
+            if fut in collected:
+                continue
+            if fut.done() and not fut.cancelled():
+                _collect(fut, job, results, unfinished)
+            else:
+                unfinished.append(job)
+    if bar is not None:
+        bar.close()
+    return unfinished
+
+
+def _collect(fut: cf.Future[JobResult], job: Job, results: list[JobResult],
+             unfinished: list[Job]) -> None:
+    """Append a finished future's result; interrupted jobs go to ``unfinished`` as well."""
+    if fut.cancelled():
+        unfinished.append(job)
+        return
+    try:
+        res = fut.result()
+    except KeyboardInterrupt:  # stopped at once in the worker (second signal)
+        unfinished.append(job)
+        return
+    except Exception as exc:  # the worker process itself died
+        res = JobResult(job, f"failed: worker died: {type(exc).__name__}: {exc}")
+    results.append(res)
+    if res.status == "interrupted":
+        unfinished.append(job)

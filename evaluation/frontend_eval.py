@@ -45,8 +45,9 @@ from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.datasets.logrun import CameraModel, ProjectionTable, read_run
 from lampsam.errors import LampsamError
 from lampsam.evaluation.outputs import ensure_dir
+from lampsam.frontend.ceiling_coords import PixelToCeiling
 from lampsam.frontend.corners import detect_corner_pixels, match_ncc
-from lampsam.frontend.lamps import PixelToCeiling, detect_lamps
+from lampsam.frontend.lamps import detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
 
 log = logging.getLogger(__name__)

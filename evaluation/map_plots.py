@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from lampsam.localization.envmap import EnvironmentMap, load_env_map
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
+from lampsam.localization.map_store import EnvironmentMap, load_env_map
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
-from lampsam.backend.stereo import StereoResult
+from lampsam.backend.stereo import StereoEstimatorConfig, StereoResult
 from lampsam.backend.stereo_kitti import KittiTwoPointResult
 from lampsam.errors import LampsamError
 from lampsam.evaluation.outputs import ensure_dir
@@ -200,12 +200,20 @@ def write_stereo_result(result: StereoResult, out: Path) -> list[Path]:
     return [tum, status]
 
 
-def stereo_job(run_dir: Path, estimator: str, out: Path) -> dict[str, Any]:
+def stereo_job(
+    run_dir: Path, estimator: str, out: Path, config: StereoEstimatorConfig | None = None
+) -> dict[str, Any]:
     """``lampsam stereo RUN --estimator E --out OUT``: estimate, write, score, plot.
 
     Writes ``estimate.tum``, ``status.csv``, ``summary.json`` and, when the run has
     ground truth, ``errors.png`` (trajectory and errors against the truth, with
     the raw triangulation beside the estimator).
+
+    Args:
+        run_dir: the stereo run directory.
+        estimator: ``raw``, ``ekf``, ``isam2`` or ``batch``.
+        out: the output directory.
+        config: estimator settings (defaults when None).
 
     Returns:
         The summary (status counts, median step time, RMS when truth exists).
@@ -215,7 +223,7 @@ def stereo_job(run_dir: Path, estimator: str, out: Path) -> dict[str, Any]:
 
     run = read_stereo_run(Path(run_dir))
     ensure_dir(out, StereoReportError)  # before the work, after the input is known good
-    result = estimate(run, estimator)
+    result = estimate(run, estimator, config)
     out = Path(out)
     write_stereo_result(result, out)
     summary: dict[str, Any] = {
@@ -224,7 +232,7 @@ def stereo_job(run_dir: Path, estimator: str, out: Path) -> dict[str, Any]:
         "median_step_ms": float(1e3 * np.median(result.step_time_s)),
     }
     if run.truth is not None and result.valid.any():
-        results = [result] if estimator == "raw" else [estimate(run, "raw"), result]
+        results = [result] if estimator == "raw" else [estimate(run, "raw", config), result]
         mask = common_mask(results)
         if mask.any():
             rms = rms_errors(result, run.truth, mask)

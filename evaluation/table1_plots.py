@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 Record = Mapping[str, Any]
 
-#: Colours of the configurations (``lampsam.localization.global_localizer.Mode`` values).
+#: Colours of the configurations (``lampsam.localization.filter_config.Mode`` values).
 COLORS = {
     "grid_only": "tab:grey",
     "no_ceiling": "tab:orange",

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
-from lampsam.frontend.lamps import PixelToCeiling, ceiling_jacobians
+from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians
 from lampsam.frontend.measurements import CornerObservation
 
 log = logging.getLogger(__name__)

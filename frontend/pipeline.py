@@ -22,20 +22,15 @@ import numpy as np
 
 from lampsam.arrays import ImageU8
 from lampsam.errors import FrontendError
+from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     corner_observations,
     detect_corner_pixels,
     detect_corners,
 )
-from lampsam.frontend.lamps import (
-    LampDetectorConfig,
-    PixelToCeiling,
-    ceiling_jacobians,
-    detect_lamps,
-    measure_blobs,
-    to_observations,
-)
+from lampsam.frontend.lamp_config import LampDetectorConfig
+from lampsam.frontend.lamps import detect_lamps, measure_blobs
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation
 
 log = logging.getLogger(__name__)

@@ -368,6 +368,23 @@ def grid_from_scans(poses: FloatArray, ranges: FloatArray, angles: FloatArray,
     return grid
 
 
+def grid_around(xy: FloatArray, reach: float, resolution: float) -> OccupancyGrid:
+    """An empty grid covering world points grown by a margin.
+
+    Args:
+        xy: (N, 2) world points, metres (sensor positions, scan endpoints).
+        reach: margin around them, metres.
+        resolution: cell size, metres; the lower-left corner is snapped to a multiple of it.
+
+    Returns:
+        The all-unknown grid.
+    """
+    lo = xy.min(axis=0) - reach
+    hi = xy.max(axis=0) + reach
+    lo = np.floor(lo / resolution) * resolution
+    return OccupancyGrid.empty(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), resolution)
+
+
 # ---------------------------------------------------------------------- map_server I/O
 def save_map_server(grid: OccupancyGrid, path_stem: str | Path,
                     config: LogOddsConfig = LogOddsConfig()) -> Path:

@@ -4,8 +4,7 @@ Each test asserts on what the command leaves behind (files, the numbers in them,
 the exit code, the printed lines). Bad input must end with exit code 2 and a
 one-line message on stderr that names the offending file, never a traceback.
 
-None of these subcommands (stereo-sim, stereo, frontend-eval, gallery, compare)
-takes ``--config``, so there is no TOML smoke test here.
+The ``--config`` files of every command are tested in ``test_config_loader.py``.
 """
 
 from __future__ import annotations

@@ -18,18 +18,15 @@ from lampsam.datasets.kinect_sim import (
 from lampsam.datasets.logrun import Trajectory, read_tum, write_tum
 from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.datasets.scene3d import scene_from_dict
+from lampsam.evaluation.map_truth import floor_plan_of_run
 from lampsam.localization.ceiling_map import CeilingFeatureMap, read_landmark_csv
-from lampsam.localization.envmap import (
-    DepthGridConfig,
-    EnvMapError,
-    build_map,
-    grid_precision_recall,
-    integrate_depth_frame,
-    load_env_map,
-    planar_poses_at,
-    split_by_height,
-)
+from lampsam.localization.depth_grid import integrate_depth_frame, split_by_height
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
+from lampsam.localization.map_build import build_map
+from lampsam.localization.map_config import DepthGridConfig
+from lampsam.localization.map_poses import planar_poses_at
+from lampsam.localization.map_quality import FloorPlan, grid_precision_recall
+from lampsam.localization.map_store import EnvMapError, load_env_map
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.spatial_map import SpatialMapConfig, merge_duplicates
 
@@ -137,8 +134,14 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
 
 
+def _truth(run: Path) -> FloorPlan:
+    plan = floor_plan_of_run(run, DepthGridConfig().height_band)
+    assert plan is not None  # the office world has a scene3d section
+    return plan
+
+
 def test_build_map_on_simulated_office(tiny_run: Path, tmp_path: Path) -> None:
-    report = build_map(tiny_run, tmp_path / "map")
+    report = build_map(tiny_run, tmp_path / "map", truth=_truth(tiny_run))
     assert report.source == "run" and report.n_frames == 25
     env = load_env_map(tmp_path / "map")
     assert env.manifest["format"] == "lampsam-envmap"
@@ -164,7 +167,12 @@ def test_build_map_with_slam_poses_and_missing_pose(tiny_run: Path, tmp_path: Pa
         "1,lamp,2.0,2.0,2.38,0.1,9,0.01,0.002,0,0.02,0,0.03,0.001\n"
         "1000,corner,0.2,0.2,2.4,nan,4,0.04,0,0,0.05,0,0.06,nan\n"
     )
-    report = build_map(tiny_run, tmp_path / "map", poses=f"slam:{slam_dir / 'trajectory.tum'}")
+    report = build_map(
+        tiny_run,
+        tmp_path / "map",
+        poses=f"slam:{slam_dir / 'trajectory.tum'}",
+        truth=_truth(tiny_run),
+    )
     env = load_env_map(tmp_path / "map")
     assert report.checks["grid_vs_world"]["precision_tol1"] > 0.95
     assert env.ceiling is not None and len(env.ceiling) == 2
@@ -209,7 +217,8 @@ def test_ceiling_map_round_trip(tmp_path: Path) -> None:
 def test_laser_grid_of_a_square_room() -> None:
     """Scans from inside a 6 m x 4 m room: walls occupied, the inside free, outside unknown."""
     from lampsam.datasets.carmen import LaserScans, carmen_beam_angles
-    from lampsam.localization.envmap import LaserGridConfig, build_laser_grid
+    from lampsam.localization.laser_grid import build_laser_grid
+    from lampsam.localization.map_config import LaserGridConfig
 
     angles = carmen_beam_angles(180)
     four = [[2.0, 2.0, 0.0], [2.0, 2.0, math.pi], [4.0, 2.0, math.pi / 2], [4.0, 2.0, -math.pi / 2]]

@@ -13,10 +13,10 @@ def test_input_error_names_file_and_line() -> None:
 
 
 def test_missing_config_names_the_file(tmp_path) -> None:
-    from lampsam.cli import load_toml
+    from lampsam.config_loader import read_table_file
 
     try:
-        load_toml(tmp_path / "absent.toml")
+        read_table_file(tmp_path / "absent.toml")
     except LampsamError as exc:
         assert "absent.toml" in str(exc)
     else:  # pragma: no cover - the call must raise

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from lampsam.angles import wrap_axis
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import FrontendError, LampsamError
 from lampsam.evaluation.frontend_eval import (
@@ -20,6 +21,8 @@ from lampsam.evaluation.frontend_eval import (
     render_view,
     synthetic_sequence,
 )
+from lampsam.frontend.blob_moments import measure_region
+from lampsam.frontend.ceiling_coords import ceiling_jacobians, to_observation, to_observations
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     _near_mask,
@@ -31,28 +34,22 @@ from lampsam.frontend.corners import (
     strongest_spaced,
     strongest_spaced_pixels,
 )
+from lampsam.frontend.dilation import dilate_disk, disk, disk_factors
+from lampsam.frontend.label_stats import (
+    group_by_label,
+    label_levels,
+    label_sums,
+    levels_at,
+    lower_median_rank,
+)
+from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import (
-    LampDetectorConfig,
-    _dilate_disk,
-    _disk,
-    _disk_factors,
-    _group_by_label,
-    _label_levels,
-    _label_sums,
-    _levels_at,
-    _lower_median_rank,
-    _measure_region,
-    auto_threshold,
-    ceiling_jacobians,
     detect_lamps,
     measure_blobs,
-    otsu_level,
-    to_observation,
-    to_observations,
-    wrap_axis,
 )
 from lampsam.frontend.measurements import CeilingFrame, LampObservation
 from lampsam.frontend.pipeline import FrontendConfig, process_image
+from lampsam.frontend.threshold import auto_threshold, otsu_level
 
 
 def _scene(
@@ -386,7 +383,7 @@ def _lamp_image(rng: np.random.Generator, shift: tuple[int, int] = (0, 0)) -> np
 
 def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> None:
     """``measure_blobs`` (all blobs at once, inside a box of the thresholded pixels)
-    equals the one-region reference ``_measure_region`` blob by blob (1e-9), in the
+    equals the one-region reference ``measure_region`` blob by blob (1e-9), in the
     label order of the whole image, whatever the box offset (odd shifts included)."""
     cfg = LampDetectorConfig()
     for shift in ((0, 0), (1, 0), (0, 1), (3, 5), (-7, 2)):
@@ -405,7 +402,7 @@ def test_vectorised_moments_match_per_region_path(rng: np.random.Generator) -> N
             roi = labels[r0 : y + h + pad, c0 : x + w + pad]
             grey = image[r0 : y + h + pad, c0 : x + w + pad].astype(np.float64)
             border = x == 0 or y == 0 or x + w == 320 or y + h == 240
-            ref = _measure_region(grey, roi == i, (roi != 0) & (roi != i), (c0, r0), border, cfg)
+            ref = measure_region(grey, roi == i, (roi != 0) & (roi != i), (c0, r0), border, cfg)
             assert ref is not None
             np.testing.assert_allclose(mom.centroid, ref.centroid, rtol=0, atol=1e-9)
             np.testing.assert_allclose(mom.cov_centroid, ref.cov_centroid, rtol=1e-9, atol=1e-15)
@@ -425,13 +422,13 @@ def test_per_label_order_statistics_and_sums(rng: np.random.Generator) -> None:
         lab = np.repeat(rng.integers(0, n, 40), rng.integers(1, 200, 40))
         grey = rng.integers(0, 256, lab.size)
         values = rng.normal(0.0, 100.0, (3, lab.size))
-        levels = _label_levels(lab, grey, n)
+        levels = label_levels(lab, grey, n)
         assert (levels.cum is None) == (n > 1024)
-        assert np.array_equal(levels.count, np.bincount(lab, minlength=n))
-        ranks = np.array([_lower_median_rank(levels.count), levels.count - 1])
-        median, top = _levels_at(levels, ranks)
-        groups = _group_by_label(lab, n)
-        sums = _label_sums(groups, values.take(groups.order, axis=1), n)
+        assert np.array_equal(levels.counts, np.bincount(lab, minlength=n))
+        ranks = np.array([lower_median_rank(levels.counts), levels.counts - 1])
+        median, top = levels_at(levels, ranks)
+        groups = group_by_label(lab, n)
+        sums = label_sums(groups, values.take(groups.order, axis=1), n)
         for j in np.unique(np.append(lab, [0, n - 1])).tolist():
             g = np.sort(grey[lab == j])
             if g.size:
@@ -510,12 +507,12 @@ def test_factorised_disk_dilation_matches_direct(rng: np.random.Generator) -> No
     """Chained dilations by the disk's small factors equal one dilation by the disk,
     labels touching the image border included (max of labels, nothing outside)."""
     for radius in range(8):
-        assert sum(int(f.sum()) for f in _disk_factors(radius)) <= int(_disk(radius).sum())
+        assert sum(int(f.sum()) for f in disk_factors(radius)) <= int(disk(radius).sum())
         for _ in range(10):
             shape = (int(rng.integers(5, 50)), int(rng.integers(5, 50)))
             labels = rng.integers(0, 200, shape) * (rng.random(shape) < 0.03)
             labels[0, rng.integers(0, shape[1])] = 7  # on the border
             for dtype in (np.uint8, np.uint16):
                 img = labels.astype(dtype)
-                assert np.array_equal(_dilate_disk(img, radius), cv2.dilate(img, _disk(radius)))
-    assert len(_disk_factors(5)) > 1  # the ring reach of the default detector is factorised
+                assert np.array_equal(dilate_disk(img, radius), cv2.dilate(img, disk(radius)))
+    assert len(disk_factors(5)) > 1  # the ring reach of the default detector is factorised

@@ -9,20 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lampsam.datasets.steerable_robot import SimulatedRobot
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.geometry import compose, wrap_angle
-from lampsam.localization.global_localizer import (
-    DriveFrame,
-    EnvironmentMaps,
-    FilterConfig,
-    GlobalLocalizerConfig,
-    Mode,
-    TurnFrame,
-    localize,
-    write_result,
-)
+from lampsam.localization.filter_config import FilterConfig, GlobalLocalizerConfig, Mode
 from lampsam.localization.grid import OccupancyGrid, occupied_mask
+from lampsam.localization.localizer import localize
+from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.raycast import cast_rays
+from lampsam.localization.result import write_result
 
 RES = 0.05
 CAM = np.array([0.1, 0.0, 0.3])
@@ -56,10 +51,12 @@ NOW_BOXES = [
 
 
 class SyntheticWorld:
-    """Map layers and a simulated robot (Kinect by ray casting, ceiling by projection)."""
+    """Map layers and a simulated robot (Kinect by ray casting, ceiling by projection).
+
+    The robot is the library's :class:`SimulatedRobot` with sensors of this world.
+    """
 
     def __init__(self, rng: np.random.Generator, start: np.ndarray) -> None:
-        self.rng = rng
         self.map_grid = _grid(MAP_BOXES)
         self.now_grid = _grid(NOW_BOXES)
         occ = occupied_mask(self.map_grid)
@@ -71,77 +68,58 @@ class SyntheticWorld:
         self.ceiling = np.column_stack(
             [rng.uniform(0, 8, 60), rng.uniform(0, 6, 60), np.full(60, 2.8)]
         )
-        self.pose = np.asarray(start, dtype=float)
-        self.odom = np.zeros(3)
-        self.t = 0.0
+        self.robot = SimulatedRobot(
+            self._kinect, self._ceiling_obs, self._free_ahead, start, rng,
+            speed=0.3, blocked_within=0.8, avoid_rate=1.0,
+        )  # fmt: skip
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.robot.pose
 
     def maps(self) -> EnvironmentMaps:
         return EnvironmentMaps(
             self.map_grid, self.spatial_xyz, self.spatial_desc, self.ceiling, CAM
         )
 
-    def _move(self, delta: np.ndarray) -> None:
-        self.pose = compose(self.pose, delta)
-        noisy = (
-            delta + self.rng.normal(0, 1, 3) * np.array([0.01, 0.01, 0.01]) * np.abs(delta).sum()
-        )
-        self.odom = compose(self.odom, noisy)
+    def _free_ahead(self, pose: np.ndarray) -> float:
+        return float(cast_rays(self.now_grid, pose[None], np.array([0.0]), 3.0)[0, 0])
 
-    def _kinect(self) -> TurnFrame:
+    def _kinect(
+        self, pose: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         angles = np.linspace(-KINECT_FOV / 2, KINECT_FOV / 2, 58)
-        r = cast_rays(self.now_grid, self.pose[None], angles, KINECT_RANGE)[0]
+        r = cast_rays(self.now_grid, pose[None], angles, KINECT_RANGE)[0]
         ok = r < KINECT_RANGE - 1e-6
-        r = r[ok] + self.rng.normal(0, 0.01, ok.sum())
+        r = r[ok] + rng.normal(0, 0.01, ok.sum())
         depth = np.column_stack(
             [r * np.cos(angles[ok]), r * np.sin(angles[ok]), np.full(ok.sum(), 0.5)]
         )
-        c, s = np.cos(self.pose[2]), np.sin(self.pose[2])
-        d = self.spatial_xyz[:, :2] - self.pose[:2]
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        d = self.spatial_xyz[:, :2] - pose[:2]
         bx, by = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
         bearing = np.arctan2(by, bx)
         dist = np.hypot(bx, by)
         vis = (bx > 0.3) & (np.abs(bearing) < KINECT_FOV / 2) & (dist < KINECT_RANGE)
         idx = np.nonzero(vis)[0]
         if len(idx):  # line of sight in the current world
-            rr = cast_rays(self.now_grid, self.pose[None], bearing[idx], KINECT_RANGE)[0]
+            rr = cast_rays(self.now_grid, pose[None], bearing[idx], KINECT_RANGE)[0]
             idx = idx[rr > dist[idx] - 0.15]
-        pts = np.column_stack([bx[idx], by[idx], self.spatial_xyz[idx, 2]]) + self.rng.normal(
+        pts = np.column_stack([bx[idx], by[idx], self.spatial_xyz[idx, 2]]) + rng.normal(
             0, 0.01, (len(idx), 3)
         )
-        desc = self.spatial_desc[idx] + self.rng.normal(0, 0.02, (len(idx), 128)).astype(np.float32)
-        return TurnFrame(self.t, self.odom.copy(), pts, desc, depth)
+        desc = self.spatial_desc[idx] + rng.normal(0, 0.02, (len(idx), 128)).astype(np.float32)
+        return pts, desc, depth
 
-    def turn(self, angle: float, rate: float) -> list[TurnFrame]:
-        dt = 1.0 / 3.0  # Kinect at 3 Hz
-        n = int(np.ceil(abs(angle) / (rate * dt)))
-        frames = [self._kinect()]
-        for _ in range(n):
-            self._move(np.array([0.0, 0.0, np.sign(angle) * rate * dt]))
-            self.t += dt
-            frames.append(self._kinect())
-        return frames
-
-    def _ceiling_obs(self) -> np.ndarray:
-        m = np.array([project_point(self.pose, p, CAM)[0] for p in self.ceiling])
+    def _ceiling_obs(
+        self, pose: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, None, None]:
+        m = np.array([project_point(pose, p, CAM)[0] for p in self.ceiling])
         m = m[np.hypot(m[:, 0], m[:, 1]) < 0.6]
-        return m + self.rng.normal(0, 0.01, m.shape)
-
-    def drive(self, distance: float) -> list[DriveFrame]:
-        dt, v = 0.1, 0.3
-        frames = []
-        travelled = 0.0
-        while travelled < distance - 1e-9:
-            ahead = cast_rays(self.now_grid, self.pose[None], np.array([0.0]), 3.0)[0, 0]
-            w = 0.0 if ahead > 0.8 else 1.0  # turn left in front of obstacles
-            step = v * dt if w == 0.0 else 0.0
-            self._move(np.array([step, 0.0, w * dt]))
-            travelled += step
-            self.t += dt
-            frames.append(DriveFrame(self.t, self.odom.copy(), self._ceiling_obs()))
-        return frames
+        return m + rng.normal(0, 0.01, m.shape), None, None
 
     def kidnap(self, pose: np.ndarray) -> None:
-        self.pose = np.asarray(pose, dtype=float)
+        self.robot.pose = np.asarray(pose, dtype=float)
 
 
 def _error(pose: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -152,7 +130,7 @@ def _error(pose: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 def test_end_to_end_small_world(rng: np.random.Generator, mode: Mode, tmp_path: Path) -> None:
     world = SyntheticWorld(rng, np.array([3.7, 2.2, 0.9]))
     cfg = GlobalLocalizerConfig(mode=mode)
-    res = localize(world, world.maps(), cfg, np.random.default_rng(11))
+    res = localize(world.robot, world.maps(), cfg, np.random.default_rng(11))
     e_xy, e_th = _error(res.pose, world.pose)
     assert res.success
     assert e_xy < 0.15 and e_th < np.deg2rad(5.0)
@@ -166,10 +144,10 @@ def test_end_to_end_small_world(rng: np.random.Generator, mode: Mode, tmp_path: 
 def test_kidnapped_after_convergence_is_detected_and_recovered(rng: np.random.Generator) -> None:
     world = SyntheticWorld(rng, np.array([3.7, 2.2, 0.9]))
     cfg = GlobalLocalizerConfig(mode=Mode.OURS)
-    res = localize(world, world.maps(), cfg, np.random.default_rng(11))
+    res = localize(world.robot, world.maps(), cfg, np.random.default_rng(11))
     assert res.success
     world.kidnap(np.array([6.0, 2.5, 2.5]))
-    res2 = localize(world, world.maps(), cfg, np.random.default_rng(12), initial=res)
+    res2 = localize(world.robot, world.maps(), cfg, np.random.default_rng(12), initial=res)
     assert res2.attempts[0].verdict == "failed"  # the kidnapping is detected
     assert res2.success and res2.restarts >= 1  # and the robot is found again
     e_xy, e_th = _error(res2.pose, world.pose)
@@ -179,7 +157,7 @@ def test_kidnapped_after_convergence_is_detected_and_recovered(rng: np.random.Ge
 def test_modes_without_verification_do_not_drive(rng: np.random.Generator) -> None:
     world = SyntheticWorld(rng, np.array([3.7, 2.2, 0.9]))
     cfg = GlobalLocalizerConfig(mode=Mode.GRID_ONLY, filter=FilterConfig(n_uniform=4000))
-    res = localize(world, world.maps(), cfg, np.random.default_rng(3))
+    res = localize(world.robot, world.maps(), cfg, np.random.default_rng(3))
     assert res.robot_time["verification"] == 0.0 and res.restarts == 0
     assert res.attempts[0].n_candidates == 0  # grid map only: no spatial features used
     assert res.compute_time["filter"] > 0.0
@@ -199,7 +177,7 @@ def test_cli_localize_reports_a_missing_map(
 
 
 def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
-    from lampsam.localization.global_localizer import distinct_modes
+    from lampsam.localization.stages import distinct_modes
 
     rng = np.random.default_rng(3)
     centres = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, np.pi], [4.0, 2.0, 1.0]])
@@ -216,8 +194,8 @@ def test_distinct_modes_keeps_the_heaviest_separated_poses() -> None:
 def test_joint_scan_model_scores_kept_scans_at_the_earlier_pose() -> None:
     """A kept scan is scored at x composed with the odometry back to its turn."""
     from lampsam.factors.geometry import between
-    from lampsam.localization.global_localizer import JointScanModel, KeptScan
     from lampsam.localization.likelihood import BeamModelConfig, RayCastModel
+    from lampsam.localization.stages import JointScanModel, KeptScan
 
     grid = _grid(MAP_BOXES)
     model = RayCastModel(grid, BeamModelConfig(sigma_hit=0.1, max_range=4.5), method="march")
@@ -263,7 +241,7 @@ def _scan_like_kinect(grid: OccupancyGrid, pose: np.ndarray) -> np.ndarray:
 )
 def test_open_heading_turns_to_a_free_corridor(pose: np.ndarray) -> None:
     """Blocked ahead: the chosen heading has the needed free distance (true ray casting)."""
-    from lampsam.localization.global_localizer import open_heading
+    from lampsam.localization.open_space import open_heading
 
     grid = _grid(MAP_BOXES)
     need = 2.7
@@ -275,7 +253,7 @@ def test_open_heading_turns_to_a_free_corridor(pose: np.ndarray) -> None:
 
 
 def test_open_heading_keeps_a_free_heading_and_handles_an_empty_scan() -> None:
-    from lampsam.localization.global_localizer import open_heading
+    from lampsam.localization.open_space import open_heading
 
     grid = _grid(MAP_BOXES)
     pose = np.array([2.5, 3.0, 0.0])  # the box 15 deg to the left is 2.6 m away
@@ -284,7 +262,7 @@ def test_open_heading_keeps_a_free_heading_and_handles_an_empty_scan() -> None:
 
 
 def test_half_turn_centre_finds_the_symmetry_of_a_lamp_layout() -> None:
-    from lampsam.localization.global_localizer import half_turn_centre, half_turn_twin
+    from lampsam.localization.symmetry import half_turn_centre, half_turn_twin
 
     rng = np.random.default_rng(5)
     half = rng.uniform(0.0, 4.0, (5, 2))
@@ -313,7 +291,8 @@ def test_half_turn_centre_finds_the_symmetry_of_a_lamp_layout() -> None:
 
 
 def test_resolve_half_turn_prefers_the_scan_side_and_flags_a_symmetric_room() -> None:
-    from lampsam.localization.global_localizer import half_turn_twin, resolve_half_turn
+    from lampsam.localization.filter_config import OURS_TWIN_MARGIN
+    from lampsam.localization.symmetry import half_turn_twin, resolve_half_turn
     from lampsam.localization.virtual_scan import beam_angles
 
     cfg = GlobalLocalizerConfig(mode=Mode.OURS, filter=FilterConfig(expected_ranges="march"))
@@ -327,8 +306,8 @@ def test_resolve_half_turn_prefers_the_scan_side_and_flags_a_symmetric_room() ->
         twin = half_turn_twin(truth, centre)
         pose, margin = resolve_half_turn(twin, scan, centre, maps, cfg, np.random.default_rng(2))
         if symmetric:  # an empty rectangle looks the same from both: ambiguous
-            assert margin < cfg.filter.twin_margin_in_ours
+            assert margin < OURS_TWIN_MARGIN
         else:  # the boxes tell: the truth is chosen although the filter gave its twin
             e_xy, e_th = _error(pose, truth)
             assert e_xy < 0.1 and e_th < np.deg2rad(3.0)
-            assert margin > 10.0 * cfg.filter.twin_margin_in_ours
+            assert margin > 10.0 * OURS_TWIN_MARGIN

@@ -9,8 +9,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from lampsam.datasets.rgbd import RgbdCamera, read_slambook2
-from lampsam.localization.envmap import DepthGridConfig, EnvMapConfig, build_depth_layers, fit_floor
+from lampsam.localization.depth_grid import build_depth_layers, fit_floor
 from lampsam.localization.grid import free_mask, occupied_mask
+from lampsam.localization.map_config import DepthGridConfig, EnvMapConfig
 from lampsam.localization.pointcloud import (
     PointCloudError,
     backproject_pixels,

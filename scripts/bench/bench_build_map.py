@@ -28,7 +28,10 @@ from pathlib import Path
 
 from lampsam.datasets.kinect_sim import simulate_kinect_run
 from lampsam.datasets.rgbd import read_tum_rgbd
-from lampsam.localization.envmap import EnvMapConfig, build_depth_layers, build_map
+from lampsam.evaluation.map_truth import floor_plan_of_run
+from lampsam.localization.depth_grid import build_depth_layers
+from lampsam.localization.map_build import build_map
+from lampsam.localization.map_config import EnvMapConfig
 
 
 def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
@@ -68,10 +71,11 @@ def main() -> None:
     def grid_only() -> None:
         build_depth_layers(seq, seq.world_T_camera, EnvMapConfig(), with_features=False)
 
+    truth = floor_plan_of_run(run, EnvMapConfig().depth.height_band)
     reports = []
 
     def full() -> None:
-        reports.append(build_map(run, Path(tmp.name) / "map"))
+        reports.append(build_map(run, Path(tmp.name) / "map", truth=truth))
 
     read_all()  # warm the imports and the file cache
     ref_w, ref_c = _time(read_all, args.repeats)

@@ -44,7 +44,8 @@ from lampsam.arrays import ImageU8
 from lampsam.datasets.logrun import CameraModel
 from lampsam.datasets.paths import shared_dataset
 from lampsam.frontend.corners import CornerDetectorConfig, detect_corner_pixels
-from lampsam.frontend.lamps import LampDetectorConfig, detect_lamps
+from lampsam.frontend.lamp_config import LampDetectorConfig
+from lampsam.frontend.lamps import detect_lamps
 from lampsam.frontend.pipeline import process_image
 
 TARGET_MS = 3.0  # issue 3: lamps + corners on a 320x240 frame

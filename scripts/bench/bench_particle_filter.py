@@ -87,7 +87,7 @@ def main() -> None:
 
     rng = np.random.default_rng(7)
     if args.env_map is not None:
-        from lampsam.localization.envmap import load_env_map
+        from lampsam.localization.map_store import load_env_map
 
         grid = load_env_map(args.env_map).grid
     else:

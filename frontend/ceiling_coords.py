@@ -1,0 +1,152 @@
+"""Pixel measurements of lamps -> normalised ceiling coordinates (docs/conventions.md).
+
+The observation model of paper 1 (eqs. 17-18, DESIGN.md sec. 1) works in the
+normalised image point ``m = (u, v) / f`` of an upward camera whose axes are
+(robot forward, robot left). The detector measures in pixels ``(col, row)``;
+the camera model maps pixels to ``m`` (undistortion, and undoing the image
+mirroring of the mounting). Uncertainty goes through the local Jacobian
+``J = dm/dpx`` at the centroid (central differences):
+
+* centroid: ``cov_m = J cov_c J^T``;
+* axis: the image direction ``e = (cos theta, sin theta)`` becomes ``J e``, so
+  the ceiling axis is ``atan2(J e)`` modulo pi, and
+  ``var_alpha = (det J / |J e|^2)^2 var_theta`` (the derivative of the mapped
+  angle with respect to ``theta``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Protocol
+
+import numpy as np
+
+from lampsam.angles import wrap_axis
+from lampsam.arrays import FloatArray
+from lampsam.frontend.blob_moments import BlobMoments
+from lampsam.frontend.lamp_config import LampDetectorConfig
+from lampsam.frontend.measurements import LampObservation
+
+
+class PixelToCeiling(Protocol):
+    """What the frontend needs from a camera model (``lampsam.datasets.logrun.CameraModel``)."""
+
+    @property
+    def width(self) -> int:
+        """Image width, px."""
+        ...
+
+    @property
+    def height(self) -> int:
+        """Image height, px."""
+        ...
+
+    def normalized_from_pixels(self, px: FloatArray) -> FloatArray:
+        """Pixels ``(N, 2)`` (col, row) -> normalised ceiling coordinates ``(N, 2)``."""
+        ...
+
+
+def ceiling_jacobians(
+    camera: PixelToCeiling, px: FloatArray, step: float
+) -> tuple[FloatArray, FloatArray]:
+    """Normalised ceiling coordinates and their pixel Jacobians, by central differences.
+
+    Args:
+        camera: the camera model (pixel -> ``m`` map).
+        px: shape (N, 2) pixels ``(col, row)``.
+        step: difference step, px.
+
+    Returns:
+        ``m`` shape (N, 2) and ``m_D_px`` shape (N, 2, 2).
+    """
+    n = px.shape[0]
+    offs = np.array([[0, 0], [step, 0], [-step, 0], [0, step], [0, -step]], dtype=np.float64)
+    pts = (px[:, None, :] + offs[None, :, :]).reshape(-1, 2)
+    mm = np.asarray(camera.normalized_from_pixels(pts), dtype=np.float64).reshape(n, 5, 2)
+    jac = np.empty((n, 2, 2))
+    jac[:, :, 0] = (mm[:, 1] - mm[:, 2]) / (2 * step)
+    jac[:, :, 1] = (mm[:, 3] - mm[:, 4]) / (2 * step)
+    return mm[:, 0], jac
+
+
+def to_observation(
+    mom: BlobMoments, m: FloatArray, m_D_px: FloatArray, config: LampDetectorConfig
+) -> LampObservation:
+    """Convert a pixel-space blob measurement to a :class:`LampObservation`.
+
+    Args:
+        mom: the blob's pixel measurement.
+        m: shape (2,), its centroid in normalised ceiling coordinates.
+        m_D_px: shape (2, 2), Jacobian of ``m`` with respect to the pixel.
+        config: detector settings (ratio threshold).
+
+    Returns:
+        The observation; ``axis`` is ``atan2`` of ``J e`` wrapped to
+        ``(-pi/2, pi/2]``, ``var_axis = (det J / |J e|^2)^2 var_theta``.
+    """
+    cov_m = m_D_px @ mom.cov_centroid @ m_D_px.T
+    axis: float | None = None
+    var_axis = math.inf
+    if mom.ratio > config.ratio_threshold:
+        e = np.array([math.cos(mom.theta), math.sin(mom.theta)])
+        je = m_D_px @ e
+        axis = wrap_axis(math.atan2(je[1], je[0]))
+        gain = float(np.linalg.det(m_D_px)) / float(je @ je)
+        var_axis = gain * gain * mom.var_theta
+    return LampObservation(
+        m=np.asarray(m, dtype=np.float64),
+        cov_m=cov_m,
+        axis=axis,
+        var_axis=var_axis,
+        ratio=mom.ratio,
+        area_px=mom.area_px,
+        pixel=mom.centroid,
+        landmark_id=None,
+        touches_border=mom.touches_border,
+    )
+
+
+def to_observations(
+    moments: list[BlobMoments], m: FloatArray, m_D_px: FloatArray, config: LampDetectorConfig
+) -> tuple[LampObservation, ...]:
+    """:func:`to_observation` of many blobs at once (the same formulas, batched).
+
+    Args:
+        moments: N pixel measurements.
+        m: shape (N, 2), their centroids in normalised ceiling coordinates.
+        m_D_px: shape (N, 2, 2), Jacobians of ``m`` with respect to the pixel.
+        config: detector settings (ratio threshold).
+
+    Returns:
+        N observations, same order; equal to :func:`to_observation` up to
+        floating-point rounding (the 2x2 determinant is expanded, not LU).
+    """
+    threshold = config.ratio_threshold
+    cov_c = np.array([mo.cov_centroid for mo in moments]).tolist()
+    # Per lamp on Python floats (a handful of 2x2 products: cheaper than numpy calls).
+    covs: list[tuple[tuple[float, float], tuple[float, float]]] = []
+    axes: list[float | None] = []
+    var_axes: list[float] = []
+    for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)) in zip(
+        moments, m_D_px.tolist(), cov_c, strict=True
+    ):
+        # cov_m = J cov_c J^T
+        t00, t01 = j00 * c00 + j01 * c10, j00 * c01 + j01 * c11
+        t10, t11 = j10 * c00 + j11 * c10, j10 * c01 + j11 * c11
+        covs.append(((t00 * j00 + t01 * j01, t00 * j10 + t01 * j11),
+                     (t10 * j00 + t11 * j01, t10 * j10 + t11 * j11)))  # fmt: skip
+        if mo.ratio > threshold:
+            cos_t, sin_t = math.cos(mo.theta), math.sin(mo.theta)
+            je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
+            axes.append(wrap_axis(math.atan2(je1, je0)))
+            gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
+            var_axes.append(gain * gain * mo.var_theta)
+        else:
+            axes.append(None)
+            var_axes.append(math.inf)
+    m = np.asarray(m, dtype=np.float64)
+    # (positional: the frozen dataclass's __init__ is about twice as fast)
+    return tuple(
+        LampObservation(mi, ci, ax, va, mo.ratio, mo.area_px, mo.centroid, None, mo.touches_border)
+        for mo, mi, ci, ax, va in zip(moments, m, np.array(covs), axes, var_axes, strict=True)
+    )

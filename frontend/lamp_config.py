@@ -1,0 +1,88 @@
+"""Settings of the ceiling-lamp detector (paper 1, eqs. 1-7; DESIGN.md sec. 1).
+
+One frozen dataclass read by every stage of the detector: the threshold
+(:mod:`lampsam.frontend.threshold`), the per-blob checks and coverage moments
+(:mod:`lampsam.frontend.blob_moments`), glare splitting
+(:mod:`lampsam.frontend.glare`) and the conversion to ceiling coordinates
+(:mod:`lampsam.frontend.ceiling_coords`). Pixel sizes are for 320x240 frames
+(:func:`lampsam.evaluation.gallery.config_for_width` scales them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class LampDetectorConfig:
+    """Settings of the lamp detector.
+
+    Attributes:
+        threshold: the paper's fixed grey-level threshold ``k`` (pixels ``> k``
+            are lamp); None (default) chooses it per image with
+            :func:`auto_threshold`.
+        max_bright_fraction: automatic threshold: Otsu is re-applied to the
+            upper class while more than this fraction of the image lies above
+            the threshold (default 0.08: lamps are a small part of a ceiling).
+        max_otsu_iterations: automatic threshold: at most this many Otsu steps
+            (default 4).
+        min_contrast_grey: below this grey-level spread between the image's
+            median and its maximum there are no lamps (all black, all white,
+            flat images; default 30).
+        min_relative_level: the automatic threshold is at least
+            ``median + min_relative_level (peak - median)``, ``peak`` being the
+            brightest level reached by ``min_area_px`` pixels: lamps are the
+            brightest things on a ceiling, and mid-grey panels are not lamps
+            (default 0.5).
+        min_blob_contrast_grey: a blob whose level (median inside) is less
+            than this above its background ring is not a lamp (specular
+            highlights on bright ducts; default 30).
+        max_peak_drop_grey: a blob whose fifth-brightest pixel is more than this
+            below the image's lamp peak (the brightest level reached by
+            ``min_area_px`` pixels) is not a lamp: lamps are light sources and
+            saturate or nearly, specular highlights on ducts and walls are
+            dimmer (default 15; None disables).
+        max_peak_drop_thin_grey: the same for blobs thinner than
+            ``thin_width_px``, whose brightest pixel area sampling dims
+            (default 25).
+        thin_width_px: short-axis width ``sqrt(12 lambda_min)`` below which a
+            blob is thin (default 3 px).
+        min_area_px: smaller blobs are rejected (default 6).
+        max_area_fraction: blobs larger than this fraction of the image are
+            rejected (glare, a window; default 0.2).
+        ratio_threshold: ``R_ori`` above which a lamp is oriented (paper: 1.5).
+        support_px: the moments are taken inside the blob dilated by this many
+            pixels, so that anti-aliased edge pixels below ``k`` count (default 2).
+        ring_px: width of the background ring outside the support (default 3).
+        noise_floor_grey: lower bound on the grey-level noise sigma (default 1.0).
+        sigma_centroid_floor_px: model-error floor on the centroid sigma
+            (default 0.05 px).
+        sigma_axis_floor: model-error floor on the axis sigma, rad (default 0.002).
+        min_fill: a blob filling less of its moment ellipse is a glare merger
+            candidate (default 0.85).
+        jacobian_step_px: step of the central differences for ``dm/dpx``
+            (default 0.5 px).
+    """
+
+    threshold: int | None = None
+    max_bright_fraction: float = 0.08
+    max_otsu_iterations: int = 4
+    min_contrast_grey: float = 30.0
+    min_relative_level: float = 0.5
+    min_blob_contrast_grey: float = 30.0
+    max_peak_drop_grey: float | None = 15.0
+    max_peak_drop_thin_grey: float = 25.0
+    thin_width_px: float = 3.0
+    min_area_px: int = 6
+    max_area_fraction: float = 0.2
+    ratio_threshold: float = 1.5
+    support_px: int = 2
+    ring_px: int = 3
+    noise_floor_grey: float = 1.0
+    sigma_centroid_floor_px: float = 0.05
+    sigma_axis_floor: float = 0.002
+    min_fill: float = 0.85
+    jacobian_step_px: float = 0.5
+
+
+DEFAULT_CONFIG = LampDetectorConfig()  # frozen: one shared instance

@@ -1,0 +1,84 @@
+"""Configuration of the environment map build: depth grid, laser grid, SIFT layer.
+
+Frozen dataclasses with documented defaults (STYLE.md sec. 5); ``cli.py`` fills
+them from a TOML ``[envmap]`` table and passes them to ``build_map``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lampsam.localization.grid import LogOddsConfig
+from lampsam.localization.spatial_map import SpatialMapConfig
+
+
+@dataclass(frozen=True)
+class DepthGridConfig:
+    """Grid map from depth images.
+
+    Attributes:
+        resolution: cell size, metres (default 0.05).
+        height_band: ``(lo, hi)`` heights of obstacle points, metres above the floor
+            (default ``(0.08, 1.8)``: above floor noise, up to the robot's height).
+        band_reference: ``"floor"`` (``z = 0``, simulated runs), ``"fit"`` (the floor
+            plane fitted to the fused cloud with Open3D RANSAC: sets "up" and the
+            floor height, for hand-held data) or ``"camera"`` (heights relative to
+            the first camera).
+        depth_stride: use every n-th pixel in both directions (default 2).
+        free_bucket: floor rays clear free space to within this distance of the
+            farthest floor point of their bearing, metres (default 0.25).
+        bearing_bin_deg: bearing bin of the floor rays, degrees (default 0.5).
+        margin: grid border beyond the sensor positions' reach, metres (default 0.3).
+        log_odds: the inverse sensor model (grid.py's defaults).
+    """
+
+    resolution: float = 0.05
+    height_band: tuple[float, float] = (0.08, 1.8)
+    band_reference: str = "floor"
+    depth_stride: int = 2
+    free_bucket: float = 0.25
+    bearing_bin_deg: float = 0.5
+    margin: float = 0.3
+    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+
+
+@dataclass(frozen=True)
+class LaserGridConfig:
+    """Grid map from planar laser scans.
+
+    Attributes:
+        resolution: cell size, metres (default 0.1).
+        max_range: ranges beyond are no obstacle, metres (default 25).
+        min_move: use a scan when the pose moved this far since the last used one,
+            metres (default 0.1) ...
+        min_turn: ... or turned this much, rad (default 0.1).
+        margin: grid border, metres (default 1.0).
+        log_odds: the inverse sensor model.
+    """
+
+    resolution: float = 0.1
+    max_range: float = 25.0
+    min_move: float = 0.1
+    min_turn: float = 0.1
+    margin: float = 1.0
+    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+
+
+@dataclass(frozen=True)
+class EnvMapConfig:
+    """Everything ``build_map`` needs.
+
+    Attributes:
+        depth: grid from depth.
+        laser: grid from laser scans.
+        spatial: SIFT extraction and merging.
+        feature_every: SIFT on every n-th frame (default 1).
+        pose_tolerance: a frame may lie this far outside the trajectory's time span, s
+            (default 0.2); farther is a missing pose.
+    """
+
+    depth: DepthGridConfig = field(default_factory=DepthGridConfig)
+    laser: LaserGridConfig = field(default_factory=LaserGridConfig)
+    spatial: SpatialMapConfig = field(default_factory=SpatialMapConfig)
+    feature_every: int = 1
+    pose_tolerance: float = 0.2

@@ -1,0 +1,267 @@
+"""ROS bags: export -> import round trip (ROS1, ROS2 SQLite, ROS2 MCAP) and import of a bag
+written here with rosbags' own writer and the standard message definitions."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from lampsam.backend.slam import run_slam
+from lampsam.cli import main
+from lampsam.datasets.logrun import LoggedRun, read_run
+from lampsam.datasets.rosbag_export import export_bag, typestore_for
+from lampsam.datasets.rosbag_import import ImportOptions, import_bag
+from lampsam.errors import DatasetError
+
+JOINTS = ("left_wheel_joint", "right_wheel_joint")
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One second of the simulated lab (31 odometry samples, 16 images)."""
+    from lampsam.datasets.simulator import simulate_world
+
+    out = tmp_path_factory.mktemp("bag_sim") / "run"
+    simulate_world("lab", out, seed=4, duration=1.0, workers=1)
+    return out
+
+
+def _position_rms(run_dir: Path) -> tuple[np.ndarray, float]:
+    res = run_slam(run_dir, "isam2", frames="images")
+    gt = read_run(run_dir).groundtruth
+    assert gt is not None
+    err = res.poses[:, :2] - gt.interpolate(res.times)[:, :2]
+    return res.poses, float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
+def _same_run(a: LoggedRun, b: LoggedRun) -> None:
+    """Odometry to the format's precision, images bit for bit, truth, rig."""
+    np.testing.assert_array_equal(b.odometry.t, a.odometry.t)
+    np.testing.assert_allclose(b.odometry.d_left, a.odometry.d_left, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.odometry.d_right, a.odometry.d_right, rtol=0, atol=1e-12)
+    assert a.images is not None and b.images is not None and len(b.images) == len(a.images)
+    np.testing.assert_array_equal(b.images.t, a.images.t)
+    for i in range(len(a.images)):
+        np.testing.assert_array_equal(b.images.load(i), a.images.load(i))
+    assert a.groundtruth is not None and b.groundtruth is not None
+    np.testing.assert_allclose(b.groundtruth.poses, a.groundtruth.poses, atol=1e-9)
+    assert b.rig.to_dict() == a.rig.to_dict()
+
+
+@pytest.mark.parametrize(
+    ("ros1", "compressed", "mcap", "name"),
+    [(True, False, False, "run.bag"), (False, False, False, "bag2"), (False, True, True, "bag2m")],
+)
+def test_round_trip_is_exact(
+    sim_run: Path, tmp_path: Path, ros1: bool, compressed: bool, mcap: bool, name: str
+) -> None:
+    """run -> bag -> run: same files' contents and the same SLAM result."""
+    bag = tmp_path / name
+    summary = export_bag(sim_run, bag, ros1=ros1, compressed=compressed, mcap=mcap)
+    assert summary.counts["/joint_states"] == 31
+    back = tmp_path / "back"
+    report = import_bag(bag, back, ImportOptions(wheel_joints=JOINTS, wheel_radius=0.05))
+    assert report.chosen["joints"] == "/joint_states"
+    _same_run(read_run(sim_run), read_run(back))
+    if not ros1 and not compressed:  # one SLAM comparison is enough (the inputs are equal)
+        poses_a, rms_a = _position_rms(sim_run)
+        poses_b, rms_b = _position_rms(back)
+        np.testing.assert_array_equal(poses_b, poses_a)
+        assert rms_b == rms_a < 0.02
+
+
+def _independent_bag(run: LoggedRun, path: Path, ros1: bool) -> None:
+    """A bag made with rosbags' writer and stock message classes, not by export_bag.
+
+    Odometry as nav_msgs/Odometry (poses integrated here with the midpoint rule),
+    CompressedImage PNG, CameraInfo (plumb_bob), a static tf with the camera one
+    frame below an intermediate ``camera_link``, and a LaserScan.
+    """
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import Writer as Writer2
+
+    store = typestore_for(ros1)
+    T = store.types
+    ser = store.serialize_ros1 if ros1 else store.serialize_cdr
+
+    def header(ns: int, frame: str) -> Any:
+        stamp = T["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+        if ros1:
+            return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def quat(yaw: float) -> Any:
+        return T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+
+    def vec(x: float, y: float, z: float) -> Any:
+        return T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+
+    def transform(parent: str, child: str, t: list[float], q: Any) -> Any:
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=header(0, parent), child_frame_id=child,
+            transform=T["geometry_msgs/msg/Transform"](translation=vec(*t), rotation=q))
+
+    cam = run.rig.camera
+    offset = 1_700_000_000 * 10**9  # a wall-clock epoch, as a robot's bag has
+    b = run.rig.odometry.wheel_base
+    x = y = th = 0.0
+    msgs: list[tuple[int, str, str, Any]] = []
+    for k, t in enumerate(run.odometry.t):
+        dl, dr = run.odometry.d_left[k], run.odometry.d_right[k]
+        ds, dth = 0.5 * (dl + dr), (dr - dl) / b
+        x += ds * math.cos(th + dth / 2)
+        y += ds * math.sin(th + dth / 2)
+        th += dth
+        pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+                                           orientation=quat(th))
+        twist = T["geometry_msgs/msg/Twist"](linear=vec(0, 0, 0), angular=vec(0, 0, 0))
+        ns = offset + round(t * 1e9)
+        msgs.append((ns, "/wheel/odometry", "nav_msgs/msg/Odometry", T["nav_msgs/msg/Odometry"](
+            header=header(ns, "odom"), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.eye(6).ravel() * 1e-4),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))))
+        scan = T["sensor_msgs/msg/LaserScan"](
+            header=header(ns, "laser"), angle_min=-1.5, angle_max=1.5, angle_increment=0.5,
+            time_increment=0.0, scan_time=0.1, range_min=0.1, range_max=10.0,
+            ranges=np.array([1.0, 2.0, 3.0, np.inf, 5.0, 6.0, 7.0], dtype=np.float32),
+            intensities=np.zeros(0, dtype=np.float32))
+        msgs.append((ns, "/scan", "sensor_msgs/msg/LaserScan", scan))
+    assert run.images is not None
+    kk = [cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0]
+    info_fields = ("D", "K", "R", "P") if ros1 else ("d", "k", "r", "p")
+    for k, t in enumerate(run.images.t):
+        ns = offset + round(t * 1e9)
+        msgs.append((ns, "/ceiling/image/compressed", "sensor_msgs/msg/CompressedImage",
+                     T["sensor_msgs/msg/CompressedImage"](
+                         header=header(ns, "ceiling_optical"), format="png",
+                         data=np.frombuffer(run.images.files[k].read_bytes(), dtype=np.uint8))))
+        depth = (1000 + 10 * k + np.arange(12, dtype=np.uint16).reshape(3, 4)).astype("<u2")
+        msgs.append((ns, "/camera/depth/image_raw", "sensor_msgs/msg/Image", T["sensor_msgs/msg/Image"](
+            header=header(ns, "depth_optical"), height=3, width=4, encoding="16UC1", is_bigendian=0,
+            step=8, data=np.frombuffer(depth.tobytes(), dtype=np.uint8))))
+        arrays = dict(zip(info_fields, (np.zeros(5), np.array(kk), np.eye(3).ravel(),
+                                        np.array(kk[:3] + [0.0] + kk[3:6] + [0.0] + kk[6:] + [0.0])),
+                          strict=True))
+        msgs.append((ns, "/ceiling/camera_info", "sensor_msgs/msg/CameraInfo",
+                     T["sensor_msgs/msg/CameraInfo"](
+                         header=header(ns, "ceiling_optical"), height=cam.height, width=cam.width,
+                         distortion_model="plumb_bob", binning_x=0, binning_y=0,
+                         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0,
+                                                                    width=0, do_rectify=False),
+                         **arrays)))
+    # base_link -> camera_link (translation) -> ceiling_optical (rotation)
+    from scipy.spatial.transform import Rotation
+
+    qr = Rotation.from_matrix(cam.body_R_camera).as_quat()
+    tf = T["tf2_msgs/msg/TFMessage"](transforms=[
+        transform("base_link", "camera_link", list(cam.body_t_camera), quat(0.0)),
+        transform("camera_link", "ceiling_optical", [0.0, 0.0, 0.0],
+                  T["geometry_msgs/msg/Quaternion"](x=qr[0], y=qr[1], z=qr[2], w=qr[3])),
+    ])
+    msgs.append((offset, "/tf_static", "tf2_msgs/msg/TFMessage", tf))
+    msgs.sort(key=lambda m: m[0])
+    writer: Any = Writer1(path) if ros1 else Writer2(path, version=9)
+    conns: dict[str, Any] = {}
+    with writer:
+        for ns, topic, typ, msg in msgs:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, typ, typestore=store)
+            writer.write(conns[topic], ns, ser(msg, typ))
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool) -> None:
+    """Odometry poses, compressed images, camera_info, a two-step static tf and a laser:
+    the imported run has the original's odometry (to 1e-9 m), images, camera, and the
+    same SLAM accuracy."""
+    run = read_run(sim_run)
+    bag = tmp_path / ("indep.bag" if ros1 else "indep")
+    _independent_bag(run, bag, ros1)
+    out = tmp_path / "imported"
+    report = import_bag(bag, out, ImportOptions(wheel_base=run.rig.odometry.wheel_base,
+                                                k_wheel=run.rig.odometry.k_r))
+    assert report.chosen["odometry"] == "/wheel/odometry"
+    assert report.chosen["image"] == "/ceiling/image/compressed"
+    assert report.chosen["scan"] == "/scan"
+    assert report.chosen["depth"] == "/camera/depth/image_raw"
+    import cv2
+
+    depth_rows = (out / "depth.csv").read_text().splitlines()
+    assert len(depth_rows) == 1 + len(run.images.t)  # type: ignore[union-attr]
+    d5 = cv2.imread(str(out / depth_rows[6].split(",")[1]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(d5, 1050 + np.arange(12).reshape(3, 4))
+    got = read_run(out)
+    np.testing.assert_allclose(got.odometry.t, run.odometry.t + 1.7e9, rtol=0, atol=2e-6)
+    np.testing.assert_allclose(got.odometry.d_left, run.odometry.d_left, atol=1e-9)
+    np.testing.assert_allclose(got.odometry.d_right, run.odometry.d_right, atol=1e-9)
+    assert got.images is not None and run.images is not None
+    for i in range(len(run.images)):
+        np.testing.assert_array_equal(got.images.load(i), run.images.load(i))
+    assert got.rig.camera.fx == run.rig.camera.fx and got.rig.camera.cy == run.rig.camera.cy
+    np.testing.assert_allclose(got.rig.camera.body_t_camera, run.rig.camera.body_t_camera, atol=1e-12)
+    np.testing.assert_allclose(got.rig.camera.body_R_camera, run.rig.camera.body_R_camera, atol=1e-12)
+    scans = (out / "scans.csv").read_text().splitlines()
+    assert len(scans) == 1 + len(run.odometry) and scans[1].endswith("3.0000 nan 5.0000 6.0000 7.0000")
+    # same accuracy: SLAM over the imported run (with the original's truth) vs the original
+    import shutil
+
+    shutil.copy(sim_run / "groundtruth.tum", out / "groundtruth.tum")
+    text = (out / "groundtruth.tum").read_text().splitlines()
+    shifted = [text[0]] + [f"{float(ln.split()[0]) + 1.7e9:.6f} " + ln.split(" ", 1)[1] for ln in text[1:]]
+    (out / "groundtruth.tum").write_text("\n".join(shifted) + "\n")
+    _, rms_orig = _position_rms(sim_run)
+    _, rms_imp = _position_rms(out)
+    assert rms_imp == pytest.approx(rms_orig, rel=0.05, abs=5e-4)
+
+
+def test_errors_list_topics(sim_run: Path, tmp_path: Path) -> None:
+    bag = tmp_path / "b"
+    export_bag(sim_run, bag)
+    with pytest.raises(DatasetError, match=r"no odometry topic.*JointState.*/camera/image_raw \(sensor_msgs/msg/Image\)"):
+        import_bag(bag, tmp_path / "o1", ImportOptions(topics={"joints": "none"},
+                                                       wheel_joints=JOINTS, wheel_radius=0.05))
+    with pytest.raises(DatasetError, match=r"wheel joint 'left' not in /joint_states"):
+        import_bag(bag, tmp_path / "o2", ImportOptions(wheel_joints=("left", "right"), wheel_radius=0.05))
+    with pytest.raises(DatasetError, match=r"--topic image=/odom: type nav_msgs/msg/Odometry"):
+        import_bag(bag, tmp_path / "o3", ImportOptions(topics={"image": "/odom"}))
+    with pytest.raises(DatasetError, match=r"no such topic; present: .*/tf_static \(tf2_msgs/msg/TFMessage\)"):
+        import_bag(bag, tmp_path / "o4", ImportOptions(topics={"image": "/nope"}))
+    with pytest.raises(DatasetError, match=r"give --wheel-base and --k-wheel"):
+        import_bag(bag, tmp_path / "o5", ImportOptions(topics={"rig": "none"}))
+    with pytest.raises(DatasetError, match="bag not found"):
+        import_bag(tmp_path / "absent.bag", tmp_path / "o6")
+    with pytest.raises(DatasetError, match="exists already"):
+        export_bag(sim_run, bag)
+
+
+def test_cli_export_then_import(sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / "cli.bag"
+    assert main(["export-bag", str(sim_run), "--out", str(bag), "--ros1"]) == 0
+    assert "/camera/image_raw: 16 messages" in capsys.readouterr().out
+    out = tmp_path / "cli_run"
+    assert main(["import-bag", str(bag), "--out", str(out), "--wheel-joints", ",".join(JOINTS),
+                 "--wheel-radius", "0.05"]) == 0
+    printed = capsys.readouterr().out
+    assert "joints: /joint_states (31 messages used)" in printed
+    assert main(["import-bag", str(bag), "--out", str(out), "--topic", "image"]) == 2
+    assert "--topic expects KIND=NAME" in capsys.readouterr().err
+
+
+def test_slam_writes_its_graph_as_g2o(sim_run: Path, tmp_path: Path) -> None:
+    """``lampsam slam --g2o``: GTSAM reads one pose per keyframe, the landmarks and the
+    odometry factors; the poses are the result's keyframe poses."""
+    import gtsam
+
+    g2o = tmp_path / "graph.g2o"
+    assert main(["slam", str(sim_run), "--out", str(tmp_path / "s"), "--g2o", str(g2o)]) == 0
+    graph, values = gtsam.readG2o(str(g2o), False)
+    res = run_slam(sim_run, "isam2", frames="images")
+    kf = np.flatnonzero(res.keyframes)
+    assert graph.size() == len(kf) - 1
+    assert values.size() == len(kf) + len(res.landmarks)
+    np.testing.assert_allclose([values.atPose2(len(kf) - 1).x(), values.atPose2(len(kf) - 1).y()],
+                               res.poses[kf[-1], :2], atol=1e-8)
