@@ -32,6 +32,9 @@ from lampsam.safe_io import atomic_path
 if TYPE_CHECKING:
     from lampsam.datasets.kinect_sim import KinectConfig
 
+if TYPE_CHECKING:
+    from lampsam.backend.config import SlamConfig
+
 log = logging.getLogger("lampsam")
 
 
@@ -374,6 +377,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, association=dataclasses.replace(config.association, use_known_ids=False))
     features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+    if Path(args.run).is_file():
+        return _slam_graph_text(args, config, _out_dir(args))
     if args.duration is not None and not args.mrclam:
         raise LampsamError("--duration applies only with --mrclam (a logged run is used whole)")
     if args.mrclam:
@@ -418,9 +423,52 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     return 0
 
 
+def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
+    """``lampsam slam FILE``: an iSAM / g2o text log, one step per pose."""
+    import numpy as np
+
+    from lampsam.backend.slam import run_graph_log, summary, write_landmarks, write_trajectory
+    from lampsam.datasets.graph_text import read_graph_text, read_vertices
+    from lampsam.datasets.logrun import Trajectory
+    from lampsam.errors import DatasetError
+    from lampsam.safe_io import write_json_atomic
+
+    glog = read_graph_text(args.run)
+    truth = None
+    if args.truth:
+        verts = read_vertices(args.truth)
+        missing = [i for i in glog.pose_ids if i not in verts]
+        if missing:
+            raise DatasetError(f"no VERTEX for pose {missing[0]} ({len(missing)} missing)",
+                               Path(args.truth))
+        truth = Trajectory(t=glog.odometry.t.copy(),
+                           poses=np.array([verts[i] for i in glog.pose_ids]))
+    known = not args.gate_only
+    result = run_graph_log(glog, args.backend, config, known_ids=known)
+    with atomic_path(out / "trajectory.tum") as tmp:
+        write_trajectory(tmp, result)
+    with atomic_path(out / "landmarks.csv") as tmp:
+        write_landmarks(tmp, result)
+    s = summary(result, truth)
+    s["input"] = {"file": str(glog.path), "poses": len(glog.pose_ids),
+                  "landmarks_in_file": glog.n_landmarks, "known_ids": known,
+                  "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
+                                 else "the origin (no VERTEX for the first pose)"),
+                  "skipped_non_odometry_edges": glog.n_skipped_edges}
+    write_json_atomic(out / "summary.json", s)
+    msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
+           f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
+    err = s.get("error")
+    if err:
+        msg += f"; position error RMS {err['position_rms_m']:.3f} m"
+    print(msg + f"; written to {out}")
+    return 0 if result.status == "ok" else 1
+
+
 def _add_slam(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("slam", help="run EKF / iSAM2 / batch SLAM over a logged run")
-    p.add_argument("run", help="run directory (or the mrclam_ds0 folder with --mrclam)")
+    p.add_argument("run", help="run directory, an iSAM/g2o text log (.txt/.g2o/.graph: one "
+                   "step per pose), or the mrclam_ds0 folder with --mrclam")
     p.add_argument("--backend", choices=("ekf", "isam2", "batch"), default="isam2",
                    help="estimator (default isam2)")
     p.add_argument("--features", default="lamps,corners",
@@ -429,8 +477,10 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="TOML/YAML config ([association], [ekf], [isam2], ...)")
     p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
                    help="measurement source (default auto: range-bearing log, else images)")
-    p.add_argument("--gate-only", action="store_true",
+    p.add_argument("--gate-only", "--no-ids", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
+    p.add_argument("--truth", default=None,
+                   help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
                    help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")

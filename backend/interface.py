@@ -116,6 +116,9 @@ class SlamResult:
         n_pruned: landmarks removed (uncertain, or seen only once).
         pruned: the same count by reason (``seen_too_few``, ``uncertain``,
             ``pending_stale``, ``failed_update``); its values sum to ``n_pruned``.
+        provisional: landmarks seen fewer than ``association.min_observations``
+            times: not in ``landmarks`` (nor in its metrics), written flagged
+            ``seen_once``; empty with ``association.prune_once_seen``.
     """
 
     backend: str
@@ -130,6 +133,7 @@ class SlamResult:
     n_pruned: int = 0
     pruned: dict[str, int] = field(default_factory=dict)
     extra: dict[str, float] = field(default_factory=dict)
+    provisional: list[LandmarkEstimate] = field(default_factory=list)
 
 
 class SlamBackend(abc.ABC):

@@ -201,10 +201,12 @@ class LandmarkLifecycle(GraphState):
         lm.in_graph = True
 
     def _prune_once_seen(self) -> list[int]:
-        """Landmarks with fewer than ``min_observations`` observations (left out of the map).
+        """Landmarks with fewer than ``min_observations`` observations (not in the map).
 
         Their variables stay in the graph (a range-bearing sight, or a ceiling sight
-        with the height prior, determines them), but they are not reported.
+        with the height prior, determines them); they are reported apart, flagged
+        (:attr:`~lampsam.backend.interface.SlamResult.provisional`), unless
+        ``association.prune_once_seen``.
         """
         cfg = self.config.association
         drop = [lid for lid, lm in self._landmarks.items() if lm.n_obs < cfg.min_observations]

@@ -76,6 +76,11 @@ class ReplayRobot:
 
         self.run = read_run(run_dir)
         odo = self.run.odometry
+        from lampsam.datasets.odometry import Pose2OdometryLog
+
+        if isinstance(odo, Pose2OdometryLog):  # no wheel travel to replay
+            raise GlobalLocalizationError(f"{run_dir}: laser replay needs wheel odometry "
+                                          "(odometry.csv), not Pose2 increments")
         if len(odo.t) == 0:
             raise GlobalLocalizationError(f"{run_dir}: the run has no odometry")
         wheel = np.column_stack([odo.d_left, odo.d_right])
