@@ -194,20 +194,26 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         self._keyframes.append(is_kf)
         return StepEstimate(t, pose, tangent_to_coords_cov(pose, cov), is_kf, n_matched, n_new, dt)
 
-    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
-        """Final estimate and a marginal-covariance function (subclasses)."""
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
+        """Final estimate, a marginal-covariance function, and why the estimate is the
+        online smoother's instead of the final optimisation's (None when it is not)."""
         raise NotImplementedError
 
     def finish(self, status: str = "ok") -> SlamResult:
         """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
         pruned = set(self._prune_once_seen())
         t0 = time.perf_counter()
+        source = self.name
         try:
-            values, marginal = self._final_values()
+            values, marginal, fallback = self._final_values()
         except (RuntimeError, EstimationError) as exc:  # a broken graph: keep the online poses
             log.error("final optimisation failed (%s): keeping the online estimates", exc)
-            values, marginal = self.initial, None
+            values, marginal, fallback = self.initial, None, None
             status = status if status.startswith("failed") else f"failed: {exc}"
+        if fallback is not None:  # the result is the online smoother's: say so
+            source = "isam2"
+            if status == "ok":
+                status = f"final optimisation failed: {fallback}"
         final_time = time.perf_counter() - t0
         n_kf = self._k + 1
         kf_pose = np.array([pose_array(values.atPose2(X(k))) if values.exists(X(k))
@@ -251,7 +257,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             est = landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling)
             (provisional if lm.id in pruned else lms).append(est)
         return SlamResult(
-            backend=self.name,
+            backend=source,
             times=np.asarray(self._times, float),
             poses=poses,
             pose_covs=covs,
@@ -283,9 +289,9 @@ class Isam2Slam(GraphSlam):
                  ceiling_handler: LandmarkHandler | None = None) -> None:
         super().__init__(odometry, config, start_pose, ceiling, ceiling_handler, online=True)
 
-    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         assert self.isam is not None
-        return self.isam.calculateEstimate(), self.isam.marginalCovariance
+        return self.isam.calculateEstimate(), self.isam.marginalCovariance, None
 
 
 class BatchSlam(GraphSlam):
@@ -301,7 +307,7 @@ class BatchSlam(GraphSlam):
         super().__init__(odometry, config, start_pose, ceiling, ceiling_handler,
                          online=config.batch.init == "isam2")
 
-    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         start = self.isam.calculateEstimate() if self.isam is not None else self.initial
         try:
             opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
@@ -310,14 +316,14 @@ class BatchSlam(GraphSlam):
             if self.isam is None:
                 raise EstimationError(f"batch LM failed: {exc}") from exc
             # e.g. a trial step put a landmark below the camera: keep the online smoother's
-            log.warning("batch LM failed (%s: %s): keeping the iSAM2 estimate",
-                        type(exc).__name__, str(exc).strip()[:120])
-            return start, self.isam.marginalCovariance
+            reason = f"batch LM: {type(exc).__name__}: {str(exc).strip()[:120]}"
+            log.error("%s: the result is the online iSAM2 estimate, labelled isam2", reason)
+            return start, self.isam.marginalCovariance, reason
         log.info("batch LM: error %.4g -> %.4g in %d iterations",
                  self.graph.error(start), self.graph.error(result), opt.iterations())
         try:
             marginals = gtsam.Marginals(self.graph, result)
-            return result, marginals.marginalCovariance
+            return result, marginals.marginalCovariance, None
         except RuntimeError as exc:
             log.warning("batch marginals unavailable: %s", exc)
-            return result, None
+            return result, None, None
