@@ -24,9 +24,31 @@ from pathlib import Path
 
 import numpy as np
 
+from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.errors import DatasetError
-from lampsam.factors.pose2_odometry import increments_from_poses
+
+
+def increments_from_poses(poses: FloatArray) -> FloatArray:
+    """Absolute odometry poses -> increments (``delta_i = pose_{i-1}^-1 pose_i``).
+
+    Args:
+        poses: (N, 3) ``odom_T_body`` (x, y in m, theta in rad) in the odometry's own
+            (drifting) frame.
+
+    Returns:
+        (N, 3) increments in the frame of the earlier pose; the first is zero (the
+        robot is at its first pose).
+    """
+    p = np.asarray(poses, dtype=float).reshape(-1, 3)
+    out = np.zeros_like(p)
+    if len(p) > 1:
+        d = p[1:, :2] - p[:-1, :2]
+        c, s = np.cos(p[:-1, 2]), np.sin(p[:-1, 2])
+        out[1:, 0] = c * d[:, 0] + s * d[:, 1]
+        out[1:, 1] = -s * d[:, 0] + c * d[:, 1]
+        out[1:, 2] = wrap_angle(p[1:, 2] - p[:-1, 2])
+    return out
 
 #: File name of Pose2-increment odometry in a run directory.
 ODOMETRY_POSE2_FILE = "odometry_pose2.csv"

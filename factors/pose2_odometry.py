@@ -14,7 +14,6 @@ Pure numpy:
 * :func:`se2_adjoint` -- ``Ad(T)`` of a planar pose (GTSAM's ``Pose2.AdjointMap``);
 * :func:`accumulate_pose2` -- the composed increment of several samples and its
   right-tangent covariance (``BetweenFactorPose2``'s noise);
-* :func:`increments_from_poses` -- absolute odometry poses to increments.
 """
 
 from __future__ import annotations
@@ -109,18 +108,3 @@ def accumulate_pose2(deltas: FloatArray, covs: FloatArray,
     return total, 0.5 * (cov + cov.T) + np.diag(fl)
 
 
-def increments_from_poses(poses: FloatArray) -> FloatArray:
-    """Absolute odometry poses -> increments (``delta_i = pose_{i-1}^-1 pose_i``).
-
-    Args:
-        poses: (N, 3) ``odom_T_body`` in the odometry's own (drifting) frame.
-
-    Returns:
-        (N, 3) increments; the first is zero (the robot is at its first pose).
-    """
-    p = np.asarray(poses, dtype=float).reshape(-1, 3)
-    out = np.zeros_like(p)
-    for i in range(1, len(p)):
-        inv = _inverse(p[i - 1])
-        out[i], _, _ = pose2_step(inv, p[i])
-    return out

@@ -21,6 +21,7 @@ from lampsam.datasets.logrun import LoggedRun, OdometryModel, read_run, write_ru
 from lampsam.datasets.odometry import (
     Pose2OdometryLog,
     Pose2OdometryModel,
+    increments_from_poses,
     pose2_odometry_from_poses,
     read_pose2_odometry,
     write_pose2_odometry,
@@ -30,7 +31,6 @@ from lampsam.factors.geometry import wrap_angle
 from lampsam.factors.motion import diff_drive_step
 from lampsam.factors.pose2_odometry import (
     accumulate_pose2,
-    increments_from_poses,
     pose2_step,
     se2_adjoint,
 )
