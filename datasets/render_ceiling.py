@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -41,6 +42,9 @@ from lampsam.datasets.openings import Opening
 from lampsam.datasets.world import Lamp, Surface, TextureItem, World
 
 log = logging.getLogger(__name__)
+
+GreyField = Callable[[FloatArray, FloatArray], FloatArray]
+"""A texture: grey level at world points ``(x, y)`` (arrays of one shape, m)."""
 
 
 # --------------------------------------------------------------------------- rasterising
@@ -112,7 +116,7 @@ class _Canvas:
         self.a = np.zeros((rows, cols), np.float32)
 
     def paint(
-        self, bbox: tuple[float, float, float, float], sdf: object, grey: float | object
+        self, bbox: tuple[float, float, float, float], sdf: object, grey: float | GreyField
     ) -> None:
         """Paint a shape given by a signed-distance callable over its bounding box ("over").
 
@@ -133,12 +137,16 @@ class _Canvas:
         # Coverage of a texel-sized box by a locally straight edge at distance d.
         cov = np.clip(0.5 - d / t, 0.0, 1.0).astype(np.float32)
         sl = (slice(i0, i1), slice(j0, j1))
-        g = grey(gx, gy).astype(np.float32) if callable(grey) else np.float32(grey)
+        g = np.asarray(grey(gx, gy), dtype=np.float32) if callable(grey) else np.float32(grey)
         self.p[sl] = cov * g + (1 - cov) * self.p[sl]
         self.a[sl] = cov + (1 - cov) * self.a[sl]
 
     def rect(
-        self, center: tuple[float, float], size: tuple[float, float], yaw: float, grey: float | object
+        self,
+        center: tuple[float, float],
+        size: tuple[float, float],
+        yaw: float,
+        grey: float | GreyField,
     ) -> None:
         """Paint a rotated rectangle of side lengths ``size``."""
         half = (size[0] / 2, size[1] / 2)
