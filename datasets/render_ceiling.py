@@ -116,7 +116,10 @@ class _Canvas:
         self.a = np.zeros((rows, cols), np.float32)
 
     def paint(
-        self, bbox: tuple[float, float, float, float], sdf: object, grey: float | GreyField
+        self,
+        bbox: tuple[float, float, float, float],
+        sdf: Callable[[FloatArray, FloatArray], FloatArray],
+        grey: float | GreyField,
     ) -> None:
         """Paint a shape given by a signed-distance callable over its bounding box ("over").
 
@@ -133,7 +136,7 @@ class _Canvas:
         xs = self.x0 + t * np.arange(j0, j1)
         ys = self.y0 + t * np.arange(i0, i1)
         gx, gy = np.meshgrid(xs, ys)
-        d = sdf(gx, gy)  # type: ignore[operator]
+        d = sdf(gx, gy)
         # Coverage of a texel-sized box by a locally straight edge at distance d.
         cov = np.clip(0.5 - d / t, 0.0, 1.0).astype(np.float32)
         sl = (slice(i0, i1), slice(j0, j1))
@@ -142,10 +145,7 @@ class _Canvas:
         self.a[sl] = cov + (1 - cov) * self.a[sl]
 
     def rect(
-        self,
-        center: tuple[float, float],
-        size: tuple[float, float],
-        yaw: float,
+        self, center: tuple[float, float], size: tuple[float, float], yaw: float,
         grey: float | GreyField,
     ) -> None:
         """Paint a rotated rectangle of side lengths ``size``."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lampsam.arrays import BoolArray, FloatArray
+from lampsam.arrays import BoolArray, Float32Array, FloatArray
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class TurnFrame:
     t: float
     odom: FloatArray
     sift_points: FloatArray
-    sift_descriptors: FloatArray
+    sift_descriptors: Float32Array
     depth_points: FloatArray
 
 

@@ -48,6 +48,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from lampsam.arrays import FloatArray, ImageU8, IntArray
 from lampsam.errors import DatasetError
@@ -576,7 +577,7 @@ def triangle_scene(scene: Scene3D, px_per_m: float = TEXTURE_PX_PER_M) -> Triang
 
     def add(
         v: FloatArray,
-        f: IntArray,
+        f: NDArray[np.integer],
         color: FloatArray,
         oid: str,
         kind: str,
@@ -585,7 +586,7 @@ def triangle_scene(scene: Scene3D, px_per_m: float = TEXTURE_PX_PER_M) -> Triang
     ) -> None:
         base = sum(len(x) for x in verts)
         verts.append(np.asarray(v, float))
-        tris.append(np.asarray(f, np.int32) + base)
+        tris.append(np.asarray(f, np.int64) + base)
         colors.append(np.tile(np.asarray(color, float), (len(f), 1)))
         tex_index.append(np.full(len(f), tex, np.int32))
         tex_coords.append(np.zeros((len(f), 3, 2)) if tc is None else tc)

@@ -25,12 +25,12 @@ from typing import Protocol
 import numpy as np
 
 from lampsam.angles import wrap_angle, wrap_axis
-from lampsam.arrays import BoolArray, FloatArray
+from lampsam.arrays import BoolArray, Float32Array, FloatArray
 from lampsam.datasets.robot_frames import DriveFrame, TurnFrame
 
 #: ``kinect(pose, rng) -> (sift_points (N, 3), sift_descriptors (N, 128), depth_points (P, 3))``,
 #: body frame (m), seen from the true pose ``world_T_body``.
-KinectSensor = Callable[[FloatArray, np.random.Generator], tuple[FloatArray, FloatArray, FloatArray]]
+KinectSensor = Callable[[FloatArray, np.random.Generator], tuple[FloatArray, Float32Array, FloatArray]]
 #: ``ceiling(pose, rng) -> (m (K, 2), is_lamp (K,) or None, axis (K,) or None)``: the
 #: ceiling features in normalised ceiling coordinates (:class:`DriveFrame`).
 CeilingSensor = Callable[

@@ -99,12 +99,12 @@ def load_photo(path: str | Path, size: tuple[int, int] | None) -> ImageU8:
     Raises:
         LampsamError: the file is missing or not an image.
     """
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
-    if img is None:
+    read = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    if read is None:
         raise LampsamError(f"{path}: cannot read the image (missing or not an image)")
     if size is not None:
-        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-    return img
+        read = cv2.resize(read, size, interpolation=cv2.INTER_AREA)
+    return np.asarray(read, dtype=np.uint8)
 
 
 def run_photo(
@@ -233,7 +233,8 @@ def make_gallery(
             log.info("%s", entry)
             shown = img
             if size is None:  # draw full-size results on a 1000 px wide copy
-                shown = cv2.resize(img, (1000, 750), interpolation=cv2.INTER_AREA)
+                shown = np.asarray(cv2.resize(img, (1000, 750), interpolation=cv2.INTER_AREA),
+                                   dtype=np.uint8)
             scale = shown.shape[1] / img.shape[1]
             plot_detections(
                 axes[r, c],

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lampsam.arrays import FloatArray
+from lampsam.arrays import Float32Array, FloatArray
 from lampsam.datasets.kinect_sim import KinectConfig, KinectRenderer, simulate_kinect_run
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.rgbd import RgbdCamera, camera_from_yaml
@@ -145,7 +145,7 @@ class OfficeWorld:
 
         def kinect(
             pose: FloatArray, g: np.random.Generator
-        ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        ) -> tuple[FloatArray, Float32Array, FloatArray]:
             rgb, depth = self.renderer.render_pose(pose, g)
             return kinect_turn_data(rgb, depth, self.kinect_camera, sift)
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import LocalizationError
@@ -85,7 +86,7 @@ class PoseCandidate:
 
 
 def match_descriptors(
-    query: FloatArray, train: FloatArray, ratio: float
+    query: NDArray[np.floating], train: NDArray[np.floating], ratio: float
 ) -> tuple[IntArray, IntArray]:
     """Match SIFT descriptors with brute force L2 and Lowe's ratio test.
 
@@ -130,9 +131,9 @@ def match_descriptors(
 
 def candidate_from_frame(
     body_points: FloatArray,
-    descriptors: FloatArray,
+    descriptors: NDArray[np.floating],
     map_points: FloatArray,
-    map_descriptors: FloatArray,
+    map_descriptors: NDArray[np.floating],
     t: float,
     rng: np.random.Generator,
     config: CandidateConfig,
@@ -238,7 +239,7 @@ class CandidateCollector:
         self._last_odom = odom_pose
 
     def add_frame(
-        self, t: float, odom_pose: FloatArray, body_points: FloatArray, descriptors: FloatArray
+        self, t: float, odom_pose: FloatArray, body_points: FloatArray, descriptors: NDArray[np.floating]
     ) -> PoseCandidate | None:
         """Propagate to ``odom_pose``, then add this frame's candidate (if any).
 

@@ -151,11 +151,12 @@ class OccupancyGrid:
         """
         return np.floor(self.world_to_map(xy)).astype(np.int64)
 
-    def cell_to_world(self, cells: IntArray) -> FloatArray:
+    def cell_to_world(self, cells: IntArray | FloatArray) -> FloatArray:
         """Cell centres in the world.
 
         Args:
-            cells: (..., 2) ``(ix, iy)`` indices.
+            cells: (..., 2) ``(ix, iy)`` indices (fractional values are points in
+                cell units).
 
         Returns:
             (..., 2) world coordinates of the cell centres, metres.

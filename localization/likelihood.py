@@ -35,6 +35,7 @@ from typing import Literal, Protocol
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from lampsam.arrays import FloatArray
 from lampsam.errors import LocalizationError
@@ -256,7 +257,7 @@ class LikelihoodFieldModel:
         self.field = np.ascontiguousarray(beam_log_likelihood(dist_m, config), dtype=np.float32)
 
     def endpoint_log_likelihood(self, poses: FloatArray, ranges: FloatArray,
-                                angles: FloatArray) -> FloatArray:
+                                angles: FloatArray) -> NDArray[np.float32]:
         """Per-beam log-likelihood of every pose's endpoints (all beams used as given).
 
         Args:

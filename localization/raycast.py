@@ -219,7 +219,7 @@ class RangeTable:
         if iy.size == 0:
             raise RaycastError("no free cells to tabulate")
         centres = grid.cell_to_world(np.stack([ix, iy], axis=1))
-        heading = np.arange(n_angles) * (2 * math.pi / n_angles)
+        heading = np.arange(n_angles, dtype=np.float64) * (2 * math.pi / n_angles)
         dist = distance_field(occupied)
         rows = np.empty((iy.size + 1, n_angles), dtype=np.uint16)
         rows[-1] = 0

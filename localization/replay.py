@@ -16,7 +16,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lampsam.arrays import FloatArray, ImageU8, ImageU16
+from lampsam.arrays import Float32Array, FloatArray, ImageU8, ImageU16
 from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.localization.filter_config import GlobalLocalizerConfig
 from lampsam.localization.localizer import localize
@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 def kinect_turn_data(
     rgb: ImageU8, depth: ImageU16, camera: RgbdCamera, sift: cv2.SIFT
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, Float32Array, FloatArray]:
     """What the turn stage needs of one Kinect frame, in the body frame.
 
     Args:
