@@ -138,6 +138,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"contact sheet:      {result.contact_sheet}")
     print(f"comparison report:  {result.report} (and report.html, summary.json, figures/)")
     print(f"per-backend output: {result.out / 'compare' / 'jobs'} (trajectory.tum, landmarks.csv, summary.json)")
+    if result.recording is not None:
+        print(f"live recording:     {result.recording} (open with: rerun {result.recording})")
     return 1 if any(r["failed"] for r in result.rows) else 0
 
 
@@ -170,7 +172,8 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
     from lampsam.backend.stereo import StereoEstimatorConfig
     from lampsam.config_loader import load_config
     from lampsam.datasets.stereo_sim import read_stereo_run
-    from lampsam.evaluation.stereo_report import stereo_job
+    from lampsam.evaluation.live import live_view, rerun_target
+    from lampsam.evaluation.stereo_report import stereo_job, summary_table
 
     cfg = load_config(StereoEstimatorConfig, _config_path(args), table="stereo")
     run = read_stereo_run(Path(args.run))
@@ -179,19 +182,19 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
         if not (math.isfinite(value) and value > 0):
             raise LampsamError(f"{Path(args.run) / 'stereo_run.yaml'}: rig.{name}: must be a "
                                f"positive number, got {_num(value)}")
-    summary = stereo_job(Path(args.run), args.estimator, _out_dir(args), cfg)
+    out = _out_dir(args)
+    target = rerun_target(args.rerun, out)
+    with live_view(target, f"stereo {args.estimator} {args.run}",
+                   stereo_truth=run.truth if target else None, kind="stereo"):
+        summary = stereo_job(Path(args.run), args.estimator, out, cfg)
     counts = summary["status_counts"]
     if not any(n for status, n in counts.items() if status == "ok"):
         log.warning("no frame gave a measurement the %s estimator could use (%s): the "
                     "estimate is empty", args.estimator, counts)
         print(f"{args.estimator}: {counts}; no usable frame", file=sys.stderr)
         return 1
-    rms = summary.get("rms")
-    line = f"{args.estimator}: {summary['status_counts']}"
-    if rms:
-        line += (f"; RMS x {rms['x_m']:.4f} m, y {rms['y_m']:.4f} m, "
-                 f"heading {rms['heading_rad']:.5f} rad over {rms['frames']} frames")
-    print(line)
+    print(summary_table(summary))
+    print(f"written to {out} (estimate.tum, status.csv, summary.json, errors.png)")
     return 0
 
 
@@ -204,6 +207,9 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [stereo] table (StereoEstimatorConfig)")
     _add_force(p)
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_stereo)
 
 
@@ -373,7 +379,10 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         run = read_run(args.run)
         _warn_partial(run.meta, Path(args.run))
     out = _out_dir(args)
-    result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run):
+        result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     if args.g2o:
         with atomic_path(Path(args.g2o)) as tmp:
             _write_slam_g2o(tmp, result, run)
@@ -385,7 +394,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         write_slam_plot(tmp, result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
-    msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
+    msg = (f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks "
+           f"({s['landmarks_pruned']} pruned)")
     if err:
         msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")
@@ -446,6 +456,9 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
                    help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
     p.add_argument("--duration", type=_positive, default=None,
                    help="with --mrclam: use only the first seconds (an error without --mrclam)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     _add_force(p)
     p.set_defaults(func=_cmd_slam, graceful=True)
 
@@ -536,7 +549,17 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     for what, path in (("run", Path(args.run)), ("map", Path(args.map))):
         if not path.is_dir():
             raise LampsamError(f"{path}: {what} directory not found")
-    result = localize_run(Path(args.run), Path(args.map), _out_dir(args), cfg, seed=args.seed)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    out = _out_dir(args)
+    target = rerun_target(args.rerun, out)
+    run = None
+    if target:
+        from lampsam.datasets.logrun import read_run
+
+        run = read_run(args.run)
+    with live_view(target, f"localize {cfg.mode.value} {args.run}", run=run, kind="localize"):
+        result = localize_run(Path(args.run), Path(args.map), out, cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"{result.status} after {result.restarts} restart(s): x {x:.3f} m, y {y:.3f} m, "
           f"theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
@@ -559,6 +582,9 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trials", type=int, default=50, help="CARMEN log: trials from evenly spread scans (default 50)")
     p.add_argument("--updates", type=int, default=4,
                    help="CARMEN log: scans before the first acceptance test (more follow while ambiguous; default 4)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_localize)
 
 

@@ -42,6 +42,7 @@ from lampsam.backend.interface import (
     SlamBackend,
     SlamResult,
     StepEstimate,
+    log_pruned,
 )
 from lampsam.backend.models import (
     Obs,
@@ -125,6 +126,7 @@ class EkfSlam(SlamBackend):
         self._step_times: list[float] = []
         self._keyframes: list[bool] = []
         self.n_pruned = 0
+        self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
 
     # ------------------------------------------------------------------ state
     @property
@@ -400,14 +402,15 @@ class EkfSlam(SlamBackend):
                 continue
             idle = self._step - s.last_seen
             age = self._step - s.created
-            drop = False
+            drop = ""
             if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
-                drop = True
+                drop = "seen_too_few"
             elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
                 cov = self._P[s.offset : s.offset + 2, s.offset : s.offset + 2]
-                drop = _max_sigma_2x2(cov) > cfg.prune_sigma
+                drop = "uncertain" if _max_sigma_2x2(cov) > cfg.prune_sigma else ""
             if drop:
                 self._doomed.add(lid)
+                self.pruned[drop] = self.pruned.get(drop, 0) + 1
             else:
                 self._prune_queue.append(lid)
         if self._doomed and (len(self._doomed) >= _PRUNE_BATCH
@@ -479,12 +482,12 @@ class EkfSlam(SlamBackend):
     def finish(self, status: str = "ok") -> SlamResult:
         """See :meth:`SlamBackend.finish`; landmarks seen once are pruned with a warning."""
         once = [lid for lid, s in self._slots.items()
-                if s.n_obs < self.config.association.min_observations]
+                if s.n_obs < self.config.association.min_observations and lid not in self._doomed]
         if once:
-            log.warning("%d landmarks seen fewer than %d times were pruned", len(once),
-                        self.config.association.min_observations)
+            self.pruned["seen_too_few"] = self.pruned.get("seen_too_few", 0) + len(once)
         self._remove(sorted(set(once) | self._doomed))
         self._doomed.clear()
+        log_pruned(self.n_pruned, self.pruned, self.config.association.min_observations)
         return SlamResult(
             backend=self.name,
             times=np.asarray(self._times, float),
@@ -495,4 +498,5 @@ class EkfSlam(SlamBackend):
             keyframes=np.asarray(self._keyframes, bool),
             status=status,
             n_pruned=self.n_pruned,
+            pruned=dict(self.pruned),
         )

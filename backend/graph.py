@@ -262,8 +262,8 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             status=status,
             final_time_s=final_time,
             n_pruned=self.n_pruned,
-            extra={"n_keyframes": float(n_kf),
-                   "update_median_ms": float(np.median(self.update_times) * 1e3)
+            pruned=dict(self.pruned),
+            extra={"update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
                    "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)
                    if self.update_times else float("nan"),

@@ -97,6 +97,7 @@ class GraphState(SlamBackend):
         self.update_times: list[float] = []  # iSAM2 update() per keyframe, s
         self.estimate_times: list[float] = []  # then the pose estimate + marginal, s
         self.n_pruned = 0
+        self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self.n_recoveries = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}

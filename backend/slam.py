@@ -60,6 +60,7 @@ from lampsam.frontend.measurements import (
     RangeBearingObservation,
 )
 from lampsam.interrupt import interruptible
+from lampsam.observe import emit
 from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -308,7 +309,9 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
     try:
         for t, wheel, frame in interruptible(steps):
             t_step = t
-            online.append(backend.step(t, wheel, frame))
+            estimate = backend.step(t, wheel, frame)
+            online.append(estimate)
+            emit("slam.step", t=t, frame=frame, estimate=estimate, backend=backend)
     except KeyboardInterrupt as exc:  # SIGINT or SIGTERM (lampsam.interrupt), between steps
         status = "interrupted"
         log.warning("interrupted (%s): writing the %d steps finished so far",
@@ -323,7 +326,9 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
                   "the steps finished so far are kept", where, type(exc).__name__, exc)
         log.debug("traceback", exc_info=True)
     try:
-        return backend.finish(status)
+        result = backend.finish(status)
+        emit("slam.finish", result=result)
+        return result
     except (KeyboardInterrupt, Exception) as exc:  # keep the online estimate, say what it is
         reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
         source = online_source(backend)
@@ -469,6 +474,7 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
         "keyframes": int(result.keyframes.sum()),
         "landmarks": len(result.landmarks),
         "landmarks_pruned": int(result.n_pruned),
+        "landmarks_pruned_by_reason": {k: int(v) for k, v in sorted(result.pruned.items())},
         "time_per_frame_ms": {
             "median": float(np.median(frames_ms)) if len(frames_ms) else None,
             "p95": float(np.percentile(frames_ms, 95)) if len(frames_ms) else None,
@@ -502,11 +508,6 @@ def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
         write_trajectory(tmp, result)
     with atomic_path(out / "landmarks.csv") as tmp:
         write_landmarks(tmp, result)
-    write_json_atomic(out / "summary.json", summary(result, run.groundtruth), default=_json_default)
+    write_json_atomic(out / "summary.json", summary(result, run.groundtruth))
     log.info("results written to %s", out)
 
-
-def _json_default(x: object) -> object:
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(type(x))

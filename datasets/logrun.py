@@ -175,10 +175,14 @@ def read_run(path: str | Path) -> LoggedRun:
     )
     meta: dict[str, Any] = {}
     if (path / META_FILE).exists():
-        loaded = read_yaml(path / META_FILE)
-        if loaded is not None and not isinstance(loaded, dict):
-            raise DatasetError("meta.yaml must be a mapping", path / META_FILE)
-        meta = loaded or {}
+        # free-form provenance: an unreadable meta.yaml is reported and skipped, not fatal
+        try:
+            loaded = read_yaml(path / META_FILE)
+            if loaded is not None and not isinstance(loaded, dict):
+                raise DatasetError("meta.yaml must be a mapping", path / META_FILE)
+            meta = loaded or {}
+        except DatasetError as exc:
+            log.warning("%s; its provenance (world, seed, complete) is ignored", exc)
     log.info(
         "read run %s: %d odometry, %d images, gt=%s, landmarks=%s",
         path, len(odometry), 0 if images is None else len(images), gt is not None, lms is not None,

@@ -82,6 +82,33 @@ def markdown_table(rms: Mapping[str, Mapping[str, Sequence[float]]], caption: st
     return "\n".join(lines) + "\n"
 
 
+def summary_table(summary: Mapping[str, Any]) -> str:
+    """The ``lampsam stereo`` summary as a Markdown table (as ``compare`` prints).
+
+    One row: estimator, frames, the frames of each status, the RMS errors (x, y in
+    m; heading in degrees) over the frames every compared estimator scored, how
+    many those are, and the median step time.
+
+    Args:
+        summary: what :func:`stereo_job` returns.
+    """
+    counts: Mapping[str, int] = summary.get("status_counts", {})
+    statuses = sorted(counts, key=lambda k: (k != "ok", k))
+    rms = summary.get("rms")
+    head = ["estimator", "frames", *[f"{s}" for s in statuses], "RMS x [m]", "RMS y [m]",
+            "RMS heading [deg]", "scored frames", "median step [ms]"]
+    cells = [str(summary.get("estimator", "?")), str(summary.get("frames", "?")),
+             *[str(counts[s]) for s in statuses]]
+    if rms:
+        cells += [f"{rms['x_m']:.4f}", f"{rms['y_m']:.4f}",
+                  f"{math.degrees(rms['heading_rad']):.3f}", str(rms["frames"])]
+    else:
+        cells += ["–", "–", "–", "0"]
+    cells.append(f"{summary.get('median_step_ms', float('nan')):.2f}")
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+                      "| " + " | ".join(cells) + " |"])
+
+
 # --------------------------------------------------------------------------- plots
 def plot_trajectory(
     ax: Any,
@@ -237,7 +264,8 @@ def stereo_job(
         if mask.any():
             rms = rms_errors(result, run.truth, mask)
             summary["rms"] = {"x_m": float(rms[0]), "y_m": float(rms[1]),
-                              "heading_rad": float(rms[2]), "frames": int(mask.sum())}
+                              "heading_rad": float(rms[2]),
+                              "heading_deg": float(np.degrees(rms[2])), "frames": int(mask.sum())}
         fig = figure_for_run(run.truth, results, run.target_t_points,
                              f"{run.scenario or run_dir}: {estimator}")
         fig.savefig(out / "errors.png", dpi=110)

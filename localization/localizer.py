@@ -45,6 +45,7 @@ from lampsam.localization.symmetry import half_turn_centre, half_turn_twin, reso
 from lampsam.localization.verification import Verdict
 from lampsam.localization.verify_drive import verify_stage
 from lampsam.localization.virtual_scan import beam_angles
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,7 @@ def localize(
     """
     config = config.resolved()
     model = scan_model(maps, config)
+    emit("localize.start", grid=maps.grid)
     robot_time = {"turn": 0.0, "verification": 0.0}
     compute_time = {"candidates": 0.0, "filter": 0.0, "verification": 0.0}
     attempts: list[AttemptRecord] = []
@@ -151,6 +153,7 @@ def localize(
                 status = "ambiguous"
                 modes = [pose] + ([] if mm.competitor is None else [mm.competitor])
         compute_time["filter"] += time.perf_counter() - t0
+        emit("localize.estimate", pose=pose, attempt=attempt)
         if not verifies:
             attempts.append(
                 AttemptRecord(

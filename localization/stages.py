@@ -36,6 +36,7 @@ from lampsam.localization.particle_filter import (
 )
 from lampsam.localization.robot import GlobalLocalizationError, Robot
 from lampsam.localization.virtual_scan import VirtualScan, beam_angles
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +143,7 @@ def turn_stage(
         len(collector.candidates),
         int(np.count_nonzero(np.isfinite(scan))),
     )
+    emit("localize.candidates", candidates=list(collector.candidates))
     return collector.candidates, scan, odom_end, robot_s, compute
 
 
@@ -258,6 +260,8 @@ def filter_stage(
     while n_updates < fc.max_updates:
         n_updates += 1
         pf.update(ranges, angles)
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
         if n_updates == 1:
             first_modes = distinct_modes(
                 pf.particles, pf.log_weights, max(fc.recheck_modes, FIRST_MODES),
@@ -354,6 +358,8 @@ def recheck_modes(
     while n_updates < fc.max_updates:
         n_updates += 1
         pf.update(ranges, angles)
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
         if pf.converged():
             converged = True
             break
