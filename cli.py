@@ -308,13 +308,16 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
     if args.feature_every is not None:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
+    if args.no_tables:
+        cfg = dataclasses.replace(cfg, tables=dataclasses.replace(
+            cfg.tables, range_table=False, laser_range_table=False, distance_field=False))
     if not Path(args.run).exists():
         raise LampsamError(f"{args.run}: run not found")
     out = _out_dir(args)
     from lampsam.evaluation.map_truth import floor_plan_of_run
 
     truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
-    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth)
+    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth, scans=args.scans)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
@@ -323,15 +326,21 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
 
 
 def _add_build_map(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run")
+    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run "
+                       "or a CARMEN laser log, with the localizer's precomputed lookups")
     p.add_argument("run", help="run directory with kinect/, a TUM RGB-D or slambook2 folder, or a CARMEN log")
     p.add_argument("--out", required=True, help="map directory to write")
     p.add_argument("--poses", default="groundtruth",
                    help="mapping poses: 'groundtruth' (default) or 'slam:PATH_TO_TUM' (a SLAM trajectory)")
     p.add_argument("--resolution", type=_positive, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
     p.add_argument("--feature-every", type=_positive_int, default=None, help="SIFT on every n-th frame (default 1)")
+    p.add_argument("--scans", choices=("all", "even", "odd"), default="all",
+                   help="laser logs: map from all, the even or the odd scans (the others left for localization)")
+    p.add_argument("--no-tables", action="store_true",
+                   help="do not precompute the localizer's range table and distance field")
     _add_force(p)
-    p.add_argument("--config", default=None, help="TOML/YAML file with an [envmap] table ([envmap.depth], ...)")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with an [envmap] table ([envmap.depth], [envmap.laser], [envmap.tables], ...)")
     p.set_defaults(func=_cmd_build_map)
 
 
@@ -476,7 +485,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     rows = compare(args.runs, backends=backends, seeds=args.seeds, out=out,
                    workers=args.workers, frames=args.frames, features=features,
                    duration=args.duration, progress=not args.no_progress, config=config,
-                   resume=args.resume)
+                   resume=args.resume, dask=args.dask)
     print(markdown_table(rows))
     print(f"report: {out / 'report.md'} (also report.html, summary.json, figures/)")
     if stop_requested() is not None:
@@ -503,7 +512,48 @@ def _add_compare(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue an earlier compare into the same --out: skip its finished jobs")
     _add_force(p)
+    _add_dask_option(p)
     p.set_defaults(func=_cmd_compare, graceful=True)
+
+
+def _add_dask_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the jobs on a Dask distributed scheduler (e.g. tcp://10.0.0.5:8786; "
+                        "workers need lampsam and the same paths) or 'local' (a LocalCluster "
+                        "with --workers processes); default: a local process pool")
+
+
+# --------------------------------------------------------------------------- batch
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from lampsam.backend.config import SlamConfig
+    from lampsam.config_loader import load_config
+    from lampsam.evaluation.batch import batch, markdown_table
+
+    features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
+    config = load_config(SlamConfig, _config_path(args))
+    rows = batch(args.runs, Path(args.out), backend=args.backend, workers=args.workers,
+                 dask=args.dask, progress=not args.no_progress, config=config,
+                 frames=args.frames, features=features)
+    print(markdown_table(rows))
+    print(f"summary: {Path(args.out) / 'summary.json'} (and summary.csv); one folder per run")
+    return 1 if any(r["status"] != "ok" for r in rows) else 0
+
+
+def _add_batch(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help="offline optimisation of many logs: one result folder each")
+    p.add_argument("runs", nargs="+", help="run directories")
+    p.add_argument("--out", required=True, help="output directory (one folder per run + summary)")
+    p.add_argument("--backend", choices=("batch", "isam2", "ekf"), default="batch",
+                   help="estimator (default batch: Levenberg-Marquardt over the whole log)")
+    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--frames", default="auto", choices=["auto", "images", "truth", "rangebearing"],
+                   help="measurement source (default auto)")
+    p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with the SLAM settings of every run (as for `lampsam slam --config`)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_dask_option(p)
+    p.set_defaults(func=_cmd_batch)
 
 
 # --------------------------------------------------------------------------- localize
@@ -562,7 +612,7 @@ def _cmd_localize(args: argparse.Namespace) -> int:
         result = localize_run(Path(args.run), Path(args.map), out, cfg, seed=args.seed)
     x, y, th = result.pose
     print(f"{result.status} after {result.restarts} restart(s): x {x:.3f} m, y {y:.3f} m, "
-          f"theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
+          f"heading {math.degrees(th):.1f} deg; {out / 'result.json'}")
     return 0 if result.status == "localized" else 1
 
 
@@ -578,13 +628,13 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     _add_force(p)
     p.add_argument("--config", default=None, help="TOML/YAML file with a [localize] table (nested tables too: "
                         "[localize.filter], [localize.verification], ...)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.add_argument("--scans", default="odd", help="CARMEN log: scans the trials use: odd (default), even or all")
     p.add_argument("--trials", type=int, default=50, help="CARMEN log: trials from evenly spread scans (default 50)")
     p.add_argument("--updates", type=int, default=4,
                    help="CARMEN log: scans before the first acceptance test (more follow while ambiguous; default 4)")
-    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
-                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
-                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_localize)
 
 
@@ -621,25 +671,58 @@ def _add_table1(sub: argparse._SubParsersAction) -> None:
 # --------------------------------------------------------------------------- frontend-eval
 def _cmd_frontend_eval(args: argparse.Namespace) -> int:
     from lampsam.config_loader import load_config
-    from lampsam.evaluation.frontend_eval import evaluate_run
     from lampsam.frontend.pipeline import FrontendConfig
 
+    photos = args.photos is not None or args.labels is not None
+    if (photos and (args.photos is None or args.labels is None or args.run is not None)) or (
+        not photos and args.run is None
+    ):
+        raise LampsamError("frontend-eval: give RUN, or both --photos DIR and --labels FILE")
     cfg = load_config(FrontendConfig, _config_path(args), table="frontend")
+    if photos:
+        from lampsam.evaluation.photo_eval import (
+            PhotoEvalSettings,
+            evaluate_photos,
+            format_table,
+            write_scores,
+        )
+
+        settings = PhotoEvalSettings(width=args.width)
+        out_file = _out_file(args) if args.out is not None else None
+        scores = evaluate_photos(Path(args.photos), Path(args.labels), settings, cfg.lamps)
+        print(format_table(scores))
+        if out_file is not None:
+            write_scores(scores, out_file, settings)
+        return 0
+    from lampsam.evaluation.frontend_eval import evaluate_run
+
     if not Path(args.run).is_dir():
         raise LampsamError(f"{args.run}: run directory not found")
     out = _out_file(args) if args.out is not None else None
-    res = evaluate_run(Path(args.run), out=out, config=cfg, max_frames=args.max_frames)
+    res = evaluate_run(
+        Path(args.run), out=out, config=cfg, max_frames=args.max_frames, lamp_models=args.lamp_models
+    )
     print(res.summary())
     return 0 if all(res.targets_met.values()) else 1
 
 
 def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "frontend-eval", help="measure the ceiling frontend against a simulated run's truth"
+        "frontend-eval",
+        help="measure the ceiling frontend against a simulated run's truth or labelled photos",
     )
-    p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
-    p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
+    p.add_argument("run", nargs="?", default=None,
+                   help="simulated run directory (with truth/projections.csv)")
+    p.add_argument("--photos", default=None, help="folder of real ceiling photos")
+    p.add_argument("--labels", default=None,
+                   help="label file of those photos (tests/data/ceiling_photo_labels.json)")
+    p.add_argument("--width", type=int, default=320,
+                   help="photos: working image width in px (default 320)")
+    p.add_argument("--out", default=None,
+                   help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    p.add_argument("--lamp-models", action="store_true",
+                   help="RUN: reject blobs whose size and shape fit none of the run's lamps")
     _add_force(p)
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [frontend] table ([frontend.lamps], [frontend.corners])")
@@ -754,6 +837,7 @@ _ADDERS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_show_map,
     _add_slam,
     _add_compare,
+    _add_batch,
     _add_localize,
     _add_table1,
     _add_frontend_eval,

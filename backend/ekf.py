@@ -3,22 +3,26 @@
 State ``X = [x, y, theta, landmark_1, ..., landmark_n]`` (plain coordinates, world
 frame; landmark states in :mod:`lampsam.backend.models`), covariance ``P``.
 
+- Covariance storage: :class:`lampsam.backend.covariance.LowerCovariance`, the lower
+  triangle of a growable buffer, updated in place (no n x n copies, no periodic
+  re-symmetrisation).
 - Prediction (eqs. 13-15): only the robot block changes. With ``F_x`` the robot
   Jacobian and ``F_u Q F_u^T`` the wheel noise, ``P_RR <- F_x P_RR F_x^T + F_u Q F_u^T``
-  and ``P_RM <- F_x P_RM``; the landmark block ``P_MM`` is untouched. Several odometry
+  and ``P_MR <- P_MR F_x^T``; the landmark block ``P_MM`` is untouched. Several odometry
   increments between two frames are composed on the 3x3 block first, so a step
   costs O(n) regardless of the odometry rate. No dense ``F P F^T``.
 - Gate (eqs. 19-20) and association: :mod:`lampsam.backend.association`.
 - Update (eqs. 21-23), one observation at a time: ``H`` has nonzero columns only
   for the robot and one landmark, so ``P H^T = P[:, R] H_R^T + P[:, L] H_L^T``
   (n x k), ``K = P H^T Psi^-1`` and ``P <- P - K (P H^T)^T``, which equals
-  ``(I - K H) P`` (eq. 23).
+  ``(I - K H) P`` (eq. 23); with ``Psi = C C^T`` and ``W = P H^T C^-T`` this is the
+  symmetric rank-k downdate ``P <- P - W W^T`` (BLAS ``dsyrk``, in place).
 - Augmentation (eqs. 24-25) with the full cross-covariance
   ``P_new,all = grad g_R P[R, :]`` and
   ``P_new,new = grad g_R P_RR grad g_R^T + grad g_Z P_new grad g_Z^T``; ceiling
   landmarks carry the 0-5 m height prior in ``P_new``.
 - Removal of landmarks that stay uncertain or are seen only once (paper sec. IV):
-  rows and columns deleted.
+  rows and columns deleted (the triangle compacted in place).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from scipy.linalg import solve_triangular
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import associate, corner_budget, screen_pairs
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.covariance import LowerCovariance
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
@@ -108,12 +113,11 @@ class EkfSlam(SlamBackend):
         self.ceiling = ceiling
         cap = 64
         self._x = np.zeros(cap)
-        self._P = np.zeros((cap, cap))
         self._n = 3
         self._x[:3] = np.asarray(start_pose, float)
         cfg = config.ekf
-        self._P[:3, :3] = np.diag([cfg.sigma_start_xy**2, cfg.sigma_start_xy**2,
-                                   cfg.sigma_start_theta**2])
+        self._cov = LowerCovariance(np.diag([cfg.sigma_start_xy**2, cfg.sigma_start_xy**2,
+                                             cfg.sigma_start_theta**2]), cap)
         self._slots: dict[int, _Slot] = {}
         self._prune_queue: collections.deque[int] = collections.deque()
         self._doomed: set[int] = set()
@@ -136,20 +140,17 @@ class EkfSlam(SlamBackend):
 
     @property
     def P(self) -> FloatArray:
-        """(n, n) the current covariance (a view)."""
-        return self._P[: self._n, : self._n]
+        """(n, n) the current covariance (a full copy: O(n^2), for checks)."""
+        return self._cov.dense()
 
     def _grow(self, extra: int) -> None:
         need = self._n + extra
         cap = len(self._x)
         if need <= cap:
             return
-        new_cap = max(need, 2 * cap)
-        x = np.zeros(new_cap)
-        p = np.zeros((new_cap, new_cap))
+        x = np.zeros(max(need, cap + cap // 2))
         x[: self._n] = self.x
-        p[: self._n, : self._n] = self.P
-        self._x, self._P = x, p
+        self._x = x
 
     # ------------------------------------------------------------------ eqs. 13-15
     def predict(self, wheel: FloatArray) -> None:
@@ -168,12 +169,7 @@ class EkfSlam(SlamBackend):
             pose, f_x, f_u = diff_drive_step(pose, float(d_left), float(d_right), b)
             q_acc = f_x @ q_acc @ f_x.T + f_u @ wheel_noise_cov(d_left, d_right, k_r, k_l) @ f_u.T
             f_tot = f_x @ f_tot
-        n = self._n
-        P = self._P
-        P[:3, :3] = f_tot @ P[:3, :3] @ f_tot.T + q_acc + self.config.ekf.var_floor * np.eye(3)
-        if n > 3:
-            P[:3, 3:n] = f_tot @ P[:3, 3:n]
-            P[3:n, :3] = P[:3, 3:n].T
+        self._cov.transform_leading(f_tot, q_acc + self.config.ekf.var_floor * np.eye(3))
         self._x[:3] = pose
 
     # ------------------------------------------------------------------ prediction helpers
@@ -193,8 +189,9 @@ class EkfSlam(SlamBackend):
         except Exception:  # landmark behind / at the camera: not predictable here
             return None
         o, d = slot.offset, slot.dim
-        P = self._P
-        p_rr, p_rl, p_ll = P[:3, :3], P[:3, o : o + d], P[o : o + d, o : o + d]
+        cov = self._cov
+        p_rr, p_rl = cov.block(0, 3, 0, 3), cov.block(0, 3, o, o + d)
+        p_ll = cov.block(o, o + d, o, o + d)
         cross = h_r @ p_rl @ h_l.T
         psi = h_r @ p_rr @ h_r.T + cross + cross.T + h_l @ p_ll @ h_l.T + obs.R
         return residual(obs, z_hat), psi
@@ -224,7 +221,7 @@ class EkfSlam(SlamBackend):
             else:
                 ceiling_slots.setdefault(slot.kind, []).append(slot)
         pose = self._x[:3]
-        P = self._P
+        cov = self._cov
         t_d_c = tangent_D_coords(pose[2])
         for kind, slots in ceiling_slots.items():
             offs = np.array([sl.offset for sl in slots])
@@ -238,9 +235,9 @@ class EkfSlam(SlamBackend):
             h_r = m_d_pose[keep] @ t_d_c  # (M, 2, 3) coordinates
             h_l = m_d_pt[keep]
             ik = idx[keep]
-            p_rr = P[:3, :3]
-            p_rl = np.transpose(P[:3][:, ik], (1, 0, 2))  # (M, 3, 3)
-            p_ll = P[ik[:, :, None], ik[:, None, :]]  # (M, 3, 3)
+            p_rr = cov.block(0, 3, 0, 3)
+            p_rl = cov.take(np.arange(3)[None, :, None], ik[:, None, :])  # (M, 3, 3)
+            p_ll = cov.take(ik[:, :, None], ik[:, None, :])  # (M, 3, 3)
             hl_t = np.transpose(h_l, (0, 2, 1))
             cross = h_r @ p_rl @ hl_t
             s_pred = (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
@@ -277,7 +274,7 @@ class EkfSlam(SlamBackend):
             Number of observations used.
         """
         n = self._n
-        P = self._P[:n, :n]
+        cov = self._cov
         rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
         for slot, obs in pairs:
             obs = for_landmark(obs, slot.dim)
@@ -293,11 +290,12 @@ class EkfSlam(SlamBackend):
         pht = np.empty((n, k_tot))
         nu = np.empty(k_tot)
         r_blk = np.zeros((k_tot, k_tot))
+        p_r = cov.columns(0, 3)  # (n, 3) P[:, R]
         i = 0
         for slot, obs, res, h_r, h_l in rows:
             k = len(res)
             o, d = slot.offset, slot.dim
-            pht[:, i : i + k] = P[:, :3] @ h_r.T + P[:, o : o + d] @ h_l.T
+            pht[:, i : i + k] = p_r @ h_r.T + cov.columns(o, d) @ h_l.T
             nu[i : i + k] = res
             r_blk[i : i + k, i : i + k] = obs.R
             i += k
@@ -312,7 +310,8 @@ class EkfSlam(SlamBackend):
         psi = 0.5 * (psi + psi.T)
         # Eqs. 21-23 through the Cholesky factor C C^T = Psi: with W = (P H^T) C^-T,
         # K nu = W (C^-1 nu) and K (P H^T)^T = W W^T, a symmetric rank-K product
-        # (BLAS syrk: half the flops of the general product, and P stays symmetric).
+        # (BLAS dsyrk in place on the stored triangle: half the flops of the general
+        # product, no n x n temporary, and P stays symmetric).
         try:
             chol = np.linalg.cholesky(psi)
         except np.linalg.LinAlgError:
@@ -322,7 +321,7 @@ class EkfSlam(SlamBackend):
         w = pht @ c_inv.T  # (n, K); a small inverse + one BLAS product beats n RHS solves
         self._x[:n] += w @ (c_inv @ nu)  # eq. 22
         self._x[2] = wrap_angle(float(self._x[2]))
-        P -= w @ w.T  # eq. 23: (I - K H) P = P - K (P H^T)^T
+        cov.downdate(w)  # eq. 23: (I - K H) P = P - K (P H^T)^T = P - W W^T
         for slot, *_ in rows:
             if slot.kind == "lamp" and slot.dim == 4:
                 o = slot.offset + 3
@@ -345,10 +344,8 @@ class EkfSlam(SlamBackend):
         d = len(state)
         self._grow(d)
         n = self._n
-        P = self._P
-        P[n : n + d, :n] = g_r @ P[:3, :n]
-        P[:n, n : n + d] = P[n : n + d, :n].T
-        P[n : n + d, n : n + d] = g_r @ P[:3, :3] @ g_r.T + g_z @ cov_z @ g_z.T
+        p_r = self._cov.columns(0, 3)  # (n, 3) P[:, R]
+        self._cov.append(g_r @ p_r.T, g_r @ p_r[:3] @ g_r.T + g_z @ cov_z @ g_z.T)
         self._x[n : n + d] = state
         if lid is None:
             lid = self._new_id()
@@ -376,10 +373,9 @@ class EkfSlam(SlamBackend):
             keep[s.offset : s.offset + s.dim] = False
         idx = np.flatnonzero(keep)
         x = self.x[idx].copy()
-        P = self.P[np.ix_(idx, idx)].copy()
+        self._cov.delete(keep)
         self._n = len(idx)
         self._x[: self._n] = x
-        self._P[: self._n, : self._n] = P
         new_offset = np.cumsum(keep) - 1
         for s in self._slots.values():
             s.offset = int(new_offset[s.offset])
@@ -391,7 +387,7 @@ class EkfSlam(SlamBackend):
         Amortised O(1) per step: :data:`_PRUNE_CHECKS_PER_STEP` landmarks are taken
         from a round-robin queue each step (so each is checked every
         ``n / _PRUNE_CHECKS_PER_STEP`` steps); doomed landmarks stop being candidates
-        at once and are cut out of ``x`` and ``P`` (an O(n^2) copy) in batches of
+        at once and are cut out of ``x`` and ``P`` (an O(n^2) in-place compaction) in batches of
         :data:`_PRUNE_BATCH` or every :data:`_PRUNE_BATCH` steps.
         """
         cfg = self.config.association
@@ -406,7 +402,7 @@ class EkfSlam(SlamBackend):
             if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
                 drop = "seen_too_few"
             elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
-                cov = self._P[s.offset : s.offset + 2, s.offset : s.offset + 2]
+                cov = self._cov.block(s.offset, s.offset + 2, s.offset, s.offset + 2)
                 drop = "uncertain" if _max_sigma_2x2(cov) > cfg.prune_sigma else ""
             if drop:
                 self._doomed.add(lid)
@@ -454,13 +450,10 @@ class EkfSlam(SlamBackend):
                         entries -= 1
                     n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
         self._prune()
-        if self._step % 50 == 0:  # keep P symmetric against round-off
-            P = self.P
-            P[:] = 0.5 * (P + P.T)
         self._step += 1
         dt = time.perf_counter() - t0
         pose = self._x[:3].copy()
-        cov = self._P[:3, :3].copy()
+        cov = self._cov.block(0, 3, 0, 3)
         self._times.append(t)
         self._poses.append(pose)
         self._covs.append(cov)
@@ -475,7 +468,7 @@ class EkfSlam(SlamBackend):
             if s.n_obs < self.config.association.min_observations:
                 continue
             st = self._x[s.offset : s.offset + s.dim].copy()
-            cov = self._P[s.offset : s.offset + s.dim, s.offset : s.offset + s.dim].copy()
+            cov = self._cov.block(s.offset, s.offset + s.dim, s.offset, s.offset + s.dim)
             out.append(landmark_estimate(s.id, s.kind, st, cov, s.n_obs, self.ceiling))
         return out
 

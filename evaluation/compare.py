@@ -7,9 +7,11 @@
   odometry and image noise), or ``mrclam`` / ``mrclam-gated`` (the shared MRCLAM
   data with known association, or association by the gate alone).
 * Every (run, backend) job runs in a fresh process (so its peak memory is its own),
-  in parallel, with a progress bar. A job that fails (indeterminate system,
-  unusable input, a crash) is recorded as failed with its reason; it is never
-  dropped from the table.
+  in parallel, with a progress bar; or, with ``dask``, on a Dask ``distributed``
+  cluster (:mod:`lampsam.evaluation.fleet`: the same results; the peak memory is
+  then the worker process's so far). A job that fails (indeterminate system,
+  unusable input, a crash, a lost worker) is recorded as failed with its reason;
+  it is never dropped from the table.
 * Metrics (``evaluation.metrics``; trajectory statistics through evo): position
   and heading error without alignment (the start pose is known), RPE per metre,
   map error after association with the truth, pose NEES over time with the
@@ -24,16 +26,11 @@ one directory per job with the backend's own outputs (``trajectory.tum``,
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import contextlib
 import json
 import logging
-import multiprocessing as mp
-import os
 import resource
 import time
 import traceback
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,8 +41,9 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.errors import LampsamError
 from lampsam.evaluation import metrics as M
+from lampsam.evaluation.fleet import run_jobs
 from lampsam.evaluation.outputs import ensure_dir
-from lampsam.interrupt import stop_on_signals, stop_requested
+from lampsam.interrupt import stop_on_signals
 from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -379,29 +377,9 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
 
 
 # --------------------------------------------------------------------------- driver
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-@contextlib.contextmanager
-def _single_threaded_children() -> Iterator[None]:
-    """One BLAS/OpenMP thread in processes spawned inside the block; restored after.
-
-    Parallelism comes from the worker processes, and a threaded BLAS on the EKF's
-    small matrices was measured ~7x slower on 2 cores (scripts/bench/bench_scaling.py).
-    Spawned children read these variables when they import numpy. A value the user
-    set is kept.
-    """
-    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
-    for v in _THREAD_VARS:
-        os.environ.setdefault(v, "1")
-    try:
-        yield
-    finally:
-        for v, old in saved.items():
-            if old is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = old
+def _failed_job(job: Job, reason: str) -> JobResult:
+    """The result of a job whose worker raised or died."""
+    return JobResult(job, reason)
 
 
 def compare(
@@ -416,6 +394,7 @@ def compare(
     progress: bool = True,
     config: SlamConfig | None = None,
     resume: bool = False,
+    dask: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run every backend on every run; write the report; return the table rows.
 
@@ -424,13 +403,15 @@ def compare(
         backends: subset of ``ekf, isam2, batch``.
         seeds: Monte Carlo seeds per simulated world.
         out: report directory.
-        workers: parallel processes.
+        workers: parallel processes (local pool, or the workers of ``dask="local"``).
         frames: measurement source for every job (``auto``, ``images``, ``truth``).
         features: ceiling features (None: the backend default).
         duration: simulated seconds per world run (None: the whole path).
         progress: show a progress bar (tqdm, on stderr).
         config: the SLAM configuration of every job (None: the defaults).
         resume: skip the jobs an earlier run into ``out`` finished (:func:`finished_job`).
+        dask: None (local process pool), ``"local"`` (a Dask ``LocalCluster``) or the
+            address of a Dask scheduler (:mod:`lampsam.evaluation.fleet`).
 
     On a stop request (SIGINT, SIGTERM) the report of the jobs finished so far is
     written, naming the unfinished ones.
@@ -464,8 +445,11 @@ def compare(
         todo = [j for j in jobs if j.out_dir not in finished_dirs]
         log.warning("--resume: %d of %d jobs already finished, %d to run",
                     len(done), len(jobs), len(todo))
-    unfinished = _run_jobs(todo, workers, progress, results)
-    results = [r for r in results if r.status != "interrupted"]
+    ran = run_jobs(run_job, todo, _failed_job, workers=workers, dask=dask,
+                   progress=progress, desc="compare")
+    results += [r for r in ran if r.status != "interrupted"]
+    finished = {r.job.out_dir for r in results}
+    unfinished = [j for j in todo if j.out_dir not in finished]
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures
@@ -480,71 +464,3 @@ def compare(
     return rows
 
 
-def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobResult]
-              ) -> list[Job]:
-    """Run jobs in worker processes, appending to ``results``; returns the unfinished jobs.
-
-    A stop request (SIGINT or SIGTERM, :mod:`lampsam.interrupt`) cancels the jobs
-    not started and waits for the running ones (each stops at its next step when
-    the signal reached it too, as Ctrl-C in a terminal does, or finishes); a second
-    signal stops waiting. Interrupted and cancelled jobs are returned, not results.
-    """
-    if not jobs:
-        return []
-    ctx = mp.get_context("spawn")
-    unfinished: list[Job] = []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), desc="compare", unit="job")
-    with _single_threaded_children(), cf.ProcessPoolExecutor(
-        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
-    ) as pool:
-        futures = {pool.submit(run_job, j): j for j in jobs}
-        pending = set(futures)
-        collected: set[cf.Future[JobResult]] = set()
-        try:
-            while pending:
-                done, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
-                for fut in done:
-                    _collect(fut, futures[fut], results, unfinished)
-                    collected.add(fut)
-                    if bar is not None:
-                        bar.update(1)
-                if stop_requested() is not None:
-                    for fut in pending:
-                        fut.cancel()
-                    pending = {f for f in pending if not f.cancelled()}
-        except KeyboardInterrupt:  # a second signal: stop waiting for the running jobs
-            pool.shutdown(wait=False, cancel_futures=True)
-            for child in mp.active_children():
-                child.terminate()
-        for fut, job in futures.items():
-            if fut in collected:
-                continue
-            if fut.done() and not fut.cancelled():
-                _collect(fut, job, results, unfinished)
-            else:
-                unfinished.append(job)
-    if bar is not None:
-        bar.close()
-    return unfinished
-
-
-def _collect(fut: cf.Future[JobResult], job: Job, results: list[JobResult],
-             unfinished: list[Job]) -> None:
-    """Append a finished future's result; interrupted jobs go to ``unfinished`` as well."""
-    if fut.cancelled():
-        unfinished.append(job)
-        return
-    try:
-        res = fut.result()
-    except KeyboardInterrupt:  # stopped at once in the worker (second signal)
-        unfinished.append(job)
-        return
-    except Exception as exc:  # the worker process itself died
-        res = JobResult(job, f"failed: worker died: {type(exc).__name__}: {exc}")
-    results.append(res)
-    if res.status == "interrupted":
-        unfinished.append(job)

@@ -54,17 +54,6 @@ def test_unknown_run_and_backend_raise(tmp_path: Path) -> None:
         C.compare(["lab"], backends=("kalman",), out=tmp_path)
 
 
-def test_thread_variables_restored(monkeypatch: pytest.MonkeyPatch) -> None:
-    import os
-
-    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "4")
-    with C._single_threaded_children():
-        assert os.environ["OMP_NUM_THREADS"] == "1"
-        assert os.environ["OPENBLAS_NUM_THREADS"] == "4"  # the user's choice is kept
-    assert "OMP_NUM_THREADS" not in os.environ and os.environ["OPENBLAS_NUM_THREADS"] == "4"
-
-
 def test_map_error_associates_by_position_when_ids_are_the_backends() -> None:
     from types import SimpleNamespace
 
