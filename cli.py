@@ -596,9 +596,8 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     cfg = load_config(GlobalLocalizerConfig, _config_path(args), table="localize")
     if args.mode is not None:
         cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
-    for what, path in (("run", Path(args.run)), ("map", Path(args.map))):
-        if not path.is_dir():
-            raise LampsamError(f"{path}: {what} directory not found")
+    if not Path(args.run).is_dir():
+        raise LampsamError(f"{args.run}: run directory not found")
     from lampsam.evaluation.live import live_view, rerun_target
 
     out = _out_dir(args)
