@@ -183,7 +183,7 @@ class GlobalLocalizerConfig:
     relocate_distance: float | None = None
     head_for_open_space: bool = True
     open_space_need: float = 2.7
-    accept_margin: float = 5.0
+    accept_margin: float = 8.0
     max_refine: tuple[float, float] = (0.3, float(np.deg2rad(10.0)))
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     scan: VirtualScanConfig = field(default_factory=VirtualScanConfig)

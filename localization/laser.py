@@ -259,7 +259,6 @@ def localize_scans(
     pf.init_uniform(grid, config.particles)
     first_modes = np.zeros((0, 3))
     margin, competitor, score = math.nan, None, math.nan
-    refined = np.full(3, np.nan)
     k = 0
     while True:
         if k > 0:
@@ -271,7 +270,7 @@ def localize_scans(
         k += 1
         if k >= k_min:
             mean, _ = pf.estimate()
-            margin, competitor, score, refined = hypothesis_margin(model, ranges[:k], angles, odom[:k],
+            margin, competitor, score, _ = hypothesis_margin(model, ranges[:k], angles, odom[:k],
                                                           mean, first_modes, accept)  # fmt: skip
             if _accepted(pf.converged(), margin, score, accept) or k >= k_max:
                 break
@@ -279,8 +278,6 @@ def localize_scans(
     mean, cov = pf.estimate()
     sxy, sth = pf.spread()
     converged = bool(pf.converged())
-    if np.all(np.isfinite(refined)):
-        mean = refined  # the joint scan match of the last scans refines the particles' mean
     status = ("localized" if _accepted(converged, margin, score, accept)
               else "ambiguous" if converged else "failed")  # fmt: skip
     return LaserEstimate(np.asarray(mean, dtype=float), np.asarray(cov, dtype=float), converged,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -84,3 +85,37 @@ def test_holdout_split_never_shares_a_scan() -> None:
     m, t = holdout_split(11)
     assert set(m) & set(t) == set() and len(m) + len(t) == 11
     assert np.all(m % 2 == 0) and np.all(t % 2 == 1)
+
+
+def test_cli_localize_carmen_log_trials(tmp_path: Path) -> None:
+    """`lampsam localize LOG --map MAP --scans odd --trials N`: scored trials, strict summary."""
+    import json
+
+    from lampsam.cli import main
+    from lampsam.datasets.carmen import carmen_beam_angles
+
+    grid = _room()
+    angles = carmen_beam_angles(180)
+    rng = np.random.default_rng(8)
+    # a loop around the room's middle, 0.15 m per scan
+    s = np.arange(0.0, 14.0, 0.15)
+    poses = np.column_stack([5.0 + 2.2 * np.cos(s / 2.2), 4.5 + 1.5 * np.sin(s / 2.2),
+                             s / 2.2 + np.pi / 2])  # fmt: skip
+    ranges = np.minimum(cast_rays(grid, poses, angles, 81.0) + rng.normal(0, 0.01, (len(s), 180)),
+                        81.83)  # fmt: skip
+    lines = []
+    for k, (p, r) in enumerate(zip(poses, ranges, strict=True)):
+        ts = 100.0 + 0.5 * k
+        lines.append(f"FLASER 180 {' '.join(f'{v:.3f}' for v in r)} {p[0]:.4f} {p[1]:.4f} "
+                     f"{p[2]:.4f} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {ts:.3f} host {ts:.3f}")  # fmt: skip
+    log_path = tmp_path / "room.log"
+    log_path.write_text("\n".join(lines) + "\n")
+    assert main(["build-map", str(log_path), "--out", str(tmp_path / "map")]) == 0
+    out = tmp_path / "loc"
+    rc = main(["localize", str(log_path), "--map", str(tmp_path / "map"), "--scans", "odd",
+               "--trials", "3", "--out", str(out)])  # fmt: skip
+    doc = json.loads((out / "result.json").read_text(), parse_constant=lambda c: 1 / 0)
+    summary = doc["summary"]
+    assert summary["trials"] == 3 and summary["wrong_accepted"] == 0 and rc == 0
+    assert summary["correct"] == summary["localized"] >= 2
+    assert all(t["scans"][0] % 2 == 1 for t in doc["trials"])  # odd scans only
