@@ -1,4 +1,5 @@
-# Two commands: `make demo` and `make test`. Both set everything up on a fresh machine first.
+# Two commands: `make demo` and `make test`. Both set everything up on a fresh machine first
+# (the `viz` extra too: the demo records a Rerun live view and tests/test_live.py reads it back).
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
@@ -25,7 +26,7 @@ syslibs:
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
-	$(PY) -m pip install -q --disable-pip-version-check -e ".[test]"
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[test,viz]"
 	@touch $(STAMP)
 
 setup: syslibs $(STAMP)

@@ -30,8 +30,10 @@ from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_re
 from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
-    from lampsam.backend.interface import SlamResult
-    from lampsam.datasets.logrun import LoggedRun
+    from lampsam.datasets.kinect_sim import KinectConfig
+
+if TYPE_CHECKING:
+    from lampsam.backend.config import SlamConfig
 
 log = logging.getLogger("lampsam")
 
@@ -137,6 +139,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"contact sheet:      {result.contact_sheet}")
     print(f"comparison report:  {result.report} (and report.html, summary.json, figures/)")
     print(f"per-backend output: {result.out / 'compare' / 'jobs'} (trajectory.tum, landmarks.csv, summary.json)")
+    if result.recording is not None:
+        print(f"live recording:     {result.recording} (open with: rerun {result.recording})")
     return 1 if any(r["failed"] for r in result.rows) else 0
 
 
@@ -169,7 +173,8 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
     from lampsam.backend.stereo import StereoEstimatorConfig
     from lampsam.config_loader import load_config
     from lampsam.datasets.stereo_sim import read_stereo_run
-    from lampsam.evaluation.stereo_report import stereo_job
+    from lampsam.evaluation.live import live_view, rerun_target
+    from lampsam.evaluation.stereo_report import stereo_job, summary_table
 
     cfg = load_config(StereoEstimatorConfig, _config_path(args), table="stereo")
     run = read_stereo_run(Path(args.run))
@@ -178,19 +183,19 @@ def _cmd_stereo(args: argparse.Namespace) -> int:
         if not (math.isfinite(value) and value > 0):
             raise LampsamError(f"{Path(args.run) / 'stereo_run.yaml'}: rig.{name}: must be a "
                                f"positive number, got {_num(value)}")
-    summary = stereo_job(Path(args.run), args.estimator, _out_dir(args), cfg)
+    out = _out_dir(args)
+    target = rerun_target(args.rerun, out)
+    with live_view(target, f"stereo {args.estimator} {args.run}",
+                   stereo_truth=run.truth if target else None, kind="stereo"):
+        summary = stereo_job(Path(args.run), args.estimator, out, cfg)
     counts = summary["status_counts"]
     if not any(n for status, n in counts.items() if status == "ok"):
         log.warning("no frame gave a measurement the %s estimator could use (%s): the "
                     "estimate is empty", args.estimator, counts)
         print(f"{args.estimator}: {counts}; no usable frame", file=sys.stderr)
         return 1
-    rms = summary.get("rms")
-    line = f"{args.estimator}: {summary['status_counts']}"
-    if rms:
-        line += (f"; RMS x {rms['x_m']:.4f} m, y {rms['y_m']:.4f} m, "
-                 f"heading {rms['heading_rad']:.5f} rad over {rms['frames']} frames")
-    print(line)
+    print(summary_table(summary))
+    print(f"written to {out} (estimate.tum, status.csv, summary.json, errors.png)")
     return 0
 
 
@@ -203,6 +208,9 @@ def _add_stereo(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [stereo] table (StereoEstimatorConfig)")
     _add_force(p)
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     p.set_defaults(func=_cmd_stereo)
 
 
@@ -228,6 +236,25 @@ def _add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------- kinect-sim, build-map, show-map
+def _kinect_localization_run(args: argparse.Namespace, cfg: KinectConfig, out: Path) -> Path:
+    import numpy as np
+
+    from lampsam.datasets.localization_run import LocalizationDrive, simulate_localization_run
+
+    start = None
+    if args.localize_from != "random":
+        try:
+            start = np.array([float(v) for v in args.localize_from.split(",")])
+            if len(start) != 3:
+                raise ValueError("need three values")
+        except ValueError as exc:
+            raise LampsamError(f"--localize-from {args.localize_from!r}: X,Y,THETA or random ({exc})") from exc
+    if args.rounds < 1:
+        raise LampsamError(f"--rounds must be at least 1, got {args.rounds}")
+    return simulate_localization_run(args.world, out, start, seed=args.seed, config=cfg,
+                                     drive=LocalizationDrive(rounds=args.rounds), changed=args.changed)
+
+
 def _cmd_kinect_sim(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -237,6 +264,9 @@ def _cmd_kinect_sim(args: argparse.Namespace) -> int:
     cfg = load_config(KinectConfig, _config_path(args), table="kinect")
     given = {"width": args.width, "height": args.height, "rate_hz": args.rate}
     cfg = dataclasses.replace(cfg, **{k: v for k, v in given.items() if v is not None})
+    if args.localize_from is not None:
+        print(f"Kinect localization run written to {_kinect_localization_run(args, cfg, _out_dir(args))}")
+        return 0
     out = simulate_kinect_run(args.world, _out_dir(args), seed=args.seed, config=cfg, duration=args.duration,
                               ceiling_images=args.ceiling)
     print(f"Kinect mapping run written to {out}")
@@ -256,6 +286,13 @@ def _add_kinect_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [kinect] table (KinectConfig; the options above override it)")
     p.add_argument("--ceiling", action="store_true", help="also render the ceiling camera (the ceiling simulator)")
+    p.add_argument("--localize-from", default=None, metavar="X,Y,THETA|random",
+                   help="instead of the mapping drive: a global-localization run from this true start (m, m, rad) "
+                        "or a random one: full turns in place, each followed by a drive (for `lampsam localize`)")
+    p.add_argument("--rounds", type=int, default=4,
+                   help="with --localize-from: full turns, each followed by a drive (default 4: 3 restarts)")
+    p.add_argument("--changed", action="store_true",
+                   help="with --localize-from: apply the world's scene changes (moved furniture, as in Table 1)")
     p.set_defaults(func=_cmd_kinect_sim)
 
 
@@ -272,13 +309,16 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
                                   laser=dataclasses.replace(cfg.laser, resolution=args.resolution))
     if args.feature_every is not None:
         cfg = dataclasses.replace(cfg, feature_every=args.feature_every)
+    if args.no_tables:
+        cfg = dataclasses.replace(cfg, tables=dataclasses.replace(
+            cfg.tables, range_table=False, laser_range_table=False, distance_field=False))
     if not Path(args.run).exists():
         raise LampsamError(f"{args.run}: run not found")
     out = _out_dir(args)
     from lampsam.evaluation.map_truth import floor_plan_of_run
 
     truth = floor_plan_of_run(Path(args.run), cfg.depth.height_band)
-    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth)
+    report = build_map(Path(args.run), out, poses=args.poses, config=cfg, truth=truth, scans=args.scans)
     print(f"environment map written to {report.out} ({report.source}, {report.n_frames} frames, "
           f"{report.timings.get('total', 0.0):.1f} s)")
     for name, figures in report.checks.items():
@@ -287,15 +327,21 @@ def _cmd_build_map(args: argparse.Namespace) -> int:
 
 
 def _add_build_map(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run")
+    p = sub.add_parser("build-map", help="build the environment map (grid, spatial and ceiling feature maps) of a run "
+                       "or a CARMEN laser log, with the localizer's precomputed lookups")
     p.add_argument("run", help="run directory with kinect/, a TUM RGB-D or slambook2 folder, or a CARMEN log")
     p.add_argument("--out", required=True, help="map directory to write")
     p.add_argument("--poses", default="groundtruth",
                    help="mapping poses: 'groundtruth' (default) or 'slam:PATH_TO_TUM' (a SLAM trajectory)")
     p.add_argument("--resolution", type=_positive, default=None, help="grid cell size, m (default 0.05 depth, 0.1 laser)")
     p.add_argument("--feature-every", type=_positive_int, default=None, help="SIFT on every n-th frame (default 1)")
+    p.add_argument("--scans", choices=("all", "even", "odd"), default="all",
+                   help="laser logs: map from all, the even or the odd scans (the others left for localization)")
+    p.add_argument("--no-tables", action="store_true",
+                   help="do not precompute the localizer's range table and distance field")
     _add_force(p)
-    p.add_argument("--config", default=None, help="TOML/YAML file with an [envmap] table ([envmap.depth], ...)")
+    p.add_argument("--config", default=None,
+                   help="TOML/YAML file with an [envmap] table ([envmap.depth], [envmap.laser], [envmap.tables], ...)")
     p.set_defaults(func=_cmd_build_map)
 
 
@@ -331,6 +377,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, association=dataclasses.replace(config.association, use_known_ids=False))
     features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+    if Path(args.run).is_file():
+        return _slam_graph_text(args, config, _out_dir(args))
     if args.duration is not None and not args.mrclam:
         raise LampsamError("--duration applies only with --mrclam (a logged run is used whole)")
     if args.mrclam:
@@ -343,10 +391,17 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         run = read_run(args.run)
         _warn_partial(run.meta, Path(args.run))
     out = _out_dir(args)
-    result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run):
+        result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
     if args.g2o:
+        from lampsam.backend.g2o_export import write_result_g2o
+
         with atomic_path(Path(args.g2o)) as tmp:
-            _write_slam_g2o(tmp, result, run)
+            n_pose, n_edge, n_lm = write_result_g2o(tmp, result, run)
+        print(f"g2o graph written to {args.g2o}: {n_pose} poses, {n_edge} odometry factors, "
+              f"{n_lm} landmarks")
     if result.status == "interrupted":
         print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
               f"are written to {out} (status interrupted)", file=sys.stderr)
@@ -355,7 +410,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         write_slam_plot(tmp, result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
-    msg = f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks"
+    msg = (f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks "
+           f"({s['landmarks_pruned']} pruned)")
     if err:
         msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
                 f" heading RMS {err['heading_rms_deg']:.2f} deg")
@@ -367,40 +423,52 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_slam_g2o(path: Path, result: SlamResult, run: LoggedRun) -> None:
-    """The final graph as g2o: keyframe poses, landmarks (x, y; height in a comment) and
-    odometry factors re-derived from the run's wheel travel between keyframes (eqs. 13-15).
-
-    Landmark observation factors are not in :class:`SlamResult`, so none are written.
-    """
+def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
+    """``lampsam slam FILE``: an iSAM / g2o text log, one step per pose."""
     import numpy as np
 
-    from lampsam.datasets.g2o_writer import write_g2o
-    from lampsam.factors.motion import accumulate_odometry
+    from lampsam.backend.slam import run_graph_log, summary, write_landmarks, write_trajectory
+    from lampsam.datasets.graph_text import read_graph_text, read_vertices
+    from lampsam.datasets.logrun import Trajectory
+    from lampsam.errors import DatasetError
+    from lampsam.safe_io import write_json_atomic
 
-    kf = np.flatnonzero(result.keyframes) if np.any(result.keyframes) else np.arange(len(result.times))
-    odo, wheel = run.odometry, run.rig.odometry
-    edges = []
-    for i in range(len(kf) - 1):
-        ta, tb = result.times[kf[i]], result.times[kf[i + 1]]
-        sel = (odo.t > ta) & (odo.t <= tb)
-        delta, cov = accumulate_odometry(odo.d_left[sel], odo.d_right[sel], wheel.wheel_base,
-                                         wheel.k_r, wheel.k_l)  # fmt: skip
-        edges.append((i, i + 1, delta, np.linalg.inv(cov)))
-    lms = result.landmarks
-    notes = [f"{lm.type} id {lm.id} z {lm.position[2]:.4f} m"
-             + (f" phi {lm.orientation:.6f} rad" if lm.orientation is not None else "") for lm in lms]
-    write_g2o(path, np.arange(len(kf)), result.poses[kf], edges,
-              landmark_ids=len(kf) + np.arange(len(lms)),
-              landmarks=np.array([lm.position[:2] for lm in lms]).reshape(-1, 2),
-              fixed=(0,) if len(kf) else (), landmark_notes=notes)  # fmt: skip
-    print(f"g2o graph written to {path}: {len(kf)} poses, {len(edges)} odometry factors, "
-          f"{len(lms)} landmarks")
+    glog = read_graph_text(args.run)
+    truth = None
+    if args.truth:
+        verts = read_vertices(args.truth)
+        missing = [i for i in glog.pose_ids if i not in verts]
+        if missing:
+            raise DatasetError(f"no VERTEX for pose {missing[0]} ({len(missing)} missing)",
+                               Path(args.truth))
+        truth = Trajectory(t=glog.odometry.t.copy(),
+                           poses=np.array([verts[i] for i in glog.pose_ids]))
+    known = not args.gate_only
+    result = run_graph_log(glog, args.backend, config, known_ids=known)
+    with atomic_path(out / "trajectory.tum") as tmp:
+        write_trajectory(tmp, result)
+    with atomic_path(out / "landmarks.csv") as tmp:
+        write_landmarks(tmp, result)
+    s = summary(result, truth)
+    s["input"] = {"file": str(glog.path), "poses": len(glog.pose_ids),
+                  "landmarks_in_file": glog.n_landmarks, "known_ids": known,
+                  "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
+                                 else "the origin (no VERTEX for the first pose)"),
+                  "skipped_non_odometry_edges": glog.n_skipped_edges}
+    write_json_atomic(out / "summary.json", s)
+    msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
+           f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
+    err = s.get("error")
+    if err:
+        msg += f"; position error RMS {err['position_rms_m']:.3f} m"
+    print(msg + f"; written to {out}")
+    return 0 if result.status == "ok" else 1
 
 
 def _add_slam(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("slam", help="run EKF / iSAM2 / batch SLAM over a logged run")
-    p.add_argument("run", help="run directory (or the mrclam_ds0 folder with --mrclam)")
+    p.add_argument("run", help="run directory, an iSAM/g2o text log (.txt/.g2o/.graph: one "
+                   "step per pose), or the mrclam_ds0 folder with --mrclam")
     p.add_argument("--backend", choices=("ekf", "isam2", "batch"), default="isam2",
                    help="estimator (default isam2)")
     p.add_argument("--features", default="lamps,corners",
@@ -409,13 +477,18 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="TOML/YAML config ([association], [ekf], [isam2], ...)")
     p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
                    help="measurement source (default auto: range-bearing log, else images)")
-    p.add_argument("--gate-only", action="store_true",
+    p.add_argument("--gate-only", "--no-ids", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
+    p.add_argument("--truth", default=None,
+                   help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
                    help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
     p.add_argument("--duration", type=_positive, default=None,
                    help="with --mrclam: use only the first seconds (an error without --mrclam)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
     _add_force(p)
     p.set_defaults(func=_cmd_slam, graceful=True)
 
@@ -507,8 +580,37 @@ def _add_batch(sub: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------- localize
+def _localize_laser_log(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.evaluation.laser_trials import LaserTrialsConfig, laser_trials, write_json
+
+    if args.scans not in ("odd", "even", "all"):
+        raise LampsamError(f"--scans must be odd, even or all, not {args.scans!r}")
+    if args.trials < 1 or args.updates < 1:
+        raise LampsamError("--trials and --updates must be at least 1")
+    if not Path(args.run).is_file():
+        raise LampsamError(f"{args.run}: CARMEN log not found")
+    if not Path(args.map).is_dir():
+        raise LampsamError(f"{args.map}: map directory not found")
+    out = _out_dir(args)
+    cfg = dataclasses.replace(LaserTrialsConfig(), trials=args.trials, updates=args.updates,
+                              seed=args.seed, scans=args.scans)
+    result = laser_trials(Path(args.run), cfg, progress=args.verbose > 0, map_dir=Path(args.map))
+    path = write_json(result, out / "result.json")
+    s = result["summary"]
+    assert isinstance(s, dict)
+    print(f"{s['trials']} trials: {s['localized']} localized ({s['correct']} correct, "
+          f"{s['wrong_accepted']} wrong), {s['ambiguous']} ambiguous, {s['failed']} failed; "
+          f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s per trial; {path}")
+    return 0 if s["wrong_accepted"] == 0 else 1
+
+
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
+
+    if args.run.endswith((".log", ".log.gz")):
+        return _localize_laser_log(args)
 
     from lampsam.config_loader import load_config
     from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode
@@ -517,19 +619,28 @@ def _cmd_localize(args: argparse.Namespace) -> int:
     cfg = load_config(GlobalLocalizerConfig, _config_path(args), table="localize")
     if args.mode is not None:
         cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
-    for what, path in (("run", Path(args.run)), ("map", Path(args.map))):
-        if not path.is_dir():
-            raise LampsamError(f"{path}: {what} directory not found")
-    result = localize_run(Path(args.run), Path(args.map), _out_dir(args), cfg, seed=args.seed)
+    if not Path(args.run).is_dir():
+        raise LampsamError(f"{args.run}: run directory not found")
+    from lampsam.evaluation.live import live_view, rerun_target
+
+    out = _out_dir(args)
+    target = rerun_target(args.rerun, out)
+    run = None
+    if target:
+        from lampsam.datasets.logrun import read_run
+
+        run = read_run(args.run)
+    with live_view(target, f"localize {cfg.mode.value} {args.run}", run=run, kind="localize"):
+        result = localize_run(Path(args.run), Path(args.map), out, cfg, seed=args.seed)
     x, y, th = result.pose
-    print(f"localization {'succeeded' if result.success else 'FAILED'} after {result.restarts} "
-          f"restart(s): x {x:.3f} m, y {y:.3f} m, theta {th:.3f} rad; {Path(args.out) / 'result.json'}")
-    return 0 if result.success else 1
+    print(f"{result.status} after {result.restarts} restart(s): x {x:.3f} m, y {y:.3f} m, "
+          f"heading {math.degrees(th):.1f} deg; {out / 'result.json'}")
+    return 0 if result.status == "localized" else 1
 
 
 def _add_localize(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("localize", help="global localization of a run on an environment map")
-    p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images")
+    p.add_argument("run", help="run directory with odometry, kinect/ and ceiling images, or a CARMEN log (.log, .log.gz)")
     p.add_argument("--map", required=True, help="environment map directory (build-map)")
     p.add_argument("--out", required=True, help="output directory for result.json")
     p.add_argument("--mode", default=None, choices=["grid_only", "no_ceiling", "proposed", "ours"],
@@ -539,6 +650,13 @@ def _add_localize(sub: argparse._SubParsersAction) -> None:
     _add_force(p)
     p.add_argument("--config", default=None, help="TOML/YAML file with a [localize] table (nested tables too: "
                         "[localize.filter], [localize.verification], ...)")
+    p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
+                   help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
+                        "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
+    p.add_argument("--scans", default="odd", help="CARMEN log: scans the trials use: odd (default), even or all")
+    p.add_argument("--trials", type=int, default=50, help="CARMEN log: trials from evenly spread scans (default 50)")
+    p.add_argument("--updates", type=int, default=4,
+                   help="CARMEN log: scans before the first acceptance test (more follow while ambiguous; default 4)")
     p.set_defaults(func=_cmd_localize)
 
 
@@ -575,25 +693,58 @@ def _add_table1(sub: argparse._SubParsersAction) -> None:
 # --------------------------------------------------------------------------- frontend-eval
 def _cmd_frontend_eval(args: argparse.Namespace) -> int:
     from lampsam.config_loader import load_config
-    from lampsam.evaluation.frontend_eval import evaluate_run
     from lampsam.frontend.pipeline import FrontendConfig
 
+    photos = args.photos is not None or args.labels is not None
+    if (photos and (args.photos is None or args.labels is None or args.run is not None)) or (
+        not photos and args.run is None
+    ):
+        raise LampsamError("frontend-eval: give RUN, or both --photos DIR and --labels FILE")
     cfg = load_config(FrontendConfig, _config_path(args), table="frontend")
+    if photos:
+        from lampsam.evaluation.photo_eval import (
+            PhotoEvalSettings,
+            evaluate_photos,
+            format_table,
+            write_scores,
+        )
+
+        settings = PhotoEvalSettings(width=args.width)
+        out_file = _out_file(args) if args.out is not None else None
+        scores = evaluate_photos(Path(args.photos), Path(args.labels), settings, cfg.lamps)
+        print(format_table(scores))
+        if out_file is not None:
+            write_scores(scores, out_file, settings)
+        return 0
+    from lampsam.evaluation.frontend_eval import evaluate_run
+
     if not Path(args.run).is_dir():
         raise LampsamError(f"{args.run}: run directory not found")
     out = _out_file(args) if args.out is not None else None
-    res = evaluate_run(Path(args.run), out=out, config=cfg, max_frames=args.max_frames)
+    res = evaluate_run(
+        Path(args.run), out=out, config=cfg, max_frames=args.max_frames, lamp_models=args.lamp_models
+    )
     print(res.summary())
     return 0 if all(res.targets_met.values()) else 1
 
 
 def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "frontend-eval", help="measure the ceiling frontend against a simulated run's truth"
+        "frontend-eval",
+        help="measure the ceiling frontend against a simulated run's truth or labelled photos",
     )
-    p.add_argument("run", help="simulated run directory (with truth/projections.csv)")
-    p.add_argument("--out", default=None, help="JSON file (default RUN/frontend_eval.json)")
+    p.add_argument("run", nargs="?", default=None,
+                   help="simulated run directory (with truth/projections.csv)")
+    p.add_argument("--photos", default=None, help="folder of real ceiling photos")
+    p.add_argument("--labels", default=None,
+                   help="label file of those photos (tests/data/ceiling_photo_labels.json)")
+    p.add_argument("--width", type=int, default=320,
+                   help="photos: working image width in px (default 320)")
+    p.add_argument("--out", default=None,
+                   help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
+    p.add_argument("--lamp-models", action="store_true",
+                   help="RUN: reject blobs whose size and shape fit none of the run's lamps")
     _add_force(p)
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with a [frontend] table ([frontend.lamps], [frontend.corners])")

@@ -23,6 +23,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from lampsam.errors import InputError
 
 TMP_PREFIX = ".tmp-"  #: temporary files are ``.tmp-<hex>-<name>`` beside the target
@@ -58,9 +60,18 @@ def write_text_atomic(path: str | Path, text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
+def json_default(x: object) -> object:
+    """``json.dumps`` fallback for numpy scalars (as Python numbers) and arrays (as lists)."""
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
 def write_json_atomic(path: str | Path, obj: object,
-                      default: Callable[[object], object] | None = None) -> None:
-    """Write a JSON document atomically (indented, ``allow_nan`` as ``json.dumps``)."""
+                      default: Callable[[object], object] = json_default) -> None:
+    """Write a JSON document atomically (indented; numpy values through :func:`json_default`)."""
     write_text_atomic(path, json.dumps(obj, indent=2, default=default) + "\n")
 
 

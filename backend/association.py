@@ -277,3 +277,77 @@ def corner_budget(matches: list[tuple[Any, Obs]], budget: int | None
     drop = set(ranked[budget:])
     kept = [m for j, m in enumerate(matches) if j not in drop]
     return kept, max(2, budget - min(len(in_graph), budget))
+
+
+#: ``joint(pairs)`` -> stacked innovation (K,) and its joint covariance (K, K) of a
+#: hypothesis ``[(observation index, landmark id), ...]``.
+JointInnovationFn = Callable[[list[tuple[int, int]]], tuple[FloatArray, FloatArray] | None]
+
+
+def jcbb(candidates: Mapping[int, Iterable[int]], joint: JointInnovationFn,
+         config: AssociationConfig, obs_dim: int = 2, max_nodes: int = 20000
+         ) -> list[tuple[int, int]]:
+    """Joint compatibility branch and bound (Neira & Tardos 2001, IEEE T-RA 17(6)).
+
+    Among hypotheses that pair observations with distinct landmarks, find the one
+    with the most pairings whose *joint* Mahalanobis distance
+    ``D2 = nu^T S^-1 nu`` (``nu``, ``S`` stacked over the pairings, with every
+    cross-covariance: the shared robot pose makes the innovations of one frame
+    correlated) is below the chi-square gate for its dimension (``config.gate``);
+    ties go to the smaller ``D2``. Individually compatible pairs that are not
+    jointly compatible (one tree taken for its neighbour because the pose is off)
+    are rejected together instead of one by one.
+
+    Args:
+        candidates: observation index -> individually compatible landmark ids.
+        joint: the backend's joint innovation of a hypothesis (None: not predictable).
+        config: gate probability.
+        obs_dim: rows per observation (2 for ``[bearing, range]``).
+        max_nodes: search budget; the best hypothesis found so far is returned when
+            it is spent (the search is exponential in the worst case).
+
+    Returns:
+        The best hypothesis as ``(observation index, landmark id)`` pairs.
+    """
+    obs_order = sorted(candidates, key=lambda i: len(list(candidates[i])))
+    cand = {i: list(candidates[i]) for i in obs_order}
+    best: list[tuple[int, int]] = []
+    best_d2 = math.inf
+    nodes = 0
+
+    def d2_of(hyp: list[tuple[int, int]]) -> float | None:
+        out = joint(hyp)
+        if out is None:
+            return None
+        nu, s = out
+        try:
+            return float(nu @ np.linalg.solve(s, nu))
+        except np.linalg.LinAlgError:
+            return None
+
+    def search(level: int, hyp: list[tuple[int, int]], used: set[int], d2: float) -> None:
+        nonlocal best, best_d2, nodes
+        nodes += 1
+        if nodes > max_nodes:
+            return
+        if level == len(obs_order):
+            if len(hyp) > len(best) or (len(hyp) == len(best) and d2 < best_d2):
+                best, best_d2 = list(hyp), d2
+            return
+        i = obs_order[level]
+        for lid in cand[i]:
+            if lid in used:
+                continue
+            trial = [*hyp, (i, lid)]
+            d2_t = d2_of(trial)
+            if d2_t is None or d2_t >= config.gate(obs_dim * len(trial)):
+                continue
+            used.add(lid)
+            search(level + 1, trial, used, d2_t)
+            used.discard(lid)
+        # leave observation i unpaired, if that can still beat the best
+        if len(hyp) + len(obs_order) - level - 1 >= len(best):
+            search(level + 1, hyp, used, d2)
+
+    search(0, [], set(), 0.0)
+    return best

@@ -66,8 +66,16 @@ class AssociationConfig:
             the camera, m (paper: 0-5 m; default 0.5-5.0, see
             :class:`lampsam.factors.ceiling.HeightPrior`): a Gaussian whose +-2 sigma
             spans the range is the initialisation prior (eqs. 24-25).
-        min_observations: a landmark needs this many observations to stay in the
-            map (default 2: a landmark seen once is pruned, with a warning).
+        min_observations: a landmark needs this many observations to be in the
+            map (default 2). One seen fewer times is reported apart, flagged
+            (``SlamResult.provisional``, ``flag = seen_once`` in ``landmarks.csv``)
+            unless ``prune_once_seen``.
+        joint_compatibility: without ids, planar (range-bearing) observations of a
+            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`,
+            the EKF) instead of greedy nearest neighbour (default False: on Victoria
+            Park without ids it did not prevent divergence; docs/graph-backend.md).
+        prune_once_seen: drop landmarks seen fewer than ``min_observations`` times
+            from the output altogether (default False: keep them, flagged).
         prune_after_steps: a landmark not re-observed for this many steps after
             creation, with fewer than ``min_observations`` observations or a
             position sigma above ``prune_sigma``, is removed (default 30).
@@ -99,6 +107,8 @@ class AssociationConfig:
     height_min: float = field(default=0.5, metadata=limits(ge=0.0))
     height_max: float = field(default=5.0, metadata=limits(gt=0.0))
     min_observations: int = field(default=2, metadata=limits(ge=1))
+    joint_compatibility: bool = False
+    prune_once_seen: bool = False
     prune_after_steps: int = field(default=30, metadata=limits(ge=0))
     prune_sigma: float = field(default=1.0, metadata=limits(gt=0.0))
     lamp_min_separation: float = field(default=0.1, metadata=limits(ge=0.0))

@@ -38,15 +38,24 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate, corner_budget, screen_pairs
+from lampsam.backend.association import (
+    Assignment,
+    associate,
+    corner_budget,
+    jcbb,
+    mahalanobis2,
+    screen_pairs,
+)
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
+    LandmarkKind,
     SlamBackend,
     SlamResult,
     StepEstimate,
+    log_pruned,
 )
 from lampsam.backend.models import (
     Obs,
@@ -57,10 +66,9 @@ from lampsam.backend.models import (
     predict,
     residual,
 )
-from lampsam.backend.odometry import WheelParams, check_wheel
+from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
-from lampsam.factors.motion import diff_drive_step, wheel_noise_cov
 
 log = logging.getLogger(__name__)
 
@@ -77,10 +85,14 @@ class _Slot:
     created: int
     last_seen: int
     patch: Any = None
+    sigma_meas: float = 0.0  # largest horizontal sigma one sighting gives (planar points), m
 
 
 #: Landmarks examined by the EKF's pruning per step (round robin).
 _PRUNE_CHECKS_PER_STEP = 8
+#: A planar landmark is pruned as uncertain only above this many times the sigma of
+#: one sighting (and above ``prune_sigma``).
+_PRUNE_MEAS_SIGMAS = 3.0
 #: Doomed landmarks are removed from the state in batches of this size (or this often).
 _PRUNE_BATCH = 16
 
@@ -96,7 +108,8 @@ class EkfSlam(SlamBackend):
     """EKF-SLAM of paper 1 behind the :class:`SlamBackend` interface.
 
     Args:
-        wheel: wheel base and noise constants (eq. 15).
+        odometry: the odometry model's constants (wheel, eq. 15, or Pose2
+            increments; :func:`lampsam.backend.odometry.motion_model`).
         config: the SLAM config (association, noise, EKF part).
         start_pose: (3,) known start pose ``world_T_body``.
         ceiling: the ceiling observation model (for lamps/corners), or None for
@@ -105,9 +118,9 @@ class EkfSlam(SlamBackend):
 
     name = "ekf"
 
-    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+    def __init__(self, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  ceiling: Any = None) -> None:
-        self.wheel = wheel
+        self.motion = motion_model(odometry)
         self.config = config
         self.ceiling = ceiling
         cap = 64
@@ -129,6 +142,8 @@ class EkfSlam(SlamBackend):
         self._step_times: list[float] = []
         self._keyframes: list[bool] = []
         self.n_pruned = 0
+        self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
+        self._provisional: list[LandmarkEstimate] = []
 
     # ------------------------------------------------------------------ state
     @property
@@ -152,21 +167,15 @@ class EkfSlam(SlamBackend):
 
     # ------------------------------------------------------------------ eqs. 13-15
     def predict(self, wheel: FloatArray) -> None:
-        """Prediction with the wheel travels of several odometry samples (eqs. 13-15).
+        """Prediction with several odometry samples (eqs. 13-15 for wheel travel).
 
         Args:
-            wheel: (K, 2) ``(d_left, d_right)`` per sample, m.
+            wheel: (K, m) odometry samples of the motion model (wheel: (K, 2)
+                ``(d_left, d_right)`` per sample, m).
         """
         if len(wheel) == 0:
             return
-        b, k_r, k_l = self.wheel.wheel_base, self.wheel.k_r, self.wheel.k_l
-        pose = self._x[:3].copy()
-        f_tot = np.eye(3)
-        q_acc = np.zeros((3, 3))
-        for d_left, d_right in wheel:
-            pose, f_x, f_u = diff_drive_step(pose, float(d_left), float(d_right), b)
-            q_acc = f_x @ q_acc @ f_x.T + f_u @ wheel_noise_cov(d_left, d_right, k_r, k_l) @ f_u.T
-            f_tot = f_x @ f_tot
+        pose, f_tot, q_acc = self.motion.ekf_predict(self._x[:3], wheel)
         self._cov.transform_leading(f_tot, q_acc + self.config.ekf.var_floor * np.eye(3))
         self._x[:3] = pose
 
@@ -328,6 +337,66 @@ class EkfSlam(SlamBackend):
             slot.last_seen = self._step
         return len(rows)
 
+    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment]) -> list[Assignment]:
+        """Re-pair a frame's planar observations without ids by joint compatibility (JCBB).
+
+        Candidates are the landmarks individually inside the gate (eqs. 19-20); the
+        joint innovation covariance of a hypothesis is ``H P H^T + R`` over all its
+        rows (the shared robot block correlates them). An observation JCBB leaves
+        unpaired keeps a greedy ``"new"`` (beyond the new-landmark threshold of every
+        landmark) and is otherwise dropped, so one tree is not mapped twice.
+        """
+        cfg = self.config.association
+        idx = [a.obs_index for a in assignments
+               if obs[a.obs_index].kind == LandmarkKind.POINT2 and obs[a.obs_index].landmark_id is None]
+        if not idx:
+            return assignments
+        gate = cfg.gate(2)
+        cands: dict[int, list[int]] = {}
+        for i in idx:
+            cands[i] = []
+            for lid, s in self._slots.items():
+                if s.kind != LandmarkKind.POINT2 or lid in self._doomed:
+                    continue
+                pred = self._innovation(lid, obs[i])
+                if pred is not None and mahalanobis2(*pred) < gate:
+                    cands[i].append(lid)
+        if not any(cands.values()):
+            return assignments
+        n = self._n
+        P = self._cov.dense()
+
+        def joint(hyp: list[tuple[int, int]]) -> tuple[FloatArray, FloatArray] | None:
+            k = 2 * len(hyp)
+            h = np.zeros((k, n))
+            nu = np.empty(k)
+            r = np.zeros((k, k))
+            for row, (i, lid) in enumerate(hyp):
+                slot = self._slots[lid]
+                try:
+                    z_hat, h_r, h_l = self._h(slot, obs[i])
+                except Exception:
+                    return None
+                h[2 * row : 2 * row + 2, :3] = h_r
+                h[2 * row : 2 * row + 2, slot.offset : slot.offset + slot.dim] = h_l
+                nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
+                r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
+            return nu, h @ P @ h.T + r
+
+        paired = dict(jcbb(cands, joint, cfg))
+        out = []
+        for a in assignments:
+            i = a.obs_index
+            if i not in cands:
+                out.append(a)
+            elif i in paired:
+                out.append(Assignment(i, paired[i], "matched"))
+            elif a.status == "new":
+                out.append(a)
+            else:
+                out.append(Assignment(i, None, "dropped"))
+        return out
+
     # ------------------------------------------------------------------ eqs. 24-25
     def _augment(self, obs: Obs, lid: int | None) -> int | None:
         """Add a landmark from one observation with the full cross-covariance (eqs. 24-25)."""
@@ -349,7 +418,13 @@ class EkfSlam(SlamBackend):
             lid = self._new_id()
         else:
             self._next_id = max(self._next_id, lid + 1)
-        self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch)
+        # A planar landmark's first-sight measurement-only sigma scales the prune
+        # threshold (a sparse outdoor map's landmarks are metres uncertain by nature);
+        # ceiling landmarks keep the fixed ``prune_sigma``.
+        sigma_meas = (_max_sigma_2x2((g_z @ cov_z @ g_z.T)[:2, :2])
+                      if obs.kind == LandmarkKind.POINT2 else 0.0)
+        self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
+                                 sigma_meas)
         self._prune_queue.append(lid)
         self._n = n + d
         return lid
@@ -396,14 +471,19 @@ class EkfSlam(SlamBackend):
                 continue
             idle = self._step - s.last_seen
             age = self._step - s.created
-            drop = False
+            drop = ""
             if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
-                drop = True
+                drop = "seen_too_few"
+                if not cfg.prune_once_seen:
+                    self._provisional.append(self._estimate(s))
             elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
                 cov = self._cov.block(s.offset, s.offset + 2, s.offset, s.offset + 2)
-                drop = _max_sigma_2x2(cov) > cfg.prune_sigma
+                too_wide = _max_sigma_2x2(cov) > max(cfg.prune_sigma,
+                                                     _PRUNE_MEAS_SIGMAS * s.sigma_meas)
+                drop = "uncertain" if too_wide else ""
             if drop:
                 self._doomed.add(lid)
+                self.pruned[drop] = self.pruned.get(drop, 0) + 1
             else:
                 self._prune_queue.append(lid)
         if self._doomed and (len(self._doomed) >= _PRUNE_BATCH
@@ -419,7 +499,7 @@ class EkfSlam(SlamBackend):
         if t < self._last_t:
             raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
         self._last_t = t
-        self.predict(check_wheel(t, wheel))
+        self.predict(self.motion.check(t, wheel))
         n_matched = n_new = 0
         if frame is not None:
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
@@ -431,6 +511,8 @@ class EkfSlam(SlamBackend):
                 assignments = associate(obs, cands, self._innovation,
                                         self.config.association, lambda i: i in self._slots,
                                         patches, screened)
+                if self.config.association.joint_compatibility:
+                    assignments = self._joint_point2(obs, assignments)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
@@ -458,34 +540,41 @@ class EkfSlam(SlamBackend):
         self._keyframes.append(n_matched + n_new > 0)
         return StepEstimate(t, pose, cov, n_matched + n_new > 0, n_matched, n_new, dt)
 
+    def _estimate(self, s: _Slot) -> LandmarkEstimate:
+        """The current estimate of one landmark in the state."""
+        st = self._x[s.offset : s.offset + s.dim].copy()
+        cov = self._cov.block(s.offset, s.offset + s.dim, s.offset, s.offset + s.dim)
+        return landmark_estimate(s.id, s.kind, st, cov, s.n_obs, self.ceiling)
+
     def landmarks(self) -> list[LandmarkEstimate]:
         """The current map (landmarks with at least ``min_observations`` observations)."""
-        out = []
-        for s in self._slots.values():
-            if s.n_obs < self.config.association.min_observations:
-                continue
-            st = self._x[s.offset : s.offset + s.dim].copy()
-            cov = self._cov.block(s.offset, s.offset + s.dim, s.offset, s.offset + s.dim)
-            out.append(landmark_estimate(s.id, s.kind, st, cov, s.n_obs, self.ceiling))
-        return out
+        return [self._estimate(s) for s in self._slots.values()
+                if s.n_obs >= self.config.association.min_observations]
 
     def finish(self, status: str = "ok") -> SlamResult:
-        """See :meth:`SlamBackend.finish`; landmarks seen once are pruned with a warning."""
+        """See :meth:`SlamBackend.finish`; landmarks seen fewer than ``min_observations``
+        times are reported apart, flagged (``SlamResult.provisional``), unless
+        ``association.prune_once_seen``."""
+        cfg = self.config.association
         once = [lid for lid, s in self._slots.items()
-                if s.n_obs < self.config.association.min_observations]
+                if s.n_obs < cfg.min_observations and lid not in self._doomed]
         if once:
-            log.warning("%d landmarks seen fewer than %d times were pruned", len(once),
-                        self.config.association.min_observations)
+            self.pruned["seen_too_few"] = self.pruned.get("seen_too_few", 0) + len(once)
+            if not cfg.prune_once_seen:
+                self._provisional.extend(self._estimate(self._slots[lid]) for lid in once)
         self._remove(sorted(set(once) | self._doomed))
         self._doomed.clear()
+        log_pruned(self.n_pruned, self.pruned, self.config.association.min_observations)
         return SlamResult(
             backend=self.name,
             times=np.asarray(self._times, float),
             poses=np.asarray(self._poses, float).reshape(-1, 3),
             pose_covs=np.asarray(self._covs, float).reshape(-1, 3, 3),
             landmarks=self.landmarks(),
+            provisional=list(self._provisional),
             step_times_s=np.asarray(self._step_times, float),
             keyframes=np.asarray(self._keyframes, bool),
             status=status,
             n_pruned=self.n_pruned,
+            pruned=dict(self.pruned),
         )

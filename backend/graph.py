@@ -4,8 +4,9 @@ Both build the same graph (DESIGN sec. 4; paper 1's models in a smoother):
 
 - keyframe poses ``X(k)`` (``Pose2``), a prior on the known start pose;
 - odometry ``BetweenFactorPose2`` between consecutive keyframes, its covariance the
-  wheel noise propagated through eqs. 13-15
-  (:func:`lampsam.factors.motion.accumulate_odometry`, with its floor);
+  odometry model's noise composed over the samples between them
+  (:mod:`lampsam.backend.odometry`: wheel travel, eqs. 13-15, or Pose2 increments)
+  plus ``Isam2Config.odometry_floor_var``;
 - measurement factors built by a per-kind landmark handler
   (:class:`lampsam.backend.handlers.LandmarkHandler`: planar range-bearing with
   GTSAM's built-in ``BearingRangeFactor2D``; lamps and corners with
@@ -73,11 +74,10 @@ from lampsam.backend.models import (
     landmark_estimate,
     observations_from_frame,
 )
-from lampsam.backend.odometry import WheelParams, check_wheel
+from lampsam.backend.odometry import OdometryConstants
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
 from lampsam.errors import EstimationError
 from lampsam.factors.gtsam_factors import odometry_factor
-from lampsam.factors.motion import accumulate_odometry
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
     """The iSAM2 and batch backends' common pass (see module docstring).
 
     Args:
-        wheel: wheel base and noise constants (eq. 15).
+        odometry: the odometry model's constants (wheel or Pose2 increments).
         config: the SLAM config.
         start_pose: (3,) known start pose ``world_T_body``, m and rad.
         ceiling: the ceiling observation model (lamps/corners), or None.
@@ -100,10 +100,10 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
 
     name = "graph"
 
-    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+    def __init__(self, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  ceiling: CeilingModel | None = None,
                  ceiling_handler: LandmarkHandler | None = None, online: bool = True) -> None:
-        super().__init__(wheel, config, start_pose, ceiling, ceiling_handler, online)
+        super().__init__(odometry, config, start_pose, ceiling, ceiling_handler, online)
         self._flush()
 
     # ------------------------------------------------------------------ keyframe
@@ -111,10 +111,9 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         """Add a keyframe with its odometry factor and the frame's observations."""
         pose, pose_cov = self.current()
         gate_ctx = (self._k, pose, self._delta.copy(), self._delta_cov.copy())
-        wheel = np.concatenate(self._wheel_since_kf) if self._wheel_since_kf else np.zeros((0, 2))
-        w = self.wheel
-        delta, cov = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
-                                         self.config.isam2.odometry_floor_var)
+        u = (np.concatenate(self._wheel_since_kf) if self._wheel_since_kf
+             else np.zeros((0, self.motion.width)))
+        delta, cov = self.motion.relative(u, self.config.isam2.odometry_floor_var)
         k = self._k + 1
         self._add_value(X(k), gtsam.Pose2(*pose))
         self._add_factor(odometry_factor(X(k - 1), X(k), delta, cov))
@@ -164,20 +163,18 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         return n_matched, n_new
 
     # ------------------------------------------------------------------ interface
-    def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
+    def step(self, t: float, odometry: FloatArray, frame: Frame | None) -> StepEstimate:
         """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal."""
         t0 = time.perf_counter()
         if t < self._last_t:
             raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
         self._last_t = t
-        wheel = check_wheel(t, wheel)
-        if len(wheel):
-            w = self.wheel
-            d, c = accumulate_odometry(wheel[:, 0], wheel[:, 1], w.wheel_base, w.k_r, w.k_l,
-                                       _STEP_FLOOR)
+        u = self.motion.check(t, odometry)
+        if len(u):
+            d, c = self.motion.relative(u, _STEP_FLOOR)
             self._delta_cov = compose_cov(d, self._delta_cov, c)
             self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
-            self._wheel_since_kf.append(wheel)
+            self._wheel_since_kf.append(u)
         n_matched = n_new = 0
         is_kf = False
         if frame is not None:
@@ -197,20 +194,26 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         self._keyframes.append(is_kf)
         return StepEstimate(t, pose, tangent_to_coords_cov(pose, cov), is_kf, n_matched, n_new, dt)
 
-    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
-        """Final estimate and a marginal-covariance function (subclasses)."""
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
+        """Final estimate, a marginal-covariance function, and why the estimate is the
+        online smoother's instead of the final optimisation's (None when it is not)."""
         raise NotImplementedError
 
     def finish(self, status: str = "ok") -> SlamResult:
         """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
         pruned = set(self._prune_once_seen())
         t0 = time.perf_counter()
+        source = self.name
         try:
-            values, marginal = self._final_values()
+            values, marginal, fallback = self._final_values()
         except (RuntimeError, EstimationError) as exc:  # a broken graph: keep the online poses
             log.error("final optimisation failed (%s): keeping the online estimates", exc)
-            values, marginal = self.initial, None
+            values, marginal, fallback = self.initial, None, None
             status = status if status.startswith("failed") else f"failed: {exc}"
+        if fallback is not None:  # the result is the online smoother's: say so
+            source = "isam2"
+            if status == "ok":
+                status = f"final optimisation failed: {fallback}"
         final_time = time.perf_counter() - t0
         n_kf = self._k + 1
         kf_pose = np.array([pose_array(values.atPose2(X(k))) if values.exists(X(k))
@@ -237,8 +240,9 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             covs[i] = tangent_to_coords_cov(p, c)
 
         lms: list[LandmarkEstimate] = []
+        provisional: list[LandmarkEstimate] = []
         for lm in self._landmarks.values():
-            if not lm.in_graph or lm.id in pruned:
+            if not lm.in_graph or (lm.id in pruned and self.config.association.prune_once_seen):
                 continue
             handler = self.handlers[lm.kind]
             if not all(values.exists(key) for key in handler.keys(lm)):
@@ -250,19 +254,22 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                     cov = handler.marginal(lm, marginal)
                 except (RuntimeError, IndexError):
                     pass
-            lms.append(landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling))
+            est = landmark_estimate(lm.id, lm.kind, state, cov, lm.n_obs, self.ceiling)
+            (provisional if lm.id in pruned else lms).append(est)
         return SlamResult(
-            backend=self.name,
+            backend=source,
             times=np.asarray(self._times, float),
             poses=poses,
             pose_covs=covs,
             landmarks=lms,
+            provisional=provisional,
             step_times_s=np.asarray(self._step_times, float),
             keyframes=np.asarray(self._keyframes, bool),
             status=status,
             final_time_s=final_time,
             n_pruned=self.n_pruned,
-            extra={"n_keyframes": float(n_kf),
+            pruned=dict(self.pruned),
+            extra={"n_recoveries": float(self.n_recoveries),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
                    "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)
@@ -277,14 +284,14 @@ class Isam2Slam(GraphSlam):
 
     name = "isam2"
 
-    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+    def __init__(self, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  ceiling: CeilingModel | None = None,
                  ceiling_handler: LandmarkHandler | None = None) -> None:
-        super().__init__(wheel, config, start_pose, ceiling, ceiling_handler, online=True)
+        super().__init__(odometry, config, start_pose, ceiling, ceiling_handler, online=True)
 
-    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         assert self.isam is not None
-        return self.isam.calculateEstimate(), self.isam.marginalCovariance
+        return self.isam.calculateEstimate(), self.isam.marginalCovariance, None
 
 
 class BatchSlam(GraphSlam):
@@ -292,15 +299,15 @@ class BatchSlam(GraphSlam):
 
     name = "batch"
 
-    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+    def __init__(self, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  ceiling: CeilingModel | None = None,
                  ceiling_handler: LandmarkHandler | None = None) -> None:
         if config.batch.init not in ("isam2", "odometry"):
             raise EstimationError(f"batch.init must be 'isam2' or 'odometry', got {config.batch.init!r}")
-        super().__init__(wheel, config, start_pose, ceiling, ceiling_handler,
+        super().__init__(odometry, config, start_pose, ceiling, ceiling_handler,
                          online=config.batch.init == "isam2")
 
-    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None]:
+    def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         start = self.isam.calculateEstimate() if self.isam is not None else self.initial
         try:
             opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
@@ -309,14 +316,14 @@ class BatchSlam(GraphSlam):
             if self.isam is None:
                 raise EstimationError(f"batch LM failed: {exc}") from exc
             # e.g. a trial step put a landmark below the camera: keep the online smoother's
-            log.warning("batch LM failed (%s: %s): keeping the iSAM2 estimate",
-                        type(exc).__name__, str(exc).strip()[:120])
-            return start, self.isam.marginalCovariance
+            reason = f"batch LM: {type(exc).__name__}: {str(exc).strip()[:120]}"
+            log.error("%s: the result is the online iSAM2 estimate, labelled isam2", reason)
+            return start, self.isam.marginalCovariance, reason
         log.info("batch LM: error %.4g -> %.4g in %d iterations",
                  self.graph.error(start), self.graph.error(result), opt.iterations())
         try:
             marginals = gtsam.Marginals(self.graph, result)
-            return result, marginals.marginalCovariance
+            return result, marginals.marginalCovariance, None
         except RuntimeError as exc:
             log.warning("batch marginals unavailable: %s", exc)
-            return result, None
+            return result, None, None

@@ -36,7 +36,7 @@ from lampsam.backend.handlers import (
     value_of_kind,
 )
 from lampsam.backend.interface import LandmarkKind, SlamBackend
-from lampsam.backend.odometry import WheelParams
+from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.backend.pose_cov import compose_cov, pose_array
 from lampsam.errors import EstimationError
 
@@ -45,7 +45,8 @@ class GraphState(SlamBackend):
     """State and graph-building primitives shared by the smoother's parts.
 
     Args:
-        wheel: wheel base and noise constants (eq. 15).
+        odometry: the odometry model's constants (wheel or Pose2 increments;
+            :func:`lampsam.backend.odometry.motion_model`).
         config: the SLAM config.
         start_pose: (3,) known start pose ``world_T_body``, m and rad.
         ceiling: the ceiling observation model (lamps/corners), or None.
@@ -53,10 +54,10 @@ class GraphState(SlamBackend):
         online: keep an iSAM2 estimate (True) or only odometry (False).
     """
 
-    def __init__(self, wheel: WheelParams, config: SlamConfig, start_pose: FloatArray,
+    def __init__(self, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  ceiling: CeilingModel | None = None,
                  ceiling_handler: LandmarkHandler | None = None, online: bool = True) -> None:
-        self.wheel = wheel
+        self.motion = motion_model(odometry)
         self.config = config
         self.ceiling = ceiling
         self.handlers: dict[LandmarkKind, LandmarkHandler] = {LandmarkKind.POINT2: Point2Handler()}
@@ -97,6 +98,7 @@ class GraphState(SlamBackend):
         self.update_times: list[float] = []  # iSAM2 update() per keyframe, s
         self.estimate_times: list[float] = []  # then the pose estimate + marginal, s
         self.n_pruned = 0
+        self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self.n_recoveries = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import logging
 from dataclasses import dataclass, field
 from typing import TypeAlias
 
@@ -107,11 +108,17 @@ class SlamResult:
             marginal propagated with odometry in between.
         landmarks: the final map.
         step_times_s: (N,) wall-clock time of each online step, s.
-        keyframes: (N,) True where a keyframe was made.
+        keyframes: (N,) True where a keyframe was made (the start pose, a keyframe of
+            the smoothers' graphs made before any step, is not counted).
         status: ``"ok"``, ``"interrupted"`` or ``"failed: <reason>"``.
         final_time_s: time of the final optimisation in :meth:`SlamBackend.finish`
             (batch LM), s.
         n_pruned: landmarks removed (uncertain, or seen only once).
+        pruned: the same count by reason (``seen_too_few``, ``uncertain``,
+            ``pending_stale``, ``failed_update``); its values sum to ``n_pruned``.
+        provisional: landmarks seen fewer than ``association.min_observations``
+            times: not in ``landmarks`` (nor in its metrics), written flagged
+            ``seen_once``; empty with ``association.prune_once_seen``.
     """
 
     backend: str
@@ -124,7 +131,9 @@ class SlamResult:
     status: str = "ok"
     final_time_s: float = 0.0
     n_pruned: int = 0
+    pruned: dict[str, int] = field(default_factory=dict)
     extra: dict[str, float] = field(default_factory=dict)
+    provisional: list[LandmarkEstimate] = field(default_factory=list)
 
 
 class SlamBackend(abc.ABC):
@@ -175,3 +184,22 @@ def empty_result(backend: str, status: str) -> SlamResult:
         keyframes=np.zeros(0, dtype=bool),
         status=status,
     )
+
+
+PRUNE_REASONS = {
+    "seen_too_few": "seen fewer than {min_obs} times",
+    "uncertain": "still uncertain when no longer seen",
+    "pending_stale": "corners never placed (too few sightings with parallax)",
+    "failed_update": "dropped with a failed iSAM2 update",
+}
+"""What each key of :attr:`SlamResult.pruned` means (the finish log line uses these words)."""
+
+
+def log_pruned(total: int, by_reason: dict[str, int], min_obs: int) -> None:
+    """One warning giving the pruned-landmark count of ``summary.json`` and its breakdown."""
+    if total <= 0:
+        return
+    parts = [f"{n} {PRUNE_REASONS.get(k, k).format(min_obs=min_obs)}"
+             for k, n in sorted(by_reason.items()) if n]
+    logging.getLogger("lampsam.backend").warning(
+        "%d landmarks pruned from the map: %s", total, "; ".join(parts))

@@ -90,6 +90,7 @@ class Isam2Updates(GraphState):
             lm = self._landmarks.pop(lid)
             removed_keys.update(self.handlers[lm.kind].keys(lm))
             self.n_pruned += 1
+            self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
         graph = gtsam.NonlinearFactorGraph()
         for i in range(self.graph.size()):
             f = self.graph.at(i)

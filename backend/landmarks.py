@@ -24,7 +24,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark, GraphValue
-from lampsam.backend.interface import LandmarkKind
+from lampsam.backend.interface import LandmarkKind, log_pruned
 from lampsam.backend.models import Obs, initialize
 from lampsam.errors import EstimationError
 
@@ -141,6 +141,8 @@ class LandmarkLifecycle(GraphState):
         for lid in stale:
             del self._landmarks[lid]
         self.n_pruned += len(stale)
+        if stale:
+            self.pruned["pending_stale"] = self.pruned.get("pending_stale", 0) + len(stale)
 
     def _observe(self, lm: GraphLandmark, k: int, obs: Obs) -> None:
         lm.n_obs += 1
@@ -199,17 +201,19 @@ class LandmarkLifecycle(GraphState):
         lm.in_graph = True
 
     def _prune_once_seen(self) -> list[int]:
-        """Landmarks with fewer than ``min_observations`` observations (left out of the map).
+        """Landmarks with fewer than ``min_observations`` observations (not in the map).
 
         Their variables stay in the graph (a range-bearing sight, or a ceiling sight
-        with the height prior, determines them), but they are not reported.
+        with the height prior, determines them); they are reported apart, flagged
+        (:attr:`~lampsam.backend.interface.SlamResult.provisional`), unless
+        ``association.prune_once_seen``.
         """
         cfg = self.config.association
         drop = [lid for lid, lm in self._landmarks.items() if lm.n_obs < cfg.min_observations]
-        if drop:
-            log.warning("%d landmarks seen fewer than %d times were pruned from the map",
-                        len(drop), cfg.min_observations)
         self.n_pruned += len(drop)
+        if drop:
+            self.pruned["seen_too_few"] = self.pruned.get("seen_too_few", 0) + len(drop)
+        log_pruned(self.n_pruned, self.pruned, cfg.min_observations)
         return drop
 
 

@@ -72,7 +72,8 @@ def observations_from_frame(
     Args:
         frame: the frame.
         features: subset of ``("lamps", "corners")``.
-        noise: noise of range-bearing observations and the lamp-axis variance floor.
+        noise: default noise of range-bearing observations (an observation's own
+            ``cov`` replaces it) and the lamp-axis variance floor.
 
     Returns:
         The observations, in frame order.
@@ -83,7 +84,9 @@ def observations_from_frame(
         for o in frame.observations:
             if not (math.isfinite(o.range) and math.isfinite(o.bearing)) or o.range <= 0:
                 continue
-            out.append(Obs(LandmarkKind.POINT2, np.array([o.bearing, o.range]), r, o.landmark_id))
+            r_o = r if o.cov is None else np.asarray(o.cov, float)
+            out.append(Obs(LandmarkKind.POINT2, np.array([o.bearing, o.range]), r_o,
+                           o.landmark_id))
         return out
     if "lamps" in features:
         for lamp in frame.lamps:

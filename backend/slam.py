@@ -6,9 +6,11 @@ projections, or the run's range-bearing log), merges them with the wheel odometr
 into time-ordered steps, feeds a backend and writes:
 
 - ``OUT/trajectory.tum``: the estimated pose at every step (TUM, the run's clock);
-- ``OUT/landmarks.csv``: ``id, type, x, y, z, phi, n_obs`` and the covariance
+- ``OUT/landmarks.csv``: ``id, type, x, y, z, phi, n_obs``, the covariance
   entries (``cov_xx, cov_xy, cov_xz, cov_yy, cov_yz, cov_zz, var_phi``; NaN where a
-  landmark kind has no such coordinate);
+  landmark kind has no such coordinate) and ``flag`` (``seen_once`` for landmarks
+  seen fewer than ``association.min_observations`` times, kept unless
+  ``association.prune_once_seen``);
 - ``OUT/summary.json``: counts, per-step time (median / p95 / max), total time and,
   when the run has ground truth, position and heading errors (RMS, max) with no
   alignment (the start pose is known).
@@ -40,7 +42,8 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate, empty_result
-from lampsam.backend.odometry import WheelParams
+from lampsam.backend.odometry import OdometryConstants
+from lampsam.datasets.graph_text import GraphLog
 from lampsam.datasets.logrun import (
     CameraModel,
     LoggedRun,
@@ -50,6 +53,7 @@ from lampsam.datasets.logrun import (
     read_run,
     write_tum,
 )
+from lampsam.datasets.odometry import Pose2OdometryLog, Pose2OdometryModel
 from lampsam.errors import EstimationError, LampsamError
 from lampsam.factors.geometry import wrap_angle, wrap_axis
 from lampsam.frontend.measurements import (
@@ -60,6 +64,7 @@ from lampsam.frontend.measurements import (
     RangeBearingObservation,
 )
 from lampsam.interrupt import interruptible
+from lampsam.observe import emit
 from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -68,13 +73,14 @@ BACKENDS = ("ekf", "isam2", "batch")
 FRAME_SOURCES = ("auto", "images", "truth", "rangebearing")
 
 
-def make_backend(name: str, odometry: WheelParams, config: SlamConfig, start_pose: FloatArray,
+def make_backend(name: str, odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
                  camera: CameraModel | None = None) -> SlamBackend:
     """Construct a backend by name.
 
     Args:
         name: ``"ekf"``, ``"isam2"`` or ``"batch"``.
-        odometry: the odometry model's constants (e.g. ``run.rig.odometry``).
+        odometry: the odometry model's constants: ``run.rig.odometry`` (wheel) or a
+            :class:`~lampsam.datasets.odometry.Pose2OdometryModel`.
         config: the SLAM config.
         start_pose: (3,) known start pose ``world_T_body``, m and rad.
         camera: the upward camera for ceiling frames (builds the ceiling observation
@@ -191,7 +197,7 @@ def frames_from_projections(run: LoggedRun, sigma_px: float, rng: np.random.Gene
     return frames
 
 
-def iter_steps(odometry: OdometryLog, frames: Iterable[Frame], max_dt: float = 0.5
+def iter_steps(odometry: OdometryLog | Pose2OdometryLog, frames: Iterable[Frame], max_dt: float = 0.5
                ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
     """Merge odometry and frames into time-ordered steps.
 
@@ -200,18 +206,20 @@ def iter_steps(odometry: OdometryLog, frames: Iterable[Frame], max_dt: float = 0
     least every ``max_dt`` seconds of odometry; the last odometry makes a final step.
 
     Args:
-        odometry: wheel odometry (``t``, ``d_left``, ``d_right``).
+        odometry: wheel odometry (``t``, ``d_left``, ``d_right``) or Pose2 increments.
         frames: frames in time order.
         max_dt: longest interval without a step, s.
 
     Yields:
-        ``(t, wheel (K, 2) (d_left, d_right), frame or None)``.
+        ``(t, samples (K, m), frame or None)``: wheel travel ``(d_left, d_right)``
+        (m = 2) or Pose2 increments (m = 12, :meth:`Pose2OdometryLog.samples`).
 
     Raises:
         EstimationError: frames going back in time.
     """
     t_odo = odometry.t
-    wheel = np.column_stack([odometry.d_left, odometry.d_right])
+    wheel = (odometry.samples() if isinstance(odometry, Pose2OdometryLog)
+             else np.column_stack([odometry.d_left, odometry.d_right]))
     n = len(t_odo)
     i = 0
     last_t = float(t_odo[0]) if n else -math.inf
@@ -308,7 +316,9 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
     try:
         for t, wheel, frame in interruptible(steps):
             t_step = t
-            online.append(backend.step(t, wheel, frame))
+            estimate = backend.step(t, wheel, frame)
+            online.append(estimate)
+            emit("slam.step", t=t, frame=frame, estimate=estimate, backend=backend)
     except KeyboardInterrupt as exc:  # SIGINT or SIGTERM (lampsam.interrupt), between steps
         status = "interrupted"
         log.warning("interrupted (%s): writing the %d steps finished so far",
@@ -323,7 +333,9 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
                   "the steps finished so far are kept", where, type(exc).__name__, exc)
         log.debug("traceback", exc_info=True)
     try:
-        return backend.finish(status)
+        result = backend.finish(status)
+        emit("slam.finish", result=result)
+        return result
     except (KeyboardInterrupt, Exception) as exc:  # keep the online estimate, say what it is
         reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
         source = online_source(backend)
@@ -402,7 +414,9 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
     frame_list, is_ceiling = make_frames(run, frames)
     start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
-    be = make_backend(backend, run.rig.odometry, config, start,
+    odo_model = (Pose2OdometryModel() if isinstance(run.odometry, Pose2OdometryLog)
+                 else run.rig.odometry)
+    be = make_backend(backend, odo_model, config, start,
                       run.rig.camera if is_ceiling else None)
     t0 = time.perf_counter()
     result = drive(be, iter_steps(run.odometry, frame_list, max_dt))
@@ -423,13 +437,16 @@ def write_trajectory(path: Path, result: SlamResult) -> None:
 
 
 def write_landmarks(path: Path, result: SlamResult) -> None:
-    """Write the map: ``id, type, x, y, z, phi, n_obs`` and covariance entries."""
+    """Write the map: ``id, type, x, y, z, phi, n_obs``, covariance entries and ``flag``
+    (empty, or ``seen_once`` for :attr:`SlamResult.provisional` landmarks)."""
     header = ["id", "type", "x", "y", "z", "phi", "n_obs",
-              "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz", "var_phi"]
+              "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz", "var_phi", "flag"]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
-        for lm in result.landmarks:
+        flagged = [(lm, "") for lm in result.landmarks] + [(lm, "seen_once")
+                                                          for lm in result.provisional]
+        for lm, flag in flagged:
             c = np.full((4, 4), np.nan)
             k = lm.cov.shape[0]
             c[:k, :k] = lm.cov
@@ -437,7 +454,7 @@ def write_landmarks(path: Path, result: SlamResult) -> None:
             vals = [*lm.position, phi, c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2],
                     c[3, 3] if k == 4 else float("nan")]
             w.writerow([lm.id, lm.type, *(f"{v:.6g}" for v in vals[:4]), lm.n_obs,
-                        *(f"{v:.6g}" for v in vals[4:])])
+                        *(f"{v:.6g}" for v in vals[4:]), flag])
 
 
 def errors_vs_truth(result: SlamResult, truth: Trajectory) -> tuple[FloatArray, FloatArray]:
@@ -469,6 +486,8 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
         "keyframes": int(result.keyframes.sum()),
         "landmarks": len(result.landmarks),
         "landmarks_pruned": int(result.n_pruned),
+        "landmarks_pruned_by_reason": {k: int(v) for k, v in sorted(result.pruned.items())},
+        "landmarks_seen_once": len(result.provisional),
         "time_per_frame_ms": {
             "median": float(np.median(frames_ms)) if len(frames_ms) else None,
             "p95": float(np.percentile(frames_ms, 95)) if len(frames_ms) else None,
@@ -502,11 +521,59 @@ def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
         write_trajectory(tmp, result)
     with atomic_path(out / "landmarks.csv") as tmp:
         write_landmarks(tmp, result)
-    write_json_atomic(out / "summary.json", summary(result, run.groundtruth), default=_json_default)
+    write_json_atomic(out / "summary.json", summary(result, run.groundtruth))
     log.info("results written to %s", out)
 
 
-def _json_default(x: object) -> object:
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(type(x))
+
+# --------------------------------------------------------------------------- graph text logs
+def graph_log_steps(graph_log: GraphLog, known_ids: bool = True
+                    ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
+    """One step per pose of a graph text log: its odometry sample and its sightings.
+
+    Args:
+        graph_log: the log (:func:`lampsam.datasets.graph_text.read_graph_text`).
+        known_ids: keep the file's landmark ids (False: association by the backend).
+
+    Yields:
+        ``(t, samples (1, 12), frame or None)``; each sighting carries its own
+        ``[bearing, range]`` covariance.
+    """
+    samples = graph_log.odometry.samples()
+    for k, t in enumerate(graph_log.odometry.t):
+        obs = tuple(RangeBearingObservation(s.range, float(wrap_angle(s.bearing)),
+                                            s.landmark if known_ids else None, s.cov)
+                    for s in graph_log.sightings[k])
+        frame = RangeBearingFrame(float(t), obs) if obs else None
+        yield float(t), samples[k : k + 1], frame
+
+
+def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfig | None = None,
+                  known_ids: bool = True, odometry_model: Pose2OdometryModel | None = None,
+                  start_pose: FloatArray | None = None) -> SlamResult:
+    """Run one backend over a graph text log, one step per pose.
+
+    Args:
+        graph_log: the log.
+        backend: ``"ekf"``, ``"isam2"`` or ``"batch"``.
+        config: the SLAM config (defaults when None); keyframes are made at every
+            pose with sightings (``isam2.every_frame``), as in the file's graph.
+        known_ids: use the file's landmark ids; False associates by the backend's gate.
+        odometry_model: floor (and default noise) of the Pose2 odometry.
+        start_pose: (3,) start pose; None: the first pose's vertex, else the origin.
+
+    Returns:
+        The result; ``extra`` has ``total_time_s``.
+    """
+    import dataclasses
+
+    config = config or SlamConfig()
+    config = dataclasses.replace(
+        config, isam2=dataclasses.replace(config.isam2, every_frame=True),
+        association=dataclasses.replace(config.association, use_known_ids=known_ids))
+    start = graph_log.start_pose() if start_pose is None else np.asarray(start_pose, float)
+    be = make_backend(backend, odometry_model or Pose2OdometryModel(), config, start)
+    t0 = time.perf_counter()
+    result = drive(be, graph_log_steps(graph_log, known_ids))
+    result.extra["total_time_s"] = time.perf_counter() - t0
+    return result

@@ -47,6 +47,7 @@ from lampsam.factors.stereo import (
     two_point_factor,
     two_point_measurement,
 )
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
 
@@ -528,6 +529,9 @@ def estimate(
         t0 = time.perf_counter()
         steps = batch_smoother(run, cfg)
         times[:] = (time.perf_counter() - t0) / max(n, 1)
+        for k, s in enumerate(steps):  # a smoother's result exists only at the end
+            emit("stereo.step", k=k, t=float(run.t[k]), estimator=estimator, step=s,
+                 time_s=times[k])
     elif estimator in ("raw", "ekf", "isam2"):
         est: RawEstimator | StereoEkf | StereoIsam2
         if estimator == "raw":
@@ -541,6 +545,8 @@ def estimate(
             t0 = time.perf_counter()
             steps.append(est.step(k))
             times[k] = time.perf_counter() - t0
+            emit("stereo.step", k=k, t=float(run.t[k]), estimator=estimator, step=steps[-1],
+                 time_s=times[k])
     else:
         raise EstimationError(f"unknown estimator {estimator!r}; choose one of {ESTIMATORS}")
     poses = np.array([s.pose for s in steps]).reshape(n, 3)

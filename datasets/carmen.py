@@ -1,24 +1,43 @@
-"""Reader for CARMEN laser logs (the Intel Research Lab log, ``intel-corrected.log.gz``).
+"""Reader for CARMEN laser logs (the Intel Research Lab log and logs of other buildings).
 
 Lines used (CARMEN logger format, whitespace separated; ``#`` lines are comments):
 
 - ``FLASER n r_0 .. r_{n-1} x y theta odom_x odom_y odom_theta timestamp host logger_ts``:
   a front laser scan of ``n`` beams (metres); ``(x, y, theta)`` the laser pose in
   the world (in the ``-corrected`` logs: the SLAM-corrected pose, the pseudo ground
-  truth), ``odom_*`` the odometry pose (identical to the corrected pose in this log,
-  so odometry must be simulated).
-- ``ODOM x y theta tv rv accel timestamp host logger_ts`` (all zero in this log).
-- Other message types (``PARAM``, ``NEFF``, ...) are ignored.
+  truth), ``odom_*`` the robot's odometry pose.
+- ``ROBOTLASER1 laser_type start_angle fov angular_resolution max_range accuracy
+  remission_mode n r_0 .. r_{n-1} n_rem rem_0 .. rem_{n_rem-1} laser_x laser_y
+  laser_theta robot_x robot_y robot_theta tv rv forward_safety side_safety turn_axis
+  timestamp host logger_ts``: the newer front-laser message, which carries its own
+  geometry (angles in rad, ranges in metres).
+- ``ODOM x y theta tv rv accel timestamp host logger_ts`` (all zero in the Intel log).
+- Other message types (``PARAM``, ``NEFF``, ``RAWLASER*``, ...) are ignored. A log with
+  both FLASER and ROBOTLASER1 lines is read from its ROBOTLASER1 lines (they say
+  their geometry; the FLASER lines of such logs repeat the same scans).
 
-Beam angles: CARMEN's front laser (SICK LMS) with 180 beams covers 180 deg with
-1 deg steps, from the right to the left of the robot:
-``angle_i = -pi/2 + i * pi/180`` in the laser frame (CCW from forward, i = 0..179).
-This was checked against the data: the scans drawn at the corrected poses with
-this convention give the sharpest walls (tests/test_carmen.py), and reversing
-the beam order or spreading 180 beams over 179 deg blurs them.
+Beam angles, in the laser frame (rad, CCW from forward, first beam on the right):
 
-Readings at or above ``max_range`` (81.83 m in the Intel log) are "no return".
-The laser sits at the robot's rotation centre (``robot_frontlaser_offset 0.0``).
+- ROBOTLASER1: ``start_angle + i * angular_resolution`` as the message says.
+- FLASER carries only the beam count; the scanner is a SICK LMS covering 180 deg
+  from the right: ``-pi/2 + i * step`` with ``step = pi / n`` for an even count
+  (180 beams: 1 deg, -90..89 deg; 360: 0.5 deg) and ``step = pi / (n - 1)`` for an
+  odd count (181: 1 deg and 361: 0.5 deg, both ends included)
+  (:func:`flaser_beam_angles`). The 180-beam convention gives the sharpest walls on
+  the Intel log (tests/test_carmen.py); reversing the beam order blurs them.
+
+Time stamps: the scans keep the file order. Real logs of other buildings print the
+time with 6 significant digits (``1.13486e+09`` on every scan) or write 0, so the
+stamps cannot order the scans; :func:`derive_scan_times` then takes the logger's
+stamps when they increase, else spreads equal stamps evenly between distinct
+values, else counts scans at a nominal rate, and the reader logs ONE warning that
+says which. A scan stamped earlier than a previous one is dropped (or, with
+``strict_time``, an error).
+
+Readings at or above ``max_range`` are "no return" (80 m for FLASER, below the SICK's
+81.83 m "no return" value in the Intel log; ROBOTLASER1's own ``max_range``).
+The laser sits at the robot's rotation centre in the Intel log
+(``robot_frontlaser_offset 0.0``).
 """
 
 from __future__ import annotations
@@ -38,6 +57,8 @@ log = logging.getLogger(__name__)
 
 #: Ranges at or above this are the SICK scanner's "no return" value in the Intel log, m.
 INTEL_MAX_RANGE = 80.0
+#: Scan rate assumed when a log has no usable time stamps at all, Hz.
+NOMINAL_SCAN_RATE_HZ = 5.0
 
 
 @dataclass(frozen=True)
@@ -45,14 +66,18 @@ class LaserScans:
     """Planar laser scans with their poses.
 
     Attributes:
-        t: (N,) timestamps, s, strictly increasing.
+        t: (N,) times, s, strictly increasing (derived when the log's stamps are
+            coarse or zero: ``time_source``).
         ranges: (N, B) ranges, metres (``>= max_range`` = no return).
         angles: (B,) beam angles in the laser frame, rad, CCW from forward.
         poses: (N, 3) world pose ``(x, y, theta)`` of the laser at each scan
             (SLAM-corrected in the ``-corrected`` logs).
-        odom_poses: (N, 3) odometry poses as logged.
+        odom_poses: (N, 3) the robot's odometry poses as logged.
         line: (N,) 1-based line numbers of the scans in the log.
         max_range: ranges at or above this are no return, metres.
+        time_source: where ``t`` comes from: ``log`` (the message stamps), ``logger``
+            (the logger's stamps), ``spread`` (equal stamps spread between distinct
+            values) or ``rate`` (the nominal scan rate).
     """
 
     t: FloatArray
@@ -62,6 +87,7 @@ class LaserScans:
     odom_poses: FloatArray
     line: np.ndarray
     max_range: float
+    time_source: str = "log"
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -69,7 +95,8 @@ class LaserScans:
     def subset(self, index: np.ndarray) -> LaserScans:
         """The scans selected by ``index`` (an integer or boolean array)."""
         return LaserScans(self.t[index], self.ranges[index], self.angles, self.poses[index],
-                          self.odom_poses[index], self.line[index], self.max_range)
+                          self.odom_poses[index], self.line[index], self.max_range,
+                          self.time_source)
 
 
 @dataclass(frozen=True)
@@ -78,28 +105,49 @@ class CarmenLog:
 
     Attributes:
         path: the file read.
-        scans: the FLASER scans (out-of-order ones dropped, see :func:`read_carmen`).
-        odom_t: (M,) ODOM timestamps, s.
+        scans: the laser scans (out-of-order ones dropped, see :func:`read_carmen`).
+        odom_t: (M,) ODOM time stamps as logged, s.
         odom_poses: (M, 3) ODOM ``(x, y, theta)``.
+        message: the laser message read, ``FLASER`` or ``ROBOTLASER1``.
+        time_note: what was done to the scans' time stamps ("" when they were used as
+            logged).
     """
 
     path: Path
     scans: LaserScans
     odom_t: FloatArray
     odom_poses: FloatArray
+    message: str = "FLASER"
+    time_note: str = ""
 
 
 def carmen_beam_angles(n_beams: int, fov: float = math.pi) -> FloatArray:
-    """Beam angles of a CARMEN front laser, rad, CCW from forward.
+    """Beam angles of ``n_beams`` spread over ``fov`` from the right, last end open.
 
     Args:
         n_beams: number of beams (180 in the Intel log).
         fov: field of view, rad (pi for 180 beams at 1 deg).
 
     Returns:
-        (n_beams,) ``-fov/2 + i * fov / n_beams``.
+        (n_beams,) ``-fov/2 + i * fov / n_beams``, rad.
     """
-    return -fov / 2 + np.arange(n_beams) * (fov / n_beams)
+    return -fov / 2 + np.arange(n_beams, dtype=np.float64) * (fov / n_beams)
+
+
+def flaser_beam_angles(n_beams: int) -> FloatArray:
+    """Beam angles of a FLASER scan of ``n_beams`` (a SICK LMS over 180 deg), rad.
+
+    Args:
+        n_beams: the beam count of the message.
+
+    Returns:
+        (n_beams,) ``-pi/2 + i * step``: ``step = pi / n`` for an even count (180 -> 1
+        deg, 360 -> 0.5 deg), ``pi / (n - 1)`` for an odd count (181 -> 1 deg,
+        361 -> 0.5 deg, both ends of the half circle included).
+    """
+    if n_beams > 1 and n_beams % 2 == 1:
+        return -math.pi / 2 + np.arange(n_beams, dtype=np.float64) * (math.pi / (n_beams - 1))
+    return carmen_beam_angles(n_beams)
 
 
 def _floats(tokens: list[str], path: Path, line_no: int) -> list[float]:
@@ -114,37 +162,239 @@ def _floats(tokens: list[str], path: Path, line_no: int) -> list[float]:
     return values
 
 
-def read_carmen(path: str | Path, max_range: float = INTEL_MAX_RANGE,
-                strict_time: bool = False) -> CarmenLog:
-    """Read a CARMEN log (plain or ``.gz``).
+def _count(tok: list[str], i: int, what: str, path: Path, line_no: int) -> int:
+    """The non-negative integer ``tok[i]`` (a beam or remission count)."""
+    try:
+        n = int(tok[i])
+    except (IndexError, ValueError) as exc:
+        raise DatasetError(f"{tok[0]} line without a {what}", path=path, line=line_no) from exc
+    if n < 0:
+        raise DatasetError(f"{tok[0]} {what} {n} is negative", path=path, line=line_no)
+    return n
+
+
+def _logger_stamp(tok: list[str], i: int) -> float:
+    """The logger time stamp ``tok[i]`` when present and a finite number, else NaN."""
+    try:
+        v = float(tok[i])
+    except (IndexError, ValueError):
+        return math.nan
+    return v if math.isfinite(v) else math.nan
+
+
+@dataclass
+class _Scan:
+    """One laser message as read: geometry key, ranges, poses, stamps, line."""
+
+    geometry: tuple[float, float, int]  # (start_angle, step, n) in rad; step NaN for FLASER
+    ranges: list[float]
+    pose: list[float]
+    odom: list[float]
+    t: float
+    logger_t: float
+    line: int
+    max_range: float
+
+
+def _parse_flaser(tok: list[str], path: Path, line_no: int) -> _Scan:
+    """A ``FLASER`` line (module docstring)."""
+    n = _count(tok, 1, "beam count", path, line_no)
+    if len(tok) < 2 + n + 7 or n <= 0:
+        raise DatasetError(f"FLASER with {n} beams needs {2 + n + 7} fields, got {len(tok)}",
+                           path=path, line=line_no)
+    values = _floats(tok[2:2 + n + 7], path, line_no)
+    return _Scan((-math.pi / 2, math.nan, n), values[:n], values[n:n + 3], values[n + 3:n + 6],
+                 values[n + 6], _logger_stamp(tok, 2 + n + 8), line_no, math.nan)
+
+
+def _parse_robotlaser(tok: list[str], path: Path, line_no: int) -> _Scan:
+    """A ``ROBOTLASER1`` line (module docstring)."""
+    n = _count(tok, 8, "beam count", path, line_no)
+    if n <= 0:
+        raise DatasetError(f"ROBOTLASER1 with {n} beams", path=path, line=line_no)
+    n_rem = _count(tok, 9 + n, "remission count", path, line_no)
+    k = 10 + n + n_rem  # first field after the remissions: laser_x
+    if len(tok) < k + 12:
+        raise DatasetError(
+            f"ROBOTLASER1 with {n} beams and {n_rem} remissions needs {k + 12} fields, "
+            f"got {len(tok)}", path=path, line=line_no)
+    head = _floats(tok[2:8], path, line_no)  # start, fov, resolution, max_range, accuracy, mode
+    ranges = _floats(tok[9:9 + n], path, line_no)
+    tail = _floats(tok[k:k + 12], path, line_no)  # 6 pose, 5 motion fields, timestamp
+    start, _fov, step, max_range = head[0], head[1], head[2], head[3]
+    if not step > 0:
+        raise DatasetError(f"ROBOTLASER1 angular resolution {step} is not positive",
+                           path=path, line=line_no)
+    return _Scan((start, step, n), ranges, tail[0:3], tail[3:6], tail[11],
+                 _logger_stamp(tok, k + 13), line_no, max_range)
+
+
+def _increasing(t: FloatArray) -> bool:
+    """Whether ``t`` is finite and strictly increasing."""
+    return bool(np.all(np.isfinite(t)) and np.all(np.diff(t) > 0))
+
+
+def _spread_equal_stamps(stamps: FloatArray) -> tuple[FloatArray, float] | None:
+    """Spread runs of equal stamps evenly between distinct stamps (coarse stamps).
+
+    A run of ``c`` scans stamped ``v`` and followed by the stamp ``w`` is spread as
+    ``v + (w - v) * k / c``, ``k = 0..c-1`` when it is bounded on both sides (an
+    interior run: the stamps only say that its scans lie in ``[v, w)``). The first run
+    (its start unknown) ends at the median interior step before ``w`` (a single scan
+    keeps its stamp), the last run continues at that step.
+
+    Args:
+        stamps: (N,) non-decreasing stamps, s.
+
+    Returns:
+        ``(t, step)``: (N,) strictly increasing times and the median interior step, s;
+        None when there is no interior run (fewer than three distinct stamps), as the
+        step is then unknown.
+    """
+    n = len(stamps)
+    change = np.r_[True, stamps[1:] != stamps[:-1]]
+    starts = np.flatnonzero(change)
+    if len(starts) < 3:
+        return None
+    counts = np.diff(np.r_[starts, n])
+    values = stamps[starts]
+    steps = np.empty(len(values))
+    steps[:-1] = np.diff(values) / counts[:-1]
+    step = float(np.median(steps[1:-1]))
+    steps[-1] = step
+    run = np.cumsum(change) - 1
+    t = values[run] + steps[run] * (np.arange(n) - starts[run])
+    c0 = int(counts[0])
+    if c0 > 1:
+        step0 = min(step, float(values[1] - values[0]) / c0)
+        t[:c0] = values[1] - step0 * (c0 - np.arange(c0))
+    return t, step
+
+
+def derive_scan_times(stamps: FloatArray, logger_stamps: FloatArray,
+                      rate_hz: float = NOMINAL_SCAN_RATE_HZ) -> tuple[FloatArray, str, str]:
+    """Strictly increasing scan times from the stamps a log gives, in file order.
+
+    In order of preference: the message stamps when they increase; the logger's
+    stamps when they increase; the message (else logger) stamps with runs of equal
+    values spread evenly between distinct values (:func:`_spread_equal_stamps`, needs
+    three distinct values); else a count at ``rate_hz``, placed so that the first
+    change of stamp (if any) falls on its new value (coarse stamps that change once,
+    or all equal, e.g. all 0).
+
+    Args:
+        stamps: (N,) message time stamps, s, non-decreasing.
+        logger_stamps: (N,) the logger's stamps, s (NaN where absent).
+        rate_hz: the nominal scan rate for the last resort, Hz.
+
+    Returns:
+        ``(t, source, note)``: (N,) times, s; ``log``, ``logger``, ``spread`` or
+        ``rate``; and a sentence saying what was done ("" for ``log``).
+    """
+    n = len(stamps)
+    if n < 2 or _increasing(stamps):
+        return stamps.astype(float), "log", ""
+    n_ties = int(np.sum(stamps[1:] == stamps[:-1]))
+    n_distinct = len(np.unique(stamps))
+    what = (f"{n_ties} of {n} scans repeat the previous time stamp ({n_distinct} distinct "
+            f"values, e.g. {stamps[0]:.6g})")
+    if _increasing(logger_stamps):
+        return logger_stamps.astype(float), "logger", f"{what}: used the logger's time stamps"
+    for name, s in (("message", stamps), ("logger", logger_stamps)):
+        if np.all(np.isfinite(s)) and np.all(np.diff(s) >= 0):
+            spread = _spread_equal_stamps(s.astype(float))
+            if spread is not None:
+                return spread[0], "spread", (
+                    f"{what}: spread the scans evenly between the distinct {name} stamps "
+                    f"(median step {spread[1]:.3g} s)")
+    changes = np.flatnonzero(stamps[1:] != stamps[:-1]) + 1
+    k = int(changes[0]) if len(changes) else 0
+    t = float(stamps[k]) + (np.arange(n) - k) / rate_hz
+    return t, "rate", (f"{what}: too few distinct stamps to interpolate, times counted at "
+                       f"the nominal {rate_hz:g} Hz in file order (scan {k} at {stamps[k]:.6g} s)")
+
+
+def _choose_message(flaser: list[_Scan], robot: list[_Scan], path: Path) -> tuple[str, list[_Scan]]:
+    """ROBOTLASER1 scans when the log has any, else FLASER scans."""
+    if robot:
+        if flaser:
+            log.info("%s: %d ROBOTLASER1 and %d FLASER lines: reading ROBOTLASER1", path,
+                     len(robot), len(flaser))
+        return "ROBOTLASER1", robot
+    return "FLASER", flaser
+
+
+def _check_geometry(scans: list[_Scan], message: str, path: Path) -> tuple[float, float, int]:
+    """The one beam geometry of all scans; DatasetError at the first scan that differs."""
+    first = scans[0].geometry
+    for s in scans[1:]:
+        g = s.geometry
+        if g[2] != first[2]:
+            raise DatasetError(f"{message} beam count {g[2]} differs from earlier {first[2]}",
+                               path=path, line=s.line)
+        if message == "ROBOTLASER1" and not np.allclose(g[:2], first[:2], atol=1e-9):
+            raise DatasetError(
+                f"ROBOTLASER1 start angle/resolution {g[0]:.6g}/{g[1]:.6g} rad differ from "
+                f"earlier {first[0]:.6g}/{first[1]:.6g}", path=path, line=s.line)
+    return first
+
+
+def _drop_backwards(scans: list[_Scan], strict_time: bool, path: Path) -> tuple[list[_Scan], str]:
+    """Scans whose stamp is not earlier than any before it, and a note on the rest.
+
+    Raises:
+        DatasetError: with ``strict_time``, at the first scan stamped earlier.
+    """
+    kept: list[_Scan] = []
+    dropped: list[int] = []
+    latest = -math.inf
+    for s in scans:
+        if s.t < latest:
+            if strict_time:
+                raise DatasetError(f"time goes backwards: {s.t} after {latest}", path=path,
+                                   line=s.line)
+            dropped.append(s.line)
+            continue
+        latest = s.t
+        kept.append(s)
+    if not dropped:
+        return kept, ""
+    shown = ", ".join(str(v) for v in dropped[:5]) + (", ..." if len(dropped) > 5 else "")
+    return kept, f"dropped {len(dropped)} scans stamped earlier than a previous one (lines {shown})"
+
+
+def read_carmen(path: str | Path, max_range: float | None = None, strict_time: bool = False,
+                scan_rate_hz: float = NOMINAL_SCAN_RATE_HZ) -> CarmenLog:
+    """Read a CARMEN log (plain or ``.gz``): FLASER or ROBOTLASER1 scans, ODOM records.
 
     Args:
         path: the log file.
-        max_range: ranges at or above this are no return, metres.
-        strict_time: if True, a scan whose timestamp is not later than the
-            previous scan's raises; if False (default) it is dropped with a logged
-            warning (the Intel log has 4 such scans, 0.05-0.86 s back in time).
+        max_range: ranges at or above this are no return, metres (default: the
+            ROBOTLASER1 messages' own ``max_range``; 80 m for FLASER).
+        strict_time: if True, a scan stamped earlier than a previous scan raises; if
+            False (default) it is dropped (the Intel log has 4 such scans, 0.05-0.86 s
+            back in time).
+        scan_rate_hz: nominal scan rate, Hz, used only when the log has no usable
+            time stamps (:func:`derive_scan_times`).
 
     Returns:
-        The scans and odometry.
+        The scans and odometry; one warning is logged when the scans' times were
+        derived or scans dropped.
 
     Raises:
-        DatasetError: missing file, malformed FLASER/ODOM line (wrong field count,
-            not a number, NaN), inconsistent beam count, no scans, time going
-            backwards with ``strict_time``; the message names the file and line.
+        DatasetError: missing file, malformed FLASER/ROBOTLASER1/ODOM line (wrong
+            field count, not a number, NaN), beam geometry changing within the log, no
+            scans, time going backwards with ``strict_time``; the message names the
+            file and line.
     """
     path = Path(path)
     if not path.is_file():
         raise DatasetError("CARMEN log not found", path=path)
     opener = gzip.open if path.suffix == ".gz" else open
-    t: list[float] = []
-    ranges: list[list[float]] = []
-    poses: list[list[float]] = []
-    odom: list[list[float]] = []
-    lines: list[int] = []
+    flaser: list[_Scan] = []
+    robot: list[_Scan] = []
     odom_t: list[float] = []
     odom_poses: list[list[float]] = []
-    n_beams: int | None = None
     try:
         with opener(path, "rt", encoding="ascii", errors="replace") as fh:
             for line_no, raw in enumerate(fh, start=1):
@@ -152,34 +402,9 @@ def read_carmen(path: str | Path, max_range: float = INTEL_MAX_RANGE,
                 if not tok or tok[0].startswith("#"):
                     continue
                 if tok[0] == "FLASER":
-                    try:
-                        n = int(tok[1])
-                    except (IndexError, ValueError) as exc:
-                        raise DatasetError("FLASER line without a beam count", path=path,
-                                           line=line_no) from exc
-                    if len(tok) < 2 + n + 7 or n <= 0:
-                        raise DatasetError(
-                            f"FLASER with {n} beams needs {2 + n + 7} fields, got {len(tok)}",
-                            path=path, line=line_no)
-                    if n_beams is None:
-                        n_beams = n
-                    elif n != n_beams:
-                        raise DatasetError(f"FLASER beam count {n} differs from earlier {n_beams}",
-                                           path=path, line=line_no)
-                    values = _floats(tok[2:2 + n + 7], path, line_no)
-                    ts = values[n + 6]
-                    if t and ts <= t[-1]:
-                        if strict_time:
-                            raise DatasetError(f"time goes backwards: {ts} after {t[-1]}",
-                                               path=path, line=line_no)
-                        log.warning("%s:%d: scan time %.3f not after %.3f, scan skipped",
-                                    path, line_no, ts, t[-1])
-                        continue
-                    ranges.append(values[:n])
-                    poses.append(values[n:n + 3])
-                    odom.append(values[n + 3:n + 6])
-                    t.append(ts)
-                    lines.append(line_no)
+                    flaser.append(_parse_flaser(tok, path, line_no))
+                elif tok[0] == "ROBOTLASER1":
+                    robot.append(_parse_robotlaser(tok, path, line_no))
                 elif tok[0] == "ODOM":
                     if len(tok) < 8:
                         raise DatasetError(f"ODOM needs at least 8 fields, got {len(tok)}",
@@ -189,15 +414,31 @@ def read_carmen(path: str | Path, max_range: float = INTEL_MAX_RANGE,
                     odom_t.append(values[6])
     except (OSError, EOFError, UnicodeDecodeError) as exc:
         raise DatasetError(f"cannot read: {exc}", path=path) from exc
-    if not t or n_beams is None:
-        raise DatasetError("no FLASER scans in the log", path=path)
-    scans = LaserScans(
-        t=np.array(t), ranges=np.array(ranges), angles=carmen_beam_angles(n_beams),
-        poses=np.array(poses), odom_poses=np.array(odom), line=np.array(lines, dtype=np.int64),
-        max_range=float(max_range))
-    log.info("%s: %d scans of %d beams, %d odometry records", path, len(t), n_beams,
+    message, raw_scans = _choose_message(flaser, robot, path)
+    if not raw_scans:
+        raise DatasetError("no FLASER or ROBOTLASER1 scans in the log", path=path)
+    start, step, n_beams = _check_geometry(raw_scans, message, path)
+    angles = (flaser_beam_angles(n_beams) if message == "FLASER"
+              else start + np.arange(n_beams, dtype=np.float64) * step)
+    scans, drop_note = _drop_backwards(raw_scans, strict_time, path)
+    t, source, time_note = derive_scan_times(np.array([s.t for s in scans]),
+                                             np.array([s.logger_t for s in scans]),
+                                             scan_rate_hz)
+    notes = [v for v in (time_note, drop_note) if v]
+    if notes:
+        log.warning("%s: %s", path, "; ".join(notes))
+    if max_range is None:
+        max_range = INTEL_MAX_RANGE if message == "FLASER" else float(scans[0].max_range)
+    out = LaserScans(
+        t=t, ranges=np.array([s.ranges for s in scans]), angles=angles,
+        poses=np.array([s.pose for s in scans]), odom_poses=np.array([s.odom for s in scans]),
+        line=np.array([s.line for s in scans], dtype=np.int64), max_range=float(max_range),
+        time_source=source)
+    log.info("%s: %d %s scans of %d beams (%.3g..%.3g deg), %d odometry records", path,
+             len(out), message, n_beams, math.degrees(angles[0]), math.degrees(angles[-1]),
              len(odom_t))
-    return CarmenLog(path, scans, np.array(odom_t), np.array(odom_poses).reshape(-1, 3))
+    return CarmenLog(path, out, np.array(odom_t), np.array(odom_poses).reshape(-1, 3), message,
+                     "; ".join(notes))
 
 
 def scan_endpoints(scans: LaserScans, index: int | None = None) -> FloatArray:

@@ -447,7 +447,7 @@ def simulate_kinect_run(
             groundtruth=Trajectory(t, poses),
             landmarks=world_landmarks(w), meta=meta,
         )  # fmt: skip
-    _add_kinect_meta(out, w.name, config)
+    add_kinect_meta(out, w.name, config)
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0 / rate
     step = max(1, int(round(1.0 / (config.rate_hz * dt))))
     idx = np.arange(0, len(t), step)
@@ -464,7 +464,7 @@ def simulate_kinect_run(
     return out
 
 
-def _add_kinect_meta(run: Path, world_name: str, config: KinectConfig) -> None:
+def add_kinect_meta(run: Path, world_name: str, config: KinectConfig) -> None:
     """Record the Kinect part in the run's ``meta.yaml`` (kept if present)."""
     meta_path = run / "meta.yaml"
     meta: dict[str, object] = {}

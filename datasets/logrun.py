@@ -5,6 +5,9 @@ adapter, and read by every backend::
 
     rig.yaml                 required  camera + odometry model (:class:`Rig`)
     odometry.csv             required  t,d_left,d_right  (wheel travel since the previous line, m)
+                                       -- or odometry_pose2.csv (Pose2 increments) or
+                                       odometry_poses.tum (absolute odometry poses):
+                                       lampsam.datasets.odometry
     images.csv + images/     optional  t,file            (8-bit grey PNG, one per line)
     groundtruth.tum          optional  TUM ``t x y z qx qy qz qw`` (planar, yaw-only quaternion)
     landmarks.csv            optional  id,type,x,y,z,phi,length,width (true landmarks)
@@ -33,6 +36,14 @@ import yaml
 
 from lampsam.arrays import ImageU8
 from lampsam.datasets.camera import CameraModel
+from lampsam.datasets.odometry import (
+    ODOMETRY_POSE2_FILE,
+    ODOMETRY_POSES_FILE,
+    Pose2OdometryLog,
+    pose2_odometry_from_poses,
+    read_pose2_odometry,
+    write_pose2_odometry,
+)
 from lampsam.datasets.rig import OdometryModel, Rig
 from lampsam.datasets.tables import (
     IMAGES_DIR,
@@ -134,7 +145,7 @@ class LoggedRun:
 
     path: Path
     rig: Rig
-    odometry: OdometryLog
+    odometry: OdometryLog | Pose2OdometryLog
     images: ImageIndex | None = None
     groundtruth: Trajectory | None = None
     landmarks: LandmarkTable | None = None
@@ -160,7 +171,15 @@ def read_run(path: str | Path) -> LoggedRun:
     if not path.is_dir():
         raise DatasetError("run directory not found", path)
     rig = Rig.from_yaml(path / RIG_FILE)
-    odometry = read_odometry(path / ODOMETRY_FILE)
+    odometry: OdometryLog | Pose2OdometryLog
+    if (path / ODOMETRY_FILE).exists() or not (
+            (path / ODOMETRY_POSE2_FILE).exists() or (path / ODOMETRY_POSES_FILE).exists()):
+        odometry = read_odometry(path / ODOMETRY_FILE)
+    elif (path / ODOMETRY_POSE2_FILE).exists():
+        odometry = read_pose2_odometry(path / ODOMETRY_POSE2_FILE)
+    else:
+        odo_poses = read_tum(path / ODOMETRY_POSES_FILE)
+        odometry = pose2_odometry_from_poses(odo_poses.t, odo_poses.poses)
     cam = rig.camera
     images = None
     if (path / IMAGES_FILE).exists():
@@ -175,10 +194,14 @@ def read_run(path: str | Path) -> LoggedRun:
     )
     meta: dict[str, Any] = {}
     if (path / META_FILE).exists():
-        loaded = read_yaml(path / META_FILE)
-        if loaded is not None and not isinstance(loaded, dict):
-            raise DatasetError("meta.yaml must be a mapping", path / META_FILE)
-        meta = loaded or {}
+        # free-form provenance: an unreadable meta.yaml is reported and skipped, not fatal
+        try:
+            loaded = read_yaml(path / META_FILE)
+            if loaded is not None and not isinstance(loaded, dict):
+                raise DatasetError("meta.yaml must be a mapping", path / META_FILE)
+            meta = loaded or {}
+        except DatasetError as exc:
+            log.warning("%s; its provenance (world, seed, complete) is ignored", exc)
     log.info(
         "read run %s: %d odometry, %d images, gt=%s, landmarks=%s",
         path, len(odometry), 0 if images is None else len(images), gt is not None, lms is not None,
@@ -199,7 +222,7 @@ def write_meta(path: str | Path, meta: dict[str, Any]) -> None:
 def write_run(
     path: str | Path,
     rig: Rig,
-    odometry: OdometryLog,
+    odometry: OdometryLog | Pose2OdometryLog,
     groundtruth: Trajectory | None = None,
     landmarks: LandmarkTable | None = None,
     range_bearing: RangeBearingLog | None = None,
@@ -225,7 +248,10 @@ def write_run(
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     rig.to_yaml(path / RIG_FILE)
-    write_odometry(path / ODOMETRY_FILE, odometry)
+    if isinstance(odometry, Pose2OdometryLog):
+        write_pose2_odometry(path / ODOMETRY_POSE2_FILE, odometry)
+    else:
+        write_odometry(path / ODOMETRY_FILE, odometry)
     if groundtruth is not None:
         write_tum(path / GROUNDTRUTH_FILE, groundtruth)
     if landmarks is not None:

@@ -37,6 +37,7 @@ import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray, ImageU8
 from lampsam.datasets.logrun import CameraModel, LandmarkTable, ProjectionTable
+from lampsam.datasets.openings import Opening
 from lampsam.datasets.world import Lamp, Surface, TextureItem, World
 
 log = logging.getLogger(__name__)
@@ -110,8 +111,13 @@ class _Canvas:
         self.p = np.zeros((rows, cols), np.float32)
         self.a = np.zeros((rows, cols), np.float32)
 
-    def paint(self, bbox: tuple[float, float, float, float], sdf: object, grey: float) -> None:
-        """Paint a shape given by a signed-distance callable over its bounding box ("over")."""
+    def paint(
+        self, bbox: tuple[float, float, float, float], sdf: object, grey: float | object
+    ) -> None:
+        """Paint a shape given by a signed-distance callable over its bounding box ("over").
+
+        ``grey`` is a grey level, or a callable ``grey(x, y)`` of world points (a texture).
+        """
         t = self.texel
         rows, cols = self.p.shape
         j0 = max(int(math.floor((bbox[0] - self.x0) / t)) - 2, 0)
@@ -127,11 +133,12 @@ class _Canvas:
         # Coverage of a texel-sized box by a locally straight edge at distance d.
         cov = np.clip(0.5 - d / t, 0.0, 1.0).astype(np.float32)
         sl = (slice(i0, i1), slice(j0, j1))
-        self.p[sl] = cov * np.float32(grey) + (1 - cov) * self.p[sl]
+        g = grey(gx, gy).astype(np.float32) if callable(grey) else np.float32(grey)
+        self.p[sl] = cov * g + (1 - cov) * self.p[sl]
         self.a[sl] = cov + (1 - cov) * self.a[sl]
 
     def rect(
-        self, center: tuple[float, float], size: tuple[float, float], yaw: float, grey: float
+        self, center: tuple[float, float], size: tuple[float, float], yaw: float, grey: float | object
     ) -> None:
         """Paint a rotated rectangle of side lengths ``size``."""
         half = (size[0] / 2, size[1] / 2)
@@ -206,6 +213,13 @@ def _paint_lamp(cv: _Canvas, lp: Lamp) -> None:
         cv.rect(lp.center, (lp.length, lp.width), lp.yaw, lp.brightness)
 
 
+def _paint_opening(cv: _Canvas, op: Opening) -> None:
+    """Paint a daylight opening: textured sky, then its glazing bars."""
+    cv.rect(op.center, op.size, op.yaw, op.daylight())
+    for centre, size in op.bars():
+        cv.rect(centre, size, op.yaw, op.bar_grey)
+
+
 def prefilter_size(
     height_above_camera: float, camera: CameraModel, supersample: int, texel: float
 ) -> int:
@@ -222,8 +236,9 @@ def build_layers(world: World, camera: CameraModel | None = None) -> tuple[Layer
     """Rasterise the world's ceiling into layers, nearest (lowest) first.
 
     One layer per height that has surfaces: its surfaces in file order (base, tile
-    lines, items), then the lamps at that height. Lamps at a height without a
-    surface (hung lamps) get one small layer each, so that the renderer only
+    lines, items), then the daylight openings, then the lamps at that height.
+    Lamps and openings at a height without a surface (hung lamps, raised
+    skylights) get one small layer each, so that the renderer only
     samples them inside their own image window. Each texture is box-filtered to
     the footprint of a sub-pixel sample (:func:`prefilter_size`), so that the S x S
     samples of a pixel add up to its area coverage without quantisation.
@@ -236,18 +251,26 @@ def build_layers(world: World, camera: CameraModel | None = None) -> tuple[Layer
     st = world.render
     texel = st.texel
     heights = sorted(
-        {round(s.height, 6) for s in world.surfaces} | {round(lp.height, 6) for lp in world.lamps}
+        {round(s.height, 6) for s in world.surfaces}
+        | {round(lp.height, 6) for lp in world.lamps}
+        | {round(op.height, 6) for op in world.openings}
     )
     layers = []
     for h in heights:
         surfs = [s for s in world.surfaces if round(s.height, 6) == h]
         lamps = [lp for lp in world.lamps if round(lp.height, 6) == h]
-        groups: list[tuple[list[Surface], list[Lamp]]] = (
-            [(surfs, lamps)] if surfs else [([], [lp]) for lp in lamps]
+        opens = [op for op in world.openings if round(op.height, 6) == h]
+        groups: list[tuple[list[Surface], list[Opening], list[Lamp]]] = (
+            [(surfs, opens, lamps)]
+            if surfs
+            else [([], [op], []) for op in opens] + [([], [], [lp]) for lp in lamps]
         )
         box = prefilter_size(h - cam.z_cam, cam, st.supersample, texel)
-        for g_surfs, g_lamps in groups:
+        for g_surfs, g_opens, g_lamps in groups:
             boxes = [s.extent for s in g_surfs]
+            for op in g_opens:
+                r = 0.5 * math.hypot(*op.size)
+                boxes.append((op.center[0] - r, op.center[1] - r, op.center[0] + r, op.center[1] + r))
             for lp in g_lamps:
                 r = _lamp_half_diag(lp)
                 boxes.append(
@@ -259,6 +282,8 @@ def build_layers(world: World, camera: CameraModel | None = None) -> tuple[Layer
             )
             for s in g_surfs:
                 _paint_surface(cv, s)
+            for op in g_opens:
+                _paint_opening(cv, op)
             for lp in g_lamps:
                 _paint_lamp(cv, lp)
             layers.append(cv.layer(float(h), box, st.background))

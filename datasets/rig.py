@@ -6,20 +6,21 @@ OpenCV calibration file) and ``odometry`` (:class:`OdometryModel` fields); see
 ``docs/log-format.md``. A run's ``rig.yaml`` is read strictly: every key of
 :data:`REQUIRED` must be there (a rig that silently ran on the simulator's wheel
 base is worse than an error), only :data:`CAMERA_DEFAULTS` have defaults, and
-unknown keys or wrong types are errors naming the key and the file. The checks
-are a key table (:data:`REQUIRED`, ``_KINDS``) so that they can move onto a
-project-wide strict config loader.
+unknown keys or wrong types are errors naming the key and the file (types and
+unknown keys through the project's strict loader, :mod:`lampsam.config_loader`;
+presence through :data:`REQUIRED`, since every field has a default for the
+simulator's world files).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
+from lampsam.config_loader import ConfigError, from_mapping
 from lampsam.datasets.camera import CameraModel
 from lampsam.datasets.textio import read_yaml
 from lampsam.errors import DatasetError
@@ -103,13 +104,6 @@ class Rig:
 
 
 # --------------------------------------------------------------------------- strict reading
-_KINDS = {
-    "width": "int", "height": "int", "fx": "num", "fy": "num", "cx": "num", "cy": "num",
-    "hfov_deg": "num", "dist": "vector", "body_t_camera": "vec3", "body_R_camera": "mat3",
-    "model": "str", "calibration": "str", "wheel_base": "num", "k_r": "num", "k_l": "num",
-}  # fmt: skip
-"""Expected kind of every rig key (``num``: int or float, finite)."""
-
 REQUIRED = {
     "camera": ("width", "height", "body_t_camera"),
     "odometry": ("wheel_base", "k_r", "k_l"),
@@ -126,38 +120,25 @@ CAMERA_DEFAULTS = {
 _INTRINSICS = ("fx", "fy", "cx", "cy")
 _FROM_CALIBRATION = ("width", "height", "fx", "fy", "cx", "cy", "hfov_deg", "dist", "model")
 
+T = TypeVar("T")
+
 
 def _fail(msg: str, path: Path | None) -> DatasetError:
     """The rig error (one prefix so every message says where it comes from)."""
     return DatasetError(f"invalid rig: {msg}", path)
 
 
-def _check_kind(where: str, value: Any, kind: str, path: Path | None) -> None:
-    """DatasetError naming ``where`` (``camera.cx``) when ``value`` is not of ``kind``."""
-
-    def num(x: Any) -> bool:
-        return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
-    ok = {
-        "int": isinstance(value, int) and not isinstance(value, bool),
-        "num": num(value),
-        "str": isinstance(value, str),
-        "vector": isinstance(value, list) and all(num(x) for x in value),
-        "vec3": isinstance(value, list) and len(value) == 3 and all(num(x) for x in value),
-        "mat3": isinstance(value, list) and len(value) == 3
-        and all(isinstance(r, list) and len(r) == 3 and all(num(x) for x in r) for r in value),
-    }[kind]
-    if not ok:
-        want = {
-            "int": "an integer", "num": "a finite number", "str": "a string",
-            "vector": "a list of numbers", "vec3": "a list of 3 numbers",
-            "mat3": "a 3x3 list of lists of numbers",
-        }[kind]  # fmt: skip
-        raise _fail(f"{where} must be {want}, got {value!r}", path)
+def _build(cls: type[T], data: dict[str, Any], key: str, path: Path | None,
+           base: T | None = None) -> T:
+    """``cls`` from a section with the project's strict loader (types, unknown keys)."""
+    try:
+        return from_mapping(cls, data, source=path, key=key, base=base)
+    except ConfigError as exc:
+        raise _fail(f"{exc.key}: {exc.problem}" if exc.key else exc.problem, path) from exc
 
 
 def _section(data: dict[str, Any], name: str, strict: bool, path: Path | None) -> dict[str, Any]:
-    """One section as a dict with known, type-checked keys."""
+    """One section as a dict (missing: an error when strict, else empty)."""
     raw = data.get(name)
     if raw is None:
         if strict:
@@ -165,13 +146,6 @@ def _section(data: dict[str, Any], name: str, strict: bool, path: Path | None) -
         return {}
     if not isinstance(raw, dict):
         raise _fail(f"section {name!r} must be a mapping, got {raw!r}", path)
-    known = set(REQUIRED[name]) | (
-        set(_KINDS) - {"wheel_base", "k_r", "k_l"} if name == "camera" else set()
-    )
-    for key, value in raw.items():
-        if key not in known:
-            raise _fail(f"{name}.{key}: unknown key (known: {', '.join(sorted(known))})", path)
-        _check_kind(f"{name}.{key}", value, _KINDS[key], path)
     return dict(raw)
 
 
@@ -192,23 +166,34 @@ def _camera(cam: dict[str, Any], path: Path | None, strict: bool) -> CameraModel
             raise _fail(f"camera.{clash[0]} given together with camera.calibration", path)
         if strict:
             _require(cam, "camera", ("body_t_camera",), path)
-        cal_path = Path(cam.pop("calibration"))
+        cal = cam.pop("calibration")
+        if not isinstance(cal, str):
+            raise _fail(f"camera.calibration must be a file name, got {cal!r}", path)
+        cal_path = Path(cal)
         if not cal_path.is_absolute() and path is not None:
             cal_path = path.parent / cal_path
         try:
-            return read_calibration(cal_path).camera(**cam)
+            base = read_calibration(cal_path).camera()
         except ValueError as exc:
             raise _fail(f"camera: {exc}", path) from exc
+        return _build(CameraModel, cam, "camera", path, base=base)
     if strict:
         _require(cam, "camera", REQUIRED["camera"], path)
         if "hfov_deg" not in cam:
             _require(cam, "camera", _INTRINSICS, path)
-    if "hfov_deg" in cam and any(k in cam for k in _INTRINSICS):
+    if "hfov_deg" not in cam:
+        return _build(CameraModel, cam, "camera", path)
+    if any(k in cam for k in _INTRINSICS):
         raise _fail("camera: give hfov_deg or fx, fy, cx, cy, not both", path)
+    hfov = cam.pop("hfov_deg")
+    if isinstance(hfov, bool) or not isinstance(hfov, int | float) or not 0 < hfov < 360:
+        raise _fail(f"camera.hfov_deg: must be a number in (0, 360), got {hfov!r}", path)
+    cam0 = _build(CameraModel, cam, "camera", path)
     try:
-        if "hfov_deg" in cam:
-            return CameraModel.from_fov(**cam)
-        return CameraModel(**cam)
+        return CameraModel.from_fov(
+            cam0.width, cam0.height, float(hfov), dist=cam0.dist, model=cam0.model,
+            body_t_camera=cam0.body_t_camera, body_R_camera=cam0.body_R_camera,
+        )  # fmt: skip
     except ValueError as exc:
         raise _fail(f"camera: {exc}", path) from exc
 
@@ -224,9 +209,4 @@ def _rig_parts(data: Any, path: Path | None, strict: bool) -> tuple[CameraModel,
     odo = _section(data, "odometry", strict, path)
     if strict:
         _require(odo, "odometry", REQUIRED["odometry"], path)
-    camera = _camera(cam, path, strict)
-    try:
-        odometry = OdometryModel(**odo)
-    except ValueError as exc:
-        raise _fail(f"odometry: {exc}", path) from exc
-    return camera, odometry
+    return _camera(cam, path, strict), _build(OdometryModel, odo, "odometry", path)

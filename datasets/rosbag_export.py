@@ -36,6 +36,7 @@ import yaml
 
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.datasets.motion import dead_reckoning
+from lampsam.datasets.odometry import Pose2OdometryLog
 from lampsam.datasets.ros_messages import (
     compressed_message,
     image_message,
@@ -161,6 +162,9 @@ def _messages(
 ) -> Iterator[tuple[int, str, str, Any]]:
     """All messages ``(ns, topic, msgtype, message)`` in time order."""
     odo = run.odometry
+    if isinstance(odo, Pose2OdometryLog):
+        raise DatasetError("export-bag writes wheel odometry (JointState); this run has Pose2 "
+                           "increments (odometry_pose2.csv)", run.path)
     t0 = ns_from_seconds(float(odo.t[0]))
 
     def fixed() -> Iterator[tuple[int, str, str, Any]]:

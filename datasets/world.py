@@ -4,7 +4,8 @@ A world is a YAML mapping (built-in ones live in ``datasets/worlds/``)::
 
     name: lab
     rig:                      # as rig.yaml; the camera may give hfov_deg instead of fx..cy
-      camera: {width: 320, height: 240, hfov_deg: 120, body_t_camera: [0.1, 0, 0.3]}
+      camera: {width: 320, height: 240, hfov_deg: 120, body_t_camera: [0.1, 0, 0.3],
+               mount_rpy_deg: [0, 0, 0]}   # optional tilt (lampsam.datasets.mounting)
       odometry: {wheel_base: 0.4, k_r: 2.0e-5, k_l: 2.0e-5}
     render: {supersample: 2, texel: 0.005, noise_sigma: 2.0, bloom: 0.0, background: 60}
     simulation: {odometry_rate_hz: 30, image_rate_hz: 15}
@@ -26,6 +27,8 @@ A world is a YAML mapping (built-in ones live in ``datasets/worlds/``)::
            yaw_deg: 0, brightness: 320}
         - {id: 2, shape: round, center: [x, y], height: 2.7, diameter: 0.35}
         - {id: 3, shape: square, center: [x, y], height: 2.7, size: 0.6, yaw_deg: 0}
+      openings:               # daylight: skylights and windows (lampsam.datasets.openings)
+        - {kind: skylight, center: [x, y], size: [sx, sy], height: 2.9, brightness: 240}
 
 Unknown top-level sections (e.g. ``scene3d`` of the office world) are kept in
 :attr:`World.extra`, never rejected. Unknown keys inside the sections above are
@@ -49,7 +52,10 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.datasets.camera import DEFAULT_BODY_R_CAMERA
 from lampsam.datasets.logrun import LandmarkTable, Rig
+from lampsam.datasets.mounting import mounted
+from lampsam.datasets.openings import OPENING_KEYS, Opening, parse_opening
 from lampsam.datasets.textio import read_yaml as _read_yaml
 from lampsam.errors import DatasetError
 
@@ -243,6 +249,7 @@ class World:
         simulation: rates.
         corner_id_start: first id of derived corner landmarks.
         description: free text.
+        openings: daylight openings (skylights, windows), not landmarks.
         extra: unknown top-level sections, kept as parsed (e.g. ``scene3d``).
     """
 
@@ -259,6 +266,7 @@ class World:
     corner_id_start: int = 1000
     description: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    openings: tuple[Opening, ...] = ()
 
 
 # --------------------------------------------------------------------------- parsing
@@ -275,6 +283,25 @@ class _Ctx:
     def fail(self, where: str, msg: str) -> DatasetError:
         """A DatasetError ``where: msg`` naming the world file."""
         return DatasetError(f"{where}: {msg}", self.path)
+
+
+def _with_mount(ctx: _Ctx, rig: Any) -> Any:
+    """The rig mapping with ``camera.mount_rpy_deg`` turned into ``body_R_camera``.
+
+    See :mod:`lampsam.datasets.mounting`; other rigs are returned unchanged.
+    """
+    if not isinstance(rig, Mapping) or not isinstance(rig.get("camera"), Mapping):
+        return rig
+    cam = dict(rig["camera"])
+    if "mount_rpy_deg" not in cam:
+        return rig
+    rpy = _vec(ctx, cam.pop("mount_rpy_deg"), 3, "rig.camera.mount_rpy_deg")
+    up = cam.get("body_R_camera", DEFAULT_BODY_R_CAMERA)
+    try:
+        cam["body_R_camera"] = mounted(np.asarray(up, dtype=np.float64).reshape(3, 3), rpy).tolist()
+    except ValueError as exc:
+        raise ctx.fail("rig.camera.body_R_camera", f"expected a 3x3 matrix, got {up!r}") from exc
+    return {**rig, "camera": cam}
 
 
 def _check_keys(ctx: _Ctx, d: Any, where: str, allowed: set[str], required: set[str]) -> None:
@@ -413,7 +440,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
     ctx = _Ctx(source)
     if not isinstance(doc, Mapping):
         raise ctx.fail("world", "must be a mapping")
-    rig = Rig.from_dict(doc.get("rig") or {}, source)
+    rig = Rig.from_dict(_with_mount(ctx, doc.get("rig") or {}), source)
     rd = doc.get("render") or {}
     _check_keys(ctx, rd, "render", {"supersample", "texel", "noise_sigma", "bloom", "bloom_sigma",
                                     "background"}, set())  # fmt: skip
@@ -445,7 +472,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         raise ctx.fail("path.waypoints", "must be finite")
     start = pd.get("start_heading_deg")
     cd = doc.get("ceiling") or {}
-    _check_keys(ctx, cd, "ceiling", {"surfaces", "lamps", "corner_id_start"}, set())
+    _check_keys(ctx, cd, "ceiling", {"surfaces", "lamps", "corner_id_start", "openings"}, set())
     surfaces = tuple(
         _parse_surface(ctx, s, f"ceiling.surfaces[{k}]")
         for k, s in enumerate(cd.get("surfaces") or [])
@@ -453,6 +480,19 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
     lamps = tuple(
         _parse_lamp(ctx, s, f"ceiling.lamps[{k}]") for k, s in enumerate(cd.get("lamps") or [])
     )
+    openings = []
+    for k, od in enumerate(cd.get("openings") or []):
+        where = f"ceiling.openings[{k}]"
+        _check_keys(ctx, od, where, OPENING_KEYS, {"kind", "center", "size", "height"})
+        openings.append(
+            parse_opening(
+                od,
+                where,
+                lambda d, key, w, default=None, **kw: _num(ctx, d, key, w, default, **kw),
+                lambda value, n, w: _vec(ctx, value, n, w),
+                ctx.fail,
+            )
+        )
     ids = [lp.id for lp in lamps]
     if len(set(ids)) != len(ids):
         raise ctx.fail("ceiling.lamps", "duplicate lamp ids")
@@ -480,6 +520,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         corner_id_start=corner_start,
         description=str(doc.get("description", "")),
         extra={k: v for k, v in doc.items() if k not in _KNOWN_TOP},
+        openings=tuple(openings),
     )
 
 
@@ -583,6 +624,8 @@ def world_landmarks(world: World) -> LandmarkTable:
             for lp in world.lamps:
                 if abs(lp.height - s.height) < 1e-6:
                     keep &= ~lp.contains(g, 0.05)
+            for op in world.openings:  # no tile grid across the sky
+                keep &= ~op.contains(g, 0.05)
             pts.append(g[keep])
         for it in s.items:
             if it.kind == "rect" and it.corners:

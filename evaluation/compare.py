@@ -17,7 +17,8 @@
   map error after association with the truth, pose NEES over time with the
   chi-square 95 % bounds, time per frame, total time, peak memory.
 
-Outputs: ``REPORT/report.md``, ``REPORT/report.html`` (images embedded),
+Outputs (written by ``evaluation.compare_report``): ``REPORT/report.md``,
+``REPORT/report.html`` (rendered from the Markdown, images embedded),
 ``REPORT/summary.json`` (every number in the table), ``REPORT/figures/*.png`` and
 one directory per job with the backend's own outputs (``trajectory.tum``,
 ``landmarks.csv``, ``summary.json``) and ``arrays.npz``.
@@ -25,7 +26,6 @@ one directory per job with the backend's own outputs (``trajectory.tum``,
 
 from __future__ import annotations
 
-import base64
 import json
 import logging
 import resource
@@ -44,7 +44,7 @@ from lampsam.evaluation import metrics as M
 from lampsam.evaluation.fleet import run_jobs
 from lampsam.evaluation.outputs import ensure_dir
 from lampsam.interrupt import stop_on_signals
-from lampsam.safe_io import atomic_path, write_json_atomic, write_text_atomic
+from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -213,8 +213,7 @@ def run_job(job: Job) -> JobResult:
     if result.status != "interrupted":
         write_json_atomic(Path(job.out_dir) / JOB_RESULT, {
             "status": result.status, "arrays": result.arrays,
-            "metrics": {k: v for k, v in result.metrics.items() if k != "traceback"}},
-            default=_json_default)
+            "metrics": {k: v for k, v in result.metrics.items() if k != "traceback"}})
     return result
 
 
@@ -296,6 +295,7 @@ def _run_job(job: Job) -> JobResult:
         arrays["lm_type"] = np.array([lm.type for lm in result.landmarks])
     if truth_lm is not None:
         arrays["true_lm_xy"] = truth_lm[2][:, :2]
+        arrays["true_lm_type"] = truth_lm[1]
     m["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     with atomic_path(out / "arrays.npz") as tmp:
         np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
@@ -376,119 +376,12 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def consistency_sentences(rows: list[dict[str, Any]]) -> list[str]:
-    """Plain-language verdicts on consistency and on smoother vs EKF accuracy."""
-    out = []
-    for row in rows:
-        if "nees_mean" not in row:
-            continue
-        lo, hi = row["nees_bounds"]
-        verdict = ("overconfident" if row.get("nees_overconfident")
-                   else "underconfident" if row.get("nees_underconfident") else "consistent")
-        out.append(
-            f"- {row['run']} / {row['backend']}: time-averaged NEES {row['nees_mean']:.2f} "
-            f"(ideal 3; per-step 95 % bounds [{lo:.2f}, {hi:.2f}] for {row['seeds'] - row['failed']} runs), "
-            f"{row['nees_inside']:.0%} of steps inside: **{verdict}**"
-            + (f", {row['nees_mean'] / 3.0:.1f}x the ideal" if verdict == "overconfident" else "")
-            + "."
-        )
-    groups = sorted({r["run"] for r in rows})
-    for g in groups:
-        by = {r["backend"]: r for r in rows if r["run"] == g}
-        if "ekf" in by and "pos_rms_m" in by["ekf"]:
-            for b in ("batch", "isam2"):
-                if b in by and "pos_rms_m" in by[b]:
-                    ratio = by[b]["pos_rms_m"] / by["ekf"]["pos_rms_m"]
-                    out.append(f"- {g}: {b} position RMS is {ratio:.2f}x the EKF's "
-                               f"({by[b]['pos_rms_m']:.3f} m vs {by['ekf']['pos_rms_m']:.3f} m).")
-    return out
-
-
-def _img_html(path: Path) -> str:
-    """An HTML figure with the PNG at ``path`` inlined as base64."""
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
-    return f'<figure><img src="data:image/png;base64,{data}" style="max-width:100%"><figcaption>{path.stem}</figcaption></figure>'
-
-
-def write_report(out: Path, rows: list[dict[str, Any]], results: list[JobResult],
-                 figures: list[Path], wall_s: float, unfinished: list[Job] | None = None) -> None:
-    """Write report.md, report.html and summary.json (atomically, summary last).
-
-    ``unfinished``: jobs not finished (interrupted); the report says so.
-    """
-    unfinished = unfinished or []
-    partial = (f"Interrupted: {len(unfinished)} jobs not finished "
-               f"({', '.join(f'{j.group} seed {j.seed} / {j.backend}' for j in unfinished)}); "
-               "`lampsam compare ... --resume` runs only those.") if unfinished else ""
-    table = markdown_table(rows)
-    notes = consistency_sentences(rows)
-    failures = [f"- {r.job.group} seed {r.job.seed} / {r.job.backend}: {r.status}"
-                for r in results if r.status.startswith("failed")]
-    md = [
-        "# lampsam: EKF against smoothing",
-        "",
-        f"{len(results)} jobs, wall time {wall_s:.1f} s. Errors without alignment (the start "
-        "pose is known); RPE per metre from evo; NEES over (x, y, theta), averaged over seeds.",
-        *(["", partial] if partial else []),
-        "",
-        table,
-        "",
-        "## Consistency and accuracy",
-        *notes,
-    ]
-    if failures:
-        md += ["", "## Failed jobs", *failures]
-    md += ["", "## Figures", *[f"![{f.stem}](figures/{f.name})" for f in figures], ""]
-    write_text_atomic(out / "report.md", "\n".join(md))
-    html_table = _md_table_to_html(table)
-    html = [
-        "<!doctype html><html><head><meta charset='utf-8'><title>lampsam compare</title>",
-        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse}"
-        "td,th{border:1px solid #999;padding:3px 6px;text-align:right}</style></head><body>",
-        "<h1>lampsam: EKF against smoothing</h1>",
-        f"<p>{len(results)} jobs, wall time {wall_s:.1f} s.</p>",
-        *([f"<p><b>{partial}</b></p>"] if partial else []),
-        html_table,
-        "<h2>Consistency and accuracy</h2><ul>",
-        *[f"<li>{n[2:]}</li>" for n in notes],
-        "</ul>",
-    ]
-    if failures:
-        html += ["<h2>Failed jobs</h2><ul>", *[f"<li>{f[2:]}</li>" for f in failures], "</ul>"]
-    html += ["<h2>Figures</h2>", *[_img_html(f) for f in figures], "</body></html>"]
-    write_text_atomic(out / "report.html", "\n".join(html))
-    summary = {
-        "rows": rows,
-        "jobs": [{"run": r.job.group, "seed": r.job.seed, "backend": r.job.backend,
-                  "run_dir": r.job.run_dir, "status": r.status,
-                  **{k: v for k, v in r.metrics.items() if k != "traceback"}} for r in results],
-        "wall_time_s": wall_s,
-        "complete": not unfinished,
-        "unfinished": [{"run": j.group, "seed": j.seed, "backend": j.backend} for j in unfinished],
-    }
-    write_json_atomic(out / "summary.json", summary, default=_json_default)
-
-
-def _md_table_to_html(table: str) -> str:
-    """A Markdown pipe table (header, rule, rows) as an HTML table."""
-    lines = table.splitlines()
-    head = [c.strip() for c in lines[0].strip("|").split("|")]
-    body = [[c.strip() for c in ln.strip("|").split("|")] for ln in lines[2:]]
-    out = ["<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"]
-    out += ["<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in body]
-    return "\n".join(out) + "</table>"
-
-
-def _json_default(x: Any) -> Any:
-    """JSON fallback for numpy scalars and arrays."""
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(type(x))
-
-
 # --------------------------------------------------------------------------- driver
+def _failed_job(job: Job, reason: str) -> JobResult:
+    """The result of a job whose worker raised or died."""
+    return JobResult(job, reason)
+
+
 def compare(
     runs: list[str],
     backends: tuple[str, ...] = ("ekf", "isam2", "batch"),
@@ -552,11 +445,14 @@ def compare(
         todo = [j for j in jobs if j.out_dir not in finished_dirs]
         log.warning("--resume: %d of %d jobs already finished, %d to run",
                     len(done), len(jobs), len(todo))
-    unfinished = _run_jobs(todo, workers, progress, results, dask)
-    results = [r for r in results if r.status != "interrupted"]
+    ran, unfinished = run_jobs(run_job, todo, _failed_job, workers=workers, dask=dask,
+                               progress=progress, desc="compare",
+                               interrupted=lambda r: r.status == "interrupted")
+    results += [r for r in ran if r.status != "interrupted"]
     results.sort(key=lambda r: (r.job.group, r.job.seed, r.job.backend))
     rows = aggregate(results)
     from lampsam.evaluation.compare_plots import make_figures
+    from lampsam.evaluation.compare_report import write_report
 
     figures = make_figures(out / "figures", results)
     write_report(out, rows, results, figures, time.perf_counter() - t_start, unfinished)
@@ -567,20 +463,3 @@ def compare(
     return rows
 
 
-def _failed_job(job: Job, reason: str) -> JobResult:
-    """The result of a job whose worker raised or died."""
-    return JobResult(job, reason)
-
-
-def _run_jobs(jobs: list[Job], workers: int, progress: bool, results: list[JobResult],
-              dask: str | None = None) -> list[Job]:
-    """Run jobs (:func:`lampsam.evaluation.fleet.run_jobs`), appending to ``results``.
-
-    Returns the unfinished jobs: those a stop request (SIGINT, SIGTERM) cancelled,
-    and those it interrupted (their ``"interrupted"`` results are appended too).
-    """
-    done, unfinished = run_jobs(run_job, jobs, _failed_job, workers=workers, dask=dask,
-                                progress=progress, desc="compare",
-                                interrupted=lambda r: r.status == "interrupted")
-    results.extend(done)
-    return unfinished

@@ -34,7 +34,7 @@ import json
 import logging
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -42,11 +42,12 @@ import numpy as np
 
 from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
-from lampsam.datasets.logrun import CameraModel, ProjectionTable, read_run
+from lampsam.datasets.logrun import CameraModel, LandmarkTable, ProjectionTable, read_run
 from lampsam.errors import LampsamError
 from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.ceiling_coords import PixelToCeiling
 from lampsam.frontend.corners import detect_corner_pixels, match_ncc
+from lampsam.frontend.lamp_models import size_gate_from_models
 from lampsam.frontend.lamps import detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
 
@@ -224,7 +225,10 @@ def evaluate_frames(
         n_corners.append(cd.pixels.shape[0])
         corner_rows = np.flatnonzero(~lamp & truth.visible)
         jc, dc = _nearest(cd.pixels, truth.pixel[corner_rows])
-        ids = np.where(dc <= settings.corner_gate_px, truth.ids[corner_rows[np.maximum(jc, 0)]], -1)
+        if corner_rows.size:
+            ids = np.where(dc <= settings.corner_gate_px, truth.ids[corner_rows[np.maximum(jc, 0)]], -1)
+        else:  # no truth corner in view (the camera sees past the ceiling's edge)
+            ids = np.full(cd.pixels.shape[0], -1)
         n_true_corners += int(np.sum(ids >= 0))
         if prev is not None:
             p_pix, p_patch, p_ids, _ = prev
@@ -298,6 +302,7 @@ def evaluate_run(
     config: FrontendConfig | None = None,
     settings: EvalSettings | None = None,
     max_frames: int | None = None,
+    lamp_models: bool = False,
 ) -> FrontendMetrics:
     """Evaluate the frontend on a simulated logged run (``lampsam frontend-eval``).
 
@@ -307,6 +312,8 @@ def evaluate_run(
         config: frontend settings.
         settings: evaluation settings.
         max_frames: evaluate only the first frames (None: all).
+        lamp_models: check blob sizes against the run's lamp models
+            (``landmarks.csv``; :mod:`lampsam.frontend.lamp_models`).
 
     Returns:
         The metrics (also written as JSON).
@@ -325,6 +332,10 @@ def evaluate_run(
         raise LampsamError(f"{run_dir}: no truth/projections.csv (only simulated runs have truth)")
     ensure_dir(out_path.parent)  # before the work, after the input is known good
     images, projections = run.images, run.projections
+    if lamp_models:
+        if run.landmarks is None:
+            raise LampsamError(f"{run_dir}: --lamp-models needs landmarks.csv (simulated runs)")
+        config = with_lamp_models(config or FrontendConfig(), run.landmarks, run.rig.camera.z_cam)
     n = len(images) if max_frames is None else min(max_frames, len(images))
 
     def frames() -> Iterable[tuple[ImageU8, FrameTruth]]:
@@ -335,6 +346,24 @@ def evaluate_run(
     res.to_json(out_path)
     log.info("frontend evaluation written to %s", out_path)
     return res
+
+
+def with_lamp_models(config: FrontendConfig, landmarks: LandmarkTable, z_cam: float) -> FrontendConfig:
+    """``config`` with the lamp size gate of a landmark table's lamps (heights above ``z_cam``).
+
+    Raises:
+        LampsamError: the table has no lamps.
+    """
+    idx = [i for i, t in enumerate(landmarks.types) if t.startswith("lamp")]
+    if not idx:
+        raise LampsamError("lamp models: the run's landmarks.csv has no lamps")
+    gate = size_gate_from_models(
+        [landmarks.types[i] for i in idx],
+        landmarks.length[idx],
+        landmarks.width[idx],
+        landmarks.xyz[idx, 2] - z_cam,
+    )
+    return replace(config, lamps=replace(config.lamps, size_gate=gate))
 
 
 # --------------------------------------------------------------------------- synthetic scenes

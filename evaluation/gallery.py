@@ -162,6 +162,20 @@ def plot_detections(
     return arts
 
 
+def legend_handles() -> list[object]:
+    """Legend entries for :func:`plot_detections`' markers and colours (one per kind)."""
+    from matplotlib.lines import Line2D
+
+    return [
+        Line2D([], [], color="lime", marker="o", ms=4, lw=1.2,
+               label="oriented lamp (centre, long axis ±2σ₁)"),
+        Line2D([], [], color="deepskyblue", marker="o", ms=4, lw=0, label="point lamp (centre)"),
+        Line2D([], [], color="red", marker="o", ms=4, lw=1.2, label="lamp at the border (not used)"),
+        Line2D([], [], color="yellow", marker="+", ms=6, lw=0, markeredgecolor="goldenrod",
+               label="FAST corner"),
+    ]
+
+
 def make_gallery(
     photos_dir: str | Path,
     out_png: str | Path,
@@ -230,7 +244,8 @@ def make_gallery(
                 f"({entry.n_oriented} oriented), {entry.n_border} border, "
                 f"{entry.n_corners} corners",
             )
-    fig.tight_layout()
+    fig.legend(handles=legend_handles(), loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.9 / (3.0 * len(files)), 1, 1))
     fig.savefig(out_png, dpi=130)
     plt.close(fig)
     return entries

@@ -28,8 +28,10 @@ from lampsam.arrays import FloatArray
 from lampsam.datasets.carmen import LaserScans, read_carmen
 from lampsam.factors.geometry import wrap_angle
 from lampsam.localization.grid import OccupancyGrid, free_mask, grid_from_scans
-from lampsam.localization.laser import LaserLocalizerConfig, localize_scans
+from lampsam.localization.laser import LaserAcceptConfig, LaserLocalizerConfig, localize_scans
 from lampsam.localization.likelihood import LikelihoodFieldModel
+from lampsam.localization.result import json_safe
+from lampsam.localization.result import summarize as summarize_trials
 
 
 @dataclass(frozen=True)
@@ -58,8 +60,14 @@ class LaserTrialsConfig:
         tol_pos: success bound on position (m). Default 0.30.
         tol_deg: success bound on heading (deg). Default 10.
         seed: trial ``k`` uses the generator seeded ``[seed, k]``. Default 0.
+        scans: the scans the trials start from and use: ``"odd"`` (default,
+            held out from a map of the even ones), ``"even"`` or ``"all"``.
+        start_offset: shift of the start instants, in fractions of their
+            spacing (0.5 gives starts between the default ones: tuning trials).
         odometry: noise of the simulated odometry.
         localizer: the filter.
+        accept: the acceptance test; while it fails, a trial takes more of the
+            following scans, up to ``accept.max_scans``.
     """
 
     trials: int = 50
@@ -68,8 +76,11 @@ class LaserTrialsConfig:
     tol_pos: float = 0.30
     tol_deg: float = 10.0
     seed: int = 0
+    scans: str = "odd"
+    start_offset: float = 0.0
     odometry: OdometryNoise = field(default_factory=OdometryNoise)
     localizer: LaserLocalizerConfig = field(default_factory=LaserLocalizerConfig)
+    accept: LaserAcceptConfig = field(default_factory=LaserAcceptConfig)
 
 
 def simulated_odometry(
@@ -109,6 +120,21 @@ def holdout_split(n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(0, n, 2), np.arange(1, n, 2)
 
 
+def scan_selection(n: int, which: str) -> np.ndarray:
+    """Indices of ``"odd"``, ``"even"`` or ``"all"`` of ``n`` scans.
+
+    Raises:
+        ValueError: another name.
+    """
+    if which == "odd":
+        return np.arange(1, n, 2)
+    if which == "even":
+        return np.arange(0, n, 2)
+    if which == "all":
+        return np.arange(n)
+    raise ValueError(f"scans must be odd, even or all, not {which!r}")
+
+
 def laser_map(
     scans: LaserScans, index: np.ndarray, resolution: float, max_range: float
 ) -> OccupancyGrid:
@@ -125,7 +151,8 @@ def run_trial(
     t0 = time.perf_counter()
     odom = simulated_odometry(scans.poses[idx], rng, config.odometry)
     est = localize_scans(model, grid, scans.ranges[idx], scans.angles, odom, config.localizer,
-                         rng)  # fmt: skip
+                         rng, min_scans=config.updates, accept=config.accept)  # fmt: skip
+    idx = idx[: est.scans_used]
     truth = scans.poses[idx[-1]]
     e_pos = float(math.hypot(*(est.pose[:2] - truth[:2])))
     e_th = float(abs(wrap_angle(float(est.pose[2] - truth[2]))))
@@ -137,6 +164,10 @@ def run_trial(
         "covariance": est.covariance.tolist(),
         "error_pos": e_pos, "error_theta_deg": math.degrees(e_th),
         "success": bool(e_pos < config.tol_pos and math.degrees(e_th) < config.tol_deg),
+        "status": est.status, "margin": est.margin, "score": est.score,
+        "scans_used": est.scans_used,
+        "competitor": None if est.competitor is None else est.competitor.tolist(),
+        "compute_s": time.perf_counter() - t0, "robot_s": float(scans.t[idx[-1]] - scans.t[idx[0]]),
         "converged": est.converged, "spread_xy": est.spread_xy,
         "spread_theta_deg": math.degrees(est.spread_theta),
         "particles_end": est.particles, "time_s": time.perf_counter() - t0,
@@ -150,9 +181,10 @@ def summarize(records: list[dict[str, object]], map_build_s: float) -> dict[str,
         return np.array([float(r[key]) for r in rows], dtype=float)  # type: ignore[arg-type]
 
     ok = [r for r in records if r["success"]]
-    return {
-        "trials": len(records),
-        "success_rate": len(ok) / max(len(records), 1),
+    trials = [{"status": r["status"], "correct": bool(r["success"]), "compute_s": r["time_s"],
+               "robot_s": r["t_span"]} for r in records]  # fmt: skip
+    return summarize_trials(trials) | {
+        "within_bounds_rate": len(ok) / max(len(records), 1),
         "converged_rate": float(np.mean([bool(r["converged"]) for r in records])),
         "median_error_pos_m": float(np.median(col("error_pos", records))),
         "median_error_theta_deg": float(np.median(col("error_theta_deg", records))),
@@ -169,7 +201,7 @@ def summarize(records: list[dict[str, object]], map_build_s: float) -> dict[str,
 
 def laser_trials(
     log_path: str | Path, config: LaserTrialsConfig = LaserTrialsConfig(),
-    progress: bool = False,
+    progress: bool = False, map_dir: str | Path | None = None,
 ) -> dict[str, object]:
     """Hold-out global-localization trials on a CARMEN log (see the module docstring).
 
@@ -177,6 +209,8 @@ def laser_trials(
         log_path: a CARMEN log (``.log`` or ``.log.gz``) with corrected poses.
         config: the trials and the filter.
         progress: print one line per trial.
+        map_dir: a map directory (``lampsam build-map``) to localize on; default:
+            the grid of the log's even-numbered scans at their corrected poses.
 
     Returns:
         ``{"summary", "settings", "holdout", "map", "trials"}``, JSON-ready.
@@ -185,10 +219,16 @@ def laser_trials(
         DatasetError: unreadable log.
     """
     scans = usable_scans(read_carmen(log_path).scans)
-    map_idx, test_idx = holdout_split(len(scans))
+    map_idx, _ = holdout_split(len(scans))
+    test_idx = scan_selection(len(scans), config.scans)
     max_range = config.localizer.beam.max_range
     t0 = time.perf_counter()
-    grid = laser_map(scans, map_idx, config.resolution, max_range)
+    if map_dir is None:
+        grid = laser_map(scans, map_idx, config.resolution, max_range)
+    else:
+        from lampsam.localization.envmap import load_env_map
+
+        grid = load_env_map(map_dir).grid
     t_map = time.perf_counter() - t0
     n_free = int(free_mask(grid).sum())
     if progress:
@@ -196,23 +236,29 @@ def laser_trials(
               f"{config.resolution} m, {n_free} free ({n_free * config.resolution ** 2:.0f} "
               f"m^2), {t_map:.1f} s")  # fmt: skip
     model = LikelihoodFieldModel(grid, config.localizer.beam)
-    last_start = test_idx.size - config.updates
-    starts = np.linspace(0, last_start, config.trials).round().astype(int)
+    n_use = max(config.updates, config.accept.max_scans)
+    last_start = test_idx.size - n_use
+    spacing = last_start / max(config.trials - 1, 1)
+    starts = np.linspace(0, last_start, config.trials) + config.start_offset * spacing
+    starts = np.clip(starts.round().astype(int), 0, last_start)
     records = []
     for trial, s in enumerate(starts):
-        idx = test_idx[s : s + config.updates]
+        idx = test_idx[s : s + n_use]
         rec = run_trial(model, grid, scans, idx, config, np.random.default_rng([config.seed, trial]))
         records.append(rec)
         if progress:
-            print(f"trial {trial:3d} scans {idx[0]:4d}..{idx[-1]:4d} ({rec['t_span']:5.1f} s, "
+            used = idx[: len(rec["scans"])]  # type: ignore[arg-type]
+            print(f"trial {trial:3d} scans {used[0]:4d}..{used[-1]:4d} ({rec['t_span']:5.1f} s, "
                   f"{rec['distance_driven']:4.1f} m): error {100 * float(rec['error_pos']):7.1f} "  # type: ignore[arg-type]
                   f"cm {rec['error_theta_deg']:6.1f} deg {'OK ' if rec['success'] else 'FAIL'} "
+                  f"{rec['status']:9s} margin {float(rec['margin']):7.1f} "  # type: ignore[arg-type]
                   f"{rec['time_s']:.1f} s", flush=True)  # fmt: skip
     return {
         "summary": summarize(records, t_map),
         "settings": asdict(config),
         "log": str(log_path),
-        "holdout": "map from even-numbered scans, trials on odd-numbered scans only",
+        "holdout": (f"map {'from even-numbered scans' if map_dir is None else str(map_dir)}, "
+                    f"trials on {config.scans} scans"),
         "map": {"width": grid.width, "height": grid.height, "resolution": grid.resolution,
                 "origin": grid.origin.tolist(), "free_cells": n_free},
         "trials": records,
@@ -223,5 +269,5 @@ def write_json(result: dict[str, object], path: str | Path) -> Path:
     """Write the trials' result as JSON; returns the path."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    out.write_text(json.dumps(json_safe(result), indent=1, allow_nan=False))
     return out

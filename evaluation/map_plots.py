@@ -153,6 +153,10 @@ def show_map(map_dir: str | Path, out_png: str | Path, dpi: int = 150) -> Path:
     name = Path(str(src.get("path", map_dir))).name
     title = f"environment map: {name} ({src.get('kind', '?')}, poses {src.get('poses', '?')})"
     counts = []
+    grid_layer = layers.get("grid", {})
+    if "scans_used" in grid_layer:
+        counts.append(f"{grid_layer['scans_used']} of {grid_layer.get('scans_total', '?')} scans "
+                      f"({grid_layer.get('scans', 'all')})")
     if "spatial_features" in layers:
         counts.append(f"{layers['spatial_features']['count']} SIFT points")
     if "ceiling_features" in layers:

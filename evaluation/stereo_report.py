@@ -8,7 +8,6 @@ artists; nothing here estimates. Figures are built with ``matplotlib.figure.Figu
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -22,6 +21,7 @@ from lampsam.backend.stereo import StereoEstimatorConfig, StereoResult
 from lampsam.backend.stereo_kitti import KittiTwoPointResult
 from lampsam.errors import LampsamError
 from lampsam.evaluation.outputs import ensure_dir
+from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,33 @@ def markdown_table(rms: Mapping[str, Mapping[str, Sequence[float]]], caption: st
             lines.append(f"| {scenario} | {est} | {v[0]:.4f} | {v[1]:.4f} | "
                          f"{math.degrees(v[2]):.3f} |")
     return "\n".join(lines) + "\n"
+
+
+def summary_table(summary: Mapping[str, Any]) -> str:
+    """The ``lampsam stereo`` summary as a Markdown table (as ``compare`` prints).
+
+    One row: estimator, frames, the frames of each status, the RMS errors (x, y in
+    m; heading in degrees) over the frames every compared estimator scored, how
+    many those are, and the median step time.
+
+    Args:
+        summary: what :func:`stereo_job` returns.
+    """
+    counts: Mapping[str, int] = summary.get("status_counts", {})
+    statuses = sorted(counts, key=lambda k: (k != "ok", k))
+    rms = summary.get("rms")
+    head = ["estimator", "frames", *[f"{s}" for s in statuses], "RMS x [m]", "RMS y [m]",
+            "RMS heading [deg]", "scored frames", "median step [ms]"]
+    cells = [str(summary.get("estimator", "?")), str(summary.get("frames", "?")),
+             *[str(counts[s]) for s in statuses]]
+    if rms:
+        cells += [f"{rms['x_m']:.4f}", f"{rms['y_m']:.4f}",
+                  f"{math.degrees(rms['heading_rad']):.3f}", str(rms["frames"])]
+    else:
+        cells += ["–", "–", "–", "0"]
+    cells.append(f"{summary.get('median_step_ms', float('nan')):.2f}")
+    return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+                      "| " + " | ".join(cells) + " |"])
 
 
 # --------------------------------------------------------------------------- plots
@@ -181,14 +208,14 @@ def write_stereo_result(result: StereoResult, out: Path) -> list[Path]:
     """
     out = ensure_dir(out, StereoReportError)
     tum = out / "estimate.tum"
-    with open(tum, "w") as fh:
+    with atomic_path(tum) as tmp, open(tmp, "w") as fh:
         fh.write(f"# t x y z qx qy qz qw ({result.estimator}, rig pose in the target frame)\n")
         for i in np.nonzero(result.valid)[0]:
             x, y, th = result.poses[i]
             fh.write(f"{result.t[i]:.6f} {x:.9f} {y:.9f} 0 0 0 {math.sin(th / 2):.12f} "
                      f"{math.cos(th / 2):.12f}\n")
     status = out / "status.csv"
-    with open(status, "w", newline="") as fh:
+    with atomic_path(status) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t", "valid", "status", "x", "y", "theta", "var_x", "var_y", "var_theta",
                     "step_ms"])
@@ -237,12 +264,13 @@ def stereo_job(
         if mask.any():
             rms = rms_errors(result, run.truth, mask)
             summary["rms"] = {"x_m": float(rms[0]), "y_m": float(rms[1]),
-                              "heading_rad": float(rms[2]), "frames": int(mask.sum())}
+                              "heading_rad": float(rms[2]),
+                              "heading_deg": float(np.degrees(rms[2])), "frames": int(mask.sum())}
         fig = figure_for_run(run.truth, results, run.target_t_points,
                              f"{run.scenario or run_dir}: {estimator}")
-        fig.savefig(out / "errors.png", dpi=110)
-    with open(out / "summary.json", "w") as fh:
-        json.dump(summary, fh, indent=2)
+        with atomic_path(out / "errors.png") as tmp:
+            fig.savefig(tmp, dpi=110)
+    write_json_atomic(out / "summary.json", summary)
     log.info("stereo %s on %s: %s", estimator, run_dir, summary.get("rms"))
     return summary
 

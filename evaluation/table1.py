@@ -53,7 +53,7 @@ from lampsam.localization.map_quality import footprint_mask
 from lampsam.localization.map_store import load_env_map
 from lampsam.localization.raycast import cast_rays, distance_field
 from lampsam.localization.replay import kinect_turn_data
-from lampsam.localization.result import LocalizationResult
+from lampsam.localization.result import LocalizationResult, json_safe
 from lampsam.localization.spatial_map import make_sift
 
 log = logging.getLogger(__name__)
@@ -174,6 +174,9 @@ def trial_row(
         "truth": robot.pose.tolist(),
         "pose": [float(v) for v in res.pose],
         "claimed_success": res.success,
+        "status": res.status,
+        "correct_pose": bool(e_xy <= SUCCESS_XY and e_th <= SUCCESS_THETA),
+        "evidence": json_safe(res.evidence),
         "success": trial_success(res.success, e_xy, e_th, total),
         "error_m": e_xy,
         "error_deg": math.degrees(e_th),

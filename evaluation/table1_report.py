@@ -65,11 +65,33 @@ def table(rows: list[dict[str, object]], modes: Sequence[str]) -> str:
     return "\n".join(lines)
 
 
+def answers_table(rows: list[dict[str, object]], modes: Sequence[str]) -> str:
+    """The three answers per configuration: localized (right / wrong pose), ambiguous, failed.
+
+    Right = within 30 cm and 10 deg of the truth (no time limit). Rows written
+    before the answers existed are left out.
+    """
+    lines = ["| configuration | trials | localized | right | wrong_accepted | ambiguous | failed |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for mode in modes:
+        r = [x for x in rows if x["mode"] == mode and "status" in x]
+        if not r:
+            continue
+        loc = [x for x in r if x["status"] == "localized"]
+        right = sum(bool(x["correct_pose"]) for x in loc)
+        lines.append(
+            f"| {mode} | {len(r)} | {len(loc)} | {right} | {len(loc) - right} "
+            f"| {sum(x['status'] == 'ambiguous' for x in r)} "
+            f"| {sum(x['status'] == 'failed' for x in r)} |"
+        )
+    return "\n".join(lines)
+
+
 def write_report(rows: list[dict[str, object]], modes: Sequence[str], out: Path) -> str:
     """``OUT/trials.json``, ``OUT/table1.md`` and ``OUT/table1.png`` from the finished rows."""
     rows = sorted(rows, key=lambda x: (int(str(x["trial"])), str(x["mode"])))
     (out / "trials.json").write_text(json.dumps(rows, indent=1))
-    md = table(rows, modes)
+    md = table(rows, modes) + "\n\n" + answers_table(rows, modes)
     (out / "table1.md").write_text(md + "\n")
     save_table1_figure(rows, list(modes), out / "table1.png",
                        {k: v[0] for k, v in PAPER.items()})  # fmt: skip

@@ -150,10 +150,10 @@ def coverage_moments(
         sigma_n = 1.4826 * _abs_dev_median(ring_hist, bg)
     else:
         bg, sigma_n = float(grey[~core].min()) if (~core).any() else 0.0, 0.0
-    sigma_n = max(sigma_n, config.noise_floor_grey)
     span = top - bg
     if span < config.min_blob_contrast_grey:
         return None
+    sigma_n = max(sigma_n, config.noise_floor_grey)
     w = np.clip((grey - bg) / span, 0.0, 1.0)
     w[~support] = 0.0
     rows, cols = np.nonzero(w)
@@ -243,12 +243,17 @@ class Reach(NamedTuple):
         sup: shape (P,) label of the support the pixel lies in (the label
             image's 8- or 16-bit dtype).
         ring: shape (P,) int label of the background ring the pixel lies in.
+        crowd: shape (C,) int labels, one per (pixel, blob) pair where a
+            thresholded pixel of another blob (or of no measured blob) lies in
+            that blob's reach: its bright neighbours (empty when
+            ``max_crowding`` is None).
     """
 
     xy: FloatArray
     grey: IntArray
     sup: IntArray
     ring: IntArray
+    crowd: IntArray
 
 
 def gather_reach(
@@ -294,8 +299,23 @@ def gather_reach(
     near_v = near.take(idx)
     sup = np.where(free, near_v, comp.reshape(-1).take(in_comp))
     ring = np.where(free & (near_v == 0), outer.take(idx), 0).astype(np.intp)
+    outer_v = outer.take(idx)
+    crowd = np.zeros(0, dtype=np.intp)
+    if config.max_crowding is not None:
+        # Thresholded pixels of other blobs in a blob's reach. Where reaches overlap the
+        # grey dilation keeps the larger label, so the smaller one is found by dilating
+        # the reversed labels (top - label) too.
+        bright = (~free).nonzero()[0]
+        own = comp.reshape(-1).take(in_comp.take(bright))
+        top = int(region.max()) + 1
+        rev = np.where(region > 0, top - region.astype(np.int32), 0)
+        rev = rev.astype(np.uint8 if top <= 255 else np.uint16)
+        lo_raw = dilate_disk(rev, config.support_px + config.ring_px).ravel().take(idx.take(bright))
+        lo = np.where(lo_raw > 0, top - lo_raw.astype(np.intp), 0)
+        hi = outer_v.take(bright).astype(np.intp)
+        crowd = np.concatenate([hi[hi != own], lo[(lo != own) & (lo != hi)]])
     xy = np.array([cols, rows], dtype=np.float64)
-    return Reach(xy, image.reshape(-1).take(in_image), sup, ring)
+    return Reach(xy, image.reshape(-1).take(in_image), sup, ring, crowd)
 
 
 def shape_checks(
@@ -399,6 +419,12 @@ def measure_labels(
     sigma_n = np.maximum(1.4826 * mad, config.noise_floor_grey)
     span = top - bg
     ok = span >= config.min_blob_contrast_grey
+    if config.max_crowding is not None:
+        # A lamp hangs in front of a plain ceiling; a pane of a skylight or window is
+        # ringed by glazing bars with the neighbouring panes just beyond them.
+        crowd = np.bincount(reach.crowd, minlength=n).astype(np.float64)
+        crowd[0] = 0.0
+        ok &= crowd <= config.max_crowding * (crowd + dist.counts)
     span_safe = np.where(ok, span, 1.0)
     # Coverage weights on the support pixels, grouped by label.
     sup = (reach.sup > 0).nonzero()[0]

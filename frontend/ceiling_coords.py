@@ -17,6 +17,7 @@ mirroring of the mounting). Uncertainty goes through the local Jacobian
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -107,7 +108,11 @@ def to_observation(
 
 
 def to_observations(
-    moments: list[BlobMoments], m: FloatArray, m_D_px: FloatArray, config: LampDetectorConfig
+    moments: list[BlobMoments],
+    m: FloatArray,
+    m_D_px: FloatArray,
+    config: LampDetectorConfig,
+    ceiling_axes: Sequence[float | None] | None = None,
 ) -> tuple[LampObservation, ...]:
     """:func:`to_observation` of many blobs at once (the same formulas, batched).
 
@@ -116,6 +121,9 @@ def to_observations(
         m: shape (N, 2), their centroids in normalised ceiling coordinates.
         m_D_px: shape (N, 2, 2), Jacobians of ``m`` with respect to the pixel.
         config: detector settings (ratio threshold).
+        ceiling_axes: per blob, its axis taken on the ceiling (the principal
+            axis of ``J cov_shape J^T``, :func:`perspective_terms`) to use
+            instead of ``J e``, or None (default: ``J e`` for all).
 
     Returns:
         N observations, same order; equal to :func:`to_observation` up to
@@ -127,8 +135,9 @@ def to_observations(
     covs: list[tuple[tuple[float, float], tuple[float, float]]] = []
     axes: list[float | None] = []
     var_axes: list[float] = []
-    for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)) in zip(
-        moments, m_D_px.tolist(), cov_c, strict=True
+    over = ceiling_axes if ceiling_axes is not None else [None] * len(moments)
+    for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)), ax_c in zip(
+        moments, m_D_px.tolist(), cov_c, over, strict=True
     ):
         # cov_m = J cov_c J^T
         t00, t01 = j00 * c00 + j01 * c10, j00 * c01 + j01 * c11
@@ -138,7 +147,7 @@ def to_observations(
         if mo.ratio > threshold:
             cos_t, sin_t = math.cos(mo.theta), math.sin(mo.theta)
             je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
-            axes.append(wrap_axis(math.atan2(je1, je0)))
+            axes.append(wrap_axis(math.atan2(je1, je0)) if ax_c is None else ax_c)
             gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
             var_axes.append(gain * gain * mo.var_theta)
         else:
@@ -150,3 +159,68 @@ def to_observations(
         LampObservation(mi, ci, ax, va, mo.ratio, mo.area_px, mo.centroid, None, mo.touches_border)
         for mo, mi, ci, ax, va in zip(moments, m, np.array(covs), axes, var_axes, strict=True)
     )
+
+
+def perspective_terms(
+    camera: PixelToCeiling, px: FloatArray, cov_shapes: FloatArray, m_D_px: FloatArray, step: float
+) -> tuple[FloatArray, list[float | None]]:
+    """Second-order corrections for a pixel -> ``m`` map that is not affine (tilted camera, distortion).
+
+    A blob's pixel centroid ``p`` maps to ``m(p)``, but the lamp's centre is
+    the area centroid *on the ceiling*: with ``g = |det J|`` the ceiling area
+    of a pixel and ``C`` the blob's pixel covariance (``cov_shape``), to
+    second order
+
+        ``m_centre = m(p) + 1/2 [tr(H_u C), tr(H_v C)] + J C grad(log g)``
+
+    (``H_u``, ``H_v`` the Hessians of the two components of ``m``). For an
+    upward pinhole camera ``m`` is affine in the pixel: ``H = 0``, ``g``
+    constant, nothing changes. Likewise the lamp's axis is the principal axis
+    of ``J C J^T`` (the blob's shape on the ceiling) rather than the image of
+    the pixel principal axis ``J e``; they agree for a similarity ``J``.
+    Derivatives by central differences on a 5 x 5 grid of spacing ``step``.
+
+    Args:
+        camera: the camera model.
+        px: shape (N, 2) pixel centroids.
+        cov_shapes: shape (N, 2, 2) pixel shape covariances, px^2.
+        m_D_px: shape (N, 2, 2) Jacobians at the centroids.
+        step: grid spacing, px.
+
+    Returns:
+        ``(dm (N, 2), axes)``: the centroid corrections and, per blob, its
+        ceiling axis (rad, mod pi) where the map is not affine, else None.
+    """
+    n = px.shape[0]
+    a = np.arange(-2, 3, dtype=np.float64) * step
+    offs = np.stack(np.meshgrid(a, a, indexing="ij"), axis=-1).reshape(-1, 2)  # [i, j] -> (dx, dy)
+    pts = (px[:, None, :] + offs[None, :, :]).reshape(-1, 2)
+    g = np.asarray(camera.normalized_from_pixels(pts), dtype=np.float64).reshape(n, 5, 5, 2)
+    s2 = step * step
+    hxx = (g[:, 3, 2] - 2 * g[:, 2, 2] + g[:, 1, 2]) / s2
+    hyy = (g[:, 2, 3] - 2 * g[:, 2, 2] + g[:, 2, 1]) / s2
+    hxy = (g[:, 3, 3] - g[:, 3, 1] - g[:, 1, 3] + g[:, 1, 1]) / (4 * s2)
+
+    def det_j(i: int, j: int) -> FloatArray:
+        jx = (g[:, i + 1, j] - g[:, i - 1, j]) / (2 * step)
+        jy = (g[:, i, j + 1] - g[:, i, j - 1]) / (2 * step)
+        return np.abs(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0])
+
+    g0 = det_j(2, 2)
+    grad = np.stack([det_j(3, 2) - det_j(1, 2), det_j(2, 3) - det_j(2, 1)], axis=-1) / (2 * step)
+    grad = grad / g0[:, None]
+    c = cov_shapes
+    second = 0.5 * (hxx * c[:, None, 0, 0] + 2 * hxy * c[:, None, 0, 1] + hyy * c[:, None, 1, 1])
+    first = np.einsum("nij,njk,nk->ni", m_D_px, c, grad)
+    dm = second + first
+    scale = np.abs(m_D_px).max(axis=(1, 2))
+    curved = (np.abs(np.stack([hxx, hyy, hxy], 1)).max(axis=(1, 2)) * step > 1e-9 * scale)
+    axes: list[float | None] = []
+    for k in range(n):
+        if not curved[k]:
+            axes.append(None)
+            continue
+        cm = m_D_px[k] @ c[k] @ m_D_px[k].T
+        axes.append(wrap_axis(0.5 * math.atan2(2 * cm[0, 1], cm[0, 0] - cm[1, 1])))
+    dm[~curved] = 0.0
+    return dm, axes

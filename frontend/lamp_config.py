@@ -45,6 +45,16 @@ class LampDetectorConfig:
         max_peak_drop_thin_grey: the same for blobs thinner than
             ``thin_width_px``, whose brightest pixel area sampling dims
             (default 25).
+        max_crowding: a blob whose reach (``support_px + ring_px`` around
+            it) is covered by other thresholded pixels for more than this
+            fraction of its background ring is not a lamp: the panes of a
+            skylight or window are ringed by thin glazing bars with the
+            neighbouring panes just beyond, a lamp by plain ceiling
+            (default 0.2; None disables).
+        size_gate: per lamp model ``(min_area, max_area, ratio)`` on the
+            ceiling (areas in m^2 per m^2 of height) when the ceiling's lamp
+            models are known (:func:`lampsam.frontend.lamp_models.size_gate_from_models`):
+            blobs matching no model are not lamps; None (default): no check.
         thin_width_px: short-axis width ``sqrt(12 lambda_min)`` below which a
             blob is thin (default 3 px).
         min_area_px: smaller blobs are rejected (default 6).
@@ -72,6 +82,8 @@ class LampDetectorConfig:
     min_blob_contrast_grey: float = 30.0
     max_peak_drop_grey: float | None = 15.0
     max_peak_drop_thin_grey: float = 25.0
+    max_crowding: float | None = 0.2
+    size_gate: tuple[tuple[float, float, float], ...] | None = None
     thin_width_px: float = 3.0
     min_area_px: int = 6
     max_area_fraction: float = 0.2

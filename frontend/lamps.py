@@ -14,14 +14,18 @@ sec. 1. :func:`detect_lamps` runs, each stage in its own module:
    (:mod:`lampsam.frontend.blob_moments`); ``R_ori > ratio_threshold`` (1.5):
    an oriented lamp, else a point lamp;
 5. conversion to normalised ceiling coordinates with the camera model
-   (:mod:`lampsam.frontend.ceiling_coords`).
+   (:mod:`lampsam.frontend.ceiling_coords`), and, when the lamp models are
+   known, the size check against them (:mod:`lampsam.frontend.lamp_models`).
 
 Not lamps: blobs smaller than ``min_area_px`` or larger than
 ``max_area_fraction`` of the image (glare, a window), blobs less than
 ``min_blob_contrast_grey`` above their ring, blobs too dim to be a light
 source (their fifth-brightest pixel more than ``max_peak_drop_grey`` below the
-image's lamp peak: smoke detectors, specular highlights on ducts), and glare
-mergers that no higher threshold separates.
+image's lamp peak: smoke detectors, specular highlights on ducts), blobs
+crowded by other bright pixels just beyond their edge (``max_crowding``: the
+panes of a skylight between glazing bars), glare mergers that no higher
+threshold separates, and (``size_gate``) blobs whose area on the ceiling fits
+no lamp model.
 
 Border blobs: a blob touching the image border is cut, so its centroid and
 axis are biased; it is flagged (``touches_border``) and left out by
@@ -48,11 +52,17 @@ from lampsam.frontend.blob_moments import (
     measure_region,
     shape_checks,
 )
-from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
+from lampsam.frontend.ceiling_coords import (
+    PixelToCeiling,
+    ceiling_jacobians,
+    perspective_terms,
+    to_observations,
+)
 from lampsam.frontend.dilation import disk
 from lampsam.frontend.glare import split_glare
 from lampsam.frontend.label_stats import label_blobs
 from lampsam.frontend.lamp_config import DEFAULT_CONFIG, LampDetectorConfig
+from lampsam.frontend.lamp_models import within_size_gate
 from lampsam.frontend.measurements import LampObservation
 from lampsam.frontend.threshold import grey_histogram, threshold_and_peak
 
@@ -232,4 +242,16 @@ def detect_lamps(
         return LampDetections((), (), k, mask, n_rej)
     px = np.array([mo.centroid for mo in moments])
     m, jac = ceiling_jacobians(camera, px, config.jacobian_step_px)
-    return LampDetections(to_observations(moments, m, jac, config), tuple(moments), k, mask, n_rej)
+    if config.size_gate is not None:
+        keep = within_size_gate(moments, jac, config.size_gate)
+        n_rej += keep.count(False)
+        moments = [mo for mo, ok in zip(moments, keep, strict=True) if ok]
+        m, jac = m[keep], jac[keep]
+        if not moments:
+            return LampDetections((), (), k, mask, n_rej)
+    dm, axes = perspective_terms(
+        camera, np.array([mo.centroid for mo in moments]),
+        np.array([mo.cov_shape for mo in moments]), jac, config.jacobian_step_px,
+    )
+    obs = to_observations(moments, m + dm, jac, config, axes)
+    return LampDetections(obs, tuple(moments), k, mask, n_rej)

@@ -106,11 +106,14 @@ class RangeBearingObservation:
         bearing: angle from body ``x`` (forward), counter-clockwise, radians,
             wrapped to ``(-pi, pi]``.
         landmark_id: known association, else None.
+        cov: (2, 2) noise covariance of ``[bearing, range]`` (rad^2, m^2; GTSAM's
+            ``BearingRangeFactor2D`` order), or None for the configured default.
     """
 
     range: float
     bearing: float
     landmark_id: int | None = None
+    cov: FloatArray | None = None
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,12 @@ import numpy as np
 
 from lampsam.arrays import ImageU8
 from lampsam.errors import FrontendError
-from lampsam.frontend.ceiling_coords import PixelToCeiling, ceiling_jacobians, to_observations
+from lampsam.frontend.ceiling_coords import (
+    PixelToCeiling,
+    ceiling_jacobians,
+    perspective_terms,
+    to_observations,
+)
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     corner_observations,
@@ -30,6 +35,7 @@ from lampsam.frontend.corners import (
     detect_corners,
 )
 from lampsam.frontend.lamp_config import LampDetectorConfig
+from lampsam.frontend.lamp_models import within_size_gate
 from lampsam.frontend.lamps import detect_lamps, measure_blobs
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation
 
@@ -166,7 +172,18 @@ def _lamps_and_corners(
     if px.shape[0] == 0:
         return (), ()
     m, jac = ceiling_jacobians(camera, px, config.lamps.jacobian_step_px)
-    lamps = to_observations(moments, m[:n_lamps], jac[:n_lamps], config.lamps) if n_lamps else ()
+    m_l, jac_l = m[:n_lamps], jac[:n_lamps]
+    if n_lamps and config.lamps.size_gate is not None:
+        keep = within_size_gate(moments, jac_l, config.lamps.size_gate)
+        moments = [mo for mo, ok in zip(moments, keep, strict=True) if ok]
+        m_l, jac_l = m_l[keep], jac_l[keep]
+    lamps: tuple[LampObservation, ...] = ()
+    if moments:
+        dm, axes = perspective_terms(
+            camera, np.array([mo.centroid for mo in moments]),
+            np.array([mo.cov_shape for mo in moments]), jac_l, config.lamps.jacobian_step_px,
+        )
+        lamps = to_observations(moments, m_l + dm, jac_l, config.lamps, axes)
     corners: tuple[CornerObservation, ...] = ()
     if det is not None and det.pixels.shape[0]:
         corners = corner_observations(det, m[n_lamps:], jac[n_lamps:], config.corners)

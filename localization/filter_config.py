@@ -158,6 +158,11 @@ class GlobalLocalizerConfig:
         open_space_need: free distance (m) wanted ahead of the verification
             drive: the 2 m verification distance plus 0.7 m to stop short of
             an obstacle. Default 2.7.
+        accept_margin: in the modes without ceiling verification, the answer is
+            ``localized`` only when the estimate's scan log-likelihood exceeds
+            the best well-separated competing mode's by this many nats
+            (:func:`~lampsam.localization.acceptance.mode_margin`), else
+            ``ambiguous``; the paper's ``success`` is not affected.
         max_refine: the ceiling correction is applied only when within this
             ``(metres, radians)``; a larger one is a different pose, left to
             verification. Default (0.3 m, 10 deg): the success bound.
@@ -178,6 +183,7 @@ class GlobalLocalizerConfig:
     relocate_distance: float | None = None
     head_for_open_space: bool = True
     open_space_need: float = 2.7
+    accept_margin: float = 5.0
     max_refine: tuple[float, float] = (0.3, float(np.deg2rad(10.0)))
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
     scan: VirtualScanConfig = field(default_factory=VirtualScanConfig)

@@ -14,11 +14,13 @@ Frames: scan beams are in the laser frame (rad, CCW from forward), poses are
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.factors.geometry import between, compose
 from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel
 from lampsam.localization.particle_filter import (
@@ -27,6 +29,7 @@ from lampsam.localization.particle_filter import (
     ParticleFilter,
     ParticleFilterConfig,
 )
+from lampsam.localization.stages import distinct_modes
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,12 @@ class LaserEstimate:
         spread_xy: position spread (m).
         spread_theta: heading spread (rad).
         particles: particles at the end.
+        status: ``localized`` (accepted), ``ambiguous`` (a competitor within
+            the margin) or ``failed`` (not converged); see :class:`LaserAcceptConfig`.
+        margin: the likelihood-ratio margin over the best competitor (nats).
+        competitor: (3,) the best competitor's pose at the last scan, or None.
+        scans_used: scans used.
+        score: the estimate's fit, log-likelihood per used beam (nats).
     """
 
     pose: FloatArray
@@ -77,6 +86,139 @@ class LaserEstimate:
     spread_xy: float
     spread_theta: float
     particles: int
+    status: str = "failed"
+    margin: float = math.nan
+    competitor: FloatArray | None = None
+    scans_used: int = 0
+    score: float = math.nan
+
+
+@dataclass(frozen=True)
+class LaserAcceptConfig:
+    """The acceptance test of a laser estimate (a likelihood ratio between hypotheses).
+
+    Attributes:
+        min_margin: accept (``localized``) when the estimate's joint scan
+            log-likelihood exceeds the best competing hypothesis' by this many
+            nats (tempered). Calibrated on tuning trials (docs/localization.md).
+        min_score: and when the scans fit the map at the estimate: joint
+            log-likelihood per used beam (nats, untempered) at least this.
+        modes: competing hypotheses: the distinct modes of the first update.
+        separation: two hypotheses are distinct when this far apart (m, rad).
+        refine: half-width of the grid search refining each hypothesis'
+            anchor pose (m, rad), with ``refine_steps`` values per axis.
+        refine_steps: grid values per axis (odd).
+        max_scans: while not accepted, keep adding scans up to this many in all.
+    """
+
+    min_margin: float = 8.0
+    min_score: float = 0.45
+    modes: int = 8
+    separation: tuple[float, float] = (1.0, 0.5)
+    refine: tuple[float, float] = (0.2, 0.1)
+    refine_steps: int = 5
+    max_scans: int = 12
+
+
+def chain(anchor: FloatArray, k_anchor: int, odom: FloatArray) -> FloatArray:
+    """(K, 3) poses at every scan given the pose ``anchor`` at scan ``k_anchor`` and the odometry.
+
+    ``x_k = anchor (+) between(odom[k_anchor], odom[k])``: the hypothesis moved
+    with the robot's own odometry (no noise), backwards or forwards.
+    """
+    out = np.empty_like(np.asarray(odom, dtype=float))
+    for k in range(len(odom)):
+        out[k] = compose(anchor, between(odom[k_anchor], odom[k]))
+    return out
+
+
+def chain_log_likelihood(
+    model: LikelihoodFieldModel, anchor: FloatArray, k_anchor: int, odom: FloatArray,
+    ranges: FloatArray, angles: FloatArray, accept: LaserAcceptConfig,
+) -> tuple[float, FloatArray]:
+    """Best joint log-likelihood of the scans over a small grid of anchor poses around ``anchor``.
+
+    Returns:
+        The best sum over scans of the tempered scan log-likelihoods (nats) and
+        the refined anchor (3,).
+    """
+    n = accept.refine_steps
+    dxy, dth = accept.refine
+    g = np.linspace(-1.0, 1.0, n)
+    ox, oy, ot = np.meshgrid(g * dxy, g * dxy, g * dth, indexing="ij")
+    anchors = np.asarray(anchor, dtype=float) + np.column_stack([ox.ravel(), oy.ravel(), ot.ravel()])
+    total = np.zeros(len(anchors))
+    for k in range(len(odom)):
+        d = between(odom[k_anchor], odom[k])
+        c, s = np.cos(anchors[:, 2]), np.sin(anchors[:, 2])
+        poses = np.column_stack([anchors[:, 0] + c * d[0] - s * d[1],
+                                 anchors[:, 1] + s * d[0] + c * d[1], anchors[:, 2] + d[2]])  # fmt: skip
+        total += model.log_likelihood(poses, ranges[k], angles)
+    i = int(np.argmax(total))
+    return float(total[i]), anchors[i]
+
+
+def scan_fit(
+    model: LikelihoodFieldModel, poses: FloatArray, ranges: FloatArray, angles: FloatArray,
+    accept: LaserAcceptConfig,
+) -> float:
+    """How well the scans fit the map near ``poses``: log-likelihood per used beam (nats, untempered).
+
+    Each scan is matched on its own over the small grid of
+    :attr:`LaserAcceptConfig.refine` around its pose, so that odometry drift
+    along a hypothesis does not lower the fit (Cartographer's ``min_score`` of a
+    scan match, with the beam model's likelihood as the score).
+    """
+    n = accept.refine_steps
+    dxy, dth = accept.refine
+    g = np.linspace(-1.0, 1.0, n)
+    ox, oy, ot = np.meshgrid(g * dxy, g * dxy, g * dth, indexing="ij")
+    offsets = np.column_stack([ox.ravel(), oy.ravel(), ot.ravel()])
+    total, n_beams = 0.0, 0
+    for k in range(len(poses)):
+        ll = model.log_likelihood(np.asarray(poses[k], dtype=float) + offsets, ranges[k], angles)
+        total += float(np.max(ll))
+        n_beams += int(np.count_nonzero(np.isfinite(ranges[k]) & (ranges[k] < model.config.max_range)))
+    return total / (model.config.beam_weight * max(n_beams, 1))
+
+
+def hypothesis_margin(
+    model: LikelihoodFieldModel, ranges: FloatArray, angles: FloatArray, odom: FloatArray,
+    estimate: FloatArray, first_modes: FloatArray, accept: LaserAcceptConfig,
+) -> tuple[float, FloatArray | None, float, FloatArray]:
+    """The estimate's joint log-likelihood margin over the best distinct competing hypothesis.
+
+    The estimate (at the last scan) and every first-update mode (at the first
+    scan) are moved along the scans by odometry (:func:`chain`), each refined by
+    a small grid search, and scored on all scans jointly.
+
+    Returns:
+        The margin (nats; +inf without a competitor), the competitor's pose at
+        the last scan (or None), and the estimate's fit: its joint
+        log-likelihood per used beam (nats, untempered), and the estimate
+        refined by the grid search (two levels) at the last scan (3,).
+    """
+    last = len(odom) - 1
+    ll_est, a_est = chain_log_likelihood(model, estimate, last, odom, ranges, angles, accept)
+    fine = replace(accept, refine=(accept.refine[0] / 4, accept.refine[1] / 4))
+    ll_est, a_est = chain_log_likelihood(model, a_est, last, odom, ranges, angles, fine)
+    score = scan_fit(model, chain(a_est, last, odom), ranges, angles, accept)
+    best_ll, best_pose = -math.inf, None
+    for m in np.asarray(first_modes).reshape(-1, 3):
+        ll, a = chain_log_likelihood(model, m, 0, odom, ranges, angles, accept)
+        at_last = chain(a, 0, odom)[last]
+        if _near(at_last, a_est, accept.separation):
+            continue
+        if ll > best_ll:
+            best_ll, best_pose = ll, at_last
+    if best_pose is None:
+        return math.inf, None, score, a_est
+    return ll_est - best_ll, best_pose, score, a_est
+
+
+def _near(a: FloatArray, b: FloatArray, separation: tuple[float, float]) -> bool:
+    return bool(math.hypot(a[0] - b[0], a[1] - b[1]) < separation[0]
+                and abs(math.remainder(float(a[2] - b[2]), 2 * math.pi)) < separation[1])
 
 
 def localize_scans(
@@ -87,8 +229,14 @@ def localize_scans(
     odom: FloatArray,
     config: LaserLocalizerConfig,
     rng: np.random.Generator,
+    min_scans: int | None = None,
+    accept: LaserAcceptConfig | None = None,
 ) -> LaserEstimate:
     """Localize from a sequence of scans, starting with particles everywhere.
+
+    After ``min_scans`` scans the estimate is tested (:func:`hypothesis_margin`);
+    while it is not accepted and scans remain (up to ``accept.max_scans``), the
+    filter takes the next scan and tests again.
 
     Args:
         model: the measurement model on ``grid`` (build it once per map).
@@ -98,20 +246,47 @@ def localize_scans(
         odom: (K, 3) odometry poses at the scans.
         config: the filter settings.
         rng: generator of the particles.
+        min_scans: scans before the first test (default all ``K``).
+        accept: the acceptance test (default :class:`LaserAcceptConfig`).
 
     Returns:
-        The estimate at the last scan.
+        The estimate at the last scan used, with its answer.
     """
+    accept = LaserAcceptConfig() if accept is None else accept
+    k_min = len(ranges) if min_scans is None else min(int(min_scans), len(ranges))
+    k_max = min(len(ranges), max(k_min, accept.max_scans))
     pf = ParticleFilter(model, config.pf, rng)
     pf.init_uniform(grid, config.particles)
-    k_last = len(ranges) - 1
-    for k in range(len(ranges)):
+    first_modes = np.zeros((0, 3))
+    margin, competitor, score = math.nan, None, math.nan
+    refined = np.full(3, np.nan)
+    k = 0
+    while True:
         if k > 0:
             pf.predict(odom[k - 1], odom[k])
         pf.update(ranges[k], angles)
-        if k < k_last:
-            pf.resample_if_needed()
+        if k == 0:
+            first_modes = distinct_modes(pf.particles, pf.log_weights, accept.modes,
+                                         accept.separation)  # fmt: skip
+        k += 1
+        if k >= k_min:
+            mean, _ = pf.estimate()
+            margin, competitor, score, refined = hypothesis_margin(model, ranges[:k], angles, odom[:k],
+                                                          mean, first_modes, accept)  # fmt: skip
+            if _accepted(pf.converged(), margin, score, accept) or k >= k_max:
+                break
+        pf.resample_if_needed()
     mean, cov = pf.estimate()
     sxy, sth = pf.spread()
-    return LaserEstimate(np.asarray(mean, dtype=float), np.asarray(cov, dtype=float),
-                         bool(pf.converged()), float(sxy), float(sth), int(pf.n))  # fmt: skip
+    converged = bool(pf.converged())
+    if np.all(np.isfinite(refined)):
+        mean = refined  # the joint scan match of the last scans refines the particles' mean
+    status = ("localized" if _accepted(converged, margin, score, accept)
+              else "ambiguous" if converged else "failed")  # fmt: skip
+    return LaserEstimate(np.asarray(mean, dtype=float), np.asarray(cov, dtype=float), converged,
+                         float(sxy), float(sth), int(pf.n), status, float(margin), competitor,
+                         k, float(score))  # fmt: skip
+
+
+def _accepted(converged: bool, margin: float, score: float, accept: LaserAcceptConfig) -> bool:
+    return bool(converged and margin >= accept.min_margin and score >= accept.min_score)

@@ -27,10 +27,12 @@ import time
 
 import numpy as np
 
+from lampsam.arrays import FloatArray
+from lampsam.localization.acceptance import mode_margin
 from lampsam.localization.filter_config import GlobalLocalizerConfig
 from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.open_space import face_open_space
-from lampsam.localization.result import AttemptRecord, LocalizationResult
+from lampsam.localization.result import AttemptRecord, LocalizationResult, Status
 from lampsam.localization.robot import Robot
 from lampsam.localization.stages import (
     KeptScan,
@@ -39,10 +41,11 @@ from lampsam.localization.stages import (
     scan_model,
     turn_stage,
 )
-from lampsam.localization.symmetry import half_turn_centre, resolve_half_turn
+from lampsam.localization.symmetry import half_turn_centre, half_turn_twin, resolve_half_turn
 from lampsam.localization.verification import Verdict
 from lampsam.localization.verify_drive import verify_stage
 from lampsam.localization.virtual_scan import beam_angles
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +76,7 @@ def localize(
     """
     config = config.resolved()
     model = scan_model(maps, config)
+    emit("localize.start", grid=maps.grid)
     robot_time = {"turn": 0.0, "verification": 0.0}
     compute_time = {"candidates": 0.0, "filter": 0.0, "verification": 0.0}
     attempts: list[AttemptRecord] = []
@@ -96,6 +100,9 @@ def localize(
         if twin_centre is not None:
             log.info("the ceiling map is half-turn symmetric about (%.2f, %.2f)", *twin_centre)
     kept: list[KeptScan] = []
+    status: Status = "failed"
+    modes: list[FloatArray] = []
+    evidence: dict[str, float | str | bool] = {"mode": config.mode.value}
     if initial is not None and verifies:
         verdict, r_loc, d, pose, odom, rs, cs = verify_stage(
             robot, initial.pose, initial.odom, maps, config, monitoring=True
@@ -107,26 +114,46 @@ def localize(
             AttemptRecord(0, 0, True, verdict.value, r_loc, d, [float(v) for v in pose])
         )
         success = verdict is Verdict.ACCEPTED
+        status = "localized" if success else "failed"
         if not success:
             log.info("re-check of the earlier pose failed (kidnapped?): starting over")
     for attempt in range(config.max_restarts + 1):
         if success:
             break
-        cands, scan, odom, rs, cs = turn_stage(robot, maps, config, rng)
+        turned = turn_stage(robot, maps, config, rng, required=attempt == 0 and not attempts)
+        if turned is None:
+            log.info("the robot returned no frame while turning: stopping after %d attempts",
+                     len(attempts))  # fmt: skip
+            break
+        cands, scan, odom, rs, cs = turned
         odom_turn = odom
         robot_time["turn"] += rs
         compute_time["candidates"] += cs
         t0 = time.perf_counter()
-        pf, n_upd, converged = filter_stage(
+        pf, n_upd, converged, first_modes = filter_stage(
             cands, scan, model, maps, config, rng, kept if keep else (), odom
         )
         pose = mode_estimate(pf.particles, pf.log_weights)
         _, cov = pf.estimate()
         ambiguous = False
+        modes = []
         if twin_centre is not None and not cands:
             pose, margin = resolve_half_turn(pose, scan, twin_centre, maps, config, rng)
             ambiguous = margin < (fc.twin_margin or 0.0)
+            modes = [pose, half_turn_twin(pose, twin_centre)]
+            evidence["twin_margin"] = margin
+        if not verifies:
+            mm = mode_margin(pose, first_modes, scan, maps, config, rng)
+            evidence.update(mode_margin=mm.margin, scan_score=mm.score, converged=converged)
+            if not converged:
+                status = "failed"
+            elif mm.margin >= config.accept_margin:
+                status = "localized"
+            else:
+                status = "ambiguous"
+                modes = [pose] + ([] if mm.competitor is None else [mm.competitor])
         compute_time["filter"] += time.perf_counter() - t0
+        emit("localize.estimate", pose=pose, attempt=attempt)
         if not verifies:
             attempts.append(
                 AttemptRecord(
@@ -156,6 +183,8 @@ def localize(
             )
         )
         success = verdict is Verdict.ACCEPTED
+        evidence.update(verdict=verdict.value, r_loc=r_loc, verify_distance=d)
+        status = "localized" if success else "ambiguous" if ambiguous else "failed"
         if not success:
             log.info("attempt %d failed verification (R_loc %.2f): starting over", attempt, r_loc)
             kept.append(KeptScan(scan[:: fc.beam_step].copy(), beam_angles()[:: fc.beam_step],
@@ -176,4 +205,7 @@ def localize(
         compute_time,
         attempts,
         odom,
+        status,
+        [[float(v) for v in m] for m in modes] if status == "ambiguous" else [],
+        evidence,
     )

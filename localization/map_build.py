@@ -18,7 +18,12 @@ It runs in named stages:
 
 3. the grid checked against a true floor plan when the caller gives one
    (``map_quality.py``);
-4. the files and the manifest written (``map_store.py``).
+4. the files written (``map_store.py``), then the localizer's lookups precomputed from
+   the grid as written (range table, distance field: ``map_tables.py``), then the
+   manifest.
+
+A laser map may use ``all``, ``even`` or ``odd`` scans of the log (:func:`select_scans`)
+and is refused when fewer than ``LaserGridConfig.min_scans`` scans went into it.
 
 World frame: docs/conventions.md (``x, y`` on the floor, ``z`` up, metres).
 """
@@ -32,11 +37,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.localization.ceiling_map import CeilingFeatureMap
 from lampsam.localization.depth_grid import build_depth_layers
-from lampsam.localization.grid import LogOddsConfig, OccupancyGrid
+from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, free_mask, load_map_server
 from lampsam.localization.laser_grid import build_laser_grid
 from lampsam.localization.map_config import EnvMapConfig
 from lampsam.localization.map_poses import (
@@ -45,10 +52,16 @@ from lampsam.localization.map_poses import (
     planar_poses_at,
 )
 from lampsam.localization.map_quality import FloorPlan, grid_checks
-from lampsam.localization.map_store import EnvMapError, save_layers, write_manifest
+from lampsam.localization.map_store import GRID_STEM, EnvMapError, save_layers, write_manifest
+from lampsam.localization.map_tables import write_tables
 from lampsam.localization.spatial_map import SpatialFeatureMap
 
 log = logging.getLogger(__name__)
+
+#: The ``scans`` selections of a laser log (:func:`select_scans`).
+SCAN_SELECTIONS = ("all", "even", "odd")
+#: The grid's YAML file in a map directory.
+GRID_STEM_YAML = f"{GRID_STEM}.yaml"
 
 
 @dataclass(frozen=True)
@@ -127,8 +140,27 @@ def detect_source(run: Path) -> tuple[str, Path]:
     )
 
 
+def select_scans(n: int, scans: str) -> np.ndarray:
+    """Indices of the scans a map uses: ``all``, ``even`` (0, 2, 4, ...) or ``odd``.
+
+    Even and odd split a log into a mapping half and a held-out half for
+    localization trials on the same log (issue 17).
+
+    Raises:
+        EnvMapError: another value.
+    """
+    if scans not in SCAN_SELECTIONS:
+        raise EnvMapError(f"scans must be one of {', '.join(SCAN_SELECTIONS)}, got {scans!r}")
+    start, stride = {"all": (0, 1), "even": (0, 2), "odd": (1, 2)}[scans]
+    return np.arange(start, n, stride)
+
+
 def laser_layers(
-    log_path: Path, pose_kind: str, pose_path: Path | None, config: EnvMapConfig
+    log_path: Path,
+    pose_kind: str,
+    pose_path: Path | None,
+    config: EnvMapConfig,
+    scans: str = "all",
 ) -> Layers:
     """Grid map of a CARMEN log at its corrected poses or a SLAM trajectory's.
 
@@ -137,32 +169,56 @@ def laser_layers(
         pose_kind: ``groundtruth`` (the log's own poses) or ``slam``.
         pose_path: the planar TUM trajectory for ``slam``.
         config: parameters (``config.laser``, ``config.pose_tolerance``).
+        scans: which scans (:func:`select_scans`).
 
     Returns:
         The grid layer.
+
+    Raises:
+        EnvMapError: fewer than ``config.laser.min_scans`` scans used, or a grid with
+            no free cell.
     """
     from lampsam.datasets.carmen import read_carmen
     from lampsam.datasets.logrun import read_tum
 
     t0 = time.perf_counter()
-    scans = read_carmen(log_path).scans
+    carmen = read_carmen(log_path)
+    n_read = len(carmen.scans)
+    chosen = carmen.scans.subset(select_scans(n_read, scans))
     timings = {"read": time.perf_counter() - t0}
     if pose_kind == "slam":
         assert pose_path is not None  # parse_pose_source gives a path for "slam"
         traj = read_tum(pose_path)
         scan_poses = planar_poses_at(
-            traj.t, traj.poses, scans.t, config.pose_tolerance, str(pose_path)
+            traj.t, traj.poses, chosen.t, config.pose_tolerance, str(pose_path)
         )
     else:
-        scan_poses = scans.poses
+        scan_poses = chosen.poses
     t0 = time.perf_counter()
-    grid, n_used = build_laser_grid(scans, scan_poses, config.laser)
+    grid, n_used = build_laser_grid(chosen, scan_poses, config.laser)
     timings["grid"] = time.perf_counter() - t0
+    if n_used < config.laser.min_scans:
+        raise EnvMapError(
+            f"{log_path}: a map from {n_used} scans ({len(chosen)} selected with "
+            f"--scans {scans} of {n_read} read, used when the laser moved "
+            f"{config.laser.min_move} m or turned {config.laser.min_turn} rad) is refused: "
+            f"at least {config.laser.min_scans} are needed (check the log's poses and time "
+            "stamps, or lower [envmap.laser] min_scans)"
+        )
+    if not free_mask(grid, config.laser.log_odds).any():
+        raise EnvMapError(f"{log_path}: the grid from {n_used} scans has no free cell")
     grid_info = {
         "sensor": "planar laser",
         "max_range": config.laser.max_range,
+        "scans": scans,
         "scans_used": n_used,
-        "scans_total": len(scans),
+        "scans_selected": len(chosen),
+        "scans_total": n_read,
+        "laser_message": carmen.message,
+        "beams": int(len(chosen.angles)),
+        "beam_angles_deg": [round(float(np.degrees(chosen.angles[0])), 4),
+                            round(float(np.degrees(chosen.angles[-1])), 4)],
+        "time_source": chosen.time_source,
     }
     return Layers(grid, config.laser.log_odds, grid_info, n_used, timings)
 
@@ -314,6 +370,7 @@ def build_map(
     poses: str = "groundtruth",
     config: EnvMapConfig | None = None,
     truth: FloorPlan | None = None,
+    scans: str = "all",
 ) -> BuildReport:
     """Build the environment map of a mapping run (the stages: module docstring).
 
@@ -328,21 +385,27 @@ def build_map(
             :func:`lampsam.evaluation.map_truth.floor_plan_of_run` with the config's
             height band); when given, the grid of a ``run`` source is checked against
             it (``checks["grid_vs_world"]``).
+        scans: for a laser log, ``all``, ``even`` or ``odd`` scans (:func:`select_scans`);
+            other sources take ``all`` only.
 
     Returns:
         The :class:`BuildReport` (also written into the manifest).
 
     Raises:
-        EnvMapError: unknown source, missing pose, unusable input.
+        EnvMapError: unknown source, missing pose, unusable input, a laser map from
+            fewer than ``config.laser.min_scans`` scans.
         DatasetError: unreadable files (naming file and line).
     """
     config = config if config is not None else EnvMapConfig()
     t_start = time.perf_counter()
     run, out = Path(run), Path(out)
+    select_scans(0, scans)  # a bad value fails before any work
     kind, src = detect_source(run)
     pose_kind, pose_path = parse_pose_source(poses)
     if kind == "laser":
-        layers = laser_layers(src, pose_kind, pose_path, config)
+        layers = laser_layers(src, pose_kind, pose_path, config, scans)
+    elif scans != "all":
+        raise EnvMapError(f"{src}: --scans {scans} applies to laser logs only ({kind} source)")
     else:
         layers = depth_layers(kind, src, pose_kind, pose_path, depth_config(kind, config))
     checks: dict[str, Any] = {}
@@ -353,7 +416,12 @@ def build_map(
         out, layers.grid, layers.log_odds, layers.grid_info, layers.spatial, config.spatial,
         layers.ceiling,
     )  # fmt: skip
-    timings = {**layers.timings, "total": time.perf_counter() - t_start}
+    t0 = time.perf_counter()
+    # the lookups are built from the grid as the localizer will read it (trinary PGM)
+    grid_as_read = load_map_server(out / GRID_STEM_YAML)
+    described.update(write_tables(out, grid_as_read, config.tables, laser=kind == "laser"))
+    tables_s = time.perf_counter() - t0
+    timings = {**layers.timings, "tables": tables_s, "total": time.perf_counter() - t_start}
     timings = {k: round(v, 3) for k, v in timings.items()}
     source = {"kind": kind, "path": str(src), "poses": poses, "frames_used": layers.n_frames}
     write_manifest(out, source, described, asdict(config), timings, checks)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lampsam.localization.grid import LogOddsConfig
+from lampsam.localization.map_tables import TableConfig
 from lampsam.localization.spatial_map import SpatialMapConfig
 
 
@@ -54,6 +55,10 @@ class LaserGridConfig:
         min_turn: ... or turned this much, rad (default 0.1).
         margin: grid border, metres (default 1.0).
         log_odds: the inverse sensor model.
+        min_scans: ``build_map`` refuses a laser map from fewer scans used (after
+            the ``min_move``/``min_turn`` selection), default 10: a building is not
+            covered by fewer, and a log that yields so few is more likely misread
+            (time stamps, poses) than short.
     """
 
     resolution: float = 0.1
@@ -62,6 +67,7 @@ class LaserGridConfig:
     min_turn: float = 0.1
     margin: float = 1.0
     log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+    min_scans: int = 10
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,7 @@ class EnvMapConfig:
         feature_every: SIFT on every n-th frame (default 1).
         pose_tolerance: a frame may lie this far outside the trajectory's time span, s
             (default 0.2); farther is a missing pose.
+        tables: the lookups precomputed for the localizer (``map_tables.py``).
     """
 
     depth: DepthGridConfig = field(default_factory=DepthGridConfig)
@@ -82,3 +89,4 @@ class EnvMapConfig:
     spatial: SpatialMapConfig = field(default_factory=SpatialMapConfig)
     feature_every: int = 1
     pose_tolerance: float = 0.2
+    tables: TableConfig = field(default_factory=TableConfig)

@@ -5,12 +5,16 @@ the ceiling feature map, adapted from a map directory
 (:func:`lampsam.localization.map_store.load_env_map`) or built directly (tests,
 experiments). It also owns the map's precomputed expected-range table, which
 is map preparation: built once on first use and reused by every localization
-on the same maps object.
+on the same maps object (and stored in the map directory when one is given).
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -21,6 +25,8 @@ from lampsam.localization.raycast import RangeTable
 
 if TYPE_CHECKING:
     from lampsam.localization.map_store import EnvironmentMap
+
+log = logging.getLogger(__name__)
 
 #: heading bins of the expected-range table (1 degree)
 RANGE_TABLE_BINS = 360
@@ -44,6 +50,8 @@ class EnvironmentMaps:
             none (None: axes not checked).
         ceiling_camera: the upward camera (``lampsam.datasets.logrun.CameraModel``):
             with it, map lamps predicted inside the image must be seen too.
+        cache_dir: where the range table is stored once built (the map
+            directory; None: kept in memory only).
     """
 
     grid: OccupancyGrid
@@ -54,13 +62,15 @@ class EnvironmentMaps:
     ceiling_is_lamp: BoolArray | None = None
     ceiling_phi: FloatArray | None = None
     ceiling_camera: Any = None
+    cache_dir: Path | None = field(default=None, compare=False)
     _range_tables: dict[float, RangeTable] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
 
     @classmethod
     def from_env_map(
-        cls, env: EnvironmentMap, body_t_camera: FloatArray, camera: Any = None
+        cls, env: EnvironmentMap, body_t_camera: FloatArray, camera: Any = None,
+        cache_dir: Path | None = None,
     ) -> EnvironmentMaps:
         """Adapt a loaded map directory (:func:`lampsam.localization.map_store.load_env_map`).
 
@@ -69,6 +79,7 @@ class EnvironmentMaps:
                 (no candidates / no verification evidence).
             body_t_camera: (3,) the ceiling camera's mounting (from the run's rig).
             camera: the run's ``CameraModel`` (optional, see ``ceiling_camera``).
+            cache_dir: see ``cache_dir`` (pass the map directory).
         """
         sp, ce = env.spatial, env.ceiling
         return cls(
@@ -80,6 +91,7 @@ class EnvironmentMaps:
             None if ce is None else np.asarray(ce.is_lamp(), dtype=bool),
             None if ce is None else np.asarray(ce.phi, dtype=float),
             camera,
+            cache_dir,
         )
 
     @classmethod
@@ -101,8 +113,48 @@ class EnvironmentMaps:
         key = float(max_range)
         table = self._range_tables.get(key)
         if table is None:
+            table = self._load_table(key)
+        if table is None:
             table = RangeTable.build(
                 self.grid, RANGE_TABLE_BINS, key, cells=~occupied_mask(self.grid)
             )
-            self._range_tables[key] = table
+            self._save_table(key, table)
+        self._range_tables[key] = table
         return table
+
+    def _table_file(self, max_range: float) -> tuple[Path, str] | None:
+        """The cache file of a table and the grid's fingerprint (None without ``cache_dir``)."""
+        if self.cache_dir is None:
+            return None
+        h = hashlib.sha1(np.ascontiguousarray(occupied_mask(self.grid)).tobytes())
+        h.update(np.asarray([self.grid.resolution, *self.grid.origin, max_range,
+                             RANGE_TABLE_BINS], dtype=float).tobytes())  # fmt: skip
+        return Path(self.cache_dir) / f"range_table_{int(round(1000 * max_range))}mm.npz", h.hexdigest()
+
+    def _load_table(self, max_range: float) -> RangeTable | None:
+        where = self._table_file(max_range)
+        if where is None or not where[0].is_file():
+            return None
+        try:
+            with np.load(where[0]) as z:
+                if str(z["fingerprint"]) != where[1]:
+                    log.info("%s: made for another grid, rebuilding", where[0])
+                    return None
+                return RangeTable((self.grid.height, self.grid.width), self.grid.resolution,
+                                  self.grid.origin.copy(), z["row_of_cell"], z["ranges_mm"],
+                                  max_range)  # fmt: skip
+        except (OSError, KeyError, ValueError) as exc:
+            log.warning("%s: unreadable range table (%s), rebuilding", where[0], exc)
+            return None
+
+    def _save_table(self, max_range: float, table: RangeTable) -> None:
+        where = self._table_file(max_range)
+        if where is None:
+            return
+        tmp = where[0].with_suffix(".tmp.npz")
+        try:
+            np.savez(tmp, fingerprint=np.array(where[1]), row_of_cell=table.row_of_cell,
+                     ranges_mm=table.ranges_mm)  # fmt: skip
+            os.replace(tmp, where[0])
+        except OSError as exc:
+            log.warning("cannot store the range table in %s: %s", self.cache_dir, exc)

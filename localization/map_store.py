@@ -49,12 +49,15 @@ class EnvironmentMap:
         spatial: the spatial feature map, or None.
         ceiling: the ceiling feature map, or None.
         manifest: the parsed manifest.
+        path: the map directory it was read from (where the precomputed lookups of
+            ``map_tables.py`` are found), or None.
     """
 
     grid: OccupancyGrid
     spatial: SpatialFeatureMap | None
     ceiling: CeilingFeatureMap | None
     manifest: dict[str, Any]
+    path: Path | None = None
 
 
 def _package_version() -> str:
@@ -229,4 +232,4 @@ def load_env_map(path: str | Path) -> EnvironmentMap:
         if "ceiling_features" in layers
         else None
     )
-    return EnvironmentMap(grid, spatial, ceiling, manifest)
+    return EnvironmentMap(grid, spatial, ceiling, manifest, path)

@@ -108,7 +108,7 @@ def depth_to_points(
     depth = _depth_in_range(check_depth(depth, camera), camera)
     extrinsic = np.eye(4) if world_T_camera is None else np.linalg.inv(check_pose(world_T_camera))
     pcd = o3d.geometry.PointCloud.create_from_depth_image(
-        o3d.geometry.Image(depth),
+        o3d.geometry.Image(depth),  # type: ignore[call-overload]
         _intrinsic(camera),
         extrinsic,
         depth_scale=float(camera.depth_scale),
@@ -149,7 +149,7 @@ def rgbd_to_cloud(
         )
     rgbd = o3d.geometry.RGBDImage.create_from_color_and_depth(
         o3d.geometry.Image(np.ascontiguousarray(rgb)),  # type: ignore[call-overload]
-        o3d.geometry.Image(depth),
+        o3d.geometry.Image(depth),  # type: ignore[call-overload]
         depth_scale=float(camera.depth_scale),
         depth_trunc=float(camera.max_depth),
         convert_rgb_to_intensity=False,

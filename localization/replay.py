@@ -8,8 +8,10 @@ frames recorded while the log turned and drove. Used by ``lampsam localize RUN``
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -19,7 +21,7 @@ from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.localization.filter_config import GlobalLocalizerConfig
 from lampsam.localization.localizer import localize
 from lampsam.localization.map_layers import EnvironmentMaps
-from lampsam.localization.result import LocalizationResult, write_result
+from lampsam.localization.result import LocalizationResult, is_correct, summarize, write_result
 from lampsam.localization.robot import DriveFrame, GlobalLocalizationError, TurnFrame
 
 log = logging.getLogger(__name__)
@@ -74,6 +76,11 @@ class ReplayRobot:
 
         self.run = read_run(run_dir)
         odo = self.run.odometry
+        from lampsam.datasets.odometry import Pose2OdometryLog
+
+        if isinstance(odo, Pose2OdometryLog):  # no wheel travel to replay
+            raise GlobalLocalizationError(f"{run_dir}: laser replay needs wheel odometry "
+                                          "(odometry.csv), not Pose2 increments")
         if len(odo.t) == 0:
             raise GlobalLocalizationError(f"{run_dir}: the run has no odometry")
         wheel = np.column_stack([odo.d_left, odo.d_right])
@@ -176,8 +183,35 @@ def localize_run(
     config = replace(config, head_for_open_space=False)
     robot = ReplayRobot(run_dir)
     cam = robot.run.rig.camera
-    maps = EnvironmentMaps.from_env_map(env, cam.body_t_camera, cam)
+    maps = EnvironmentMaps.from_env_map(env, cam.body_t_camera, cam, cache_dir=Path(map_dir))
     result = localize(robot, maps, config, np.random.default_rng(seed))
-    path = write_result(result, out_dir)
+    path = write_result(result, out_dir, score_run(robot, result))
     log.info("localization %s: result in %s", "succeeded" if result.success else "failed", path)
     return result
+
+
+def score_run(robot: ReplayRobot, result: LocalizationResult) -> dict[str, Any]:
+    """The run as one trial: truth at the time of the answer when the run has it, and the summary.
+
+    The answer's pose goes with the last frame replayed (``robot.cursor``); the
+    run's ``groundtruth.tum`` there is the truth.
+    """
+    trial: dict[str, Any] = {
+        "status": result.status,
+        "compute_s": float(sum(result.compute_time.values())),
+        "robot_s": float(sum(result.robot_time.values())),
+        "t": robot.cursor,
+        "correct": None,
+    }
+    gt = robot.run.groundtruth
+    if gt is not None and len(gt.t):
+        i = int(np.clip(np.searchsorted(gt.t, robot.cursor), 0, len(gt.t) - 1))
+        truth = np.asarray(gt.poses[i], dtype=float)
+        d = result.pose - truth
+        trial.update(
+            truth=truth.tolist(),
+            error_m=float(np.hypot(d[0], d[1])),
+            error_deg=float(np.degrees(abs(math.remainder(float(d[2]), 2 * math.pi)))),
+            correct=is_correct(result.pose, truth),
+        )
+    return {"trial": trial, "summary": summarize([trial])}

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16, IntArray
 from lampsam.datasets.rgbd import RgbdCamera
@@ -32,6 +33,9 @@ from lampsam.errors import LocalizationError
 from lampsam.localization.pointcloud import backproject_pixels, check_pose, transform_points
 
 log = logging.getLogger(__name__)
+
+#: (N, 128) float32 SIFT descriptors (OpenCV's type).
+DescriptorArray = NDArray[np.float32]
 
 SPATIAL_FILE = "spatial_features.npz"
 
@@ -74,7 +78,7 @@ class SpatialFeatureMap:
     """
 
     xyz: FloatArray
-    descriptors: FloatArray
+    descriptors: DescriptorArray
     size_px: FloatArray
     angle_deg: FloatArray
     n_obs: IntArray
@@ -137,7 +141,7 @@ class FrameFeatures:
 
     pixels: FloatArray
     camera_xyz: FloatArray
-    descriptors: FloatArray
+    descriptors: DescriptorArray
     size_px: FloatArray
     angle_deg: FloatArray
 
@@ -196,7 +200,7 @@ class SpatialMapBuilder:
         self.config = config
         self.sift = make_sift(config)
         self._xyz: list[FloatArray] = []
-        self._desc: list[FloatArray] = []
+        self._desc: list[DescriptorArray] = []
         self._size: list[FloatArray] = []
         self._angle: list[FloatArray] = []
 
@@ -216,7 +220,7 @@ class SpatialMapBuilder:
     def add_features(
         self,
         world_xyz: FloatArray,
-        descriptors: FloatArray,
+        descriptors: DescriptorArray,
         size_px: FloatArray,
         angle_deg: FloatArray,
     ) -> None:
@@ -247,7 +251,7 @@ class SpatialMapBuilder:
 
 def merge_duplicates(
     xyz: FloatArray,
-    descriptors: FloatArray,
+    descriptors: DescriptorArray,
     size_px: FloatArray,
     angle_deg: FloatArray,
     config: SpatialMapConfig,

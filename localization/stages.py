@@ -36,8 +36,12 @@ from lampsam.localization.particle_filter import (
 )
 from lampsam.localization.robot import GlobalLocalizationError, Robot
 from lampsam.localization.virtual_scan import VirtualScan, beam_angles
+from lampsam.observe import emit
 
 log = logging.getLogger(__name__)
+
+#: distinct modes kept from the filter's first update (the estimate's competitors)
+FIRST_MODES = 6
 
 
 def mode_estimate(
@@ -92,16 +96,30 @@ def scan_model(
 
 
 def turn_stage(
-    robot: Robot, maps: EnvironmentMaps, config: GlobalLocalizerConfig, rng: np.random.Generator
-) -> tuple[list[PoseCandidate], FloatArray, FloatArray, float, float]:
+    robot: Robot,
+    maps: EnvironmentMaps,
+    config: GlobalLocalizerConfig,
+    rng: np.random.Generator,
+    required: bool = True,
+) -> tuple[list[PoseCandidate], FloatArray, FloatArray, float, float] | None:
     """Turn in place: candidates and the virtual scan.
+
+    Args:
+        robot, maps, config, rng: the robot, map layers, configuration, generator.
+        required: a turn without any frame is an error (else None is returned:
+            a replayed log has run out).
 
     Returns:
         candidates (in the body frame at the end of the turn), the 360-beam scan
         (360,), the odometry pose at the end (3,), robot seconds, compute seconds.
+
+    Raises:
+        GlobalLocalizationError: no frame although ``required``.
     """
     frames = robot.turn(config.turn_angle, config.turn_rate)
     if not frames:
+        if not required:
+            return None
         raise GlobalLocalizationError("the robot returned no frame while turning")
     t0 = time.perf_counter()
     collector = CandidateCollector(
@@ -125,6 +143,7 @@ def turn_stage(
         len(collector.candidates),
         int(np.count_nonzero(np.isfinite(scan))),
     )
+    emit("localize.candidates", candidates=list(collector.candidates))
     return collector.candidates, scan, odom_end, robot_s, compute
 
 
@@ -191,7 +210,7 @@ def filter_stage(
     rng: np.random.Generator,
     kept: Sequence[KeptScan] = (),
     odom_now: FloatArray | None = None,
-) -> tuple[ParticleFilter, int, bool]:
+) -> tuple[ParticleFilter, int, bool, FloatArray]:
     """Particle filter on the virtual scan until the spread is below the bound.
 
     The robot stands still after the turn, so the same scan is applied
@@ -202,7 +221,9 @@ def filter_stage(
     (:meth:`GlobalLocalizerConfig.resolved`).
 
     Returns:
-        The filter (particles at the end), the number of updates, converged or not.
+        The filter (particles at the end), the number of updates, converged or
+        not, and the distinct modes (M, 3) after the first update (heaviest
+        first, at most :data:`FIRST_MODES`; the competitors of the estimate).
     """
     fc = config.filter
     if kept:
@@ -239,10 +260,13 @@ def filter_stage(
     while n_updates < fc.max_updates:
         n_updates += 1
         pf.update(ranges, angles)
-        if recheck and n_updates == 1:
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
+        if n_updates == 1:
             first_modes = distinct_modes(
-                pf.particles, pf.log_weights, fc.recheck_modes, fc.mode_separation
-            )
+                pf.particles, pf.log_weights, max(fc.recheck_modes, FIRST_MODES),
+                fc.mode_separation,
+            )  # fmt: skip
         if pf.converged():
             converged = True
             break
@@ -250,9 +274,10 @@ def filter_stage(
     log.info("filter: %d updates, %d particles, converged %s", n_updates, pf.n, converged)
     if recheck:
         best = mode_estimate(pf.particles, pf.log_weights)
+        some = first_modes[: fc.recheck_modes]
         modes = distinct_modes(
-            np.vstack([best[None], first_modes]),
-            np.concatenate([[0.0], np.full(len(first_modes), -1.0)]),
+            np.vstack([best[None], some]),
+            np.concatenate([[0.0], np.full(len(some), -1.0)]),
             fc.recheck_modes,
             fc.mode_separation,
         )
@@ -260,7 +285,7 @@ def filter_stage(
             modes, ranges, angles, maps, config, rng, kept, odom_now
         )
         n_updates += n_more
-    return pf, n_updates, converged
+    return pf, n_updates, converged, first_modes
 
 
 def distinct_modes(
@@ -333,6 +358,8 @@ def recheck_modes(
     while n_updates < fc.max_updates:
         n_updates += 1
         pf.update(ranges, angles)
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
         if pf.converged():
             converged = True
             break

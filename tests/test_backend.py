@@ -398,3 +398,30 @@ def test_odometry_bridge_is_the_gaussian_conditional() -> None:
     d, _ = odometry_bridge(np.zeros(3), np.zeros((3, 3)), np.array([big.x(), big.y(), big.theta()]),
                            cov_r, pose_k, np.array([end.x(), end.y(), end.theta()]))
     np.testing.assert_allclose(d, 0.0, atol=1e-15)
+
+
+def test_failed_batch_lm_is_labelled_as_the_online_isam2_estimate(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A final LM that throws keeps iSAM2's estimate, labelled isam2, with a status saying so."""
+    import gtsam
+
+    rng = np.random.default_rng(4)
+    rig, odo, rb, gt, _ = range_bearing_world(rng, duration=6.0)
+    from lampsam.backend.slam import frames_from_range_bearing
+
+    frames = frames_from_range_bearing(rb)
+    ok = drive(BatchSlam(rig.odometry, SlamConfig(), gt.poses[0]), iter_steps(odo, frames))
+    assert ok.backend == "batch" and ok.status == "ok"
+
+    class Broken:
+        def __init__(self, *args: object) -> None:
+            pass
+
+        def optimize(self) -> None:
+            raise RuntimeError("Indeterminant linear system detected near variable x3")
+
+    monkeypatch.setattr(gtsam, "LevenbergMarquardtOptimizer", Broken)
+    bad = drive(BatchSlam(rig.odometry, SlamConfig(), gt.poses[0]), iter_steps(odo, frames))
+    assert bad.backend == "isam2"
+    assert bad.status.startswith("final optimisation failed: batch LM: RuntimeError")
+    assert len(bad.times) == len(ok.times)  # every finished step is kept

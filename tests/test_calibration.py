@@ -59,10 +59,11 @@ def test_rig_yaml_missing_key_names_key_and_file(
 @pytest.mark.parametrize(
     ("section", "key", "value", "pattern"),
     [
-        ("camera", "width", 320.5, r"camera\.width must be an integer"),
-        ("camera", "fx", "90", r"camera\.fx must be a finite number"),
-        ("camera", "body_t_camera", [0.1, 0.0], r"camera\.body_t_camera must be a list of 3"),
-        ("odometry", "wheel_base", True, r"odometry\.wheel_base must be a finite number"),
+        ("camera", "width", 320.5, r"camera\.width: must be an integer"),
+        ("camera", "fx", "90", r"camera\.fx: must be a number"),
+        ("camera", "fx", float("nan"), r"camera\.fx: must be a number, got nan"),
+        ("camera", "body_t_camera", [0.1, 0.0], r"body_t_camera must have shape \(3,\)"),
+        ("odometry", "wheel_base", True, r"odometry\.wheel_base: must be a number"),
         ("camera", "lens", 3, r"camera\.lens: unknown key"),
         ("camera", "model", "orthographic", r"model must be one of"),
         ("odometry", "wheel_base", -0.1, r"wheel_base must be > 0"),

@@ -46,19 +46,20 @@ def test_stereo_sim_and_ekf_on_straight_scenario(
     """``straight``, seed 0: the EKF's RMS error against the simulator's truth is below
     x 0.2 m, y 0.5 m, heading 0.1 rad (measured: 0.10 m, 0.30 m, 0.046 rad), the
     summary's RMS is what estimate.tum and groundtruth.tum give on the frames with a
-    measurement, and the printed line carries the same numbers."""
+    measurement, and the printed table carries the same numbers (heading in degrees)."""
     run_dir, out = tmp_path / "run", tmp_path / "ekf"
     assert main(["stereo-sim", "--scenario", "straight", "--out", str(run_dir)]) == 0
     for name in ("stereo_run.yaml", "measurements.csv", "odometry.csv", "groundtruth.tum"):
         assert (run_dir / name).is_file()
     assert main(["stereo", str(run_dir), "--estimator", "ekf", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out.strip().splitlines()[-1]
+    printed = capsys.readouterr().out.strip().splitlines()[-2]  # the table's row
 
     summary = json.loads((out / "summary.json").read_text())
     rms = summary["rms"]
     assert summary["estimator"] == "ekf" and summary["frames"] == 171
     assert rms["x_m"] < 0.2 and rms["y_m"] < 0.5 and rms["heading_rad"] < 0.1
-    assert f"RMS x {rms['x_m']:.4f} m, y {rms['y_m']:.4f} m" in printed
+    assert (f"| {rms['x_m']:.4f} | {rms['y_m']:.4f} | {np.degrees(rms['heading_rad']):.3f} "
+            f"| {rms['frames']} |") in printed
 
     # recompute the RMS from the written files: frames whose status is "ok"
     with open(out / "status.csv", newline="") as fh:

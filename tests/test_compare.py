@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from lampsam.evaluation import compare as C
+from lampsam.evaluation.compare_report import consistency_sentences
 
 
 def _job(backend: str, seed: int, tmp: Path) -> C.Job:
@@ -37,7 +38,7 @@ def test_failed_jobs_are_counted_not_dropped(tmp_path: Path, rng: np.random.Gene
     assert abs(rows["ekf"]["nees_mean"] - 3.0) < 0.3 and not rows["ekf"]["nees_overconfident"]
     table = C.markdown_table(C.aggregate(results))
     assert "| lab | batch | 1/2 |" in table and "| lab | ekf | 2/2 |" in table
-    text = "\n".join(C.consistency_sentences(C.aggregate(results)))
+    text = "\n".join(consistency_sentences(C.aggregate(results)))
     assert "batch position RMS is 0.27x the EKF's" in text
 
 

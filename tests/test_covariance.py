@@ -156,7 +156,7 @@ def test_ekf_prediction_equals_dense_jacobian_product() -> None:
     n = be._n
     p0, pose = be.P, be.x[:3].copy()
     wheel = np.array([[0.010, 0.012], [0.011, 0.009], [0.0, 0.001]])
-    odo = be.wheel
+    odo = be.motion.params  # the wheel model's constants
     t = np.eye(n)
     q = np.zeros((n, n))
     for dl, dr in wheel:

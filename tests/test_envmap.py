@@ -23,14 +23,17 @@ from lampsam.localization.ceiling_map import CeilingFeatureMap, read_landmark_cs
 from lampsam.localization.depth_grid import integrate_depth_frame, split_by_height
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
 from lampsam.localization.map_build import build_map
-from lampsam.localization.map_config import DepthGridConfig
+from lampsam.localization.map_config import DepthGridConfig, EnvMapConfig
 from lampsam.localization.map_poses import planar_poses_at
 from lampsam.localization.map_quality import FloorPlan, grid_precision_recall
 from lampsam.localization.map_store import EnvMapError, load_env_map
+from lampsam.localization.map_tables import TableConfig
 from lampsam.localization.pointcloud import depth_to_points
 from lampsam.localization.spatial_map import SpatialMapConfig, merge_duplicates
 
 CFG = KinectConfig(width=160, height=120)
+#: The office builds skip the range table (tests/test_laser_map.py tests it on a small map).
+NO_TABLE = EnvMapConfig(tables=TableConfig(range_table=False))
 
 
 def _camera(cfg: KinectConfig) -> RgbdCamera:
@@ -141,7 +144,7 @@ def _truth(run: Path) -> FloorPlan:
 
 
 def test_build_map_on_simulated_office(tiny_run: Path, tmp_path: Path) -> None:
-    report = build_map(tiny_run, tmp_path / "map", truth=_truth(tiny_run))
+    report = build_map(tiny_run, tmp_path / "map", config=NO_TABLE, truth=_truth(tiny_run))
     assert report.source == "run" and report.n_frames == 25
     env = load_env_map(tmp_path / "map")
     assert env.manifest["format"] == "lampsam-envmap"
@@ -171,6 +174,7 @@ def test_build_map_with_slam_poses_and_missing_pose(tiny_run: Path, tmp_path: Pa
         tiny_run,
         tmp_path / "map",
         poses=f"slam:{slam_dir / 'trajectory.tum'}",
+        config=NO_TABLE,
         truth=_truth(tiny_run),
     )
     env = load_env_map(tmp_path / "map")
@@ -190,7 +194,8 @@ def test_build_map_with_slam_poses_and_missing_pose(tiny_run: Path, tmp_path: Pa
 
 def test_cli_build_and_show_map(tiny_run: Path, tmp_path: Path) -> None:
     assert (
-        main(["build-map", str(tiny_run), "--out", str(tmp_path / "m"), "--resolution", "0.1"]) == 0
+        main(["build-map", str(tiny_run), "--out", str(tmp_path / "m"), "--resolution", "0.1",
+              "--no-tables"]) == 0
     )
     assert load_env_map(tmp_path / "m").grid.resolution == pytest.approx(0.1)
     assert main(["show-map", str(tmp_path / "m"), "--out", str(tmp_path / "m.png")]) == 0

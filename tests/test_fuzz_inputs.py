@@ -141,16 +141,8 @@ MIDRUN = {("images.csv", "truncated"), ("images.csv", "nan"), ("images.csv", "wr
 # rig.yaml is read by Rig.from_dict (datasets/logrun.py), which does not yet go through
 # lampsam.config_loader.from_mapping: a NaN focal length is accepted and a string one
 # fails without naming the key.
-RIG_PENDING = {("rig.yaml", "nan"), ("rig.yaml", "wrong_type")}
-
-
-def _case(name: str, way: str) -> object:
-    marks = [pytest.mark.xfail(strict=True, reason="Rig.from_dict to use config_loader")] \
-        if (name, way) in RIG_PENDING else []
-    return pytest.param(name, way, marks=marks, id=f"{name}-{way}")
-
-
-@pytest.mark.parametrize(("name", "way"), [_case(n, w) for n in RUN_FILES for w in WAYS])
+@pytest.mark.parametrize(("name", "way"), [pytest.param(n, w, id=f"{n}-{w}")
+                                           for n in RUN_FILES for w in WAYS])
 def test_corrupt_run_file(tiny_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
                           name: str, way: str) -> None:
     """``slam`` on a run with one file corrupted gives what the table above says."""

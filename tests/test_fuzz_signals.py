@@ -23,7 +23,7 @@ from lampsam.backend.slam import drive
 from lampsam.datasets.simulator import simulate_world
 from lampsam.interrupt import EXIT_INTERRUPTED, clear_stop, interruptible, request_stop
 
-PACKAGE_PARENT = Path(__file__).resolve().parents[2]
+PACKAGE_PARENT = Path(__file__).resolve().parents[2]  # holds this checkout's lampsam/ (dev)
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +35,8 @@ def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _lampsam(*args: str) -> subprocess.Popen[str]:
-    env = dict(os.environ, PYTHONPATH=str(PACKAGE_PARENT), OPENBLAS_NUM_THREADS="1",
-               OMP_NUM_THREADS="1")
+    path = os.pathsep.join(p for p in (str(PACKAGE_PARENT), os.environ.get("PYTHONPATH")) if p)
+    env = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     return subprocess.Popen([sys.executable, "-m", "lampsam", "-v", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -44,6 +44,26 @@ def test_localize_scans_finds_the_pose_from_no_prior() -> None:
     assert np.hypot(*(est.pose[:2] - truth[-1, :2])) < 0.15
     assert abs(wrap_angle(float(est.pose[2] - truth[-1, 2]))) < np.deg2rad(3.0)
     assert est.covariance.shape == (3, 3)
+    assert est.status == "localized" and est.margin >= 8.0 and est.score >= 0.45
+
+
+def test_a_symmetric_room_is_never_localized() -> None:
+    """An empty rectangle looks the same from a pose and its half-turn twin: no answer is staked."""
+    g = OccupancyGrid.empty(0.0, 0.0, 10.0, 8.0, RES)
+    lo = np.full((g.height, g.width), -4.0)
+    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
+    g.log_odds = lo
+    rng = np.random.default_rng(5)
+    angles = np.deg2rad(np.arange(-90.0, 90.0, 2.0))
+    truth = np.array([[3.0 + 0.2 * k, 3.0, 0.0] for k in range(6)])
+    ranges = cast_rays(g, truth, angles, 12.0) + rng.normal(0, 0.02, (6, len(angles)))
+    odom = simulated_odometry(truth, rng, OdometryNoise())
+    cfg = replace(LaserLocalizerConfig(particles=20_000),
+                  beam=replace(LaserLocalizerConfig().beam, max_range=12.0))  # fmt: skip
+    est = localize_scans(LikelihoodFieldModel(g, cfg.beam), g, ranges, angles, odom, cfg, rng,
+                         min_scans=3)  # fmt: skip
+    assert est.status != "localized"
+    assert est.scans_used == 6  # it kept taking scans while ambiguous
 
 
 def test_simulated_odometry_keeps_the_increments_within_the_noise() -> None:

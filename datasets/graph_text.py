@@ -1,0 +1,239 @@
+"""Readers for the planar SLAM text formats that ``gtsam.load2D`` reads (iSAM and g2o).
+
+One file gives a robot's poses (integer ids, in the order the odometry visits them),
+the odometry between consecutive poses and landmark sightings from poses:
+
+- iSAM (``.txt``, e.g. GTSAM's ``victoria_park.txt``):
+  ``ODOMETRY i j dx dy dtheta c11 c12 c13 c22 c23 c33`` (also ``EDGE2``): the increment
+  ``i_T_j`` and the upper triangle of its covariance, as ``gtsam.load2D`` reads it;
+  ``LANDMARK i l dx dy v11 v12 v22``: landmark ``l`` at ``(dx, dy)`` in pose ``i``'s
+  body frame, turned into ``[bearing, range]`` with GTSAM's rule (``sigma_bearing =
+  sqrt(v11 / 10)``, ``sigma_range = sqrt(v11)`` when ``v11 == v22``, else 1 and 1, so
+  that both build the same graph); ``BR i l bearing range sigma_bearing sigma_range``;
+  ``VERTEX2 i x y theta`` (an initial or true pose).
+- g2o: ``VERTEX_SE2 i x y theta``, ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33``
+  (the upper triangle of the **information** matrix, g2o's convention),
+  ``VERTEX_XY l x y``, ``EDGE_SE2_XY i l dx dy I11 I12 I22`` (also ``LANDMARK2``): a
+  Cartesian sighting with information, turned into ``[bearing, range]`` with its
+  covariance propagated to first order.
+
+Each pose becomes one step, at time ``t = k`` s for the ``k``-th pose (the formats
+carry no times). An edge between poses that are not consecutive (a loop closure of
+a pose graph) has no place in a landmark-SLAM step stream: it is counted and left
+out, with a warning. Bad input gives a :class:`~lampsam.errors.DatasetError` naming
+the file and line.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lampsam.arrays import FloatArray
+from lampsam.datasets.odometry import Pose2OdometryLog
+from lampsam.errors import DatasetError
+
+log = logging.getLogger(__name__)
+
+#: Suffixes taken as a graph text file by ``lampsam slam``.
+GRAPH_TEXT_SUFFIXES = (".txt", ".g2o", ".graph")
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """One landmark sighting from a pose.
+
+    Attributes:
+        landmark: the file's landmark id.
+        bearing: rad, from body ``x``, counter-clockwise; range: m.
+        cov: (2, 2) covariance of ``[bearing, range]``, rad^2 and m^2.
+    """
+
+    landmark: int
+    bearing: float
+    range: float
+    cov: FloatArray
+
+
+@dataclass
+class GraphLog:
+    """A planar landmark-SLAM log read from a text file.
+
+    Attributes:
+        path: the file.
+        pose_ids: (N,) the file's pose ids in odometry order.
+        odometry: N samples; sample ``k`` is the increment from pose ``k-1`` to ``k``
+            (sample 0: zero, the start), ``t = k`` s.
+        sightings: per pose, its landmark sightings.
+        vertices: the file's ``VERTEX`` poses by id (initial values or truth).
+        n_skipped_edges: pose-pose edges that are not odometry (left out).
+    """
+
+    path: Path
+    pose_ids: list[int]
+    odometry: Pose2OdometryLog
+    sightings: list[list[Sighting]]
+    vertices: dict[int, FloatArray] = field(default_factory=dict)
+    n_skipped_edges: int = 0
+
+    @property
+    def n_landmarks(self) -> int:
+        """Distinct landmark ids sighted."""
+        return len({s.landmark for ss in self.sightings for s in ss})
+
+    def start_pose(self) -> FloatArray:
+        """(3,) the first pose's vertex if the file has one, else the origin."""
+        return np.asarray(self.vertices.get(self.pose_ids[0], np.zeros(3)), float)
+
+
+def _sym(u: list[float]) -> FloatArray:
+    """(3, 3) symmetric matrix from its upper triangle ``(a11, a12, a13, a22, a23, a33)``."""
+    a = np.array([[u[0], u[1], u[2]], [u[1], u[3], u[4]], [u[2], u[4], u[5]]])
+    return a
+
+
+def _cartesian_to_br(dx: float, dy: float, cov_xy: FloatArray) -> tuple[float, float, FloatArray]:
+    """``(bearing, range, cov)`` of a body-frame point with (2, 2) covariance (first order)."""
+    r = math.hypot(dx, dy)
+    b = math.atan2(dy, dx)
+    j = np.array([[-dy / r**2, dx / r**2], [dx / r, dy / r]])
+    return b, r, j @ cov_xy @ j.T
+
+
+def read_graph_text(path: str | Path) -> GraphLog:
+    """Read an iSAM or g2o planar SLAM file (formats: module docstring).
+
+    Raises:
+        DatasetError: missing file, unknown record, wrong field count, a non-number,
+            a covariance that is not positive definite, or odometry that does not
+            form one chain; the message names the file and line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError("file not found", path)
+    pose_ids: list[int] = []
+    index: dict[int, int] = {}
+    deltas: list[FloatArray] = [np.zeros(3)]
+    covs: list[FloatArray] = [np.zeros((3, 3))]
+    pending: list[tuple[int, Sighting, int]] = []  # (pose id, sighting, line)
+    vertices: dict[int, FloatArray] = {}
+    skipped = 0
+    counts = {"ODOMETRY": 11, "EDGE2": 11, "EDGE_SE2": 11, "LANDMARK": 7, "LANDMARK2": 7,
+              "EDGE_SE2_XY": 7, "BR": 6, "VERTEX2": 4, "VERTEX_SE2": 4, "VERTEX_XY": 3,
+              "VERTEX": 4}
+    with path.open() as fh:
+        for line_no, raw in enumerate(fh, start=1):
+            parts = raw.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            tag = parts[0]
+            if tag not in counts:
+                raise DatasetError(f"unknown record {tag!r} (known: {', '.join(sorted(counts))})",
+                                   path, line_no)
+            if len(parts) - 1 != counts[tag]:
+                raise DatasetError(f"{tag} needs {counts[tag]} fields, got {len(parts) - 1}",
+                                   path, line_no)
+            try:
+                ids = [int(parts[1])] + ([int(parts[2])] if counts[tag] >= 6 else [])
+                nums = [float(x) for x in parts[1 + len(ids):]]
+            except ValueError as exc:
+                raise DatasetError(f"{tag}: not a number ({exc})", path, line_no) from None
+            if not all(math.isfinite(v) for v in nums):
+                raise DatasetError(f"{tag}: a value is not finite", path, line_no)
+            if tag in ("VERTEX2", "VERTEX_SE2", "VERTEX"):
+                vertices[ids[0]] = np.array(nums)
+                continue
+            if tag == "VERTEX_XY":
+                continue
+            if tag in ("ODOMETRY", "EDGE2", "EDGE_SE2"):
+                i, j = ids
+                m = _sym(nums[3:])
+                try:
+                    cov = np.linalg.inv(m) if tag == "EDGE_SE2" else m
+                    np.linalg.cholesky(cov)
+                except np.linalg.LinAlgError:
+                    raise DatasetError(f"{tag} {i} {j}: the {'information' if tag == 'EDGE_SE2' else 'covariance'}"
+                                       " matrix is not positive definite", path, line_no) from None
+                if not pose_ids:
+                    pose_ids.append(i)
+                    index[i] = 0
+                if i == pose_ids[-1] and j not in index:
+                    index[j] = len(pose_ids)
+                    pose_ids.append(j)
+                    deltas.append(np.array(nums[:3]))
+                    covs.append(np.asarray(cov, dtype=np.float64))
+                elif i in index and j in index:
+                    skipped += 1
+                else:
+                    raise DatasetError(f"{tag} {i} {j}: odometry must continue from the last "
+                                       f"pose ({pose_ids[-1]})", path, line_no)
+                continue
+            i, lid = ids
+            if tag == "BR":
+                b, r, sb, sr = nums
+                s = Sighting(lid, b, r, np.diag([sb**2, sr**2]))
+            elif tag == "LANDMARK":
+                dx, dy, v1, _, v3 = nums
+                if abs(v1 - v3) < 1e-4:
+                    sb, sr = math.sqrt(v1 / 10.0), math.sqrt(v1)
+                else:  # GTSAM's load2D does the same for a non-isotropic covariance
+                    sb, sr = 1.0, 1.0
+                s = Sighting(lid, math.atan2(dy, dx), math.hypot(dx, dy), np.diag([sb**2, sr**2]))
+            else:  # g2o Cartesian sighting with information
+                dx, dy, i11, i12, i22 = nums
+                info = np.array([[i11, i12], [i12, i22]])
+                try:
+                    cov_xy = np.linalg.inv(info)
+                    np.linalg.cholesky(cov_xy)
+                except np.linalg.LinAlgError:
+                    raise DatasetError(f"{tag}: information matrix not positive definite",
+                                       path, line_no) from None
+                if math.hypot(dx, dy) <= 0:
+                    raise DatasetError(f"{tag}: landmark at the robot (zero range)", path, line_no)
+                b, r, cov = _cartesian_to_br(dx, dy, cov_xy)
+                s = Sighting(lid, b, r, cov)
+            if s.range <= 0 or not np.all(np.linalg.eigvalsh(s.cov) > 0):
+                raise DatasetError(f"{tag}: range must be > 0 and sigmas > 0", path, line_no)
+            pending.append((i, s, line_no))
+    if not pose_ids:
+        raise DatasetError("no odometry records (ODOMETRY / EDGE2 / EDGE_SE2)", path)
+    sightings: list[list[Sighting]] = [[] for _ in pose_ids]
+    for i, s, line_no in pending:
+        if i not in index:
+            raise DatasetError(f"sighting from pose {i}, which no odometry reaches", path, line_no)
+        sightings[index[i]].append(s)
+    if skipped:
+        log.warning("%s: %d pose-pose edges that are not odometry (loop closures) left out",
+                    path, skipped)
+    n = len(pose_ids)
+    odo = Pose2OdometryLog(t=np.arange(n, dtype=float), delta=np.array(deltas),
+                           cov=np.array(covs))
+    return GraphLog(path, pose_ids, odo, sightings, vertices, skipped)
+
+
+def read_vertices(path: str | Path) -> dict[int, FloatArray]:
+    """``{id: (x, y, theta)}`` from a file's ``VERTEX2`` / ``VERTEX_SE2`` records (e.g. truth).
+
+    Raises:
+        DatasetError: missing file, or a malformed vertex line (file and line named).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError("file not found", path)
+    out: dict[int, FloatArray] = {}
+    with path.open() as fh:
+        for line_no, raw in enumerate(fh, start=1):
+            parts = raw.split()
+            if not parts or parts[0] not in ("VERTEX2", "VERTEX_SE2", "VERTEX"):
+                continue
+            if len(parts) != 5:
+                raise DatasetError(f"{parts[0]} needs 4 fields, got {len(parts) - 1}", path, line_no)
+            try:
+                out[int(parts[1])] = np.array([float(x) for x in parts[2:]])
+            except ValueError as exc:
+                raise DatasetError(f"{parts[0]}: not a number ({exc})", path, line_no) from None
+    return out

@@ -1,0 +1,238 @@
+"""lampsam's EKF / iSAM2 / batch against GTSAM's own iSAM2 and LM on planar landmark logs.
+
+Usage::
+
+    python scripts/bench/bench_landmark_logs.py [--logs victoria,synthetic] [--repeats 1]
+        [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
+
+For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``synthetic``: a log made by
+:mod:`lampsam.datasets.landmark_log_sim`, 3,000 poses, Pose2 odometry with sideways
+noise 3x forward, stops of 200 poses, range-dependent bearing noise; ``--file``: any
+iSAM/g2o text log) the same graph is built in GTSAM from the parsed records: a prior
+on the start pose, one ``BetweenFactorPose2`` per odometry record with the file's
+covariance, one ``BearingRangeFactor2D`` per sighting with its own noise. GTSAM's
+iSAM2 runs it with one ``update()`` per pose (as ``Pose2ISAM2Example.py``), then LM
+from that estimate gives the reference optimum. Each lampsam backend then runs the
+log one step per pose (:func:`lampsam.backend.slam.run_graph_log`).
+
+Printed per log: for each solution the position RMS difference from GTSAM's LM
+trajectory (``gtsam-isam2-online``: iSAM2's estimate of each pose right after its
+own update, the fair reference for a filter's online poses), the chi-square (``2 x error``) of the solution on GTSAM's graph (known
+ids; landmarks a backend did not map take LM's value, counted), failures (iSAM2
+rebuilds / GTSAM exceptions), mapped landmarks against those in the file, total time
+and per-step median / p95, and the ratio of total time to GTSAM's iSAM2 measured in
+the same run. Times are medians over ``--repeats`` runs; other engineers' jobs may
+share the machine: compare ratios, not absolute times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.slam import run_graph_log
+from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
+from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+
+
+def gtsam_graph(g: GraphLog, config: SlamConfig) -> gtsam.NonlinearFactorGraph:
+    """The log's graph in GTSAM: prior, odometry and bearing-range factors."""
+    graph = gtsam.NonlinearFactorGraph()
+    c = config.isam2
+    graph.add(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*g.start_pose()), gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([c.sigma_start_xy, c.sigma_start_xy, c.sigma_start_theta]))))
+    for k in range(1, len(g.pose_ids)):
+        graph.add(gtsam.BetweenFactorPose2(X(k - 1), X(k), gtsam.Pose2(*g.odometry.delta[k]),
+                                           gtsam.noiseModel.Gaussian.Covariance(g.odometry.cov[k])))
+    for k, ss in enumerate(g.sightings):
+        for s in ss:
+            graph.add(gtsam.BearingRangeFactor2D(X(k), L(s.landmark), gtsam.Rot2(s.bearing), s.range,
+                                                 gtsam.noiseModel.Gaussian.Covariance(s.cov)))
+    return graph
+
+
+def gtsam_isam2(g: GraphLog, config: SlamConfig
+                ) -> tuple[gtsam.Values, float, list[float], int, np.ndarray]:
+    """GTSAM's iSAM2, one update per pose.
+
+    Returns:
+        ``(final estimate, total s, step times, failures, online poses (N, 3))``; the
+        online pose of step ``k`` is iSAM2's estimate of ``X(k)`` right after its
+        update (what a filter can give at that time).
+    """
+    online: list[list[float]] = []
+    isam = gtsam.ISAM2(config.isam2.to_gtsam())
+    c = config.isam2
+    start = gtsam.Pose2(*g.start_pose())
+    t_steps: list[float] = []
+    failures = 0
+    known: set[int] = set()
+    pose = start
+    t0 = time.perf_counter()
+    for k in range(len(g.pose_ids)):
+        ts = time.perf_counter()
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if k == 0:
+            graph.add(gtsam.PriorFactorPose2(X(0), start, gtsam.noiseModel.Diagonal.Sigmas(
+                np.array([c.sigma_start_xy, c.sigma_start_xy, c.sigma_start_theta]))))
+        else:
+            d = gtsam.Pose2(*g.odometry.delta[k])
+            graph.add(gtsam.BetweenFactorPose2(X(k - 1), X(k), d,
+                                               gtsam.noiseModel.Gaussian.Covariance(g.odometry.cov[k])))
+            pose = pose.compose(d)
+        values.insert(X(k), pose)
+        for s in g.sightings[k]:
+            if s.landmark not in known:
+                known.add(s.landmark)
+                a = pose.theta() + s.bearing
+                values.insert(L(s.landmark), np.array([pose.x() + s.range * math.cos(a),
+                                                       pose.y() + s.range * math.sin(a)]))
+            graph.add(gtsam.BearingRangeFactor2D(X(k), L(s.landmark), gtsam.Rot2(s.bearing), s.range,
+                                                 gtsam.noiseModel.Gaussian.Covariance(s.cov)))
+        try:
+            isam.update(graph, values)
+        except RuntimeError:
+            failures += 1
+        pose = isam.calculateEstimatePose2(X(k))
+        online.append([pose.x(), pose.y(), pose.theta()])
+        t_steps.append(time.perf_counter() - ts)
+    est = isam.calculateEstimate()
+    return est, time.perf_counter() - t0, t_steps, failures, np.array(online)
+
+
+def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
+    """(n, 3) ``X(0..n-1)`` from ``values``."""
+    return np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(X(k)) for k in range(n))])
+
+
+def chi2_of(graph: gtsam.NonlinearFactorGraph, ref: gtsam.Values, poses: np.ndarray,
+            landmarks: dict[int, np.ndarray]) -> tuple[float, int]:
+    """``2 x error`` of a solution on the graph; landmarks missing take ``ref``'s (counted)."""
+    v = gtsam.Values()
+    for k, p in enumerate(poses):
+        v.insert(X(k), gtsam.Pose2(*p))
+    missing = 0
+    for key in ref.keys():
+        if gtsam.Symbol(key).chr() == ord("l"):
+            lid = gtsam.Symbol(key).index()
+            if lid in landmarks:
+                v.insert(key, landmarks[lid])
+            else:
+                v.insert(key, ref.atPoint2(key))
+                missing += 1
+    return 2.0 * graph.error(v), missing
+
+
+def _rms_diff(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+
+
+def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[str],
+              repeats: int, no_ids: bool) -> list[dict[str, Any]]:
+    """Rows of the table for one log."""
+    config = SlamConfig()
+    graph = gtsam_graph(g, config)
+    n = len(g.pose_ids)
+    runs = [gtsam_isam2(g, config) for _ in range(repeats)]
+    est, _, steps, fails, online = runs[0]
+    t_isam = float(np.median([r[1] for r in runs]))
+    t0 = time.perf_counter()
+    lm = gtsam.LevenbergMarquardtOptimizer(graph, est, gtsam.LevenbergMarquardtParams()).optimize()
+    t_lm = time.perf_counter() - t0
+    ref = poses_of(lm, n)
+    n_lm_file = g.n_landmarks
+    rows: list[dict[str, Any]] = []
+
+    def row(solver: str, poses: np.ndarray, lms: dict[int, np.ndarray] | None, total: float,
+            step_s: np.ndarray, failures: int, n_map: int, ids: bool) -> None:
+        chi2, missing = chi2_of(graph, lm, poses, lms) if lms is not None else (math.nan, 0)
+        rows.append({"log": name, "solver": solver, "ids": "known" if ids else "none",
+                     "rms_vs_lm_m": _rms_diff(poses, ref),
+                     "rms_vs_truth_m": _rms_diff(poses, truth) if truth is not None else math.nan,
+                     "chi2": chi2, "lm_missing": missing, "failures": failures,
+                     "mapped": n_map, "in_file": n_lm_file, "total_s": total,
+                     "step_median_ms": float(np.median(step_s) * 1e3),
+                     "step_p95_ms": float(np.percentile(step_s, 95) * 1e3),
+                     "x_gtsam_isam2": total / t_isam})
+
+    row("gtsam-isam2", poses_of(est, n),
+        {gtsam.Symbol(k).index(): est.atPoint2(k) for k in est.keys() if gtsam.Symbol(k).chr() == ord("l")},
+        t_isam, np.asarray(steps), fails, n_lm_file, True)
+    row("gtsam-isam2-online", online, None, t_isam, np.asarray(steps), fails, n_lm_file, True)
+    row("gtsam-lm", ref, {gtsam.Symbol(k).index(): lm.atPoint2(k) for k in lm.keys()
+                          if gtsam.Symbol(k).chr() == ord("l")},
+        t_isam + t_lm, np.asarray(steps), 0, n_lm_file, True)
+    for ids in ([True, False] if no_ids else [True]):
+        for b in backends:
+            res_runs = [run_graph_log(g, b, config, known_ids=ids) for _ in range(repeats)]
+            res = res_runs[0]
+            total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
+            lms = {int(x.id): x.position[:2] for x in res.landmarks} if ids else None
+            row(f"lampsam-{b}", res.poses, lms, total, res.step_times_s,
+                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids)
+            if not res.status == "ok":
+                rows[-1]["solver"] += f" ({res.status[:40]})"
+    return rows
+
+
+def main() -> None:
+    """Parse arguments, run every log, print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--logs", default="victoria,synthetic")
+    ap.add_argument("--backends", default="ekf,isam2,batch")
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--no-ids", action="store_true", help="also run without ids")
+    ap.add_argument("--file", default=None, help="an iSAM/g2o text log instead of --logs")
+    ap.add_argument("--truth", default=None, help="VERTEX2 truth for --file")
+    ap.add_argument("--out", default="/tmp/bench_landmark_logs", help="synthetic logs go here")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+    backends = [b for b in args.backends.split(",") if b]
+    logs: list[tuple[str, Path, Path | None]] = []
+    if args.file:
+        logs.append((Path(args.file).name, Path(args.file), Path(args.truth) if args.truth else None))
+    else:
+        for name in args.logs.split(","):
+            if name == "victoria":
+                logs.append((name, Path(gtsam.findExampleDataFile("victoria_park.txt")), None))
+            elif name == "synthetic":
+                out = Path(args.out)
+                out.mkdir(parents=True, exist_ok=True)
+                p, t = write_landmark_log(out / "synthetic.txt", LandmarkLogSpec(),
+                                          np.random.default_rng(0))
+                logs.append((name, p, t))
+            else:
+                raise SystemExit(f"unknown log {name!r} (victoria, synthetic)")
+    rows: list[dict[str, Any]] = []
+    for name, path, tpath in logs:
+        g = read_graph_text(path)
+        truth = None
+        if tpath is not None:
+            v = read_vertices(tpath)
+            truth = np.array([v[i] for i in g.pose_ids])
+        rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids)
+        _print(rows)
+
+
+def _print(rows: list[dict[str, Any]]) -> None:
+    cols = list(rows[0])
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c])
+                                for c in cols) + " |")
+    print(flush=True)
+
+
+if __name__ == "__main__":
+    main()
