@@ -363,8 +363,17 @@ class EkfSlam(SlamBackend):
                     cands[i].append(lid)
         if not any(cands.values()):
             return assignments
-        n = self._n
-        P = self._cov.dense()
+        # Only the robot and candidate blocks of P enter H P H^T: gather those (an
+        # O(m^2) read) instead of a dense copy of the whole n x n covariance.
+        local: dict[int, int] = {}  # landmark id -> its first column in the gathered block
+        cols = [0, 1, 2]
+        for lid in sorted({lid for c in cands.values() for lid in c}):
+            s_lid = self._slots[lid]
+            local[lid] = len(cols)
+            cols.extend(range(s_lid.offset, s_lid.offset + s_lid.dim))
+        col_idx = np.asarray(cols)
+        P = self._cov.take(col_idx[:, None], col_idx[None, :])
+        n = len(cols)
 
         def joint(hyp: list[tuple[int, int]]) -> tuple[FloatArray, FloatArray] | None:
             k = 2 * len(hyp)
@@ -378,7 +387,7 @@ class EkfSlam(SlamBackend):
                 except Exception:
                     return None
                 h[2 * row : 2 * row + 2, :3] = h_r
-                h[2 * row : 2 * row + 2, slot.offset : slot.offset + slot.dim] = h_l
+                h[2 * row : 2 * row + 2, local[lid] : local[lid] + slot.dim] = h_l
                 nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
                 r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
             return nu, h @ P @ h.T + r
