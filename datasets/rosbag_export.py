@@ -12,7 +12,9 @@ topic                       type                          content
                                                           ``right_wheel_joint``: cumulative
                                                           travel / ``wheel_radius``, rad
 ``/odom``                   ``nav_msgs/Odometry``         dead-reckoned pose (paper 1 eq. 13)
-                                                          in ``odom`` -> ``base_link``
+                                                          in ``odom`` -> ``base_link``; a
+                                                          Pose2 run: the composed increments
+                                                          and their summed covariance
 ``/camera/image_raw``       ``sensor_msgs/Image``         ``mono8`` (or ``.../compressed``,
                                                           ``CompressedImage`` PNG)
 ``/camera/camera_info``     ``sensor_msgs/CameraInfo``    intrinsics and lens model, per image
@@ -20,6 +22,18 @@ topic                       type                          content
 ``/ground_truth``           ``nav_msgs/Odometry``         true pose in ``map`` (if the run has it)
 ``/lampsam/rig``            ``std_msgs/String``           the run's ``rig.yaml`` text
 ==========================  ============================  ====================================
+
+A run with Pose2-increment odometry (``odometry_pose2.csv``) has no wheel joints: it
+is written as ``/odom`` only, each pose ``pose_i = pose_{i-1} delta_i`` (the first
+increment taken from the origin) with pose covariance (x, y, yaw rows/cols)
+``S_i = S_{i-1} + R_{i-1} C_i R_{i-1}^T``, the inverse of what
+:func:`lampsam.datasets.rosbag_import.increment_covariances` undoes, so the import
+gives the increments and covariances back. When no increment has a covariance
+every message's covariance is zero, which the import reads as unknown again (NaN);
+when only some lack one, those add the default
+:class:`~lampsam.datasets.odometry.Pose2OdometryModel`'s travel-proportional
+covariance (without the floor, which the backend adds), so they come back as the
+covariance the backend would have used for them.
 """
 
 from __future__ import annotations
@@ -36,7 +50,7 @@ import yaml
 
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.datasets.motion import dead_reckoning
-from lampsam.datasets.odometry import Pose2OdometryLog
+from lampsam.datasets.odometry import Pose2OdometryLog, Pose2OdometryModel
 from lampsam.datasets.ros_messages import (
     compressed_message,
     image_message,
@@ -103,14 +117,19 @@ def _pose_msg(store: Any, x: float, y: float, th: float) -> Any:
     )
 
 
-def _odometry_msg(store: Any, ns: int, frame: str, pose: np.ndarray, seq: int) -> Any:
-    """A ``nav_msgs/Odometry`` holding a planar pose (zero covariance and twist)."""
+def _odometry_msg(store: Any, ns: int, frame: str, pose: np.ndarray, seq: int,
+                  cov: np.ndarray | None = None) -> Any:
+    """A ``nav_msgs/Odometry`` holding a planar pose (zero twist; covariance ``cov``
+    (3, 3) x, y, yaw placed in the 6x6, else zero)."""
     t = store.types
+    full = np.zeros((6, 6))
+    if cov is not None:
+        full[np.ix_([0, 1, 5], [0, 1, 5])] = cov
     vec = t["geometry_msgs/msg/Vector3"]
     return t["nav_msgs/msg/Odometry"](
         header=make_header(store, ns, frame, seq), child_frame_id=BASE_FRAME,
         pose=t["geometry_msgs/msg/PoseWithCovariance"](
-            pose=_pose_msg(store, *pose), covariance=np.zeros(36)),
+            pose=_pose_msg(store, *pose), covariance=full.reshape(36)),
         twist=t["geometry_msgs/msg/TwistWithCovariance"](
             twist=t["geometry_msgs/msg/Twist"](linear=vec(x=0.0, y=0.0, z=0.0),
                                                angular=vec(x=0.0, y=0.0, z=0.0)),
@@ -162,9 +181,6 @@ def _messages(
 ) -> Iterator[tuple[int, str, str, Any]]:
     """All messages ``(ns, topic, msgtype, message)`` in time order."""
     odo = run.odometry
-    if isinstance(odo, Pose2OdometryLog):
-        raise DatasetError("export-bag writes wheel odometry (JointState); this run has Pose2 "
-                           "increments (odometry_pose2.csv)", run.path)
     t0 = ns_from_seconds(float(odo.t[0]))
 
     def fixed() -> Iterator[tuple[int, str, str, Any]]:
@@ -172,7 +188,18 @@ def _messages(
         yield t0, TOPICS["rig"], "std_msgs/msg/String", string(data=yaml.safe_dump(run.rig.to_dict(), sort_keys=False))
         yield t0, TOPICS["tf_static"], "tf2_msgs/msg/TFMessage", _tf_static_msg(store, t0, run)
 
+    def pose2() -> Iterator[tuple[int, str, str, Any]]:
+        assert isinstance(odo, Pose2OdometryLog)
+        poses, covs = compose_pose2(odo)
+        for k, t in enumerate(odo.t):
+            ns = ns_from_seconds(float(t))
+            yield ns, TOPICS["odometry"], "nav_msgs/msg/Odometry", _odometry_msg(
+                store, ns, ODOM_FRAME, poses[k], k, covs[k])
+
     def joints() -> Iterator[tuple[int, str, str, Any]]:
+        if isinstance(odo, Pose2OdometryLog):
+            yield from pose2()
+            return
         cum_l, cum_r = np.cumsum(odo.d_left), np.cumsum(odo.d_right)
         poses = dead_reckoning(np.column_stack([odo.d_left, odo.d_right]),
                                run.rig.odometry.wheel_base, np.zeros(3))  # fmt: skip
@@ -212,6 +239,36 @@ def _messages(
                 store, ns, MAP_FRAME, run.groundtruth.poses[k], k)
 
     yield from heapq.merge(fixed(), joints(), images(), truth(), key=lambda m: m[0])
+
+
+def compose_pose2(odo: Pose2OdometryLog) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute poses (N, 3) and their covariances (N, 3, 3) from Pose2 increments.
+
+    ``pose_i = pose_{i-1} delta_i`` from the origin; ``S_i = S_{i-1} + R C_i R^T`` with
+    ``R = diag(Rot(theta_{i-1}), 1)``; a NaN covariance adds the default model's
+    (none at all when every one is NaN). Module docstring.
+    """
+    n = len(odo)
+    known = np.all(np.isfinite(odo.cov), axis=(1, 2))
+    model = Pose2OdometryModel()
+    floor = np.diag([model.var_floor_xy, model.var_floor_xy, model.var_floor_theta])
+    poses = np.zeros((n, 3))
+    covs = np.zeros((n, 3, 3))
+    x = y = th = 0.0
+    acc = np.zeros((3, 3))
+    for i in range(n):
+        dx, dy, dth = (float(v) for v in odo.delta[i])
+        c, s = np.cos(th), np.sin(th)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        if known[i]:
+            acc = acc + rot @ odo.cov[i] @ rot.T
+        elif known.any():
+            acc = acc + rot @ (model.sample_cov(odo.delta[i], odo.cov[i]) - floor) @ rot.T
+        x, y = x + c * dx - s * dy, y + s * dx + c * dy
+        th = float(np.arctan2(np.sin(th + dth), np.cos(th + dth)))
+        poses[i] = (x, y, th)
+        covs[i] = acc
+    return poses, covs
 
 
 def export_bag(

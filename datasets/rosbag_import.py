@@ -10,8 +10,8 @@ kind            type                                        becomes
 ==============  ==========================================  =================================
 ``joints``      ``sensor_msgs/JointState``                  ``odometry.csv`` (with
                                                             ``wheel_joints``, ``wheel_radius``)
-``odometry``    ``nav_msgs/Odometry``                       ``odometry.csv`` (pose increments
-                                                            as wheel travel, needs a wheel base)
+``odometry``    ``nav_msgs/Odometry``                       ``odometry_pose2.csv`` (Pose2
+                                                            increments and their covariance)
 ``image``       ``sensor_msgs/Image`` / ``CompressedImage``  ``images.csv`` + ``images/``
 ``camera_info`` ``sensor_msgs/CameraInfo``                  ``rig.yaml`` camera intrinsics
 ``tf_static``   ``tf2_msgs/TFMessage``                      ``rig.yaml`` camera mounting
@@ -26,6 +26,19 @@ message whose stamp does not increase on its topic is skipped and counted. The
 rig comes from ``rig`` (a ``rig.yaml`` path), else the bag's ``/lampsam/rig``,
 else ``camera_info`` + ``tf_static`` + ``wheel_base`` / ``k_wheel``; it is
 checked as strictly as a ``rig.yaml``.
+
+``nav_msgs/Odometry`` becomes Pose2 increments ``delta_i = pose_{i-1}^-1 pose_i``
+(:func:`~lampsam.datasets.odometry.increments_from_poses`). Their covariance is
+approximated from the messages' absolute pose covariances (rows/cols x, y, yaw of
+the 6x6, in the header's odometry frame, as REP 105 has it) by
+:func:`increment_covariances`: the difference of consecutive pose covariances,
+rotated into the earlier body frame, its negative eigenvalues clipped to zero (the
+backend adds :class:`~lampsam.datasets.odometry.Pose2OdometryModel`'s per-sample
+floor). Where either pose's covariance is unknown (``-1`` in ``[0]``), or every
+message's covariance on the topic is zero (a driver that fills none in), the
+increment's covariance is left empty: the backend's
+:class:`~lampsam.datasets.odometry.Pose2OdometryModel` default applies. The report
+says which was used and how many increments were clipped.
 """
 
 from __future__ import annotations
@@ -40,7 +53,6 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lampsam.angles import wrap_angle
 from lampsam.datasets.calibration import intrinsics_from_k
 from lampsam.datasets.logrun import (
     GROUNDTRUTH_FILE,
@@ -53,6 +65,12 @@ from lampsam.datasets.logrun import (
     write_meta,
     write_odometry,
     write_tum,
+)
+from lampsam.datasets.odometry import (
+    ODOMETRY_POSE2_FILE,
+    Pose2OdometryLog,
+    increments_from_poses,
+    write_pose2_odometry,
 )
 from lampsam.datasets.rig import Rig
 from lampsam.datasets.ros_messages import (
@@ -92,6 +110,8 @@ _PREFERRED = {
     "rig": ("/lampsam/rig",),
 }
 _TRUTH_WORDS = ("ground_truth", "groundtruth", "truth", "mocap", "vicon")
+_XYYAW = [0, 1, 5]
+"""Rows/cols of x, y, yaw in a ROS 6x6 pose covariance (x, y, z, roll, pitch, yaw)."""
 DEPTH_FILE = "depth.csv"
 DEPTH_DIR = "depth"
 SCANS_FILE = "scans.csv"
@@ -105,7 +125,7 @@ class ImportOptions:
         topics: kind -> topic name, overriding the automatic choice (``"none"``: skip).
         wheel_joints: ``(left, right)`` joint names: odometry from ``JointState``.
         wheel_radius: wheel radius for ``wheel_joints``, m.
-        wheel_base: distance between the wheels, m (rig odometry; ``Odometry`` input).
+        wheel_base: distance between the wheels, m (the rig's wheel odometry model).
         k_wheel: wheel slip constant ``k_r = k_l`` of the rig, m (paper 1 eq. 15).
         rig: a ``rig.yaml`` to use instead of the bag's camera_info / tf.
         base_frame: the robot body frame of the tf tree.
@@ -297,15 +317,20 @@ def import_bag(bag: str | Path, out: str | Path, options: ImportOptions | None =
         streams = _read_streams(reader, chosen, opts, report, out)
     finally:
         reader.close()
-    rig = _rig(streams, opts, chosen, bag, report)
+    rig = _rig(streams, opts, chosen, bag, report, need_wheels=odo_kind == "joints")
     odometry = _odometry(streams, odo_kind, opts, rig, report, chosen, bag)
     if streams["image_size"] is not None and streams["image_size"] != (rig.camera.height, rig.camera.width):
         raise DatasetError(f"images are {streams['image_size']} (h, w) but the camera is "
                            f"{rig.camera.height}x{rig.camera.width}", bag)  # fmt: skip
     rig.to_yaml(out / RIG_FILE)
-    write_odometry(out / ODOMETRY_FILE, odometry)
+    for stale in (ODOMETRY_FILE, ODOMETRY_POSE2_FILE):
+        (out / stale).unlink(missing_ok=True)
+    if isinstance(odometry, Pose2OdometryLog):
+        write_pose2_odometry(out / ODOMETRY_POSE2_FILE, odometry)
+    else:
+        write_odometry(out / ODOMETRY_FILE, odometry)
     if streams["truth"]:
-        t, poses = zip(*streams["truth"], strict=True)
+        t, poses, _ = zip(*streams["truth"], strict=True)
         write_tum(out / GROUNDTRUTH_FILE, Trajectory(t=np.array(t), poses=np.array(poses)))
     write_meta(out / META_FILE, {"generator": "lampsam.datasets.rosbag_import",
                                  "source": str(bag), "import": report.to_dict()})  # fmt: skip
@@ -360,7 +385,10 @@ def _read_streams(reader: Any, chosen: dict[str, str], opts: ImportOptions,
                 if not _increasing(s[key], conn.topic, t, report):
                     continue
                 p = msg.pose.pose
-                s[key].append((t, np.array([p.position.x, p.position.y, yaw_of(p.orientation)])))
+                cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[np.ix_(_XYYAW, _XYYAW)]
+                if float(msg.pose.covariance[0]) == -1.0:
+                    cov = np.full((3, 3), np.nan)
+                s[key].append((t, np.array([p.position.x, p.position.y, yaw_of(p.orientation)]), cov))
             elif kind == "image":
                 if not t > img_last:
                     report.skip(conn.topic, "time stamp does not increase")
@@ -423,17 +451,27 @@ def _table(path: Path, header: str) -> Any:
 
 
 def _rig(s: dict[str, Any], opts: ImportOptions, chosen: dict[str, str], bag: Path,
-         report: ImportReport) -> Rig:
-    """The rig: ``opts.rig``, the bag's ``/lampsam/rig``, or camera_info + tf + options."""
+         report: ImportReport, need_wheels: bool) -> Rig:
+    """The rig: ``opts.rig``, the bag's ``/lampsam/rig``, or camera_info + tf + options.
+
+    ``need_wheels``: the odometry is wheel travel, so ``wheel_base`` and ``k_wheel``
+    must be given; else (Pose2 odometry) the rig's wheel model is unused and absent
+    values take :class:`~lampsam.datasets.rig.OdometryModel`'s defaults.
+    """
     if opts.rig is not None:
         return Rig.from_yaml(opts.rig)
     if s["rig"] is not None:
         rig = Rig.from_dict(yaml.safe_load(s["rig"]), Path(f"{bag}:{chosen['rig']}"), strict=True)
         report.notes.append(f"rig from {chosen['rig']}")
         return rig
-    odometry = {"wheel_base": opts.wheel_base, "k_r": opts.k_wheel, "k_l": opts.k_wheel}
+    from lampsam.datasets.rig import OdometryModel
+
+    dflt = OdometryModel()
+    odometry = {"wheel_base": dflt.wheel_base if opts.wheel_base is None else opts.wheel_base,
+                "k_r": dflt.k_r if opts.k_wheel is None else opts.k_wheel,
+                "k_l": dflt.k_l if opts.k_wheel is None else opts.k_wheel}  # fmt: skip
     missing = [k for k, v in (("--wheel-base", opts.wheel_base), ("--k-wheel", opts.k_wheel)) if v is None]
-    if missing:
+    if missing and need_wheels:
         raise DatasetError(f"the bag has no /lampsam/rig: give {' and '.join(missing)} (or --rig RIG.yaml)", bag)
     if s["image_size"] is None:
         from lampsam.datasets.camera import CameraModel
@@ -458,9 +496,51 @@ def _rig(s: dict[str, Any], opts: ImportOptions, chosen: dict[str, str], bag: Pa
     return Rig.from_dict({"camera": camera.to_dict(), "odometry": odometry}, None, strict=True)
 
 
+def increment_covariances(poses: np.ndarray, pose_cov: np.ndarray) -> tuple[np.ndarray, int]:
+    """Approximate increment covariances from absolute pose covariances.
+
+    ``C_i = R_{i-1}^T (S_i - S_{i-1}) R_{i-1}`` with ``R_{i-1} = diag(Rot(theta_{i-1}), 1)``
+    (the earlier body frame), symmetrised, negative eigenvalues clipped to zero. This
+    treats the odometry's pose covariance as a sum of independent per-step
+    contributions expressed in the odometry frame (what a dead-reckoning filter that
+    adds ``R Q R^T`` per step reports) and ignores the coupling of the earlier yaw
+    error into the translation (the adjoint term), so it is exact for that model when
+    the heading variance is small.
+
+    Args:
+        poses: (N, 3) ``odom_T_body`` x, y (m), yaw (rad).
+        pose_cov: (N, 3, 3) covariance of each pose in the odometry frame (x, y, yaw);
+            NaN: unknown.
+
+    Returns:
+        (N, 3, 3) right-tangent covariances of the increments (the first: zero, or NaN
+        if its pose's covariance is unknown; NaN where either pose's is unknown), and
+        how many increments had a negative eigenvalue clipped.
+    """
+    n = len(poses)
+    out = np.full((n, 3, 3), np.nan)
+    if n and np.all(np.isfinite(pose_cov[0])):
+        out[0] = 0.0
+    clipped = 0
+    for i in range(1, n):
+        diff = pose_cov[i] - pose_cov[i - 1]
+        if not np.all(np.isfinite(diff)):
+            continue
+        c, sn = math.cos(poses[i - 1, 2]), math.sin(poses[i - 1, 2])
+        rot = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+        m = rot.T @ diff @ rot
+        m = 0.5 * (m + m.T)
+        w, v = np.linalg.eigh(m)
+        if w.min() < 0:
+            clipped += 1
+            m = (v * np.maximum(w, 0.0)) @ v.T
+        out[i] = m
+    return out, clipped
+
+
 def _odometry(s: dict[str, Any], kind: str, opts: ImportOptions, rig: Rig,
-              report: ImportReport, chosen: dict[str, str], bag: Path) -> OdometryLog:
-    """Wheel travel per sample (first sample: 0) from joints or from odometry poses."""
+              report: ImportReport, chosen: dict[str, str], bag: Path) -> OdometryLog | Pose2OdometryLog:
+    """Wheel travel per sample (first: 0) from joints, or Pose2 increments from odometry poses."""
     if kind == "joints":
         if opts.wheel_radius is None or not opts.wheel_radius > 0:
             raise DatasetError("--wheel-joints needs a positive --wheel-radius", bag)
@@ -473,17 +553,20 @@ def _odometry(s: dict[str, Any], kind: str, opts: ImportOptions, rig: Rig,
         raise DatasetError(f"{chosen['odometry']}: fewer than 2 usable messages", bag)
     t = np.array([x[0] for x in s["odometry"]])
     p = np.array([x[1] for x in s["odometry"]])
-    dth = np.concatenate([[0.0], wrap_angle(p[1:, 2] - p[:-1, 2])])
-    mid = p[:-1, 2] + 0.5 * dth[1:]  # eq. 13 moves along the midpoint heading: invert it
-    c, sn = np.cos(mid), np.sin(mid)
-    d = p[1:, :2] - p[:-1, :2]
-    fwd = np.concatenate([[0.0], c * d[:, 0] + sn * d[:, 1]])
-    lat = -sn * d[:, 0] + c * d[:, 1]
-    half = 0.5 * rig.odometry.wheel_base * dth
-    if len(lat):
-        report.notes.append(f"odometry: lateral motion dropped, RMS {float(np.sqrt(np.mean(lat**2))):.2e} m "
-                            "per step (differential drive)")  # fmt: skip
-    return OdometryLog(t=t, d_left=fwd - half, d_right=fwd + half)
+    pose_cov = np.array([x[2] for x in s["odometry"]])
+    if not np.any(np.nan_to_num(pose_cov)):  # all zero (or unknown): no covariance given
+        pose_cov[:] = np.nan
+    cov, clipped = increment_covariances(p, pose_cov)
+    known = int(np.all(np.isfinite(cov[1:]), axis=(1, 2)).sum())
+    steps = len(t) - 1
+    report.notes.append(
+        f"odometry: Pose2 increments; covariance from the pose covariances (difference of "
+        f"consecutive poses' x/y/yaw covariance rotated into the earlier body frame) for "
+        f"{known} of {steps} increments"
+        + (f", {clipped} with negative eigenvalues clipped to 0" if clipped else "")
+        + (f"; {steps - known} with zero/unknown covariance use the Pose2OdometryModel default"
+           if known < steps else ""))  # fmt: skip
+    return Pose2OdometryLog(t=t, delta=increments_from_poses(p), cov=cov)
 
 
 def topic_counts(bag: str | Path) -> Counter[str]:

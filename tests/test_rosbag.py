@@ -4,6 +4,7 @@ written here with rosbags' own writer and the standard message definitions."""
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,13 @@ import pytest
 
 from lampsam.backend.slam import run_slam
 from lampsam.cli import main
-from lampsam.datasets.logrun import LoggedRun, read_run
+from lampsam.datasets.logrun import LoggedRun, read_run, write_run
+from lampsam.datasets.odometry import (
+    Pose2OdometryLog,
+    Pose2OdometryModel,
+    increments_from_poses,
+    pose2_odometry_from_poses,
+)
 from lampsam.datasets.rosbag_export import export_bag, typestore_for
 from lampsam.datasets.rosbag_import import ImportOptions, import_bag
 from lampsam.errors import DatasetError
@@ -74,12 +81,29 @@ def test_round_trip_is_exact(
         assert rms_b == rms_a < 0.02
 
 
-def _independent_bag(run: LoggedRun, path: Path, ros1: bool) -> None:
+def _wheel_step_cov(dl: float, dr: float, b: float, k: float) -> np.ndarray:
+    """(3, 3) covariance of one midpoint-rule increment from eq. 15's wheel noise."""
+    ds, a = 0.5 * (dl + dr), (dr - dl) / (2 * b)
+    c, s = math.cos(a), math.sin(a)
+    jac = np.array([[0.5 * c + ds * s / (2 * b), 0.5 * c - ds * s / (2 * b)],
+                    [0.5 * s - ds * c / (2 * b), 0.5 * s + ds * c / (2 * b)],
+                    [-1 / b, 1 / b]])
+    return jac @ np.diag([k * abs(dl), k * abs(dr)]) @ jac.T
+
+
+def _independent_bag(run: LoggedRun, path: Path, ros1: bool,
+                     unknown_cov: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray]:
     """A bag made with rosbags' writer and stock message classes, not by export_bag.
 
-    Odometry as nav_msgs/Odometry (poses integrated here with the midpoint rule),
+    Odometry as nav_msgs/Odometry (poses integrated here with the midpoint rule; the
+    pose covariance a dead-reckoning filter reports, ``S_i = S_{i-1} + R Q_i R^T`` with
+    ``Q_i`` eq. 15's wheel noise through the midpoint step; messages ``unknown_cov``
+    have ``-1`` in covariance[0]),
     CompressedImage PNG, CameraInfo (plumb_bob), a static tf with the camera one
     frame below an intermediate ``camera_link``, and a LaserScan.
+
+    Returns:
+        (N, 3) the odometry poses and (N, 3, 3) the step covariances ``Q_i`` (Q_0 = 0).
     """
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import Writer as Writer2
@@ -109,20 +133,32 @@ def _independent_bag(run: LoggedRun, path: Path, ros1: bool) -> None:
     offset = 1_700_000_000 * 10**9  # a wall-clock epoch, as a robot's bag has
     b = run.rig.odometry.wheel_base
     x = y = th = 0.0
+    acc = np.zeros((3, 3))
+    poses, qs = [], []
     msgs: list[tuple[int, str, str, Any]] = []
     for k, t in enumerate(run.odometry.t):
         dl, dr = run.odometry.d_left[k], run.odometry.d_right[k]
         ds, dth = 0.5 * (dl + dr), (dr - dl) / b
+        q = _wheel_step_cov(dl, dr, b, run.rig.odometry.k_r)
+        rot = np.array([[math.cos(th), -math.sin(th), 0], [math.sin(th), math.cos(th), 0], [0, 0, 1]])
+        acc = acc + rot @ q @ rot.T
+        qs.append(q)
+        cov6 = np.zeros((6, 6))
+        cov6[np.ix_([0, 1, 5], [0, 1, 5])] = acc
+        cov6[2, 2] = cov6[3, 3] = cov6[4, 4] = 1e6  # z, roll, pitch: not estimated
+        if k in unknown_cov:
+            cov6[0, 0] = -1.0
         x += ds * math.cos(th + dth / 2)
         y += ds * math.sin(th + dth / 2)
         th += dth
+        poses.append((x, y, th))
         pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
                                            orientation=quat(th))
         twist = T["geometry_msgs/msg/Twist"](linear=vec(0, 0, 0), angular=vec(0, 0, 0))
         ns = offset + round(t * 1e9)
         msgs.append((ns, "/wheel/odometry", "nav_msgs/msg/Odometry", T["nav_msgs/msg/Odometry"](
             header=header(ns, "odom"), child_frame_id="base_link",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.eye(6).ravel() * 1e-4),
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov6.ravel()),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))))
         scan = T["sensor_msgs/msg/LaserScan"](
             header=header(ns, "laser"), angle_min=-1.5, angle_max=1.5, angle_increment=0.5,
@@ -171,23 +207,28 @@ def _independent_bag(run: LoggedRun, path: Path, ros1: bool) -> None:
             if topic not in conns:
                 conns[topic] = writer.add_connection(topic, typ, typestore=store)
             writer.write(conns[topic], ns, ser(msg, typ))
+    return np.array(poses), np.array(qs)
 
 
 @pytest.mark.parametrize("ros1", [True, False])
-def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool) -> None:
-    """Odometry poses, compressed images, camera_info, a two-step static tf and a laser:
-    the imported run has the original's odometry (to 1e-9 m), images, camera, and the
-    same SLAM accuracy."""
+def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Odometry poses with covariance, compressed images, camera_info, a two-step static
+    tf and a laser: the imported run has Pose2 increments of the odometry poses (1e-9)
+    with the step covariances the poses' covariances were summed from (1e-12), the
+    original's images and camera, and the same SLAM accuracy (``lampsam slam``, iSAM2)."""
     run = read_run(sim_run)
     bag = tmp_path / ("indep.bag" if ros1 else "indep")
-    _independent_bag(run, bag, ros1)
+    poses, qs = _independent_bag(run, bag, ros1)
     out = tmp_path / "imported"
-    report = import_bag(bag, out, ImportOptions(wheel_base=run.rig.odometry.wheel_base,
-                                                k_wheel=run.rig.odometry.k_r))
+    report = import_bag(bag, out)  # Pose2 odometry: no wheel constants needed
     assert report.chosen["odometry"] == "/wheel/odometry"
     assert report.chosen["image"] == "/ceiling/image/compressed"
     assert report.chosen["scan"] == "/scan"
     assert report.chosen["depth"] == "/camera/depth/image_raw"
+    assert any("covariance from the pose covariances" in n and f"for {len(poses) - 1} of "
+               f"{len(poses) - 1} increments" in n for n in report.notes)
+    assert (out / "odometry_pose2.csv").exists() and not (out / "odometry.csv").exists()
     import cv2
 
     depth_rows = (out / "depth.csv").read_text().splitlines()
@@ -195,9 +236,10 @@ def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool)
     d5 = cv2.imread(str(out / depth_rows[6].split(",")[1]), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(d5, 1050 + np.arange(12).reshape(3, 4))
     got = read_run(out)
+    assert isinstance(got.odometry, Pose2OdometryLog)
     np.testing.assert_allclose(got.odometry.t, run.odometry.t + 1.7e9, rtol=0, atol=2e-6)
-    np.testing.assert_allclose(got.odometry.d_left, run.odometry.d_left, atol=1e-9)
-    np.testing.assert_allclose(got.odometry.d_right, run.odometry.d_right, atol=1e-9)
+    np.testing.assert_allclose(got.odometry.delta, increments_from_poses(poses), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.odometry.cov, qs, rtol=0, atol=1e-12)
     assert got.images is not None and run.images is not None
     for i in range(len(run.images)):
         np.testing.assert_array_equal(got.images.load(i), run.images.load(i))
@@ -206,6 +248,8 @@ def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool)
     np.testing.assert_allclose(got.rig.camera.body_R_camera, run.rig.camera.body_R_camera, atol=1e-12)
     scans = (out / "scans.csv").read_text().splitlines()
     assert len(scans) == 1 + len(run.odometry) and scans[1].endswith("3.0000 nan 5.0000 6.0000 7.0000")
+    if ros1:  # one SLAM comparison is enough (both bags hold the same messages)
+        return
     # same accuracy: SLAM over the imported run (with the original's truth) vs the original
     import shutil
 
@@ -214,8 +258,59 @@ def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool)
     shifted = [text[0]] + [f"{float(ln.split()[0]) + 1.7e9:.6f} " + ln.split(" ", 1)[1] for ln in text[1:]]
     (out / "groundtruth.tum").write_text("\n".join(shifted) + "\n")
     _, rms_orig = _position_rms(sim_run)
-    _, rms_imp = _position_rms(out)
-    assert rms_imp == pytest.approx(rms_orig, rel=0.05, abs=5e-4)
+    capsys.readouterr()
+    assert main(["slam", str(out), "--out", str(tmp_path / "slam"), "--frames", "images"]) == 0
+    printed = re.search(r"isam2: .*position error RMS ([0-9.]+) m", capsys.readouterr().out)
+    assert printed is not None
+    assert float(printed.group(1)) == pytest.approx(rms_orig, abs=1.5e-3)
+
+
+def test_pose2_covariance_unknown_or_absent(sim_run: Path, tmp_path: Path) -> None:
+    """``-1`` in covariance[0] leaves the increments on either side of that message
+    without a covariance (NaN: the model default), the others are the step covariances;
+    a topic whose covariances are all zero gives no covariance at all."""
+    run = read_run(sim_run)
+    poses, qs = _independent_bag(run, tmp_path / "b1", ros1=False, unknown_cov=(5,))
+    report = import_bag(tmp_path / "b1", tmp_path / "r1")
+    cov = read_run(tmp_path / "r1").odometry.cov  # type: ignore[union-attr]
+    nan = ~np.all(np.isfinite(cov), axis=(1, 2))
+    assert np.flatnonzero(nan).tolist() == [5, 6]
+    np.testing.assert_allclose(cov[~nan], qs[~nan], rtol=0, atol=1e-12)
+    n = len(poses) - 1
+    assert any(f"for {n - 2} of {n} increments" in s and "Pose2OdometryModel default" in s
+               for s in report.notes)
+    # export_bag of a wheel run writes zero covariances: the import reads them as unknown
+    export_bag(sim_run, tmp_path / "b2")
+    import_bag(tmp_path / "b2", tmp_path / "r2", ImportOptions(topics={"joints": "none"}))
+    assert np.all(np.isnan(read_run(tmp_path / "r2").odometry.cov))  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_pose2_run_round_trip(sim_run: Path, tmp_path: Path, ros1: bool) -> None:
+    """A Pose2 run (increments with covariances, one without) -> bag -> run: the same
+    increments and covariances to float precision (the one without: the model's default
+    noise without its floor, what the backend would have used)."""
+    run = read_run(sim_run)
+    rng = np.random.default_rng(3)
+    poses, qs = _independent_bag(run, tmp_path / "src", ros1=False)
+    cov = qs + np.einsum("nij,nkj->nik", a := rng.normal(0, 1e-3, (len(qs), 3, 3)), a)
+    cov[7] = np.nan
+    odo = pose2_odometry_from_poses(run.odometry.t, poses, cov)
+    write_run(tmp_path / "p2", rig=run.rig, odometry=odo, groundtruth=run.groundtruth)
+    bag = tmp_path / ("p2.bag" if ros1 else "p2bag")
+    summary = export_bag(tmp_path / "p2", bag, ros1=ros1)
+    assert "/joint_states" not in summary.counts and summary.counts["/odom"] == len(odo)
+    import_bag(bag, tmp_path / "back")
+    back = read_run(tmp_path / "back").odometry
+    assert isinstance(back, Pose2OdometryLog)
+    np.testing.assert_array_equal(back.t, odo.t)
+    np.testing.assert_allclose(back.delta, odo.delta, rtol=0, atol=1e-12)
+    want = cov.copy()
+    want[0] = 0.0  # the first increment: the run starts at the first pose
+    model = Pose2OdometryModel()
+    want[7] = model.sample_cov(odo.delta[7], cov[7]) - np.diag(
+        [model.var_floor_xy, model.var_floor_xy, model.var_floor_theta])
+    np.testing.assert_allclose(back.cov, want, rtol=0, atol=1e-15)
 
 
 def test_errors_list_topics(sim_run: Path, tmp_path: Path) -> None:
@@ -231,7 +326,8 @@ def test_errors_list_topics(sim_run: Path, tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match=r"no such topic; present: .*/tf_static \(tf2_msgs/msg/TFMessage\)"):
         import_bag(bag, tmp_path / "o4", ImportOptions(topics={"image": "/nope"}))
     with pytest.raises(DatasetError, match=r"give --wheel-base and --k-wheel"):
-        import_bag(bag, tmp_path / "o5", ImportOptions(topics={"rig": "none"}))
+        import_bag(bag, tmp_path / "o5", ImportOptions(topics={"rig": "none"}, wheel_joints=JOINTS,
+                                                       wheel_radius=0.05))
     with pytest.raises(DatasetError, match="bag not found"):
         import_bag(tmp_path / "absent.bag", tmp_path / "o6")
     with pytest.raises(DatasetError, match="exists already"):
