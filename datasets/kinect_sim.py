@@ -32,7 +32,8 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
-from lampsam.datasets.scene3d import Scene3D, TriangleScene, triangle_scene
+from lampsam.datasets.scene3d import Scene3D
+from lampsam.datasets.scene_mesh import TriangleScene, triangle_scene
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -407,7 +408,8 @@ def simulate_kinect_run(
     from lampsam.datasets.logrun import OdometryLog, Trajectory, read_tum, write_run
     from lampsam.datasets.motion import follow_waypoints, noisy_wheel_travel
     from lampsam.datasets.scene3d import scene_from_dict
-    from lampsam.datasets.world import load_world, world_landmarks
+    from lampsam.datasets.world import load_world
+    from lampsam.datasets.world_landmarks import world_landmarks
 
     w = load_world(world)
     if "scene3d" not in w.extra:

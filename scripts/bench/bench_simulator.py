@@ -24,9 +24,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
+from lampsam.datasets.ceiling_truth import occluders, project_landmarks
+from lampsam.datasets.render_ceiling import CeilingRenderer
 from lampsam.datasets.simulator import simulate_trajectory, simulate_world
-from lampsam.datasets.world import load_world, world_landmarks
+from lampsam.datasets.world import load_world
+from lampsam.datasets.world_landmarks import world_landmarks
 
 
 def _median_ms(fn, poses: np.ndarray, repeats: int) -> tuple[float, float]:
