@@ -1,4 +1,4 @@
-"""Speed-up of ``lampsam batch`` on Dask from 1 to 2 (or more) workers (issue 19).
+"""Speed-up of ``lampsam batch`` on Dask from 1 to 2 (or more) workers.
 
 Usage::
 

@@ -1,4 +1,4 @@
-"""Scaling of the EKF and iSAM2 backends: time per update against map size (issue 5).
+"""Scaling of the EKF and iSAM2 backends: time per update against map size.
 
 Usage::
 
