@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from lampsam.arrays import BoolArray, FloatArray, IntArray
+from lampsam.arrays import BoolArray, Float32Array, FloatArray, IntArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.geometry import compose, wrap_angle
 from lampsam.localization.grid import OccupancyGrid, free_mask
@@ -215,7 +215,7 @@ class ScorePyramid:
         return self.flat[h].take(idx).sum(axis=1, dtype=np.float64)
 
 
-def pool_blocks(a: FloatArray, factor: int, fill: float) -> FloatArray:
+def pool_blocks(a: FloatArray | Float32Array, factor: int, fill: float) -> Float32Array:
     """Max over ``factor x factor`` blocks of ``a`` (H, W) -> (ceil(H/f), ceil(W/f)); edges padded with ``fill``."""
     if factor == 1:
         return np.asarray(a, dtype=np.float32).copy()
@@ -356,8 +356,8 @@ def branch_and_bound(pyramid: ScorePyramid, points: FloatArray, config: SearchCo
     leaves = 0
 
     step = 2**depth
-    ry, rx = np.meshgrid(np.arange(0, hs, step), np.arange(0, ws, step), indexing="ij")
-    rx, ry = rx.ravel(), ry.ravel()
+    gy, gx = np.meshgrid(np.arange(0, hs, step), np.arange(0, ws, step), indexing="ij")
+    rx, ry = gx.ravel(), gy.ravel()
     keep = allowed[depth][ry + pd, rx + pd]
     rx, ry = rx[keep], ry[keep]
     ra = np.repeat(np.arange(n_ang), len(rx))
@@ -404,7 +404,7 @@ def branch_and_bound(pyramid: ScorePyramid, points: FloatArray, config: SearchCo
 
 
 def field_score(dist_cells: FloatArray, resolution: float, sigma: float, z_hit: float,
-                z_rand: float, max_range: float) -> tuple[FloatArray, float]:
+                z_rand: float, max_range: float) -> tuple[Float32Array, float]:
     """Per-cell score (H, W) float32 and the off-map floor from a distance field (cells).
 
     The beam log-likelihood of the likelihood-field model, untempered:
