@@ -27,8 +27,8 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.datasets.carmen import LaserScans, read_carmen
 from lampsam.factors.geometry import wrap_angle
-from lampsam.localization.grid import OccupancyGrid, free_mask, grid_from_scans
 from lampsam.localization.correlative import ScorePyramid
+from lampsam.localization.grid import OccupancyGrid, free_mask, grid_from_scans
 from lampsam.localization.laser import (
     LaserAcceptConfig,
     LaserLocalizerConfig,
