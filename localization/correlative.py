@@ -141,7 +141,7 @@ class ScorePyramid:
         res: search cell size (m).
     """
 
-    def __init__(self, grid: OccupancyGrid, cell_score: FloatArray, floor: float,
+    def __init__(self, grid: OccupancyGrid, cell_score: FloatArray | Float32Array, floor: float,
                  config: SearchConfig) -> None:
         f = config.resolution / grid.resolution
         factor = int(round(f))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,15 @@ from lampsam.localization.correlative import (
     scan_points,
 )
 from lampsam.localization.grid import OccupancyGrid, occupied_mask
+from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel
+from lampsam.localization.map_layers import EnvironmentMaps
+from lampsam.localization.map_tables import (
+    DISTANCE_FIELD_FILE,
+    RANGE_TABLE_FILE,
+    load_distance_field,
+    load_range_table,
+    save_distance_field,
+)
 from lampsam.localization.raycast import cast_rays, distance_field
 
 ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 181)
@@ -128,3 +138,25 @@ def test_joined_scans_and_bad_input() -> None:
         scan_points(np.full((1, 2), np.nan), np.array([0.0, 0.5]), np.zeros((1, 3)), 30.0, 0.1, 10)
     with pytest.raises(CorrelativeError, match="whole multiple"):
         _pyramid(OccupancyGrid.empty(0, 0, 2, 2, 0.05), SearchConfig(resolution=0.12))
+
+
+def test_stored_fields_round_trip_in_one_store(tmp_path: Path) -> None:
+    """Distance field and range table live in map_tables' files; every user reads the same ones."""
+    g = _clutter_grid(np.random.default_rng(2), (4.0, 3.0), 3)
+    dist = distance_field(occupied_mask(g))
+    save_distance_field(tmp_path, g, dist)
+    stored = load_distance_field(tmp_path, g)
+    assert stored is not None and np.array_equal(stored, dist.astype(np.float32))
+    beam = BeamModelConfig(sigma_hit=0.15, max_range=8.0)
+    a, b = LikelihoodFieldModel(g, beam), LikelihoodFieldModel(g, beam, dist_cells=stored)
+    assert np.allclose(a.field, b.field, atol=1e-6)
+    maps = EnvironmentMaps.grid_only(g)
+    maps = EnvironmentMaps(g, maps.spatial_xyz, maps.spatial_descriptors, maps.ceiling_xyz,
+                           maps.ceiling_body_t_camera, cache_dir=tmp_path)  # fmt: skip
+    built = maps.range_table(3.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [DISTANCE_FIELD_FILE, RANGE_TABLE_FILE]
+    loaded = load_range_table(tmp_path, g, 3.0)
+    assert loaded is not None and np.array_equal(loaded.ranges_mm, built.ranges_mm)
+    again = EnvironmentMaps(g, maps.spatial_xyz, maps.spatial_descriptors, maps.ceiling_xyz,
+                            maps.ceiling_body_t_camera, cache_dir=tmp_path).range_table(3.0)  # fmt: skip
+    assert np.array_equal(again.row_of_cell, built.row_of_cell)
