@@ -12,7 +12,12 @@ grid's occupied cells:
   the distance from every cell centre to the nearest occupied cell centre, the input
   of the likelihood-field model (Thrun et al., *Probabilistic Robotics*, sec. 6.4).
 
-``build_map`` writes them once beside ``map.yaml``; the localizer loads them with
+This module is the one store of these lookups: ``build_map`` writes them once
+beside ``map.yaml`` (atomically); the localizers load them
+(:meth:`~lampsam.localization.map_layers.EnvironmentMaps.range_table` for the
+Kinect localizer, which rebuilds and stores a table made for another
+``max_range``; the laser trials' likelihood field and branch-and-bound score
+pyramid, :mod:`~lampsam.localization.correlative`, from the distance field) with
 :func:`load_range_table` / :func:`load_distance_field`, which return None (and say
 why in the log) when a file is absent, of an older format, built for another
 ``max_range`` or bin count, or built from a different grid. Validity is checked
