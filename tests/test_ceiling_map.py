@@ -149,7 +149,8 @@ def _drive(rng: np.random.Generator, map_sigma: float = 0.005):
     lamps = {1: (np.array([1.0, 0.1, 2.5]), 0.0), 2: (np.array([1.9, 1.0, 2.5]), 1.5),
              3: (np.array([1.0, 1.9, 2.5]), 0.3), 4: (np.array([0.1, 1.0, 2.5]), 2.0)}
     gx, gy = np.meshgrid(np.arange(-0.9, 3.0, 0.6), np.arange(-0.9, 3.0, 0.6))
-    corners = {100 + k: np.array([x, y, 2.7]) for k, (x, y) in enumerate(zip(gx.ravel(), gy.ravel()))}
+    corners = {100 + k: np.array([x, y, 2.7])
+               for k, (x, y) in enumerate(zip(gx.ravel(), gy.ravel(), strict=True))}
     lms = []
     for lid, (p, phi) in lamps.items():
         lms.append(MapLandmark(lid, "lamp", p + rng.normal(0, map_sigma, 3),
