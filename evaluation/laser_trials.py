@@ -226,7 +226,7 @@ def laser_trials(
     if map_dir is None:
         grid = laser_map(scans, map_idx, config.resolution, max_range)
     else:
-        from lampsam.localization.envmap import load_env_map
+        from lampsam.localization.map_store import load_env_map
 
         grid = load_env_map(map_dir).grid
     t_map = time.perf_counter() - t0
