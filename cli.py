@@ -475,6 +475,10 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     if features:
         config = dataclasses.replace(config, features=features)
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start)
+    from lampsam.evaluation.slam_report import write_slam_plot
+
+    with atomic_path(out / "slam.png") as tmp:
+        write_slam_plot(tmp, result, run.groundtruth)
     s = summary(result, run.groundtruth)
     err = s.get("error")
     msg = (f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
