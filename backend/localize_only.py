@@ -1,4 +1,4 @@
-"""Localize-only tracking against a saved ceiling map: the map is used, never grown (issue 20).
+"""Localize-only tracking against a saved ceiling map: the map is used, never grown.
 
 :class:`MapLocalizer` is a :class:`lampsam.backend.interface.SlamBackend` whose state
 is the robot pose alone, ``x = (x, y, theta)`` with covariance ``P`` (3 x 3, plain

@@ -1,4 +1,4 @@
-"""Localize-only tracking on a saved ceiling map against SLAM from scratch (issue 20).
+"""Localize-only tracking on a saved ceiling map against SLAM from scratch.
 
 Usage::
 
