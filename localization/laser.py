@@ -181,7 +181,10 @@ class LaserAcceptConfig:
             log-likelihood exceeds the best competing hypothesis' by this many
             nats (tempered). Calibrated on tuning trials (docs/localization.md).
         min_score: and when the scans fit the map at the estimate: joint
-            log-likelihood per used beam (nats, untempered) at least this.
+            log-likelihood per used beam (nats, untempered) at least this, over
+            the last ``fit_scans`` scans (a long odometry chain drifts beyond
+            the per-scan refinement window, so older scans are left out).
+        fit_scans: scans of the fit (default 4).
         modes: competing hypotheses: the distinct modes of the first update.
         separation: two hypotheses are distinct when this far apart (m, rad).
         refine: half-width of the grid search refining each hypothesis'
@@ -192,6 +195,7 @@ class LaserAcceptConfig:
 
     min_margin: float = 8.0
     min_score: float = 0.45
+    fit_scans: int = 4
     modes: int = 8
     separation: tuple[float, float] = (1.0, 0.5)
     refine: tuple[float, float] = (0.2, 0.1)
@@ -281,7 +285,8 @@ def hypothesis_margin(
     ll_est, a_est = chain_log_likelihood(model, estimate, last, odom, ranges, angles, accept)
     fine = replace(accept, refine=(accept.refine[0] / 4, accept.refine[1] / 4))
     ll_est, a_est = chain_log_likelihood(model, a_est, last, odom, ranges, angles, fine)
-    score = scan_fit(model, chain(a_est, last, odom), ranges, angles, accept)
+    w = max(1, accept.fit_scans)
+    score = scan_fit(model, chain(a_est, last, odom)[-w:], ranges[-w:], angles, accept)
     best_ll, best_pose = -math.inf, None
     for m in np.asarray(first_modes).reshape(-1, 3):
         ll, a = chain_log_likelihood(model, m, 0, odom, ranges, angles, accept)
