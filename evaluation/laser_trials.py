@@ -38,6 +38,7 @@ from lampsam.localization.laser import (
 from lampsam.localization.likelihood import LikelihoodFieldModel
 from lampsam.localization.result import json_safe
 from lampsam.localization.result import summarize as summarize_trials
+from lampsam.safe_io import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -294,5 +295,5 @@ def write_json(result: dict[str, object], path: str | Path) -> Path:
     """Write the trials' result as JSON; returns the path."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(json_safe(result), indent=1, allow_nan=False))
+    write_text_atomic(out, json.dumps(json_safe(result), indent=1, allow_nan=False))
     return out
