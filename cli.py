@@ -690,7 +690,7 @@ def _localize_laser_log(args: argparse.Namespace) -> int:
     assert isinstance(s, dict)
     print(f"{s['trials']} trials: {s['localized']} localized ({s['correct']} correct, "
           f"{s['wrong_accepted']} wrong), {s['ambiguous']} ambiguous, {s['failed']} failed; "
-          f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s per trial; {path}")
+          f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s CPU per trial; {path}")
     return 0 if s["wrong_accepted"] == 0 else 1
 
 
