@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 from lampsam.errors import LampsamError
 from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_requested
-from lampsam.safe_io import atomic_path
+from lampsam.safe_io import atomic_path, check_output_file
 
 if TYPE_CHECKING:
     from lampsam.datasets.kinect_sim import KinectConfig
@@ -378,6 +378,11 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, association=dataclasses.replace(config.association, use_known_ids=False))
     features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+    if args.g2o:
+        check_output_file(args.g2o, force=args.force, what="--g2o")
+        if args.backend == "ekf" and Path(args.run).is_file():
+            raise LampsamError("--g2o with the EKF needs a run directory (its odometry gives the "
+                               "factors); use --backend isam2 or batch for a text log")
     _check_map_flags(args)
     if Path(args.run).is_file():
         return _slam_graph_text(args, config, _out_dir(args))
@@ -419,10 +424,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o
 
-        with atomic_path(Path(args.g2o)) as tmp:
-            n_pose, n_edge, n_lm = write_result_g2o(tmp, result, run)
-        print(f"g2o graph written to {args.g2o}: {n_pose} poses, {n_edge} odometry factors, "
-              f"{n_lm} landmarks")
+        g2o = write_result_g2o(Path(args.g2o), result, run)
+        print(f"g2o graph written to {args.g2o}: {g2o.text()}")
     if result.status == "interrupted":
         print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
               f"are written to {out} (status interrupted)", file=sys.stderr)
@@ -525,6 +528,11 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                                  else "the origin (no VERTEX for the first pose)"),
                   "skipped_non_odometry_edges": glog.n_skipped_edges}
     write_json_atomic(out / "summary.json", s)
+    if args.g2o:
+        from lampsam.backend.g2o_export import write_result_g2o
+
+        print(f"g2o graph written to {args.g2o}: "
+              f"{write_result_g2o(Path(args.g2o), result, None).text()}")
     msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
            f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
     err = s.get("error")
@@ -552,7 +560,8 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
-                   help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
+                   help="also write the final graph as g2o: poses, landmarks and every factor "
+                        "(custom LAMPSAM_* lines for the ceiling model; backend/g2o_export.py)")
     p.add_argument("--duration", type=_positive, default=None,
                    help="with --mrclam: use only the first seconds (an error without --mrclam)")
     p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
