@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 import gtsam
 import numpy as np
+import pytest
 from gtsam.symbol_shorthand import X
 
 from lampsam.backend.ceiling import CeilingModel
@@ -20,6 +21,9 @@ from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.gating import RELATIVE_GATE_KEYFRAMES, Gating
 from lampsam.backend.graph import Isam2Slam
+from lampsam.backend.handlers import GraphLandmark
+from lampsam.backend.interface import LandmarkKind
+from lampsam.backend.models import Obs
 from lampsam.backend.pose_cov import compose_cov, pose_array
 from lampsam.backend.slam import drive, iter_steps
 from tests.test_backend import ceiling_world
@@ -57,6 +61,7 @@ def test_incremental_relative_covs_match_backward_composition() -> None:
 
 
 def test_joint_marginals_prefetched_per_keyframe_match_per_landmark_queries() -> None:
+    """Every lamp pair is sent to the exact gate here, so each keyframe prefetches several."""
     rig, odo, frames, gt = ceiling_world(np.random.default_rng(11), duration=14.0, n_corners=8)
     cfg = SlamConfig(association=dataclasses.replace(SlamConfig().association, use_known_ids=False))
     model = CeilingModel.from_camera(rig.camera)
@@ -79,8 +84,75 @@ def test_joint_marginals_prefetched_per_keyframe_match_per_landmark_queries() ->
             checked.append(len(s_ll))
         return n
 
+    def every_lamp_to_exact_gate(obs, screened, axis_d2=None):  # every lamp pair asks for eq. 19
+        return {i: {lid: (d2, o_kind == "corner") for lid, (d2, _) in pairs.items()}
+                for i, pairs in screened.items() for o_kind in [obs[i].kind]}
+
     be._prefetch_joint = check  # type: ignore[method-assign]
+    be._mark_ambiguous = every_lamp_to_exact_gate  # type: ignore[method-assign]
     result = drive(be, iter_steps(odo, frames))
     assert result.status == "ok"
     assert len(checked) >= 5
     assert 4 in checked  # an oriented lamp: position and axis rows
+
+
+def _triangulate_loop(model: CeilingModel, poses: np.ndarray, ms: np.ndarray, covs: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Reference: eqs. 17-18 stacked one sight at a time, weighted normal equations summed."""
+    o = model.body_t_camera
+    rows, rhs, w = [], [], []
+    for (x, y, th), m, cov in zip(poses, ms, covs, strict=True):
+        rt = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
+        rows.append(np.column_stack([rt, -m]))
+        rhs.append(rt @ np.array([x, y]) + o[:2])
+        w.append(np.linalg.inv(cov))
+    sol = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    info = sum(a.T @ (wk / sol[2] ** 2) @ a for a, wk in zip(rows, w, strict=True))
+    return np.array([sol[0], sol[1], sol[2] + o[2]]), np.linalg.inv(info)
+
+
+def test_vectorised_triangulation_matches_per_sight_sum() -> None:
+    rng = np.random.default_rng(2)
+    rig, _, _, _ = ceiling_world(rng, duration=1.0, n_corners=0)
+    model = CeilingModel.from_camera(rig.camera)
+    point = np.array([1.0, 0.5, 2.8])
+    poses = np.column_stack([rng.uniform(0, 1.5, 6), rng.uniform(-0.5, 0.5, 6), rng.uniform(-3, 3, 6)])
+    ms = np.array([model.predict(p, point, with_axis=False)[0] for p in poses])
+    ms += rng.normal(0, 1e-3, ms.shape)
+    covs = np.array([np.diag(rng.uniform(0.5, 2.0, 2)) * 1e-6 for _ in poses])
+    got_p, got_c = model.triangulate(poses, ms, covs)
+    ref_p, ref_c = _triangulate_loop(model, poses, ms, covs)
+    np.testing.assert_allclose(got_p, ref_p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got_c, ref_c, rtol=1e-9, atol=0)
+    assert np.linalg.norm(got_p - point) < 0.05
+
+
+def test_axis_screen_is_the_three_row_distance_of_the_lamp_model() -> None:
+    """``_axis_screen``'s hand-written axis row against the ceiling model's own Jacobians."""
+    rng = np.random.default_rng(4)
+    rig, _, _, _ = ceiling_world(rng, duration=1.0, n_corners=0)
+    model = CeilingModel.from_camera(rig.camera)
+    pose = np.array([0.3, -0.2, 0.7])
+    state = np.array([0.9, 0.1, 2.8, 1.2])
+    a = rng.normal(size=(3, 3)) * 1e-2
+    cov_x = a @ a.T
+    b = rng.normal(size=(3, 3)) * 1e-2
+    cov_l = b @ b.T
+    lm_cov = np.eye(4) * 4e-4
+    z_hat, h_p, h_l = model.predict(pose, state, with_axis=True)
+    r = np.diag([1e-6, 1e-6, 4e-4])
+    z = z_hat + np.array([2e-3, -1e-3, 0.05])
+    z[2] += np.pi  # the same line: the axis is modulo pi
+    obs = Obs(LandmarkKind.LAMP, z, r, has_axis=True)
+    lm = GraphLandmark(7, LandmarkKind.LAMP, True, 3, state, lm_cov)
+    owner = SimpleNamespace(_landmarks={7: lm})
+    m, hp, hl, _ = model.project_many(pose, state[None, :3])
+    got = Gating._axis_screen(owner, [obs], {0: {7: (0.0, False)}}, pose, [7],  # type: ignore[arg-type]
+                              m, hp, hl, cov_x[None], cov_l[None])
+    c_l = np.zeros((4, 4))
+    c_l[:3, :3] = cov_l
+    c_l[3, 3] = lm_cov[3, 3]
+    s = h_p @ cov_x @ h_p.T + h_l @ c_l @ h_l.T + r
+    nu = z - z_hat
+    nu[2] = (nu[2] + np.pi / 2) % np.pi - np.pi / 2
+    assert got[(0, 7)] == pytest.approx(float(nu @ np.linalg.solve(s, nu)), rel=1e-9)
