@@ -24,7 +24,6 @@ from lampsam.backend.association import screen_pairs
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
-from lampsam.factors.geometry import wrap_axis
 
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 RELATIVE_GATE_KEYFRAMES = 30
@@ -201,9 +200,7 @@ class Gating(GraphState):
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
             sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
                               exact=True)
-            axis_d2 = (self._axis_screen(obs, sc, pose, lids, m[keep], hp, hl, cov_x, cov_l)
-                       if kind == "lamp" else {})
-            screened.update(self._mark_ambiguous(obs, sc, axis_d2))
+            screened.update(self._mark_ambiguous(obs, sc))
         return cands, screened
 
     def _refresh_visible(self, visible: list[GraphLandmark]) -> None:
@@ -258,60 +255,7 @@ class Gating(GraphState):
         self._rel_cache = (k, out)
         return out
 
-    def _axis_screen(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]],
-                     pose: FloatArray, lids: list[int], m: FloatArray, hp: FloatArray,
-                     hl: FloatArray, cov_x: FloatArray, cov_l: FloatArray
-                     ) -> dict[tuple[int, int], float]:
-        """The screen's distance over all three rows for a lamp seen with its axis.
-
-        :func:`~lampsam.backend.association.screen_pairs` screens ``(u, v)`` only. For
-        an observation with an axis and an oriented lamp, the same cheap covariance
-        (pose and landmark, no cross term) is extended by the axis row
-        ``alpha = wrap_axis(phi - theta)`` (paper 1; ``d alpha / d xi = (0, 0, -1)``,
-        ``d alpha / d phi = 1``) with the lamp's first-sight axis variance. Then an
-        axis observation with a single lamp inside the gate is decided like a
-        position-only one (:meth:`_mark_ambiguous`), without iSAM2's joint marginal.
-
-        Args:
-            obs: the frame's observations; screened: the 2-row screen.
-            pose: (3,) current pose; lids: (M,) screened lamp ids; m: (M, 2) their
-                predicted ``(u, v)``; hp, hl: (M, 2, 3) Jacobians of ``(u, v)`` by the
-                pose (right tangent) and the lamp position; cov_x, cov_l: (M, 3, 3)
-                the screen's pose and lamp covariances.
-
-        Returns:
-            ``{(obs index, lamp id): d2}`` over the three rows, for the pairs kept by
-            the screen.
-        """
-        col = {lid: n for n, lid in enumerate(lids)}
-        out: dict[tuple[int, int], float] = {}
-        for i, pairs in screened.items():
-            o = obs[i]
-            if o.kind != "lamp" or len(o.z) != 3:
-                continue
-            for lid in pairs:
-                lm = self._landmarks.get(lid)
-                if lm is None or len(lm.state) != 4:
-                    continue
-                n = col[lid]
-                h_p = np.vstack([hp[n], [0.0, 0.0, -1.0]])
-                h_l = np.zeros((3, 4))
-                h_l[:2, :3] = hl[n]
-                h_l[2, 3] = 1.0
-                c_l = np.zeros((4, 4))
-                c_l[:3, :3] = cov_l[n]
-                c_l[3, 3] = lm.cov[3, 3]
-                s = h_p @ cov_x[n] @ h_p.T + h_l @ c_l @ h_l.T + o.R
-                nu = np.array([o.z[0] - m[n, 0], o.z[1] - m[n, 1],
-                               wrap_axis(float(o.z[2]) - wrap_axis(float(lm.state[3]) - pose[2]))])
-                try:
-                    out[(i, lid)] = float(nu @ np.linalg.solve(s, nu))
-                except np.linalg.LinAlgError:
-                    continue
-        return out
-
-    def _mark_ambiguous(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]],
-                        axis_d2: dict[tuple[int, int], float] | None = None
+    def _mark_ambiguous(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
                         ) -> dict[int, dict[int, tuple[float, bool]]]:
         """Keep the cheap distance where it decides alone; ask for the joint marginal otherwise.
 
@@ -324,20 +268,17 @@ class Gating(GraphState):
         term, :meth:`_joint_cov`) pick the winner. iSAM2's joint marginals cost
         several ms each on a graph dense with corners (17 ms on the lab run), so
         this keeps them to the few ambiguous lamp observations. A lamp seen with its
-        axis counts the three-row distances of ``axis_d2`` (:meth:`_axis_screen`) for
-        oriented lamps, final when it has at most one lamp inside the gate.
+        axis always takes the exact gate (the screen has no axis row); deciding it by
+        a cheap three-row screen instead let biased sights in (docs/speed.md).
         """
         cfg = self.config.association
-        axis_d2 = axis_d2 or {}
         out: dict[int, dict[int, tuple[float, bool]]] = {}
         for i, pairs in screened.items():
             o = obs[i]
             gate = cfg.gate(len(o.z))
-            full = {lid: axis_d2[(i, lid)] for lid in pairs if (i, lid) in axis_d2}
-            inside = [lid for lid, (d2, _) in pairs.items() if full.get(lid, d2) < gate]
+            inside = [lid for lid, (d2, _) in pairs.items() if d2 < gate]
             if o.kind == "corner" or len(inside) <= 1:
-                out[i] = {lid: (full[lid], True) if lid in full else (d2, len(o.z) == 2)
-                          for lid, (d2, _) in pairs.items()}
+                out[i] = {lid: (d2, len(o.z) == 2) for lid, (d2, _) in pairs.items()}
             else:
                 out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
         return out

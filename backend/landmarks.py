@@ -184,12 +184,8 @@ class LandmarkLifecycle(GraphState):
             # The screen's fallback for a lamp not seen for many keyframes: as for a
             # triangulated corner, not the first sight's covariance, which spans most
             # of the height range and let lamps metres apart all pass the cheap gate
-            # (each such sight then cost joint marginals). An oriented lamp keeps its
-            # first-sight axis variance (the gate's axis row, Gating._axis_screen).
-            placed = self._placed_cov(cov)
-            if len(lm.cov) == 4:
-                placed = np.block([[placed, np.zeros((3, 1))], [np.zeros((1, 3)), lm.cov[3:, 3:]]])
-            lm.cov = placed
+            # (each such sight then cost joint marginals).
+            lm.cov = self._placed_cov(cov)
 
     def _enter_graph(self, lm: GraphLandmark) -> None:
         """Insert a landmark's variables, priors and its buffered factors."""

@@ -13,7 +13,6 @@ from types import SimpleNamespace
 
 import gtsam
 import numpy as np
-import pytest
 from gtsam.symbol_shorthand import X
 
 from lampsam.backend.ceiling import CeilingModel
@@ -21,9 +20,6 @@ from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.gating import RELATIVE_GATE_KEYFRAMES, Gating
 from lampsam.backend.graph import Isam2Slam
-from lampsam.backend.handlers import GraphLandmark
-from lampsam.backend.interface import LandmarkKind
-from lampsam.backend.models import Obs
 from lampsam.backend.pose_cov import compose_cov, pose_array
 from lampsam.backend.slam import drive, iter_steps
 from tests.test_backend import ceiling_world
@@ -125,34 +121,3 @@ def test_vectorised_triangulation_matches_per_sight_sum() -> None:
     np.testing.assert_allclose(got_p, ref_p, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got_c, ref_c, rtol=1e-9, atol=0)
     assert np.linalg.norm(got_p - point) < 0.05
-
-
-def test_axis_screen_is_the_three_row_distance_of_the_lamp_model() -> None:
-    """``_axis_screen``'s hand-written axis row against the ceiling model's own Jacobians."""
-    rng = np.random.default_rng(4)
-    rig, _, _, _ = ceiling_world(rng, duration=1.0, n_corners=0)
-    model = CeilingModel.from_camera(rig.camera)
-    pose = np.array([0.3, -0.2, 0.7])
-    state = np.array([0.9, 0.1, 2.8, 1.2])
-    a = rng.normal(size=(3, 3)) * 1e-2
-    cov_x = a @ a.T
-    b = rng.normal(size=(3, 3)) * 1e-2
-    cov_l = b @ b.T
-    lm_cov = np.eye(4) * 4e-4
-    z_hat, h_p, h_l = model.predict(pose, state, with_axis=True)
-    r = np.diag([1e-6, 1e-6, 4e-4])
-    z = z_hat + np.array([2e-3, -1e-3, 0.05])
-    z[2] += np.pi  # the same line: the axis is modulo pi
-    obs = Obs(LandmarkKind.LAMP, z, r, has_axis=True)
-    lm = GraphLandmark(7, LandmarkKind.LAMP, True, 3, state, lm_cov)
-    owner = SimpleNamespace(_landmarks={7: lm})
-    m, hp, hl, _ = model.project_many(pose, state[None, :3])
-    got = Gating._axis_screen(owner, [obs], {0: {7: (0.0, False)}}, pose, [7],  # type: ignore[arg-type]
-                              m, hp, hl, cov_x[None], cov_l[None])
-    c_l = np.zeros((4, 4))
-    c_l[:3, :3] = cov_l
-    c_l[3, 3] = lm_cov[3, 3]
-    s = h_p @ cov_x @ h_p.T + h_l @ c_l @ h_l.T + r
-    nu = z - z_hat
-    nu[2] = (nu[2] + np.pi / 2) % np.pi - np.pi / 2
-    assert got[(0, 7)] == pytest.approx(float(nu @ np.linalg.solve(s, nu)), rel=1e-9)
