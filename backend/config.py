@@ -169,6 +169,14 @@ class EkfConfig:
             estimate.
         update_tol: convergence threshold of the iterated update on the largest
             change of any state entry between iterations, m or rad (default 1e-4).
+        confirm_sightings: without ids, a planar landmark enters the state after this
+            many unassociated sightings fused in a tentative list
+            (:class:`lampsam.backend.association.TentativeLandmarks`); default 1:
+            at once, the paper's rule (eqs. 24-25 at the first sighting).
+        tentative_max_idle: steps after which an unconfirmed tentative landmark is
+            forgotten (default 100).
+        new_min_separation: a confirmed tentative landmark within this distance of a
+            mapped planar landmark is discarded as a copy, m (default 0: off).
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -178,6 +186,9 @@ class EkfConfig:
     update_iterations: int = field(default=1, metadata=limits(ge=1))
     update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
     first_estimate_jacobians: bool | None = None
+    confirm_sightings: int = field(default=1, metadata=limits(ge=1))
+    tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
+    new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -40,6 +40,7 @@ from scipy.linalg import solve_triangular
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import (
     Assignment,
+    TentativeLandmarks,
     associate,
     corner_budget,
     jcbb,
@@ -150,6 +151,8 @@ class EkfSlam(SlamBackend):
         # for ceiling runs.
         self._fej = (ceiling is None) if fej is None else fej
         self._pred_xy = self._x[:2].copy()  # p_{k|k-1}: the last predicted position
+        self.tentative = TentativeLandmarks(cfg.confirm_sightings, config.association.gate(2),
+                                            cfg.tentative_max_idle, cfg.new_min_separation)
 
     # ------------------------------------------------------------------ state
     @property
@@ -510,6 +513,27 @@ class EkfSlam(SlamBackend):
         self._n = n + d
         return lid
 
+    def _confirmed(self, obs: Obs) -> bool:
+        """Whether an unassociated planar sighting may start a landmark now.
+
+        With ``ekf.confirm_sightings > 1`` the sighting's world position (eq. 24) and
+        covariance ``G_R P_RR G_R^T + G_z R G_z^T`` (eq. 25's new block) go to the
+        tentative list (:class:`lampsam.backend.association.TentativeLandmarks`).
+        """
+        if self.tentative.confirm <= 1 and self.tentative.min_separation <= 0:
+            return True
+        pose = self._x[:3].copy()
+        state, g_pose, g_z, cov_z = initialize(pose, obs, self.config.association, self.ceiling)
+        g_r = g_pose @ tangent_D_coords(pose[2])
+        cov = g_r @ self._cov.block(0, 3, 0, 3) @ g_r.T + g_z @ cov_z @ g_z.T
+        mapped = None
+        if self.tentative.min_separation > 0:
+            offs = [s.offset for s in self._slots.values()
+                    if s.kind == LandmarkKind.POINT2 and s.id not in self._doomed]
+            mapped = (self._x[np.asarray(offs)[:, None] + np.arange(2)[None, :]]
+                      if offs else np.zeros((0, 2)))
+        return self.tentative.offer(state[:2], cov[:2, :2], self._step, mapped)
+
     def _new_id(self) -> int:
         while self._next_id in self._slots:
             self._next_id += 1
@@ -608,7 +632,12 @@ class EkfSlam(SlamBackend):
                         if entries <= 0:
                             continue
                         entries -= 1
+                    if (a.landmark_id is None and obs[a.obs_index].kind == LandmarkKind.POINT2
+                            and not self._confirmed(obs[a.obs_index])):
+                        continue
                     n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
+        if self.tentative.items:
+            self.tentative.expire(self._step)
         self._prune()
         self._step += 1
         dt = time.perf_counter() - t0
