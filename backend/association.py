@@ -353,7 +353,7 @@ def jcbb(candidates: Mapping[int, Iterable[int]], joint: JointInnovationFn,
     return best
 
 
-@dataclass
+@dataclass(eq=False)
 class Tentative:
     """A candidate planar landmark not yet in the map.
 
@@ -435,7 +435,7 @@ class TentativeLandmarks:
             best.last_step = step
         if best.hits < self.confirm:
             return False
-        self.items.remove(best)
+        self.items = [t for t in self.items if t is not best]
         if (self.min_separation > 0 and mapped_xy is not None and len(mapped_xy)
                 and float(np.min(np.linalg.norm(mapped_xy - best.xy, axis=1))) < self.min_separation):
             self.n_copies += 1
@@ -447,3 +447,4 @@ class TentativeLandmarks:
         keep = [t for t in self.items if step - t.last_step <= self.max_idle]
         self.n_expired += len(self.items) - len(keep)
         self.items = keep
+

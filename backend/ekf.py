@@ -68,6 +68,7 @@ from lampsam.backend.models import (
     residual,
 )
 from lampsam.backend.odometry import OdometryConstants, motion_model
+from lampsam.backend.planar_gate import predict_point2_many, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
@@ -253,6 +254,9 @@ class EkfSlam(SlamBackend):
                 ceiling_slots.setdefault(slot.kind, []).append(slot)
         pose = self._x[:3]
         cov = self._cov
+        planar = cands.get(LandmarkKind.POINT2, [])
+        if planar and any(o.kind == LandmarkKind.POINT2 for o in obs):
+            screened.update(self._screen_planar(obs, planar))
         t_d_c = tangent_D_coords(pose[2])
         for kind, slots in ceiling_slots.items():
             offs = np.array([sl.offset for sl in slots])
@@ -276,6 +280,32 @@ class EkfSlam(SlamBackend):
             screened.update(screen_pairs(obs, kind, lids, m[keep], s_pred,
                                          self.config.association, exact=True))
         return cands, screened
+
+    def _screen_planar(self, obs: list[Obs], lids: list[int]
+                       ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Exact eq.-19/20 distances of every planar observation to every planar landmark.
+
+        :func:`lampsam.backend.planar_gate.predict_point2_many` with the Jacobians at the
+        first estimates when those are on (as :meth:`_h`), ``S = H P H^T`` from
+        gathered blocks of ``P``.
+        """
+        offs = np.array([self._slots[lid].offset for lid in lids])
+        idx = offs[:, None] + np.arange(2)[None, :]  # (M, 2)
+        lin = None
+        if self._fej:
+            firsts = [self._slots[lid].first for lid in lids]
+            lin = np.array([f[:2] if f is not None else self._x[o : o + 2]
+                            for f, o in zip(firsts, offs, strict=True)])
+        z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
+        cov = self._cov
+        p_rr = cov.block(0, 3, 0, 3)
+        p_rl = cov.take(np.arange(3)[None, :, None], idx[:, None, :])  # (M, 3, 2)
+        p_ll = cov.take(idx[:, :, None], idx[:, None, :])  # (M, 2, 2)
+        hl_t = np.transpose(h_l, (0, 2, 1))
+        cross = h_r @ p_rl @ hl_t
+        s_pred = (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
+                  + np.transpose(cross, (0, 2, 1)) + h_l @ p_ll @ hl_t)
+        return screen_point2(obs, lids, z_hat, s_pred, self.config.association)
 
     def _candidates(self) -> dict[str, list[int]]:
         cands: dict[str, list[int]] = {}
@@ -412,7 +442,8 @@ class EkfSlam(SlamBackend):
         w = pht @ c_inv.T  # (n, K); a small inverse + one BLAS product beats n RHS solves
         return rows, w, w @ (c_inv @ nu)  # eq. 22
 
-    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment]) -> list[Assignment]:
+    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment],
+                      screened: dict[int, dict[int, tuple[float, bool]]]) -> list[Assignment]:
         """Re-pair a frame's planar observations without ids by joint compatibility (JCBB).
 
         Candidates are the landmarks individually inside the gate (eqs. 19-20); the
@@ -429,6 +460,9 @@ class EkfSlam(SlamBackend):
         gate = cfg.gate(2)
         cands: dict[int, list[int]] = {}
         for i in idx:
+            if i in screened:
+                cands[i] = [lid for lid, (d2, _) in screened[i].items() if d2 < gate]
+                continue
             cands[i] = []
             for lid, s in self._slots.items():
                 if s.kind != LandmarkKind.POINT2 or lid in self._doomed:
@@ -617,7 +651,7 @@ class EkfSlam(SlamBackend):
                                         self.config.association, lambda i: i in self._slots,
                                         patches, screened)
                 if self.config.association.joint_compatibility:
-                    assignments = self._joint_point2(obs, assignments)
+                    assignments = self._joint_point2(obs, assignments, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
