@@ -18,6 +18,7 @@ import gtsam
 from scipy.special import chdtri
 
 from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
+from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.factors.ceiling import HeightPrior
 
 
@@ -308,7 +309,14 @@ class SlamConfig:
 
     Attributes:
         features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
-        association, noise, ekf, isam2, batch: the parts above.
+        association, noise, ekf, isam2, batch: the parts above. ``noise`` is also
+            the default noise of a range-bearing observation that carries no
+            covariance of its own (``sigma_range``, ``sigma_bearing``).
+        pose2_odometry: noise of Pose2-increment odometry samples without a
+            covariance and the per-sample floor
+            (:class:`~lampsam.datasets.odometry.Pose2OdometryModel`; TOML table
+            ``[pose2_odometry]``); a run's ``rig.yaml`` section of the same name
+            overrides it. Wheel odometry takes its constants from ``rig.yaml``.
     """
 
     features: tuple[str, ...] = ("lamps", "corners")
@@ -317,6 +325,7 @@ class SlamConfig:
     ekf: EkfConfig = field(default_factory=EkfConfig)
     isam2: Isam2Config = field(default_factory=Isam2Config)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
 
     def __post_init__(self) -> None:
         """Check the feature names (:class:`FieldValueError` naming the key)."""
