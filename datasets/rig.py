@@ -25,6 +25,7 @@ from lampsam.datasets.camera import CameraModel
 from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.datasets.textio import read_yaml
 from lampsam.errors import DatasetError
+from lampsam.safe_io import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ class Rig:
 
     def to_yaml(self, path: str | Path) -> None:
         """Write ``rig.yaml``."""
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+        write_text_atomic(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
 
 
 # --------------------------------------------------------------------------- strict reading
