@@ -107,6 +107,15 @@ class AssociationConfig:
             Mahalanobis distance of 0.03 against the chi-square's 1.39), the
             stated noise makes trees several metres apart compatible; the factors
             keep ``R``.
+        planar_confirm_sightings: without ids, a new range-bearing landmark of the
+            smoothers stays tentative (gated, not in the graph) until it has this
+            many sightings; one not confirmed within ``isam2.corner_pending_keyframes``
+            keyframes is forgotten with its sightings (default 1: in the graph at
+            its first sight).
+        planar_reject_ambiguous: without ids, a range-bearing observation with two
+            or more landmarks inside the relative gate (of
+            :meth:`lampsam.backend.gating.Gating._screen_planar`) is dropped instead
+            of given to the nearest (default False).
     """
 
     use_known_ids: bool = True
@@ -123,6 +132,8 @@ class AssociationConfig:
     lamp_min_separation: float = field(default=0.1, metadata=limits(ge=0.0))
     max_corner_updates: int | None = field(default=10, metadata=limits(ge=0))
     gate_noise_scale: float = field(default=1.0, metadata=limits(gt=0.0, le=1.0))
+    planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
+    planar_reject_ambiguous: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -260,10 +260,16 @@ class Gating(GraphState):
         z = np.array([obs[i].z[:2] for i in idx], float)
         r = np.array([obs[i].R[:2, :2] for i in idx], float) * scale
         d2 = bearing_range_d2(z, r, z_hat, s_pred)
-        new_t = self.config.association.new_threshold(2)
+        cfg = self.config.association
+        new_t, gate = cfg.new_threshold(2), cfg.gate(2)
         out: dict[int, dict[int, tuple[float, bool]]] = {}
         for row, i in enumerate(idx):
             keep = np.flatnonzero(d2[row] < new_t)
+            if cfg.planar_reject_ambiguous and np.count_nonzero(
+                    (d2[row, keep] < gate) & recent[keep]) >= 2:  # final distances only
+                # ambiguous: no match, no new landmark (associate drops it)
+                out[i] = {lms[j].id: (max(float(d2[row, j]), gate), False) for j in keep}
+                continue
             out[i] = {lms[j].id: (float(d2[row, j]), bool(recent[j])) for j in keep}
         return out
 
