@@ -13,6 +13,7 @@ pay for joint marginals (each costs several ms on a corner-dense graph).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 
 import gtsam
@@ -27,6 +28,63 @@ from lampsam.backend.models import Obs, for_landmark, predict, residual
 
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 RELATIVE_GATE_KEYFRAMES = 30
+
+
+def range_bearing_many(pose: FloatArray, pts: FloatArray
+                       ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Predicted ``[bearing, range]`` of M planar landmarks and their Jacobians, at once.
+
+    The vectorised form of :func:`lampsam.factors.range_bearing.range_bearing`
+    (no sensor offset).
+
+    Args:
+        pose: (3,) ``world_T_body``, m and rad.
+        pts: (M, 2) landmarks, world frame, m.
+
+    Returns:
+        ``(z_hat (M, 2), z_D_pose (M, 2, 3) right tangent, z_D_landmark (M, 2, 2))``;
+        a landmark at the sensor gets range 1e-9 m (its distances are meaningless,
+        never a match).
+    """
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    dx, dy = pts[:, 0] - pose[0], pts[:, 1] - pose[1]
+    px, py = c * dx + s * dy, -s * dx + c * dy
+    r2 = np.maximum(px * px + py * py, 1e-18)
+    r = np.sqrt(r2)
+    m = len(pts)
+    p_D_pose = np.zeros((m, 2, 3))
+    p_D_pose[:, 0, 0] = p_D_pose[:, 1, 1] = -1.0
+    p_D_pose[:, 0, 2], p_D_pose[:, 1, 2] = py, -px
+    p_D_l = np.array([[c, s], [-s, c]])
+    z_D_p = np.empty((m, 2, 2))
+    z_D_p[:, 0, 0], z_D_p[:, 0, 1] = -py / r2, px / r2
+    z_D_p[:, 1, 0], z_D_p[:, 1, 1] = px / r, py / r
+    z_hat = np.stack([np.arctan2(py, px), r], axis=1)
+    return z_hat, z_D_p @ p_D_pose, z_D_p @ p_D_l
+
+
+def bearing_range_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatArray
+                     ) -> FloatArray:
+    """Squared Mahalanobis distances of N ``[bearing, range]`` observations to M predictions.
+
+    ``d2[i, j] = nu^T (S_j + R_i)^-1 nu`` with ``nu = z_i - z_hat_j``, the bearing
+    wrapped to (-pi, pi] (eq. 20).
+
+    Args:
+        z: (N, 2) observations; r: (N, 2, 2) their noise.
+        z_hat: (M, 2) predictions; s: (M, 2, 2) prediction covariances ``H P H^T``.
+
+    Returns:
+        (N, M) distances; ``inf`` where ``S + R`` is not positive definite.
+    """
+    psi = r[:, None] + s[None]
+    nu = z[:, None, :] - z_hat[None, :, :]
+    nu[..., 0] = (nu[..., 0] + math.pi) % (2.0 * math.pi) - math.pi
+    a, b, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 1]
+    det = a * d - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
+    return np.where((det > 0) & (a > 0), d2, np.inf)
 
 
 class Gating(GraphState):
@@ -126,17 +184,18 @@ class Gating(GraphState):
             z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
         except Exception:
             return None
+        r = obs.R * self.config.association.gate_noise_scale if obs.kind == "point2" else obs.R
         joint = self._joint_cov(lm, k)
         if joint is None:  # no joint marginal: independent pose and landmark
             _, pose_cov = self.current()
-            psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + obs.R
+            psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + r
             return residual(obs, z_hat), psi
         s_kk, s_kl, s_ll = joint
         ad = gtsam.Pose2(*delta).inverse().AdjointMap()
         s_xx = ad @ s_kk @ ad.T + delta_cov
         s_xl = ad @ s_kl
         cross = h_p @ s_xl @ h_l.T
-        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + obs.R
+        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
         return residual(obs, z_hat), psi
 
     def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
@@ -162,11 +221,19 @@ class Gating(GraphState):
         cands: dict[str, list[int]] = {}
         screened: dict[int, dict[int, tuple[float, bool]]] = {}
         by_kind: dict[str, list[GraphLandmark]] = {}
+        planar: list[GraphLandmark] = []
         for lid, lm in self._landmarks.items():
-            if self.ceiling is None or lm.kind == "point2":
+            if lm.kind == "point2":
+                planar.append(lm)
+            elif self.ceiling is None:
                 cands.setdefault(lm.kind, []).append(lid)
             else:
                 by_kind.setdefault(lm.kind, []).append(lm)
+        if planar:
+            cands["point2"] = [lm.id for lm in planar]
+            if any(o.kind == "point2" and o.landmark_id is None for o in obs) or (
+                    not self.config.association.use_known_ids):
+                screened.update(self._screen_planar(obs, pose, pose_cov, planar))
         for kind, lms in by_kind.items():
             pts = np.array([lm.state[:3] for lm in lms])
             ceiling = self._require_ceiling()
@@ -224,6 +291,62 @@ class Gating(GraphState):
                 except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
                     pass
             self._refresh_landmark(lm)
+
+    def _screen_planar(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray,
+                       lms: list[GraphLandmark]) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Range-bearing observations against every planar landmark at once (no ids).
+
+        A landmark last observed within :data:`RELATIVE_GATE_KEYFRAMES` keyframes is
+        gated relative to that keyframe: ``Psi = H_p C H_p^T + s (H_l Sigma_rel H_l^T
+        + R)`` with ``C`` the odometry covariance since then
+        (:meth:`_relative_covs`), ``Sigma_rel`` its position covariance relative to
+        the observing pose (measurement-only, eq. 25's ``G_z R G_z^T``) and ``s``
+        ``association.gate_noise_scale``. The common uncertainty of the two poses
+        cancels in a relative measurement, so this distance is final (the cross
+        term of eq. 19 stands in for it). Older landmarks get a screen with the
+        pose and landmark marginals and no cross term, doubled (``2 diag(P_xx,
+        P_ll)`` bounds the joint covariance from above), and pairs inside the gate
+        are decided by the joint marginal (:meth:`_innovation`).
+
+        Returns:
+            For :func:`associate`'s ``screened``: obs index -> {landmark id: (d2, exact)}.
+        """
+        idx = [i for i, o in enumerate(obs) if o.kind == "point2"]
+        if not idx:
+            return {}
+        scale = self.config.association.gate_noise_scale
+        rel = self._relative_covs()
+        for lm in lms:
+            self._refresh_landmark(lm)
+        pts = np.array([lm.state[:2] for lm in lms], float)
+        z_hat, h_p, h_l = range_bearing_many(pose, pts)
+        recent = np.array([lm.last_kf in rel and lm.cov_rel is not None for lm in lms])
+        cov_x = np.empty((len(lms), 3, 3))
+        cov_l = np.empty((len(lms), 2, 2))
+        for j, lm in enumerate(lms):
+            if recent[j]:
+                cov_x[j] = rel[lm.last_kf]
+                cov_l[j] = scale * np.asarray(lm.cov_rel)[:2, :2]
+            else:
+                cov_x[j] = 2.0 * pose_cov
+                cov_l[j] = 2.0 * lm.cov[:2, :2]
+        s_pred = (h_p @ cov_x @ np.transpose(h_p, (0, 2, 1))
+                  + h_l @ cov_l @ np.transpose(h_l, (0, 2, 1)))
+        z = np.array([obs[i].z[:2] for i in idx], float)
+        r = np.array([obs[i].R[:2, :2] for i in idx], float) * scale
+        d2 = bearing_range_d2(z, r, z_hat, s_pred)
+        cfg = self.config.association
+        new_t, gate = cfg.new_threshold(2), cfg.gate(2)
+        out: dict[int, dict[int, tuple[float, bool]]] = {}
+        for row, i in enumerate(idx):
+            keep = np.flatnonzero(d2[row] < new_t)
+            if cfg.planar_reject_ambiguous and np.count_nonzero(
+                    (d2[row, keep] < gate) & recent[keep]) >= 2:  # final distances only
+                # ambiguous: no match, no new landmark (associate drops it)
+                out[i] = {lms[j].id: (max(float(d2[row, j]), gate), False) for j in keep}
+                continue
+            out[i] = {lms[j].id: (float(d2[row, j]), bool(recent[j])) for j in keep}
+        return out
 
     def _relative_covs(self) -> dict[int, FloatArray]:
         """Tangent covariance of the current keyframe relative to each recent keyframe.
