@@ -27,13 +27,14 @@ from typing import TYPE_CHECKING
 
 from lampsam.errors import LampsamError
 from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_requested
-from lampsam.safe_io import atomic_path
+from lampsam.safe_io import atomic_path, check_output_file
 
 if TYPE_CHECKING:
     from lampsam.datasets.kinect_sim import KinectConfig
 
 if TYPE_CHECKING:
     from lampsam.backend.config import SlamConfig
+    from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
 
@@ -377,6 +378,12 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, association=dataclasses.replace(config.association, use_known_ids=False))
     features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+    if args.g2o:
+        check_output_file(args.g2o, force=args.force, what="--g2o")
+        if args.backend == "ekf" and Path(args.run).is_file():
+            raise LampsamError("--g2o with the EKF needs a run directory (its odometry gives the "
+                               "factors); use --backend isam2 or batch for a text log")
+    _check_map_flags(args)
     if Path(args.run).is_file():
         return _slam_graph_text(args, config, _out_dir(args))
     if args.duration is not None and not args.mrclam:
@@ -391,17 +398,32 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         run = read_run(args.run)
         _warn_partial(run.meta, Path(args.run))
     out = _out_dir(args)
-    from lampsam.evaluation.live import live_view, rerun_target
+    if args.localize_only:
+        return _slam_localize_only(args, config, features, run, out)
+    if args.save_map:
+        from lampsam.safe_io import check_output_dir
 
-    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run):
-        result = run_slam(args.run, args.backend, features, out, config, frames=args.frames, run=run)
+        check_output_dir(args.save_map, force=args.force, what="--save-map")
+    from lampsam.backend.localize_run import BackendCapture
+    from lampsam.evaluation.live import live_view, rerun_target
+    from lampsam.observe import observing
+
+    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run) as view:
+        capture = BackendCapture(view)
+        with observing(capture if args.save_map else None):
+            result = run_slam(args.run, args.backend, features, out, config, frames=args.frames,
+                              run=run)
+    if args.save_map and result.status == "ok":
+        from lampsam.backend.localize_run import save_map
+
+        cmap = save_map(args.save_map, result, run, capture.backend)
+        print(f"ceiling map written to {args.save_map}: {len(cmap.by_kind('lamp'))} lamps, "
+              f"{len(cmap.by_kind('corner'))} corners")
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o
 
-        with atomic_path(Path(args.g2o)) as tmp:
-            n_pose, n_edge, n_lm = write_result_g2o(tmp, result, run)
-        print(f"g2o graph written to {args.g2o}: {n_pose} poses, {n_edge} odometry factors, "
-              f"{n_lm} landmarks")
+        g2o = write_result_g2o(Path(args.g2o), result, run)
+        print(f"g2o graph written to {args.g2o}: {g2o.text()}")
     if result.status == "interrupted":
         print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
               f"are written to {out} (status interrupted)", file=sys.stderr)
@@ -421,6 +443,54 @@ def _cmd_slam(args: argparse.Namespace) -> int:
               f"to {out}", file=sys.stderr)
         return 1
     return 0
+
+
+def _check_map_flags(args: argparse.Namespace) -> None:
+    """``--save-map`` / ``--map`` / ``--localize-only`` / ``--start*``: only sensible combinations."""
+    if args.localize_only and not args.map:
+        raise LampsamError("--localize-only needs --map MAP (a folder written by --save-map)")
+    if args.map and not args.localize_only:
+        raise LampsamError("--map is used with --localize-only (SLAM that extends a map is not "
+                           "implemented)")
+    if args.localize_only and args.save_map:
+        raise LampsamError("--save-map and --localize-only exclude each other: localize-only "
+                           "does not change the map")
+    if (args.start or args.start_from) and not args.localize_only:
+        raise LampsamError("--start / --start-from apply only with --localize-only")
+    if args.start and args.start_from:
+        raise LampsamError("give --start or --start-from, not both")
+    if (args.map or args.save_map) and (Path(args.run).is_file() or args.mrclam):
+        raise LampsamError("--save-map / --map are for ceiling runs (a run directory)")
+
+
+def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: tuple[str, ...],
+                        run: LoggedRun, out: Path) -> int:
+    """``lampsam slam RUN --map MAP --localize-only``: track the run on the fixed map."""
+    import dataclasses
+
+    from lampsam.backend.ceiling_map_io import read_map
+    from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
+    from lampsam.backend.slam import summary
+
+    cmap = read_map(args.map)  # a bad map: an error before any computing
+    start = (parse_start(args.start) if args.start
+             else start_from_result(args.start_from) if args.start_from else None)
+    if features:
+        config = dataclasses.replace(config, features=features)
+    result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start)
+    from lampsam.evaluation.slam_report import write_slam_plot
+
+    with atomic_path(out / "slam.png") as tmp:
+        write_slam_plot(tmp, result, run.groundtruth)
+    s = summary(result, run.groundtruth)
+    err = s.get("error")
+    msg = (f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
+           f"observations of {len(cmap.landmarks)} map landmarks used, none added")
+    if err:
+        msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
+                f" heading RMS {err['heading_rms_deg']:.2f} deg")
+    print(msg + f"; written to {out}")
+    return 0 if result.status == "ok" else (EXIT_INTERRUPTED if result.status == "interrupted" else 1)
 
 
 def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
@@ -456,6 +526,11 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                                  else "the origin (no VERTEX for the first pose)"),
                   "skipped_non_odometry_edges": glog.n_skipped_edges}
     write_json_atomic(out / "summary.json", s)
+    if args.g2o:
+        from lampsam.backend.g2o_export import write_result_g2o
+
+        print(f"g2o graph written to {args.g2o}: "
+              f"{write_result_g2o(Path(args.g2o), result, None).text()}")
     msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
            f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
     err = s.get("error")
@@ -483,12 +558,25 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
-                   help="also write the final graph (keyframe poses, landmarks, odometry factors) as g2o")
+                   help="also write the final graph as g2o: poses, landmarks and every factor "
+                        "(custom LAMPSAM_* lines for the ceiling model; backend/g2o_export.py)")
     p.add_argument("--duration", type=_positive, default=None,
                    help="with --mrclam: use only the first seconds (an error without --mrclam)")
     p.add_argument("--rerun", nargs="?", const="", default=None, metavar="FILE.rrd|ADDRESS",
                    help="stream the run to Rerun: save FILE.rrd, or send to a viewer at ADDRESS "
                         "(host:port); bare: OUT/live.rrd (needs lampsam[viz])")
+    p.add_argument("--save-map", default=None, metavar="MAP",
+                   help="also write the ceiling map (landmarks, covariances, lamp axes, corner "
+                        "patches, rig) to the folder MAP (docs/ceiling-map.md)")
+    p.add_argument("--map", default=None, metavar="MAP",
+                   help="with --localize-only: the ceiling map folder to track against")
+    p.add_argument("--localize-only", action="store_true",
+                   help="track the run against --map without adding landmarks (pose-only EKF)")
+    p.add_argument("--start", default=None, metavar="X,Y,THETA",
+                   help="with --localize-only: start pose in the map's frame (m, m, rad; "
+                        "default the run's known start)")
+    p.add_argument("--start-from", default=None, metavar="RESULT.json",
+                   help="with --localize-only: start from a `lampsam localize` answer")
     _add_force(p)
     p.set_defaults(func=_cmd_slam, graceful=True)
 

@@ -7,6 +7,8 @@ Two rules keep finished work from being lost or mistaken:
   directory is wanted, or the reverse), that cannot be created or written, or that
   already holds results (unless ``force``) is an :class:`~lampsam.errors.InputError`
   naming the path, not an ``OSError`` traceback after minutes of work.
+- :func:`append_json_line` / :func:`read_json_lines` keep a progress log of
+  finished jobs: a kill cuts at most the last line, which the reader skips.
 - :func:`atomic_path` (and :func:`write_text_atomic`, :func:`write_json_atomic`
   built on it) writes to a temporary name in the same directory and renames it
   over the target only when the writer returned: a kill mid-write leaves the old
@@ -17,6 +19,7 @@ Two rules keep finished work from being lost or mistaken:
 from __future__ import annotations
 
 import json
+import logging
 import os
 import uuid
 from collections.abc import Callable, Iterator
@@ -26,6 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from lampsam.errors import InputError
+
+log = logging.getLogger(__name__)
 
 TMP_PREFIX = ".tmp-"  #: temporary files are ``.tmp-<hex>-<name>`` beside the target
 
@@ -137,3 +142,42 @@ def check_output_file(path: str | Path, force: bool = False, what: str = "--out"
         raise InputError(f"{what}: the output file exists (use --force to overwrite it)", path)
     _creatable_dir(path.parent, what)
     return path
+
+
+def append_json_line(path: str | Path, row: object) -> None:
+    """Append one JSON document as a line to a JSON-lines file, in one ``write`` call.
+
+    A progress log of finished jobs: each line is complete once written and flushed;
+    a kill can cut at most the line being written, which :func:`read_json_lines` skips.
+    """
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps(row, default=json_default) + "\n")
+        fh.flush()
+
+
+def read_json_lines(path: str | Path) -> list[dict[str, object]]:
+    """The objects of a JSON-lines file (blank lines skipped).
+
+    A last line without its newline that does not parse is the line a kill cut
+    short (:func:`append_json_line`): it is skipped with a warning, as unfinished
+    work. Any other line that does not parse, or that is not an object, is an
+    :class:`~lampsam.errors.InputError` naming the file and line.
+    """
+    path = Path(path)
+    text = path.read_text(encoding="utf-8")
+    lines = text.split("\n")
+    rows: list[dict[str, object]] = []
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as exc:
+            if i == len(lines) - 1:  # no newline after it: cut short by a kill
+                log.warning("%s:%d: skipping a line cut short (unfinished write)", path, i + 1)
+                continue
+            raise InputError(f"not JSON ({exc.msg})", path, i + 1) from exc
+        if not isinstance(obj, dict):
+            raise InputError("not a JSON object", path, i + 1)
+        rows.append(obj)
+    return rows

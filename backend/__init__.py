@@ -18,7 +18,9 @@ Modules:
 * :mod:`~lampsam.backend.ceiling` -- The upward-camera observation model as the backends use it (wraps :mod:`lampsam.factors.ceiling`).
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
 * :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+* :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
 * :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
+* :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
 * :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
 * :mod:`~lampsam.backend.graph` -- Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
 * :mod:`~lampsam.backend.graph_state` -- The state a factor-graph backend keeps, and the primitives every part of it uses.
@@ -28,7 +30,7 @@ Modules:
 * :mod:`~lampsam.backend.keyframes` -- Keyframe policy of the factor-graph backends.
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
-* :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: the model's constants and checked increments.
+* :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
 * :mod:`~lampsam.backend.stereo` -- Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.

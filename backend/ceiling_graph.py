@@ -6,10 +6,10 @@ no information and is held by a prior). Factors:
 
 - position: :func:`~lampsam.factors.gtsam_factors.projection_factor` (GTSAM's built-in
   ``PlanarProjectionFactor2``: C++, no Python callback inside the optimiser);
-- axis: :func:`~lampsam.factors.gtsam_factors.lamp_axis_between_factor`, GTSAM's
+- axis: :func:`~lampsam.factors.axis_factors.lamp_axis_between_factor`, GTSAM's
   built-in ``BetweenFactorPose2`` with zero precision on ``x, y``, plus one
-  :func:`~lampsam.factors.gtsam_factors.axis_anchor_prior` per lamp. It replaced one
-  ``CustomFactor`` per keyframe (:func:`~lampsam.factors.gtsam_factors.lamp_axis_frame_factor`):
+  :func:`~lampsam.factors.axis_factors.axis_anchor_prior` per lamp. It replaced one
+  ``CustomFactor`` per keyframe (:func:`~lampsam.factors.axis_factors.lamp_axis_frame_factor`):
   each Python callback from inside an optimiser copies the whole ``Values``, so its
   cost grows with the run (measured: docs/graph-backend.md);
 - the 0-5 m height prior on every point:
@@ -46,14 +46,13 @@ from lampsam.backend.handlers import (
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
 from lampsam.errors import EstimationError
-from lampsam.factors.geometry import wrap_axis
-from lampsam.factors.gtsam_factors import (
+from lampsam.factors.axis_factors import (
     AxisObservation,
     axis_anchor_prior,
-    height_prior_factor,
     lamp_axis_between_factor,
-    projection_factor,
 )
+from lampsam.factors.geometry import wrap_axis
+from lampsam.factors.gtsam_factors import height_prior_factor, projection_factor
 
 
 class CeilingHandler:

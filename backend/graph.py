@@ -62,6 +62,7 @@ from lampsam.backend.handlers import (
 )
 from lampsam.backend.interface import (
     Frame,
+    GraphSnapshot,
     LandmarkEstimate,
     SlamResult,
     StepEstimate,
@@ -269,6 +270,8 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             final_time_s=final_time,
             n_pruned=self.n_pruned,
             pruned=dict(self.pruned),
+            graph=GraphSnapshot(self.graph, values,
+                                None if self.ceiling is None else self.ceiling.body_t_camera),
             extra={"n_recoveries": float(self.n_recoveries),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),

@@ -18,12 +18,15 @@ import abc
 import enum
 import logging
 from dataclasses import dataclass, field
-from typing import TypeAlias
+from typing import TYPE_CHECKING, TypeAlias
 
 import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
+
+if TYPE_CHECKING:
+    import gtsam
 
 #: A measurement frame the backends accept.
 Frame: TypeAlias = CeilingFrame | RangeBearingFrame
@@ -95,6 +98,22 @@ class LandmarkEstimate:
     n_obs: int = 0
 
 
+@dataclass(frozen=True)
+class GraphSnapshot:
+    """A smoother's final factor graph and the estimate it was solved to (for export).
+
+    Attributes:
+        factors: every factor the backend added (``gtsam.NonlinearFactorGraph``).
+        values: the final estimate over the graph's keys.
+        body_t_camera: (3,) the ceiling camera's offset in the body frame, m, the
+            projection factors were made with; None without a camera.
+    """
+
+    factors: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    body_t_camera: FloatArray | None = None
+
+
 @dataclass
 class SlamResult:
     """The finished result of a SLAM run.
@@ -119,6 +138,9 @@ class SlamResult:
         provisional: landmarks seen fewer than ``association.min_observations``
             times: not in ``landmarks`` (nor in its metrics), written flagged
             ``seen_once``; empty with ``association.prune_once_seen``.
+        graph: the smoothers' final factor graph (``lampsam slam --g2o``); None for
+            the EKF. Not pickled (GTSAM's Python-callback factors cannot be): a
+            result sent to another process arrives without it.
     """
 
     backend: str
@@ -134,6 +156,11 @@ class SlamResult:
     pruned: dict[str, int] = field(default_factory=dict)
     extra: dict[str, float] = field(default_factory=dict)
     provisional: list[LandmarkEstimate] = field(default_factory=list)
+    graph: GraphSnapshot | None = field(default=None, repr=False, compare=False)
+
+    def __getstate__(self) -> dict[str, object]:
+        """Pickled state without :attr:`graph` (see its note)."""
+        return {**self.__dict__, "graph": None}
 
 
 class SlamBackend(abc.ABC):

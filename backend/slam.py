@@ -441,7 +441,7 @@ def write_landmarks(path: Path, result: SlamResult) -> None:
     (empty, or ``seen_once`` for :attr:`SlamResult.provisional` landmarks)."""
     header = ["id", "type", "x", "y", "z", "phi", "n_obs",
               "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz", "var_phi", "flag"]
-    with open(path, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         flagged = [(lm, "") for lm in result.landmarks] + [(lm, "seen_once")

@@ -18,18 +18,29 @@ Entry points (loaded on first use)::
 
 Modules:
 
-* :mod:`~lampsam.datasets.camera` -- The ceiling camera: intrinsics, lens distortion and mounting on the robot body.
-* :mod:`~lampsam.datasets.carmen` -- Reader for CARMEN laser logs (the Intel Research Lab log, ``intel-corrected.log.gz``).
+* :mod:`~lampsam.datasets.calibration` -- Camera calibration files: ROS ``camera_info`` YAML and OpenCV ``FileStorage`` YAML.
+* :mod:`~lampsam.datasets.camera` -- The ceiling camera: intrinsics, lens model and mounting on the robot body.
+* :mod:`~lampsam.datasets.carmen` -- Reader for CARMEN laser logs (the Intel Research Lab log and logs of other buildings).
+* :mod:`~lampsam.datasets.g2o_writer` -- Write a planar pose graph as a g2o text file (readable by g2o, GTSAM's ``readG2o``, ...).
+* :mod:`~lampsam.datasets.graph_text` -- Readers for the planar SLAM text formats that ``gtsam.load2D`` reads (iSAM and g2o).
 * :mod:`~lampsam.datasets.kinect_sim` -- A forward-facing Kinect-like RGB-D sensor rendered from a :mod:`scene3d` world.
 * :mod:`~lampsam.datasets.kitti` -- KITTI odometry stereo sequence reader (rectified grey pairs, calib.txt, poses.txt).
+* :mod:`~lampsam.datasets.landmark_log_sim` -- Synthetic planar landmark-SLAM logs in the iSAM text format, with ground truth.
+* :mod:`~lampsam.datasets.localization_run` -- A simulated run for global localization: start at an unknown pose, turn, drive on, repeat.
 * :mod:`~lampsam.datasets.logrun` -- The logged-run directory: what it holds, and reading or writing it whole (``docs/log-format.md``).
 * :mod:`~lampsam.datasets.motion` -- True motion of a differential-drive robot along waypoints, and wheel-slip noise.
+* :mod:`~lampsam.datasets.mounting` -- Camera mounting: a tilted or offset ceiling camera from roll, pitch and yaw (issue 20).
 * :mod:`~lampsam.datasets.mrclam` -- Adapter for the UTIAS MRCLAM dataset (one robot, ``ds0_RS_*`` resampled at 50 Hz).
+* :mod:`~lampsam.datasets.odometry` -- Odometry as relative ``Pose2`` increments in the logged-run format (beside wheel travel).
+* :mod:`~lampsam.datasets.openings` -- Daylight openings of a simulated ceiling: skylights and windows (issue 20).
 * :mod:`~lampsam.datasets.paths` -- Where the shared real-data folder is.
 * :mod:`~lampsam.datasets.render_ceiling` -- Ceiling images by ray casting, and the true projections of landmarks, from geometry only.
 * :mod:`~lampsam.datasets.rgbd` -- Readers of RGB-D sequences: the TUM RGB-D layout and the slambook2 sample.
 * :mod:`~lampsam.datasets.rig` -- The sensor rig of a logged run (``rig.yaml``): ceiling camera and wheel odometry.
 * :mod:`~lampsam.datasets.robot_frames` -- What a robot records while it turns in place and while it drives on (paper 2, sec. 4).
+* :mod:`~lampsam.datasets.ros_messages` -- Conversions between ROS messages (as ``rosbags`` builds them) and lampsam arrays.
+* :mod:`~lampsam.datasets.rosbag_export` -- Write a logged run as a ROS1 ``.bag`` or a ROS2 bag (``rosbags``, no ROS install).
+* :mod:`~lampsam.datasets.rosbag_import` -- Read a ROS1 ``.bag`` or ROS2 bag (``.db3`` / ``.mcap``) into a logged run (``rosbags``).
 * :mod:`~lampsam.datasets.scene3d` -- Three-dimensional world content for the forward RGB-D sensor (paper 2, sec. 2).
 * :mod:`~lampsam.datasets.simulator` -- Simulated ceiling-camera runs: ``lampsam simulate WORLD --out RUN``.
 * :mod:`~lampsam.datasets.steerable_robot` -- A simulated robot the global localizer can steer: turn in place, drive on, frames back.

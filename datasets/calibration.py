@@ -40,6 +40,7 @@ from lampsam.arrays import FloatArray
 from lampsam.datasets.camera import PINHOLE_DIST_SIZES, CameraModel
 from lampsam.datasets.textio import read_yaml
 from lampsam.errors import DatasetError
+from lampsam.safe_io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +250,7 @@ def read_calibration(path: str | Path) -> Intrinsics:
 
 def write_camera_info(path: str | Path, intrinsics: Intrinsics) -> None:
     """Write a ROS ``camera_info`` YAML (readable by :func:`read_calibration` and ROS)."""
-    Path(path).write_text(yaml.safe_dump(intrinsics.to_camera_info(), sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(intrinsics.to_camera_info(), sort_keys=False))
 
 
 def intrinsics_of(camera: CameraModel) -> Intrinsics:

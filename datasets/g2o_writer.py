@@ -25,6 +25,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.errors import InputError
+from lampsam.safe_io import write_text_atomic
 
 
 def _upper(info: FloatArray, n: int) -> str:
@@ -91,5 +92,5 @@ def write_g2o(
         lines.append(f"EDGE_SE2_XY {i} {j} {dx:.9f} {dy:.9f} {_upper(info, 2)}")
     lines += [f"FIX {i}" for i in fixed]  # last: GTSAM's readG2o stops at a line it does not know
     path = Path(path)
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     return path

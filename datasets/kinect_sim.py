@@ -32,8 +32,10 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
-from lampsam.datasets.scene3d import Scene3D, TriangleScene, triangle_scene
+from lampsam.datasets.scene3d import Scene3D
+from lampsam.datasets.scene_mesh import TriangleScene, triangle_scene
 from lampsam.errors import DatasetError
+from lampsam.safe_io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -280,8 +282,8 @@ class TumRgbdWriter:
         self.config = config
         (self.out / "rgb").mkdir(parents=True, exist_ok=True)
         (self.out / "depth").mkdir(parents=True, exist_ok=True)
-        with open(self.out / "kinect.yaml", "w", encoding="utf-8") as fh:
-            yaml.safe_dump(kinect_intrinsics_dict(config), fh, sort_keys=False)
+        write_text_atomic(self.out / "kinect.yaml",
+                          yaml.safe_dump(kinect_intrinsics_dict(config), sort_keys=False))
         self._rgb = open(self.out / "rgb.txt", "w", encoding="utf-8")  # noqa: SIM115 (closed in close())
         self._depth = open(self.out / "depth.txt", "w", encoding="utf-8")  # noqa: SIM115
         self._gt = open(self.out / "groundtruth.txt", "w", encoding="utf-8")  # noqa: SIM115
@@ -407,7 +409,8 @@ def simulate_kinect_run(
     from lampsam.datasets.logrun import OdometryLog, Trajectory, read_tum, write_run
     from lampsam.datasets.motion import follow_waypoints, noisy_wheel_travel
     from lampsam.datasets.scene3d import scene_from_dict
-    from lampsam.datasets.world import load_world, world_landmarks
+    from lampsam.datasets.world import load_world
+    from lampsam.datasets.world_landmarks import world_landmarks
 
     w = load_world(world)
     if "scene3d" not in w.extra:
@@ -473,4 +476,4 @@ def add_kinect_meta(run: Path, world_name: str, config: KinectConfig) -> None:
         meta = dict(loaded) if isinstance(loaded, dict) else {}
     meta.setdefault("world", world_name)
     meta["kinect"] = {"dir": KINECT_DIR, "rate_hz": float(config.rate_hz), "layout": "TUM RGB-D"}
-    meta_path.write_text(yaml.safe_dump(meta, sort_keys=False), encoding="utf-8")
+    write_text_atomic(meta_path, yaml.safe_dump(meta, sort_keys=False))

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.safe_io import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -109,8 +110,8 @@ def write_landmark_log(path: str | Path, spec: LandmarkLogSpec, rng: np.random.G
     """
     path = Path(path)
     lines, truth, _ = simulate_landmark_log(spec, rng)
-    path.write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     tpath = path.with_name(path.stem + "_truth.txt")
-    tpath.write_text("".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
-                             for k, p in enumerate(truth)))
+    write_text_atomic(tpath, "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
+                                     for k, p in enumerate(truth)))
     return path, tpath

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
+from lampsam.datasets.ceiling_truth import occluders, project_landmarks
 from lampsam.datasets.kinect_sim import (
     KINECT_DIR,
     KinectConfig,
@@ -44,9 +45,10 @@ from lampsam.datasets.logrun import (
     write_run,
 )
 from lampsam.datasets.motion import noisy_wheel_travel
-from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
+from lampsam.datasets.render_ceiling import CeilingRenderer
 from lampsam.datasets.scene3d import Scene3D, apply_changes, obstacle_footprints, scene_from_dict
-from lampsam.datasets.world import World, load_world, world_landmarks
+from lampsam.datasets.world import World, load_world
+from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)

@@ -69,6 +69,7 @@ from lampsam.datasets.tables import (
 from lampsam.datasets.textio import read_yaml
 from lampsam.datasets.tum import read_tum, write_tum
 from lampsam.errors import DatasetError
+from lampsam.safe_io import write_text_atomic
 
 # The run's parts are defined in their own modules (camera, rig, tables, tum);
 # they are re-exported here so that ``lampsam.datasets.logrun`` stays the one
@@ -216,7 +217,7 @@ def read_run(path: str | Path) -> LoggedRun:
 def write_meta(path: str | Path, meta: dict[str, Any]) -> None:
     """Write ``meta.yaml`` (adds ``format_version``)."""
     data = {"format_version": FORMAT_VERSION, **meta}
-    Path(path).write_text(yaml.safe_dump(data, sort_keys=False))
+    write_text_atomic(path, yaml.safe_dump(data, sort_keys=False))
 
 
 def write_run(

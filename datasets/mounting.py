@@ -1,4 +1,4 @@
-"""Camera mounting: a tilted or offset ceiling camera from roll, pitch and yaw (issue 20).
+"""Camera mounting: a tilted or offset ceiling camera from roll, pitch and yaw.
 
 The paper's camera looks straight up (DESIGN.md sec. 1). A real robot's camera
 sits tilted by a few degrees and off the rotation centre. The rig keeps the

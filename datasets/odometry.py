@@ -27,6 +27,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.errors import DatasetError
+from lampsam.safe_io import atomic_path
 
 
 def increments_from_poses(poses: FloatArray) -> FloatArray:
@@ -209,7 +210,7 @@ def read_pose2_odometry(path: str | Path) -> Pose2OdometryLog:
 def write_pose2_odometry(path: str | Path, odometry: Pose2OdometryLog) -> None:
     """Write ``odometry_pose2.csv`` (time to 1 us; NaN covariances as empty fields)."""
     path = Path(path)
-    with path.open("w", newline="") as fh:
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(ODOMETRY_POSE2_HEADER)
         for t, d, c in zip(odometry.t, odometry.delta, odometry.cov, strict=True):

@@ -1,4 +1,4 @@
-"""Daylight openings of a simulated ceiling: skylights and windows (issue 20).
+"""Daylight openings of a simulated ceiling: skylights and windows.
 
 Real ceilings show bright regions that are not lamps: sky through skylights
 and windows, with glazing bars (mullions) across it and clouds or branches in

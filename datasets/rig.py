@@ -24,6 +24,7 @@ from lampsam.config_loader import ConfigError, from_mapping
 from lampsam.datasets.camera import CameraModel
 from lampsam.datasets.textio import read_yaml
 from lampsam.errors import DatasetError
+from lampsam.safe_io import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -100,7 +101,7 @@ class Rig:
 
     def to_yaml(self, path: str | Path) -> None:
         """Write ``rig.yaml``."""
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+        write_text_atomic(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
 
 
 # --------------------------------------------------------------------------- strict reading

@@ -40,6 +40,9 @@ from __future__ import annotations
 
 import heapq
 import logging
+import os
+import shutil
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,6 +62,7 @@ from lampsam.datasets.ros_messages import (
     quaternion_xyzw,
 )
 from lampsam.errors import DatasetError
+from lampsam.safe_io import TMP_PREFIX
 
 log = logging.getLogger(__name__)
 
@@ -299,20 +303,39 @@ def export_bag(
     if not wheel_radius > 0:
         raise DatasetError(f"wheel radius must be positive, got {wheel_radius}")
     store = typestore_for(ros1)
+    # written under a temporary name beside ``out`` and renamed when closed: a kill
+    # leaves no bag at ``out`` (a ROS1 bag cut short has no index)
+    tmp = out.with_name(f"{TMP_PREFIX}{uuid.uuid4().hex[:8]}-{out.name}")
     writer: Any = (
-        Writer1(out) if ros1
-        else Writer2(out, version=9,
+        Writer1(tmp) if ros1
+        else Writer2(tmp, version=9,
                      storage_plugin=StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3)
     )  # fmt: skip
     conns: dict[str, Any] = {}
     counts: dict[str, int] = {}
-    with writer:
-        for ns, topic, msgtype, msg in _messages(run, store, compressed, wheel_radius):
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            data = store.serialize_ros1(msg, msgtype) if ros1 else store.serialize_cdr(msg, msgtype)
-            writer.write(conns[topic], ns, data)
-            counts[topic] = counts.get(topic, 0) + 1
+    try:
+        with writer:
+            for ns, topic, msgtype, msg in _messages(run, store, compressed, wheel_radius):
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
+                data = (store.serialize_ros1(msg, msgtype) if ros1
+                        else store.serialize_cdr(msg, msgtype))  # fmt: skip
+                writer.write(conns[topic], ns, data)
+                counts[topic] = counts.get(topic, 0) + 1
+        if not ros1:  # the storage files inside are named after the directory
+            for f in tmp.iterdir():
+                if f.name.startswith(tmp.name):
+                    f.rename(tmp / (out.name + f.name[len(tmp.name):]))
+            meta = tmp / "metadata.yaml"
+            meta.write_text(meta.read_text(encoding="utf-8").replace(tmp.name, out.name),
+                            encoding="utf-8")
+        os.replace(tmp, out)
+    except BaseException:
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            tmp.unlink(missing_ok=True)
+        raise
     log.info("exported %s -> %s: %s", run_dir, out, counts)
     return ExportSummary(path=out, counts=counts)
 

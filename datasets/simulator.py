@@ -30,6 +30,7 @@ import numpy as np
 
 import lampsam
 from lampsam.arrays import FloatArray
+from lampsam.datasets.ceiling_truth import occluders, project_landmarks
 from lampsam.datasets.logrun import (
     META_FILE,
     PROJECTIONS_FILE,
@@ -43,8 +44,9 @@ from lampsam.datasets.logrun import (
     write_run,
 )
 from lampsam.datasets.motion import dead_reckoning, follow_waypoints, noisy_wheel_travel
-from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
-from lampsam.datasets.world import World, load_world, world_landmarks
+from lampsam.datasets.render_ceiling import CeilingRenderer
+from lampsam.datasets.world import World, load_world
+from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)

@@ -41,6 +41,7 @@ from lampsam.datasets.stereo_types import StereoNoise, StereoRig, StereoRun
 from lampsam.datasets.tables import Trajectory
 from lampsam.datasets.tum import read_tum, write_tum
 from lampsam.errors import DatasetError
+from lampsam.safe_io import atomic_path, write_text_atomic
 
 #: The run types live in :mod:`lampsam.datasets.stereo_types`; re-exported here for
 #: callers that import them with the simulator.
@@ -247,14 +248,13 @@ def write_stereo_run(run: StereoRun, out: Path) -> Path:
             "groundtruth": GROUNDTRUTH_TUM if run.truth is not None else None,
         },
     }
-    with open(out / RUN_YAML, "w") as fh:
-        yaml.safe_dump(meta, fh, sort_keys=False)
-    with open(out / ODOMETRY_CSV, "w", newline="") as fh:
+    write_text_atomic(out / RUN_YAML, yaml.safe_dump(meta, sort_keys=False))
+    with atomic_path(out / ODOMETRY_CSV) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t", "v", "omega"])
         for k in range(len(run)):
             w.writerow([f"{run.t[k]:.6f}", f"{run.v[k]:.9g}", f"{run.omega[k]:.9g}"])
-    with open(out / MEASUREMENTS_CSV, "w", newline="") as fh:
+    with atomic_path(out / MEASUREMENTS_CSV) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t", "seen", "xl1", "xr1", "xl2", "xr2"])
         for k in range(len(run)):

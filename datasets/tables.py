@@ -35,6 +35,7 @@ from lampsam.datasets.textio import (
     str_field,
 )
 from lampsam.errors import DatasetError
+from lampsam.safe_io import atomic_path
 
 IMAGES_FILE = "images.csv"
 IMAGES_DIR = "images"
@@ -381,14 +382,14 @@ def _fmt(x: float, digits: int) -> str:
 
 def write_odometry(path: str | Path, odometry: OdometryLog) -> None:
     """Write ``odometry.csv`` (time to 1 us, travel to 1 nm)."""
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(",".join(ODOMETRY_HEADER) + "\n")
         for t, dl, dr in zip(odometry.t, odometry.d_left, odometry.d_right, strict=True):
             fh.write(f"{t:.6f},{dl:.9f},{dr:.9f}\n")
 
 def write_landmarks(path: str | Path, landmarks: LandmarkTable) -> None:
     """Write ``landmarks.csv``."""
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(",".join(LANDMARKS_HEADER) + "\n")
         for i in range(len(landmarks)):
             x, y, z = landmarks.xyz[i]
@@ -400,7 +401,7 @@ def write_landmarks(path: str | Path, landmarks: LandmarkTable) -> None:
 
 def write_range_bearing(path: str | Path, rb: RangeBearingLog) -> None:
     """Write ``rangebearing.csv`` (used by public-data adapters, e.g. MRCLAM)."""
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(",".join(RANGE_BEARING_HEADER) + "\n")
         for t, i, r, b in zip(rb.t, rb.landmark_id, rb.range, rb.bearing, strict=True):
             fh.write(f"{t:.6f},{int(i)},{r:.9f},{b:.9f}\n")

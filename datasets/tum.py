@@ -27,6 +27,7 @@ from lampsam.arrays import FloatArray
 from lampsam.datasets.tables import Trajectory
 from lampsam.datasets.textio import check_time, open_text, parse_float
 from lampsam.errors import DatasetError
+from lampsam.safe_io import atomic_path
 
 TUM_FIELDS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
 """Column names of a TUM line (used in error messages)."""
@@ -152,7 +153,7 @@ def write_tum(path: str | Path, trajectory: Trajectory, comment: str = "t x y z 
 
     Times are written to 1 us, positions to 1 nm, quaternions to 12 decimals.
     """
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         fh.write(f"# {comment}\n")
         for t, (x, y, th) in zip(trajectory.t, trajectory.poses, strict=True):
             fh.write(

@@ -11,19 +11,26 @@ Entry points (loaded on first use)::
 
 Modules:
 
+* :mod:`~lampsam.evaluation.batch` -- Offline optimisation of many logs: one result folder per run and a summary.
 * :mod:`~lampsam.evaluation.compare` -- Compare SLAM backends (EKF against smoothing) over runs and Monte Carlo seeds.
 * :mod:`~lampsam.evaluation.compare_plots` -- Figures of the backend comparison (paper 1, Figs. 9, 10, 12, and more).
+* :mod:`~lampsam.evaluation.compare_report` -- The comparison report: ``report.md``, ``report.html`` and ``summary.json``.
 * :mod:`~lampsam.evaluation.contact_sheet` -- Contact sheet of a simulated run: frames with the true lamp and corner projections.
 * :mod:`~lampsam.evaluation.demo` -- The demo job (``lampsam demo`` / ``make demo``): the main job on the built-in world.
+* :mod:`~lampsam.evaluation.fleet` -- Run many independent jobs: a local process pool, or a Dask ``distributed`` cluster.
 * :mod:`~lampsam.evaluation.frontend_eval` -- The ceiling frontend measured against truth.
 * :mod:`~lampsam.evaluation.gallery` -- Overlay gallery of the ceiling frontend on real photos (``lampsam gallery``).
 * :mod:`~lampsam.evaluation.laser_trials` -- Laser global-localization trials on a CARMEN log, scored against its corrected poses.
+* :mod:`~lampsam.evaluation.live` -- Live view of a run in Rerun (``--rerun [FILE.rrd | ADDRESS]`` on ``slam``, ``localize``, ``stereo``).
 * :mod:`~lampsam.evaluation.map_plots` -- Drawing the environment map: grid, spatial features and ceiling features in one figure.
 * :mod:`~lampsam.evaluation.map_truth` -- The true floor plan of a simulated run, for the grid map's quality checks.
 * :mod:`~lampsam.evaluation.metrics` -- Accuracy and consistency metrics for planar trajectories and landmark maps.
 * :mod:`~lampsam.evaluation.outputs` -- Output directories of the evaluation jobs: created up front, failures named.
+* :mod:`~lampsam.evaluation.photo_eval` -- The lamp detector measured against hand labels of real photos (``lampsam frontend-eval --photos``).
+* :mod:`~lampsam.evaluation.photo_labels` -- Hand labels of real ceiling photos: the file format, its reader, and the labelling tool.
 * :mod:`~lampsam.evaluation.scaling_plots` -- Cost-versus-map-size scaling: a power-law fit and its log-log figure (issue 5, "Scaling").
 * :mod:`~lampsam.evaluation.slam_report` -- SLAM reports: map + path plot against ground truth, and comparison tables.
+* :mod:`~lampsam.evaluation.stereo_experiment` -- The stereo two-point experiment of paper 3 (Figs. 3-5): seeds x scenarios x estimators.
 * :mod:`~lampsam.evaluation.stereo_report` -- Stereo two-point relative pose: errors, tables, figures (paper 3, Figs. 3-5), run outputs.
 * :mod:`~lampsam.evaluation.table1` -- Paper 2's Table 1 on the simulated ``office`` world: the trials (``lampsam table1``).
 * :mod:`~lampsam.evaluation.table1_plots` -- Figures of the global-localization experiment (paper 2, Table 1).

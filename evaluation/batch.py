@@ -30,6 +30,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.errors import LampsamError
 from lampsam.evaluation.fleet import run_jobs
 from lampsam.evaluation.outputs import ensure_dir
+from lampsam.safe_io import atomic_path, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -182,9 +183,8 @@ def batch(
     engine = f"dask {dask}" if dask else f"local process pool ({max(1, workers)} processes)"
     doc = {"engine": engine, "elapsed_s": time.perf_counter() - t0, "backend": backend,
            "failed": sum(r["status"] != "ok" for r in rows), "runs": rows}
-    with open(out / "summary.json", "w") as fh:
-        json.dump(doc, fh, indent=2)
-    with open(out / "summary.csv", "w", newline="") as fh:
+    write_text_atomic(out / "summary.json", json.dumps(doc, indent=2))
+    with atomic_path(out / "summary.csv") as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=[*COLUMNS, "run_dir"])
         writer.writeheader()
         writer.writerows(rows)

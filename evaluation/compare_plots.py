@@ -22,6 +22,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.evaluation.metrics import chi2_bounds
+from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -518,6 +519,7 @@ def _save(fig: Figure, path: Path, caption: str, tight: bool = True) -> SavedFig
         fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8, wrap=True,
              style="italic")
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return SavedFigure(path, caption)

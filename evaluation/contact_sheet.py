@@ -19,6 +19,7 @@ import numpy as np
 
 from lampsam.datasets.logrun import LoggedRun, ProjectionTable, read_run
 from lampsam.errors import DatasetError
+from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -170,7 +171,8 @@ def write_contact_sheet(
     fig = contact_sheet(run, rows, cols)
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110)
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
     log.info("contact sheet written to %s", out_png)
     return out_png

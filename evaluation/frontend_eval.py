@@ -56,6 +56,7 @@ from lampsam.frontend.corners import detect_corner_pixels, match_ncc
 from lampsam.frontend.lamp_models import size_gate_from_models
 from lampsam.frontend.lamps import detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
+from lampsam.safe_io import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +146,7 @@ class FrontendMetrics:
         """Write the figures as JSON (NaN as null)."""
         data = {k: (None if _isnan(v) else v) for k, v in asdict(self).items()}
         ensure_dir(Path(path).parent)
-        Path(path).write_text(json.dumps(data, indent=2) + "\n")
+        write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
     def summary(self) -> str:
         """Human-readable lines."""

@@ -30,6 +30,7 @@ from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.corners import CornerDetections, detect_corner_pixels
 from lampsam.frontend.lamps import LampDetections, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
+from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -247,7 +248,8 @@ def make_gallery(
             )
     fig.legend(handles=legend_handles(), loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.9 / (3.0 * len(files)), 1, 1))
-    fig.savefig(out_png, dpi=130)
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, dpi=130)
     plt.close(fig)
     return entries
 

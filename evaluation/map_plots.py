@@ -14,6 +14,7 @@ import numpy as np
 
 from lampsam.localization.grid import OccupancyGrid, free_mask, occupied_mask
 from lampsam.localization.map_store import EnvironmentMap, load_env_map
+from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,8 @@ def show_map(map_dir: str | Path, out_png: str | Path, dpi: int = 150) -> Path:
         ax.legend(loc="upper right", fontsize=8)
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=dpi, bbox_inches="tight")
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
     plt.close(fig)
     log.info("map figure written to %s", out_png)
     return out_png

@@ -45,6 +45,7 @@ from lampsam.evaluation.photo_labels import PhotoLabels, Region, read_labels
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import LampDetections, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig
+from lampsam.safe_io import write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -273,7 +274,8 @@ def format_table(scores: list[PhotoScore]) -> str:
 
 def write_scores(scores: list[PhotoScore], path: str | Path, settings: PhotoEvalSettings) -> None:
     """Write the scores and the settings as JSON."""
-    Path(path).write_text(
+    write_text_atomic(
+        path,
         json.dumps({"settings": asdict(settings), "photos": [s.row() for s in scores]}, indent=1)
-        + "\n"
+        + "\n",
     )

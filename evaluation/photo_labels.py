@@ -45,6 +45,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray, ImageU8
 from lampsam.errors import LampsamError
+from lampsam.safe_io import write_text_atomic
 
 LABEL_FORMAT = "lampsam-photo-labels/1"
 
@@ -230,7 +231,7 @@ def write_labels(labels: dict[str, PhotoLabels], path: str | Path) -> None:
             lines.append("      " + json.dumps(obj) + ("," if j + 1 < len(pl.regions) else ""))
         lines.append("    ]}" + ("," if i + 1 < len(names) else ""))
     lines += ["  }", "}", ""]
-    Path(path).write_text("\n".join(lines))
+    write_text_atomic(path, "\n".join(lines))
 
 
 def propose_regions(image: ImageU8, full_width: int) -> list[Region]:

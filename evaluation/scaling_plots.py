@@ -1,4 +1,4 @@
-"""Cost-versus-map-size scaling: a power-law fit and its log-log figure (issue 5, "Scaling").
+"""Cost-versus-map-size scaling: a power-law fit and its log-log figure.
 
 The time of one backend update is modelled as ``t = c * n**a`` with ``n`` the number
 of landmarks in the state. :func:`fit_power_law` fits ``(a, c)`` by least squares on

@@ -16,6 +16,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.interface import SlamResult
+from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,8 @@ def write_slam_plot(path: Path, result: SlamResult, truth: Any = None,
     if truth is not None:
         plot_errors(axes[0, 1], result, truth)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
     return Path(path)
 

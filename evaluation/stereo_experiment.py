@@ -30,6 +30,7 @@ from lampsam.evaluation.stereo_report import (
     plot_kitti_trajectory,
     pose_errors,
 )
+from lampsam.safe_io import atomic_path, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +105,8 @@ def run_scenario(scenario: str, seeds: int, figure_path: Path | None = None) -> 
             fig = figure_for_run(run.truth, [results["raw"], results["ekf"], results["batch"]],
                                  run.target_t_points,
                                  f"{scenario} (seed 0): raw, EKF, batch smoother")
-            fig.savefig(figure_path, dpi=110)
+            with atomic_path(figure_path) as tmp:
+                fig.savefig(tmp, dpi=110)
     return stats
 
 
@@ -120,12 +122,13 @@ def kitti_section(kitti_dir: Path, out: Path) -> str:
     seq = read_kitti_sequence(kitti_dir)
     result = two_point_on_kitti(seq, track_sequence(seq))
     summ = kitti_summary(result)
-    (out / "stereo_kitti.json").write_text(json.dumps(summ, indent=2))
+    write_text_atomic(out / "stereo_kitti.json", json.dumps(summ, indent=2))
     fig = Figure(figsize=(11, 4), layout="constrained")
     ax1, ax2 = fig.subplots(1, 2)
     plot_kitti_trajectory(ax1, result)
     plot_kitti_errors(ax2, result)
-    fig.savefig(out / "fig_kitti.png", dpi=110)
+    with atomic_path(out / "fig_kitti.png") as tmp:
+        fig.savefig(tmp, dpi=110)
     rr, rm, fe, mp = summ["rel_rms"], summ["rel_median_abs"], summ["final_error"], summ["model_px"]
     return (
         f"\nKITTI {kitti_dir.name} ({summ['frames']} frames, {summ['path_length_m']:.1f} m, "
@@ -184,7 +187,7 @@ def stereo_experiment(out: Path, seeds: int = 20, kitti_dir: Path | None = None,
     text = report_text(stats)
     if kitti_dir is not None:
         text += kitti_section(kitti_dir, out)
-    (out / "stereo_rms.md").write_text(text)
-    (out / "stereo_rms.json").write_text(
-        json.dumps({s: st.summary() for s, st in stats.items()}, indent=2))
+    write_text_atomic(out / "stereo_rms.md", text)
+    write_text_atomic(out / "stereo_rms.json",
+                      json.dumps({s: st.summary() for s, st in stats.items()}, indent=2))
     return text

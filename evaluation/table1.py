@@ -24,7 +24,6 @@ configuration, appended as it finishes; a rerun resumes), and the report of
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -55,6 +54,7 @@ from lampsam.localization.raycast import cast_rays, distance_field
 from lampsam.localization.replay import kinect_turn_data
 from lampsam.localization.result import LocalizationResult, json_safe
 from lampsam.localization.spatial_map import make_sift
+from lampsam.safe_io import append_json_line, read_json_lines
 
 log = logging.getLogger(__name__)
 
@@ -200,10 +200,8 @@ def trial_row(
 def _done_pairs(sink: Path | None) -> set[tuple[int, str]]:
     done: set[tuple[int, str]] = set()
     if sink is not None and sink.is_file():
-        for line in sink.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                done.add((int(r["trial"]), str(r["mode"])))
+        for r in read_json_lines(sink):
+            done.add((int(str(r["trial"])), str(r["mode"])))
     return done
 
 
@@ -250,8 +248,7 @@ def run_trials(
             row = trial_row(i, mode, start, robot, res, time.perf_counter() - t0)
             rows.append(row)
             if sink is not None:
-                with sink.open("a") as fh:
-                    fh.write(json.dumps(row) + "\n")
+                append_json_line(sink, row)
             log.info("trial %d %-10s ok=%s err %.3f m %.1f deg compute %.1f s robot %.1f s",
                      i, mode.value, row["success"], row["error_m"], row["error_deg"],
                      row["compute_s"], row["robot_s"])  # fmt: skip

@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lampsam.safe_io import atomic_path
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
@@ -194,7 +196,8 @@ def save_table1_figure(
     fig.tight_layout()
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=dpi)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     log.info("Table 1 figure: %s", out)
     return out

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from lampsam.evaluation.table1_plots import save_table1_figure
+from lampsam.safe_io import read_json_lines, write_text_atomic
 
 PAPER = {  # paper 2, Table 1 (DESIGN.md sec. 2): success %, localisation time s, cm, deg
     "grid_only": (68.0, 41.7, 13.4, 9.2),
@@ -90,9 +91,9 @@ def answers_table(rows: list[dict[str, object]], modes: Sequence[str]) -> str:
 def write_report(rows: list[dict[str, object]], modes: Sequence[str], out: Path) -> str:
     """``OUT/trials.json``, ``OUT/table1.md`` and ``OUT/table1.png`` from the finished rows."""
     rows = sorted(rows, key=lambda x: (int(str(x["trial"])), str(x["mode"])))
-    (out / "trials.json").write_text(json.dumps(rows, indent=1))
+    write_text_atomic(out / "trials.json", json.dumps(rows, indent=1))
     md = table(rows, modes) + "\n\n" + answers_table(rows, modes)
-    (out / "table1.md").write_text(md + "\n")
+    write_text_atomic(out / "table1.md", md + "\n")
     save_table1_figure(rows, list(modes), out / "table1.png",
                        {k: v[0] for k, v in PAPER.items()})  # fmt: skip
     return md
@@ -102,8 +103,6 @@ def read_rows(out: Path) -> list[dict[str, object]]:
     """All rows of the per-worker line files ``OUT/trials.w*.jsonl`` (last one per pair wins)."""
     rows: dict[tuple[int, str], dict[str, object]] = {}
     for f in sorted(out.glob("trials.w*.jsonl")):
-        for line in f.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                rows[(int(r["trial"]), str(r["mode"]))] = r
+        for r in read_json_lines(f):
+            rows[(int(str(r["trial"])), str(r["mode"]))] = r
     return list(rows.values())

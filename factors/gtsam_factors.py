@@ -1,11 +1,15 @@
-"""Thin GTSAM adapters over the pure models (DESIGN sec. 4 and 6).
+"""Thin GTSAM adapters over the pure models (DESIGN sec. 4 and 6): noise, odometry, positions.
+
+The lamp-axis factors are in :mod:`lampsam.factors.axis_factors`, the inverse-depth
+corner factors in :mod:`lampsam.factors.inverse_depth_factors`; this docstring gives
+the whole picture and the measured costs that chose between the forms.
 
 Variables (keys from ``gtsam.symbol_shorthand``):
 
 * ``X(k)`` -- robot pose, ``gtsam.Pose2``.
 * ``L(j)`` -- lamp position, ``Point3`` (numpy (3,)) in the world, ``z`` above the floor.
 * ``A(j)`` -- lamp long axis: angle ``phi`` in the world, used mod pi; a ``gtsam.Pose2``
-  with an information-free translation for :func:`lamp_axis_between_factor` (the
+  with an information-free translation for :func:`~lampsam.factors.axis_factors.lamp_axis_between_factor` (the
   smoothers), a ``gtsam.Rot2`` for the custom-factor forms.
   A separate variable so that the same lamp can be oriented or not: a round lamp, or
   a frame in which the lamp's ratio falls below the threshold, simply gets no axis
@@ -25,10 +29,10 @@ lamp / corner position      ``PlanarProjectionFactor2`` (built-in C++), in
                             :func:`lampsam.factors.ceiling.project_point`
 lamp axis                   ``BetweenFactorPose2`` (built-in) on ``(X, A)`` with
                             ``A`` a ``Pose2`` whose translation has zero precision
-                            (:func:`lamp_axis_between_factor`, used by the
+                            (:func:`~lampsam.factors.axis_factors.lamp_axis_between_factor`, used by the
                             smoothers); ``CustomFactor`` on ``(X, A)`` with ``A`` a
                             ``Rot2``, per observation or per frame
-                            (:func:`lamp_axis_frame_factor`), kept as the reference
+                            (:func:`~lampsam.factors.axis_factors.lamp_axis_frame_factor`), kept as the reference
 corner, inverse depth       ``CustomFactor`` on ``(X(k), X(anchor), C)``; per
                             observation or one per frame; the first sight and the
                             height prior are one built-in ``PriorFactorVector``
@@ -59,7 +63,7 @@ absolute times are inflated; median of 3)::
 
 Re-measured later on an idle machine, same case (``--cases axis``): lamp axis per
 observation 282 ms / 17.2 s, per frame 133 ms / 4.0 s, and the built-in
-``BetweenFactorPose2`` form (:func:`lamp_axis_between_factor`) 15 ms / 0.11 s.
+``BetweenFactorPose2`` form (:func:`~lampsam.factors.axis_factors.lamp_axis_between_factor`) 15 ms / 0.11 s.
 
 ``linearize`` is ``graph.linearize(values)`` called from Python on its own ``Values``
 (no copy); inside an optimizer every callback gets a copy of the whole ``Values``,
@@ -90,8 +94,6 @@ corners cannot.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
@@ -99,31 +101,20 @@ import gtsam
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.factors.ceiling import (
-    HeightPrior,
-    lamp_axis_residual,
-    project_inverse_depth,
-    project_inverse_depth_batch,
-)
+from lampsam.factors.ceiling import HeightPrior
 from lampsam.factors.geometry import FactorError, wrap_angle
 from lampsam.factors.range_bearing import range_bearing
 
 __all__ = [
-    "AxisObservation",
-    "InverseDepthObservation",
-    "axis_anchor_prior",
     "bearing_range_factor",
+    "check_cov",
     "height_prior_factor",
     "huber_sqrt",
-    "inverse_depth_factor",
-    "inverse_depth_first_sight_prior",
-    "inverse_depth_frame_factor",
-    "lamp_axis_between_factor",
-    "lamp_axis_factor",
-    "lamp_axis_frame_factor",
     "noise_model",
     "odometry_factor",
+    "pose_array",
     "projection_factor",
+    "robust_wrap",
     "virtual_camera",
 ]
 
@@ -132,7 +123,7 @@ __all__ = [
 LOOSE_SIGMA = 1.0e3
 
 
-def _pose(values: gtsam.Values, key: int) -> FloatArray:
+def pose_array(values: gtsam.Values, key: int) -> FloatArray:
     """(3,) ``(x, y, theta)`` of the ``Pose2`` stored under ``key``."""
     p = values.atPose2(key)
     return np.array([p.x(), p.y(), p.theta()])
@@ -164,7 +155,7 @@ def _positive_definite(sym: FloatArray) -> bool:
     return m3 > 0.0
 
 
-def _check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
+def check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
     """``cov`` as a (dim, dim) float array; FactorError unless finite and positive definite."""
     arr = np.asarray(cov, dtype=float)
     if arr.shape != (dim, dim) or not np.isfinite(arr).all():
@@ -174,7 +165,8 @@ def _check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
     return arr
 
 
-def _robust_wrap(base: gtsam.noiseModel.Base, robust: float | None) -> gtsam.noiseModel.Base:
+def robust_wrap(base: gtsam.noiseModel.Base, robust: float | None) -> gtsam.noiseModel.Base:
+    """``base`` unchanged for ``robust=None``, else wrapped in a Huber kernel with threshold ``robust`` (> 0)."""
     if robust is None:
         return base
     if not robust > 0.0:
@@ -193,7 +185,7 @@ def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseMode
     Returns:
         A ``gtsam.noiseModel`` (``Gaussian`` or ``Robust``).
     """
-    return _robust_wrap(gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float)), robust)
+    return robust_wrap(gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float)), robust)
 
 
 def huber_sqrt(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:
@@ -244,7 +236,7 @@ def odometry_factor(
     Returns:
         ``gtsam.BetweenFactorPose2``.
     """
-    cov = _check_cov(cov, 3, "odometry")
+    cov = check_cov(cov, 3, "odometry")
     return gtsam.BetweenFactorPose2(
         key_from, key_to, gtsam.Pose2(*np.asarray(delta, dtype=float)), noise_model(cov, robust)
     )
@@ -306,7 +298,7 @@ def projection_factor(
     Returns:
         ``gtsam.PlanarProjectionFactor2``.
     """
-    cov_m = _check_cov(cov_m, 2, "projection")
+    cov_m = check_cov(cov_m, 2, "projection")
     b_T_c, cal = virtual_camera(body_t_camera)
     return gtsam.PlanarProjectionFactor2(
         pose_key, point_key, np.asarray(m, dtype=float), b_T_c, cal, noise_model(cov_m, robust)
@@ -343,387 +335,6 @@ def height_prior_factor(
     return gtsam.PriorFactorPoint3(point_key, mean, noise_model(np.diag(var), robust))
 
 
-# --- lamp axis ------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class AxisObservation:
-    """One lamp-axis observation for :func:`lamp_axis_frame_factor`.
-
-    Attributes:
-        axis_key: ``A(j)`` (a ``Rot2``).
-        alpha: measured axis in the ``(u, v)`` plane, radians (mod pi).
-        sigma: its standard deviation, radians.
-    """
-
-    axis_key: int
-    alpha: float
-    sigma: float
-
-
-def lamp_axis_factor(
-    pose_key: int,
-    axis_key: int,
-    alpha: float,
-    sigma: float,
-    robust: float | None = None,
-) -> gtsam.CustomFactor:
-    """Lamp axis observation (``phi_i = phi - theta`` mod pi), one ``CustomFactor``.
-
-    Args:
-        pose_key: ``X(k)``.
-        axis_key: ``A(j)``, a ``gtsam.Rot2``.
-        alpha: measured axis, radians, any representative mod pi.
-        sigma: its standard deviation, radians (> 0).
-        robust: optional Huber threshold.
-
-    Returns:
-        ``gtsam.CustomFactor`` with a 1-D residual wrapped to ``(-pi/2, pi/2]``.
-    """
-    if not sigma > 0.0:
-        raise FactorError(f"axis sigma must be > 0, got {sigma}")
-    meas = float(alpha)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
-        pose = _pose(values, this.keys()[0])
-        phi = values.atRot2(this.keys()[1]).theta()
-        r, r_D_pose, r_D_phi = lamp_axis_residual(pose, phi, meas)
-        if H is not None:
-            H[0] = r_D_pose
-            H[1] = r_D_phi
-        return np.array([r])
-
-    return gtsam.CustomFactor(
-        noise_model(np.array([[sigma * sigma]]), robust), [pose_key, axis_key], error
-    )
-
-
-def lamp_axis_frame_factor(
-    pose_key: int,
-    observations: Sequence[AxisObservation],
-    robust: float | None = None,
-) -> gtsam.CustomFactor:
-    """All lamp-axis observations of one frame in one ``CustomFactor``.
-
-    Residual ``i`` is ``wrap_axis(phi_i - theta - alpha_i) / sigma_i`` (whitened, unit
-    noise model), Huber per observation if ``robust`` is set.
-
-    Args:
-        pose_key: ``X(k)``.
-        observations: one :class:`AxisObservation` per lamp, distinct axis keys.
-        robust: optional Huber threshold.
-
-    Returns:
-        ``gtsam.CustomFactor`` on ``[pose_key, axis keys...]`` with a (K,) residual.
-    """
-    obs = list(observations)
-    if not obs:
-        raise FactorError("lamp_axis_frame_factor needs at least one observation")
-    keys = [pose_key] + [o.axis_key for o in obs]
-    if len(set(keys)) != len(keys):
-        raise FactorError("lamp_axis_frame_factor: axis keys must be distinct")
-    alphas = [float(o.alpha) for o in obs]
-    inv_sig = [1.0 / float(o.sigma) for o in obs]
-    n = len(obs)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
-        ks = this.keys()
-        pose = _pose(values, ks[0])
-        res = np.empty(n)
-        d_pose = np.zeros((n, 3))
-        d_phi = np.empty(n)
-        for i in range(n):
-            r, _, _ = lamp_axis_residual(pose, values.atRot2(ks[i + 1]).theta(), alphas[i])
-            e = r * inv_sig[i]
-            g = 1.0
-            if robust is not None:
-                e_arr, g_arr = huber_sqrt(np.array([e]), robust)
-                e, g = float(e_arr[0]), float(g_arr[0, 0])
-            res[i] = e
-            d_pose[i, 2] = -g * inv_sig[i]
-            d_phi[i] = g * inv_sig[i]
-        if H is not None:
-            H[0] = d_pose
-            for i in range(n):
-                col = np.zeros((n, 1))
-                col[i, 0] = d_phi[i]
-                H[i + 1] = col
-        return res
-
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), keys, error)
-
-
-@lru_cache(maxsize=1)
-def _axis_anchor_noise() -> gtsam.noiseModel.Base:
-    return gtsam.noiseModel.Diagonal.Precisions(np.array([1.0, 1.0, 0.0]))
-
-
-def lamp_axis_between_factor(
-    pose_key: int,
-    axis_key: int,
-    alpha: float,
-    sigma: float,
-    predicted: float,
-    robust: float | None = None,
-) -> gtsam.BetweenFactorPose2:
-    """Lamp axis observation as GTSAM's built-in ``BetweenFactorPose2`` (no callback).
-
-    The axis variable ``A(j)`` is then a ``Pose2`` whose rotation is the axis ``phi``
-    and whose translation carries no information: the factor's noise model has zero
-    precision on ``x, y`` and ``1/sigma^2`` on the angle, and :func:`axis_anchor_prior`
-    holds the translation. With GTSAM's default ``Pose2`` chart the angle row of
-    ``Local(measured, X^-1 A)`` is ``wrap_angle(phi - theta - alpha)`` and its
-    Jacobians are ``-1`` on ``theta`` and ``+1`` on ``phi``, exactly those of
-    :func:`lamp_axis_factor` (paper III.4, ``phi_i = phi - theta``); the ``x, y``
-    rows are whitened to zero, so the two factors have the same error, gradient and
-    Hessian (checked in ``tests/test_factors_gtsam.py``).
-
-    A line's angle is known mod pi, a ``Pose2`` angle mod 2 pi: the representative
-    of ``alpha`` nearest to ``predicted`` is fixed here, once. The residual stays
-    right while the estimate moves by less than pi/2 from that prediction (a gated
-    match is within a few sigma).
-
-    Args:
-        pose_key: ``X(k)``.
-        axis_key: ``A(j)``, a ``gtsam.Pose2`` anchored by :func:`axis_anchor_prior`.
-        alpha: measured axis in the image, radians (any representative mod pi).
-        sigma: its standard deviation, radians (> 0).
-        predicted: current prediction of ``phi - theta`` in the graph's own
-            representative of ``phi``, radians.
-        robust: optional Huber threshold (on the angle residual alone, since the
-            other rows whiten to zero).
-
-    Returns:
-        ``gtsam.BetweenFactorPose2`` on ``(X(k), A(j))``.
-    """
-    if not sigma > 0.0:
-        raise FactorError(f"axis sigma must be > 0, got {sigma}")
-    a = float(alpha)
-    a += math.pi * round((float(predicted) - a) / math.pi)
-    base = gtsam.noiseModel.Diagonal.Precisions(np.array([0.0, 0.0, 1.0 / (sigma * sigma)]))
-    return gtsam.BetweenFactorPose2(pose_key, axis_key, gtsam.Pose2(0.0, 0.0, a),
-                                    _robust_wrap(base, robust))
-
-
-def axis_anchor_prior(axis_key: int, xy: FloatArray, phi: float) -> gtsam.PriorFactorPose2:
-    """Fix the information-free translation of a ``Pose2`` axis variable.
-
-    Unit precision on ``x, y`` (metres), zero on the angle, so the prior says nothing
-    about the axis itself. Put its mean at the variable's initial value: the
-    translation then never moves (it is decoupled from the angle in ``Pose2``'s
-    chart, see :func:`lamp_axis_between_factor`).
-
-    Args:
-        axis_key: ``A(j)``.
-        xy: (2,) the translation the variable was inserted with, metres.
-        phi: the angle it was inserted with, radians (unused by the error).
-
-    Returns:
-        ``gtsam.PriorFactorPose2``.
-    """
-    return gtsam.PriorFactorPose2(axis_key, gtsam.Pose2(float(xy[0]), float(xy[1]), float(phi)),
-                                  _axis_anchor_noise())
-
-
-# --- corners: inverse depth -----------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class InverseDepthObservation:
-    """One inverse-depth corner observation for :func:`inverse_depth_frame_factor`.
-
-    Attributes:
-        anchor_key: ``X(a)`` of the corner's first sight (not the observing pose).
-        corner_key: ``C(j)`` holding ``(alpha_x, alpha_y, rho)``.
-        m: (2,) measured normalised coordinates.
-        cov_m: (2, 2) their covariance.
-    """
-
-    anchor_key: int
-    corner_key: int
-    m: FloatArray
-    cov_m: FloatArray
-
-
-def _huber_sqrt_rows(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:
-    """:func:`huber_sqrt` applied to each row of ``e`` (K, d); returns (K, d), (K, d, d)."""
-    n_rows, d = e.shape
-    norms = np.linalg.norm(e, axis=1)
-    r = e.copy()
-    r_D_e = np.broadcast_to(np.eye(d), (n_rows, d, d)).copy()
-    big = norms > k
-    if np.any(big):
-        nb = norms[big]
-        eb = e[big]
-        gb = np.sqrt(2.0 * k * nb - k * k)
-        sb = gb / nb
-        ds_dn = (k / gb - sb) / nb
-        r[big] = sb[:, None] * eb
-        r_D_e[big] = sb[:, None, None] * np.eye(d) + (ds_dn / nb)[:, None, None] * np.einsum(
-            "ki,kj->kij", eb, eb
-        )
-    return r, r_D_e
-
-
-def _sqrt_info(cov: FloatArray) -> FloatArray:
-    """Upper-triangular ``W`` with ``W^T W = cov^-1`` (whitening matrix)."""
-    return np.linalg.cholesky(np.linalg.inv(cov)).T
-
-
-def inverse_depth_factor(
-    pose_key: int,
-    anchor_key: int,
-    corner_key: int,
-    m: FloatArray,
-    cov_m: FloatArray,
-    body_t_camera: FloatArray,
-    robust: float | None = None,
-) -> gtsam.CustomFactor:
-    """Inverse-depth corner seen from a pose other than its anchor (``CustomFactor``).
-
-    Model :func:`lampsam.factors.ceiling.project_inverse_depth`; residual = predicted
-    - measured. The first sight is :func:`inverse_depth_first_sight_prior`, not this.
-
-    Args:
-        pose_key: observing pose ``X(k)``.
-        anchor_key: anchor pose ``X(a)``, ``a != k``.
-        corner_key: ``C(j)``, a (3,) vector ``(alpha_x, alpha_y, rho)``.
-        m: (2,) measured normalised coordinates.
-        cov_m: (2, 2) their covariance.
-        body_t_camera: (3,) camera offset, metres.
-        robust: optional Huber threshold.
-
-    Returns:
-        ``gtsam.CustomFactor`` on ``[pose_key, anchor_key, corner_key]``.
-    """
-    if pose_key == anchor_key:
-        raise FactorError("inverse_depth_factor: the anchor sight is a prior, not a factor")
-    cov_m = _check_cov(cov_m, 2, "inverse depth")
-    meas = np.asarray(m, dtype=float).copy()
-    off = np.asarray(body_t_camera, dtype=float).copy()
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
-        ks = this.keys()
-        pred, j_pose, j_anchor, j_idp = project_inverse_depth(
-            _pose(values, ks[0]), _pose(values, ks[1]), values.atVector(ks[2]), off
-        )
-        if H is not None:
-            H[0], H[1], H[2] = j_pose, j_anchor, j_idp
-        return pred - meas
-
-    return gtsam.CustomFactor(noise_model(cov_m, robust), [pose_key, anchor_key, corner_key], error)
-
-
-def inverse_depth_frame_factor(
-    pose_key: int,
-    observations: Sequence[InverseDepthObservation],
-    body_t_camera: FloatArray,
-    robust: float | None = None,
-) -> gtsam.CustomFactor:
-    """All inverse-depth corner observations of one frame in one ``CustomFactor``.
-
-    Residuals are whitened per observation (unit noise model); Huber per observation
-    when ``robust`` is set (:func:`huber_sqrt`). Anchors shared by several corners
-    appear once among the keys and their Jacobian blocks are stacked.
-
-    Args:
-        pose_key: observing pose ``X(k)``.
-        observations: :class:`InverseDepthObservation` s, distinct corners, anchors
-            different from ``pose_key``.
-        body_t_camera: (3,) camera offset, metres.
-        robust: optional Huber threshold.
-
-    Returns:
-        ``gtsam.CustomFactor`` with a (2K,) residual.
-    """
-    obs = list(observations)
-    if not obs:
-        raise FactorError("inverse_depth_frame_factor needs at least one observation")
-    anchor_keys: list[int] = []
-    anchor_slot: dict[int, int] = {}
-    corner_keys: list[int] = []
-    for o in obs:
-        if o.anchor_key == pose_key:
-            raise FactorError("inverse_depth_frame_factor: anchor sight must be a prior")
-        if o.anchor_key not in anchor_slot:
-            anchor_slot[o.anchor_key] = len(anchor_keys)
-            anchor_keys.append(o.anchor_key)
-        corner_keys.append(o.corner_key)
-    keys = [pose_key, *anchor_keys, *corner_keys]
-    if len(set(keys)) != len(keys):
-        raise FactorError("inverse_depth_frame_factor: corner keys must be distinct")
-    n = len(obs)
-    n_anchor = len(anchor_keys)
-    which_anchor = np.array([anchor_slot[o.anchor_key] for o in obs])
-    anchor_masks = [which_anchor == u for u in range(n_anchor)]
-    whiten = np.stack([_sqrt_info(_check_cov(o.cov_m, 2, "inverse depth")) for o in obs])
-    meas = np.stack([np.asarray(o.m, dtype=float) for o in obs])
-    off = np.asarray(body_t_camera, dtype=float).copy()
-    rows = np.arange(n)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
-        ks = this.keys()
-        pose = _pose(values, ks[0])
-        anchors = np.stack([_pose(values, ks[1 + u]) for u in range(n_anchor)])[which_anchor]
-        idps = np.stack([values.atVector(ks[1 + n_anchor + i]) for i in range(n)])
-        pred, j_pose, j_anchor, j_idp = project_inverse_depth_batch(pose, anchors, idps, off)
-        e = np.einsum("kij,kj->ki", whiten, pred - meas)
-        g = whiten
-        if robust is not None:
-            e, r_D_e = _huber_sqrt_rows(e, robust)
-            g = r_D_e @ whiten
-        if H is not None:
-            H[0] = (g @ j_pose).reshape(2 * n, 3)
-            g_anchor = g @ j_anchor
-            for u in range(n_anchor):
-                block = np.zeros((n, 2, 3))
-                block[anchor_masks[u]] = g_anchor[anchor_masks[u]]
-                H[1 + u] = block.reshape(2 * n, 3)
-            g_idp = g @ j_idp
-            for i in range(n):
-                block = np.zeros((n, 2, 3))
-                block[rows[i]] = g_idp[i]
-                H[1 + n_anchor + i] = block.reshape(2 * n, 3)
-        return e.reshape(2 * n)
-
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(2 * n), keys, error)
-
-
-def inverse_depth_first_sight_prior(
-    corner_key: int,
-    m: FloatArray,
-    cov_m: FloatArray,
-    prior: HeightPrior | None = None,
-    robust: float | None = None,
-) -> gtsam.PriorFactorVector:
-    """First sight of an inverse-depth corner plus the height prior, one built-in factor.
-
-    Seen from its anchor the corner projects to ``alpha`` whatever the anchor pose
-    (:func:`lampsam.factors.ceiling.project_inverse_depth`), so the first observation
-    is the prior ``alpha ~ N(m, cov_m)``; with the height range as ``rho ~ N(rho_mean,
-    rho_sigma^2)`` (:class:`HeightPrior`) it is one ``PriorFactorVector`` with a
-    block-diagonal covariance.
-
-    Args:
-        corner_key: ``C(j)``.
-        m: (2,) normalised coordinates at the anchor.
-        cov_m: (2, 2) their covariance.
-        prior: height range, default :class:`HeightPrior` ().
-        robust: optional Huber threshold on the whitened 3-vector (the ``rho`` part
-            is within 2 sigma by construction, so in practice it acts on ``alpha``).
-
-    Returns:
-        ``gtsam.PriorFactorVector`` on the (3,) inverse-depth vector.
-    """
-    prior = prior or HeightPrior()
-    cov_m = _check_cov(cov_m, 2, "inverse depth prior")
-    cov = np.zeros((3, 3))
-    cov[:2, :2] = cov_m
-    cov[2, 2] = prior.rho_sigma**2
-    mean = np.array([float(m[0]), float(m[1]), prior.rho_mean])
-    return gtsam.PriorFactorVector(corner_key, mean, noise_model(cov, robust))
-
-
 # --- range-bearing --------------------------------------------------------------------
 
 
@@ -754,7 +365,7 @@ def bearing_range_factor(
     Returns:
         The factor.
     """
-    cov = _check_cov(cov, 2, "range-bearing")
+    cov = check_cov(cov, 2, "range-bearing")
     noise = noise_model(cov, robust)
     if body_T_sensor is None:
         return gtsam.BearingRangeFactor2D(
@@ -765,7 +376,7 @@ def bearing_range_factor(
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
         ks = this.keys()
-        z, z_D_pose, z_D_lm = range_bearing(_pose(values, ks[0]), values.atPoint2(ks[1]), off)
+        z, z_D_pose, z_D_lm = range_bearing(pose_array(values, ks[0]), values.atPoint2(ks[1]), off)
         if H is not None:
             H[0], H[1] = z_D_pose, z_D_lm
         r = z - meas

@@ -18,6 +18,7 @@ Modules:
 * :mod:`~lampsam.frontend.glare` -- Separating lamps that a saturated glare halo has merged into one blob.
 * :mod:`~lampsam.frontend.label_stats` -- Connected-component labelling and per-label statistics over pixel lists.
 * :mod:`~lampsam.frontend.lamp_config` -- Settings of the ceiling-lamp detector (paper 1, eqs. 1-7; DESIGN.md sec. 1).
+* :mod:`~lampsam.frontend.lamp_models` -- Lamp size against the lamp models a ceiling is known to carry (issue 20: daylight is not a lamp).
 * :mod:`~lampsam.frontend.lamps` -- Ceiling-lamp detection on one grey image: the stages of paper 1, eqs. 1-7, in order.
 * :mod:`~lampsam.frontend.measurements` -- Frozen measurement dataclasses: what the frontend hands to the backends.
 * :mod:`~lampsam.frontend.pipeline` -- The ceiling frontend: one grey image in, one :class:`CeilingFrame` out.

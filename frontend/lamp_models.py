@@ -1,4 +1,4 @@
-"""Lamp size against the lamp models a ceiling is known to carry (issue 20: daylight is not a lamp).
+"""Lamp size against the lamp models a ceiling is known to carry, so that daylight is not taken for a lamp.
 
 A lamp of face area ``A`` (m^2) at ``h`` metres above the camera covers
 ``A / h^2`` in normalised ceiling coordinates ``m`` (docs/conventions.md),

@@ -14,11 +14,11 @@ Entry points (loaded on first use)::
 
 Modules:
 
+* :mod:`~lampsam.localization.acceptance` -- Whether a scan-only estimate can be trusted: its margin over the best competing mode.
 * :mod:`~lampsam.localization.alignment` -- SVD alignment of matched 3-D points, with RANSAC over the correspondences.
 * :mod:`~lampsam.localization.candidates` -- Pose candidates from SIFT matches to the spatial feature map (paper 2, sec. 3).
 * :mod:`~lampsam.localization.ceiling_map` -- The ceiling feature map: lamps and corners of the ceiling SLAM (paper 2, sec. 2.2).
 * :mod:`~lampsam.localization.depth_grid` -- Grid map and spatial feature map from RGB-D frames (paper 2, sec. 2.1-2.2).
-* :mod:`~lampsam.localization.envmap` -- The environment map (paper 2, sec. 2): the names callers use, gathered from its modules.
 * :mod:`~lampsam.localization.filter_config` -- Settings of the global localizer: the Table-1 configuration and each stage's options.
 * :mod:`~lampsam.localization.grid` -- Log-odds occupancy grids and ROS map_server files.
 * :mod:`~lampsam.localization.laser` -- Global localization from planar laser scans on a grid map, from no prior knowledge.
@@ -31,6 +31,7 @@ Modules:
 * :mod:`~lampsam.localization.map_poses` -- Where the mapping sensor was: pose sources for the map build.
 * :mod:`~lampsam.localization.map_quality` -- Grid-map quality against a known floor plan: occupied-cell precision and recall.
 * :mod:`~lampsam.localization.map_store` -- The environment map directory: its files, its manifest, reading and writing it.
+* :mod:`~lampsam.localization.map_tables` -- Lookup tables precomputed from the grid and stored in the map directory.
 * :mod:`~lampsam.localization.open_space` -- Facing open space before the verification drive, from the robot's own virtual scan.
 * :mod:`~lampsam.localization.particle_filter` -- Particle filter on a grid map (paper 2, sec. 4; DESIGN.md sec. 2, step 2).
 * :mod:`~lampsam.localization.pointcloud` -- Depth images to point clouds with Open3D, placed in the world with poses.

@@ -35,6 +35,7 @@ import numpy as np
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.datasets.logrun import LandmarkTable
 from lampsam.errors import DatasetError, LocalizationError
+from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +82,7 @@ class CeilingFeatureMap:
     def save(self, path: str | Path) -> Path:
         """Write ``ceiling_features.csv`` (module docstring)."""
         path = Path(path)
-        with open(path, "w", encoding="utf-8", newline="") as fh:
+        with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(CEILING_HEADER)
             for i in range(len(self)):

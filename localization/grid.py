@@ -29,6 +29,7 @@ import yaml
 
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.errors import InputError
+from lampsam.safe_io import atomic_path, write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -409,8 +410,9 @@ def save_map_server(grid: OccupancyGrid, path_stem: str | Path,
     img[free_mask(grid, config)] = PGM_FREE
     img[occupied_mask(grid, config)] = PGM_OCCUPIED
     pgm = stem.with_suffix(".pgm")
-    if not cv2.imwrite(str(pgm), np.flipud(img)):
-        raise GridMapError("could not write the map image", path=pgm)
+    with atomic_path(pgm) as tmp:
+        if not cv2.imwrite(str(tmp), np.flipud(img)):
+            raise GridMapError("could not write the map image", path=pgm)
     meta = {
         "image": pgm.name,
         "mode": "trinary",
@@ -421,8 +423,7 @@ def save_map_server(grid: OccupancyGrid, path_stem: str | Path,
         "free_thresh": float(config.free_thresh),
     }
     yaml_path = stem.with_suffix(".yaml")
-    with open(yaml_path, "w", encoding="utf-8") as fh:
-        yaml.safe_dump(meta, fh, sort_keys=False)
+    write_text_atomic(yaml_path, yaml.safe_dump(meta, sort_keys=False))
     return yaml_path
 
 

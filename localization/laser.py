@@ -21,6 +21,13 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.factors.geometry import between, compose
+from lampsam.localization.correlative import (
+    CorrelativeError,
+    ScorePyramid,
+    SearchConfig,
+    branch_and_bound,
+    scan_points,
+)
 from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel
 from lampsam.localization.particle_filter import (
@@ -43,6 +50,13 @@ class LaserLocalizerConfig:
         pf: the filter: KLD-adaptive sample size (500-20,000 after the first
             resampling), at most 90 beams per update, odometry noise of a
             wheeled robot, light roughening (2 cm, 0.01 rad).
+        seeding: ``"search"`` (default): particles in the discs of the
+            branch-and-bound candidates; ``"uniform"``: ``particles`` over the
+            free space.
+        search: the branch-and-bound search (10 cm cells, 1 deg, 8 candidates).
+        search_scans: scans joined by odometry for the search (default 4).
+        per_candidate: particles per candidate disc (radius one search cell,
+            heading spread one step). Default 2,000.
     """
 
     particles: int = 100_000
@@ -59,6 +73,56 @@ class LaserLocalizerConfig:
             jitter_theta=0.01,
         )
     )  # fmt: skip
+    seeding: str = "search"
+    search: SearchConfig = field(default_factory=SearchConfig)
+    search_scans: int = 4
+    per_candidate: int = 2000
+
+
+def search_pyramid(model: LikelihoodFieldModel, config: LaserLocalizerConfig) -> ScorePyramid:
+    """The branch-and-bound score pyramid of ``model``'s map (build once per map).
+
+    The per-cell score is the model's likelihood field (untempered per-beam
+    log-likelihood), max-pooled to ``config.search.resolution`` (rounded to a
+    whole number of map cells).
+    """
+    res = model.grid.resolution * max(round(config.search.resolution / model.grid.resolution), 1)
+    cfg = replace(config.search, resolution=res,
+                  max_range=min(config.search.max_range, model.config.max_range))  # fmt: skip
+    return ScorePyramid(model.grid, model.field, model.far, cfg)
+
+
+def search_candidates(
+    model: LikelihoodFieldModel, pyramid: ScorePyramid, ranges: FloatArray, angles: FloatArray,
+    odom: FloatArray, config: LaserLocalizerConfig, accept: LaserAcceptConfig,
+) -> tuple[FloatArray, FloatArray]:
+    """Candidate poses at the first scan from a global search over the first scans.
+
+    The scans are joined by odometry (:func:`~lampsam.localization.correlative.scan_points`),
+    matched over the map by branch and bound, and each of the top-K leaves is
+    refined on the map's cells by :func:`chain_log_likelihood` (one search cell
+    and one heading step around it, then a quarter of that).
+
+    Returns:
+        (M, 3) refined poses at scan 0 (best search score first; M may be 0)
+        and their (M,) search scores (nats per point).
+    """
+    cfg = replace(config.search, resolution=pyramid.res, max_range=pyramid.pad * pyramid.res)
+    try:
+        pts = scan_points(ranges, angles, odom, min(cfg.max_range, model.config.max_range),
+                          cfg.resolution, cfg.max_points)  # fmt: skip
+    except CorrelativeError:
+        return np.zeros((0, 3)), np.zeros(0)
+    cands, _ = branch_and_bound(pyramid, pts, cfg)
+    step = math.radians(cfg.angle_step_deg)
+    coarse = replace(accept, refine=(pyramid.res, step), refine_steps=5)
+    fine = replace(accept, refine=(pyramid.res / 4, step / 4), refine_steps=5)
+    out = []
+    for c in cands:
+        _, a = chain_log_likelihood(model, c.pose, 0, odom, ranges, angles, coarse)
+        _, a = chain_log_likelihood(model, a, 0, odom, ranges, angles, fine)
+        out.append(a)
+    return np.asarray(out, dtype=float).reshape(-1, 3), np.array([c.score for c in cands])
 
 
 @dataclass(frozen=True)
@@ -231,6 +295,7 @@ def localize_scans(
     rng: np.random.Generator,
     min_scans: int | None = None,
     accept: LaserAcceptConfig | None = None,
+    pyramid: ScorePyramid | None = None,
 ) -> LaserEstimate:
     """Localize from a sequence of scans, starting with particles everywhere.
 
@@ -248,6 +313,8 @@ def localize_scans(
         rng: generator of the particles.
         min_scans: scans before the first test (default all ``K``).
         accept: the acceptance test (default :class:`LaserAcceptConfig`).
+        pyramid: the map's search pyramid (:func:`search_pyramid`; built here
+            when the seeding is ``"search"`` and none is given).
 
     Returns:
         The estimate at the last scan used, with its answer.
@@ -256,15 +323,28 @@ def localize_scans(
     k_min = len(ranges) if min_scans is None else min(int(min_scans), len(ranges))
     k_max = min(len(ranges), max(k_min, accept.max_scans))
     pf = ParticleFilter(model, config.pf, rng)
-    pf.init_uniform(grid, config.particles)
     first_modes = np.zeros((0, 3))
+    if config.seeding == "search":
+        pyramid = search_pyramid(model, config) if pyramid is None else pyramid
+        m = max(1, min(config.search_scans, k_min))
+        first_modes, _ = search_candidates(model, pyramid, ranges[:m], angles, odom[:m], config,
+                                           accept)  # fmt: skip
+        if len(first_modes) == 0:
+            return LaserEstimate(np.full(3, np.nan), np.full((3, 3), np.nan), False, math.inf,
+                                 math.inf, 0, "failed", scans_used=m)  # fmt: skip
+        pf.init_candidates([(p, pyramid.res) for p in first_modes], config.per_candidate,
+                           math.radians(config.search.angle_step_deg))  # fmt: skip
+    elif config.seeding == "uniform":
+        pf.init_uniform(grid, config.particles)
+    else:
+        raise ValueError(f"seeding must be search or uniform, not {config.seeding!r}")
     margin, competitor, score = math.nan, None, math.nan
     k = 0
     while True:
         if k > 0:
             pf.predict(odom[k - 1], odom[k])
         pf.update(ranges[k], angles)
-        if k == 0:
+        if k == 0 and config.seeding == "uniform":
             first_modes = distinct_modes(pf.particles, pf.log_weights, accept.modes,
                                          accept.separation)  # fmt: skip
         k += 1

@@ -241,17 +241,25 @@ class LikelihoodFieldModel:
         grid: the map.
         config: the beam model.
         interpolate: bilinear interpolation of the field (default False).
+        dist_cells: (H, W) the grid's distance field in cells, as stored with
+            the map (:func:`lampsam.localization.map_tables.load_distance_field`);
+            default None: computed here.
     """
 
     #: cv2.remap handles at most 32767 rows at once.
     _CHUNK = 32_000
 
     def __init__(self, grid: OccupancyGrid, config: BeamModelConfig,
-                 interpolate: bool = False) -> None:
+                 interpolate: bool = False, dist_cells: FloatArray | None = None) -> None:
         self.grid = grid
         self.config = config
         self.interpolate = interpolate
-        dist_m = distance_field(occupied_mask(grid)).astype(np.float64) * grid.resolution
+        if dist_cells is None:
+            dist_cells = distance_field(occupied_mask(grid))
+        elif np.shape(dist_cells) != (grid.height, grid.width):
+            raise LikelihoodError(f"distance field {np.shape(dist_cells)} is not the grid's "
+                                  f"{(grid.height, grid.width)}")
+        dist_m = np.asarray(dist_cells, dtype=np.float64) * grid.resolution
         self.far = float(beam_log_likelihood(np.array([np.inf if config.z_rand > 0 else 1e3]),
                                              config)[0])
         self.field = np.ascontiguousarray(beam_log_likelihood(dist_m, config), dtype=np.float32)

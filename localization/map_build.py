@@ -144,7 +144,7 @@ def select_scans(n: int, scans: str) -> np.ndarray:
     """Indices of the scans a map uses: ``all``, ``even`` (0, 2, 4, ...) or ``odd``.
 
     Even and odd split a log into a mapping half and a held-out half for
-    localization trials on the same log (issue 17).
+    localization trials on the same log.
 
     Raises:
         EnvMapError: another value.

@@ -5,14 +5,12 @@ the ceiling feature map, adapted from a map directory
 (:func:`lampsam.localization.map_store.load_env_map`) or built directly (tests,
 experiments). It also owns the map's precomputed expected-range table, which
 is map preparation: built once on first use and reused by every localization
-on the same maps object (and stored in the map directory when one is given).
+on the same maps object, and read from / stored in the map directory through
+:mod:`~lampsam.localization.map_tables` (the one store of the map's lookups).
 """
 
 from __future__ import annotations
 
-import hashlib
-import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -20,13 +18,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
-from lampsam.localization.grid import OccupancyGrid, occupied_mask
+from lampsam.localization.grid import OccupancyGrid
+from lampsam.localization.map_tables import build_range_table, range_table_for_map
 from lampsam.localization.raycast import RangeTable
 
 if TYPE_CHECKING:
     from lampsam.localization.map_store import EnvironmentMap
-
-log = logging.getLogger(__name__)
 
 #: heading bins of the expected-range table (1 degree)
 RANGE_TABLE_BINS = 360
@@ -104,8 +101,11 @@ class EnvironmentMaps:
         """The grid's :class:`RangeTable` (360 heading bins, every non-occupied cell), built once.
 
         A table takes seconds to build (office map: 110,000 cells x 360 bins,
-        about 20 s on a loaded machine, 77 MB), so it is built on first use and
-        kept with these maps for every later localization on them.
+        about 20 s on a loaded machine, 77 MB), so it is kept with these maps for
+        every later localization on them, and with a ``cache_dir`` it is the map
+        directory's ``range_table.npz`` (:func:`~lampsam.localization.map_tables.range_table_for_map`:
+        loaded when it was built from this grid for this ``max_range``, else
+        built and stored there: the one store of the map's lookups).
 
         Args:
             max_range: metres (the beam model's).
@@ -113,48 +113,9 @@ class EnvironmentMaps:
         key = float(max_range)
         table = self._range_tables.get(key)
         if table is None:
-            table = self._load_table(key)
-        if table is None:
-            table = RangeTable.build(
-                self.grid, RANGE_TABLE_BINS, key, cells=~occupied_mask(self.grid)
-            )
-            self._save_table(key, table)
-        self._range_tables[key] = table
+            if self.cache_dir is None:
+                table = build_range_table(self.grid, key, RANGE_TABLE_BINS)
+            else:
+                table = range_table_for_map(self.cache_dir, self.grid, key, RANGE_TABLE_BINS)
+            self._range_tables[key] = table
         return table
-
-    def _table_file(self, max_range: float) -> tuple[Path, str] | None:
-        """The cache file of a table and the grid's fingerprint (None without ``cache_dir``)."""
-        if self.cache_dir is None:
-            return None
-        h = hashlib.sha1(np.ascontiguousarray(occupied_mask(self.grid)).tobytes())
-        h.update(np.asarray([self.grid.resolution, *self.grid.origin, max_range,
-                             RANGE_TABLE_BINS], dtype=float).tobytes())  # fmt: skip
-        return Path(self.cache_dir) / f"range_table_{int(round(1000 * max_range))}mm.npz", h.hexdigest()
-
-    def _load_table(self, max_range: float) -> RangeTable | None:
-        where = self._table_file(max_range)
-        if where is None or not where[0].is_file():
-            return None
-        try:
-            with np.load(where[0]) as z:
-                if str(z["fingerprint"]) != where[1]:
-                    log.info("%s: made for another grid, rebuilding", where[0])
-                    return None
-                return RangeTable((self.grid.height, self.grid.width), self.grid.resolution,
-                                  self.grid.origin.copy(), z["row_of_cell"], z["ranges_mm"],
-                                  max_range)  # fmt: skip
-        except (OSError, KeyError, ValueError) as exc:
-            log.warning("%s: unreadable range table (%s), rebuilding", where[0], exc)
-            return None
-
-    def _save_table(self, max_range: float, table: RangeTable) -> None:
-        where = self._table_file(max_range)
-        if where is None:
-            return
-        tmp = where[0].with_suffix(".tmp.npz")
-        try:
-            np.savez(tmp, fingerprint=np.array(where[1]), row_of_cell=table.row_of_cell,
-                     ranges_mm=table.ranges_mm)  # fmt: skip
-            os.replace(tmp, where[0])
-        except OSError as exc:
-            log.warning("cannot store the range table in %s: %s", self.cache_dir, exc)

@@ -25,6 +25,7 @@ from lampsam.errors import LocalizationError
 from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
 from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, save_map_server
 from lampsam.localization.spatial_map import SPATIAL_FILE, SpatialFeatureMap, SpatialMapConfig
+from lampsam.safe_io import write_text_atomic
 
 #: The manifest's file name inside a map directory.
 MANIFEST_FILE = "manifest.yaml"
@@ -186,8 +187,7 @@ def write_manifest(
         "checks": _plain(checks),
     }
     path = out / MANIFEST_FILE
-    with open(path, "w", encoding="utf-8") as fh:
-        yaml.safe_dump(manifest, fh, sort_keys=False)
+    write_text_atomic(path, yaml.safe_dump(manifest, sort_keys=False))
     return path
 
 

@@ -12,7 +12,12 @@ grid's occupied cells:
   the distance from every cell centre to the nearest occupied cell centre, the input
   of the likelihood-field model (Thrun et al., *Probabilistic Robotics*, sec. 6.4).
 
-``build_map`` writes them once beside ``map.yaml``; the localizer loads them with
+This module is the one store of these lookups: ``build_map`` writes them once
+beside ``map.yaml`` (atomically); the localizers load them
+(:meth:`~lampsam.localization.map_layers.EnvironmentMaps.range_table` for the
+Kinect localizer, which rebuilds and stores a table made for another
+``max_range``; the laser trials' likelihood field and branch-and-bound score
+pyramid, :mod:`~lampsam.localization.correlative`, from the distance field) with
 :func:`load_range_table` / :func:`load_distance_field`, which return None (and say
 why in the log) when a file is absent, of an older format, built for another
 ``max_range`` or bin count, or built from a different grid. Validity is checked
@@ -44,6 +49,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.localization.grid import OccupancyGrid, occupied_mask
 from lampsam.localization.raycast import RangeTable, distance_field
+from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +112,7 @@ def save_range_table(map_dir: str | Path, grid: OccupancyGrid, table: RangeTable
         The file written.
     """
     path = Path(map_dir) / RANGE_TABLE_FILE
-    with open(path, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, ranges_mm=table.ranges_mm, row_of_cell=table.row_of_cell,
                  grid_shape=np.array(table.grid_shape, dtype=np.int64),
                  resolution=np.float64(table.resolution),
@@ -176,7 +182,7 @@ def save_distance_field(map_dir: str | Path, grid: OccupancyGrid,
                         dist_cells: FloatArray) -> Path:
     """Write ``distance_field.npz`` ((H, W) float32 distances in cells) for ``grid``."""
     path = Path(map_dir) / DISTANCE_FIELD_FILE
-    with open(path, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, distance_cells=np.asarray(dist_cells, dtype=np.float32),
                  fingerprint=np.array(grid_fingerprint(grid)),
                  format_version=np.int64(TABLES_VERSION))

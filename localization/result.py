@@ -18,6 +18,7 @@ from typing import Any, Literal
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.safe_io import write_text_atomic
 
 #: The three answers of a localization.
 Status = Literal["localized", "ambiguous", "failed"]
@@ -122,7 +123,7 @@ def write_result(
     out.mkdir(parents=True, exist_ok=True)
     path = out / "result.json"
     doc = result.to_json() | json_safe(extra or {})
-    path.write_text(json.dumps(doc, indent=2, allow_nan=False))
+    write_text_atomic(path, json.dumps(doc, indent=2, allow_nan=False))
     return path
 
 

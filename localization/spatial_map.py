@@ -31,6 +31,7 @@ from lampsam.arrays import FloatArray, ImageU8, ImageU16, IntArray
 from lampsam.datasets.rgbd import RgbdCamera
 from lampsam.errors import LocalizationError
 from lampsam.localization.pointcloud import backproject_pixels, check_pose, transform_points
+from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -90,14 +91,9 @@ class SpatialFeatureMap:
     def save(self, path: str | Path) -> Path:
         """Write ``.npz`` (module docstring); returns the path."""
         path = Path(path)
-        np.savez_compressed(
-            path,
-            xyz=self.xyz,
-            descriptors=self.descriptors,
-            size_px=self.size_px,
-            angle_deg=self.angle_deg,
-            n_obs=self.n_obs,
-        )
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez_compressed(fh, xyz=self.xyz, descriptors=self.descriptors,
+                                size_px=self.size_px, angle_deg=self.angle_deg, n_obs=self.n_obs)
         return path
 
     @classmethod

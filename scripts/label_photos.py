@@ -27,6 +27,7 @@ from lampsam.evaluation.photo_labels import (
     propose_regions,
     write_labels,
 )
+from lampsam.safe_io import atomic_path
 
 LABEL_WIDTH = 1000
 
@@ -64,7 +65,8 @@ def main() -> None:
         args.out.mkdir(parents=True, exist_ok=True)
         for name, regs in props.items():
             png = args.out / f"proposals_{Path(name).stem}.png"
-            cv2.imwrite(str(png), draw_proposals(small[name], regs, sizes[name][0]))
+            with atomic_path(png) as tmp:
+                cv2.imwrite(str(tmp), draw_proposals(small[name], regs, sizes[name][0]))
             print(f"{name}: {len(regs)} proposals -> {png}")
         return
     labels = finalize_labels(

@@ -12,23 +12,27 @@ import pytest
 from gtsam.symbol_shorthand import A, C, L, X
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
-from lampsam.factors.ceiling import HeightPrior, project_inverse_depth, project_point
-from lampsam.factors.geometry import FactorError, wrap_angle
-from lampsam.factors.gtsam_factors import (
+from lampsam.factors.axis_factors import (
     AxisObservation,
-    InverseDepthObservation,
     axis_anchor_prior,
-    bearing_range_factor,
-    height_prior_factor,
-    huber_sqrt,
-    inverse_depth_factor,
-    inverse_depth_first_sight_prior,
-    inverse_depth_frame_factor,
     lamp_axis_between_factor,
     lamp_axis_factor,
     lamp_axis_frame_factor,
+)
+from lampsam.factors.ceiling import HeightPrior, project_inverse_depth, project_point
+from lampsam.factors.geometry import FactorError, wrap_angle
+from lampsam.factors.gtsam_factors import (
+    bearing_range_factor,
+    height_prior_factor,
+    huber_sqrt,
     odometry_factor,
     projection_factor,
+)
+from lampsam.factors.inverse_depth_factors import (
+    InverseDepthObservation,
+    inverse_depth_factor,
+    inverse_depth_first_sight_prior,
+    inverse_depth_frame_factor,
 )
 from lampsam.factors.motion import accumulate_odometry
 

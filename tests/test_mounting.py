@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from lampsam.datasets.ceiling_truth import occluders, project_landmarks
 from lampsam.datasets.mounting import mounted, rotation_rpy, tilt_deg
-from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
-from lampsam.datasets.world import load_world, world_from_dict, world_landmarks
+from lampsam.datasets.render_ceiling import CeilingRenderer
+from lampsam.datasets.world import load_world, world_from_dict
+from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
 from lampsam.frontend.lamps import detect_lamps
 

@@ -16,11 +16,13 @@ import cv2
 import numpy as np
 import pytest
 
+from lampsam.datasets.ceiling_truth import occluders, project_landmarks
 from lampsam.datasets.logrun import read_run
 from lampsam.datasets.motion import dead_reckoning, follow_waypoints, noisy_wheel_travel
-from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
+from lampsam.datasets.render_ceiling import CeilingRenderer
 from lampsam.datasets.simulator import simulate_world
-from lampsam.datasets.world import load_world, world_from_dict, world_landmarks
+from lampsam.datasets.world import load_world, world_from_dict
+from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
 
 F = 160.0 / math.tan(math.radians(60.0))  # 92.37604307 px

@@ -1,4 +1,4 @@
-"""Benchmark and accuracy tables of the three SLAM backends (issue 4 targets).
+"""Benchmark and accuracy tables of the three SLAM backends, against their targets.
 
 Usage::
 

@@ -1,4 +1,4 @@
-"""Benchmark: building the environment map of a 5-minute office drive (issue 6: under 2 min).
+"""Benchmark: building the environment map of a 5-minute office drive (target: under 2 min).
 
 Simulates the office zig-zag mapping drive with the Kinect (``kinect_sim``; about
 287 s of driving, 862 frames at 3 Hz, 320x240) unless ``--run`` names an existing

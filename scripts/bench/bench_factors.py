@@ -36,6 +36,13 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import A, C, L, X
 
+from lampsam.factors.axis_factors import (
+    AxisObservation,
+    axis_anchor_prior,
+    lamp_axis_between_factor,
+    lamp_axis_factor,
+    lamp_axis_frame_factor,
+)
 from lampsam.factors.ceiling import (
     HeightPrior,
     init_point_from_observation,
@@ -44,19 +51,16 @@ from lampsam.factors.ceiling import (
     project_point,
 )
 from lampsam.factors.gtsam_factors import (
-    AxisObservation,
-    InverseDepthObservation,
-    axis_anchor_prior,
     height_prior_factor,
-    inverse_depth_factor,
-    inverse_depth_first_sight_prior,
-    inverse_depth_frame_factor,
-    lamp_axis_between_factor,
-    lamp_axis_factor,
-    lamp_axis_frame_factor,
     noise_model,
     odometry_factor,
     projection_factor,
+)
+from lampsam.factors.inverse_depth_factors import (
+    InverseDepthObservation,
+    inverse_depth_factor,
+    inverse_depth_first_sight_prior,
+    inverse_depth_frame_factor,
 )
 from lampsam.factors.motion import accumulate_odometry
 
@@ -325,7 +329,7 @@ def main() -> None:
         _odometry(g_frame, poses)
         anchor: dict[int, int] = {}
         for i, p in enumerate(poses):
-            frame_obs = []
+            frame_obs: list[InverseDepthObservation] = []
             for j in (int(v) for v in vis[i]):
                 m = project_point(p, lms[j], OFFSET)[0]
                 if j not in anchor:
@@ -358,12 +362,12 @@ def main() -> None:
         _odometry(g_obs, poses)
         _odometry(g_frame, poses)
         for i, p in enumerate(poses):
-            frame_obs = []
+            frame_axis: list[AxisObservation] = []
             for j in (int(v) for v in vis[i]):
                 alpha = phis[j] - p[2]
                 g_obs.add(lamp_axis_factor(X(i), A(j), alpha, 0.02))
-                frame_obs.append(AxisObservation(A(j), alpha, 0.02))
-            g_frame.add(lamp_axis_frame_factor(X(i), frame_obs))
+                frame_axis.append(AxisObservation(A(j), alpha, 0.02))
+            g_frame.add(lamp_axis_frame_factor(X(i), frame_axis))
         values_p = gtsam.Values(base)  # A(j) as a Pose2 for the built-in form
         g_between = gtsam.NonlinearFactorGraph()
         _odometry(g_between, poses)

@@ -1,4 +1,4 @@
-"""Speed-up of ``lampsam batch`` on Dask from 1 to 2 (or more) workers (issue 19).
+"""Speed-up of ``lampsam batch`` on Dask from 1 to 2 (or more) workers.
 
 Usage::
 
@@ -38,6 +38,7 @@ import numpy as np
 
 from lampsam.evaluation.batch import BatchJob, BatchResult, batch_job, folder_names
 from lampsam.evaluation.fleet import dask_client, run_dask
+from lampsam.safe_io import write_text_atomic
 
 
 def _failed(job: BatchJob, reason: str) -> BatchResult:
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{c:7d} {med:9.1f} {mn:7.1f} {su_med:18.2f} {su_min:15.2f}")
     print(f"load average {load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} cores "
           "(other processes share the cores: speed-ups are then below what idle cores give)")
-    (out / "fleet.json").write_text(json.dumps(
+    write_text_atomic(out / "fleet.json", json.dumps(
         {"runs": args.runs, "backend": args.backend, "load_average": [load0, load1],
          "cpu_count": os.cpu_count(), "rows": rows}, indent=2))
     return 0 if all(s == "ok" for r in rows for s in r["statuses"]) else 1

@@ -1,4 +1,4 @@
-"""Benchmark: the ceiling frontend on one 320x240 frame (issue 3: lamps + corners < 3 ms).
+"""Benchmark: the ceiling frontend on one 320x240 frame (target: lamps + corners < 3 ms).
 
 Frames: a frame of the simulated ``lab`` world (rendered here, 2 s of driving,
 in-process; the issue's case) and, when the shared data is present, a real
@@ -48,7 +48,7 @@ from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import detect_lamps
 from lampsam.frontend.pipeline import process_image
 
-TARGET_MS = 3.0  # issue 3: lamps + corners on a 320x240 frame
+TARGET_MS = 3.0  # target: lamps + corners on a 320x240 frame
 
 
 def _run(cases: list[Callable[[], object]], repeats: int) -> tuple[list[float], list[float]]:

@@ -1,6 +1,6 @@
 """Benchmark: one particle-filter measurement update, 10,000 particles x 360 beams.
 
-Compares the three ways to score a scan (issue 7, step 2; target < 50 ms):
+Compares the three ways to score a scan (target < 50 ms):
 the likelihood field (nearest cell and bilinear), the precomputed range table,
 and ray marching (sphere tracing) every update. The map is a synthetic
 10 m x 10 m office at 5 cm cells (the paper's room size), built with a fixed

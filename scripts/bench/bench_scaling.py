@@ -1,4 +1,4 @@
-"""Scaling of the EKF and iSAM2 backends: time per update against map size (issue 5).
+"""Scaling of the EKF and iSAM2 backends: time per update against map size.
 
 Usage::
 
@@ -88,6 +88,7 @@ from lampsam.errors import LampsamError
 from lampsam.evaluation.scaling_plots import ScalingSeries, fit_series, plot_scaling
 from lampsam.factors.geometry import wrap_angle
 from lampsam.factors.motion import diff_drive_step
+from lampsam.safe_io import atomic_path, write_text_atomic
 
 log = logging.getLogger("bench_scaling")
 
@@ -529,7 +530,8 @@ def save_figure(series: list[ScalingSeries], path: Path, clock: str) -> None:
     what = "CPU (process) time" if clock == "cpu" else "wall-clock time"
     ax.set_ylabel(f"{what} per update [ms]")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
 
 
@@ -615,7 +617,7 @@ def main(argv: list[str] | None = None) -> int:
         "target": target,
         "rows": rows,
     }
-    (out / "scaling.json").write_text(json.dumps(doc, indent=2))
+    write_text_atomic(out / "scaling.json", json.dumps(doc, indent=2))
     if series:
         save_figure(series, out / "scaling.png", args.clock)
     print(f"\nwrote {out / 'scaling.json'} and {out / 'scaling.png'} ({elapsed:.0f} s; "

@@ -3,7 +3,7 @@
 Prints medians of several repetitions and, as the reference measured in the same
 process, one full-grid bilinear ``cv2.remap`` of the supersampled ray grid (the
 lower bound of a frame: the renderer does that for the ceiling plus small windows
-for lamps and low surfaces). The target of issue 2 is a 3-minute lab run at
+for lamps and low surfaces). The target is a 3-minute lab run at
 15 images/s (2,700 frames) in under a minute on a 2-core machine.
 
     .venv/bin/python scripts/bench/bench_simulator.py [--full] [--repeats N]
@@ -24,9 +24,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from lampsam.datasets.render_ceiling import CeilingRenderer, occluders, project_landmarks
+from lampsam.datasets.ceiling_truth import occluders, project_landmarks
+from lampsam.datasets.render_ceiling import CeilingRenderer
 from lampsam.datasets.simulator import simulate_trajectory, simulate_world
-from lampsam.datasets.world import load_world, world_landmarks
+from lampsam.datasets.world import load_world
+from lampsam.datasets.world_landmarks import world_landmarks
 
 
 def _median_ms(fn, poses: np.ndarray, repeats: int) -> tuple[float, float]:

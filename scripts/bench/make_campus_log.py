@@ -21,6 +21,7 @@ import numpy as np
 from lampsam.datasets.carmen import carmen_beam_angles
 from lampsam.localization.grid import OccupancyGrid, free_mask
 from lampsam.localization.raycast import cast_rays
+from lampsam.safe_io import atomic_path
 
 SIZE, RES, BLOCK, STREET = 140.0, 0.1, 20.0, 6.0
 
@@ -68,7 +69,7 @@ def main() -> None:
     angles = carmen_beam_angles(180)
     ranges = cast_rays(grid, poses, angles, 30.0)
     ranges = np.where(ranges >= 30.0 - 1e-6, 81.83, ranges + rng.normal(0, 0.01, ranges.shape))
-    with open(args.out, "w", encoding="utf-8") as fh:
+    with atomic_path(args.out) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         for k, (p, r) in enumerate(zip(poses, ranges, strict=True)):
             ts = 1000.0 + 0.5 * k
             fh.write(f"FLASER 180 {' '.join(f'{v:.3f}' for v in r)} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} "

@@ -1,0 +1,245 @@
+"""Run localize-only tracking over a logged run, and save the map of a SLAM run (issue 20).
+
+- :func:`run_localize_only`: ``lampsam slam RUN2 --map MAP --localize-only``: the
+  run's ceiling frames and odometry through :class:`lampsam.backend.localize_only.MapLocalizer`
+  from a start pose (the run's known start, ``--start X,Y,THETA``, or a global
+  localizer's ``result.json``), the results written as :func:`lampsam.backend.slam.write_results`
+  writes a SLAM run's (``landmarks.csv`` is the map, unchanged).
+- :func:`save_map`: ``lampsam slam RUN --save-map MAP``: the finished SLAM result's
+  landmarks, the backend's corner patches and the run's rig as a ceiling map folder
+  (:mod:`lampsam.backend.ceiling_map_io`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_map_io import CeilingMap, corner_patches, map_from_estimates, write_map
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.interface import Frame, SlamBackend, SlamResult
+from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
+from lampsam.backend.slam import (
+    drive,
+    iter_steps,
+    make_frames,
+    start_pose_of,
+    summary,
+    write_results,
+)
+from lampsam.datasets.logrun import LoggedRun
+from lampsam.datasets.odometry import Pose2OdometryLog, Pose2OdometryModel
+from lampsam.errors import DatasetError, EstimationError, InputError
+from lampsam.observe import Observer
+
+log = logging.getLogger(__name__)
+
+Step = tuple[float, FloatArray, Frame | None]
+
+
+@dataclass(frozen=True)
+class Start:
+    """Where localize-only tracking starts.
+
+    Attributes:
+        pose: (3,) ``world_T_body`` in the map's frame, m and rad.
+        cov: (3, 3) its covariance, or None (:class:`LocalizeConfig`'s sigmas).
+        t: run time of the pose, s; steps up to it are skipped (None: the run's start).
+        source: what the start is, for ``summary.json``.
+    """
+
+    pose: FloatArray
+    cov: FloatArray | None = None
+    t: float | None = None
+    source: str = "the run's known start pose"
+
+
+def parse_start(text: str) -> Start:
+    """``X,Y,THETA`` (m, m, rad) as a :class:`Start` at the run's first step.
+
+    Raises:
+        InputError: not three finite numbers.
+    """
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
+        raise InputError(f"--start {text!r}: expected X,Y,THETA (m, m, rad), three numbers")
+    return Start(np.array(vals), source=f"--start {text}")
+
+
+def start_from_result(path: str | Path) -> Start:
+    """The pose of a ``lampsam localize`` answer (``result.json``) as a :class:`Start`.
+
+    Uses ``pose``, ``covariance`` and, when present, ``trial.t`` (the run time of
+    the answer: tracking starts there).
+
+    Raises:
+        DatasetError: missing file, bad JSON, a missing key, or an answer that is not
+            ``localized``.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise DatasetError("missing: the result.json of `lampsam localize`", path) from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"not readable JSON: {exc}", path) from None
+    if not isinstance(doc, dict):
+        raise DatasetError("must be a JSON object (result.json of `lampsam localize`)", path)
+    for key in ("status", "pose", "covariance"):
+        if key not in doc:
+            raise DatasetError(f"missing key {key!r}", path)
+    if doc["status"] != "localized":
+        raise DatasetError(f"key 'status' is {doc['status']!r}: the global localizer gave no pose "
+                           "to start from", path)
+    try:
+        pose = np.asarray(doc["pose"], float).reshape(3)
+        cov = np.asarray(doc["covariance"], float).reshape(3, 3)
+    except (TypeError, ValueError):
+        raise DatasetError("keys 'pose' (3 numbers) and 'covariance' (3 x 3) are malformed",
+                           path) from None
+    if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(cov))):
+        raise DatasetError("keys 'pose' and 'covariance' must be finite", path)
+    trial = doc.get("trial")
+    t = trial.get("t") if isinstance(trial, dict) else None
+    return Start(pose, cov, None if t is None else float(t), f"global localization {path}")
+
+
+def steps_after(steps: Iterable[Step], t0: float | None) -> Iterator[Step]:
+    """The steps strictly after ``t0`` (all when None): the start pose is at ``t0``."""
+    for step in steps:
+        if t0 is None or step[0] > t0 + 1e-9:
+            yield step
+
+
+def check_rig(cmap: CeilingMap, run: LoggedRun) -> None:
+    """Warn when the run's camera is not the one the map was made with."""
+    a, b = cmap.rig.camera, run.rig.camera
+    diffs = []
+    if (a.width, a.height) != (b.width, b.height):
+        diffs.append(f"image {b.width}x{b.height} (map {a.width}x{a.height})")
+    if np.max(np.abs(np.asarray(a.body_t_camera) - np.asarray(b.body_t_camera))) > 0.01:
+        diffs.append(f"body_t_camera {list(b.body_t_camera)} (map {list(a.body_t_camera)})")
+    if diffs:
+        log.warning("%s: the run's camera differs from the map's: %s; the run's is used",
+                    run.path, "; ".join(diffs))
+
+
+def run_localize_only(run: LoggedRun, cmap: CeilingMap, out: str | Path | None = None,
+                      config: SlamConfig | None = None, frames: str = "auto",
+                      start: Start | None = None, loc: LocalizeConfig | None = None,
+                      max_dt: float = 0.5,
+                      frame_list: list[Frame] | None = None) -> SlamResult:
+    """Track a run against a fixed ceiling map and write the results.
+
+    Args:
+        run: the run (its rig gives the camera; its truth, if any, the errors).
+        cmap: the map (:func:`lampsam.backend.ceiling_map_io.read_map`).
+        out: output directory (``trajectory.tum``, ``landmarks.csv`` = the map,
+            ``summary.json`` with ``localize_only`` counts); None writes nothing.
+        config: the SLAM config (gate, features, measurement noise).
+        frames: frame source (:func:`lampsam.backend.slam.make_frames`; ceiling only).
+        start: the start; None: the run's known start pose.
+        loc: localize-only settings.
+        max_dt: longest interval without a step, s.
+        frame_list: already made frames (to share one frontend pass), else made here.
+
+    Raises:
+        EstimationError: a run without ceiling frames, or a failed run.
+    """
+    config = config or SlamConfig()
+    if frame_list is None:
+        made, is_ceiling = make_frames(run, frames)
+        if not is_ceiling:
+            raise EstimationError(f"{run.path}: localize-only needs ceiling frames (images or "
+                                  "truth projections), not range-bearing ones")
+        frame_list = list(made)
+    check_rig(cmap, run)
+    start = start or Start(start_pose_of(run))
+    odo = (Pose2OdometryModel() if isinstance(run.odometry, Pose2OdometryLog)
+           else run.rig.odometry)
+    backend = MapLocalizer(odo, config, start.pose, cmap, CeilingModel.from_camera(run.rig.camera),
+                           loc, start.cov)
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    result = drive(backend, steps_after(iter_steps(run.odometry, frame_list, max_dt), start.t))
+    result.extra["total_time_s"] = time.perf_counter() - t0
+    result.extra["total_cpu_s"] = time.process_time() - c0
+    if out is not None:
+        write_results(Path(out), result, run)
+        _add_to_summary(Path(out), {"localize_only": {
+            "start": start.source, "start_pose": [float(v) for v in start.pose],
+            "start_time_s": start.t, "map_source": cmap.source}})
+    if result.status.startswith("failed"):
+        raise EstimationError(f"localize-only on {run.path}: {result.status}")
+    return result
+
+
+def _add_to_summary(out: Path, extra: dict[str, object]) -> None:
+    from lampsam.safe_io import write_json_atomic
+
+    path = out / "summary.json"
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    doc.update(extra)
+    write_json_atomic(path, doc)
+
+
+def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
+             backend: SlamBackend | None = None) -> CeilingMap:
+    """Write a SLAM result's map (with the backend's corner patches) as a ceiling map.
+
+    Args:
+        folder: the map folder (created; files replaced atomically).
+        result: the finished SLAM result.
+        run: the mapping run (its rig is stored with the map).
+        backend: the finished backend (for corner patches), or None (no patches).
+
+    Returns:
+        The map written.
+    """
+    s = summary(result, run.groundtruth)
+    source = {"run": str(run.path), "backend": result.backend, "status": result.status,
+              "steps": int(len(result.times)),
+              "landmarks_seen_once_not_saved": len(result.provisional)}
+    if "error" in s:
+        source["position_rms_m"] = float(s["error"]["position_rms_m"])
+    cmap = map_from_estimates(result.landmarks, run.rig,
+                              corner_patches(backend) if backend is not None else None, source)
+    write_map(folder, cmap)
+    log.info("ceiling map written to %s: %d lamps, %d corners", folder,
+             len(cmap.by_kind("lamp")), len(cmap.by_kind("corner")))
+    return cmap
+
+
+class BackendCapture:
+    """An observer (:mod:`lampsam.observe`) that keeps the backend of ``slam.step`` events.
+
+    :func:`lampsam.backend.slam.run_slam` returns the result, not the backend whose
+    corner patches :func:`save_map` needs; this observer remembers it and passes
+    every event on to ``inner`` (a live view), if any.
+    """
+
+    def __init__(self, inner: Observer | None = None) -> None:
+        self.inner = inner
+        self.backend: SlamBackend | None = None
+
+    def __call__(self, event: str, fields: Mapping[str, Any]) -> None:
+        """Remember the backend; forward the event."""
+        if event == "slam.step" and self.backend is None:
+            backend = fields.get("backend")
+            if isinstance(backend, SlamBackend):
+                self.backend = backend
+        if self.inner is not None:
+            self.inner(event, fields)
