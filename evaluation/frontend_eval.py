@@ -231,9 +231,8 @@ def evaluate_frames(
         tpx = truth.pixel[full_idx]
         ang = np.nan_to_num(truth.angle_px[full_idx])
         half = 0.5 * np.column_stack([np.cos(ang), np.sin(ang)])
-        tm = np.asarray(
-            camera.normalized_from_pixels(np.concatenate([tpx, tpx + half, tpx - half]))
-        ).reshape(3, -1, 2)
+        tm = camera.normalized_from_pixels(np.concatenate([tpx, tpx + half, tpx - half]))
+        tm = np.asarray(tm).reshape(3, -1, 2)
         for k, (t_i, d_i, j_i) in enumerate(zip(full_idx, d, j, strict=True)):
             if d_i > settings.gate_px:
                 continue
@@ -292,12 +291,10 @@ def evaluate_frames(
         res.axis_rms_deg = float(np.sqrt(np.mean(a * a)))
         res.axis_max_deg = float(a.max())
     if m_err:
-        e = np.array(m_err)
-        res.m_rms, res.m_max = float(np.sqrt(np.mean(e * e))), float(e.max())
+        res.m_rms, res.m_max = float(np.sqrt(np.mean(np.square(m_err)))), max(m_err)
     if ax_m_err:
-        a = np.degrees(np.array(ax_m_err))
-        res.n_axis_m = int(a.size)
-        res.axis_m_rms_deg = float(np.sqrt(np.mean(a * a)))
+        res.n_axis_m = len(ax_m_err)
+        res.axis_m_rms_deg = float(np.degrees(np.sqrt(np.mean(np.square(ax_m_err)))))
     if n_corners:
         res.n_corners_mean = float(np.mean(n_corners))
         total = int(np.sum(n_corners))

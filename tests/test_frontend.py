@@ -326,6 +326,7 @@ def test_targets_on_rendered_sequence(rng: np.random.Generator) -> None:
     assert res.n_false == 0
     assert res.centroid_rms_px <= 0.3
     assert res.n_axis >= 10 and res.axis_rms_deg <= 0.5
+    assert res.m_rms <= 0.3 / CameraModel().fx and res.n_axis_m >= 10 and res.axis_m_rms_deg <= 0.5
     assert res.corner_repeatability >= 0.6
     assert res.ncc_precision >= 0.95
 

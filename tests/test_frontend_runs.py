@@ -40,6 +40,8 @@ def test_targets_on_simulated_lab_run(lab_run: Path) -> None:
     assert res.n_false == 0
     assert res.centroid_rms_px <= 0.3
     assert res.n_axis >= 20 and res.axis_rms_deg <= 0.5
+    # The same on the ceiling (upward pinhole: m = pixel / f, axes mirrored but equal errors).
+    assert res.m_rms <= 0.3 / 92.376 and res.n_axis_m >= 20 and res.axis_m_rms_deg <= 0.5
     assert res.corner_repeatability >= 0.7
     assert res.ncc_precision >= 0.97
     assert (lab_run / "fe.json").is_file()

@@ -59,7 +59,7 @@ def test_lamps_seen_by_a_tilted_camera_are_found_where_the_truth_projects_them()
     assert max(errs) < 3.0  # every fully visible lamp found within 3 px of its projected centre
 
 
-def test_perspective_terms_move_the_centroid_to_the_lamp_centre() -> None:
+def test_tilted_lamp_centre_taken_on_the_ceiling() -> None:
     """Tilted camera: the observation of a rendered lamp agrees with the measurement model at truth."""
     from lampsam.factors.ceiling import project_point
 
@@ -82,5 +82,5 @@ def test_perspective_terms_move_the_centroid_to_the_lamp_centre() -> None:
             errs.append(min(float(np.hypot(*(lo.m - q))) for q in preds))
     matched = [e for e in errs if e < 0.05]  # (a blob near no lamp, e.g. a cut lamp, is left out)
     assert len(matched) >= 8
-    # 1 px is about 0.011 in m here; without the perspective terms the RMS was ~0.01
+    # 1 px is about 0.011 in m here; with pixel moments mapped at the centroid the RMS was ~0.01
     assert math.sqrt(np.mean(np.square(matched))) < 0.004

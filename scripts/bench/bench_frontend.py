@@ -1,7 +1,9 @@
 """Benchmark: the ceiling frontend on one 320x240 frame (target: lamps + corners < 3 ms).
 
 Frames: a frame of the simulated ``lab`` world (rendered here, 2 s of driving,
-in-process; the issue's case) and, when the shared data is present, a real
+in-process; the issue's case), the same through the 150 deg fisheye of
+``lab_fisheye`` (lamp moments taken on the ceiling: :mod:`lampsam.frontend.ceiling_grid`)
+and, when the shared data is present, a real
 ceiling photo reduced to 320x240 (for information: 10 lamps, 125 corners, 29
 candidate blobs and glare checks, about 2.5 times the lab frame's work). Cases:
 
@@ -67,13 +69,13 @@ def _run(cases: list[Callable[[], object]], repeats: int) -> tuple[list[float], 
     )
 
 
-def _lab_frame() -> tuple[ImageU8, CameraModel]:
-    """A mid-run frame of the simulated lab world and its camera."""
+def _lab_frame(world: str = "lab") -> tuple[ImageU8, CameraModel]:
+    """A mid-run frame of a simulated lab world (``lab``, ``lab_fisheye``) and its camera."""
     from lampsam.datasets.logrun import read_run
     from lampsam.datasets.simulator import simulate_world
 
     with tempfile.TemporaryDirectory() as tmp:
-        simulate_world("lab", Path(tmp) / "lab", seed=0, duration=2.0, workers=1)
+        simulate_world(world, Path(tmp) / "lab", seed=0, duration=2.0, workers=1)
         run = read_run(Path(tmp) / "lab")
         assert run.images is not None
         return run.images.load(len(run.images) // 2), run.rig.camera
@@ -157,6 +159,8 @@ def main() -> None:
     print("load average (1, 5, 15 min) before: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
     img, camera = _lab_frame()
     bench("simulated lab frame 320x240", img, camera, args.runs, args.repeats)
+    img, camera = _lab_frame("lab_fisheye")
+    bench("simulated lab_fisheye frame 320x240 (150 deg)", img, camera, args.runs, args.repeats)
     photo = _photo_frame()
     if photo is not None:
         bench(
