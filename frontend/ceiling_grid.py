@@ -1,4 +1,4 @@
-"""Blob moments taken on the ceiling: a per-pixel table of ``m`` for lenses that bend lamps (issue 16).
+"""Blob moments taken on the ceiling: a per-pixel table of ``m`` for lenses that bend lamps (fisheye).
 
 A lamp's face is flat and horizontal, so in normalised ceiling coordinates
 ``m`` (docs/conventions.md: forward and left per metre of height) its image
