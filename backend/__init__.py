@@ -17,6 +17,7 @@ Modules:
 * :mod:`~lampsam.backend.association` -- Data association shared by the EKF, iSAM2 and batch backends (paper 1, eqs. 19-20).
 * :mod:`~lampsam.backend.ceiling` -- The upward-camera observation model as the backends use it (wraps :mod:`lampsam.factors.ceiling`).
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
+* :mod:`~lampsam.backend.ceiling_map_io` -- The saved ceiling map: write it once after mapping, read it back every day.
 * :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
 * :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
 * :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
@@ -29,8 +30,11 @@ Modules:
 * :mod:`~lampsam.backend.isam2_update` -- iSAM2 updates of a factor-graph backend, and recovery from a failed one.
 * :mod:`~lampsam.backend.keyframes` -- Keyframe policy of the factor-graph backends.
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
+* :mod:`~lampsam.backend.localize_only` -- Localize-only tracking against a saved ceiling map: the map is used, never grown.
+* :mod:`~lampsam.backend.localize_run` -- Run localize-only tracking over a logged run, and save the map of a SLAM run.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
 * :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.
+* :mod:`~lampsam.backend.planar_gate` -- Vectorised gate of range-bearing observations against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
 * :mod:`~lampsam.backend.stereo` -- Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.

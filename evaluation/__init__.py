@@ -28,7 +28,7 @@ Modules:
 * :mod:`~lampsam.evaluation.outputs` -- Output directories of the evaluation jobs: created up front, failures named.
 * :mod:`~lampsam.evaluation.photo_eval` -- The lamp detector measured against hand labels of real photos (``lampsam frontend-eval --photos``).
 * :mod:`~lampsam.evaluation.photo_labels` -- Hand labels of real ceiling photos: the file format, its reader, and the labelling tool.
-* :mod:`~lampsam.evaluation.scaling_plots` -- Cost-versus-map-size scaling: a power-law fit and its log-log figure (issue 5, "Scaling").
+* :mod:`~lampsam.evaluation.scaling_plots` -- Cost-versus-map-size scaling: a power-law fit and its log-log figure.
 * :mod:`~lampsam.evaluation.slam_report` -- SLAM reports: map + path plot against ground truth, and comparison tables.
 * :mod:`~lampsam.evaluation.stereo_experiment` -- The stereo two-point experiment of paper 3 (Figs. 3-5): seeds x scenarios x estimators.
 * :mod:`~lampsam.evaluation.stereo_report` -- Stereo two-point relative pose: errors, tables, figures (paper 3, Figs. 3-5), run outputs.

@@ -13,12 +13,13 @@ Modules:
 
 * :mod:`~lampsam.frontend.blob_moments` -- Coverage-weighted moments of lamp blobs, with their uncertainty (paper 1, eqs. 2-7).
 * :mod:`~lampsam.frontend.ceiling_coords` -- Pixel measurements of lamps -> normalised ceiling coordinates (docs/conventions.md).
+* :mod:`~lampsam.frontend.ceiling_grid` -- Blob moments taken on the ceiling: a per-pixel table of ``m`` for lenses that bend lamps (fisheye).
 * :mod:`~lampsam.frontend.corners` -- FAST corners on the ceiling and normalised cross-correlation (NCC) matching.
 * :mod:`~lampsam.frontend.dilation` -- Dilation by an elliptic disk, done as a chain of cheaper footprints.
 * :mod:`~lampsam.frontend.glare` -- Separating lamps that a saturated glare halo has merged into one blob.
 * :mod:`~lampsam.frontend.label_stats` -- Connected-component labelling and per-label statistics over pixel lists.
 * :mod:`~lampsam.frontend.lamp_config` -- Settings of the ceiling-lamp detector (paper 1, eqs. 1-7; DESIGN.md sec. 1).
-* :mod:`~lampsam.frontend.lamp_models` -- Lamp size against the lamp models a ceiling is known to carry (issue 20: daylight is not a lamp).
+* :mod:`~lampsam.frontend.lamp_models` -- Lamp size against the lamp models a ceiling is known to carry, so that daylight is not taken for a lamp.
 * :mod:`~lampsam.frontend.lamps` -- Ceiling-lamp detection on one grey image: the stages of paper 1, eqs. 1-7, in order.
 * :mod:`~lampsam.frontend.measurements` -- Frozen measurement dataclasses: what the frontend hands to the backends.
 * :mod:`~lampsam.frontend.pipeline` -- The ceiling frontend: one grey image in, one :class:`CeilingFrame` out.

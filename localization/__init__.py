@@ -18,6 +18,7 @@ Modules:
 * :mod:`~lampsam.localization.alignment` -- SVD alignment of matched 3-D points, with RANSAC over the correspondences.
 * :mod:`~lampsam.localization.candidates` -- Pose candidates from SIFT matches to the spatial feature map (paper 2, sec. 3).
 * :mod:`~lampsam.localization.ceiling_map` -- The ceiling feature map: lamps and corners of the ceiling SLAM (paper 2, sec. 2.2).
+* :mod:`~lampsam.localization.correlative` -- Global scan matching over a whole grid map by branch and bound.
 * :mod:`~lampsam.localization.depth_grid` -- Grid map and spatial feature map from RGB-D frames (paper 2, sec. 2.1-2.2).
 * :mod:`~lampsam.localization.filter_config` -- Settings of the global localizer: the Table-1 configuration and each stage's options.
 * :mod:`~lampsam.localization.grid` -- Log-odds occupancy grids and ROS map_server files.

@@ -11,13 +11,13 @@ CPU time recorded) and fed to every backend with features lamps+corners, corners
 and lamps only. Printed: position/heading error (no alignment, known start), then
 timings in process CPU time (``time.process_time``, which a loaded machine inflates
 far less than wall clock): per step and per keyframe median / p95 / max, iSAM2
-update and estimate (wall), the final optimisation and whole run, and issue 19's
+update and estimate (wall), the final optimisation and whole run, and the speed targets'
 figures: the online run and the whole pipeline (the frontend on each image plus the
 backend step that uses it) as multiples of real time (data duration / CPU time), the
 pipeline's per-frame median / p95 / max, and each as a ratio to its target (10x real
 time, 15 ms p95). Timings are medians over ``--repeats`` runs; ``kf_cpu_ratio_vs_ekf``
 divides by the EKF's per-keyframe median measured in the same run (reference). The
-issue 19 measurement, one command::
+The speed targets' measurement, one command::
 
     python scripts/bench/bench_backends.py --lab RUN_DIR --backends isam2,ekf \
         --features lamps+corners --repeats 3
@@ -55,8 +55,8 @@ from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.evaluation.slam_report import markdown_table
 
 BACKENDS = ("ekf", "isam2", "batch")
-TARGET_X_REALTIME = 10.0  # issue 19: online at >= 10x real time
-TARGET_P95_MS = 15.0  # issue 19: p95 per frame <= 15 ms
+TARGET_X_REALTIME = 10.0  # target: online at >= 10x real time
+TARGET_P95_MS = 15.0  # target: p95 per frame <= 15 ms
 FEATURES = {"lamps+corners": ("lamps", "corners"), "corners": ("corners",), "lamps": ("lamps",)}
 
 
@@ -142,7 +142,7 @@ def median_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def pipeline_figures(row: dict[str, Any], run: LoggedRun, frames: list[Any],
                      frontend_ms: FloatArray, duration: float) -> dict[str, float]:
-    """Issue 19's figures for one backend row: x real time and per-frame CPU, with the frontend.
+    """The speed targets' figures for one backend row: x real time and per-frame CPU, with the frontend.
 
     A frame's pipeline time is its frontend time plus the backend step that consumed
     it (steps without a frame, odometry only, count for the backend alone).
@@ -219,7 +219,7 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
                                  "update_p95_ms", "estimate_median_ms", "final_s", "total_s",
                                  "cpu_s"]))
     print()
-    print("issue 19 figures (x real time = data duration / CPU time; pipeline = the frontend "
+    print("speed targets (x real time = data duration / CPU time; pipeline = the frontend "
           "on each image + the backend step that uses it):")
     print(markdown_table(first, ["backend", "online_cpu_s", "online_x_realtime",
                                  "x_rt_vs_target", "pipeline_x_realtime", "pipe_x_rt_vs_target",

@@ -4,7 +4,7 @@ Usage::
 
     python scripts/bench/bench_fleet.py RUN [RUN ...] [--workers 1,2] [--repeats 2]
         [--backend batch] [--out out/bench_fleet]
-    python scripts/bench/bench_fleet.py --simulate 4 [--duration 30]   # issue 19, one command
+    python scripts/bench/bench_fleet.py --simulate 4 [--duration 30]   # one command: the 1- vs 2-worker speed-up
 
 ``--simulate N``: without run directories, N lab runs (seeds 0..N-1, ``--duration``
 seconds each) are simulated once into ``OUT/runs`` (reused when present) and make
