@@ -178,12 +178,46 @@ class EkfConfig:
             EKF's mean position RMS was 17.3 mm with every corner and 12.4 mm with
             the 10-corner budget; ``lampsam compare``
             reports the paper's EKF unless this is set.
+        update_iterations: Gauss-Newton iterations of the measurement update
+            (default 1: the paper's EKF, eqs. 21-23, linearised once at the
+            prediction). Above 1, the iterated EKF (Bell & Cathey 1993): ``h`` and
+            ``H`` are re-evaluated at the updated state until the step changes by less
+            than ``update_tol``; ``P`` is corrected once, with the last ``H``.
+        first_estimate_jacobians: the first-estimates Jacobian EKF (Huang, Mourikis
+            & Roumeliotis, IJRR 29(5) 2010) instead of the paper's Jacobians at the
+            latest estimate. True / False force it; None (default) turns it on for
+            runs without a ceiling model (planar range-bearing landmarks, where the
+            paper does not speak) and off for the ceiling (the paper's EKF).
+            Measurement Jacobians use each landmark's first estimate (at its
+            initialisation) and the predicted pose; the prediction Jacobian's heading
+            column uses the pose predicted at the previous step, ``p_{k+1|k} -
+            p_{k|k-1}``, not the updated one. Linearising at changing points gives
+            the filter heading information the data do not hold (an overconfident,
+            drifting heading on long outdoor loops); first estimates keep the
+            unobservable directions unobservable. Innovations still use the latest
+            estimate.
+        update_tol: convergence threshold of the iterated update on the largest
+            change of any state entry between iterations, m or rad (default 1e-4).
+        confirm_sightings: without ids, a planar landmark enters the state after this
+            many unassociated sightings fused in a tentative list
+            (:class:`lampsam.backend.association.TentativeLandmarks`); default 1:
+            at once, the paper's rule (eqs. 24-25 at the first sighting).
+        tentative_max_idle: steps after which an unconfirmed tentative landmark is
+            forgotten (default 100).
+        new_min_separation: a confirmed tentative landmark within this distance of a
+            mapped planar landmark is discarded as a copy, m (default 0: off).
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
     sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
     var_floor: float = field(default=1e-10, metadata=limits(ge=0.0))
     corner_budget: bool = False
+    update_iterations: int = field(default=1, metadata=limits(ge=1))
+    update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
+    first_estimate_jacobians: bool | None = None
+    confirm_sightings: int = field(default=1, metadata=limits(ge=1))
+    tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
+    new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

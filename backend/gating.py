@@ -18,14 +18,13 @@ from collections.abc import Iterable
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
+from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
-from lampsam.backend.pose_cov import compose_cov, pose_array
 
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 RELATIVE_GATE_KEYFRAMES = 30
@@ -114,6 +113,60 @@ class Gating(GraphState):
         self._joint_cache[lm.id] = out
         return out
 
+    def _prefetch_joint(self, k: int, obs: list[Obs],
+                        screened: dict[int, dict[int, tuple[float, bool]]]) -> int:
+        """Joint marginals of every lamp the gate will ask about, in one Bayes-tree query.
+
+        :func:`~lampsam.backend.association.associate` asks :meth:`_innovation` for the
+        exact eq.-19 distance of each screened pair that is inside the gate but not
+        final (a lamp with an axis, or an ambiguous one). Each such landmark needs the
+        joint marginal of ``(X(k), landmark)``; one ``jointMarginalCovariance`` over
+        ``X(k)`` and all of them gives the same blocks (a marginal of a Gaussian is a
+        sub-block of any larger joint marginal) for one pass over the Bayes tree's
+        path to the root instead of one pass per landmark. Fills the per-keyframe
+        cache of :meth:`_joint_cov`; on a GTSAM error it leaves the cache alone (the
+        per-landmark calls then run as before).
+
+        Args:
+            k: the last keyframe in iSAM2 (the gate's pose variable).
+            obs: the frame's observations; screened: :meth:`_screen`'s pre-screen.
+
+        Returns:
+            The number of landmarks whose blocks were cached.
+        """
+        if self.isam is None:
+            return 0
+        cfg = self.config.association
+        lids: list[int] = []
+        seen: set[int] = set()
+        for i, pairs in screened.items():
+            gate = cfg.gate(len(obs[i].z))
+            for lid, (d2, exact) in pairs.items():
+                if (not exact and d2 < gate and lid not in seen and lid not in self._joint_cache
+                        and lid in self._landmarks and self._landmarks[lid].in_graph):
+                    seen.add(lid)
+                    lids.append(lid)
+        if len(lids) < 2:  # a single landmark: _joint_cov's own query is the same call
+            return 0
+        keys = [X(k)]
+        spans: list[tuple[int, list[int]]] = []
+        for lid in lids:
+            lm = self._landmarks[lid]
+            handler = self.handlers[lm.kind]
+            start = 3 * len(keys)  # Pose2, Point3 and the axis Pose2 are all 3-D tangents
+            keys.extend(handler.keys(lm))
+            spans.append((lid, [start + j for j in handler.state_index(lm)]))
+        try:
+            full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
+        except RuntimeError:
+            return 0
+        if full.shape != (3 * len(keys), 3 * len(keys)):
+            return 0
+        s_kk = full[:3, :3]
+        for lid, idx in spans:
+            self._joint_cache[lid] = (s_kk, full[np.ix_(np.r_[0:3], idx)], full[np.ix_(idx, idx)])
+        return len(spans)
+
     def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
                     obs: Obs) -> tuple[FloatArray, FloatArray] | None:
         """``(nu, Psi)`` (eq. 19) with the pose-landmark cross-covariance.
@@ -186,8 +239,7 @@ class Gating(GraphState):
             ceiling = self._require_ceiling()
             vis = ceiling.in_view_many(pose, pts)
             visible = [lms[j] for j in np.flatnonzero(vis)]
-            for lm in visible:
-                self._refresh_landmark(lm)
+            self._refresh_visible(visible)
             if not visible:
                 cands[kind] = []
                 continue
@@ -203,9 +255,10 @@ class Gating(GraphState):
             cov_x = np.empty((len(keep), 3, 3))
             for n, j in enumerate(keep):
                 lm = visible[j]
-                if lm.cov_rel is not None and lm.last_kf in rel:
+                rel_j = rel.get(lm.last_kf) if lm.cov_rel is not None else None
+                if rel_j is not None:
                     cov_l[n] = lm.cov_rel
-                    cov_x[n] = rel[lm.last_kf]
+                    cov_x[n] = rel_j
                 else:
                     cov_l[n] = lm.cov[:3, :3]
                     cov_x[n] = pose_cov
@@ -216,6 +269,28 @@ class Gating(GraphState):
                               exact=True)
             screened.update(self._mark_ambiguous(obs, sc))
         return cands, screened
+
+    def _refresh_visible(self, visible: list[GraphLandmark]) -> None:
+        """Refresh the cached states of the visible in-graph landmarks from iSAM2.
+
+        The same values as :meth:`~lampsam.backend.graph_state.GraphState._refresh_landmark`;
+        a point (every corner, a lamp without an axis) is read with one
+        ``calculateEstimatePoint3`` call instead of going through its handler (a
+        keyframe refreshes ~200 of them).
+        """
+        isam = self.isam
+        if isam is None:
+            return
+        for lm in visible:
+            if not lm.in_graph:
+                continue
+            if len(lm.state) == 3:
+                try:
+                    lm.state = np.asarray(isam.calculateEstimatePoint3(L(lm.id)), float)
+                    continue
+                except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
+                    pass
+            self._refresh_landmark(lm)
 
     def _screen_planar(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray,
                        lms: list[GraphLandmark]) -> dict[int, dict[int, tuple[float, bool]]]:
@@ -286,22 +361,30 @@ class Gating(GraphState):
     def _relative_covs(self) -> dict[int, FloatArray]:
         """Tangent covariance of the current keyframe relative to each recent keyframe.
 
-        Composes the odometry factors' covariances (eqs. 13-15, with their floor)
-        backwards from the current keyframe ``k`` over the last
-        :data:`RELATIVE_GATE_KEYFRAMES` keyframes: ``{j: cov(x_j^-1 x_k)}``. Cached
-        for the keyframe (the screen asks once per landmark kind).
+        ``{j: cov(x_j^-1 x_k)}`` for the current keyframe ``k`` and the last
+        :data:`RELATIVE_GATE_KEYFRAMES` keyframes before it, from the odometry
+        factors' covariances (eqs. 13-15, with their floor). Kept incrementally: a new
+        keyframe with odometry ``d_k`` (covariance ``C_k``) maps every entry through
+        :func:`~lampsam.backend.pose_cov.compose_cov`,
+        ``Sigma_j <- Ad(d_k^-1) Sigma_j Ad(d_k^-1)^T + C_k``, all at once
+        (:func:`propagate_relative`), instead of recomposing the whole window.
         """
         k = self._k
         if self._rel_cache is not None and self._rel_cache[0] == k:
             return self._rel_cache[1]
-        out: dict[int, FloatArray] = {k: np.zeros((3, 3))}
-        delta = np.zeros(3)
-        cov = np.zeros((3, 3))
-        for j in range(k - 1, max(k - RELATIVE_GATE_KEYFRAMES, 0) - 1, -1):
-            d_j, c_j = self._odo[j + 1]
-            cov = compose_cov(delta, c_j, cov)
-            delta = pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
-            out[j] = cov
+        lo = max(k - RELATIVE_GATE_KEYFRAMES, 0)
+        if self._rel_cache is None or not lo <= self._rel_cache[0] < k:
+            k_c, js, covs = lo, [lo], np.zeros((1, 3, 3))
+        else:
+            k_c, old = self._rel_cache
+            js = [j for j in old if j >= lo]
+            covs = np.array([old[j] for j in js])
+        for step in range(k_c + 1, k + 1):
+            d, c = self._odo[step]
+            covs = np.concatenate([propagate_relative(d, c, covs), np.zeros((1, 3, 3))])
+            js.append(step)
+        keep = [n for n, j in enumerate(js) if j >= lo]
+        out = {js[n]: covs[n] for n in keep}
         self._rel_cache = (k, out)
         return out
 
@@ -317,7 +400,9 @@ class Gating(GraphState):
         more, the exact distances (iSAM2 joint marginal with the pose-landmark cross
         term, :meth:`_joint_cov`) pick the winner. iSAM2's joint marginals cost
         several ms each on a graph dense with corners (17 ms on the lab run), so
-        this keeps them to the few ambiguous lamp observations.
+        this keeps them to the few ambiguous lamp observations. A lamp seen with its
+        axis always takes the exact gate (the screen has no axis row); deciding it by
+        a cheap three-row screen instead let biased sights in (docs/speed.md).
         """
         cfg = self.config.association
         out: dict[int, dict[int, tuple[float, bool]]] = {}
@@ -347,3 +432,21 @@ class Gating(GraphState):
         m, _, _, vis = self.ceiling.project_many(pose, pts)
         d = np.hypot(m[:, 0] - obs.z[0], m[:, 1] - obs.z[1])
         return bool(np.any(vis & (d < sep)))
+
+
+def propagate_relative(delta: FloatArray, cov_delta: FloatArray, covs: FloatArray) -> FloatArray:
+    """Relative covariances one keyframe on: ``Ad(d^-1) Sigma_j Ad(d^-1)^T + C`` for every ``j``.
+
+    :func:`~lampsam.backend.pose_cov.compose_cov` of ``x_j^-1 x_(k-1)`` with the
+    odometry ``d = x_(k-1)^-1 x_k``, vectorised over the window.
+
+    Args:
+        delta: (3,) odometry ``d`` (x, y, theta), m and rad.
+        cov_delta: (3, 3) its right-tangent covariance ``C``.
+        covs: (n, 3, 3) right-tangent covariances of ``x_j^-1 x_(k-1)``.
+
+    Returns:
+        (n, 3, 3) covariances of ``x_j^-1 x_k``.
+    """
+    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+    return np.einsum("ab,nbc,dc->nad", ad, covs, ad) + cov_delta
