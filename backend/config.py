@@ -116,6 +116,13 @@ class AssociationConfig:
             or more landmarks inside the relative gate (of
             :meth:`lampsam.backend.gating.Gating._screen_planar`) is dropped instead
             of given to the nearest (default False).
+        planar_relative_gate: without ids, gate range-bearing observations of
+            landmarks seen in the last 30 keyframes relative to their last sighting
+            (odometry covariance since then; final, no joint marginal) instead of
+            with iSAM2's joint marginal (default False: it trusts the odometry
+            noise, and on MRCLAM, whose odometry noise is assumed, it diverged).
+            ``gate_noise_scale`` also scales the landmark's measurement-only
+            covariance in this gate.
     """
 
     use_known_ids: bool = True
@@ -134,6 +141,7 @@ class AssociationConfig:
     gate_noise_scale: float = field(default=1.0, metadata=limits(gt=0.0, le=1.0))
     planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
     planar_reject_ambiguous: bool = False
+    planar_relative_gate: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -296,17 +296,21 @@ class Gating(GraphState):
                        lms: list[GraphLandmark]) -> dict[int, dict[int, tuple[float, bool]]]:
         """Range-bearing observations against every planar landmark at once (no ids).
 
-        A landmark last observed within :data:`RELATIVE_GATE_KEYFRAMES` keyframes is
-        gated relative to that keyframe: ``Psi = H_p C H_p^T + s (H_l Sigma_rel H_l^T
+        Every landmark is first screened with the pose and landmark marginals and no
+        cross term, doubled (``2 diag(P_xx, P_ll)`` bounds the joint covariance from
+        above, so a pair beyond the new-landmark threshold here is beyond it in eq. 19
+        too); the pairs left are decided by the joint marginal (:meth:`_innovation`),
+        exactly as without the screen. With ``association.planar_relative_gate``, a
+        landmark last observed within :data:`RELATIVE_GATE_KEYFRAMES` keyframes is
+        instead gated relative to that keyframe: ``Psi = H_p C H_p^T + s (H_l Sigma_rel H_l^T
         + R)`` with ``C`` the odometry covariance since then
         (:meth:`_relative_covs`), ``Sigma_rel`` its position covariance relative to
         the observing pose (measurement-only, eq. 25's ``G_z R G_z^T``) and ``s``
         ``association.gate_noise_scale``. The common uncertainty of the two poses
         cancels in a relative measurement, so this distance is final (the cross
-        term of eq. 19 stands in for it). Older landmarks get a screen with the
-        pose and landmark marginals and no cross term, doubled (``2 diag(P_xx,
-        P_ll)`` bounds the joint covariance from above), and pairs inside the gate
-        are decided by the joint marginal (:meth:`_innovation`).
+        term of eq. 19 stands in for it). It trusts the odometry model: on MRCLAM,
+        whose odometry noise is assumed and overconfident, it rejected true matches
+        (docs/graph-backend.md).
 
         Returns:
             For :func:`associate`'s ``screened``: obs index -> {landmark id: (d2, exact)}.
@@ -316,11 +320,14 @@ class Gating(GraphState):
             return {}
         scale = self.config.association.gate_noise_scale
         rel = self._relative_covs()
-        for lm in lms:
-            self._refresh_landmark(lm)
+        relative = self.config.association.planar_relative_gate
+        if relative:  # else the cached states, as :meth:`_innovation` predicts from them
+            for lm in lms:
+                self._refresh_landmark(lm)
         pts = np.array([lm.state[:2] for lm in lms], float)
         z_hat, h_p, h_l = range_bearing_many(pose, pts)
-        recent = np.array([lm.last_kf in rel and lm.cov_rel is not None for lm in lms])
+        recent = np.array([relative and lm.last_kf in rel and lm.cov_rel is not None
+                           for lm in lms])
         cov_x = np.empty((len(lms), 3, 3))
         cov_l = np.empty((len(lms), 2, 2))
         for j, lm in enumerate(lms):
@@ -345,7 +352,10 @@ class Gating(GraphState):
                 # ambiguous: no match, no new landmark (associate drops it)
                 out[i] = {lms[j].id: (max(float(d2[row, j]), gate), False) for j in keep}
                 continue
-            out[i] = {lms[j].id: (float(d2[row, j]), bool(recent[j])) for j in keep}
+            # a screened (not final) pair goes to associate as unknown: it asks the
+            # joint marginal, as without the screen
+            out[i] = {lms[j].id: ((float(d2[row, j]), True) if recent[j] else (math.nan, False))
+                      for j in keep}
         return out
 
     def _relative_covs(self) -> dict[int, FloatArray]:

@@ -145,7 +145,7 @@ def test_landmark_seen_once_stays_in_the_written_map_flagged(name: str, tmp_path
 
 @pytest.mark.parametrize("confirm", [1, 3])
 def test_no_ids_tentative_landmarks_confirmed_after_k_sightings(confirm: int, tmp_path: Path) -> None:
-    """Without ids (smoothers' planar gate): the 12 trees are mapped once each and the
+    """Without ids (smoothers' relative planar gate): the 12 trees are mapped once each and the
     path stays within 0.15 m RMS of truth; a clutter sighting seen once (8 m outside the
     ring) is mapped (flagged seen-once) when landmarks enter at their first sight, and
     is forgotten with ``planar_confirm_sightings = 3``."""
@@ -154,7 +154,8 @@ def test_no_ids_tentative_landmarks_confirmed_after_k_sightings(confirm: int, tm
         f.write("BR 40 2000 0.0 8.0 0.01 0.05\n")
     g = read_graph_text(tmp_path / "log.txt")
     cfg = SlamConfig(association=AssociationConfig(planar_confirm_sightings=confirm,
-                                                   planar_reject_ambiguous=True))
+                                                   planar_reject_ambiguous=True,
+                                                   planar_relative_gate=True))
     res = run_graph_log(g, "isam2", cfg, known_ids=False)
     assert res.status == "ok"
     err = np.linalg.norm(res.poses[:, :2] - truth[:, :2], axis=1)
