@@ -419,6 +419,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         cmap = save_map(args.save_map, result, run, capture.backend)
         print(f"ceiling map written to {args.save_map}: {len(cmap.by_kind('lamp'))} lamps, "
               f"{len(cmap.by_kind('corner'))} corners")
+    elif args.save_map:
+        print(f"{args.backend}: {result.status}: no map written to {args.save_map}", file=sys.stderr)
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o
 
@@ -690,7 +692,7 @@ def _localize_laser_log(args: argparse.Namespace) -> int:
     assert isinstance(s, dict)
     print(f"{s['trials']} trials: {s['localized']} localized ({s['correct']} correct, "
           f"{s['wrong_accepted']} wrong), {s['ambiguous']} ambiguous, {s['failed']} failed; "
-          f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s per trial; {path}")
+          f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s CPU per trial; {path}")
     return 0 if s["wrong_accepted"] == 0 else 1
 
 

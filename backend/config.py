@@ -18,6 +18,7 @@ import gtsam
 from scipy.special import chdtri
 
 from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
+from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.factors.ceiling import HeightPrior
 
 
@@ -98,6 +99,23 @@ class AssociationConfig:
             accuracy. In the EKF the update is ``O(n^2 K)`` in the state size ``n``
             and the rows ``K``. Over 10 seeds of 60 s of lab (images, odometry floor
             1e-8) the batch smoother's mean position RMS was 6.5 mm with 10 and with 25.
+        gate_noise_scale: the smoothers' gate for range-bearing observations
+            without ids uses ``s R`` instead of the stated measurement noise ``R``
+            (:meth:`lampsam.backend.gating.Gating._screen_planar`; default 1.0). For
+            logs whose stated noise is conservative (Victoria Park's 0.2 rad
+            bearing sigma: the innovations of true matches have a median
+            Mahalanobis distance of 0.03 against the chi-square's 1.39), the
+            stated noise makes trees several metres apart compatible; the factors
+            keep ``R``.
+        planar_confirm_sightings: without ids, a new range-bearing landmark of the
+            smoothers stays tentative (gated, not in the graph) until it has this
+            many sightings; one not confirmed within ``isam2.corner_pending_keyframes``
+            keyframes is forgotten with its sightings (default 1: in the graph at
+            its first sight).
+        planar_reject_ambiguous: without ids, a range-bearing observation with two
+            or more landmarks inside the relative gate (of
+            :meth:`lampsam.backend.gating.Gating._screen_planar`) is dropped instead
+            of given to the nearest (default False).
     """
 
     use_known_ids: bool = True
@@ -113,6 +131,9 @@ class AssociationConfig:
     prune_sigma: float = field(default=1.0, metadata=limits(gt=0.0))
     lamp_min_separation: float = field(default=0.1, metadata=limits(ge=0.0))
     max_corner_updates: int | None = field(default=10, metadata=limits(ge=0))
+    gate_noise_scale: float = field(default=1.0, metadata=limits(gt=0.0, le=1.0))
+    planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
+    planar_reject_ambiguous: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -333,7 +354,14 @@ class SlamConfig:
 
     Attributes:
         features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
-        association, noise, ekf, isam2, batch: the parts above.
+        association, noise, ekf, isam2, batch: the parts above. ``noise`` is also
+            the default noise of a range-bearing observation that carries no
+            covariance of its own (``sigma_range``, ``sigma_bearing``).
+        pose2_odometry: noise of Pose2-increment odometry samples without a
+            covariance and the per-sample floor
+            (:class:`~lampsam.datasets.odometry.Pose2OdometryModel`; TOML table
+            ``[pose2_odometry]``); a run's ``rig.yaml`` section of the same name
+            overrides it. Wheel odometry takes its constants from ``rig.yaml``.
     """
 
     features: tuple[str, ...] = ("lamps", "corners")
@@ -342,6 +370,7 @@ class SlamConfig:
     ekf: EkfConfig = field(default_factory=EkfConfig)
     isam2: Isam2Config = field(default_factory=Isam2Config)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
 
     def __post_init__(self) -> None:
         """Check the feature names (:class:`FieldValueError` naming the key)."""

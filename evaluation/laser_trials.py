@@ -199,8 +199,8 @@ def summarize(records: list[dict[str, object]], map_build_s: float) -> dict[str,
     return summarize_trials(trials) | {
         "within_bounds_rate": len(ok) / max(len(records), 1),
         "converged_rate": float(np.mean([bool(r["converged"]) for r in records])),
-        "median_error_pos_m": float(np.median(col("error_pos", records))),
-        "median_error_theta_deg": float(np.median(col("error_theta_deg", records))),
+        "median_error_pos_m": _nanmedian(col("error_pos", records)),
+        "median_error_theta_deg": _nanmedian(col("error_theta_deg", records)),
         "success_mean_error_pos_m": float(np.mean(col("error_pos", ok))) if ok else None,
         "success_mean_error_theta_deg": (
             float(np.mean(col("error_theta_deg", ok))) if ok else None
@@ -211,6 +211,12 @@ def summarize(records: list[dict[str, object]], map_build_s: float) -> dict[str,
         "median_t_span_s": float(np.median(col("t_span", records))),
         "map_build_s": map_build_s,
     }
+
+
+def _nanmedian(x: FloatArray) -> float | None:
+    """Median over the finite values (a trial without an estimate has NaN errors), None if none."""
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else None
 
 
 def laser_trials(

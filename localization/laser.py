@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.factors.geometry import between, compose
+from lampsam.factors.geometry import between, compose, wrap_angle
 from lampsam.localization.correlative import (
     CorrelativeError,
     ScorePyramid,
@@ -54,7 +54,11 @@ class LaserLocalizerConfig:
             branch-and-bound candidates; ``"uniform"``: ``particles`` over the
             free space.
         search: the branch-and-bound search (10 cm cells, 1 deg, 8 candidates).
-        search_scans: scans joined by odometry for the search (default 4).
+        search_scans: at most this many first scans joined by odometry for the
+            search (default 4), and only while the odometry has turned less
+            than ``search_max_turn`` (deg, default 20) and moved less than
+            ``search_max_move`` (m, default 3) since the first: odometry error
+            on a turn would smear the joined points.
         per_candidate: particles per candidate disc (radius one search cell,
             heading spread one step). Default 2,000.
     """
@@ -76,6 +80,8 @@ class LaserLocalizerConfig:
     seeding: str = "search"
     search: SearchConfig = field(default_factory=SearchConfig)
     search_scans: int = 4
+    search_max_turn: float = 20.0
+    search_max_move: float = 3.0
     per_candidate: int = 2000
 
 
@@ -90,6 +96,15 @@ def search_pyramid(model: LikelihoodFieldModel, config: LaserLocalizerConfig) ->
     cfg = replace(config.search, resolution=res,
                   max_range=min(config.search.max_range, model.config.max_range))  # fmt: skip
     return ScorePyramid(model.grid, model.field, model.far, cfg)
+
+
+def joined_scans(odom: FloatArray, config: LaserLocalizerConfig) -> int:
+    """How many of the first scans the search joins (at least 1; see ``search_max_turn``)."""
+    o = np.asarray(odom, dtype=float).reshape(-1, 3)
+    turn = np.degrees(np.abs(np.asarray(wrap_angle(o[:, 2] - o[0, 2]))))
+    move = np.hypot(o[:, 0] - o[0, 0], o[:, 1] - o[0, 1])
+    bad = np.nonzero((turn >= config.search_max_turn) | (move >= config.search_max_move))[0]
+    return int(bad[0]) if bad.size and bad[0] > 0 else (len(o) if not bad.size else 1)
 
 
 def search_candidates(
@@ -166,7 +181,10 @@ class LaserAcceptConfig:
             log-likelihood exceeds the best competing hypothesis' by this many
             nats (tempered). Calibrated on tuning trials (docs/localization.md).
         min_score: and when the scans fit the map at the estimate: joint
-            log-likelihood per used beam (nats, untempered) at least this.
+            log-likelihood per used beam (nats, untempered) at least this, over
+            the last ``fit_scans`` scans (a long odometry chain drifts beyond
+            the per-scan refinement window, so older scans are left out).
+        fit_scans: scans of the fit (default 4).
         modes: competing hypotheses: the distinct modes of the first update.
         separation: two hypotheses are distinct when this far apart (m, rad).
         refine: half-width of the grid search refining each hypothesis'
@@ -177,6 +195,7 @@ class LaserAcceptConfig:
 
     min_margin: float = 8.0
     min_score: float = 0.45
+    fit_scans: int = 4
     modes: int = 8
     separation: tuple[float, float] = (1.0, 0.5)
     refine: tuple[float, float] = (0.2, 0.1)
@@ -266,7 +285,8 @@ def hypothesis_margin(
     ll_est, a_est = chain_log_likelihood(model, estimate, last, odom, ranges, angles, accept)
     fine = replace(accept, refine=(accept.refine[0] / 4, accept.refine[1] / 4))
     ll_est, a_est = chain_log_likelihood(model, a_est, last, odom, ranges, angles, fine)
-    score = scan_fit(model, chain(a_est, last, odom), ranges, angles, accept)
+    w = max(1, accept.fit_scans)
+    score = scan_fit(model, chain(a_est, last, odom)[-w:], ranges[-w:], angles, accept)
     best_ll, best_pose = -math.inf, None
     for m in np.asarray(first_modes).reshape(-1, 3):
         ll, a = chain_log_likelihood(model, m, 0, odom, ranges, angles, accept)
@@ -326,7 +346,7 @@ def localize_scans(
     first_modes = np.zeros((0, 3))
     if config.seeding == "search":
         pyramid = search_pyramid(model, config) if pyramid is None else pyramid
-        m = max(1, min(config.search_scans, k_min))
+        m = joined_scans(odom[: max(1, min(config.search_scans, k_min))], config)
         first_modes, _ = search_candidates(model, pyramid, ranges[:m], angles, odom[:m], config,
                                            accept)  # fmt: skip
         if len(first_modes) == 0:
