@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import (
@@ -49,6 +48,7 @@ from lampsam.backend.association import (
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
+from lampsam.backend.ekf_update import gathered_s, stacked_gain
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
@@ -237,7 +237,7 @@ class EkfSlam(SlamBackend):
         ones ``S = H P H^T`` (eq. 19 without ``R``, with the robot-landmark cross
         term: exact) is built from gathered blocks of ``P``, and
         :func:`lampsam.backend.association.screen_pairs` computes every observation x
-        landmark distance in numpy. Planar landmarks go the per-pair way.
+        landmark distance in numpy; planar landmarks: :meth:`_screen_planar`.
 
         Returns:
             ``(candidates, screened)`` for :func:`associate`.
@@ -269,14 +269,7 @@ class EkfSlam(SlamBackend):
                 continue
             h_r = m_d_pose[keep] @ t_d_c  # (M, 2, 3) coordinates
             h_l = m_d_pt[keep]
-            ik = idx[keep]
-            p_rr = cov.block(0, 3, 0, 3)
-            p_rl = cov.take(np.arange(3)[None, :, None], ik[:, None, :])  # (M, 3, 3)
-            p_ll = cov.take(ik[:, :, None], ik[:, None, :])  # (M, 3, 3)
-            hl_t = np.transpose(h_l, (0, 2, 1))
-            cross = h_r @ p_rl @ hl_t
-            s_pred = (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
-                      + np.transpose(cross, (0, 2, 1)) + h_l @ p_ll @ hl_t)
+            s_pred = gathered_s(cov, idx[keep], h_r, h_l)
             screened.update(screen_pairs(obs, kind, lids, m[keep], s_pred,
                                          self.config.association, exact=True))
         return cands, screened
@@ -297,26 +290,8 @@ class EkfSlam(SlamBackend):
             lin = np.array([f[:2] if f is not None else self._x[o : o + 2]
                             for f, o in zip(firsts, offs, strict=True)])
         z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
-        cov = self._cov
-        p_rr = cov.block(0, 3, 0, 3)
-        p_rl = cov.take(np.arange(3)[None, :, None], idx[:, None, :])  # (M, 3, 2)
-        p_ll = cov.take(idx[:, :, None], idx[:, None, :])  # (M, 2, 2)
-        hl_t = np.transpose(h_l, (0, 2, 1))
-        cross = h_r @ p_rl @ hl_t
-        s_pred = (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
-                  + np.transpose(cross, (0, 2, 1)) + h_l @ p_ll @ hl_t)
-        return screen_point2(obs, lids, z_hat, s_pred, self.config.association)
-
-    def _candidates(self) -> dict[str, list[int]]:
-        cands: dict[str, list[int]] = {}
-        pose = self._x[:3]
-        for lid, slot in self._slots.items():
-            if self.ceiling is not None and slot.kind != "point2":
-                state = self._x[slot.offset : slot.offset + slot.dim]
-                if not self.ceiling.in_view(pose, state):
-                    continue
-            cands.setdefault(slot.kind, []).append(lid)
-        return cands
+        return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
+                             self.config.association)
 
     # ------------------------------------------------------------------ eqs. 21-23
     def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
@@ -372,11 +347,7 @@ class EkfSlam(SlamBackend):
                               FloatArray, FloatArray] | None:
         """One linearisation of the stacked update (eqs. 19-22) at the current state.
 
-        ``H`` (K x n) has nonzero blocks only in the robot columns and each observed
-        landmark's columns, so ``P H^T`` is assembled from column blocks of ``P``
-        (n x K) and ``Psi = H P H^T + R`` (eq. 19) from its rows. With the Cholesky
-        factor ``C C^T = Psi`` and ``W = (P H^T) C^-T``, ``K nu = W (C^-1 nu)`` and
-        ``K (P H^T)^T = W W^T``.
+        The gain is :func:`lampsam.backend.ekf_update.stacked_gain`.
 
         Args:
             pairs: (landmark slot, observation) pairs.
@@ -389,7 +360,6 @@ class EkfSlam(SlamBackend):
             predictable or ``Psi`` is not positive definite.
         """
         n = self._n
-        cov = self._cov
         rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
         for slot, obs in pairs:
             try:
@@ -411,36 +381,9 @@ class EkfSlam(SlamBackend):
                 res += h_r @ dev[:3] + h_l @ dl
                 if obs.kind == "point2":
                     res[0] = wrap_angle(float(res[0]))
-        k_tot = sum(len(r[2]) for r in rows)
-        pht = np.empty((n, k_tot))
-        nu = np.empty(k_tot)
-        r_blk = np.zeros((k_tot, k_tot))
-        p_r = cov.columns(0, 3)  # (n, 3) P[:, R]
-        i = 0
-        for slot, obs, res, h_r, h_l in rows:
-            k = len(res)
-            o, d = slot.offset, slot.dim
-            pht[:, i : i + k] = p_r @ h_r.T + cov.columns(o, d) @ h_l.T
-            nu[i : i + k] = res
-            r_blk[i : i + k, i : i + k] = obs.R
-            i += k
-        psi = np.empty((k_tot, k_tot))  # eq. 19: H (P H^T) + R
-        i = 0
-        for slot, _obs, res, h_r, h_l in rows:
-            k = len(res)
-            o, d = slot.offset, slot.dim
-            psi[i : i + k] = h_r @ pht[:3] + h_l @ pht[o : o + d]
-            i += k
-        psi += r_blk
-        psi = 0.5 * (psi + psi.T)
-        try:
-            chol = np.linalg.cholesky(psi)
-        except np.linalg.LinAlgError:
-            log.warning("innovation covariance not positive definite: update skipped")
-            return None
-        c_inv = solve_triangular(chol, np.eye(k_tot), lower=True, check_finite=False)
-        w = pht @ c_inv.T  # (n, K); a small inverse + one BLAS product beats n RHS solves
-        return rows, w, w @ (c_inv @ nu)  # eq. 22
+        out = stacked_gain(self._cov, [(sl.offset, sl.dim, res, h_r, h_l, o.R)
+                                       for sl, o, res, h_r, h_l in rows])
+        return None if out is None else (rows, *out)
 
     def _joint_point2(self, obs: list[Obs], assignments: list[Assignment],
                       screened: dict[int, dict[int, tuple[float, bool]]]) -> list[Assignment]:

@@ -6,6 +6,8 @@ Usage::
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
         [--mrclam-duration 600]
 
+(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians.)
+
 For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``mrclam``: the shared
 MRCLAM ds0 robot 1, its first ``--mrclam-duration`` s, turned into one pose per step
 of :func:`lampsam.backend.slam.iter_steps` (a step at every measurement time, else
@@ -22,7 +24,9 @@ from that estimate gives the reference optimum. Each lampsam backend then runs t
 log one step per pose (:func:`lampsam.backend.slam.run_graph_log`).
 
 Printed per log: for each solution the position RMS difference from GTSAM's LM
-trajectory (``gtsam-isam2-online``: iSAM2's estimate of each pose right after its
+trajectory, from GTSAM iSAM2's online poses (``rms_vs_online_m``: the fair figure for a
+filter) and at the final pose, the map's RMS from LM's landmarks (by id; without ids to
+the nearest LM landmark) (``gtsam-isam2-online``: iSAM2's estimate of each pose right after its
 own update, the fair reference for a filter's online poses), the chi-square (``2 x error``) of the solution on GTSAM's graph (known
 ids; landmarks a backend did not map take LM's value, counted), failures (iSAM2
 rebuilds / GTSAM exceptions), mapped landmarks against those in the file, total time
@@ -34,6 +38,7 @@ share the machine: compare ratios, not absolute times.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import math
 import time
@@ -43,6 +48,7 @@ from typing import Any
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
+from scipy.spatial import cKDTree
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.odometry import WheelMotion
@@ -202,12 +208,30 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
     ref = poses_of(lm, n)
     n_lm_file = g.n_landmarks
     rows: list[dict[str, Any]] = []
+    lm_pts = {gtsam.Symbol(k).index(): lm.atPoint2(k) for k in lm.keys()
+              if gtsam.Symbol(k).chr() == ord("l")}
+    lm_tree = cKDTree(np.array(list(lm_pts.values())))
+
+    def map_rms(lms: dict[int, np.ndarray] | None, ids: bool) -> float:
+        """Landmark RMS from LM's: by id, or (no ids) to the nearest LM landmark."""
+        if not lms:
+            return math.nan
+        if ids:
+            d = [np.linalg.norm(p - lm_pts[i]) for i, p in lms.items() if i in lm_pts]
+        else:
+            d = list(lm_tree.query(np.array(list(lms.values())))[0])
+        return float(np.sqrt(np.mean(np.square(d)))) if d else math.nan
 
     def row(solver: str, poses: np.ndarray, lms: dict[int, np.ndarray] | None, total: float,
-            step_s: np.ndarray, failures: int, n_map: int, ids: bool) -> None:
+            step_s: np.ndarray, failures: int, n_map: int, ids: bool,
+            map_lms: dict[int, np.ndarray] | None = None) -> None:
+        map_lms = lms if map_lms is None else map_lms
         chi2, missing = chi2_of(graph, lm, poses, lms) if lms is not None else (math.nan, 0)
         rows.append({"log": name, "solver": solver, "ids": "known" if ids else "none",
                      "rms_vs_lm_m": _rms_diff(poses, ref),
+                     "rms_vs_online_m": _rms_diff(poses, online),
+                     "final_vs_lm_m": float(np.linalg.norm(poses[-1, :2] - ref[-1, :2])),
+                     "map_vs_lm_m": map_rms(map_lms, ids),
                      "rms_vs_truth_m": _rms_diff(poses, truth) if truth is not None else math.nan,
                      "chi2": chi2, "lm_missing": missing, "failures": failures,
                      "mapped": n_map, "in_file": n_lm_file, "total_s": total,
@@ -224,12 +248,17 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
         t_isam + t_lm, np.asarray(steps), 0, n_lm_file, True)
     for ids in ([True, False] if no_ids else [True]):
         for b in backends:
-            res_runs = [run_graph_log(g, b, config, known_ids=ids) for _ in range(repeats)]
+            # "ekf-paper": the EKF with the paper's Jacobians (at the latest estimate)
+            # instead of first estimates (docs/graph-backend.md).
+            cfg_b = config if b != "ekf-paper" else dataclasses.replace(
+                config, ekf=dataclasses.replace(config.ekf, first_estimate_jacobians=False))
+            backend = "ekf" if b == "ekf-paper" else b
+            res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids) for _ in range(repeats)]
             res = res_runs[0]
             total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
-            lms = {int(x.id): x.position[:2] for x in res.landmarks} if ids else None
-            row(f"lampsam-{b}", res.poses, lms, total, res.step_times_s,
-                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids)
+            found = {int(x.id): x.position[:2] for x in res.landmarks}
+            row(f"lampsam-{b}", res.poses, found if ids else None, total, res.step_times_s,
+                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids, found)
             if not res.status == "ok":
                 rows[-1]["solver"] += f" ({res.status[:40]})"
     return rows
