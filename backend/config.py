@@ -186,8 +186,9 @@ class EkfConfig:
         first_estimate_jacobians: the first-estimates Jacobian EKF (Huang, Mourikis
             & Roumeliotis, IJRR 29(5) 2010) instead of the paper's Jacobians at the
             latest estimate. True / False force it; None (default) turns it on for
-            runs without a ceiling model (planar range-bearing landmarks, where the
-            paper does not speak) and off for the ceiling (the paper's EKF).
+            range-bearing runs with Pose2 odometry (landmark-graph logs such as
+            Victoria Park, where the paper does not speak) and off for wheel
+            odometry (the ceiling and MRCLAM: the paper's EKF).
             Measurement Jacobians use each landmark's first estimate (at its
             initialisation) and the predicted pose; the prediction Jacobian's heading
             column uses the pose predicted at the previous step, ``p_{k+1|k} -

@@ -67,7 +67,7 @@ from lampsam.backend.models import (
     predict,
     residual,
 )
-from lampsam.backend.odometry import OdometryConstants, motion_model
+from lampsam.backend.odometry import OdometryConstants, Pose2Motion, motion_model
 from lampsam.backend.planar_gate import predict_point2_many, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
@@ -148,9 +148,11 @@ class EkfSlam(SlamBackend):
         self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self._provisional: list[LandmarkEstimate] = []
         fej = config.ekf.first_estimate_jacobians
-        # None (auto): first estimates for range-bearing runs, the paper's Jacobians
-        # for ceiling runs.
-        self._fej = (ceiling is None) if fej is None else fej
+        # None (auto): first estimates for range-bearing runs on Pose2 odometry (the
+        # landmark-graph logs), the paper's Jacobians for the wheel model (ceiling
+        # runs, MRCLAM).
+        auto = ceiling is None and isinstance(self.motion, Pose2Motion)
+        self._fej = auto if fej is None else fej
         self._pred_xy = self._x[:2].copy()  # p_{k|k-1}: the last predicted position
         self.tentative = TentativeLandmarks(cfg.confirm_sightings, config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
