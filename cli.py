@@ -419,6 +419,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         cmap = save_map(args.save_map, result, run, capture.backend)
         print(f"ceiling map written to {args.save_map}: {len(cmap.by_kind('lamp'))} lamps, "
               f"{len(cmap.by_kind('corner'))} corners")
+    elif args.save_map:
+        print(f"{args.backend}: {result.status}: no map written to {args.save_map}", file=sys.stderr)
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o
 

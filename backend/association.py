@@ -351,3 +351,100 @@ def jcbb(candidates: Mapping[int, Iterable[int]], joint: JointInnovationFn,
 
     search(0, [], set(), 0.0)
     return best
+
+
+@dataclass(eq=False)
+class Tentative:
+    """A candidate planar landmark not yet in the map.
+
+    Attributes:
+        xy: (2,) fused world position, m.
+        cov: (2, 2) its covariance, m^2.
+        hits: sightings fused so far.
+        last_step: step of the latest sighting.
+    """
+
+    xy: FloatArray
+    cov: FloatArray
+    hits: int
+    last_step: int
+
+
+class TentativeLandmarks:
+    """New-landmark rule without ids: a landmark enters the map after ``k`` sightings.
+
+    One sighting of a tree with a 0.2 rad bearing sigma at 20 m puts it anywhere in a
+    4 m wide arc; mapped at once, its next sighting (inside the new-landmark
+    threshold of the wrong estimate, or beyond it) starts a second landmark, and the
+    map fills with copies. Here an unassociated sighting goes to a tentative list
+    first: a later unassociated sighting whose world position is within the
+    chi-square ``gate`` (Mahalanobis, on the sum of both covariances) of a tentative
+    one is fused into it (information-weighted); the one that brings it to
+    ``confirm`` sightings is returned as confirmed (and the caller initialises the
+    landmark from it, with its proper cross-covariances). A confirmed position within
+    ``min_separation`` of a mapped landmark is discarded as a copy. Tentatives not
+    seen for ``max_idle`` steps expire. The backend-independent part of the rule:
+    backends give world positions and covariances.
+
+    Args:
+        confirm: sightings needed (1: every unassociated sighting starts a landmark,
+            the paper's rule).
+        gate: squared Mahalanobis distance for fusing into a tentative (2 dof).
+        max_idle: steps after which an unconfirmed tentative is forgotten.
+        min_separation: m; 0 disables the copy check.
+    """
+
+    def __init__(self, confirm: int, gate: float, max_idle: int, min_separation: float = 0.0
+                 ) -> None:
+        self.confirm = confirm
+        self.gate = gate
+        self.max_idle = max_idle
+        self.min_separation = min_separation
+        self.items: list[Tentative] = []
+        self.n_expired = 0
+        self.n_copies = 0
+
+    def offer(self, xy: FloatArray, cov: FloatArray, step: int,
+              mapped_xy: FloatArray | None = None) -> bool:
+        """Add one unassociated sighting; True when it confirms a landmark.
+
+        Args:
+            xy: (2,) the sighting's world position, m; cov: (2, 2) its covariance.
+            step: current step (for expiry).
+            mapped_xy: (M, 2) positions of mapped landmarks (the copy check), or None.
+
+        Returns:
+            True when the caller should initialise a landmark from this sighting.
+        """
+        xy = np.asarray(xy, float)
+        cov = np.asarray(cov, float)
+        best, best_d2 = None, self.gate
+        for t in self.items:
+            d2 = mahalanobis2(xy - t.xy, cov + t.cov)
+            if d2 < best_d2:
+                best, best_d2 = t, d2
+        if best is None:
+            best = Tentative(xy.copy(), cov.copy(), 1, step)
+            self.items.append(best)
+        else:
+            info_a, info_b = np.linalg.inv(best.cov), np.linalg.inv(cov)
+            c = np.linalg.inv(info_a + info_b)
+            best.xy = c @ (info_a @ best.xy + info_b @ xy)
+            best.cov = c
+            best.hits += 1
+            best.last_step = step
+        if best.hits < self.confirm:
+            return False
+        self.items = [t for t in self.items if t is not best]
+        if (self.min_separation > 0 and mapped_xy is not None and len(mapped_xy)
+                and float(np.min(np.linalg.norm(mapped_xy - best.xy, axis=1))) < self.min_separation):
+            self.n_copies += 1
+            return False
+        return True
+
+    def expire(self, step: int) -> None:
+        """Forget tentatives not seen for more than ``max_idle`` steps."""
+        keep = [t for t in self.items if step - t.last_step <= self.max_idle]
+        self.n_expired += len(self.items) - len(keep)
+        self.items = keep
+

@@ -203,21 +203,16 @@ class CeilingModel:
         poses = np.asarray(poses, float)
         ms = np.asarray(ms, float)
         o = self.body_t_camera
-        rows, rhs, w = [], [], []
-        for (x, y, th), m, cov in zip(poses, ms, covs, strict=True):
-            c, s = math.cos(th), math.sin(th)
-            rt = np.array([[c, s], [-s, c]])
-            a = np.zeros((2, 3))
-            a[:, :2] = rt
-            a[:, 2] = -m
-            rows.append(a)
-            rhs.append(rt @ np.array([x, y]) + o[:2])
-            w.append(np.linalg.inv(np.asarray(cov, float)))
-        a_all = np.vstack(rows)
-        b_all = np.concatenate(rhs)
-        sol, *_ = np.linalg.lstsq(a_all, b_all, rcond=None)
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        rows = np.zeros((len(poses), 2, 3))  # per sight: [R_k^T | -m_k]
+        rows[:, 0, 0], rows[:, 0, 1], rows[:, 1, 0], rows[:, 1, 1] = c, s, -s, c
+        rows[:, :, 2] = -ms
+        rhs = rows[:, :, :2] @ poses[:, :2, None]
+        rhs = rhs[:, :, 0] + o[:2]
+        sol, *_ = np.linalg.lstsq(rows.reshape(-1, 3), rhs.reshape(-1), rcond=None)
         h = max(float(sol[2]), MIN_USABLE_HEIGHT)
-        info = sum(a.T @ (wk / h**2) @ a for a, wk in zip(rows, w, strict=True))
+        w = np.linalg.inv(np.asarray(covs, float)) / h**2
+        info = np.einsum("kai,kab,kbj->ij", rows, w, rows)
         try:
             cov_s = np.linalg.inv(info)
         except np.linalg.LinAlgError:

@@ -1,4 +1,4 @@
-"""The saved ceiling map: write it once after mapping, read it back every day (issue 20).
+"""The saved ceiling map: write it once after mapping, read it back every day.
 
 A ceiling map is a folder (format described in docs/ceiling-map.md)::
 

@@ -18,6 +18,7 @@ import gtsam
 from scipy.special import chdtri
 
 from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
+from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.factors.ceiling import HeightPrior
 
 
@@ -98,6 +99,23 @@ class AssociationConfig:
             accuracy. In the EKF the update is ``O(n^2 K)`` in the state size ``n``
             and the rows ``K``. Over 10 seeds of 60 s of lab (images, odometry floor
             1e-8) the batch smoother's mean position RMS was 6.5 mm with 10 and with 25.
+        gate_noise_scale: the smoothers' gate for range-bearing observations
+            without ids uses ``s R`` instead of the stated measurement noise ``R``
+            (:meth:`lampsam.backend.gating.Gating._screen_planar`; default 1.0). For
+            logs whose stated noise is conservative (Victoria Park's 0.2 rad
+            bearing sigma: the innovations of true matches have a median
+            Mahalanobis distance of 0.03 against the chi-square's 1.39), the
+            stated noise makes trees several metres apart compatible; the factors
+            keep ``R``.
+        planar_confirm_sightings: without ids, a new range-bearing landmark of the
+            smoothers stays tentative (gated, not in the graph) until it has this
+            many sightings; one not confirmed within ``isam2.corner_pending_keyframes``
+            keyframes is forgotten with its sightings (default 1: in the graph at
+            its first sight).
+        planar_reject_ambiguous: without ids, a range-bearing observation with two
+            or more landmarks inside the relative gate (of
+            :meth:`lampsam.backend.gating.Gating._screen_planar`) is dropped instead
+            of given to the nearest (default False).
     """
 
     use_known_ids: bool = True
@@ -113,6 +131,9 @@ class AssociationConfig:
     prune_sigma: float = field(default=1.0, metadata=limits(gt=0.0))
     lamp_min_separation: float = field(default=0.1, metadata=limits(ge=0.0))
     max_corner_updates: int | None = field(default=10, metadata=limits(ge=0))
+    gate_noise_scale: float = field(default=1.0, metadata=limits(gt=0.0, le=1.0))
+    planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
+    planar_reject_ambiguous: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -149,12 +170,46 @@ class EkfConfig:
             EKF's mean position RMS was 17.3 mm with every corner and 12.4 mm with
             the 10-corner budget; ``lampsam compare``
             reports the paper's EKF unless this is set.
+        update_iterations: Gauss-Newton iterations of the measurement update
+            (default 1: the paper's EKF, eqs. 21-23, linearised once at the
+            prediction). Above 1, the iterated EKF (Bell & Cathey 1993): ``h`` and
+            ``H`` are re-evaluated at the updated state until the step changes by less
+            than ``update_tol``; ``P`` is corrected once, with the last ``H``.
+        first_estimate_jacobians: the first-estimates Jacobian EKF (Huang, Mourikis
+            & Roumeliotis, IJRR 29(5) 2010) instead of the paper's Jacobians at the
+            latest estimate. True / False force it; None (default) turns it on for
+            runs without a ceiling model (planar range-bearing landmarks, where the
+            paper does not speak) and off for the ceiling (the paper's EKF).
+            Measurement Jacobians use each landmark's first estimate (at its
+            initialisation) and the predicted pose; the prediction Jacobian's heading
+            column uses the pose predicted at the previous step, ``p_{k+1|k} -
+            p_{k|k-1}``, not the updated one. Linearising at changing points gives
+            the filter heading information the data do not hold (an overconfident,
+            drifting heading on long outdoor loops); first estimates keep the
+            unobservable directions unobservable. Innovations still use the latest
+            estimate.
+        update_tol: convergence threshold of the iterated update on the largest
+            change of any state entry between iterations, m or rad (default 1e-4).
+        confirm_sightings: without ids, a planar landmark enters the state after this
+            many unassociated sightings fused in a tentative list
+            (:class:`lampsam.backend.association.TentativeLandmarks`); default 1:
+            at once, the paper's rule (eqs. 24-25 at the first sighting).
+        tentative_max_idle: steps after which an unconfirmed tentative landmark is
+            forgotten (default 100).
+        new_min_separation: a confirmed tentative landmark within this distance of a
+            mapped planar landmark is discarded as a copy, m (default 0: off).
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
     sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
     var_floor: float = field(default=1e-10, metadata=limits(ge=0.0))
     corner_budget: bool = False
+    update_iterations: int = field(default=1, metadata=limits(ge=1))
+    update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
+    first_estimate_jacobians: bool | None = None
+    confirm_sightings: int = field(default=1, metadata=limits(ge=1))
+    tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
+    new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -299,7 +354,14 @@ class SlamConfig:
 
     Attributes:
         features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
-        association, noise, ekf, isam2, batch: the parts above.
+        association, noise, ekf, isam2, batch: the parts above. ``noise`` is also
+            the default noise of a range-bearing observation that carries no
+            covariance of its own (``sigma_range``, ``sigma_bearing``).
+        pose2_odometry: noise of Pose2-increment odometry samples without a
+            covariance and the per-sample floor
+            (:class:`~lampsam.datasets.odometry.Pose2OdometryModel`; TOML table
+            ``[pose2_odometry]``); a run's ``rig.yaml`` section of the same name
+            overrides it. Wheel odometry takes its constants from ``rig.yaml``.
     """
 
     features: tuple[str, ...] = ("lamps", "corners")
@@ -308,6 +370,7 @@ class SlamConfig:
     ekf: EkfConfig = field(default_factory=EkfConfig)
     isam2: Isam2Config = field(default_factory=Isam2Config)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
 
     def __post_init__(self) -> None:
         """Check the feature names (:class:`FieldValueError` naming the key)."""

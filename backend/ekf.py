@@ -40,6 +40,7 @@ from scipy.linalg import solve_triangular
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import (
     Assignment,
+    TentativeLandmarks,
     associate,
     corner_budget,
     jcbb,
@@ -67,6 +68,7 @@ from lampsam.backend.models import (
     residual,
 )
 from lampsam.backend.odometry import OdometryConstants, motion_model
+from lampsam.backend.planar_gate import predict_point2_many, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
@@ -86,6 +88,7 @@ class _Slot:
     last_seen: int
     patch: Any = None
     sigma_meas: float = 0.0  # largest horizontal sigma one sighting gives (planar points), m
+    first: FloatArray | None = None  # state at initialisation (first-estimates Jacobians)
 
 
 #: Landmarks examined by the EKF's pruning per step (round robin).
@@ -144,6 +147,13 @@ class EkfSlam(SlamBackend):
         self.n_pruned = 0
         self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self._provisional: list[LandmarkEstimate] = []
+        fej = config.ekf.first_estimate_jacobians
+        # None (auto): first estimates for range-bearing runs, the paper's Jacobians
+        # for ceiling runs.
+        self._fej = (ceiling is None) if fej is None else fej
+        self._pred_xy = self._x[:2].copy()  # p_{k|k-1}: the last predicted position
+        self.tentative = TentativeLandmarks(cfg.confirm_sightings, config.association.gate(2),
+                                            cfg.tentative_max_idle, cfg.new_min_separation)
 
     # ------------------------------------------------------------------ state
     @property
@@ -174,17 +184,32 @@ class EkfSlam(SlamBackend):
                 ``(d_left, d_right)`` per sample, m).
         """
         if len(wheel) == 0:
+            self._pred_xy = self._x[:2].copy()
             return
         pose, f_tot, q_acc = self.motion.ekf_predict(self._x[:3], wheel)
+        if self._fej:
+            # Both motion models' F has heading column J (p' - p) (J: +90 deg rotation);
+            # first estimates take p = p_{k|k-1} instead of the updated p_{k|k}.
+            shift = self._x[:2] - self._pred_xy
+            f_tot = f_tot.copy()
+            f_tot[0, 2] -= shift[1]
+            f_tot[1, 2] += shift[0]
+        self._pred_xy = pose[:2].copy()
         self._cov.transform_leading(f_tot, q_acc + self.config.ekf.var_floor * np.eye(3))
         self._x[:3] = pose
 
     # ------------------------------------------------------------------ prediction helpers
     def _h(self, slot: _Slot, obs: Obs | None) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Predicted measurement and coordinate Jacobians (robot, landmark)."""
+        """Predicted measurement and coordinate Jacobians (robot, landmark).
+
+        With ``ekf.first_estimate_jacobians`` the Jacobians are taken at the landmark's
+        first estimate (the prediction ``z_hat`` at the current one).
+        """
         pose = self._x[:3]
         state = self._x[slot.offset : slot.offset + slot.dim]
         z_hat, z_D_pose, z_D_l = predict(slot.kind, pose, state, obs, self.ceiling)
+        if self._fej and slot.first is not None:
+            _, z_D_pose, z_D_l = predict(slot.kind, pose, slot.first, obs, self.ceiling)
         return z_hat, z_D_pose @ tangent_D_coords(pose[2]), z_D_l
 
     def _innovation(self, lid: int, obs: Obs) -> tuple[FloatArray, FloatArray] | None:
@@ -229,6 +254,9 @@ class EkfSlam(SlamBackend):
                 ceiling_slots.setdefault(slot.kind, []).append(slot)
         pose = self._x[:3]
         cov = self._cov
+        planar = cands.get(LandmarkKind.POINT2, [])
+        if planar and any(o.kind == LandmarkKind.POINT2 for o in obs):
+            screened.update(self._screen_planar(obs, planar))
         t_d_c = tangent_D_coords(pose[2])
         for kind, slots in ceiling_slots.items():
             offs = np.array([sl.offset for sl in slots])
@@ -253,6 +281,32 @@ class EkfSlam(SlamBackend):
                                          self.config.association, exact=True))
         return cands, screened
 
+    def _screen_planar(self, obs: list[Obs], lids: list[int]
+                       ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Exact eq.-19/20 distances of every planar observation to every planar landmark.
+
+        :func:`lampsam.backend.planar_gate.predict_point2_many` with the Jacobians at the
+        first estimates when those are on (as :meth:`_h`), ``S = H P H^T`` from
+        gathered blocks of ``P``.
+        """
+        offs = np.array([self._slots[lid].offset for lid in lids])
+        idx = offs[:, None] + np.arange(2)[None, :]  # (M, 2)
+        lin = None
+        if self._fej:
+            firsts = [self._slots[lid].first for lid in lids]
+            lin = np.array([f[:2] if f is not None else self._x[o : o + 2]
+                            for f, o in zip(firsts, offs, strict=True)])
+        z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
+        cov = self._cov
+        p_rr = cov.block(0, 3, 0, 3)
+        p_rl = cov.take(np.arange(3)[None, :, None], idx[:, None, :])  # (M, 3, 2)
+        p_ll = cov.take(idx[:, :, None], idx[:, None, :])  # (M, 2, 2)
+        hl_t = np.transpose(h_l, (0, 2, 1))
+        cross = h_r @ p_rl @ hl_t
+        s_pred = (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
+                  + np.transpose(cross, (0, 2, 1)) + h_l @ p_ll @ hl_t)
+        return screen_point2(obs, lids, z_hat, s_pred, self.config.association)
+
     def _candidates(self) -> dict[str, list[int]]:
         cands: dict[str, list[int]] = {}
         pose = self._x[:3]
@@ -268,11 +322,11 @@ class EkfSlam(SlamBackend):
     def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
         """EKF update (eqs. 21-23) with all associated observations of a frame, stacked.
 
-        ``H`` (K x n) has nonzero blocks only in the robot columns and each observed
-        landmark's columns, so ``P H^T`` is assembled from column blocks of ``P``
-        (n x K) and ``Psi = H P H^T + R`` (eq. 19) from its rows. Stacking the frame's
-        observations into one update equals the paper's sequential ``K_i`` updates
-        for a linear model; it needs one ``n x n`` rank-K correction instead of K.
+        Stacking the frame's observations into one update equals the paper's
+        sequential ``K_i`` updates for a linear model; it needs one ``n x n`` rank-K
+        correction instead of K (:meth:`_linearise`). With
+        ``ekf.update_iterations > 1`` the state is re-linearised at each iterate
+        (iterated EKF); ``P`` is corrected once, with the last ``W``.
 
         Args:
             pairs: (landmark slot, observation) pairs.
@@ -282,9 +336,62 @@ class EkfSlam(SlamBackend):
         """
         n = self._n
         cov = self._cov
+        pairs = [(slot, for_landmark(obs, slot.dim)) for slot, obs in pairs]
+        x0 = self._x[:n].copy()
+        iterations = self.config.ekf.update_iterations
+        dx_prev: FloatArray | None = None
+        for it in range(iterations):
+            lin = self._linearise(pairs, x0 if it > 0 else None)
+            if lin is None:
+                if it == 0:
+                    return 0
+                break  # keep the previous iterate
+            rows, w, step = lin
+            self._x[:n] = x0 + step
+            self._wrap_angles(rows)
+            if dx_prev is not None and float(np.max(np.abs(step - dx_prev))) < self.config.ekf.update_tol:
+                break
+            dx_prev = step
+        cov.downdate(w)  # eq. 23: (I - K H) P = P - K (P H^T)^T = P - W W^T
+        for slot, *_ in rows:
+            slot.n_obs += 1
+            slot.last_seen = self._step
+
+        return len(rows)
+
+    def _wrap_angles(self, rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
+        """Wrap the heading and the updated lamps' axis angles (after eq. 22)."""
+        self._x[2] = wrap_angle(float(self._x[2]))
+        for slot, *_ in rows:
+            if slot.kind == "lamp" and slot.dim == 4:
+                o = slot.offset + 3
+                self._x[o] = wrap_axis(float(self._x[o]))
+
+    def _linearise(self, pairs: list[tuple[_Slot, Obs]], x0: FloatArray | None
+                   ) -> tuple[list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]],
+                              FloatArray, FloatArray] | None:
+        """One linearisation of the stacked update (eqs. 19-22) at the current state.
+
+        ``H`` (K x n) has nonzero blocks only in the robot columns and each observed
+        landmark's columns, so ``P H^T`` is assembled from column blocks of ``P``
+        (n x K) and ``Psi = H P H^T + R`` (eq. 19) from its rows. With the Cholesky
+        factor ``C C^T = Psi`` and ``W = (P H^T) C^-T``, ``K nu = W (C^-1 nu)`` and
+        ``K (P H^T)^T = W W^T``.
+
+        Args:
+            pairs: (landmark slot, observation) pairs.
+            x0: the prediction, when the current state is an iterate of the iterated
+                EKF: the innovation is then ``z - h(x_i) + H (x_i - x0)`` (Bell &
+                Cathey 1993) and the returned step is from ``x0``; None: ``x_i = x0``.
+
+        Returns:
+            ``(rows used, W (n, K), state step (n,))``, or None when no row is
+            predictable or ``Psi`` is not positive definite.
+        """
+        n = self._n
+        cov = self._cov
         rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
         for slot, obs in pairs:
-            obs = for_landmark(obs, slot.dim)
             try:
                 z_hat, h_r, h_l = self._h(slot, obs)
             except Exception as exc:  # behind the camera: skip this observation
@@ -292,7 +399,18 @@ class EkfSlam(SlamBackend):
                 continue
             rows.append((slot, obs, residual(obs, z_hat), h_r, h_l))
         if not rows:
-            return 0
+            return None
+        if x0 is not None:
+            dev = self._x[:n] - x0
+            dev[2] = wrap_angle(float(dev[2]))
+            for slot, obs, res, h_r, h_l in rows:
+                o, d = slot.offset, slot.dim
+                dl = dev[o : o + d].copy()
+                if slot.kind == "lamp" and d == 4:
+                    dl[3] = wrap_axis(float(dl[3]))
+                res += h_r @ dev[:3] + h_l @ dl
+                if obs.kind == "point2":
+                    res[0] = wrap_angle(float(res[0]))
         k_tot = sum(len(r[2]) for r in rows)
         pht = np.empty((n, k_tot))
         nu = np.empty(k_tot)
@@ -315,29 +433,17 @@ class EkfSlam(SlamBackend):
             i += k
         psi += r_blk
         psi = 0.5 * (psi + psi.T)
-        # Eqs. 21-23 through the Cholesky factor C C^T = Psi: with W = (P H^T) C^-T,
-        # K nu = W (C^-1 nu) and K (P H^T)^T = W W^T, a symmetric rank-K product
-        # (BLAS dsyrk in place on the stored triangle: half the flops of the general
-        # product, no n x n temporary, and P stays symmetric).
         try:
             chol = np.linalg.cholesky(psi)
         except np.linalg.LinAlgError:
             log.warning("innovation covariance not positive definite: update skipped")
-            return 0
+            return None
         c_inv = solve_triangular(chol, np.eye(k_tot), lower=True, check_finite=False)
         w = pht @ c_inv.T  # (n, K); a small inverse + one BLAS product beats n RHS solves
-        self._x[:n] += w @ (c_inv @ nu)  # eq. 22
-        self._x[2] = wrap_angle(float(self._x[2]))
-        cov.downdate(w)  # eq. 23: (I - K H) P = P - K (P H^T)^T = P - W W^T
-        for slot, *_ in rows:
-            if slot.kind == "lamp" and slot.dim == 4:
-                o = slot.offset + 3
-                self._x[o] = wrap_axis(float(self._x[o]))
-            slot.n_obs += 1
-            slot.last_seen = self._step
-        return len(rows)
+        return rows, w, w @ (c_inv @ nu)  # eq. 22
 
-    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment]) -> list[Assignment]:
+    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment],
+                      screened: dict[int, dict[int, tuple[float, bool]]]) -> list[Assignment]:
         """Re-pair a frame's planar observations without ids by joint compatibility (JCBB).
 
         Candidates are the landmarks individually inside the gate (eqs. 19-20); the
@@ -354,6 +460,9 @@ class EkfSlam(SlamBackend):
         gate = cfg.gate(2)
         cands: dict[int, list[int]] = {}
         for i in idx:
+            if i in screened:
+                cands[i] = [lid for lid, (d2, _) in screened[i].items() if d2 < gate]
+                continue
             cands[i] = []
             for lid, s in self._slots.items():
                 if s.kind != LandmarkKind.POINT2 or lid in self._doomed:
@@ -433,10 +542,31 @@ class EkfSlam(SlamBackend):
         sigma_meas = (_max_sigma_2x2((g_z @ cov_z @ g_z.T)[:2, :2])
                       if obs.kind == LandmarkKind.POINT2 else 0.0)
         self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
-                                 sigma_meas)
+                                 sigma_meas, state.copy() if self._fej else None)
         self._prune_queue.append(lid)
         self._n = n + d
         return lid
+
+    def _confirmed(self, obs: Obs) -> bool:
+        """Whether an unassociated planar sighting may start a landmark now.
+
+        With ``ekf.confirm_sightings > 1`` the sighting's world position (eq. 24) and
+        covariance ``G_R P_RR G_R^T + G_z R G_z^T`` (eq. 25's new block) go to the
+        tentative list (:class:`lampsam.backend.association.TentativeLandmarks`).
+        """
+        if self.tentative.confirm <= 1 and self.tentative.min_separation <= 0:
+            return True
+        pose = self._x[:3].copy()
+        state, g_pose, g_z, cov_z = initialize(pose, obs, self.config.association, self.ceiling)
+        g_r = g_pose @ tangent_D_coords(pose[2])
+        cov = g_r @ self._cov.block(0, 3, 0, 3) @ g_r.T + g_z @ cov_z @ g_z.T
+        mapped = None
+        if self.tentative.min_separation > 0:
+            offs = [s.offset for s in self._slots.values()
+                    if s.kind == LandmarkKind.POINT2 and s.id not in self._doomed]
+            mapped = (self._x[np.asarray(offs)[:, None] + np.arange(2)[None, :]]
+                      if offs else np.zeros((0, 2)))
+        return self.tentative.offer(state[:2], cov[:2, :2], self._step, mapped)
 
     def _new_id(self) -> int:
         while self._next_id in self._slots:
@@ -521,7 +651,7 @@ class EkfSlam(SlamBackend):
                                         self.config.association, lambda i: i in self._slots,
                                         patches, screened)
                 if self.config.association.joint_compatibility:
-                    assignments = self._joint_point2(obs, assignments)
+                    assignments = self._joint_point2(obs, assignments, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
@@ -536,7 +666,12 @@ class EkfSlam(SlamBackend):
                         if entries <= 0:
                             continue
                         entries -= 1
+                    if (a.landmark_id is None and obs[a.obs_index].kind == LandmarkKind.POINT2
+                            and not self._confirmed(obs[a.obs_index])):
+                        continue
                     n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
+        if self.tentative.items:
+            self.tentative.expire(self._step)
         self._prune()
         self._step += 1
         dt = time.perf_counter() - t0

@@ -13,21 +13,78 @@ pay for joint marginals (each costs several ms on a corner-dense graph).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
+from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
-from lampsam.backend.pose_cov import compose_cov, pose_array
 
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 RELATIVE_GATE_KEYFRAMES = 30
+
+
+def range_bearing_many(pose: FloatArray, pts: FloatArray
+                       ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Predicted ``[bearing, range]`` of M planar landmarks and their Jacobians, at once.
+
+    The vectorised form of :func:`lampsam.factors.range_bearing.range_bearing`
+    (no sensor offset).
+
+    Args:
+        pose: (3,) ``world_T_body``, m and rad.
+        pts: (M, 2) landmarks, world frame, m.
+
+    Returns:
+        ``(z_hat (M, 2), z_D_pose (M, 2, 3) right tangent, z_D_landmark (M, 2, 2))``;
+        a landmark at the sensor gets range 1e-9 m (its distances are meaningless,
+        never a match).
+    """
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    dx, dy = pts[:, 0] - pose[0], pts[:, 1] - pose[1]
+    px, py = c * dx + s * dy, -s * dx + c * dy
+    r2 = np.maximum(px * px + py * py, 1e-18)
+    r = np.sqrt(r2)
+    m = len(pts)
+    p_D_pose = np.zeros((m, 2, 3))
+    p_D_pose[:, 0, 0] = p_D_pose[:, 1, 1] = -1.0
+    p_D_pose[:, 0, 2], p_D_pose[:, 1, 2] = py, -px
+    p_D_l = np.array([[c, s], [-s, c]])
+    z_D_p = np.empty((m, 2, 2))
+    z_D_p[:, 0, 0], z_D_p[:, 0, 1] = -py / r2, px / r2
+    z_D_p[:, 1, 0], z_D_p[:, 1, 1] = px / r, py / r
+    z_hat = np.stack([np.arctan2(py, px), r], axis=1)
+    return z_hat, z_D_p @ p_D_pose, z_D_p @ p_D_l
+
+
+def bearing_range_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatArray
+                     ) -> FloatArray:
+    """Squared Mahalanobis distances of N ``[bearing, range]`` observations to M predictions.
+
+    ``d2[i, j] = nu^T (S_j + R_i)^-1 nu`` with ``nu = z_i - z_hat_j``, the bearing
+    wrapped to (-pi, pi] (eq. 20).
+
+    Args:
+        z: (N, 2) observations; r: (N, 2, 2) their noise.
+        z_hat: (M, 2) predictions; s: (M, 2, 2) prediction covariances ``H P H^T``.
+
+    Returns:
+        (N, M) distances; ``inf`` where ``S + R`` is not positive definite.
+    """
+    psi = r[:, None] + s[None]
+    nu = z[:, None, :] - z_hat[None, :, :]
+    nu[..., 0] = (nu[..., 0] + math.pi) % (2.0 * math.pi) - math.pi
+    a, b, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 1]
+    det = a * d - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
+    return np.where((det > 0) & (a > 0), d2, np.inf)
 
 
 class Gating(GraphState):
@@ -56,6 +113,60 @@ class Gating(GraphState):
         self._joint_cache[lm.id] = out
         return out
 
+    def _prefetch_joint(self, k: int, obs: list[Obs],
+                        screened: dict[int, dict[int, tuple[float, bool]]]) -> int:
+        """Joint marginals of every lamp the gate will ask about, in one Bayes-tree query.
+
+        :func:`~lampsam.backend.association.associate` asks :meth:`_innovation` for the
+        exact eq.-19 distance of each screened pair that is inside the gate but not
+        final (a lamp with an axis, or an ambiguous one). Each such landmark needs the
+        joint marginal of ``(X(k), landmark)``; one ``jointMarginalCovariance`` over
+        ``X(k)`` and all of them gives the same blocks (a marginal of a Gaussian is a
+        sub-block of any larger joint marginal) for one pass over the Bayes tree's
+        path to the root instead of one pass per landmark. Fills the per-keyframe
+        cache of :meth:`_joint_cov`; on a GTSAM error it leaves the cache alone (the
+        per-landmark calls then run as before).
+
+        Args:
+            k: the last keyframe in iSAM2 (the gate's pose variable).
+            obs: the frame's observations; screened: :meth:`_screen`'s pre-screen.
+
+        Returns:
+            The number of landmarks whose blocks were cached.
+        """
+        if self.isam is None:
+            return 0
+        cfg = self.config.association
+        lids: list[int] = []
+        seen: set[int] = set()
+        for i, pairs in screened.items():
+            gate = cfg.gate(len(obs[i].z))
+            for lid, (d2, exact) in pairs.items():
+                if (not exact and d2 < gate and lid not in seen and lid not in self._joint_cache
+                        and lid in self._landmarks and self._landmarks[lid].in_graph):
+                    seen.add(lid)
+                    lids.append(lid)
+        if len(lids) < 2:  # a single landmark: _joint_cov's own query is the same call
+            return 0
+        keys = [X(k)]
+        spans: list[tuple[int, list[int]]] = []
+        for lid in lids:
+            lm = self._landmarks[lid]
+            handler = self.handlers[lm.kind]
+            start = 3 * len(keys)  # Pose2, Point3 and the axis Pose2 are all 3-D tangents
+            keys.extend(handler.keys(lm))
+            spans.append((lid, [start + j for j in handler.state_index(lm)]))
+        try:
+            full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
+        except RuntimeError:
+            return 0
+        if full.shape != (3 * len(keys), 3 * len(keys)):
+            return 0
+        s_kk = full[:3, :3]
+        for lid, idx in spans:
+            self._joint_cache[lid] = (s_kk, full[np.ix_(np.r_[0:3], idx)], full[np.ix_(idx, idx)])
+        return len(spans)
+
     def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
                     obs: Obs) -> tuple[FloatArray, FloatArray] | None:
         """``(nu, Psi)`` (eq. 19) with the pose-landmark cross-covariance.
@@ -73,17 +184,18 @@ class Gating(GraphState):
             z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
         except Exception:
             return None
+        r = obs.R * self.config.association.gate_noise_scale if obs.kind == "point2" else obs.R
         joint = self._joint_cov(lm, k)
         if joint is None:  # no joint marginal: independent pose and landmark
             _, pose_cov = self.current()
-            psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + obs.R
+            psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + r
             return residual(obs, z_hat), psi
         s_kk, s_kl, s_ll = joint
         ad = gtsam.Pose2(*delta).inverse().AdjointMap()
         s_xx = ad @ s_kk @ ad.T + delta_cov
         s_xl = ad @ s_kl
         cross = h_p @ s_xl @ h_l.T
-        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + obs.R
+        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
         return residual(obs, z_hat), psi
 
     def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
@@ -109,18 +221,25 @@ class Gating(GraphState):
         cands: dict[str, list[int]] = {}
         screened: dict[int, dict[int, tuple[float, bool]]] = {}
         by_kind: dict[str, list[GraphLandmark]] = {}
+        planar: list[GraphLandmark] = []
         for lid, lm in self._landmarks.items():
-            if self.ceiling is None or lm.kind == "point2":
+            if lm.kind == "point2":
+                planar.append(lm)
+            elif self.ceiling is None:
                 cands.setdefault(lm.kind, []).append(lid)
             else:
                 by_kind.setdefault(lm.kind, []).append(lm)
+        if planar:
+            cands["point2"] = [lm.id for lm in planar]
+            if any(o.kind == "point2" and o.landmark_id is None for o in obs) or (
+                    not self.config.association.use_known_ids):
+                screened.update(self._screen_planar(obs, pose, pose_cov, planar))
         for kind, lms in by_kind.items():
             pts = np.array([lm.state[:3] for lm in lms])
             ceiling = self._require_ceiling()
             vis = ceiling.in_view_many(pose, pts)
             visible = [lms[j] for j in np.flatnonzero(vis)]
-            for lm in visible:
-                self._refresh_landmark(lm)
+            self._refresh_visible(visible)
             if not visible:
                 cands[kind] = []
                 continue
@@ -136,9 +255,10 @@ class Gating(GraphState):
             cov_x = np.empty((len(keep), 3, 3))
             for n, j in enumerate(keep):
                 lm = visible[j]
-                if lm.cov_rel is not None and lm.last_kf in rel:
+                rel_j = rel.get(lm.last_kf) if lm.cov_rel is not None else None
+                if rel_j is not None:
                     cov_l[n] = lm.cov_rel
-                    cov_x[n] = rel[lm.last_kf]
+                    cov_x[n] = rel_j
                 else:
                     cov_l[n] = lm.cov[:3, :3]
                     cov_x[n] = pose_cov
@@ -150,25 +270,111 @@ class Gating(GraphState):
             screened.update(self._mark_ambiguous(obs, sc))
         return cands, screened
 
+    def _refresh_visible(self, visible: list[GraphLandmark]) -> None:
+        """Refresh the cached states of the visible in-graph landmarks from iSAM2.
+
+        The same values as :meth:`~lampsam.backend.graph_state.GraphState._refresh_landmark`;
+        a point (every corner, a lamp without an axis) is read with one
+        ``calculateEstimatePoint3`` call instead of going through its handler (a
+        keyframe refreshes ~200 of them).
+        """
+        isam = self.isam
+        if isam is None:
+            return
+        for lm in visible:
+            if not lm.in_graph:
+                continue
+            if len(lm.state) == 3:
+                try:
+                    lm.state = np.asarray(isam.calculateEstimatePoint3(L(lm.id)), float)
+                    continue
+                except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
+                    pass
+            self._refresh_landmark(lm)
+
+    def _screen_planar(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray,
+                       lms: list[GraphLandmark]) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Range-bearing observations against every planar landmark at once (no ids).
+
+        A landmark last observed within :data:`RELATIVE_GATE_KEYFRAMES` keyframes is
+        gated relative to that keyframe: ``Psi = H_p C H_p^T + s (H_l Sigma_rel H_l^T
+        + R)`` with ``C`` the odometry covariance since then
+        (:meth:`_relative_covs`), ``Sigma_rel`` its position covariance relative to
+        the observing pose (measurement-only, eq. 25's ``G_z R G_z^T``) and ``s``
+        ``association.gate_noise_scale``. The common uncertainty of the two poses
+        cancels in a relative measurement, so this distance is final (the cross
+        term of eq. 19 stands in for it). Older landmarks get a screen with the
+        pose and landmark marginals and no cross term, doubled (``2 diag(P_xx,
+        P_ll)`` bounds the joint covariance from above), and pairs inside the gate
+        are decided by the joint marginal (:meth:`_innovation`).
+
+        Returns:
+            For :func:`associate`'s ``screened``: obs index -> {landmark id: (d2, exact)}.
+        """
+        idx = [i for i, o in enumerate(obs) if o.kind == "point2"]
+        if not idx:
+            return {}
+        scale = self.config.association.gate_noise_scale
+        rel = self._relative_covs()
+        for lm in lms:
+            self._refresh_landmark(lm)
+        pts = np.array([lm.state[:2] for lm in lms], float)
+        z_hat, h_p, h_l = range_bearing_many(pose, pts)
+        recent = np.array([lm.last_kf in rel and lm.cov_rel is not None for lm in lms])
+        cov_x = np.empty((len(lms), 3, 3))
+        cov_l = np.empty((len(lms), 2, 2))
+        for j, lm in enumerate(lms):
+            if recent[j]:
+                cov_x[j] = rel[lm.last_kf]
+                cov_l[j] = scale * np.asarray(lm.cov_rel)[:2, :2]
+            else:
+                cov_x[j] = 2.0 * pose_cov
+                cov_l[j] = 2.0 * lm.cov[:2, :2]
+        s_pred = (h_p @ cov_x @ np.transpose(h_p, (0, 2, 1))
+                  + h_l @ cov_l @ np.transpose(h_l, (0, 2, 1)))
+        z = np.array([obs[i].z[:2] for i in idx], float)
+        r = np.array([obs[i].R[:2, :2] for i in idx], float) * scale
+        d2 = bearing_range_d2(z, r, z_hat, s_pred)
+        cfg = self.config.association
+        new_t, gate = cfg.new_threshold(2), cfg.gate(2)
+        out: dict[int, dict[int, tuple[float, bool]]] = {}
+        for row, i in enumerate(idx):
+            keep = np.flatnonzero(d2[row] < new_t)
+            if cfg.planar_reject_ambiguous and np.count_nonzero(
+                    (d2[row, keep] < gate) & recent[keep]) >= 2:  # final distances only
+                # ambiguous: no match, no new landmark (associate drops it)
+                out[i] = {lms[j].id: (max(float(d2[row, j]), gate), False) for j in keep}
+                continue
+            out[i] = {lms[j].id: (float(d2[row, j]), bool(recent[j])) for j in keep}
+        return out
+
     def _relative_covs(self) -> dict[int, FloatArray]:
         """Tangent covariance of the current keyframe relative to each recent keyframe.
 
-        Composes the odometry factors' covariances (eqs. 13-15, with their floor)
-        backwards from the current keyframe ``k`` over the last
-        :data:`RELATIVE_GATE_KEYFRAMES` keyframes: ``{j: cov(x_j^-1 x_k)}``. Cached
-        for the keyframe (the screen asks once per landmark kind).
+        ``{j: cov(x_j^-1 x_k)}`` for the current keyframe ``k`` and the last
+        :data:`RELATIVE_GATE_KEYFRAMES` keyframes before it, from the odometry
+        factors' covariances (eqs. 13-15, with their floor). Kept incrementally: a new
+        keyframe with odometry ``d_k`` (covariance ``C_k``) maps every entry through
+        :func:`~lampsam.backend.pose_cov.compose_cov`,
+        ``Sigma_j <- Ad(d_k^-1) Sigma_j Ad(d_k^-1)^T + C_k``, all at once
+        (:func:`propagate_relative`), instead of recomposing the whole window.
         """
         k = self._k
         if self._rel_cache is not None and self._rel_cache[0] == k:
             return self._rel_cache[1]
-        out: dict[int, FloatArray] = {k: np.zeros((3, 3))}
-        delta = np.zeros(3)
-        cov = np.zeros((3, 3))
-        for j in range(k - 1, max(k - RELATIVE_GATE_KEYFRAMES, 0) - 1, -1):
-            d_j, c_j = self._odo[j + 1]
-            cov = compose_cov(delta, c_j, cov)
-            delta = pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
-            out[j] = cov
+        lo = max(k - RELATIVE_GATE_KEYFRAMES, 0)
+        if self._rel_cache is None or not lo <= self._rel_cache[0] < k:
+            k_c, js, covs = lo, [lo], np.zeros((1, 3, 3))
+        else:
+            k_c, old = self._rel_cache
+            js = [j for j in old if j >= lo]
+            covs = np.array([old[j] for j in js])
+        for step in range(k_c + 1, k + 1):
+            d, c = self._odo[step]
+            covs = np.concatenate([propagate_relative(d, c, covs), np.zeros((1, 3, 3))])
+            js.append(step)
+        keep = [n for n, j in enumerate(js) if j >= lo]
+        out = {js[n]: covs[n] for n in keep}
         self._rel_cache = (k, out)
         return out
 
@@ -184,7 +390,9 @@ class Gating(GraphState):
         more, the exact distances (iSAM2 joint marginal with the pose-landmark cross
         term, :meth:`_joint_cov`) pick the winner. iSAM2's joint marginals cost
         several ms each on a graph dense with corners (17 ms on the lab run), so
-        this keeps them to the few ambiguous lamp observations.
+        this keeps them to the few ambiguous lamp observations. A lamp seen with its
+        axis always takes the exact gate (the screen has no axis row); deciding it by
+        a cheap three-row screen instead let biased sights in (docs/speed.md).
         """
         cfg = self.config.association
         out: dict[int, dict[int, tuple[float, bool]]] = {}
@@ -214,3 +422,21 @@ class Gating(GraphState):
         m, _, _, vis = self.ceiling.project_many(pose, pts)
         d = np.hypot(m[:, 0] - obs.z[0], m[:, 1] - obs.z[1])
         return bool(np.any(vis & (d < sep)))
+
+
+def propagate_relative(delta: FloatArray, cov_delta: FloatArray, covs: FloatArray) -> FloatArray:
+    """Relative covariances one keyframe on: ``Ad(d^-1) Sigma_j Ad(d^-1)^T + C`` for every ``j``.
+
+    :func:`~lampsam.backend.pose_cov.compose_cov` of ``x_j^-1 x_(k-1)`` with the
+    odometry ``d = x_(k-1)^-1 x_k``, vectorised over the window.
+
+    Args:
+        delta: (3,) odometry ``d`` (x, y, theta), m and rad.
+        cov_delta: (3, 3) its right-tangent covariance ``C``.
+        covs: (n, 3, 3) right-tangent covariances of ``x_j^-1 x_(k-1)``.
+
+    Returns:
+        (n, 3, 3) covariances of ``x_j^-1 x_k``.
+    """
+    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+    return np.einsum("ab,nbc,dc->nad", ad, covs, ad) + cov_delta

@@ -54,6 +54,7 @@ class LandmarkLifecycle(GraphState):
             return 0
         cov_meas = g_z @ cov_z @ g_z.T
         cov = g_pose @ pose_cov @ g_pose.T + cov_meas
+        lid_given = lid
         if lid is None:
             lid = self._new_id()
         else:
@@ -64,7 +65,11 @@ class LandmarkLifecycle(GraphState):
         self._landmarks[lid] = lm
         if lm.kind == "lamp":
             lm.sights.append((k, obs))
-        if lm.kind != "corner" or self.ceiling is None:
+        tentative = (lm.kind == "point2" and lid_given is None
+                     and self.config.association.planar_confirm_sightings > 1)
+        if tentative:
+            lm.pending.append((k, obs))
+        elif lm.kind != "corner" or self.ceiling is None:
             self._enter_graph(lm)
         return 1
 
@@ -137,7 +142,8 @@ class LandmarkLifecycle(GraphState):
         """Forget pending corners not seen for ``corner_pending_keyframes`` keyframes."""
         horizon = self.config.isam2.corner_pending_keyframes
         stale = [lid for lid, lm in self._landmarks.items()
-                 if not lm.in_graph and lm.kind == "corner" and k - lm.last_kf > horizon]
+                 if not lm.in_graph and lm.kind in ("corner", "point2")
+                 and k - lm.last_kf > horizon]
         for lid in stale:
             del self._landmarks[lid]
         self.n_pruned += len(stale)
@@ -154,6 +160,10 @@ class LandmarkLifecycle(GraphState):
                 self._tighten_lamp_gate(lm, k, obs)
             return
         lm.pending.append((k, obs))
+        if lm.kind == "point2":
+            if lm.n_obs >= self.config.association.planar_confirm_sightings:
+                self._enter_graph(lm)
+            return
         if lm.kind == "corner" and self.ceiling is not None:
             if self._entries_left > 0 and self._try_triangulate(lm):
                 self._enter_graph(lm)

@@ -1,4 +1,4 @@
-"""Localize-only tracking against a saved ceiling map: the map is used, never grown (issue 20).
+"""Localize-only tracking against a saved ceiling map: the map is used, never grown.
 
 :class:`MapLocalizer` is a :class:`lampsam.backend.interface.SlamBackend` whose state
 is the robot pose alone, ``x = (x, y, theta)`` with covariance ``P`` (3 x 3, plain
@@ -17,12 +17,16 @@ one observation per landmark (the smaller distance wins). Observations of nothin
 in the map are ignored: no landmark is ever added, moved or removed.
 
 Prediction is the wheel model of the SLAM EKF (eqs. 13-15,
-:meth:`lampsam.backend.odometry.MotionModel.ekf_predict`). The update with the
-frame's K matched observations is done in information form: with
-``W_i = (H_l,i Sigma_l,i H_l,i^T + R_i)^-1`` block by block,
+:meth:`lampsam.backend.odometry.MotionModel.ekf_predict`). Association is vectorised
+per kind (every observation against every map landmark predicted in view, as
+:func:`lampsam.backend.association.pairwise_d2`) on the position rows ``(u, v)``. A
+lamp axis then adds one scalar row, ``alpha = wrap_axis(phi - theta)`` (eq. 18,
+``d alpha / d theta = -1``) with variance ``R_alpha + var(phi)``, when it is inside
+its own 1-dof gate. The update with the frame's K matched observations is done in
+information form: with ``W_i = (H_l,i Sigma_l,i H_l,i^T + R_i)^-1`` block by block,
 ``P+^-1 = P^-1 + sum H_x,i^T W_i H_x,i`` and ``x+ = x + P+ sum H_x,i^T W_i nu_i``,
-which equals eqs. 21-23 for the stacked update but costs O(K) with 3 x 3 inverses
-instead of a (2K x 2K) one.
+which equals eqs. 21-23 for the stacked update but costs O(K) with 2 x 2 and 3 x 3
+inverses instead of a (2K x 2K) one.
 
 Why a pose-only EKF rather than a fixed-lag iSAM2 over poses: with the map fixed,
 the pose posterior given the past is all an online tracker needs, the EKF step is
@@ -57,11 +61,11 @@ from lampsam.backend.interface import (
     SlamResult,
     StepEstimate,
 )
-from lampsam.backend.models import Obs, for_landmark, observations_from_frame, residual
+from lampsam.backend.models import Obs, observations_from_frame
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
 from lampsam.errors import EstimationError
-from lampsam.factors.geometry import FactorError, tangent_D_coords, wrap_angle
+from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +88,12 @@ class LocalizeConfig:
             and the map's (default False: patches are not rotation invariant).
         max_corners: at most this many corner observations per frame, the smallest
             Mahalanobis distances first (default None: all).
+        min_corner_obs: map corners observed fewer times are not used (default 10).
+        max_corner_sigma: nor those whose larger horizontal sigma in the map exceeds
+            this, m (default 0.005). Measured (docs/ceiling-map.md): with a 2.5 mm map of
+            lab, every corner gave 3.6 mm RMS on lab_day2, the 28 corners passing both
+            2.5 mm (lamps only 2.6 mm); the rejected corners are mostly frontend corners
+            on lamp and item edges whose map position is off by centimetres.
     """
 
     sigma_start_xy: float = field(default=0.02, metadata=limits(gt=0.0))
@@ -93,6 +103,8 @@ class LocalizeConfig:
     unique: bool = True
     corner_ncc: bool = False
     max_corners: int | None = field(default=None, metadata=limits(ge=0))
+    min_corner_obs: int = field(default=10, metadata=limits(ge=0))
+    max_corner_sigma: float = field(default=0.005, metadata=limits(gt=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -106,13 +118,38 @@ class _KindArrays:
         self.lms = lms
         self.ids = [lm.id for lm in lms]
         self.points = np.array([lm.position for lm in lms], float).reshape(-1, 3)
-        self.cov_p = scale * np.array([lm.cov[:3, :3] for lm in lms], float).reshape(-1, 3, 3)
-        self.cov_p = np.nan_to_num(self.cov_p)  # unknown marginals: no extra noise
+        # unknown marginals (NaN): no extra noise
+        self.cov_p = np.nan_to_num(scale * np.array([lm.cov[:3, :3] for lm in lms],
+                                                    float).reshape(-1, 3, 3))
+        self.phi = np.array([np.nan if lm.phi is None else lm.phi for lm in lms], float)
+        self.var_phi = np.nan_to_num(scale * np.array([lm.cov[3, 3] for lm in lms], float))
 
 
-def _h_x(m_d_pose: FloatArray, theta: float) -> FloatArray:
-    """(…, 2, 3) right-tangent projection Jacobians -> plain-coordinate ones."""
-    return m_d_pose @ tangent_D_coords(theta)
+@dataclass
+class _Matches:
+    """The used observations of one kind and what the update needs of each (K rows).
+
+    ``nu`` (K, 2) innovations, ``h_x`` (K, 2, 3) plain-coordinate pose Jacobians,
+    ``r_tot`` (K, 2, 2) ``H_l Sigma_l H_l^T + R``, ``obs`` (K,) observation indices,
+    ``lm`` (K,) indices into the kind's :class:`_KindArrays`.
+    """
+
+    nu: FloatArray
+    h_x: FloatArray
+    r_tot: FloatArray
+    obs: np.ndarray
+    lm: np.ndarray
+
+
+def _inv2(a: FloatArray) -> FloatArray:
+    """Inverses of a stack of 2 x 2 matrices (closed form), (K, 2, 2)."""
+    det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    out = np.empty_like(a)
+    out[:, 0, 0] = a[:, 1, 1]
+    out[:, 1, 1] = a[:, 0, 0]
+    out[:, 0, 1] = -a[:, 0, 1]
+    out[:, 1, 0] = -a[:, 1, 0]
+    return out / det[:, None, None]
 
 
 class MapLocalizer(SlamBackend):
@@ -142,9 +179,14 @@ class MapLocalizer(SlamBackend):
         self.P = (np.diag([self.loc.sigma_start_xy**2, self.loc.sigma_start_xy**2,
                            self.loc.sigma_start_theta**2]) if start_cov is None
                   else np.asarray(start_cov, float).reshape(3, 3).copy())
-        self._by_id = {lm.id: lm for lm in cmap.landmarks}
-        self._kinds = {k: _KindArrays(cmap.by_kind(k), self.loc.map_cov_scale)
-                       for k in (LandmarkKind.LAMP.value, LandmarkKind.CORNER.value)}
+        corners = [lm for lm in cmap.by_kind(LandmarkKind.CORNER.value)
+                   if lm.n_obs >= self.loc.min_corner_obs
+                   and math.sqrt(max(lm.cov[0, 0], lm.cov[1, 1])) <= self.loc.max_corner_sigma]
+        self._kinds = {LandmarkKind.LAMP.value: _KindArrays(cmap.by_kind(LandmarkKind.LAMP.value),
+                                                            self.loc.map_cov_scale),
+                       LandmarkKind.CORNER.value: _KindArrays(corners, self.loc.map_cov_scale)}
+        self._gate2 = config.association.gate(2)
+        self._gate1 = config.association.gate(1)
         self._last_t = -math.inf
         self._times: list[float] = []
         self._poses: list[FloatArray] = []
@@ -156,91 +198,78 @@ class MapLocalizer(SlamBackend):
         self.n_ambiguous = 0
 
     # ------------------------------------------------------------------ association
-    def _candidates(self, obs: list[Obs]) -> list[tuple[float, int, MapLandmark]]:
-        """Gated (d2, obs index, landmark) pairs of the frame, one per used observation."""
+    def _match(self, obs: list[Obs], kind: str, arr: _KindArrays) -> _Matches | None:
+        """Gate the frame's observations of one kind against the map (module docstring)."""
+        idx = np.array([i for i, o in enumerate(obs) if o.kind == kind], int)
+        if len(idx) == 0 or not arr.ids:
+            return None
         pose = self.x
-        pairs: list[tuple[float, int, MapLandmark]] = []
-        for kind, arr in self._kinds.items():
-            idx = [i for i, o in enumerate(obs) if o.kind == kind]
-            if not idx or not arr.ids:
-                continue
-            m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, arr.points)
-            keep = np.flatnonzero(vis)
-            if len(keep) == 0:
-                self.n_ignored += len(idx)
-                continue
-            h_x = _h_x(m_d_pose[keep], float(pose[2]))
-            h_l = m_d_pt[keep]
-            s = (h_x @ self.P @ np.transpose(h_x, (0, 2, 1))
-                 + h_l @ arr.cov_p[keep] @ np.transpose(h_l, (0, 2, 1)))
-            z = np.array([obs[i].z[:2] for i in idx], float)
-            r = np.array([obs[i].R[:2, :2] for i in idx], float)
-            d2 = pairwise_d2(z, r, m[keep], s)
-            gate = self.config.association.gate(2)
-            for row, i in enumerate(idx):
-                inside = np.flatnonzero(d2[row] < gate)
-                if self.loc.corner_ncc and kind == LandmarkKind.CORNER.value:
-                    inside = np.array([j for j in inside
-                                       if patch_ncc(obs[i].patch, arr.lms[keep[j]].patch)
-                                       >= self.config.association.ncc_min], int)
-                if len(inside) == 0:
-                    self.n_ignored += 1
-                    continue
-                if len(inside) > 1 and self.loc.unique:
-                    self.n_ambiguous += 1
-                    continue
-                j = int(inside[np.argmin(d2[row, inside])])
-                pairs.append((float(d2[row, j]), i, arr.lms[keep[j]]))
-        # one observation per landmark, the closest first
-        pairs.sort(key=lambda p: p[0])
-        used_lm: set[int] = set()
-        out: list[tuple[float, int, MapLandmark]] = []
-        n_corners = 0
-        for d2_ij, i, lm in pairs:
-            if lm.id in used_lm:
-                continue
-            if lm.kind == LandmarkKind.CORNER.value:
-                if self.loc.max_corners is not None and n_corners >= self.loc.max_corners:
-                    continue
-                n_corners += 1
-            used_lm.add(lm.id)
-            out.append((d2_ij, i, lm))
-        return out
+        m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, arr.points)
+        keep = np.flatnonzero(vis)
+        if len(keep) == 0:
+            self.n_ignored += len(idx)
+            return None
+        h_x = m_d_pose[keep] @ tangent_D_coords(float(pose[2]))
+        h_l = m_d_pt[keep]
+        s_map = h_l @ arr.cov_p[keep] @ np.transpose(h_l, (0, 2, 1))
+        s = h_x @ self.P @ np.transpose(h_x, (0, 2, 1)) + s_map
+        z = np.array([obs[i].z[:2] for i in idx], float)
+        r = np.array([obs[i].R[:2, :2] for i in idx], float)
+        d2 = pairwise_d2(z, r, m[keep], s)  # (N, M), eq. 20
+        inside = d2 < self._gate2
+        if self.loc.corner_ncc and kind == LandmarkKind.CORNER.value:
+            for row, col in zip(*np.nonzero(inside), strict=True):
+                inside[row, col] = (patch_ncc(obs[idx[row]].patch, arr.lms[keep[col]].patch)
+                                    >= self.config.association.ncc_min)
+        count = inside.sum(axis=1)
+        self.n_ignored += int(np.sum(count == 0))
+        if self.loc.unique:
+            self.n_ambiguous += int(np.sum(count > 1))
+            rows = np.flatnonzero(count == 1)
+        else:
+            rows = np.flatnonzero(count >= 1)
+        if len(rows) == 0:
+            return None
+        cols = np.argmin(np.where(inside[rows], d2[rows], np.inf), axis=1)
+        d2_rc = d2[rows, cols]
+        order = np.argsort(d2_rc, kind="stable")  # one observation per landmark, closest first
+        _, first = np.unique(cols[order], return_index=True)
+        sel = order[np.sort(first)]
+        if kind == LandmarkKind.CORNER.value and self.loc.max_corners is not None:
+            sel = sel[np.argsort(d2_rc[sel], kind="stable")[: self.loc.max_corners]]
+        rows, cols = rows[sel], cols[sel]
+        return _Matches(nu=z[rows] - m[keep[cols]], h_x=h_x[cols], r_tot=r[rows] + s_map[cols],
+                        obs=idx[rows], lm=keep[cols])
 
     # ------------------------------------------------------------------ update
-    def _update(self, obs: list[Obs], pairs: list[tuple[float, int, MapLandmark]]) -> int:
-        """Information-form EKF update with the matched observations (module docstring)."""
-        pose = self.x
-        t_d_c = tangent_D_coords(float(pose[2]))
+    def _update(self, obs: list[Obs]) -> int:
+        """Information-form EKF update with the frame's matched observations."""
         info = np.zeros((3, 3))
         grad = np.zeros(3)
         n = 0
-        for _, i, lm in pairs:
-            o = for_landmark(obs[i], 4 if lm.phi is not None else 3)
-            state = lm.state()
-            try:
-                z_hat, z_d_pose, z_d_l = self.ceiling.predict(pose, state, o.has_axis)
-            except FactorError:
+        for kind, arr in self._kinds.items():
+            mt = self._match(obs, kind, arr)
+            if mt is None:
                 continue
-            h_x = z_d_pose @ t_d_c
-            cov_l = self.loc.map_cov_scale * np.nan_to_num(lm.state_cov())
-            r_tot = z_d_l @ cov_l @ z_d_l.T + o.R
-            nu = residual(o, z_hat)
-            if o.has_axis:  # the full gate, now that the axis row is known
-                psi = h_x @ self.P @ h_x.T + r_tot
-                try:
-                    if float(nu @ np.linalg.solve(psi, nu)) >= self.config.association.gate(3):
-                        o = for_landmark(o, 3)
-                        h_x, nu, r_tot = h_x[:2], nu[:2], r_tot[:2, :2]
-                except np.linalg.LinAlgError:
+            w = _inv2(mt.r_tot)  # (K, 2, 2)
+            hw = np.transpose(mt.h_x, (0, 2, 1)) @ w  # (K, 3, 2)
+            info += np.einsum("kij,kjl->il", hw, mt.h_x)
+            grad += np.einsum("kij,kj->i", hw, mt.nu)
+            n += len(mt.obs)
+            if kind != LandmarkKind.LAMP.value:
+                continue
+            # lamp axes (eq. 18's alpha = phi - theta mod pi): a scalar row each, with
+            # the map's var(phi); a row outside its own 1-dof gate is left out
+            for i, j in zip(mt.obs, mt.lm, strict=True):
+                o = obs[int(i)]
+                if not o.has_axis or math.isnan(arr.phi[j]):
                     continue
-            try:
-                w = np.linalg.inv(r_tot)
-            except np.linalg.LinAlgError:
-                continue
-            info += h_x.T @ w @ h_x
-            grad += h_x.T @ w @ nu
-            n += 1
+                nu_a = float(wrap_axis(float(o.z[2]) - (arr.phi[j] - self.x[2])))
+                var = float(o.R[2, 2]) + float(arr.var_phi[j])
+                if nu_a * nu_a / (var + self.P[2, 2]) >= self._gate1:
+                    continue
+                info[2, 2] += 1.0 / var
+                grad[2] += -nu_a / var  # d alpha / d theta = -1
         if n == 0:
             return 0
         try:
@@ -270,8 +299,7 @@ class MapLocalizer(SlamBackend):
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
             obs = [o for o in obs if o.kind != LandmarkKind.POINT2]
             if obs:
-                pairs = self._candidates(obs)
-                n_used = self._update(obs, pairs)
+                n_used = self._update(obs)
                 self.n_used += n_used
         dt = time.perf_counter() - t0
         self._times.append(t)

@@ -1,4 +1,4 @@
-"""Run localize-only tracking over a logged run, and save the map of a SLAM run (issue 20).
+"""Run localize-only tracking over a logged run, and save the map of a SLAM run.
 
 - :func:`run_localize_only`: ``lampsam slam RUN2 --map MAP --localize-only``: the
   run's ceiling frames and odometry through :class:`lampsam.backend.localize_only.MapLocalizer`

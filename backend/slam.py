@@ -372,6 +372,14 @@ def online_result(source: str, online: list[StepEstimate], status: str) -> SlamR
     )
 
 
+def pose2_model_for(run: LoggedRun | None, config: SlamConfig) -> Pose2OdometryModel:
+    """The Pose2 odometry noise model of a run: ``rig.yaml``'s ``pose2_odometry``
+    section if it has one (it describes the robot), else the config's."""
+    if run is not None and run.rig.pose2_odometry is not None:
+        return run.rig.pose2_odometry
+    return config.pose2_odometry
+
+
 def run_slam(run_dir: str | Path, backend: str = "isam2",
              features: tuple[str, ...] | None = None, out: str | Path | None = None,
              config: SlamConfig | None = None, frames: str = "auto",
@@ -414,7 +422,7 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
     frame_list, is_ceiling = make_frames(run, frames)
     start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
-    odo_model = (Pose2OdometryModel() if isinstance(run.odometry, Pose2OdometryLog)
+    odo_model = (pose2_model_for(run, config) if isinstance(run.odometry, Pose2OdometryLog)
                  else run.rig.odometry)
     be = make_backend(backend, odo_model, config, start,
                       run.rig.camera if is_ceiling else None)
@@ -559,7 +567,8 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
         config: the SLAM config (defaults when None); keyframes are made at every
             pose with sightings (``isam2.every_frame``), as in the file's graph.
         known_ids: use the file's landmark ids; False associates by the backend's gate.
-        odometry_model: floor (and default noise) of the Pose2 odometry.
+        odometry_model: floor (and default noise) of the Pose2 odometry; None:
+            ``config.pose2_odometry``.
         start_pose: (3,) start pose; None: the first pose's vertex, else the origin.
 
     Returns:
@@ -572,7 +581,7 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
         config, isam2=dataclasses.replace(config.isam2, every_frame=True),
         association=dataclasses.replace(config.association, use_known_ids=known_ids))
     start = graph_log.start_pose() if start_pose is None else np.asarray(start_pose, float)
-    be = make_backend(backend, odometry_model or Pose2OdometryModel(), config, start)
+    be = make_backend(backend, odometry_model or config.pose2_odometry, config, start)
     t0 = time.perf_counter()
     result = drive(be, graph_log_steps(graph_log, known_ids))
     result.extra["total_time_s"] = time.perf_counter() - t0

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
+from lampsam.config_loader import check_limits, limits
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -74,6 +75,10 @@ class Pose2OdometryModel:
     at rest the odometry's uncertainty grows as ``N`` times the floor (a random walk
     per sample), never to an infinitely confident factor.
 
+    Set from a SLAM config's ``[pose2_odometry]`` table or a run's ``rig.yaml``
+    ``pose2_odometry`` section (the rig's wins: it describes the robot; see
+    :func:`lampsam.backend.slam.pose2_model_for`), both read by the strict loader.
+
     Attributes:
         k_xy: translation variance per metre travelled, m (default 1e-4: 1 cm over 1 m).
         k_theta: heading variance per radian turned, rad (default 1e-4).
@@ -82,20 +87,19 @@ class Pose2OdometryModel:
         var_floor_theta: heading variance added per sample, rad^2 (default 1e-8).
     """
 
-    k_xy: float = 1e-4
-    k_theta: float = 1e-4
-    k_theta_xy: float = 1e-5
-    var_floor_xy: float = 1e-8
-    var_floor_theta: float = 1e-8
+    k_xy: float = field(default=1e-4, metadata=limits(ge=0.0))
+    k_theta: float = field(default=1e-4, metadata=limits(ge=0.0))
+    k_theta_xy: float = field(default=1e-5, metadata=limits(ge=0.0))
+    var_floor_xy: float = field(default=1e-8, metadata=limits(gt=0.0))
+    var_floor_theta: float = field(default=1e-8, metadata=limits(gt=0.0))
 
     def __post_init__(self) -> None:
-        """Validate: every constant finite and >= 0, the floors > 0."""
+        """Validate: every constant finite and >= 0, the floors > 0 (a robot at rest
+        would otherwise give a singular covariance); a FieldValueError names the key."""
+        check_limits(self)
         vals = (self.k_xy, self.k_theta, self.k_theta_xy, self.var_floor_xy, self.var_floor_theta)
-        if not all(math.isfinite(v) and v >= 0 for v in vals):
-            raise ValueError(f"Pose2OdometryModel constants must be finite and >= 0, got {vals}")
-        if self.var_floor_xy <= 0 or self.var_floor_theta <= 0:
-            raise ValueError("Pose2OdometryModel floors must be > 0 (a robot at rest would "
-                             "give a singular covariance)")
+        if not all(math.isfinite(v) for v in vals):
+            raise ValueError(f"Pose2OdometryModel constants must be finite, got {vals}")
 
     def sample_cov(self, delta: FloatArray, cov: FloatArray) -> FloatArray:
         """(3, 3) covariance of one sample: its own (or the default) plus the floor.

@@ -22,6 +22,7 @@ import yaml
 
 from lampsam.config_loader import ConfigError, from_mapping
 from lampsam.datasets.camera import CameraModel
+from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.datasets.textio import read_yaml
 from lampsam.errors import DatasetError
 from lampsam.safe_io import write_text_atomic
@@ -62,10 +63,15 @@ class Rig:
     Attributes:
         camera: the upward camera.
         odometry: the wheel-odometry model.
+        pose2_odometry: optional section ``pose2_odometry``: the noise model of a
+            run whose odometry is Pose2 increments or poses (samples without a
+            covariance, the floor; :class:`~lampsam.datasets.odometry.Pose2OdometryModel`
+            keys, each optional); None: the SLAM config's ``[pose2_odometry]``.
     """
 
     camera: CameraModel = field(default_factory=CameraModel)
     odometry: OdometryModel = field(default_factory=OdometryModel)
+    pose2_odometry: Pose2OdometryModel | None = None
 
     @classmethod
     def from_dict(cls, data: Any, path: Path | None = None, strict: bool = False) -> Rig:
@@ -87,7 +93,10 @@ class Rig:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-Python mapping for YAML."""
-        return {"camera": self.camera.to_dict(), "odometry": self.odometry.to_dict()}
+        out = {"camera": self.camera.to_dict(), "odometry": self.odometry.to_dict()}
+        if self.pose2_odometry is not None:
+            out["pose2_odometry"] = {k: float(v) for k, v in vars(self.pose2_odometry).items()}
+        return out
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> Rig:
@@ -199,15 +208,19 @@ def _camera(cam: dict[str, Any], path: Path | None, strict: bool) -> CameraModel
         raise _fail(f"camera: {exc}", path) from exc
 
 
-def _rig_parts(data: Any, path: Path | None, strict: bool) -> tuple[CameraModel, OdometryModel]:
+def _rig_parts(data: Any, path: Path | None, strict: bool
+               ) -> tuple[CameraModel, OdometryModel, Pose2OdometryModel | None]:
     """Camera and odometry of a ``rig.yaml`` mapping (see :meth:`Rig.from_dict`)."""
     if not isinstance(data, dict):
         raise _fail("the rig must be a mapping with sections 'camera' and 'odometry'", path)
-    unknown = sorted(set(data) - {"camera", "odometry"})
+    unknown = sorted(set(data) - {"camera", "odometry", "pose2_odometry"})
     if unknown:
-        raise _fail(f"unknown section {unknown[0]!r} (known: camera, odometry)", path)
+        raise _fail(f"unknown section {unknown[0]!r} (known: camera, odometry, pose2_odometry)",
+                    path)
     cam = _section(data, "camera", strict, path)
     odo = _section(data, "odometry", strict, path)
     if strict:
         _require(odo, "odometry", REQUIRED["odometry"], path)
-    return _camera(cam, path, strict), _build(OdometryModel, odo, "odometry", path)
+    pose2 = (_build(Pose2OdometryModel, _section(data, "pose2_odometry", False, path),
+                    "pose2_odometry", path) if "pose2_odometry" in data else None)
+    return _camera(cam, path, strict), _build(OdometryModel, odo, "odometry", path), pose2

@@ -18,6 +18,12 @@ Metrics (:class:`FrontendMetrics`), over a whole run:
 * axis error (deg, RMS and max) for matched ``lamp_rect`` lamps detected with
   ``R_ori > ratio_threshold``, comparing the image-space axis (eq. 5) with the
   projected axis, modulo pi;
+* the same on the ceiling, what the estimators use: the observation's ``m``
+  against the truth centre's (its projected pixel mapped by the camera),
+  RMS in ``m`` units (per metre of height), and its axis against the projected
+  axis mapped to the ceiling at the centre (deg). Under a lens that bends
+  lamps (fisheye, tilt) the pixel centroid is not the centre's image, so
+  these, not the pixel figures, measure the frontend;
 * corner repeatability: a detected corner is "true" when within
   ``corner_gate_px`` of a visible truth corner; over consecutive frames,
   repeatability = true corners of frame k seen again (same id) in frame k+1
@@ -122,6 +128,10 @@ class FrontendMetrics:
     n_axis: int = 0
     axis_rms_deg: float = math.nan
     axis_max_deg: float = math.nan
+    m_rms: float = math.nan
+    m_max: float = math.nan
+    n_axis_m: int = 0
+    axis_m_rms_deg: float = math.nan
     n_corners_mean: float = math.nan
     corner_true_fraction: float = math.nan
     corner_repeatability: float = math.nan
@@ -149,6 +159,8 @@ class FrontendMetrics:
             f"centroid error: RMS {self.centroid_rms_px:.3f} px, max {self.centroid_max_px:.3f} px",
             f"axis error (R_ori > thr, {self.n_axis} lamps): RMS {self.axis_rms_deg:.3f} deg, "
             f"max {self.axis_max_deg:.3f} deg",
+            f"on the ceiling: m error RMS {self.m_rms:.5f}, max {self.m_max:.5f} (per m of height); "
+            f"axis RMS {self.axis_m_rms_deg:.3f} deg ({self.n_axis_m} lamps)",
             f"corners/frame {self.n_corners_mean:.1f}, "
             f"true {100 * self.corner_true_fraction:.1f} %, "
             f"repeatability {100 * self.corner_repeatability:.1f} %",
@@ -193,6 +205,8 @@ def evaluate_frames(
     res = FrontendMetrics(source=source)
     cen_err: list[float] = []
     ax_err: list[float] = []
+    m_err: list[float] = []
+    ax_m_err: list[float] = []
     n_corners: list[int] = []
     n_true_corners = 0
     rep_num = rep_den = 0
@@ -213,7 +227,14 @@ def evaluate_frames(
         full_idx = np.flatnonzero(full)
         res.n_truth_lamps_full += full_idx.size
         j, d = _nearest(truth.pixel[full_idx], px)
-        for t_i, d_i, j_i in zip(full_idx, d, j, strict=True):
+        # Truth on the ceiling: the centre's pixel and two points 0.5 px along the axis, mapped.
+        tpx = truth.pixel[full_idx]
+        ang = np.nan_to_num(truth.angle_px[full_idx])
+        half = 0.5 * np.column_stack([np.cos(ang), np.sin(ang)])
+        tm = np.asarray(
+            camera.normalized_from_pixels(np.concatenate([tpx, tpx + half, tpx - half]))
+        ).reshape(3, -1, 2)
+        for k, (t_i, d_i, j_i) in enumerate(zip(full_idx, d, j, strict=True)):
             if d_i > settings.gate_px:
                 continue
             res.n_found += 1
@@ -221,6 +242,11 @@ def evaluate_frames(
             mom = det.moments[used[j_i]]
             if truth.types[t_i] == "lamp_rect" and mom.ratio > config.lamps.ratio_threshold:
                 ax_err.append(abs(wrap_axis(mom.theta - float(truth.angle_px[t_i]))))
+            obs = det.lamps[used[j_i]]
+            m_err.append(float(np.hypot(*(obs.m - tm[0, k]))))
+            if truth.types[t_i] == "lamp_rect" and obs.axis is not None:
+                du, dv = tm[1, k] - tm[2, k]
+                ax_m_err.append(abs(wrap_axis(obs.axis - math.atan2(dv, du))))
         # Corners.
         cd = detect_corner_pixels(img, det.mask, config.corners)
         n_corners.append(cd.pixels.shape[0])
@@ -265,6 +291,13 @@ def evaluate_frames(
         res.n_axis = int(a.size)
         res.axis_rms_deg = float(np.sqrt(np.mean(a * a)))
         res.axis_max_deg = float(a.max())
+    if m_err:
+        e = np.array(m_err)
+        res.m_rms, res.m_max = float(np.sqrt(np.mean(e * e))), float(e.max())
+    if ax_m_err:
+        a = np.degrees(np.array(ax_m_err))
+        res.n_axis_m = int(a.size)
+        res.axis_m_rms_deg = float(np.sqrt(np.mean(a * a)))
     if n_corners:
         res.n_corners_mean = float(np.mean(n_corners))
         total = int(np.sum(n_corners))

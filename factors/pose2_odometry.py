@@ -99,6 +99,9 @@ def accumulate_pose2(deltas: FloatArray, covs: FloatArray,
     fl = np.broadcast_to(np.asarray(floor, dtype=float), (3,))
     if np.any(fl < 0) or not np.all(np.isfinite(fl)):
         raise FactorError(f"odometry covariance floor must be finite and >= 0, got {fl}")
+    if len(d) == 1:  # one sample (a keyframe per pose): the loop below gives exactly this
+        total, _, _ = pose2_step(np.zeros(3), d[0])
+        return total, 0.5 * (c[0] + c[0].T) + np.diag(fl)
     total = np.zeros(3)
     cov = np.zeros((3, 3))
     for di, ci in zip(d, c, strict=True):

@@ -50,6 +50,12 @@ import numpy as np
 
 from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
+from lampsam.frontend.ceiling_grid import (
+    CeilingGrid,
+    CeilingMoments,
+    label_ceiling_moments,
+    region_ceiling_moments,
+)
 from lampsam.frontend.dilation import dilate_disk, disk
 from lampsam.frontend.label_stats import (
     group_by_label,
@@ -79,6 +85,9 @@ class BlobMoments:
         area_px: coverage-weighted area, px.
         touches_border: the region touches the image border.
         contrast: lamp level minus background level (``top - bg``), grey levels.
+        ceiling: the same coverage's moments taken in normalised ceiling
+            coordinates (:mod:`lampsam.frontend.ceiling_grid`) when measured with
+            the camera's table, else None (the pixel -> ``m`` map is affine).
     """
 
     centroid: FloatArray
@@ -92,6 +101,7 @@ class BlobMoments:
     area_px: float
     touches_border: bool
     contrast: float
+    ceiling: CeilingMoments | None = None
 
 
 def _hist(grey: FloatArray, mask: np.ndarray) -> FloatArray:
@@ -127,7 +137,7 @@ def coverage_moments(
     ring: np.ndarray,
     origin: tuple[int, int],
     config: LampDetectorConfig,
-) -> tuple[FloatArray, FloatArray, FloatArray, float, float, float, float] | None:
+) -> tuple[FloatArray, FloatArray, FloatArray, float, float, float, float, FloatArray] | None:
     """Coverage-weighted centroid and second moments of one blob, with uncertainty.
 
     Args:
@@ -140,8 +150,9 @@ def coverage_moments(
 
     Returns:
         ``(centroid (2,), cov_centroid (2, 2), moments (3,) = (a, b, c), var_theta,
-        theta, area, contrast)`` in pixels (see the module docstring for the formulas),
-        or None when the blob has no contrast against its ring.
+        theta, area, contrast, weights (h, w))`` in pixels (see the module docstring
+        for the formulas; ``weights``: the coverage, 0 off the support), or None
+        when the blob has no contrast against its ring.
     """
     top = _median(grey, core)
     if ring.any():
@@ -187,7 +198,7 @@ def coverage_moments(
     else:
         var_theta = math.inf
     centroid = np.array([cx + origin[0], cy + origin[1]])
-    return centroid, cov_c, np.array([a, b, c]), var_theta, theta, total, span
+    return centroid, cov_c, np.array([a, b, c]), var_theta, theta, total, span, w
 
 
 def measure_region(
@@ -197,8 +208,14 @@ def measure_region(
     origin: tuple[int, int],
     touches_border: bool,
     config: LampDetectorConfig,
+    grid: CeilingGrid | None = None,
 ) -> BlobMoments | None:
-    """Measure one region of a region of interest (see :func:`coverage_moments`)."""
+    """Measure one region of a region of interest (see :func:`coverage_moments`).
+
+    With ``grid`` (a camera's table, not affine) the moments are also taken on
+    the ceiling (:attr:`BlobMoments.ceiling`); None when that fails (weight on
+    a pixel off the ceiling).
+    """
     support = cv2.dilate(core.astype(np.uint8), disk(config.support_px)).astype(bool)
     outer = cv2.dilate(core.astype(np.uint8), disk(config.support_px + config.ring_px))
     ring = outer.astype(bool) & ~support & ~others
@@ -206,7 +223,15 @@ def measure_region(
     res = coverage_moments(grey_roi, core, support, ring, origin, config)
     if res is None:
         return None
-    centroid, cov_c, (a, b, c), var_theta, theta, area, span = res
+    centroid, cov_c, (a, b, c), var_theta, theta, area, span, weights = res
+    on_ceiling = None
+    if grid is not None and not grid.affine:
+        rows, cols = np.nonzero(weights)
+        on_ceiling = region_ceiling_moments(
+            grid, rows + origin[1], cols + origin[0], weights[rows, cols]
+        )
+        if on_ceiling is None:
+            return None
     # Pixel-box term: the coverage of a pixel is spread uniformly over it.
     a += 1.0 / 12.0
     c += 1.0 / 12.0
@@ -227,6 +252,7 @@ def measure_region(
         area_px=area,
         touches_border=touches_border,
         contrast=span,
+        ceiling=on_ceiling,
     )
 
 
@@ -247,6 +273,7 @@ class Reach(NamedTuple):
             thresholded pixel of another blob (or of no measured blob) lies in
             that blob's reach: its bright neighbours (empty when
             ``max_crowding`` is None).
+        flat: shape (P,) the pixel's flat index in the image (``row * W + col``).
     """
 
     xy: FloatArray
@@ -254,6 +281,7 @@ class Reach(NamedTuple):
     sup: IntArray
     ring: IntArray
     crowd: IntArray
+    flat: IntArray
 
 
 def gather_reach(
@@ -315,7 +343,7 @@ def gather_reach(
         hi = outer_v.take(bright).astype(np.intp)
         crowd = np.concatenate([hi[hi != own], lo[(lo != own) & (lo != hi)]])
     xy = np.array([cols, rows], dtype=np.float64)
-    return Reach(xy, image.reshape(-1).take(in_image), sup, ring, crowd)
+    return Reach(xy, image.reshape(-1).take(in_image), sup, ring, crowd, in_image)
 
 
 def shape_checks(
@@ -363,11 +391,15 @@ def shape_checks(
         a = sxx / s0 - cx * cx + 1.0 / 12.0
         b = sxy / s0 - cx * cy
         c = syy / s0 - cy * cy + 1.0 / 12.0
-        merged[j] = s0 / (4.0 * math.pi * math.sqrt(max(a * c - b * b, 1e-12))) < config.min_fill
+        lam_min = 0.5 * (a + c - math.sqrt(max((a - c) * (a - c) + 4 * b * b, 0.0)))
+        thin = math.sqrt(12.0 * max(lam_min, 0.0)) < config.thin_width_px
+        # A glare merger (two lamps joined by a halo) is wide; a thin blob's low fill is
+        # the staircase of an oblique line a few pixels wide (distant lamps seen edge-on).
+        fill = s0 / (4.0 * math.pi * math.sqrt(max(a * c - b * b, 1e-12)))
+        merged[j] = not thin and fill < config.min_fill
         if config.max_peak_drop_grey is not None:
             # Thin blobs (area sampling dims them) are judged by their brightest pixel.
-            lam_min = 0.5 * (a + c - math.sqrt(max((a - c) * (a - c) + 4 * b * b, 0.0)))
-            if math.sqrt(12.0 * max(lam_min, 0.0)) < config.thin_width_px:
+            if thin:
                 too_dim[j] = brightest < peak - config.max_peak_drop_thin_grey
             else:
                 too_dim[j] = fifth < peak - config.max_peak_drop_grey
@@ -382,6 +414,7 @@ def measure_labels(
     default_bg: Callable[[], float],
     config: LampDetectorConfig,
     origin: tuple[int, int],
+    grid: CeilingGrid | None = None,
 ) -> list[BlobMoments | None]:
     """Coverage moments of many blobs at once (see the module docstring).
 
@@ -396,10 +429,12 @@ def measure_labels(
         default_bg: background level of a blob without any ring pixel.
         config: detector settings.
         origin: ``(col, row)`` of the box's ``[0, 0]`` in the full image.
+        grid: the camera's table (:mod:`lampsam.frontend.ceiling_grid`): the
+            moments are also taken on the ceiling when it is not affine.
 
     Returns:
-        One :class:`BlobMoments` (or None: no contrast) per label of ``ids``,
-        centroids in full-image pixels.
+        One :class:`BlobMoments` (or None: no contrast, or weight on a pixel
+        off the ceiling) per label of ``ids``, centroids in full-image pixels.
     """
     n = top.size
     # Background (median of the ring) and its spread (1.4826 MAD) per blob, from
@@ -450,6 +485,13 @@ def measure_labels(
     px, pb, py, pa, pc = np.array([xx, b, yy, a, c]).take(lab, axis=1)
     num = px * (2.0 * q[1] - 2.0 * pb) - py * ((q[0] - pa) - (q[2] - pc))
     (dth2,) = label_sums(groups, (free * num * num)[None, :], n)
+    on_ceiling: list[CeilingMoments | None] = [None] * ids.size
+    if grid is not None and not grid.affine:
+        mc, mcov, marea, m_ok = label_ceiling_moments(
+            grid, groups, lab, reach.flat.take(sup), wv, n
+        )
+        ok &= m_ok
+        on_ceiling = [CeilingMoments(mc[i], mcov[i], float(marea[i])) for i in ids.tolist()]
     # The closing formulas per blob on Python floats (a handful of blobs: cheaper
     # than another twenty numpy calls); the blobs' small arrays are built at once.
     table = np.array([s0, cx, cy, a, b, c, fxx, fxy, fyy, dth2, sigma_n, span])
@@ -467,12 +509,12 @@ def measure_labels(
     touches = border.take(ids).tolist()
     out: list[BlobMoments | None] = []
     j = 0
-    for cl, edge in zip(closed, touches, strict=True):
+    for cl, edge, on_c in zip(closed, touches, on_ceiling, strict=True):
         if cl is None:
             out.append(None)
             continue
         # (positional: the frozen dataclass's __init__ is about twice as fast)
-        out.append(BlobMoments(centroids[j], covs[j], shapes[j], *cl[4:10], edge, cl[10]))
+        out.append(BlobMoments(centroids[j], covs[j], shapes[j], *cl[4:10], edge, cl[10], on_c))
         j += 1
     return out
 

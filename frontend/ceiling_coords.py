@@ -4,12 +4,19 @@ The observation model of paper 1 (eqs. 17-18, DESIGN.md sec. 1) works in the
 normalised image point ``m = (u, v) / f`` of an upward camera whose axes are
 (robot forward, robot left). The detector measures in pixels ``(col, row)``;
 the camera model maps pixels to ``m`` (undistortion, and undoing the image
-mirroring of the mounting). Uncertainty goes through the local Jacobian
-``J = dm/dpx`` at the centroid (central differences):
+mirroring of the mounting).
+
+A lamp's centre and axis are those of its blob's shape *on the ceiling*
+(:func:`ceiling_shapes`): the coverage moments taken in ``m``
+(:mod:`lampsam.frontend.ceiling_grid`) when the map is not affine, else the
+pixel moments mapped by the local Jacobian ``J = dm/dpx`` (central
+differences; exact for an affine map): centre ``m_c``, shape ``C_m``
+(second central moments), the long axis ``alpha = 0.5 atan2(2 C_uv, C_uu - C_vv)``
+(eq. 5 on the ceiling) and ``R_ori = sqrt(lambda_max / lambda_min)`` of ``C_m``
+(eq. 7). Uncertainty goes through ``J`` at the pixel centroid (first order):
 
 * centroid: ``cov_m = J cov_c J^T``;
-* axis: the image direction ``e = (cos theta, sin theta)`` becomes ``J e``, so
-  the ceiling axis is ``atan2(J e)`` modulo pi, and
+* axis: the image direction ``e = (cos theta, sin theta)`` becomes ``J e``, and
   ``var_alpha = (det J / |J e|^2)^2 var_theta`` (the derivative of the mapped
   angle with respect to ``theta``).
 """
@@ -18,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -70,36 +77,96 @@ def ceiling_jacobians(
     return mm[:, 0], jac
 
 
+class CeilingShapes(NamedTuple):
+    """Blobs' shapes on the ceiling (normalised ceiling coordinates ``m``).
+
+    Attributes:
+        m: shape (N, 2) area centroids.
+        cov: shape (N, 2, 2) second central moments, pixel-box term included
+            (``m`` units squared).
+        area: shape (N,) coverage areas on the ceiling (``m`` units squared).
+    """
+
+    m: FloatArray
+    cov: FloatArray
+    area: FloatArray
+
+    def select(self, keep: Sequence[bool]) -> CeilingShapes:
+        """The shapes where ``keep`` is True."""
+        idx = np.flatnonzero(np.asarray(keep, dtype=bool))
+        return CeilingShapes(self.m[idx], self.cov[idx], self.area[idx])
+
+
+def ceiling_shapes(moments: Sequence[BlobMoments], m: FloatArray, m_D_px: FloatArray) -> CeilingShapes:
+    """Centroid, shape and area of each blob on the ceiling (module docstring).
+
+    A blob measured on the ceiling (:attr:`BlobMoments.ceiling`) keeps those
+    moments, plus the pixel-box term ``J (I / 12) J^T``; the others (affine
+    map) get their pixel moments mapped: ``m(p)``, ``J C J^T`` (``C`` includes
+    the pixel-box term) and ``|det J| area_px``.
+
+    Args:
+        moments: N pixel-space blob measurements.
+        m: shape (N, 2) ``m`` of their pixel centroids.
+        m_D_px: shape (N, 2, 2) Jacobians ``dm/dpx`` at the pixel centroids.
+    """
+    n = len(moments)
+    cen = np.array(m, dtype=np.float64).reshape(n, 2)
+    cov = np.empty((n, 2, 2))
+    area = np.empty(n)
+    for i, (mo, jac) in enumerate(zip(moments, m_D_px, strict=True)):
+        on = mo.ceiling
+        if on is None:
+            cov[i] = jac @ mo.cov_shape @ jac.T
+            area[i] = abs(jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]) * mo.area_px
+        else:
+            cen[i] = on.centroid
+            cov[i] = on.cov_shape + (jac @ jac.T) / 12.0
+            area[i] = on.area
+    return CeilingShapes(cen, cov, area)
+
+
+def shape_axis_ratio(cov: FloatArray) -> tuple[float, float]:
+    """Long-axis angle (rad, wrapped to ``(-pi/2, pi/2]``) and ``R_ori`` of a 2x2 shape covariance."""
+    a, b, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    disc = math.sqrt(max((a - c) * (a - c) + 4.0 * b * b, 0.0))
+    lam1 = 0.5 * (a + c + disc)
+    lam2 = max(0.5 * (a + c - disc), 1e-300)
+    return wrap_axis(0.5 * math.atan2(2.0 * b, a - c)), math.sqrt(lam1 / lam2)
+
+
 def to_observation(
-    mom: BlobMoments, m: FloatArray, m_D_px: FloatArray, config: LampDetectorConfig
+    mom: BlobMoments, shape_m: FloatArray, shape_cov: FloatArray, m_D_px: FloatArray,
+    config: LampDetectorConfig,
 ) -> LampObservation:
-    """Convert a pixel-space blob measurement to a :class:`LampObservation`.
+    """Convert a pixel-space blob measurement and its shape on the ceiling to a :class:`LampObservation`.
 
     Args:
         mom: the blob's pixel measurement.
-        m: shape (2,), its centroid in normalised ceiling coordinates.
-        m_D_px: shape (2, 2), Jacobian of ``m`` with respect to the pixel.
+        shape_m: shape (2,), its centroid on the ceiling (:func:`ceiling_shapes`).
+        shape_cov: shape (2, 2), its shape on the ceiling.
+        m_D_px: shape (2, 2), Jacobian of ``m`` with respect to the pixel at the pixel centroid.
         config: detector settings (ratio threshold).
 
     Returns:
-        The observation; ``axis`` is ``atan2`` of ``J e`` wrapped to
-        ``(-pi/2, pi/2]``, ``var_axis = (det J / |J e|^2)^2 var_theta``.
+        The observation (module docstring); ``axis`` None for a point lamp.
     """
     cov_m = m_D_px @ mom.cov_centroid @ m_D_px.T
+    alpha, ratio = shape_axis_ratio(shape_cov)
     axis: float | None = None
     var_axis = math.inf
-    if mom.ratio > config.ratio_threshold:
+    if ratio > config.ratio_threshold:
         e = np.array([math.cos(mom.theta), math.sin(mom.theta)])
         je = m_D_px @ e
-        axis = wrap_axis(math.atan2(je[1], je[0]))
+        axis = alpha
         gain = float(np.linalg.det(m_D_px)) / float(je @ je)
         var_axis = gain * gain * mom.var_theta
     return LampObservation(
-        m=np.asarray(m, dtype=np.float64),
+        m=np.asarray(shape_m, dtype=np.float64),
         cov_m=cov_m,
         axis=axis,
         var_axis=var_axis,
-        ratio=mom.ratio,
+        ratio=ratio,
         area_px=mom.area_px,
         pixel=mom.centroid,
         landmark_id=None,
@@ -108,22 +175,18 @@ def to_observation(
 
 
 def to_observations(
-    moments: list[BlobMoments],
-    m: FloatArray,
+    moments: Sequence[BlobMoments],
+    shapes: CeilingShapes,
     m_D_px: FloatArray,
     config: LampDetectorConfig,
-    ceiling_axes: Sequence[float | None] | None = None,
 ) -> tuple[LampObservation, ...]:
-    """:func:`to_observation` of many blobs at once (the same formulas, batched).
+    """:func:`to_observation` of many blobs at once (the same formulas on Python floats).
 
     Args:
         moments: N pixel measurements.
-        m: shape (N, 2), their centroids in normalised ceiling coordinates.
-        m_D_px: shape (N, 2, 2), Jacobians of ``m`` with respect to the pixel.
+        shapes: their shapes on the ceiling (:func:`ceiling_shapes`).
+        m_D_px: shape (N, 2, 2), Jacobians of ``m`` at the pixel centroids.
         config: detector settings (ratio threshold).
-        ceiling_axes: per blob, its axis taken on the ceiling (the principal
-            axis of ``J cov_shape J^T``, :func:`perspective_terms`) to use
-            instead of ``J e``, or None (default: ``J e`` for all).
 
     Returns:
         N observations, same order; equal to :func:`to_observation` up to
@@ -135,92 +198,30 @@ def to_observations(
     covs: list[tuple[tuple[float, float], tuple[float, float]]] = []
     axes: list[float | None] = []
     var_axes: list[float] = []
-    over = ceiling_axes if ceiling_axes is not None else [None] * len(moments)
-    for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)), ax_c in zip(
-        moments, m_D_px.tolist(), cov_c, over, strict=True
+    ratios: list[float] = []
+    for mo, ((j00, j01), (j10, j11)), ((c00, c01), (c10, c11)), ((a, b), (_, c)) in zip(
+        moments, m_D_px.tolist(), cov_c, shapes.cov.tolist(), strict=True
     ):
         # cov_m = J cov_c J^T
         t00, t01 = j00 * c00 + j01 * c10, j00 * c01 + j01 * c11
         t10, t11 = j10 * c00 + j11 * c10, j10 * c01 + j11 * c11
         covs.append(((t00 * j00 + t01 * j01, t00 * j10 + t01 * j11),
                      (t10 * j00 + t11 * j01, t10 * j10 + t11 * j11)))  # fmt: skip
-        if mo.ratio > threshold:
+        disc = math.sqrt(max((a - c) * (a - c) + 4.0 * b * b, 0.0))
+        ratio = math.sqrt(0.5 * (a + c + disc) / max(0.5 * (a + c - disc), 1e-300))
+        ratios.append(ratio)
+        if ratio > threshold:
             cos_t, sin_t = math.cos(mo.theta), math.sin(mo.theta)
             je0, je1 = j00 * cos_t + j01 * sin_t, j10 * cos_t + j11 * sin_t
-            axes.append(wrap_axis(math.atan2(je1, je0)) if ax_c is None else ax_c)
+            axes.append(wrap_axis(0.5 * math.atan2(2.0 * b, a - c)))
             gain = (j00 * j11 - j01 * j10) / (je0 * je0 + je1 * je1)
             var_axes.append(gain * gain * mo.var_theta)
         else:
             axes.append(None)
             var_axes.append(math.inf)
-    m = np.asarray(m, dtype=np.float64)
+    m = np.asarray(shapes.m, dtype=np.float64)
     # (positional: the frozen dataclass's __init__ is about twice as fast)
     return tuple(
-        LampObservation(mi, ci, ax, va, mo.ratio, mo.area_px, mo.centroid, None, mo.touches_border)
-        for mo, mi, ci, ax, va in zip(moments, m, np.array(covs), axes, var_axes, strict=True)
+        LampObservation(mi, ci, ax, va, r, mo.area_px, mo.centroid, None, mo.touches_border)
+        for mo, mi, ci, ax, va, r in zip(moments, m, np.array(covs), axes, var_axes, ratios, strict=True)
     )
-
-
-def perspective_terms(
-    camera: PixelToCeiling, px: FloatArray, cov_shapes: FloatArray, m_D_px: FloatArray, step: float
-) -> tuple[FloatArray, list[float | None]]:
-    """Second-order corrections for a pixel -> ``m`` map that is not affine (tilted camera, distortion).
-
-    A blob's pixel centroid ``p`` maps to ``m(p)``, but the lamp's centre is
-    the area centroid *on the ceiling*: with ``g = |det J|`` the ceiling area
-    of a pixel and ``C`` the blob's pixel covariance (``cov_shape``), to
-    second order
-
-        ``m_centre = m(p) + 1/2 [tr(H_u C), tr(H_v C)] + J C grad(log g)``
-
-    (``H_u``, ``H_v`` the Hessians of the two components of ``m``). For an
-    upward pinhole camera ``m`` is affine in the pixel: ``H = 0``, ``g``
-    constant, nothing changes. Likewise the lamp's axis is the principal axis
-    of ``J C J^T`` (the blob's shape on the ceiling) rather than the image of
-    the pixel principal axis ``J e``; they agree for a similarity ``J``.
-    Derivatives by central differences on a 5 x 5 grid of spacing ``step``.
-
-    Args:
-        camera: the camera model.
-        px: shape (N, 2) pixel centroids.
-        cov_shapes: shape (N, 2, 2) pixel shape covariances, px^2.
-        m_D_px: shape (N, 2, 2) Jacobians at the centroids.
-        step: grid spacing, px.
-
-    Returns:
-        ``(dm (N, 2), axes)``: the centroid corrections and, per blob, its
-        ceiling axis (rad, mod pi) where the map is not affine, else None.
-    """
-    n = px.shape[0]
-    a = np.arange(-2, 3, dtype=np.float64) * step
-    offs = np.stack(np.meshgrid(a, a, indexing="ij"), axis=-1).reshape(-1, 2)  # [i, j] -> (dx, dy)
-    pts = (px[:, None, :] + offs[None, :, :]).reshape(-1, 2)
-    g = np.asarray(camera.normalized_from_pixels(pts), dtype=np.float64).reshape(n, 5, 5, 2)
-    s2 = step * step
-    hxx = (g[:, 3, 2] - 2 * g[:, 2, 2] + g[:, 1, 2]) / s2
-    hyy = (g[:, 2, 3] - 2 * g[:, 2, 2] + g[:, 2, 1]) / s2
-    hxy = (g[:, 3, 3] - g[:, 3, 1] - g[:, 1, 3] + g[:, 1, 1]) / (4 * s2)
-
-    def det_j(i: int, j: int) -> FloatArray:
-        jx = (g[:, i + 1, j] - g[:, i - 1, j]) / (2 * step)
-        jy = (g[:, i, j + 1] - g[:, i, j - 1]) / (2 * step)
-        return np.abs(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0])
-
-    g0 = det_j(2, 2)
-    grad = np.stack([det_j(3, 2) - det_j(1, 2), det_j(2, 3) - det_j(2, 1)], axis=-1) / (2 * step)
-    grad = grad / g0[:, None]
-    c = cov_shapes
-    second = 0.5 * (hxx * c[:, None, 0, 0] + 2 * hxy * c[:, None, 0, 1] + hyy * c[:, None, 1, 1])
-    first = np.einsum("nij,njk,nk->ni", m_D_px, c, grad)
-    dm = second + first
-    scale = np.abs(m_D_px).max(axis=(1, 2))
-    curved = (np.abs(np.stack([hxx, hyy, hxy], 1)).max(axis=(1, 2)) * step > 1e-9 * scale)
-    axes: list[float | None] = []
-    for k in range(n):
-        if not curved[k]:
-            axes.append(None)
-            continue
-        cm = m_D_px[k] @ c[k] @ m_D_px[k].T
-        axes.append(wrap_axis(0.5 * math.atan2(2 * cm[0, 1], cm[0, 0] - cm[1, 1])))
-    dm[~curved] = 0.0
-    return dm, axes

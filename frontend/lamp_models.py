@@ -4,7 +4,8 @@ A lamp of face area ``A`` (m^2) at ``h`` metres above the camera covers
 ``A / h^2`` in normalised ceiling coordinates ``m`` (docs/conventions.md),
 whatever the camera's tilt: the pixel -> ``m`` map is the projection onto the
 ceiling plane, and its Jacobian ``J = dm/dpx`` (:mod:`lampsam.frontend.ceiling_coords`)
-turns a blob's pixel area into ``|det J| area_px``. A world (or a map) whose
+turns a blob's pixel area into ``|det J| area_px`` (or its coverage is summed on the
+ceiling: :mod:`lampsam.frontend.ceiling_grid`). A world (or a map) whose
 lamp models and heights are known bounds that area; bright blobs outside the
 bounds are not lamps (patches of sky through a skylight, reflections, a whole
 window).
@@ -18,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.frontend.blob_moments import BlobMoments
+from lampsam.frontend.ceiling_coords import CeilingShapes, shape_axis_ratio
 
 
 def lamp_face_area(kind: str, length: float, width: float) -> float:
@@ -80,30 +81,29 @@ def size_gate_from_models(
 
 
 def within_size_gate(
-    moments: Sequence[BlobMoments],
-    m_D_px: FloatArray,
+    shapes: CeilingShapes,
     gate: LampGate | None,
     ratio_tolerance: float = 0.3,
 ) -> list[bool]:
     """Which blobs look like one of the lamp models on the ceiling (all if ``gate`` is None).
 
-    A blob matches a model when its area on the ceiling ``|det J| area_px``
-    lies in the model's range and its elongation on the ceiling (``R_ori`` of
-    ``J cov_shape J^T``, so that a tilted camera's foreshortening is undone)
-    is within ``ratio_tolerance`` (relative) of the model's.
+    A blob matches a model when its area on the ceiling lies in the model's
+    range and its elongation on the ceiling (``R_ori`` of its shape
+    covariance in ``m``, so that a tilted camera's foreshortening and a
+    fisheye's bending are undone) is within ``ratio_tolerance`` (relative) of
+    the model's.
 
     Args:
-        moments: N pixel-space blob measurements.
-        m_D_px: shape (N, 2, 2) Jacobians ``dm/dpx`` at their centroids.
+        shapes: N blobs' shapes on the ceiling
+            (:func:`lampsam.frontend.ceiling_coords.ceiling_shapes`).
         gate: from :func:`size_gate_from_models`, or None.
         ratio_tolerance: relative margin on the elongation (default 0.3).
     """
     if gate is None:
-        return [True] * len(moments)
+        return [True] * len(shapes.area)
     out = []
-    for mo, jac in zip(moments, m_D_px, strict=True):
-        area = abs(float(np.linalg.det(jac))) * mo.area_px
-        ratio = ceiling_ratio(mo.cov_shape, jac)
+    for area, cov in zip(shapes.area.tolist(), shapes.cov, strict=True):
+        _, ratio = shape_axis_ratio(cov)
         out.append(
             any(
                 lo <= area <= hi and r / (1 + ratio_tolerance) <= ratio <= r * (1 + ratio_tolerance)
@@ -111,17 +111,3 @@ def within_size_gate(
             )
         )
     return out
-
-
-def ceiling_ratio(cov_shape: FloatArray, m_D_px: FloatArray) -> float:
-    """``R_ori = sqrt(lambda_max / lambda_min)`` of a blob's shape covariance mapped to the ceiling.
-
-    Args:
-        cov_shape: shape (2, 2) second central moments in pixels, px^2.
-        m_D_px: shape (2, 2) Jacobian ``dm/dpx`` at the centroid.
-    """
-    c = m_D_px @ cov_shape @ m_D_px.T
-    tr, det = float(c[0, 0] + c[1, 1]), float(np.linalg.det(c))
-    disc = math.sqrt(max(tr * tr / 4.0 - det, 0.0))
-    lam2 = max(tr / 2.0 - disc, 1e-300)
-    return math.sqrt((tr / 2.0 + disc) / lam2)

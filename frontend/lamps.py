@@ -11,11 +11,14 @@ sec. 1. :func:`detect_lamps` runs, each stage in its own module:
    thresholding higher (:mod:`lampsam.frontend.glare`);
 4. coverage-weighted centroid, second moments, axis ``theta`` (eq. 5),
    ``R_ori`` (eq. 7) and their uncertainty, in pixels
-   (:mod:`lampsam.frontend.blob_moments`); ``R_ori > ratio_threshold`` (1.5):
-   an oriented lamp, else a point lamp;
+   (:mod:`lampsam.frontend.blob_moments`), and the same moments taken on the
+   ceiling when the camera's pixel -> ``m`` map is not affine (a fisheye, a
+   tilted camera, lens distortion: :mod:`lampsam.frontend.ceiling_grid`);
 5. conversion to normalised ceiling coordinates with the camera model
-   (:mod:`lampsam.frontend.ceiling_coords`), and, when the lamp models are
-   known, the size check against them (:mod:`lampsam.frontend.lamp_models`).
+   (:mod:`lampsam.frontend.ceiling_coords`): centroid, axis and ``R_ori`` of
+   the blob's shape on the ceiling, ``R_ori > ratio_threshold`` (1.5): an
+   oriented lamp, else a point lamp; and, when the lamp models are known, the
+   size check against them (:mod:`lampsam.frontend.lamp_models`).
 
 Not lamps: blobs smaller than ``min_area_px`` or larger than
 ``max_area_fraction`` of the image (glare, a window), blobs less than
@@ -55,9 +58,10 @@ from lampsam.frontend.blob_moments import (
 from lampsam.frontend.ceiling_coords import (
     PixelToCeiling,
     ceiling_jacobians,
-    perspective_terms,
+    ceiling_shapes,
     to_observations,
 )
+from lampsam.frontend.ceiling_grid import CeilingGrid, ceiling_grid
 from lampsam.frontend.dilation import disk
 from lampsam.frontend.glare import split_glare
 from lampsam.frontend.label_stats import label_blobs
@@ -89,7 +93,7 @@ class LampDetections:
 
 
 def measure_blobs(
-    image: ImageU8, config: LampDetectorConfig
+    image: ImageU8, config: LampDetectorConfig, grid: CeilingGrid | None = None
 ) -> tuple[list[BlobMoments], float | None, BoolArray, int]:
     """Threshold, label and measure the lamp blobs of an image, in pixels.
 
@@ -105,11 +109,16 @@ def measure_blobs(
     Args:
         image: shape (H, W) uint8 grey image.
         config: detector settings.
+        grid: the camera's per-pixel table (:func:`lampsam.frontend.ceiling_grid.ceiling_grid`):
+            when it is not affine the moments are also taken on the ceiling
+            (:attr:`BlobMoments.ceiling`); None: pixels only.
 
     Returns:
         ``(moments, threshold, mask (H, W) bool, n_rejected)``; moments in label order.
     """
     h, w = image.shape
+    if grid is not None and (grid.width, grid.height) != (w, h):
+        raise ValueError(f"image is {w}x{h} but the camera's table is {grid.width}x{grid.height}")
     hist = grey_histogram(image)  # one histogram for the threshold and the lamp peak
     k, peak = threshold_and_peak(hist, config)
     mask = np.zeros((h, w), dtype=bool)
@@ -186,7 +195,7 @@ def measure_blobs(
     if ids.size:
         sub = (my0 - by0, my1 - by0, mx0 - bx0, mx1 - bx0)
         reach = gather_reach(comp, sub, (bx0, by0), binary, image, config)
-        res = measure_labels(reach, top, ids, border, default_bg, config, (mx0, my0))
+        res = measure_labels(reach, top, ids, border, default_bg, config, (mx0, my0), grid)
         ok_lab = np.zeros(n_keep + 1, dtype=bool)
         for i, mom in zip(ids.tolist(), res, strict=True):
             if mom is None:
@@ -212,7 +221,7 @@ def measure_blobs(
         for reg in split:
             others_reg = others | (core & ~cv2.dilate(reg.astype(np.uint8), disk(1)).astype(bool))
             mom = measure_region(
-                grey, reg, others_reg & ~reg, (c0, r0), bool(border[j + 1]), config
+                grey, reg, others_reg & ~reg, (c0, r0), bool(border[j + 1]), config, grid
             )
             if mom is None:
                 n_rejected += 1
@@ -237,21 +246,18 @@ def detect_lamps(
         All accepted lamps, border blobs included and flagged.
     """
     config = config or DEFAULT_CONFIG
-    moments, k, mask, n_rej = measure_blobs(image, config)
+    moments, k, mask, n_rej = measure_blobs(image, config, ceiling_grid(camera))
     if not moments:
         return LampDetections((), (), k, mask, n_rej)
     px = np.array([mo.centroid for mo in moments])
     m, jac = ceiling_jacobians(camera, px, config.jacobian_step_px)
+    shapes = ceiling_shapes(moments, m, jac)
     if config.size_gate is not None:
-        keep = within_size_gate(moments, jac, config.size_gate)
+        keep = within_size_gate(shapes, config.size_gate)
         n_rej += keep.count(False)
         moments = [mo for mo, ok in zip(moments, keep, strict=True) if ok]
-        m, jac = m[keep], jac[keep]
+        shapes, jac = shapes.select(keep), jac[keep]
         if not moments:
             return LampDetections((), (), k, mask, n_rej)
-    dm, axes = perspective_terms(
-        camera, np.array([mo.centroid for mo in moments]),
-        np.array([mo.cov_shape for mo in moments]), jac, config.jacobian_step_px,
-    )
-    obs = to_observations(moments, m + dm, jac, config, axes)
+    obs = to_observations(moments, shapes, jac, config)
     return LampDetections(obs, tuple(moments), k, mask, n_rej)

@@ -25,9 +25,10 @@ from lampsam.errors import FrontendError
 from lampsam.frontend.ceiling_coords import (
     PixelToCeiling,
     ceiling_jacobians,
-    perspective_terms,
+    ceiling_shapes,
     to_observations,
 )
+from lampsam.frontend.ceiling_grid import ceiling_grid
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     corner_observations,
@@ -161,7 +162,7 @@ def _lamps_and_corners(
     evaluated once on the lamp centroids and corner pixels together (both
     configs must use the same Jacobian step).
     """
-    moments, _, mask, _ = measure_blobs(img, config.lamps)
+    moments, _, mask, _ = measure_blobs(img, config.lamps, ceiling_grid(camera))
     det = detect_corner_pixels(img, mask, config.corners) if config.detect_corners else None
     n_lamps = len(moments)
     px = np.zeros((0, 2))
@@ -172,18 +173,16 @@ def _lamps_and_corners(
     if px.shape[0] == 0:
         return (), ()
     m, jac = ceiling_jacobians(camera, px, config.lamps.jacobian_step_px)
-    m_l, jac_l = m[:n_lamps], jac[:n_lamps]
-    if n_lamps and config.lamps.size_gate is not None:
-        keep = within_size_gate(moments, jac_l, config.lamps.size_gate)
-        moments = [mo for mo, ok in zip(moments, keep, strict=True) if ok]
-        m_l, jac_l = m_l[keep], jac_l[keep]
+    jac_l = jac[:n_lamps]
     lamps: tuple[LampObservation, ...] = ()
-    if moments:
-        dm, axes = perspective_terms(
-            camera, np.array([mo.centroid for mo in moments]),
-            np.array([mo.cov_shape for mo in moments]), jac_l, config.lamps.jacobian_step_px,
-        )
-        lamps = to_observations(moments, m_l + dm, jac_l, config.lamps, axes)
+    if n_lamps:
+        shapes = ceiling_shapes(moments, m[:n_lamps], jac_l)
+        if config.lamps.size_gate is not None:
+            keep = within_size_gate(shapes, config.lamps.size_gate)
+            moments = [mo for mo, ok in zip(moments, keep, strict=True) if ok]
+            shapes, jac_l = shapes.select(keep), jac_l[keep]
+        if moments:
+            lamps = to_observations(moments, shapes, jac_l, config.lamps)
     corners: tuple[CornerObservation, ...] = ()
     if det is not None and det.pixels.shape[0]:
         corners = corner_observations(det, m[n_lamps:], jac[n_lamps:], config.corners)

@@ -132,7 +132,7 @@ def test_wrong_map_files_are_named(tmp_path: Path, rng: np.random.Generator) -> 
 
 
 # --------------------------------------------------------------------------- localize-only
-def _drive(rng: np.random.Generator, map_sigma: float = 0.005):
+def _drive(rng: np.random.Generator, map_sigma: float = 0.004):
     """20 s of a square drive under 4 oriented lamps and a 0.6 m corner grid.
 
     Returns ``(rig, odometry, frames, true poses (N, 3), times (N,), map)``; the map's

@@ -87,10 +87,10 @@ def test_size_gate_from_lamp_models() -> None:
     cv2.rectangle(img, (100, 200), (103, 203), 255, -1)
     det = detect_lamps(img, cam, LampDetectorConfig(max_crowding=None))
     assert len(det.moments) == 3
-    from lampsam.frontend.ceiling_coords import ceiling_jacobians
+    from lampsam.frontend.ceiling_coords import ceiling_jacobians, ceiling_shapes
 
-    _, jac = ceiling_jacobians(cam, np.array([mo.centroid for mo in det.moments]), 0.5)
-    keep = within_size_gate(det.moments, jac, gate)
+    m, jac = ceiling_jacobians(cam, np.array([mo.centroid for mo in det.moments]), 0.5)
+    keep = within_size_gate(ceiling_shapes(det.moments, m, jac), gate)
     kept = [tuple(np.round(mo.centroid)) for mo, k in zip(det.moments, keep, strict=True) if k]
     assert len(kept) == 1 and kept[0][1] < 100
     gated = detect_lamps(img, cam, LampDetectorConfig(max_crowding=None, size_gate=gate))

@@ -22,7 +22,12 @@ from lampsam.evaluation.frontend_eval import (
     synthetic_sequence,
 )
 from lampsam.frontend.blob_moments import measure_region
-from lampsam.frontend.ceiling_coords import ceiling_jacobians, to_observation, to_observations
+from lampsam.frontend.ceiling_coords import (
+    ceiling_jacobians,
+    ceiling_shapes,
+    to_observation,
+    to_observations,
+)
 from lampsam.frontend.corners import (
     CornerDetectorConfig,
     _near_mask,
@@ -209,8 +214,9 @@ def test_ceiling_coordinates_and_mirrored_axis() -> None:
 
 def test_axis_and_covariance_through_distortion(rng: np.random.Generator) -> None:
     """With lens distortion the axis in (u, v) is the long axis of the blob's shape on the
-    ceiling (J cov_shape J^T, within 1 deg of the pixel axis mapped through the camera model);
-    cov_m = J cov_px J^T with J checked by finite differences."""
+    ceiling (its coverage moments taken in m, within 1 deg of the pixel axis mapped through the
+    camera model and of J cov_shape J^T: the drawn blob is straight in pixels, so bent on the
+    ceiling); cov_m = J cov_px J^T with J checked by finite differences."""
     cam = CameraModel(dist=np.array([-0.25, 0.06, 0.0, 0.0, 0.0]))
     spec = (230.0, 70.0, 30.0, 5.0, 0.6)
     img, _ = render_view(_scene([spec], [False]), (0, 0, 0), noise_grey=1.0, rng=rng)
@@ -234,7 +240,11 @@ def test_axis_and_covariance_through_distortion(rng: np.random.Generator) -> Non
     jac = np.column_stack(cols)
     assert np.allclose(lamp.cov_m, jac @ mom.cov_centroid @ jac.T, rtol=1e-3, atol=0)
     cm = jac @ mom.cov_shape @ jac.T
-    assert _axis_err(lamp.axis, 0.5 * math.atan2(2 * cm[0, 1], cm[0, 0] - cm[1, 1])) < 1e-3
+    assert _axis_err(lamp.axis, 0.5 * math.atan2(2 * cm[0, 1], cm[0, 0] - cm[1, 1])) < math.radians(1.0)
+    assert mom.ceiling is not None
+    cc = mom.ceiling.cov_shape + jac @ jac.T / 12.0
+    assert _axis_err(lamp.axis, 0.5 * math.atan2(2 * cc[0, 1], cc[0, 0] - cc[1, 1])) < 1e-6
+    assert np.allclose(lamp.m, mom.ceiling.centroid, atol=0)
     # var_axis = (det J / |J e|^2)^2 var_theta.
     gain = np.linalg.det(jac) / float((jac @ e) @ (jac @ e))
     assert lamp.var_axis == pytest.approx(gain**2 * mom.var_theta, rel=1e-3)
@@ -358,10 +368,11 @@ def test_batched_lamp_observations_match_per_lamp(rng: np.random.Generator) -> N
     assert len(moments) == 3
     px = np.array([mo.centroid for mo in moments])
     m, jac = ceiling_jacobians(camera, px, cfg.jacobian_step_px)
-    batch = to_observations(moments, m, jac, cfg)
+    shapes = ceiling_shapes(moments, m, jac)
+    batch = to_observations(moments, shapes, jac, cfg)
     assert sum(ob.axis is not None for ob in batch) == 2
     for i, mo in enumerate(moments):
-        one = to_observation(mo, m[i], jac[i], cfg)
+        one = to_observation(mo, shapes.m[i], shapes.cov[i], jac[i], cfg)
         np.testing.assert_allclose(batch[i].m, one.m, rtol=0, atol=1e-15)
         np.testing.assert_allclose(batch[i].cov_m, one.cov_m, rtol=1e-12, atol=1e-20)
         assert (batch[i].axis is None) == (one.axis is None)

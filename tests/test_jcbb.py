@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lampsam.backend.association import associate, jcbb
+from lampsam.backend.association import TentativeLandmarks, associate, jcbb
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs
 
@@ -40,3 +40,38 @@ def test_jcbb_recovers_the_jointly_consistent_pairing() -> None:
     z.append(np.array([9.0, -4.0]))
     cands[2] = [10, 11]
     assert sorted(jcbb(cands, joint, cfg)) == [(0, 10), (1, 11)]
+
+
+def test_tentative_landmarks_need_k_sightings_and_reject_copies() -> None:
+    """Three sightings of one tree (2 m sigma each, scattered by 1 m) make one landmark
+    on the third, at the information-weighted mean; a sighting 10 m away (d2 = 12.5 >
+    the 9.21 gate) starts its own tentative; a tentative idle for longer than
+    ``max_idle`` expires; a confirmed position 0.5 m from a mapped landmark is
+    discarded as a copy when ``min_separation`` is 1 m."""
+    gate = AssociationConfig().gate(2)
+    cov = 4.0 * np.eye(2)
+    tl = TentativeLandmarks(confirm=3, gate=gate, max_idle=10)
+    assert not tl.offer(np.array([10.0, 0.0]), cov, 0)
+    assert not tl.offer(np.array([20.0, 0.0]), cov, 1)  # another tree
+    assert len(tl.items) == 2
+    assert not tl.offer(np.array([11.0, 1.0]), cov, 2)
+    assert tl.offer(np.array([10.0, 2.0]), cov, 3)  # third sighting: confirmed
+    assert len(tl.items) == 1
+    tl.expire(12)
+    assert len(tl.items) == 0 and tl.n_expired == 1
+    # fusion: information-weighted mean of equal covariances = the plain mean
+    tl2 = TentativeLandmarks(confirm=3, gate=gate, max_idle=10)
+    tl2.offer(np.array([0.0, 0.0]), cov, 0)
+    tl2.offer(np.array([2.0, 0.0]), 3 * cov, 1)
+    assert len(tl2.items) == 1 and tl2.items[0].hits == 2
+    np.testing.assert_allclose(tl2.items[0].xy, [0.5, 0.0], atol=1e-12)  # weights 3:1
+    np.testing.assert_allclose(tl2.items[0].cov, 3.0 * np.eye(2), atol=1e-12)
+    t3 = TentativeLandmarks(confirm=2, gate=gate, max_idle=10)
+    t3.offer(np.array([0.0, 0.0]), cov, 0)
+    t3.offer(np.array([1.0, 1.0]), 0.5 * cov, 1)  # no mapped list: confirmed
+    assert t3.n_copies == 0
+    t4 = TentativeLandmarks(confirm=2, gate=gate, max_idle=10, min_separation=1.0)
+    t4.offer(np.array([0.0, 0.0]), cov, 0)
+    mapped = np.array([[0.5, 0.5], [30.0, 0.0]])
+    assert not t4.offer(np.array([1.0, 1.0]), cov, 1, mapped)  # fused at (0.5, 0.5): a copy
+    assert t4.n_copies == 1

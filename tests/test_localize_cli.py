@@ -64,4 +64,4 @@ def test_localize_finds_the_start_area_and_writes_strict_json(
         assert key in summary
     trial = doc["trial"]
     assert isinstance(trial, dict) and float(trial["error_m"]) <= 0.30
-    assert (map_dir / "range_table_4500mm.npz").is_file()  # stored with the map for the next run
+    assert (map_dir / "range_table.npz").is_file()  # stored with the map for the next run (map_tables)

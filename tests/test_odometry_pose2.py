@@ -126,7 +126,7 @@ def test_stationary_robot_is_never_singular() -> None:
                                                               model.var_floor_xy,
                                                               model.var_floor_theta]), rtol=1e-9)
     assert np.min(np.linalg.eigvalsh(cov)) > 0
-    with pytest.raises(ValueError, match="floors must be > 0"):
+    with pytest.raises(ValueError, match="var_floor_xy: must be > 0"):
         Pose2OdometryModel(var_floor_xy=0.0)
     # a robot at rest for 600 steps with frames of the same landmark: no failure
     from lampsam.backend.config import AssociationConfig, SlamConfig
@@ -197,3 +197,51 @@ def test_every_backend_runs_on_pose2_increments(name: str, tmp_path: Path) -> No
     assert float(np.sqrt(np.mean(err**2))) < 0.1
     steps = list(iter_steps(back.odometry, frames_from_range_bearing(rb)))
     assert all(u.shape[1] == 12 for _, u, _ in steps)
+
+
+def test_pose2_noise_from_config_and_rig(tmp_path: Path) -> None:
+    """``[pose2_odometry]`` in a TOML config and ``pose2_odometry`` in rig.yaml set the
+    model (the rig's wins); bad values are errors naming the key and the file."""
+    from lampsam.backend.config import SlamConfig
+    from lampsam.backend.slam import pose2_model_for
+    from lampsam.config_loader import ConfigError, load_config
+    from lampsam.datasets.rig import Rig
+
+    cfg_file = tmp_path / "slam.toml"
+    cfg_file.write_text("[pose2_odometry]\nk_xy = 2e-3\nvar_floor_theta = 1e-6\n")
+    cfg = load_config(SlamConfig, cfg_file)
+    assert cfg.pose2_odometry == Pose2OdometryModel(k_xy=2e-3, var_floor_theta=1e-6)
+    cfg_file.write_text("[pose2_odometry]\nvar_floor_xy = 0.0\n")
+    with pytest.raises(ConfigError, match=r"pose2_odometry\.var_floor_xy: must be > 0"):
+        load_config(SlamConfig, cfg_file)
+    cfg_file.write_text("[pose2_odometry]\nk_xyz = 1.0\n")
+    with pytest.raises(ConfigError, match=r"pose2_odometry\.k_xyz: unknown key"):
+        load_config(SlamConfig, cfg_file)
+
+    rng = np.random.default_rng(5)
+    rig, odo, rb, gt, _ = range_bearing_world(rng)
+    run = LoggedRun(path=tmp_path / "run", rig=rig, odometry=odo, groundtruth=gt, range_bearing=rb)
+    assert pose2_model_for(run, cfg) is cfg.pose2_odometry  # the rig has no section
+    rig2 = dataclasses.replace(rig, pose2_odometry=Pose2OdometryModel(k_theta=3e-3))
+    rig2.to_yaml(tmp_path / "rig.yaml")
+    back = Rig.from_yaml(tmp_path / "rig.yaml")
+    assert back.pose2_odometry == Pose2OdometryModel(k_theta=3e-3)
+    assert pose2_model_for(dataclasses.replace(run, rig=back), cfg) == back.pose2_odometry
+    text = (tmp_path / "rig.yaml").read_text().replace("var_floor_xy: 1.0e-08", "var_floor_xy: -1.0")
+    (tmp_path / "rig.yaml").write_text(text)
+    with pytest.raises(DatasetError, match=r"pose2_odometry.var_floor_xy: must be > 0"):
+        Rig.from_yaml(tmp_path / "rig.yaml")
+
+
+def test_config_odometry_noise_reaches_the_factor() -> None:
+    """A sample without covariance gets the configured default plus the floor in the
+    smoother's odometry factor: over a 1 m forward step ``var_x = k_xy * 1 + floor``."""
+    from lampsam.backend.config import SlamConfig
+
+    model = Pose2OdometryModel(k_xy=4e-3, var_floor_xy=1e-6)
+    cfg = SlamConfig(pose2_odometry=model)
+    motion = Pose2Motion(cfg.pose2_odometry)
+    sample = np.r_[1.0, 0.0, 0.0, np.full(9, np.nan)].reshape(1, 12)
+    _, cov = motion.relative(sample, 0.0)
+    assert abs(cov[0, 0] - (4e-3 + 1e-6)) < 1e-12
+    assert abs(cov[1, 1] - (4e-3 + 1e-6)) < 1e-12

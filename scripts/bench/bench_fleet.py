@@ -4,6 +4,11 @@ Usage::
 
     python scripts/bench/bench_fleet.py RUN [RUN ...] [--workers 1,2] [--repeats 2]
         [--backend batch] [--out out/bench_fleet]
+    python scripts/bench/bench_fleet.py --simulate 4 [--duration 30]   # issue 19, one command
+
+``--simulate N``: without run directories, N lab runs (seeds 0..N-1, ``--duration``
+seconds each) are simulated once into ``OUT/runs`` (reused when present) and make
+the batch: the 1- vs 2-worker speed-up on a 4-log batch is then one command.
 
 For each worker count a ``distributed.LocalCluster`` (single-threaded worker
 processes on 127.0.0.1) is started once; then, repeat by repeat, the same batch of
@@ -45,9 +50,27 @@ def _failed(job: BatchJob, reason: str) -> BatchResult:
     return BatchResult(job, reason)
 
 
+def simulated_runs(root: Path, n: int, duration: float) -> list[str]:
+    """``n`` lab runs (seeds 0..n-1, ``duration`` s) under ``root``; existing ones are reused."""
+    from lampsam.datasets.simulator import simulate_world
+
+    runs = []
+    for seed in range(n):
+        run = root / f"lab-seed{seed}-{duration:g}s"
+        if not (run / "meta.yaml").exists():
+            print(f"simulating {run} ...", flush=True)
+            simulate_world("lab", run, seed=seed, duration=duration)
+        runs.append(str(run.resolve()))
+    return runs
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", nargs="+", help="run directories (the batch)")
+    p.add_argument("runs", nargs="*", help="run directories (the batch)")
+    p.add_argument("--simulate", type=int, default=0,
+                   help="no runs given: simulate this many lab runs (seeds 0..N-1) as the batch")
+    p.add_argument("--duration", type=float, default=30.0,
+                   help="--simulate: seconds per run (default 30)")
     p.add_argument("--workers", default="1,2", help="comma-separated worker counts")
     p.add_argument("--repeats", type=int, default=2)
     p.add_argument("--backend", default="batch")
@@ -58,6 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     counts = [int(x) for x in args.workers.split(",")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if not args.runs:
+        if args.simulate < 1:
+            p.error("give run directories or --simulate N")
+        args.runs = simulated_runs(out / "runs", args.simulate, args.duration)
     load0 = os.getloadavg()
     times: dict[int, list[float]] = {c: [] for c in counts}
     statuses: dict[int, list[str]] = {}

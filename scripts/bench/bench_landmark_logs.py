@@ -2,10 +2,16 @@
 
 Usage::
 
-    python scripts/bench/bench_landmark_logs.py [--logs victoria,synthetic] [--repeats 1]
+    python scripts/bench/bench_landmark_logs.py [--logs victoria,mrclam,synthetic] [--repeats 1]
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
+        [--mrclam-duration 600]
 
-For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``synthetic``: a log made by
+For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``mrclam``: the shared
+MRCLAM ds0 robot 1, its first ``--mrclam-duration`` s, turned into one pose per step
+of :func:`lampsam.backend.slam.iter_steps` (a step at every measurement time, else
+every 0.5 s) with the wheel model's increment and covariance (eqs. 13-15, from the
+commanded ``(v, w)`` as :mod:`lampsam.datasets.mrclam` does) and the default
+range-bearing noise, Vicon truth interpolated at the steps; ``synthetic``: a log made by
 :mod:`lampsam.datasets.landmark_log_sim`, 3,000 poses, Pose2 odometry with sideways
 noise 3x forward, stops of 200 poses, range-dependent bearing noise; ``--file``: any
 iSAM/g2o text log) the same graph is built in GTSAM from the parsed records: a prior
@@ -39,9 +45,53 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.slam import run_graph_log
-from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
+from lampsam.backend.odometry import WheelMotion
+from lampsam.backend.slam import frames_from_range_bearing, iter_steps, run_graph_log
+from lampsam.datasets.graph_text import GraphLog, Sighting, read_graph_text, read_vertices
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+from lampsam.datasets.logrun import LoggedRun
+from lampsam.datasets.odometry import Pose2OdometryLog
+from lampsam.frontend.measurements import RangeBearingFrame
+
+
+def graph_log_from_run(run: LoggedRun, config: SlamConfig, max_dt: float = 0.5
+                       ) -> tuple[GraphLog, np.ndarray]:
+    """A wheel-odometry range-bearing run as a graph log (one pose per step) and its truth.
+
+    Each step's wheel travel becomes a Pose2 increment with the wheel model's
+    covariance (eqs. 13-15 composed) plus the Pose2 model's floor (a step at rest
+    would give GTSAM a singular covariance; lampsam adds the floor once more); each
+    sighting gets ``config.noise``'s range-bearing covariance.
+
+    Returns:
+        ``(log, truth poses (N, 3))``: the run's ground truth interpolated at the steps.
+    """
+    assert run.range_bearing is not None and run.groundtruth is not None
+    wheel = WheelMotion(run.rig.odometry)
+    r = np.diag([config.noise.sigma_bearing ** 2, config.noise.sigma_range ** 2])
+    ts: list[float] = []
+    deltas: list[np.ndarray] = []
+    covs: list[np.ndarray] = []
+    sightings: list[list[Sighting]] = []
+    for t, u, frame in iter_steps(run.odometry, frames_from_range_bearing(run.range_bearing), max_dt):
+        if ts and t <= ts[-1]:  # same time stamp as the previous step: merge
+            t = ts[-1] + 1e-6
+        d, c = wheel.relative(np.asarray(u, float).reshape(-1, 2), 1e-14) if len(u) else (
+            np.zeros(3), np.zeros((3, 3)))
+        ts.append(t)
+        deltas.append(np.asarray(d, float) if ts[1:] else np.zeros(3))
+        covs.append(config.pose2_odometry.sample_cov(d, c) if ts[1:] else np.zeros((3, 3)))
+        obs = frame.observations if isinstance(frame, RangeBearingFrame) else ()
+        sightings.append([Sighting(int(o.landmark_id), float(o.bearing), float(o.range), r)
+                          for o in obs if o.landmark_id is not None])
+    gt = run.groundtruth
+    th = np.unwrap(gt.poses[:, 2])
+    truth = np.column_stack([np.interp(ts, gt.t, gt.poses[:, 0]), np.interp(ts, gt.t, gt.poses[:, 1]),
+                             np.interp(ts, gt.t, th)])
+    odo = Pose2OdometryLog(np.asarray(ts), np.array(deltas), np.array(covs))
+    g = GraphLog(path=Path(run.path), pose_ids=list(range(len(ts))), odometry=odo,
+                 sightings=sightings, vertices={0: truth[0]})
+    return g, truth
 
 
 def gtsam_graph(g: GraphLog, config: SlamConfig) -> gtsam.NonlinearFactorGraph:
@@ -188,7 +238,9 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
 def main() -> None:
     """Parse arguments, run every log, print the table."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--logs", default="victoria,synthetic")
+    ap.add_argument("--logs", default="victoria,mrclam,synthetic")
+    ap.add_argument("--mrclam-duration", type=float, default=600.0,
+                    help="seconds of MRCLAM robot 1 (default 600)")
     ap.add_argument("--backends", default="ekf,isam2,batch")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--no-ids", action="store_true", help="also run without ids")
@@ -198,13 +250,23 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     backends = [b for b in args.backends.split(",") if b]
-    logs: list[tuple[str, Path, Path | None]] = []
+    logs: list[tuple[str, Path | GraphLog, Path | np.ndarray | None]] = []
     if args.file:
         logs.append((Path(args.file).name, Path(args.file), Path(args.truth) if args.truth else None))
     else:
         for name in args.logs.split(","):
             if name == "victoria":
                 logs.append((name, Path(gtsam.findExampleDataFile("victoria_park.txt")), None))
+            elif name == "mrclam":
+                from lampsam.datasets.mrclam import mrclam_run
+                from lampsam.datasets.paths import shared_dataset
+
+                root = shared_dataset("mrclam_ds0")
+                if root is None:
+                    raise SystemExit("mrclam: shared dataset mrclam_ds0 not found (set LAMPSAM_DATA)")
+                glog, gtruth = graph_log_from_run(
+                    mrclam_run(root, duration=args.mrclam_duration), SlamConfig())
+                logs.append((name, glog, gtruth))
             elif name == "synthetic":
                 out = Path(args.out)
                 out.mkdir(parents=True, exist_ok=True)
@@ -212,13 +274,13 @@ def main() -> None:
                                           np.random.default_rng(0))
                 logs.append((name, p, t))
             else:
-                raise SystemExit(f"unknown log {name!r} (victoria, synthetic)")
+                raise SystemExit(f"unknown log {name!r} (victoria, mrclam, synthetic)")
     rows: list[dict[str, Any]] = []
-    for name, path, tpath in logs:
-        g = read_graph_text(path)
-        truth = None
-        if tpath is not None:
-            v = read_vertices(tpath)
+    for name, src, tsrc in logs:
+        g = src if isinstance(src, GraphLog) else read_graph_text(src)
+        truth = tsrc if isinstance(tsrc, np.ndarray) else None
+        if isinstance(tsrc, Path):
+            v = read_vertices(tsrc)
             truth = np.array([v[i] for i in g.pose_ids])
         rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids)
         _print(rows)

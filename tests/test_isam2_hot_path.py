@@ -1,0 +1,123 @@
+"""The online iSAM2 hot path (issue 19): the shortcuts give the same numbers as the plain way.
+
+- the relative covariances of the screen, kept incrementally, against composing the
+  odometry window backwards (:func:`~lampsam.backend.pose_cov.compose_cov`);
+- the joint marginals fetched in one query per keyframe, against one
+  ``jointMarginalCovariance`` per landmark, on a gate-only ceiling run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_graph import CeilingHandler
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.gating import RELATIVE_GATE_KEYFRAMES, Gating
+from lampsam.backend.graph import Isam2Slam
+from lampsam.backend.pose_cov import compose_cov, pose_array
+from lampsam.backend.slam import drive, iter_steps
+from tests.test_backend import ceiling_world
+
+
+def _backward_relative(odo: list[tuple[np.ndarray, np.ndarray]], k: int) -> dict[int, np.ndarray]:
+    """Reference: compose the window backwards from keyframe ``k`` (the plain way)."""
+    out = {k: np.zeros((3, 3))}
+    delta, cov = np.zeros(3), np.zeros((3, 3))
+    for j in range(k - 1, max(k - RELATIVE_GATE_KEYFRAMES, 0) - 1, -1):
+        d_j, c_j = odo[j + 1]
+        cov = compose_cov(delta, c_j, cov)
+        delta = pose_array(gtsam.Pose2(*d_j).compose(gtsam.Pose2(*delta)))
+        out[j] = cov
+    return out
+
+
+def test_incremental_relative_covs_match_backward_composition() -> None:
+    rng = np.random.default_rng(5)
+    odo: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(3), np.zeros((3, 3)))]
+    for _ in range(80):
+        a = rng.normal(size=(3, 3)) * 1e-3
+        odo.append((np.array([rng.uniform(0.02, 0.08), rng.normal(0, 0.01), rng.normal(0, 0.1)]),
+                    a @ a.T + 1e-9 * np.eye(3)))
+    w = SimpleNamespace(_odo=odo, _k=0, _rel_cache=None)  # the state the method reads
+    # asked at every keyframe, then with gaps (keyframes without a ceiling screen),
+    # then after a jump longer than the window
+    for k in [*range(0, 40), 43, 44, 50, 51, 80]:
+        w._k = k
+        got = Gating._relative_covs(w)  # type: ignore[arg-type]
+        ref = _backward_relative(odo, k)
+        assert sorted(got) == sorted(ref)
+        for j in ref:
+            np.testing.assert_allclose(got[j], ref[j], rtol=1e-9, atol=1e-15)
+
+
+def test_joint_marginals_prefetched_per_keyframe_match_per_landmark_queries() -> None:
+    """Every lamp pair is sent to the exact gate here, so each keyframe prefetches several."""
+    rig, odo, frames, gt = ceiling_world(np.random.default_rng(11), duration=14.0, n_corners=8)
+    cfg = SlamConfig(association=dataclasses.replace(SlamConfig().association, use_known_ids=False))
+    model = CeilingModel.from_camera(rig.camera)
+    be = Isam2Slam(rig.odometry, cfg, gt.poses[0], model, CeilingHandler(model))
+    checked = []
+    orig = be._prefetch_joint
+
+    def check(k: int, obs, screened) -> int:
+        n = orig(k, obs, screened)
+        for lid, (s_kk, s_kl, s_ll) in list(be._joint_cache.items()) if n else []:
+            lm = be._landmarks[lid]
+            handler = be.handlers[lm.kind]
+            full = np.asarray(be.isam.jointMarginalCovariance([X(k), *handler.keys(lm)]).fullMatrix())
+            idx = np.r_[0:3, 3 + np.asarray(handler.state_index(lm), int)]
+            full = full[np.ix_(idx, idx)]
+            scale = np.abs(full).max()
+            np.testing.assert_allclose(s_kk, full[:3, :3], rtol=0, atol=1e-8 * scale)
+            np.testing.assert_allclose(s_kl, full[:3, 3:], rtol=0, atol=1e-8 * scale)
+            np.testing.assert_allclose(s_ll, full[3:, 3:], rtol=0, atol=1e-8 * scale)
+            checked.append(len(s_ll))
+        return n
+
+    def every_lamp_to_exact_gate(obs, screened, axis_d2=None):  # every lamp pair asks for eq. 19
+        return {i: {lid: (d2, o_kind == "corner") for lid, (d2, _) in pairs.items()}
+                for i, pairs in screened.items() for o_kind in [obs[i].kind]}
+
+    be._prefetch_joint = check  # type: ignore[method-assign]
+    be._mark_ambiguous = every_lamp_to_exact_gate  # type: ignore[method-assign]
+    result = drive(be, iter_steps(odo, frames))
+    assert result.status == "ok"
+    assert len(checked) >= 5
+    assert 4 in checked  # an oriented lamp: position and axis rows
+
+
+def _triangulate_loop(model: CeilingModel, poses: np.ndarray, ms: np.ndarray, covs: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Reference: eqs. 17-18 stacked one sight at a time, weighted normal equations summed."""
+    o = model.body_t_camera
+    rows, rhs, w = [], [], []
+    for (x, y, th), m, cov in zip(poses, ms, covs, strict=True):
+        rt = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
+        rows.append(np.column_stack([rt, -m]))
+        rhs.append(rt @ np.array([x, y]) + o[:2])
+        w.append(np.linalg.inv(cov))
+    sol = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    info = sum(a.T @ (wk / sol[2] ** 2) @ a for a, wk in zip(rows, w, strict=True))
+    return np.array([sol[0], sol[1], sol[2] + o[2]]), np.linalg.inv(info)
+
+
+def test_vectorised_triangulation_matches_per_sight_sum() -> None:
+    rng = np.random.default_rng(2)
+    rig, _, _, _ = ceiling_world(rng, duration=1.0, n_corners=0)
+    model = CeilingModel.from_camera(rig.camera)
+    point = np.array([1.0, 0.5, 2.8])
+    poses = np.column_stack([rng.uniform(0, 1.5, 6), rng.uniform(-0.5, 0.5, 6), rng.uniform(-3, 3, 6)])
+    ms = np.array([model.predict(p, point, with_axis=False)[0] for p in poses])
+    ms += rng.normal(0, 1e-3, ms.shape)
+    covs = np.array([np.diag(rng.uniform(0.5, 2.0, 2)) * 1e-6 for _ in poses])
+    got_p, got_c = model.triangulate(poses, ms, covs)
+    ref_p, ref_c = _triangulate_loop(model, poses, ms, covs)
+    np.testing.assert_allclose(got_p, ref_p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got_c, ref_c, rtol=1e-9, atol=0)
+    assert np.linalg.norm(got_p - point) < 0.05
