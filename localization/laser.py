@@ -59,6 +59,8 @@ class LaserLocalizerConfig:
             than ``search_max_turn`` (deg, default 20) and moved less than
             ``search_max_move`` (m, default 3) since the first: odometry error
             on a turn would smear the joined points.
+        research_after: while not accepted this many scans after the first
+            test, search again over the newest scans and re-seed (default 4).
         per_candidate: particles per candidate disc (radius one search cell,
             heading spread one step). Default 2,000.
     """
@@ -82,6 +84,7 @@ class LaserLocalizerConfig:
     search_scans: int = 4
     search_max_turn: float = 20.0
     search_max_move: float = 3.0
+    research_after: int = 4
     per_candidate: int = 2000
 
 
@@ -374,6 +377,11 @@ def localize_scans(
                                                           mean, first_modes, accept)  # fmt: skip
             if _accepted(pf.converged(), margin, score, accept) or k >= k_max:
                 break
+            if (config.seeding == "search" and pyramid is not None
+                    and k == k_min + config.research_after):
+                first_modes = _research(model, pyramid, pf, ranges[:k], angles, odom[:k], config,
+                                        accept, first_modes)  # fmt: skip
+                continue
         pf.resample_if_needed()
     mean, cov = pf.estimate()
     sxy, sth = pf.spread()
@@ -383,6 +391,35 @@ def localize_scans(
     return LaserEstimate(np.asarray(mean, dtype=float), np.asarray(cov, dtype=float), converged,
                          float(sxy), float(sth), int(pf.n), status, float(margin), competitor,
                          k, float(score))  # fmt: skip
+
+
+def _research(
+    model: LikelihoodFieldModel, pyramid: ScorePyramid, pf: ParticleFilter, ranges: FloatArray,
+    angles: FloatArray, odom: FloatArray, config: LaserLocalizerConfig,
+    accept: LaserAcceptConfig, first_modes: FloatArray,
+) -> FloatArray:
+    """Search again over the latest scans while not accepted; re-seed the filter at the last scan.
+
+    The first scans may fit the map badly (people, a door): the newest scans
+    (joined as in the first search, counted back from the last) get their own
+    candidates. The filter restarts from those and from a disc around its own
+    estimate; the new candidates, carried back to scan 0 by odometry, join the
+    competing hypotheses. Returns the hypotheses at scan 0.
+    """
+    last = len(odom) - 1
+    j = last
+    while j > 0 and last - j + 1 < config.search_scans and (
+            joined_scans(odom[j - 1 : last + 1], config) == last - j + 2):
+        j -= 1
+    cands, _ = search_candidates(model, pyramid, ranges[j:], angles, odom[j:], config, accept)
+    if len(cands) == 0:
+        return first_modes
+    now = [chain(c, 0, odom[j:])[-1] for c in cands]
+    mean, _ = pf.estimate()
+    pf.init_candidates([(p, pyramid.res) for p in [*now, np.asarray(mean, dtype=float)]],
+                       config.per_candidate, math.radians(config.search.angle_step_deg))  # fmt: skip
+    back = np.array([chain(c, last, odom)[0] for c in now])
+    return np.vstack([np.asarray(first_modes).reshape(-1, 3), back])
 
 
 def _accepted(converged: bool, margin: float, score: float, accept: LaserAcceptConfig) -> bool:
