@@ -1,14 +1,19 @@
-"""Vectorised gate of range-bearing observations against every planar landmark (eqs. 19-20).
+"""Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 
 Without ids, each ``[bearing, range]`` observation of a frame is compared with every
 mapped planar landmark; one Python call per pair (``EkfSlam._innovation``) made the
 EKF's association cost grow with the map times the observations. Here all landmarks
 are predicted at once and every observation x landmark squared Mahalanobis distance
 comes from one numpy expression (the 2x2 inverse in closed form, the bearing
-innovation wrapped to (-pi, pi]).
+innovation wrapped to (-pi, pi]). One distance, :func:`bearing_range_d2`, serves the
+EKF (:func:`screen_point2`, Jacobians in plain coordinates, optionally at first
+estimates: :func:`predict_point2_many`) and the smoothers' gate (Jacobians w.r.t.
+the right tangent: :func:`range_bearing_many`).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -59,6 +64,64 @@ def predict_point2_many(pose: FloatArray, landmarks: FloatArray, lin: FloatArray
     return z, h_r, h_l
 
 
+def range_bearing_many(pose: FloatArray, pts: FloatArray
+                       ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Predicted ``[bearing, range]`` of M planar landmarks and their Jacobians, at once.
+
+    The vectorised form of :func:`lampsam.factors.range_bearing.range_bearing`
+    (no sensor offset).
+
+    Args:
+        pose: (3,) ``world_T_body``, m and rad.
+        pts: (M, 2) landmarks, world frame, m.
+
+    Returns:
+        ``(z_hat (M, 2), z_D_pose (M, 2, 3) right tangent, z_D_landmark (M, 2, 2))``;
+        a landmark at the sensor gets range 1e-9 m (its distances are meaningless,
+        never a match).
+    """
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    dx, dy = pts[:, 0] - pose[0], pts[:, 1] - pose[1]
+    px, py = c * dx + s * dy, -s * dx + c * dy
+    r2 = np.maximum(px * px + py * py, 1e-18)
+    r = np.sqrt(r2)
+    m = len(pts)
+    p_D_pose = np.zeros((m, 2, 3))
+    p_D_pose[:, 0, 0] = p_D_pose[:, 1, 1] = -1.0
+    p_D_pose[:, 0, 2], p_D_pose[:, 1, 2] = py, -px
+    p_D_l = np.array([[c, s], [-s, c]])
+    z_D_p = np.empty((m, 2, 2))
+    z_D_p[:, 0, 0], z_D_p[:, 0, 1] = -py / r2, px / r2
+    z_D_p[:, 1, 0], z_D_p[:, 1, 1] = px / r, py / r
+    z_hat = np.stack([np.arctan2(py, px), r], axis=1)
+    return z_hat, z_D_p @ p_D_pose, z_D_p @ p_D_l
+
+
+def bearing_range_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatArray
+                     ) -> FloatArray:
+    """Squared Mahalanobis distances of N ``[bearing, range]`` observations to M predictions.
+
+    ``d2[i, j] = nu^T (S_j + R_i)^-1 nu`` with ``nu = z_i - z_hat_j``, the bearing
+    wrapped to (-pi, pi] (eq. 20).
+
+    Args:
+        z: (N, 2) observations; r: (N, 2, 2) their noise.
+        z_hat: (M, 2) predictions; s: (M, 2, 2) prediction covariances ``H P H^T``.
+
+    Returns:
+        (N, M) distances; ``inf`` where ``S + R`` is not positive definite or the
+        distance is not finite.
+    """
+    psi = r[:, None] + s[None]
+    nu = z[:, None, :] - z_hat[None, :, :]
+    nu[..., 0] = (nu[..., 0] + math.pi) % (2.0 * math.pi) - math.pi
+    a, b, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 1]
+    det = a * d - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
+    return np.where((det > 0) & (a > 0) & np.isfinite(d2), d2, np.inf)
+
+
 def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s: FloatArray,
                   config: AssociationConfig) -> dict[int, dict[int, tuple[float, bool]]]:
     """Every planar observation without an id against M predicted landmarks.
@@ -82,14 +145,7 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
         return out
     z = np.array([observations[i].z for i in idx], float)
     r = np.array([observations[i].R for i in idx], float)
-    psi = r[:, None, :, :] + np.asarray(s, float)[None, :, :, :]
-    nu = z[:, None, :] - np.asarray(z_hat, float)[None, :, :]
-    nu[..., 0] = (nu[..., 0] + np.pi) % (2 * np.pi) - np.pi
-    a, b, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 1]
-    det = a * d - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
-    d2 = np.where((det > 0) & (a > 0) & np.isfinite(d2), d2, np.inf)
+    d2 = bearing_range_d2(z, r, np.asarray(z_hat, float), np.asarray(s, float))
     thr = config.new_threshold(2)
     for row, i in enumerate(idx):
         keep = np.flatnonzero(d2[row] < thr)

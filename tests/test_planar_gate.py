@@ -5,7 +5,7 @@ import math
 import numpy as np
 
 from lampsam.backend.association import mahalanobis2
-from lampsam.backend.gating import bearing_range_d2, range_bearing_many
+from lampsam.backend.planar_gate import bearing_range_d2, range_bearing_many
 from lampsam.factors.range_bearing import range_bearing
 
 
