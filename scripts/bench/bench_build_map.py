@@ -20,11 +20,11 @@ Usage: ``.venv/bin/python scripts/bench/bench_build_map.py [--run RUN] [--repeat
 from __future__ import annotations
 
 import argparse
-import statistics
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
+
+from timing import median_wall_cpu  # scripts/bench/timing.py, a sibling module
 
 from lampsam.datasets.kinect_sim import simulate_kinect_run
 from lampsam.datasets.rgbd import read_tum_rgbd
@@ -32,17 +32,6 @@ from lampsam.evaluation.map_truth import floor_plan_of_run
 from lampsam.localization.depth_grid import build_depth_layers
 from lampsam.localization.map_build import build_map
 from lampsam.localization.map_config import EnvMapConfig
-
-
-def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Median wall and CPU seconds of ``fn`` over ``repeats`` runs."""
-    wall, cpu = [], []
-    for _ in range(repeats):
-        w0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - w0)
-        cpu.append(time.process_time() - c0)
-    return statistics.median(wall), statistics.median(cpu)
 
 
 def main() -> None:
@@ -78,9 +67,9 @@ def main() -> None:
         reports.append(build_map(run, Path(tmp.name) / "map", truth=truth))
 
     read_all()  # warm the imports and the file cache
-    ref_w, ref_c = _time(read_all, args.repeats)
-    grid_w, grid_c = _time(grid_only, args.repeats)
-    full_w, full_c = _time(full, args.repeats)
+    ref_w, ref_c = median_wall_cpu(read_all, args.repeats)
+    grid_w, grid_c = median_wall_cpu(grid_only, args.repeats)
+    full_w, full_c = median_wall_cpu(full, args.repeats)
     print(f"{'case':<22}{'wall s':>9}{'cpu s':>9}{'x ref (wall)':>14}")
     for name, w, c in (
         ("reference: read", ref_w, ref_c),

@@ -20,14 +20,12 @@ Usage: ``.venv/bin/python scripts/bench/bench_map_tables.py [--repeats 3] [--bui
 from __future__ import annotations
 
 import argparse
-import statistics
 import tempfile
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from timing import median_wall_cpu  # scripts/bench/timing.py, a sibling module
 
 from lampsam.datasets.carmen import read_carmen, scan_endpoints
 from lampsam.datasets.paths import shared_dataset
@@ -41,17 +39,6 @@ from lampsam.localization.map_tables import (
     load_range_table,
     save_range_table,
 )
-
-
-def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Median wall and CPU seconds of ``fn`` over ``repeats`` runs."""
-    wall, cpu = [], []
-    for _ in range(repeats):
-        w0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - w0)
-        cpu.append(time.process_time() - c0)
-    return statistics.median(wall), statistics.median(cpu)
 
 
 def main() -> None:
@@ -68,16 +55,16 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp())
     cfg = EnvMapConfig(tables=TableConfig(range_table=False, laser_range_table=False))
 
-    ref_w, ref_c = _time(lambda: read_carmen(log), args.repeats)
-    map_w, map_c = _time(lambda: build_map(log, tmp / "map", config=cfg, scans="even"),
+    ref_w, ref_c = median_wall_cpu(lambda: read_carmen(log), args.repeats)
+    map_w, map_c = median_wall_cpu(lambda: build_map(log, tmp / "map", config=cfg, scans="even"),
                          args.repeats)
     env = load_env_map(tmp / "map")
     grid = env.grid
     table = build_range_table(grid, args.max_range)
     save_range_table(tmp / "map", grid, table)
     size_mb = (tmp / "map" / "range_table.npz").stat().st_size / 1e6
-    tb_w, tb_c = _time(lambda: build_range_table(grid, args.max_range), args.build_repeats)
-    tl_w, tl_c = _time(lambda: load_range_table(tmp / "map", grid, args.max_range),
+    tb_w, tb_c = median_wall_cpu(lambda: build_range_table(grid, args.max_range), args.build_repeats)
+    tl_w, tl_c = median_wall_cpu(lambda: load_range_table(tmp / "map", grid, args.max_range),
                        args.repeats)
 
     print(f"{'case':<34}{'wall s':>9}{'cpu s':>9}{'x ref (wall)':>14}")
