@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -454,6 +455,23 @@ def simulate_kinect_run(
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0 / rate
     step = max(1, int(round(1.0 / (config.rate_hz * dt))))
     idx = np.arange(0, len(t), step)
+    write_kinect_frames(out, scene, config, t, poses, idx, rng)
+    log.info("kinect run %s: %.1f s, %d frames", out, t[-1], len(idx))
+    return out
+
+
+def write_kinect_frames(out: Path, scene: Scene3D, config: KinectConfig, t: FloatArray,
+                        poses: FloatArray, idx: Iterable[int], rng: np.random.Generator) -> None:
+    """Render and write the Kinect frames at the rows ``idx`` of a run's truth.
+
+    Args:
+        out: the run directory (frames go to ``out / KINECT_DIR`` in the TUM RGB-D layout).
+        scene: the world's 3-D content.
+        config: the Kinect model.
+        t: (N,) times, s; poses: (N, 3) ``world_T_body`` x, y (m), theta (rad).
+        idx: rows of ``t``/``poses`` to render, increasing.
+        rng: depth and colour noise.
+    """
     renderer = KinectRenderer(scene, config)
     writer = TumRgbdWriter(out / KINECT_DIR, config)
     try:
@@ -463,8 +481,6 @@ def simulate_kinect_run(
             writer.write(float(t[i]), rgb, depth, T)
     finally:
         writer.close()
-    log.info("kinect run %s: %.1f s, %d frames", out, t[-1], len(idx))
-    return out
 
 
 def add_kinect_meta(run: Path, world_name: str, config: KinectConfig) -> None:

@@ -28,14 +28,7 @@ import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.datasets.ceiling_truth import occluders, project_landmarks
-from lampsam.datasets.kinect_sim import (
-    KINECT_DIR,
-    KinectConfig,
-    KinectRenderer,
-    TumRgbdWriter,
-    add_kinect_meta,
-    world_T_camera,
-)
+from lampsam.datasets.kinect_sim import KinectConfig, add_kinect_meta, write_kinect_frames
 from lampsam.datasets.logrun import (
     PROJECTIONS_FILE,
     ImageWriter,
@@ -273,15 +266,7 @@ def simulate_localization_run(
         (in_turn if kind == "turn" else in_drive)[sel] = True
     k_step = max(1, int(round(rate / config.rate_hz)))
     kinect_idx = [i for i in range(0, len(t), k_step) if in_turn[i]]
-    renderer = KinectRenderer(scene, config)
-    writer = TumRgbdWriter(out / KINECT_DIR, config)
-    try:
-        for i in kinect_idx:
-            T = world_T_camera(poses[i], config)
-            rgb, depth = renderer.render(T, rng)
-            writer.write(float(t[i]), rgb, depth, T)
-    finally:
-        writer.close()
+    write_kinect_frames(out, scene, config, t, poses, kinect_idx, rng)
     c_step = max(1, int(round(rate / w.simulation.image_rate_hz)))
     ceiling_idx = [i for i in range(0, len(t), c_step) if in_drive[i]]
     _render_ceiling(w, out, t, poses, ceiling_idx, seed)
