@@ -107,11 +107,14 @@ class AssociationConfig:
             Mahalanobis distance of 0.03 against the chi-square's 1.39), the
             stated noise makes trees several metres apart compatible; the factors
             keep ``R``.
-        planar_confirm_sightings: without ids, a new range-bearing landmark of the
-            smoothers stays tentative (gated, not in the graph) until it has this
-            many sightings; one not confirmed within ``isam2.corner_pending_keyframes``
-            keyframes is forgotten with its sightings (default 1: in the graph at
-            its first sight).
+        planar_confirm_sightings: without ids, a new range-bearing landmark stays
+            tentative until it has this many sightings (default 1: mapped at its
+            first sight, the paper's rule, eqs. 24-25). Every backend reads it: the
+            smoothers keep it gated and out of the graph, forgotten with its
+            sightings if not confirmed within ``isam2.corner_pending_keyframes``
+            keyframes; the EKF fuses the sightings in a tentative list
+            (:class:`lampsam.backend.association.TentativeLandmarks`, forgotten after
+            ``ekf.tentative_max_idle`` steps).
         planar_reject_ambiguous: without ids, a range-bearing observation with two
             or more landmarks inside the relative gate (of
             :meth:`lampsam.backend.gating.Gating._screen_planar`) is dropped instead
@@ -199,10 +202,6 @@ class EkfConfig:
             estimate.
         update_tol: convergence threshold of the iterated update on the largest
             change of any state entry between iterations, m or rad (default 1e-4).
-        confirm_sightings: without ids, a planar landmark enters the state after this
-            many unassociated sightings fused in a tentative list
-            (:class:`lampsam.backend.association.TentativeLandmarks`); default 1:
-            at once, the paper's rule (eqs. 24-25 at the first sighting).
         tentative_max_idle: steps after which an unconfirmed tentative landmark is
             forgotten (default 100).
         new_min_separation: a confirmed tentative landmark within this distance of a
@@ -216,7 +215,6 @@ class EkfConfig:
     update_iterations: int = field(default=1, metadata=limits(ge=1))
     update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
     first_estimate_jacobians: bool | None = None
-    confirm_sightings: int = field(default=1, metadata=limits(ge=1))
     tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
 

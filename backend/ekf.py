@@ -154,7 +154,8 @@ class EkfSlam(SlamBackend):
         auto = ceiling is None and isinstance(self.motion, Pose2Motion)
         self._fej = auto if fej is None else fej
         self._pred_xy = self._x[:2].copy()  # p_{k|k-1}: the last predicted position
-        self.tentative = TentativeLandmarks(cfg.confirm_sightings, config.association.gate(2),
+        self.tentative = TentativeLandmarks(config.association.planar_confirm_sightings,
+                                            config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
 
     # ------------------------------------------------------------------ state
@@ -495,7 +496,7 @@ class EkfSlam(SlamBackend):
     def _confirmed(self, obs: Obs) -> bool:
         """Whether an unassociated planar sighting may start a landmark now.
 
-        With ``ekf.confirm_sightings > 1`` the sighting's world position (eq. 24) and
+        With ``association.planar_confirm_sightings > 1`` the sighting's world position (eq. 24) and
         covariance ``G_R P_RR G_R^T + G_z R G_z^T`` (eq. 25's new block) go to the
         tentative list (:class:`lampsam.backend.association.TentativeLandmarks`).
         """
