@@ -28,8 +28,9 @@ count; then, from each job's own clock (process CPU and wall time, taken inside 
 job), where a warm batch's wall time goes: the busiest worker's busy time (the
 floor set by how the jobs split), the mean busy time per worker (the floor with a
 perfect split) and the rest (scheduling, transfer, result gathering, the client's
-polling), and the CPU seconds of all jobs (which grow when two jobs share the
-machine: caches, memory bandwidth, other processes). Load average before and after
+polling), the CPU seconds of all jobs (which grow when two jobs share the
+machine: caches, memory bandwidth, other processes), and a CPU-time speed-up (all
+jobs' CPU with the first count over the busiest worker's; robust to machine load). Load average before and after
 (the machine may be shared: the speed-up is only meaningful with idle cores).
 """
 
@@ -87,22 +88,25 @@ def split(records: list[dict[str, float]], wall: float) -> dict[str, float]:
         ``busiest_s`` (the worker with the most job time: the floor set by the split),
         ``mean_busy_s`` (job time per worker: the floor of a perfect split),
         ``other_s`` (wall minus the busiest: scheduling, transfer, gathering, polling),
-        ``cpu_s`` (CPU time of all jobs), ``jobs_per_worker`` (max), ``workers_used``.
+        ``cpu_s`` (CPU time of all jobs), ``busiest_cpu_s`` (the largest CPU time of
+        one worker's jobs), ``jobs_per_worker`` (max), ``workers_used``.
     """
     busy: dict[float, float] = {}
+    busy_cpu: dict[float, float] = {}
     count: dict[float, int] = {}
     cpu = 0.0
     for r in records:
         if not r:
             continue
         busy[r["pid"]] = busy.get(r["pid"], 0.0) + r["end"] - r["start"]
+        busy_cpu[r["pid"]] = busy_cpu.get(r["pid"], 0.0) + r["cpu"]
         count[r["pid"]] = count.get(r["pid"], 0) + 1
         cpu += r["cpu"]
     if not busy:
         return {}
     busiest = max(busy.values())
     return {"busiest_s": busiest, "mean_busy_s": sum(busy.values()) / len(busy),
-            "other_s": wall - busiest, "cpu_s": cpu,
+            "other_s": wall - busiest, "cpu_s": cpu, "busiest_cpu_s": max(busy_cpu.values()),
             "jobs_per_worker": float(max(count.values())), "workers_used": float(len(busy))}
 
 
@@ -183,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     for c in counts:
         warm = times[c][1:]
         med = {k: float(np.median([sp[k] for sp in splits[c][1:] if sp]))
-               for k in ("busiest_s", "mean_busy_s", "other_s", "cpu_s")}
+               for k in ("busiest_s", "mean_busy_s", "other_s", "cpu_s", "busiest_cpu_s")}
         rows.append({"workers": c, "startup_s": startup[c], "cold_s": times[c][0],
                      "with_startup_s": startup[c] + times[c][0],
                      "warm_median_s": float(np.median(warm)), "warm_min_s": float(np.min(warm)),
@@ -203,12 +207,16 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['warm_min_s']:5.1f} {su('warm_min_s'):>5}")
     print("\nwarm batches, medians, from the jobs' own clocks:")
     print(f"{'workers':>7} {'wall s':>7} {'busiest worker s':>17} {'mean busy s':>12} "
-          f"{'other s':>8} {'jobs CPU s':>11} {'CPU x':>6}")
+          f"{'other s':>8} {'jobs CPU s':>11} {'CPU x':>6} {'CPU speed-up':>13}")
     for r in rows:
         m = r["warm_split_median"]
         print(f"{r['workers']:7d} {r['warm_median_s']:7.1f} {m['busiest_s']:17.1f} "
               f"{m['mean_busy_s']:12.1f} {m['other_s']:8.1f} {m['cpu_s']:11.1f} "
-              f"{m['cpu_s'] / base['warm_split_median']['cpu_s']:6.2f}")
+              f"{m['cpu_s'] / base['warm_split_median']['cpu_s']:6.2f} "
+              f"{base['warm_split_median']['busiest_cpu_s'] / m['busiest_cpu_s']:12.2f}x")
+    print("(CPU speed-up: the jobs' CPU with the first count over the busiest worker's jobs' CPU;\n"
+          " it counts the split and the contention but not the waiting for a core, so it stays\n"
+          " meaningful on a loaded machine, unlike the wall-time ratios above)")
     print(f"load average {load0[0]:.1f} -> {load1[0]:.1f} on {os.cpu_count()} cores "
           "(other processes share the cores: speed-ups are then below what idle cores give)")
     write_text_atomic(out / "fleet.json", json.dumps(
