@@ -94,6 +94,13 @@ class LocalizeConfig:
             lab, every corner gave 3.6 mm RMS on lab_day2, the 28 corners passing both
             2.5 mm (lamps only 2.6 mm); the rejected corners are mostly frontend corners
             on lamp and item edges whose map position is off by centimetres.
+        map_priors: treat the map's landmark positions as priors, not fixed values
+            (default False): the used map landmarks join the state (``x = (pose,
+            p_1 .. p_L)``, prior ``N(map position, map marginal)``) and every update is
+            the joint EKF update (eqs. 19-23 with the pose-landmark cross terms), so
+            repeated sightings of one landmark are correlated through it and the run's
+            own start pose can pull the map's error out. No landmark is added and the
+            saved map is not changed.
     """
 
     sigma_start_xy: float = field(default=0.02, metadata=limits(gt=0.0))
@@ -105,6 +112,7 @@ class LocalizeConfig:
     max_corners: int | None = field(default=None, metadata=limits(ge=0))
     min_corner_obs: int = field(default=10, metadata=limits(ge=0))
     max_corner_sigma: float = field(default=0.005, metadata=limits(gt=0.0))
+    map_priors: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -139,6 +147,8 @@ class _Matches:
     r_tot: FloatArray
     obs: np.ndarray
     lm: np.ndarray
+    h_l: FloatArray
+    r: FloatArray
 
 
 def _inv2(a: FloatArray) -> FloatArray:
@@ -185,6 +195,20 @@ class MapLocalizer(SlamBackend):
         self._kinds = {LandmarkKind.LAMP.value: _KindArrays(cmap.by_kind(LandmarkKind.LAMP.value),
                                                             self.loc.map_cov_scale),
                        LandmarkKind.CORNER.value: _KindArrays(corners, self.loc.map_cov_scale)}
+        # map_priors: the joint covariance over (pose, landmarks of _kinds in order)
+        self._offsets: dict[str, int] = {}
+        self._pj: FloatArray | None = None
+        if self.loc.map_priors:
+            n = 3
+            for kind, arr in self._kinds.items():
+                self._offsets[kind] = n
+                n += 3 * len(arr.ids)
+            self._pj = np.zeros((n, n))
+            self._pj[:3, :3] = self.P
+            for kind, arr in self._kinds.items():
+                for j in range(len(arr.ids)):
+                    o = self._offsets[kind] + 3 * j
+                    self._pj[o:o + 3, o:o + 3] = arr.cov_p[j]
         self._gate2 = config.association.gate(2)
         self._gate1 = config.association.gate(1)
         self._last_t = -math.inf
@@ -239,11 +263,13 @@ class MapLocalizer(SlamBackend):
             sel = sel[np.argsort(d2_rc[sel], kind="stable")[: self.loc.max_corners]]
         rows, cols = rows[sel], cols[sel]
         return _Matches(nu=z[rows] - m[keep[cols]], h_x=h_x[cols], r_tot=r[rows] + s_map[cols],
-                        obs=idx[rows], lm=keep[cols])
+                        obs=idx[rows], lm=keep[cols], h_l=h_l[cols], r=r[rows])
 
     # ------------------------------------------------------------------ update
     def _update(self, obs: list[Obs]) -> int:
         """Information-form EKF update with the frame's matched observations."""
+        if self._pj is not None:
+            return self._update_joint(obs)
         info = np.zeros((3, 3))
         grad = np.zeros(3)
         n = 0
@@ -282,6 +308,80 @@ class MapLocalizer(SlamBackend):
         self.P = 0.5 * (p_new + p_new.T)
         return n
 
+    def _update_joint(self, obs: list[Obs]) -> int:
+        """``map_priors``: the stacked EKF update of the pose and the map landmarks.
+
+        Rows: ``(u, v)`` of each matched observation, ``H = [H_x, 0 .. H_l .. 0]``,
+        noise ``R`` (the landmark's uncertainty is in the state); a lamp axis adds the
+        scalar row of :meth:`_update` on ``theta`` alone with the map's ``var(phi)`` in its
+        noise (the axes are not states). ``P+ = P - K S K^T`` (eqs. 21-23).
+        """
+        assert self._pj is not None
+        pj = self._pj
+        n = pj.shape[0]
+        rows_h: list[FloatArray] = []
+        rows_nu: list[float] = []
+        rows_r: list[FloatArray] = []  # (2, 2) or (1, 1) blocks
+        for kind, arr in self._kinds.items():
+            mt = self._match(obs, kind, arr)
+            if mt is None:
+                continue
+            for k in range(len(mt.obs)):
+                h = np.zeros((2, n))
+                h[:, :3] = mt.h_x[k]
+                o = self._offsets[kind] + 3 * int(mt.lm[k])
+                h[:, o:o + 3] = mt.h_l[k]
+                rows_h.append(h)
+                rows_nu.extend(mt.nu[k])
+                rows_r.append(mt.r[k])
+            if kind != LandmarkKind.LAMP.value:
+                continue
+            for i, j in zip(mt.obs, mt.lm, strict=True):
+                ob = obs[int(i)]
+                if not ob.has_axis or math.isnan(arr.phi[j]):
+                    continue
+                nu_a = float(wrap_axis(float(ob.z[2]) - (arr.phi[j] - self.x[2])))
+                var = float(ob.R[2, 2]) + float(arr.var_phi[j])
+                if nu_a * nu_a / (var + pj[2, 2]) >= self._gate1:
+                    continue
+                h = np.zeros((1, n))
+                h[0, 2] = -1.0
+                rows_h.append(h)
+                rows_nu.append(nu_a)
+                rows_r.append(np.array([[var]]))
+        if not rows_h:
+            return 0
+        hm = np.vstack(rows_h)
+        m = hm.shape[0]
+        r = np.zeros((m, m))
+        at = 0
+        for blk in rows_r:
+            b = blk.shape[0]
+            r[at:at + b, at:at + b] = blk
+            at += b
+        pht = pj @ hm.T
+        s = hm @ pht + r
+        try:
+            gain = np.linalg.solve(s, pht.T).T  # K = P H^T S^-1
+        except np.linalg.LinAlgError:
+            log.warning("innovation covariance not invertible: update skipped")
+            return 0
+        dx = gain @ np.asarray(rows_nu, float)
+        pj = pj - gain @ s @ gain.T
+        self._pj = 0.5 * (pj + pj.T)
+        self.x = self.x + dx[:3]
+        self.x[2] = wrap_angle(float(self.x[2]))
+        self.P = self._pj[:3, :3].copy()
+        for kind, arr in self._kinds.items():
+            o = self._offsets[kind]
+            k = len(arr.ids)
+            if k == 0:
+                continue
+            arr.points = arr.points + dx[o:o + 3 * k].reshape(k, 3)
+            idx = o + 3 * np.arange(k)[:, None] + np.arange(3)[None, :]
+            arr.cov_p = self._pj[idx[:, :, None], idx[:, None, :]]
+        return sum(1 for h in rows_h if h.shape[0] == 2)
+
     # ------------------------------------------------------------------ interface
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
         """See :meth:`SlamBackend.step`; ``n_new`` is always 0 (the map is not grown)."""
@@ -294,6 +394,10 @@ class MapLocalizer(SlamBackend):
             pose, f, q = self.motion.ekf_predict(self.x, u)
             self.P = f @ self.P @ f.T + q + self.loc.var_floor * np.eye(3)
             self.x = np.asarray(pose, float)
+            if self._pj is not None:  # eq. 13's F on the pose rows, landmarks static
+                self._pj[:3, :3] = self.P
+                self._pj[:3, 3:] = f @ self._pj[:3, 3:]
+                self._pj[3:, :3] = self._pj[:3, 3:].T
         n_used = 0
         if frame is not None:
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
