@@ -488,7 +488,7 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     if features:
         config = dataclasses.replace(config, features=features)
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
-                               loc=LocalizeConfig(map_priors=args.map_priors))
+                               loc=LocalizeConfig(map_mode="priors" if args.map_priors else "fixed"))
     from lampsam.evaluation.slam_report import write_slam_plot
 
     with atomic_path(out / "slam.png") as tmp:

@@ -45,6 +45,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -94,12 +95,17 @@ class LocalizeConfig:
             lab, every corner gave 3.6 mm RMS on lab_day2, the 28 corners passing both
             2.5 mm (lamps only 2.6 mm); the rejected corners are mostly frontend corners
             on lamp and item edges whose map position is off by centimetres.
-        map_priors: treat the map's landmark positions as priors, not fixed values
-            (default False): the used map landmarks join the state (``x = (pose,
-            p_1 .. p_L)``, prior ``N(map position, map marginal)``) and every update is
-            the joint EKF update (eqs. 19-23 with the pose-landmark cross terms), so
-            repeated sightings of one landmark are correlated through it and the run's
-            own start pose can pull the map's error out. No landmark is added and the
+        map_mode: how the map's landmark positions enter (default ``"fixed"``):
+            ``"fixed"``: fixed values, their covariance added to each innovation
+            (module docstring); ``"priors"``: the used map landmarks join the state
+            (``x = (pose, p_1 .. p_L)``, prior ``N(map position, map marginal)``) and
+            every update is the joint EKF update (eqs. 19-23 with the pose-landmark
+            cross terms), so repeated sightings of one landmark are correlated through
+            it and the run's own known start can pull part of the map's error out;
+            ``"consider"``: the same state, but a Schmidt (consider) update: the
+            landmarks keep their map values and covariance, only the pose and the
+            pose-landmark cross-covariance are updated (the correlation of repeated
+            sightings without moving the map). No landmark is ever added and the
             saved map is not changed.
     """
 
@@ -112,11 +118,17 @@ class LocalizeConfig:
     max_corners: int | None = field(default=None, metadata=limits(ge=0))
     min_corner_obs: int = field(default=10, metadata=limits(ge=0))
     max_corner_sigma: float = field(default=0.005, metadata=limits(gt=0.0))
-    map_priors: bool = False
+    map_mode: MapMode = "fixed"
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
+        if self.map_mode not in MAP_MODES:
+            raise ValueError(f"map_mode {self.map_mode!r}: expected one of {', '.join(MAP_MODES)}")
+
+
+MapMode = Literal["fixed", "priors", "consider"]
+MAP_MODES: tuple[str, ...] = ("fixed", "priors", "consider")
 
 
 class _KindArrays:
@@ -195,10 +207,10 @@ class MapLocalizer(SlamBackend):
         self._kinds = {LandmarkKind.LAMP.value: _KindArrays(cmap.by_kind(LandmarkKind.LAMP.value),
                                                             self.loc.map_cov_scale),
                        LandmarkKind.CORNER.value: _KindArrays(corners, self.loc.map_cov_scale)}
-        # map_priors: the joint covariance over (pose, landmarks of _kinds in order)
+        # map_mode priors / consider: the joint covariance over (pose, landmarks of _kinds in order)
         self._offsets: dict[str, int] = {}
         self._pj: FloatArray | None = None
-        if self.loc.map_priors:
+        if self.loc.map_mode != "fixed":
             n = 3
             for kind, arr in self._kinds.items():
                 self._offsets[kind] = n
@@ -309,12 +321,15 @@ class MapLocalizer(SlamBackend):
         return n
 
     def _update_joint(self, obs: list[Obs]) -> int:
-        """``map_priors``: the stacked EKF update of the pose and the map landmarks.
+        """``map_mode`` priors / consider: the stacked EKF update over pose and map landmarks.
 
         Rows: ``(u, v)`` of each matched observation, ``H = [H_x, 0 .. H_l .. 0]``,
         noise ``R`` (the landmark's uncertainty is in the state); a lamp axis adds the
         scalar row of :meth:`_update` on ``theta`` alone with the map's ``var(phi)`` in its
-        noise (the axes are not states). ``P+ = P - K S K^T`` (eqs. 21-23).
+        noise (the axes are not states). Priors: ``K = P H^T S^-1``,
+        ``P+ = P - K S K^T`` (eqs. 21-23). Consider (Schmidt): the landmark rows of
+        ``K`` are zero and ``P+ = P - K H P - P H^T K^T + K S K^T`` (Joseph form, exact
+        for a gain that is not the optimal one), which leaves ``P_ll`` unchanged.
         """
         assert self._pj is not None
         pj = self._pj
@@ -366,8 +381,13 @@ class MapLocalizer(SlamBackend):
         except np.linalg.LinAlgError:
             log.warning("innovation covariance not invertible: update skipped")
             return 0
+        if self.loc.map_mode == "consider":
+            gain[3:] = 0.0
+            kph = gain @ pht.T  # K H P
+            pj = pj - kph - kph.T + gain @ s @ gain.T
+        else:
+            pj = pj - gain @ s @ gain.T
         dx = gain @ np.asarray(rows_nu, float)
-        pj = pj - gain @ s @ gain.T
         self._pj = 0.5 * (pj + pj.T)
         self.x = self.x + dx[:3]
         self.x[2] = wrap_angle(float(self.x[2]))

@@ -43,7 +43,7 @@ def test_map_priors_pull_out_a_map_offset(rng: np.random.Generator) -> None:
     rms = {}
     for priors in (False, True):
         be = MapLocalizer(rig.odometry, SlamConfig(), poses[0], off, model,
-                          LocalizeConfig(map_priors=priors, **loose))
+                          LocalizeConfig(map_mode="priors" if priors else "fixed", **loose))
         estimates = [be.step(*s) for s in iter_steps(odo, frames)]
         result = be.finish()
         pos, head = _truth_errors(result, t, poses)
@@ -57,16 +57,43 @@ def test_map_priors_pull_out_a_map_offset(rng: np.random.Generator) -> None:
     assert rms[True] < 0.75 * rms[False]  # measured 0.64x: the priors are independent, the offset common
 
 
-def test_map_priors_match_the_fixed_map_when_it_is_exact(rng: np.random.Generator) -> None:
-    """A map with tiny covariances: priors and fixed values give the same track (0.2 mm)."""
+def test_map_modes_agree_when_the_map_is_exact(rng: np.random.Generator) -> None:
+    """A map with tiny covariances: fixed, priors and consider give the same track (0.2 mm)."""
     rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=1e-5)
     model = CeilingModel.from_camera(rig.camera)
     res = [drive(MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model,
-                              LocalizeConfig(map_priors=p)), iter_steps(odo, frames))
-           for p in (False, True)]
-    assert np.max(np.abs(res[0].poses[:, :2] - res[1].poses[:, :2])) < 2e-4
+                              LocalizeConfig(map_mode=mode)), iter_steps(odo, frames))
+           for mode in ("fixed", "priors", "consider")]
+    for other in res[1:]:
+        assert np.max(np.abs(res[0].poses[:, :2] - other.poses[:, :2])) < 2e-4
     pos, _ = _truth_errors(res[1], t, poses)
     assert _rms(pos) < 0.01
+
+
+def test_consider_keeps_the_map_and_its_covariance(rng: np.random.Generator) -> None:
+    """Schmidt update: the landmarks' values and covariance blocks never change, the
+    pose-landmark cross-covariance does; its pose covariance is larger than the fixed
+    map's (the repeated sightings of one landmark are not independent)."""
+    rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=0.004)
+    model = CeilingModel.from_camera(rig.camera)
+    loc = dict(max_corner_sigma=0.05)
+    be = MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model,
+                      LocalizeConfig(map_mode="consider", **loc))
+    assert be._pj is not None
+    p0 = be._pj[3:, 3:].copy()
+    points0 = {k: a.points.copy() for k, a in be._kinds.items()}
+    steps = list(iter_steps(odo, frames))
+    for s in steps:
+        be.step(*s)
+    assert np.array_equal(be._pj[3:, 3:], p0)
+    assert all(np.array_equal(a.points, points0[k]) for k, a in be._kinds.items())
+    assert np.abs(be._pj[:3, 3:]).max() > 0
+    fixed = MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model, LocalizeConfig(**loc))
+    for s in steps:
+        fixed.step(*s)
+    assert np.trace(be.P[:2, :2]) > 1.5 * np.trace(fixed.P[:2, :2])
+    with pytest.raises(ValueError, match="map_mode"):
+        LocalizeConfig(map_mode="moving")  # type: ignore[arg-type]
 
 
 def _grid_map(rng: np.random.Generator, sigma: float, rig: Rig, drop: int = 0) -> CeilingMap:

@@ -10,8 +10,8 @@ Usage::
 ``--map`` may be given more than once (maps of separate drives, merged by
 :func:`lampsam.backend.map_merge.merge_maps`). For every run the frames are made once
 (the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
-(:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors``: the map's
-landmarks as priors, ``LocalizeConfig.map_priors``), and
+(:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
+``localize-consider``: ``LocalizeConfig.map_mode``), and
 SLAM from scratch on the same frames with the backends of ``--backends`` (default
 isam2, batch, ekf). Printed per run and method: position and heading RMS against the
 run's truth (no alignment, known start pose), and the CPU time (``time.process_time``,
@@ -155,7 +155,7 @@ def main() -> None:
     print(f"map {args.map}: {len(cmap.by_kind('lamp'))} lamps, {len(cmap.by_kind('corner'))} "
           f"corners; frames {args.frames}; repeats {args.repeats}; load average "
           f"{load[0]:.1f} {load[1]:.1f} {load[2]:.1f} (2 cores)")
-    methods = ["localize", "localize-priors", *[b for b in args.backends.split(",") if b]]
+    methods = ["localize", "localize-priors", "localize-consider", *[b for b in args.backends.split(",") if b]]
     rows: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     for run_dir in args.runs:
         run = read_run(run_dir)
@@ -171,7 +171,7 @@ def main() -> None:
                     be: SlamBackend = MapLocalizer(
                         run.rig.odometry, config, start, cmap,
                         CeilingModel.from_camera(run.rig.camera),
-                        LocalizeConfig(map_priors=m == "localize-priors"))
+                        LocalizeConfig(map_mode=m.split("-")[1] if "-" in m else "fixed"))
                 else:
                     be = make_backend(m, run.rig.odometry, config, start, run.rig.camera)
                 reps.append(timed_run(be, run, frames, frame_fit[0] if frame_fit and
