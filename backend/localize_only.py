@@ -28,11 +28,16 @@ information form: with ``W_i = (H_l,i Sigma_l,i H_l,i^T + R_i)^-1`` block by blo
 which equals eqs. 21-23 for the stacked update but costs O(K) with 2 x 2 and 3 x 3
 inverses instead of a (2K x 2K) one.
 
-Why a pose-only EKF rather than a fixed-lag iSAM2 over poses: with the map fixed,
-the pose posterior given the past is all an online tracker needs, the EKF step is
-a handful of 3 x 3 products (the smoothers' cost is one GTSAM update and a pose
-marginal per keyframe), and measured on lab (docs/ceiling-map.md) its error is
-already below the from-scratch smoothers'.
+The map as fixed values is a pose-only EKF: the step is a handful of 3 x 3 products,
+but the track inherits the map's error (its frame offset and distortion), and adding
+``Sigma_l`` to every innovation independently treats repeated sightings of one map
+landmark as independent. :attr:`LocalizeConfig.map_mode` offers the two remedies:
+``"priors"`` puts the used map landmarks in the state with the map as their prior
+(a localize-only EKF-SLAM that never adds a landmark; the run's known start then pulls
+part of the map's error out), ``"consider"`` keeps the same joint covariance but never
+moves the map (a Schmidt / consider filter: consistent, not more accurate). Their
+cost is one EKF update over ``3 + 3 L`` states per frame (``L`` the map landmarks
+used, a few dozen). Accuracy and cost of the three: docs/ceiling-map.md.
 
 Corner patches are stored in the map but used for association only when
 :attr:`LocalizeConfig.corner_ncc` is set: the frontend's patches are not rotation
