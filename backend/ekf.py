@@ -153,6 +153,9 @@ class EkfSlam(SlamBackend):
         # runs, MRCLAM).
         auto = ceiling is None and isinstance(self.motion, Pose2Motion)
         self._fej = auto if fej is None else fej
+        # None (auto): landmarks with a known id are kept on the same runs.
+        prune_known = config.ekf.prune_known_ids
+        self._prune_known = not auto if prune_known is None else prune_known
         self._pred_xy = self._x[:2].copy()  # p_{k|k-1}: the last predicted position
         self.tentative = TentativeLandmarks(config.association.planar_confirm_sightings,
                                             config.association.gate(2),
@@ -489,7 +492,8 @@ class EkfSlam(SlamBackend):
                       if obs.kind == LandmarkKind.POINT2 else 0.0)
         self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
                                  sigma_meas, state.copy() if self._fej else None)
-        self._prune_queue.append(lid)
+        if self._prune_known or obs.landmark_id is None:
+            self._prune_queue.append(lid)
         self._n = n + d
         return lid
 

@@ -185,3 +185,37 @@ def test_vectorised_planar_gate_equals_the_per_pair_innovation() -> None:
                 else:
                     assert d2 >= AssociationConfig().new_threshold(2)
         assert n_checked >= 3
+
+
+def test_landmarks_with_known_ids_stay_until_seen_again() -> None:
+    """A landmark with a known id seen once, then again 40 steps later (beyond
+    ``prune_after_steps`` = 30): on a Pose2 range-bearing run (``ekf.prune_known_ids``
+    auto) it stays in the state and the second sighting updates it (one landmark, two
+    observations, the robot's x sigma shrinks); with the paper's rule forced
+    (``prune_known_ids = true``) it is removed and the second sighting starts a new
+    landmark (one observation, the pose covariance untouched by it)."""
+    r = np.diag([0.05**2, 0.2**2])
+    step = _sample(np.array([0.5, 0.0, 0.0]), np.diag([0.05**2, 0.05**2, 0.01**2]))
+    out = {}
+    for forced in (None, True):
+        cfg = SlamConfig()
+        cfg = dataclasses.replace(cfg, ekf=dataclasses.replace(cfg.ekf, prune_known_ids=forced))
+        ekf = EkfSlam(Pose2OdometryModel(), cfg, np.zeros(3))
+        ekf._augment(Obs(LandmarkKind.POINT2, np.array([0.0, 5.0]), r, 7), 7)
+        for _ in range(40):
+            ekf.predict(step[None, :])
+            ekf._step += 1
+            ekf._prune()
+        sigma_before = math.sqrt(ekf.P[0, 0])
+        z = range_bearing(ekf.x[:3], np.array([5.0, 0.0]))[0]
+        if 7 in ekf._slots:
+            ekf._update([(ekf._slots[7], Obs(LandmarkKind.POINT2, z, r, 7))])
+        else:
+            ekf._augment(Obs(LandmarkKind.POINT2, z, r, 7), 7)
+        out[forced] = (ekf._slots[7].n_obs, len(ekf._slots), sigma_before, math.sqrt(ekf.P[0, 0]))
+    n_obs, n_slots, before, after = out[None]
+    assert (n_obs, n_slots) == (2, 1)
+    assert after < 0.9 * before
+    n_obs, n_slots, before, after = out[True]
+    assert (n_obs, n_slots) == (1, 1)
+    assert after == before
