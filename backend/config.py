@@ -202,6 +202,14 @@ class EkfConfig:
             estimate.
         update_tol: convergence threshold of the iterated update on the largest
             change of any state entry between iterations, m or rad (default 1e-4).
+        right_invariant: the right-invariant EKF (Barrau & Bonnabel, "An EKF-SLAM
+            algorithm with consistency properties", 2015) for planar range-bearing
+            runs: Jacobians at the latest estimates (as the paper's), but each update
+            is applied as ``exp(xi) x`` on ``SE_{1+K}(2)`` (the whole map and pose
+            rotated by the heading correction) and ``P`` is carried over to the
+            updated state's coordinates, so the global rotation stays unobservable
+            without first estimates (``first_estimate_jacobians`` is then ignored).
+            True / False force it; None (default): off. An error with a ceiling model.
         prune_known_ids: remove landmarks that carry a known id (from the log) by
             the paper's rules (seen fewer than ``association.min_observations``
             times, or still uncertain, ``association.prune_after_steps`` after
@@ -224,6 +232,7 @@ class EkfConfig:
     update_iterations: int = field(default=1, metadata=limits(ge=1))
     update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
     first_estimate_jacobians: bool | None = None
+    right_invariant: bool | None = None
     prune_known_ids: bool | None = None
     tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
