@@ -202,6 +202,23 @@ class EkfConfig:
             estimate.
         update_tol: convergence threshold of the iterated update on the largest
             change of any state entry between iterations, m or rad (default 1e-4).
+        right_invariant: the right-invariant EKF (Barrau & Bonnabel, "An EKF-SLAM
+            algorithm with consistency properties", 2015) for planar range-bearing
+            runs: Jacobians at the latest estimates (as the paper's), but each update
+            is applied as ``exp(xi) x`` on ``SE_{1+K}(2)`` (the whole map and pose
+            rotated by the heading correction) and ``P`` is carried over to the
+            updated state's coordinates, so the global rotation stays unobservable
+            without first estimates (``first_estimate_jacobians`` is then ignored).
+            True / False force it; None (default): off. An error with a ceiling model.
+        prune_known_ids: remove landmarks that carry a known id (from the log) by
+            the paper's rules (seen fewer than ``association.min_observations``
+            times, or still uncertain, ``association.prune_after_steps`` after
+            creation). True / False force it; None (default) keeps the paper's rule
+            except where first-estimate Jacobians are automatically on (range-bearing
+            runs with Pose2 odometry: landmark-graph logs), where such landmarks stay in
+            the state: a later sighting of the same id is a loop closure, not a new
+            landmark. Landmarks still seen fewer than ``min_observations`` times at
+            the end are reported as provisional as before.
         tentative_max_idle: steps after which an unconfirmed tentative landmark is
             forgotten (default 100).
         new_min_separation: a confirmed tentative landmark within this distance of a
@@ -215,6 +232,8 @@ class EkfConfig:
     update_iterations: int = field(default=1, metadata=limits(ge=1))
     update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
     first_estimate_jacobians: bool | None = None
+    right_invariant: bool | None = None
+    prune_known_ids: bool | None = None
     tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
 

@@ -187,6 +187,15 @@ class LowerCovariance:
         """
         syrk_lower_inplace(self._buf, self._n, w, -1.0)
 
+    def rank_update(self, w: FloatArray, alpha: float) -> None:
+        """``P <- P + alpha W W^T`` in place (BLAS ``dsyrk`` on the lower triangle).
+
+        Args:
+            w: (n, K).
+            alpha: scale (negative for a downdate).
+        """
+        syrk_lower_inplace(self._buf, self._n, w, alpha)
+
     def transform_leading(self, f: FloatArray, q: FloatArray) -> None:
         """``P <- T P T^T + diag(Q, 0)`` with ``T = diag(F, I)``: only the leading r states move.
 

@@ -48,7 +48,12 @@ from lampsam.backend.association import (
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
-from lampsam.backend.ekf_update import gathered_s, stacked_gain
+from lampsam.backend.ekf_update import (
+    gathered_s,
+    invariant_remap,
+    invariant_retract,
+    stacked_gain,
+)
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,
@@ -153,6 +158,15 @@ class EkfSlam(SlamBackend):
         # runs, MRCLAM).
         auto = ceiling is None and isinstance(self.motion, Pose2Motion)
         self._fej = auto if fej is None else fej
+        inv = config.ekf.right_invariant
+        if inv and ceiling is not None:
+            raise EstimationError("ekf.right_invariant applies to planar range-bearing runs only")
+        self._invariant = bool(inv) if inv is not None else False
+        if self._invariant:
+            self._fej = False  # the invariant error keeps the rotation unobservable itself
+        # None (auto): landmarks with a known id are kept on the same runs.
+        prune_known = config.ekf.prune_known_ids
+        self._prune_known = not auto if prune_known is None else prune_known
         self._pred_xy = self._x[:2].copy()  # p_{k|k-1}: the last predicted position
         self.tentative = TentativeLandmarks(config.association.planar_confirm_sightings,
                                             config.association.gate(2),
@@ -331,11 +345,27 @@ class EkfSlam(SlamBackend):
                 break
             dx_prev = step
         cov.downdate(w)  # eq. 23: (I - K H) P = P - K (P H^T)^T = P - W W^T
+        if self._invariant:
+            self._retract_invariant(x0)
         for slot, *_ in rows:
             slot.n_obs += 1
             slot.last_seen = self._step
 
         return len(rows)
+
+    def _retract_invariant(self, x0: FloatArray) -> None:
+        """Apply the last update as the right-invariant EKF does (``ekf.right_invariant``).
+
+        :func:`lampsam.backend.ekf_update.invariant_retract` on the robot and every
+        planar landmark position, then ``P`` carried to the new state's coordinates
+        (:func:`lampsam.backend.ekf_update.invariant_remap`).
+        """
+        offs = [0] + [s.offset for s in self._slots.values() if s.dim == 2]
+        idx = np.asarray(offs)[:, None] + np.arange(2)[None, :]
+        dth = wrap_angle(float(self._x[2] - x0[2]))
+        new = invariant_retract(x0[idx], self._x[idx], dth)
+        invariant_remap(self._cov, idx, new - x0[idx])
+        self._x[idx] = new
 
     def _wrap_angles(self, rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
         """Wrap the heading and the updated lamps' axis angles (after eq. 22)."""
@@ -489,7 +519,8 @@ class EkfSlam(SlamBackend):
                       if obs.kind == LandmarkKind.POINT2 else 0.0)
         self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
                                  sigma_meas, state.copy() if self._fej else None)
-        self._prune_queue.append(lid)
+        if self._prune_known or obs.landmark_id is None:
+            self._prune_queue.append(lid)
         self._n = n + d
         return lid
 

@@ -1,5 +1,8 @@
 """The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
 
+Also the right-invariant EKF's correction (Barrau & Bonnabel, "An EKF-SLAM algorithm
+with consistency properties", 2015): :func:`invariant_retract`, :func:`invariant_remap`.
+
 Pure functions over :class:`lampsam.backend.covariance.LowerCovariance`: ``H`` of a
 frame has nonzero blocks only in the robot columns and each observed landmark's
 columns, so ``P H^T`` is assembled from column blocks of ``P`` and
@@ -87,3 +90,56 @@ def gathered_s(cov: LowerCovariance, idx: IntArray, h_r: FloatArray, h_l: FloatA
     cross = h_r @ p_rl @ hl_t
     return (h_r @ p_rr @ np.transpose(h_r, (0, 2, 1)) + cross
             + np.transpose(cross, (0, 2, 1)) + h_l @ p_ll @ hl_t)
+
+
+def invariant_retract(p0: FloatArray, p: FloatArray, dth: float) -> FloatArray:
+    """Positions after a linear update applied as ``exp(xi) x`` on ``SE_{1+K}(2)``.
+
+    The update moved every position (robot and planar landmarks, world frame) from
+    ``p0`` to ``p`` and the heading by ``dth``. In the right-invariant error
+    (``x = exp(xi) x_hat``) that step is ``xi_p = (p - p0) - J p0 dth`` (``J``: +90 deg
+    rotation; first order, exact at ``p0``); the invariant EKF's new state is
+    ``R(dth) p0 + V(dth) xi_p`` with ``V`` the SE(2) left Jacobian
+    ``[[sin w, -(1 - cos w)], [1 - cos w, sin w]] / w``.
+
+    Args:
+        p0: (m, 2) positions before the update, m.
+        p: (m, 2) positions after the additive update, m.
+        dth: heading step, rad.
+
+    Returns:
+        (m, 2) positions, m.
+    """
+    xi = p - p0 - dth * np.column_stack([-p0[:, 1], p0[:, 0]])
+    c, s = np.cos(dth), np.sin(dth)
+    if abs(dth) > 1e-9:
+        v = np.array([[s, -(1.0 - c)], [1.0 - c, s]]) / dth
+    else:
+        v = np.array([[1.0, -0.5 * dth], [0.5 * dth, 1.0]])
+    rot = np.array([[c, -s], [s, c]])
+    out: FloatArray = p0 @ rot.T + xi @ v.T
+    return out
+
+
+def invariant_remap(cov: LowerCovariance, idx: IntArray, moved: FloatArray) -> None:
+    """Carry ``P`` (plain coordinates, heading at index 2) to the updated state's.
+
+    The invariant error ``xi_p = delta_p - J p delta_theta`` depends on where it is
+    taken: ``P`` in plain coordinates at the old state becomes ``A P A^T`` at the new
+    one, with ``A = I + a e_theta^T`` and ``a_p = J (p_new - p_old)`` on each position
+    (zero elsewhere). ``A P A^T - P = [a, P e_theta] M [a, P e_theta]^T`` with
+    ``M = [[P_theta_theta, 1], [1, 0]]``: two symmetric rank-1 updates, in place.
+
+    Args:
+        cov: the covariance (n x n), updated in place.
+        idx: (m, 2) state indices of the positions.
+        moved: (m, 2) ``p_new - p_old``, m.
+    """
+    a = np.zeros(cov.n)
+    a[idx[:, 0]] = -moved[:, 1]
+    a[idx[:, 1]] = moved[:, 0]
+    p_th = cov.columns(2, 1)[:, 0]
+    lam, vec = np.linalg.eigh(np.array([[p_th[2], 1.0], [1.0, 0.0]]))
+    b = np.column_stack([a, p_th]) @ vec
+    for j in range(2):
+        cov.rank_update(b[:, j : j + 1], float(lam[j]))

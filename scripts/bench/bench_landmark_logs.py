@@ -6,7 +6,8 @@ Usage::
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
         [--mrclam-duration 600]
 
-(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians.)
+(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians, and
+``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``.)
 
 For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``mrclam``: the shared
 MRCLAM ds0 robot 1, its first ``--mrclam-duration`` s, turned into one pose per step
@@ -250,9 +251,10 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
         for b in backends:
             # "ekf-paper": the EKF with the paper's Jacobians (at the latest estimate)
             # instead of first estimates (docs/graph-backend.md).
-            cfg_b = config if b != "ekf-paper" else dataclasses.replace(
-                config, ekf=dataclasses.replace(config.ekf, first_estimate_jacobians=False))
-            backend = "ekf" if b == "ekf-paper" else b
+            variant = {"ekf-paper": {"first_estimate_jacobians": False},
+                       "ekf-invariant": {"right_invariant": True}}.get(b, {})
+            cfg_b = dataclasses.replace(config, ekf=dataclasses.replace(config.ekf, **variant))
+            backend = "ekf" if b.startswith("ekf") else b
             res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids) for _ in range(repeats)]
             res = res_runs[0]
             total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
