@@ -136,6 +136,9 @@ class AssociationConfig:
             update keep the stated ``R``.
         planar_noise_floor, planar_noise_margin, planar_noise_window: its clamp,
             safety factor and window (defaults 0.05, 2.0, 200).
+        planar_noise_idle_split: landmarks last seen more than this many steps
+            (EKF; keyframes in the smoothers) ago get their own scale
+            (:class:`lampsam.backend.association.IdleScales`; default 0: one scale).
         planar_merge: without ids, the EKF matches the planar landmarks created in
             the last ``planar_merge_window`` steps, every ``planar_merge_every``
             steps, as a rigid constellation against the older ones
@@ -173,6 +176,7 @@ class AssociationConfig:
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))
     planar_noise_margin: float = field(default=2.0, metadata=limits(gt=0.0))
     planar_noise_window: int = field(default=200, metadata=limits(ge=1))
+    planar_noise_idle_split: int = field(default=0, metadata=limits(ge=0))
     planar_merge: bool = False
     planar_merge_every: int = field(default=5, metadata=limits(ge=1))
     planar_merge_window: int = field(default=50, metadata=limits(ge=1))

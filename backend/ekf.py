@@ -299,7 +299,8 @@ class EkfSlam(SlamBackend):
                             for f, o in zip(firsts, offs, strict=True)])
         z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
         return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
-                             self.config.association, self.noise_scale.scale)
+                             self.config.association, self.noise_scale.scales(
+                                 self._step - np.array([self._slots[lid].last_seen for lid in lids])))
 
     # ------------------------------------------------------------------ eqs. 21-23
     def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
@@ -450,7 +451,9 @@ class EkfSlam(SlamBackend):
                 h[2 * row : 2 * row + 2, local[lid] : local[lid] + slot.dim] = h_l
                 nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
                 r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
-            return nu, (h @ P @ h.T + r) * self.noise_scale.scale
+            scale = max(self.noise_scale.of(self._step - self._slots[lid].last_seen).scale
+                        for _, lid in hyp)
+            return nu, (h @ P @ h.T + r) * scale
 
         paired = dict(jcbb(cands, joint, cfg))
         out = []
@@ -603,7 +606,8 @@ class EkfSlam(SlamBackend):
                                         patches, screened)
                 if self.config.association.joint_compatibility:
                     assignments = self._joint_point2(obs, assignments, screened)
-                learn_scale(self.noise_scale, obs, assignments, screened)
+                learn_scale(self.noise_scale, obs, assignments, screened,
+                            lambda lid: self._step - self._slots[lid].last_seen)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]

@@ -100,7 +100,7 @@ def test_scaled_gate_new_landmark_rule() -> None:
     def nothing(lid: int, o: Obs) -> None:
         return None
 
-    stated = innovation_scale(cfg)
+    stated = innovation_scale(cfg).recent
     scr = screen_point2([new_tree], [5], z_hat, s_pred, cfg, stated.scale)
     a = associate([new_tree], {"point2": [5]}, nothing, cfg, lambda i: True, None, scr)
     assert a[0].status == "matched" and a[0].landmark_id == 5  # the stated gate: wrong match
@@ -119,17 +119,19 @@ def test_learn_scale_takes_only_unambiguous_matches() -> None:
     """Only a match whose observation has a single landmark below the new-landmark
     threshold feeds the estimator, unscaled (the screen holds ``d2 / s``)."""
     cfg = AssociationConfig(use_known_ids=False, planar_noise_adapt=True)
-    est = innovation_scale(cfg)
+    est = innovation_scale(cfg).recent
     est.scale = 0.5
     r = np.eye(2)
     obs = [Obs("point2", np.zeros(2), r), Obs("point2", np.zeros(2), r)]
     screened = {0: {1: (0.4, True)}, 1: {1: (0.2, True), 2: (3.0, True)}}
     assignments = [Assignment(0, 1, "matched", 0.4), Assignment(1, 1, "matched", 0.2)]
-    learn_scale(est, obs, assignments, screened)
+    scales = innovation_scale(cfg)
+    scales.recent = est
+    learn_scale(scales, obs, assignments, screened)
     assert list(est._d2) == [pytest.approx(0.2)]
     off = innovation_scale(AssociationConfig(use_known_ids=False))
     learn_scale(off, obs, assignments, screened)
-    assert off.n_seen == 0 and off.scale == 1.0
+    assert off.recent.n_seen == 0 and off.scale == 1.0
 
 
 def _trees(rng: np.random.Generator, n: int, spacing: float) -> np.ndarray:
@@ -202,3 +204,18 @@ def test_equality_gain_fuses_two_estimates_of_one_tree() -> None:
     psi = pa + pb + 1e-8 * np.eye(2)
     expect = np.array([-0.2, 0.0]) @ np.linalg.solve(psi, x[5:7] - x[3:5])
     assert x1[0] == pytest.approx(expect, abs=1e-9)
+
+
+def test_idle_scales_keep_revisits_apart() -> None:
+    """With ``planar_noise_idle_split`` 30, a match of a landmark idle 50 steps feeds
+    the 'old' estimator only, and each landmark's gate uses its own bucket's scale."""
+    cfg = AssociationConfig(use_known_ids=False, planar_noise_adapt=True,
+                            planar_noise_idle_split=30)
+    scales = innovation_scale(cfg)
+    scales.recent.scale = 0.1
+    obs = [Obs("point2", np.zeros(2), np.eye(2))]
+    learn_scale(scales, obs, [Assignment(0, 4, "matched", 2.0)], {0: {4: (2.0, True)}},
+                lambda lid: 50)
+    assert scales.old.n_seen == 1 and scales.recent.n_seen == 0
+    assert list(scales.old._d2) == [pytest.approx(2.0)]  # old scale 1: unscaled as is
+    np.testing.assert_allclose(scales.scales(np.array([0, 30, 31, 500])), [0.1, 0.1, 1.0, 1.0])
