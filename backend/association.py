@@ -509,77 +509,33 @@ class InnovationScale:
         return self.scale
 
 
-class IdleScales:
-    """Innovation scales by how long ago the landmark was last seen.
+def innovation_scale(config: AssociationConfig) -> InnovationScale:
+    """The range-bearing gate's :class:`InnovationScale` from ``config``.
 
-    The drift since a landmark's last sighting is what the stated odometry noise
-    models worst: on Victoria Park, with known ids, the EKF's re-sightings within a
-    few steps have a median squared distance near 0.1 while those after more than
-    50 steps have about 5 (the filter is overconfident there). One scale learnt
-    from the frequent short-idle matches would close the gate on revisits, so
-    landmarks last seen at most ``split`` steps ago and the others each have their
-    own :class:`InnovationScale` (``split = 0``: one scale for all).
-
-    Args:
-        recent, old: the two estimators (the same one when ``split`` is 0).
-        split: steps.
-    """
-
-    def __init__(self, recent: InnovationScale, old: InnovationScale, split: int) -> None:
-        self.recent = recent
-        self.old = old if split > 0 else recent
-        self.split = split
-        self.floor = min(recent.floor, old.floor)
-
-    @property
-    def scale(self) -> float:
-        """The larger of the two scales (a conservative single figure)."""
-        return max(self.recent.scale, self.old.scale)
-
-    def of(self, idle: int) -> InnovationScale:
-        """The estimator for a landmark idle ``idle`` steps."""
-        return self.recent if self.split <= 0 or idle <= self.split else self.old
-
-    def scales(self, idle: np.ndarray) -> FloatArray:
-        """(M,) scales of landmarks idle ``idle`` (M,) steps."""
-        if self.split <= 0:
-            return np.full(len(idle), self.recent.scale)
-        return np.where(np.asarray(idle) <= self.split, self.recent.scale, self.old.scale)
-
-
-def innovation_scale(config: AssociationConfig) -> IdleScales:
-    """The range-bearing gate's :class:`IdleScales` from ``config``.
-
-    With ``planar_noise_adapt`` off the floor is 1, so every scale stays 1 (the
+    With ``planar_noise_adapt`` off the floor is 1, so the scale stays 1 (the
     stated noise).
     """
-    def make() -> InnovationScale:
-        return InnovationScale(2, config.gate_prob, config.planar_noise_window,
-                               min(20, config.planar_noise_window),
-                               config.planar_noise_floor if config.planar_noise_adapt else 1.0,
-                               config.planar_noise_margin)
-
-    return IdleScales(make(), make(), config.planar_noise_idle_split)
+    return InnovationScale(2, config.gate_prob, config.planar_noise_window,
+                           min(20, config.planar_noise_window),
+                           config.planar_noise_floor if config.planar_noise_adapt else 1.0,
+                           config.planar_noise_margin)
 
 
-def learn_scale(scales: IdleScales, observations: list[Obs], assignments: list[Assignment],
-                screened: Mapping[int, Mapping[int, tuple[float, bool]]],
-                idle: Callable[[int], int] | None = None) -> None:
-    """Feed a frame's unambiguous planar matches to ``scales``.
+def learn_scale(scale: InnovationScale, observations: list[Obs], assignments: list[Assignment],
+                screened: Mapping[int, Mapping[int, tuple[float, bool]]]) -> None:
+    """Feed a frame's unambiguous planar matches to ``scale``.
 
     A match counts when its observation has no id, its distance is exact (the one
     :func:`associate` decided with, else the screen's exact one) and it is the only
     landmark below the new-landmark threshold (so a wrong match would have had to
     beat no rival: the sample is as clean as the gate can make it). The distances
-    in ``screened`` are the scaled ones (``d2 / scale``); the estimators get them
-    unscaled.
-
-    Args:
-        idle: landmark id -> steps since its previous sighting (None: all recent).
+    in ``screened`` are the scaled ones (``d2 / scale``); the estimator gets them
+    unscaled, all at the scale the frame was gated with.
     """
-    if scales.floor >= 1.0:
+    if scale.floor >= 1.0:
         return
-    todo: list[tuple[InnovationScale, float]] = []
+    s = scale.scale
+    todo: list[float] = []
     for a in assignments:
         i = a.obs_index
         if (a.status != "matched" or a.landmark_id is None or i not in screened
@@ -589,7 +545,6 @@ def learn_scale(scales: IdleScales, observations: list[Obs], assignments: list[A
         if not math.isnan(a.d2):  # the exact distance associate decided with
             d2, exact = a.d2, True
         if exact:
-            est = scales.of(idle(a.landmark_id) if idle is not None else 0)
-            todo.append((est, d2 * est.scale))
-    for est, d2 in todo:
-        est.add(d2)
+            todo.append(d2 * s)
+    for d2 in todo:
+        scale.add(d2)

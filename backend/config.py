@@ -136,23 +136,6 @@ class AssociationConfig:
             update keep the stated ``R``.
         planar_noise_floor, planar_noise_margin, planar_noise_window: its clamp,
             safety factor and window (defaults 0.05, 2.0, 200).
-        planar_noise_idle_split: landmarks last seen more than this many steps
-            (EKF; keyframes in the smoothers) ago get their own scale
-            (:class:`lampsam.backend.association.IdleScales`; default 0: one scale).
-        planar_merge: without ids, the EKF matches the planar landmarks created in
-            the last ``planar_merge_window`` steps, every ``planar_merge_every``
-            steps, as a rigid constellation against the older ones
-            (:func:`lampsam.backend.constellation.match_constellation`: at least
-            ``planar_merge_min_inliers`` within ``planar_merge_tol`` m after one
-            rotation of at most ``planar_merge_max_angle`` rad and a shift of at
-            most ``planar_merge_radius`` m, with no conflicting transform within
-            two inliers) and merges each copy into its original
-            (:mod:`lampsam.backend.ekf_loops`): loop closure when the drift is
-            beyond the gate (default False).
-        planar_merge_every, planar_merge_window, planar_merge_radius,
-            planar_merge_tol, planar_merge_min_inliers, planar_merge_max_angle:
-            its schedule and match tolerances (defaults 5 steps, 50 steps, 25 m,
-            1.0 m, 4, 0.3 rad).
     """
 
     use_known_ids: bool = True
@@ -176,14 +159,6 @@ class AssociationConfig:
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))
     planar_noise_margin: float = field(default=2.0, metadata=limits(gt=0.0))
     planar_noise_window: int = field(default=200, metadata=limits(ge=1))
-    planar_noise_idle_split: int = field(default=0, metadata=limits(ge=0))
-    planar_merge: bool = False
-    planar_merge_every: int = field(default=5, metadata=limits(ge=1))
-    planar_merge_window: int = field(default=50, metadata=limits(ge=1))
-    planar_merge_radius: float = field(default=25.0, metadata=limits(gt=0.0))
-    planar_merge_tol: float = field(default=1.0, metadata=limits(gt=0.0))
-    planar_merge_min_inliers: int = field(default=4, metadata=limits(ge=2))
-    planar_merge_max_angle: float = field(default=0.3, metadata=limits(gt=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

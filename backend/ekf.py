@@ -50,7 +50,6 @@ from lampsam.backend.association import (
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
-from lampsam.backend.ekf_loops import close_loops
 from lampsam.backend.ekf_update import gathered_s, stacked_gain
 from lampsam.backend.interface import (
     Frame,
@@ -161,7 +160,6 @@ class EkfSlam(SlamBackend):
                                             config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
         self.noise_scale = innovation_scale(config.association)
-        self.merges: list[tuple[int, int, int]] = []  # (original, copy, step): ekf_loops
 
     # ------------------------------------------------------------------ state
     @property
@@ -299,8 +297,7 @@ class EkfSlam(SlamBackend):
                             for f, o in zip(firsts, offs, strict=True)])
         z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
         return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
-                             self.config.association, self.noise_scale.scales(
-                                 self._step - np.array([self._slots[lid].last_seen for lid in lids])))
+                             self.config.association, self.noise_scale.scale)
 
     # ------------------------------------------------------------------ eqs. 21-23
     def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
@@ -451,9 +448,7 @@ class EkfSlam(SlamBackend):
                 h[2 * row : 2 * row + 2, local[lid] : local[lid] + slot.dim] = h_l
                 nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
                 r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
-            scale = max(self.noise_scale.of(self._step - self._slots[lid].last_seen).scale
-                        for _, lid in hyp)
-            return nu, (h @ P @ h.T + r) * scale
+            return nu, (h @ P @ h.T + r) * self.noise_scale.scale
 
         paired = dict(jcbb(cands, joint, cfg))
         out = []
@@ -606,8 +601,7 @@ class EkfSlam(SlamBackend):
                                         patches, screened)
                 if self.config.association.joint_compatibility:
                     assignments = self._joint_point2(obs, assignments, screened)
-                learn_scale(self.noise_scale, obs, assignments, screened,
-                            lambda lid: self._step - self._slots[lid].last_seen)
+                learn_scale(self.noise_scale, obs, assignments, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
@@ -628,7 +622,6 @@ class EkfSlam(SlamBackend):
                     n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
         if self.tentative.items:
             self.tentative.expire(self._step)
-        close_loops(self)
         self._prune()
         self._step += 1
         dt = time.perf_counter() - t0

@@ -21,7 +21,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import IdleScales, innovation_scale, screen_pairs
+from lampsam.backend.association import InnovationScale, innovation_scale, screen_pairs
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -35,9 +35,9 @@ class Gating(GraphState):
     """Innovations and gates (mixin of :class:`~lampsam.backend.graph.GraphSlam`)."""
 
     @property
-    def noise_scale(self) -> IdleScales:
-        """The range-bearing gate's online innovation scales (``association.planar_noise_adapt``)."""
-        ns: IdleScales | None = getattr(self, "_noise_scale", None)
+    def noise_scale(self) -> InnovationScale:
+        """The range-bearing gate's online innovation scale (``association.planar_noise_adapt``)."""
+        ns: InnovationScale | None = getattr(self, "_noise_scale", None)
         if ns is None:
             ns = self._noise_scale = innovation_scale(self.config.association)
         return ns
@@ -138,7 +138,7 @@ class Gating(GraphState):
             return None
         planar = obs.kind == "point2"
         r = obs.R * self.config.association.gate_noise_scale if planar else obs.R
-        s_online = self.noise_scale.of(self._k - lm.last_kf).scale if planar else 1.0
+        s_online = self.noise_scale.scale if planar else 1.0
         joint = self._joint_cov(lm, k)
         if joint is None:  # no joint marginal: independent pose and landmark
             _, pose_cov = self.current()
@@ -295,8 +295,7 @@ class Gating(GraphState):
                   + h_l @ cov_l @ np.transpose(h_l, (0, 2, 1)))
         z = np.array([obs[i].z[:2] for i in idx], float)
         r = np.array([obs[i].R[:2, :2] for i in idx], float) * scale
-        idle = self._k - np.array([lm.last_kf for lm in lms])
-        d2 = bearing_range_d2(z, r, z_hat, s_pred) / self.noise_scale.scales(idle)[None, :]
+        d2 = bearing_range_d2(z, r, z_hat, s_pred) / self.noise_scale.scale
         cfg = self.config.association
         new_t, gate = cfg.new_threshold(2), cfg.gate(2)
         out: dict[int, dict[int, tuple[float, bool]]] = {}

@@ -132,8 +132,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             assignments = associate(
                 obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                 self.config.association, lambda i: i in self._landmarks, patches, screened)
-            learn_scale(self.noise_scale, obs, assignments, screened,
-                        lambda lid: self._k - self._landmarks[lid].last_kf)
+            learn_scale(self.noise_scale, obs, assignments, screened)
             matches: list[tuple[GraphLandmark, Obs]] = []
             for a in assignments:
                 o = obs[a.obs_index]

@@ -123,7 +123,7 @@ def bearing_range_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatAr
 
 
 def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s: FloatArray,
-                  config: AssociationConfig, scale: float | FloatArray = 1.0
+                  config: AssociationConfig, scale: float = 1.0
                   ) -> dict[int, dict[int, tuple[float, bool]]]:
     """Every planar observation without an id against M predicted landmarks.
 
@@ -134,8 +134,8 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
         z_hat: (M, 2) predicted ``[bearing, range]``; s: (M, 2, 2) ``H P H^T`` (eq. 19
             without ``R``, with the robot-landmark cross term).
         config: association thresholds.
-        scale: innovation covariance scale, one or (M,) per landmark
-            (:class:`lampsam.backend.association.IdleScales`): the distances are
+        scale: innovation covariance scale
+            (:class:`lampsam.backend.association.InnovationScale`): the distances are
             ``d2 / scale``.
 
     Returns:
@@ -149,8 +149,7 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
         return out
     z = np.array([observations[i].z for i in idx], float)
     r = np.array([observations[i].R for i in idx], float)
-    d2 = bearing_range_d2(z, r, np.asarray(z_hat, float), np.asarray(s, float)) / np.broadcast_to(
-        np.asarray(scale, float), (len(lids),))[None, :]
+    d2 = bearing_range_d2(z, r, np.asarray(z_hat, float), np.asarray(s, float)) / scale
     thr = config.new_threshold(2)
     for row, i in enumerate(idx):
         keep = np.flatnonzero(d2[row] < thr)
