@@ -133,7 +133,11 @@ class AssociationConfig:
             their median over the chi-square's truncated median, clamped to
             ``[planar_noise_floor, 1]`` over the last ``planar_noise_window``
             matches). Never wider than the stated noise; the factors and the EKF
-            update keep the stated ``R``.
+            update keep the stated ``R``. Default False: on logs whose stated noise
+            is right the scale stays 1 (no change); where it is conservative and the
+            revisits are within the gate it maps each tree once where the stated
+            gate merges neighbours; on Victoria Park neither holds
+            (docs/graph-backend.md).
         planar_noise_floor, planar_noise_margin, planar_noise_window: its clamp,
             safety factor and window (defaults 0.05, 2.0, 200).
     """
