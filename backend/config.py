@@ -126,6 +126,20 @@ class AssociationConfig:
             noise, and on MRCLAM, whose odometry noise is assumed, it diverged).
             ``gate_noise_scale`` also scales the landmark's measurement-only
             covariance in this gate.
+        planar_noise_adapt: without ids, gate range-bearing observations with the
+            innovation covariance scaled by a factor estimated online from the
+            squared distances of unambiguous matches
+            (:class:`lampsam.backend.association.InnovationScale`: ``margin x``
+            their median over the chi-square's truncated median, clamped to
+            ``[planar_noise_floor, 1]`` over the last ``planar_noise_window``
+            matches). Never wider than the stated noise; the factors and the EKF
+            update keep the stated ``R``. Default False: on logs whose stated noise
+            is right the scale stays 1 (no change); where it is conservative and the
+            revisits are within the gate it maps each tree once where the stated
+            gate merges neighbours; on Victoria Park neither holds
+            (docs/graph-backend.md).
+        planar_noise_floor, planar_noise_margin, planar_noise_window: its clamp,
+            safety factor and window (defaults 0.05, 2.0, 200).
     """
 
     use_known_ids: bool = True
@@ -145,6 +159,10 @@ class AssociationConfig:
     planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
     planar_reject_ambiguous: bool = False
     planar_relative_gate: bool = False
+    planar_noise_adapt: bool = False
+    planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))
+    planar_noise_margin: float = field(default=2.0, metadata=limits(gt=0.0))
+    planar_noise_window: int = field(default=200, metadata=limits(ge=1))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -42,7 +42,9 @@ from lampsam.backend.association import (
     TentativeLandmarks,
     associate,
     corner_budget,
+    innovation_scale,
     jcbb,
+    learn_scale,
     mahalanobis2,
     screen_pairs,
 )
@@ -171,6 +173,7 @@ class EkfSlam(SlamBackend):
         self.tentative = TentativeLandmarks(config.association.planar_confirm_sightings,
                                             config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
+        self.noise_scale = innovation_scale(config.association)
 
     # ------------------------------------------------------------------ state
     @property
@@ -308,7 +311,7 @@ class EkfSlam(SlamBackend):
                             for f, o in zip(firsts, offs, strict=True)])
         z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
         return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
-                             self.config.association)
+                             self.config.association, self.noise_scale.scale)
 
     # ------------------------------------------------------------------ eqs. 21-23
     def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
@@ -475,7 +478,7 @@ class EkfSlam(SlamBackend):
                 h[2 * row : 2 * row + 2, local[lid] : local[lid] + slot.dim] = h_l
                 nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
                 r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
-            return nu, h @ P @ h.T + r
+            return nu, (h @ P @ h.T + r) * self.noise_scale.scale
 
         paired = dict(jcbb(cands, joint, cfg))
         out = []
@@ -629,6 +632,7 @@ class EkfSlam(SlamBackend):
                                         patches, screened)
                 if self.config.association.joint_compatibility:
                     assignments = self._joint_point2(obs, assignments, screened)
+                learn_scale(self.noise_scale, obs, assignments, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]

@@ -21,7 +21,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import screen_pairs
+from lampsam.backend.association import InnovationScale, innovation_scale, screen_pairs
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -33,6 +33,14 @@ RELATIVE_GATE_KEYFRAMES = 30
 
 class Gating(GraphState):
     """Innovations and gates (mixin of :class:`~lampsam.backend.graph.GraphSlam`)."""
+
+    @property
+    def noise_scale(self) -> InnovationScale:
+        """The range-bearing gate's online innovation scale (``association.planar_noise_adapt``)."""
+        ns: InnovationScale | None = getattr(self, "_noise_scale", None)
+        if ns is None:
+            ns = self._noise_scale = innovation_scale(self.config.association)
+        return ns
 
     def _joint_cov(self, lm: GraphLandmark, k: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """Joint marginal blocks ``(S_kk, S_kl, S_ll)`` of keyframe ``k`` and a landmark.
@@ -128,19 +136,21 @@ class Gating(GraphState):
             z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, obs, self.ceiling)
         except Exception:
             return None
-        r = obs.R * self.config.association.gate_noise_scale if obs.kind == "point2" else obs.R
+        planar = obs.kind == "point2"
+        r = obs.R * self.config.association.gate_noise_scale if planar else obs.R
+        s_online = self.noise_scale.scale if planar else 1.0
         joint = self._joint_cov(lm, k)
         if joint is None:  # no joint marginal: independent pose and landmark
             _, pose_cov = self.current()
             psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + r
-            return residual(obs, z_hat), psi
+            return residual(obs, z_hat), psi * s_online
         s_kk, s_kl, s_ll = joint
         ad = gtsam.Pose2(*delta).inverse().AdjointMap()
         s_xx = ad @ s_kk @ ad.T + delta_cov
         s_xl = ad @ s_kl
         cross = h_p @ s_xl @ h_l.T
         psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
-        return residual(obs, z_hat), psi
+        return residual(obs, z_hat), psi * s_online
 
     def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
                 ) -> tuple[dict[str, list[int]], dict[int, dict[int, tuple[float, bool]]]]:
@@ -285,7 +295,7 @@ class Gating(GraphState):
                   + h_l @ cov_l @ np.transpose(h_l, (0, 2, 1)))
         z = np.array([obs[i].z[:2] for i in idx], float)
         r = np.array([obs[i].R[:2, :2] for i in idx], float) * scale
-        d2 = bearing_range_d2(z, r, z_hat, s_pred)
+        d2 = bearing_range_d2(z, r, z_hat, s_pred) / self.noise_scale.scale
         cfg = self.config.association
         new_t, gate = cfg.new_threshold(2), cfg.gate(2)
         out: dict[int, dict[int, tuple[float, bool]]] = {}

@@ -50,7 +50,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate, corner_budget
+from lampsam.backend.association import associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.gating import Gating
@@ -132,6 +132,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             assignments = associate(
                 obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                 self.config.association, lambda i: i in self._landmarks, patches, screened)
+            learn_scale(self.noise_scale, obs, assignments, screened)
             matches: list[tuple[GraphLandmark, Obs]] = []
             for a in assignments:
                 o = obs[a.obs_index]

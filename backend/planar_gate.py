@@ -123,7 +123,8 @@ def bearing_range_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatAr
 
 
 def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s: FloatArray,
-                  config: AssociationConfig) -> dict[int, dict[int, tuple[float, bool]]]:
+                  config: AssociationConfig, scale: float = 1.0
+                  ) -> dict[int, dict[int, tuple[float, bool]]]:
     """Every planar observation without an id against M predicted landmarks.
 
     Args:
@@ -133,6 +134,9 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
         z_hat: (M, 2) predicted ``[bearing, range]``; s: (M, 2, 2) ``H P H^T`` (eq. 19
             without ``R``, with the robot-landmark cross term).
         config: association thresholds.
+        scale: innovation covariance scale
+            (:class:`lampsam.backend.association.InnovationScale`): the distances are
+            ``d2 / scale``.
 
     Returns:
         For :func:`lampsam.backend.association.associate`'s ``screened``: obs index ->
@@ -145,7 +149,7 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
         return out
     z = np.array([observations[i].z for i in idx], float)
     r = np.array([observations[i].R for i in idx], float)
-    d2 = bearing_range_d2(z, r, np.asarray(z_hat, float), np.asarray(s, float))
+    d2 = bearing_range_d2(z, r, np.asarray(z_hat, float), np.asarray(s, float)) / scale
     thr = config.new_threshold(2)
     for row, i in enumerate(idx):
         keep = np.flatnonzero(d2[row] < thr)

@@ -75,3 +75,21 @@ def test_tentative_landmarks_need_k_sightings_and_reject_copies() -> None:
     mapped = np.array([[0.5, 0.5], [30.0, 0.0]])
     assert not t4.offer(np.array([1.0, 1.0]), cov, 1, mapped)  # fused at (0.5, 0.5): a copy
     assert t4.n_copies == 1
+
+
+def test_jcbb_with_the_learnt_scale_leaves_a_new_tree_unpaired() -> None:
+    """A mapped tree at (5, 0) and a sighting of an unmapped tree 1.5 m away, with a
+    stated covariance (pose 0.5 m, sensor 0.3 m sigma) whose real scatter is 0.1 of it:
+    at the stated covariance JCBB pairs the sighting with the mapped tree (d2 = 6.6
+    < 9.21); with the joint covariance scaled by the learnt 0.1
+    (:class:`lampsam.backend.association.InnovationScale`) it stays unpaired (66)."""
+    tree = np.array([5.0, 0.0])
+    z = np.array([5.0, 1.5])
+    s_stated = (0.5**2 + 0.3**2) * np.eye(2)
+    cfg = AssociationConfig(use_known_ids=False)
+    for scale, expect in ((1.0, [(0, 7)]), (0.1, [])):
+        def joint(hyp: list[tuple[int, int]], scale: float = scale
+                  ) -> tuple[np.ndarray, np.ndarray]:
+            return np.concatenate([z - tree for _ in hyp]), scale * np.kron(
+                np.eye(len(hyp)), s_stated)
+        assert jcbb({0: [7]}, joint, cfg) == expect

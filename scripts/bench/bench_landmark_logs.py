@@ -4,7 +4,7 @@ Usage::
 
     python scripts/bench/bench_landmark_logs.py [--logs victoria,mrclam,synthetic] [--repeats 1]
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
-        [--mrclam-duration 600]
+        [--mrclam-duration 600] [--set association.planar_noise_adapt=true ...]
 
 (``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians, and
 ``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``.)
@@ -194,10 +194,34 @@ def _rms_diff(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
 
 
+def with_overrides(config: SlamConfig, pairs: list[str]) -> SlamConfig:
+    """``config`` with ``section.key=value`` overrides (value parsed as the field's type)."""
+    for item in pairs:
+        key, sep, text = item.partition("=")
+        section, _, name = key.partition(".")
+        sub = getattr(config, section, None)
+        if not sep or sub is None or not hasattr(sub, name):
+            raise SystemExit(f"--set {item!r}: expected section.key=value of SlamConfig")
+        cur = getattr(sub, name)
+        value: Any = (text.lower() in ("1", "true", "yes")) if isinstance(cur, bool) else (
+            type(cur)(text) if cur is not None else float(text))
+        config = dataclasses.replace(config, **{section: dataclasses.replace(sub, **{name: value})})
+    return config
+
+
+def first_poses(g: GraphLog, n: int) -> GraphLog:
+    """The log cut after its first ``n`` poses (odometry and sightings)."""
+    od = g.odometry
+    return dataclasses.replace(
+        g, pose_ids=g.pose_ids[:n], sightings=g.sightings[:n],
+        odometry=Pose2OdometryLog(od.t[:n], od.delta[:n], od.cov[:n]))
+
+
 def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[str],
-              repeats: int, no_ids: bool) -> list[dict[str, Any]]:
+              repeats: int, no_ids: bool, config: SlamConfig | None = None
+              ) -> list[dict[str, Any]]:
     """Rows of the table for one log."""
-    config = SlamConfig()
+    config = config or SlamConfig()
     graph = gtsam_graph(g, config)
     n = len(g.pose_ids)
     runs = [gtsam_isam2(g, config) for _ in range(repeats)]
@@ -278,6 +302,9 @@ def main() -> None:
     ap.add_argument("--file", default=None, help="an iSAM/g2o text log instead of --logs")
     ap.add_argument("--truth", default=None, help="VERTEX2 truth for --file")
     ap.add_argument("--out", default="/tmp/bench_landmark_logs", help="synthetic logs go here")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config overrides for lampsam's backends (e.g. association.planar_merge=true)")
+    ap.add_argument("--poses", type=int, default=0, help="only the first N poses of each log")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     backends = [b for b in args.backends.split(",") if b]
@@ -313,7 +340,10 @@ def main() -> None:
         if isinstance(tsrc, Path):
             v = read_vertices(tsrc)
             truth = np.array([v[i] for i in g.pose_ids])
-        rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids)
+        if args.poses:
+            g, truth = first_poses(g, args.poses), (truth[: args.poses] if truth is not None else None)
+        rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids,
+                          with_overrides(SlamConfig(), args.set))
         _print(rows)
 
 
