@@ -83,6 +83,9 @@ class GraphState(SlamBackend):
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf: list[FloatArray] = []
+        #: odometry (delta, covariance with the factor's floor) of the first step's
+        #: samples since the last keyframe: the factor's own when no others follow
+        self._first_rel: tuple[FloatArray, FloatArray] | None = None
         self._landmarks: dict[int, GraphLandmark] = {}
         self._next_id = 0
         self._last_t = -math.inf

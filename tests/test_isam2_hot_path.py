@@ -165,3 +165,38 @@ def test_pairwise_d2_matches_per_pair_mahalanobis() -> None:
             else:
                 np.testing.assert_allclose(got[i, j], mahalanobis2(z[i] - z_hat[j], r[i] + s[j]),
                                            rtol=1e-9)
+
+
+def test_keyframe_odometry_factor_equals_composition_of_its_samples() -> None:
+    """The factor reuses the first step's composition when no samples follow (exactly)."""
+    from lampsam.backend.odometry import Pose2Motion
+    from lampsam.datasets.odometry import Pose2OdometryModel
+    from lampsam.frontend.measurements import RangeBearingFrame, RangeBearingObservation
+
+    rng = np.random.default_rng(6)
+    cfg = SlamConfig()
+    model = Pose2OdometryModel()
+    be = Isam2Slam(model, cfg, np.zeros(3))
+    motion = Pose2Motion(model)
+    chunks: list[np.ndarray] = []
+    # keyframes after one step's samples, after three steps' samples, and after none
+    for t, n_samples, with_frame in [(0.1, 2, True), (0.2, 1, False), (0.3, 3, False),
+                                     (0.4, 1, True), (0.5, 0, True)]:
+        rows = np.full((n_samples, 12), np.nan)
+        rows[:, :3] = np.column_stack([rng.uniform(0.05, 0.1, n_samples),
+                                       rng.normal(0, 0.01, n_samples), rng.normal(0, 0.05, n_samples)])
+        chunks.append(rows)
+        frame = (RangeBearingFrame(t, (RangeBearingObservation(4.0, 0.3, 7),)) if with_frame else None)
+        k_before = be._k
+        be.step(t, rows, frame)
+        if be._k > k_before:
+            u = np.concatenate(chunks)
+            delta, cov = motion.relative(u, cfg.isam2.odometry_floor_var)
+            factor = next(f for f in (be.graph.at(i) for i in range(be.graph.size()))
+                          if isinstance(f, gtsam.BetweenFactorPose2)
+                          and list(f.keys()) == [X(be._k - 1), X(be._k)])
+            assert isinstance(factor, gtsam.BetweenFactorPose2)
+            # through GTSAM's square-root information: equal to rounding
+            np.testing.assert_allclose(factor.noiseModel().covariance(), cov, rtol=1e-12, atol=0)
+            np.testing.assert_array_equal(pose_array(factor.measured()), pose_array(gtsam.Pose2(*delta)))
+            chunks = []
