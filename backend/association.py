@@ -198,13 +198,15 @@ def pairwise_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatArray) 
     Returns:
         (N, M) distances; ``inf`` where the sum is not positive definite.
     """
-    psi = r[:, None, :, :] + s[None, :, :, :]
-    nu = z[:, None, :] - z_hat[None, :, :]
-    a, b, c, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 0], psi[..., 1, 1]
-    del c
+    # the entries of psi = R_i + S_j as (N, M) planes (no (N, M, 2, 2) temporary)
+    a = r[:, None, 0, 0] + s[None, :, 0, 0]
+    b = 0.5 * ((r[:, None, 0, 1] + s[None, :, 0, 1]) + (r[:, None, 1, 0] + s[None, :, 1, 0]))
+    d = r[:, None, 1, 1] + s[None, :, 1, 1]
+    nu0 = z[:, None, 0] - z_hat[None, :, 0]
+    nu1 = z[:, None, 1] - z_hat[None, :, 1]
     det = a * d - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
+        d2 = (d * nu0**2 - 2.0 * b * nu0 * nu1 + a * nu1**2) / det
     return np.where((det > 0) & (a > 0), d2, np.inf)
 
 

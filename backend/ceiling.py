@@ -222,6 +222,35 @@ class CeilingModel:
         point = np.array([sol[0], sol[1], sol[2] + o[2]])
         return point.astype(float), np.asarray(cov_s, dtype=np.float64)
 
+    def reprojection_chi2(self, poses: FloatArray, point: FloatArray, ms: FloatArray,
+                          covs: FloatArray) -> float:
+        """Sum over sights of ``r^T C^-1 r``, ``r = m - project(pose, point)`` (eqs. 17-18).
+
+        The consistency test of a triangulated point with its sights, vectorised over
+        the sights (the same model as :meth:`project_many`, one point from K poses).
+
+        Args:
+            poses: (K, 3) ``world_T_body``; point: (3,) world, m, at least
+                :data:`MIN_USABLE_HEIGHT` above the camera.
+            ms: (K, 2) measured normalised coordinates; covs: (K, 2, 2) their covariances.
+
+        Returns:
+            The chi-square (2K degrees of freedom before the 3 of the point); ``inf``
+            when a covariance is not positive definite.
+        """
+        poses = np.asarray(poses, float)
+        o = self.body_t_camera
+        inv_h = 1.0 / (float(point[2]) - o[2])
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        dx, dy = point[0] - poses[:, 0], point[1] - poses[:, 1]
+        r0 = ms[:, 0] - ((c * dx + s * dy) - o[0]) * inv_h
+        r1 = ms[:, 1] - ((-s * dx + c * dy) - o[1]) * inv_h
+        a, b, d = covs[:, 0, 0], 0.5 * (covs[:, 0, 1] + covs[:, 1, 0]), covs[:, 1, 1]
+        det = a * d - b * b
+        if np.any(det <= 0.0) or np.any(a <= 0.0):
+            return math.inf
+        return float(np.sum((d * r0 * r0 - 2.0 * b * r0 * r1 + a * r1 * r1) / det))
+
     def world_position(self, state: FloatArray) -> FloatArray:
         """(3,) world position of a landmark state, m."""
         return np.asarray(state[:3], dtype=float).copy()

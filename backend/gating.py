@@ -188,6 +188,7 @@ class Gating(GraphState):
             if any(o.kind == "point2" and o.landmark_id is None for o in obs) or (
                     not self.config.association.use_known_ids):
                 screened.update(self._screen_planar(obs, pose, pose_cov, planar))
+        obs_kinds = {o.kind for o in obs}
         for kind, lms in by_kind.items():
             pts = np.array([lm.state[:3] for lm in lms])
             ceiling = self._require_ceiling()
@@ -202,20 +203,15 @@ class Gating(GraphState):
             keep = np.flatnonzero(vis)
             lids = [visible[j].id for j in keep]
             cands[kind] = lids
-            if not keep.size or not any(o.kind == kind for o in obs):
+            if not keep.size or kind not in obs_kinds:
                 continue
             rel = self._relative_covs()
-            cov_l = np.empty((len(keep), 3, 3))
-            cov_x = np.empty((len(keep), 3, 3))
-            for n, j in enumerate(keep):
-                lm = visible[j]
-                rel_j = rel.get(lm.last_kf) if lm.cov_rel is not None else None
-                if rel_j is not None:
-                    cov_l[n] = lm.cov_rel
-                    cov_x[n] = rel_j
-                else:
-                    cov_l[n] = lm.cov[:3, :3]
-                    cov_x[n] = pose_cov
+            sel = [visible[j] for j in keep]
+            recent = [lm.cov_rel is not None and lm.last_kf in rel for lm in sel]
+            cov_l = np.array([lm.cov_rel if r else lm.cov[:3, :3]
+                              for lm, r in zip(sel, recent, strict=True)], float)
+            cov_x = np.array([rel[lm.last_kf] if r else pose_cov
+                              for lm, r in zip(sel, recent, strict=True)], float)
             hp, hl = h_p[keep], h_l[keep]
             s_pred = (hp @ cov_x @ np.transpose(hp, (0, 2, 1))
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))

@@ -112,9 +112,12 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         """Add a keyframe with its odometry factor and the frame's observations."""
         pose, pose_cov = self.current()
         gate_ctx = (self._k, pose, self._delta.copy(), self._delta_cov.copy())
-        u = (np.concatenate(self._wheel_since_kf) if self._wheel_since_kf
-             else np.zeros((0, self.motion.width)))
-        delta, cov = self.motion.relative(u, self.config.isam2.odometry_floor_var)
+        if len(self._wheel_since_kf) == 1 and self._first_rel is not None:
+            delta, cov = self._first_rel  # one step's samples since the last keyframe
+        else:
+            u = (np.concatenate(self._wheel_since_kf) if self._wheel_since_kf
+                 else np.zeros((0, self.motion.width)))
+            delta, cov = self.motion.relative(u, self.config.isam2.odometry_floor_var)
         k = self._k + 1
         self._add_value(X(k), gtsam.Pose2(*pose))
         self._add_factor(odometry_factor(X(k - 1), X(k), delta, cov))
@@ -159,6 +162,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf = []
+        self._first_rel = None
         for handler in {id(h): h for h in self.handlers.values()}.values():
             for f in handler.flush(self.robust, self._pose_of):
                 self._add_factor(f)
@@ -174,7 +178,13 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         self._last_t = t
         u = self.motion.check(t, odometry)
         if len(u):
-            d, c = self.motion.relative(u, _STEP_FLOOR)
+            if self._wheel_since_kf:
+                d, c = self.motion.relative(u, _STEP_FLOOR)
+            else:  # the first samples since the keyframe: composed once for both uses
+                floor = self.config.isam2.odometry_floor_var
+                d, c_kf = self.motion.relative(u, floor)
+                self._first_rel = (d, c_kf)  # the odometry factor's, if no samples follow
+                c = c_kf + (_STEP_FLOOR - floor) * np.eye(3)
             self._delta_cov = compose_cov(d, self._delta_cov, c)
             self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
             self._wheel_since_kf.append(u)

@@ -83,6 +83,9 @@ class GraphState(SlamBackend):
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf: list[FloatArray] = []
+        #: odometry (delta, covariance with the factor's floor) of the first step's
+        #: samples since the last keyframe: the factor's own when no others follow
+        self._first_rel: tuple[FloatArray, FloatArray] | None = None
         self._landmarks: dict[int, GraphLandmark] = {}
         self._next_id = 0
         self._last_t = -math.inf
@@ -105,6 +108,7 @@ class GraphState(SlamBackend):
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
+        self._pose_cache: dict[int, FloatArray] = {}  # iSAM2's keyframe estimates until the next update
 
     # ------------------------------------------------------------------ graph building
     def _add_value(self, key: int, value: GraphValue) -> None:
@@ -150,11 +154,14 @@ class GraphState(SlamBackend):
         return value_of_kind(self.initial, key, kind)
 
     def _pose_of(self, k: int) -> FloatArray:
-        """Current estimate of keyframe ``k``."""
+        """Current estimate of keyframe ``k`` (read-only: cached until the next iSAM2 update)."""
         if k == self._k:
             return self._kf_pose
         if self.isam is not None:
-            return pose_array(self.isam.calculateEstimatePose2(X(k)))
+            pose = self._pose_cache.get(k)
+            if pose is None:
+                pose = self._pose_cache[k] = pose_array(self.isam.calculateEstimatePose2(X(k)))
+            return pose
         return self._kf_poses[k]
 
     def current(self) -> tuple[FloatArray, FloatArray]:

@@ -36,6 +36,7 @@ class Isam2Updates(GraphState):
             self._new_values = gtsam.Values()
             return
         t0 = time.perf_counter()
+        self._pose_cache = {}
         try:
             self.isam.update(self._new_graph, self._new_values)
             for _ in range(self.config.isam2.extra_updates):
@@ -116,4 +117,5 @@ class Isam2Updates(GraphState):
             raise EstimationError(f"iSAM2 rebuild failed at keyframe {self._k}: "
                                   f"{type(exc2).__name__} {exc2}") from exc2
         self._joint_cache = {}
+        self._pose_cache = {}
         self.n_recoveries += 1

@@ -96,14 +96,7 @@ class LandmarkLifecycle(GraphState):
         poses, ms, covs, point, cov, h = self._triangulate_sights(lm.pending)
         if h < MIN_USABLE_HEIGHT or h > 2.0 * self.config.association.height_max:
             return False
-        chi2 = 0.0
-        for pose, m, c in zip(poses, ms, covs, strict=True):
-            try:
-                m_hat, _, _ = self._require_ceiling().predict(pose, point, with_axis=False)
-            except Exception:
-                return False
-            r = m - m_hat
-            chi2 += float(r @ np.linalg.solve(c, r))
+        chi2 = self._require_ceiling().reprojection_chi2(poses, point, ms, covs)
         dof = 2 * len(poses) - 3
         if chi2 > self.config.association.new_threshold(max(dof, 1)):
             lm.pending.pop()  # the newest sight does not fit: likely a wrong match

@@ -121,3 +121,82 @@ def test_vectorised_triangulation_matches_per_sight_sum() -> None:
     np.testing.assert_allclose(got_p, ref_p, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got_c, ref_c, rtol=1e-9, atol=0)
     assert np.linalg.norm(got_p - point) < 0.05
+
+
+def test_vectorised_reprojection_chi2_matches_per_sight_solve() -> None:
+    """The corner consistency test: one vectorised sum against predict + solve per sight."""
+    rng = np.random.default_rng(3)
+    rig, _, _, _ = ceiling_world(rng, duration=1.0, n_corners=0)
+    model = CeilingModel.from_camera(rig.camera)
+    point = np.array([0.7, -0.2, 2.9])
+    poses = np.column_stack([rng.uniform(0, 1.5, 7), rng.uniform(-0.5, 0.5, 7), rng.uniform(-3, 3, 7)])
+    ms = np.array([model.predict(p, point, with_axis=False)[0] for p in poses])
+    ms += rng.normal(0, 2e-3, ms.shape)
+    covs = []
+    for _ in poses:  # correlated, unequal noise
+        a = rng.normal(size=(2, 2)) * 1e-3
+        covs.append(a @ a.T + 1e-7 * np.eye(2))
+    covs_a = np.array(covs)
+    ref = 0.0
+    for p, m, c in zip(poses, ms, covs_a, strict=True):
+        r = m - model.predict(p, point, with_axis=False)[0]
+        ref += float(r @ np.linalg.solve(c, r))
+    got = model.reprojection_chi2(poses, point, ms, covs_a)
+    assert ref > 1.0  # the noise makes it non-trivial
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
+    bad = covs_a.copy()
+    bad[2] = -bad[2]
+    assert model.reprojection_chi2(poses, point, ms, bad) == float("inf")
+
+
+def test_pairwise_d2_matches_per_pair_mahalanobis() -> None:
+    from lampsam.backend.association import mahalanobis2, pairwise_d2
+
+    rng = np.random.default_rng(4)
+    z, z_hat = rng.normal(size=(5, 2)), rng.normal(size=(7, 2))
+    r = np.array([(lambda a: a @ a.T + 0.1 * np.eye(2))(rng.normal(size=(2, 2))) for _ in z])
+    s = np.array([(lambda a: a @ a.T)(rng.normal(size=(2, 2))) for _ in z_hat])
+    s[3] = -np.eye(2) * 10.0  # R + S not positive definite: no distance
+    got = pairwise_d2(z, r, z_hat, s)
+    for i in range(len(z)):
+        for j in range(len(z_hat)):
+            if j == 3:
+                assert got[i, j] == np.inf
+            else:
+                np.testing.assert_allclose(got[i, j], mahalanobis2(z[i] - z_hat[j], r[i] + s[j]),
+                                           rtol=1e-9)
+
+
+def test_keyframe_odometry_factor_equals_composition_of_its_samples() -> None:
+    """The factor reuses the first step's composition when no samples follow (exactly)."""
+    from lampsam.backend.odometry import Pose2Motion
+    from lampsam.datasets.odometry import Pose2OdometryModel
+    from lampsam.frontend.measurements import RangeBearingFrame, RangeBearingObservation
+
+    rng = np.random.default_rng(6)
+    cfg = SlamConfig()
+    model = Pose2OdometryModel()
+    be = Isam2Slam(model, cfg, np.zeros(3))
+    motion = Pose2Motion(model)
+    chunks: list[np.ndarray] = []
+    # keyframes after one step's samples, after three steps' samples, and after none
+    for t, n_samples, with_frame in [(0.1, 2, True), (0.2, 1, False), (0.3, 3, False),
+                                     (0.4, 1, True), (0.5, 0, True)]:
+        rows = np.full((n_samples, 12), np.nan)
+        rows[:, :3] = np.column_stack([rng.uniform(0.05, 0.1, n_samples),
+                                       rng.normal(0, 0.01, n_samples), rng.normal(0, 0.05, n_samples)])
+        chunks.append(rows)
+        frame = (RangeBearingFrame(t, (RangeBearingObservation(4.0, 0.3, 7),)) if with_frame else None)
+        k_before = be._k
+        be.step(t, rows, frame)
+        if be._k > k_before:
+            u = np.concatenate(chunks)
+            delta, cov = motion.relative(u, cfg.isam2.odometry_floor_var)
+            factor = next(f for f in (be.graph.at(i) for i in range(be.graph.size()))
+                          if isinstance(f, gtsam.BetweenFactorPose2)
+                          and list(f.keys()) == [X(be._k - 1), X(be._k)])
+            assert isinstance(factor, gtsam.BetweenFactorPose2)
+            # through GTSAM's square-root information: equal to rounding
+            np.testing.assert_allclose(factor.noiseModel().covariance(), cov, rtol=1e-12, atol=0)
+            np.testing.assert_array_equal(pose_array(factor.measured()), pose_array(gtsam.Pose2(*delta)))
+            chunks = []

@@ -1,0 +1,122 @@
+"""Where the slow iSAM2 keyframes' time goes: update, exact-gate joint marginals, first estimate read.
+
+Usage::
+
+    python scripts/bench/profile_isam2_keyframes.py --lab RUN_DIR [--no-prefetch]
+
+Runs :class:`~lampsam.backend.graph.Isam2Slam` over a run's frames (the frontend on the
+images, made once before timing) with iSAM2 wrapped so that each ``update``,
+``jointMarginalCovariance`` and ``calculateEstimatePose2`` call is timed in process CPU
+time. Prints, per keyframe, the share of the backend's CPU in each, then the slowest 5 %
+of keyframes (those at or above the p95) against the faster half: mean CPU per part,
+variables relinearised and re-eliminated by the update, new factors, and the keyframe
+indices of the slow ones (clusters show revisits). ``--no-prefetch`` asks one joint
+marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint` off),
+to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
+binned by their number of keys. CPU figures are inflated on a loaded machine: compare
+the shares and the slow/fast ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_graph import CeilingHandler
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.gating import Gating
+from lampsam.backend.graph import Isam2Slam
+from lampsam.backend.slam import iter_steps, make_frames, start_pose_of
+from lampsam.datasets.logrun import read_run
+
+
+class _TimedIsam:
+    """Delegates to a ``gtsam.ISAM2``, timing three of its calls into ``rec``."""
+
+    def __init__(self, isam: Any, rec: dict[str, float], joint_calls: list[tuple[int, float]]) -> None:
+        self._isam = isam
+        self._rec = rec
+        self._joint = joint_calls
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._isam, name)
+
+    def update(self, *args: Any) -> Any:
+        c = time.process_time()
+        result = self._isam.update(*args)
+        self._rec["update"] += time.process_time() - c
+        self._rec["relinearized"] += result.getVariablesRelinearized()
+        self._rec["reeliminated"] += result.getVariablesReeliminated()
+        if args:
+            self._rec["factors"] += args[0].size()
+        return result
+
+    def jointMarginalCovariance(self, keys: Any) -> Any:  # noqa: N802 (GTSAM's name)
+        c = time.process_time()
+        out = self._isam.jointMarginalCovariance(keys)
+        dt = time.process_time() - c
+        self._rec["joint"] += dt
+        self._joint.append((len(keys), dt))
+        return out
+
+    def calculateEstimatePose2(self, key: int) -> Any:  # noqa: N802
+        c = time.process_time()
+        out = self._isam.calculateEstimatePose2(key)
+        self._rec["estimate"] += time.process_time() - c
+        return out
+
+
+def main() -> None:
+    """Parse arguments, run, print the breakdown."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--lab", required=True, help="a simulated run directory")
+    ap.add_argument("--no-prefetch", action="store_true", help="one joint marginal per landmark")
+    args = ap.parse_args()
+    if args.no_prefetch:
+        Gating._prefetch_joint = lambda *a, **k: 0  # type: ignore[method-assign]
+    run = read_run(args.lab)
+    frames, _ = make_frames(run, "images")
+    frames = list(frames)
+    model = CeilingModel.from_camera(run.rig.camera)
+    be = Isam2Slam(run.rig.odometry, SlamConfig(), start_pose_of(run), model, CeilingHandler(model))
+    parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors")
+    rec = dict.fromkeys(parts, 0.0)
+    joint_calls: list[tuple[int, float]] = []
+    be.isam = _TimedIsam(be.isam, rec, joint_calls)  # type: ignore[assignment]
+    rows = []
+    for t, wheel, frame in iter_steps(run.odometry, frames):
+        for key in rec:
+            rec[key] = 0.0
+        c = time.process_time()
+        est = be.step(t, wheel, frame)
+        if est.keyframe:
+            rows.append([time.process_time() - c, *(rec[p] for p in parts), be._k])
+    r = np.array(rows)
+    total = r[:, 0]
+    p95 = float(np.percentile(total, 95))
+    print(f"{len(r)} keyframes, CPU median / p95 {np.median(total) * 1e3:.1f} / {p95 * 1e3:.1f} ms, "
+          f"load average {os.getloadavg()[0]:.1f}")
+    print("share of keyframe CPU: " + ", ".join(
+        f"{p} {r[:, 1 + i].sum() / total.sum():.2f}" for i, p in enumerate(parts[:3])))
+    for name, sel in (("slowest 5 %", total >= p95), ("faster half", total < np.median(total))):
+        s = r[sel]
+        print(f"{name} (n={len(s)}): mean CPU {s[:, 0].mean() * 1e3:.1f} ms = update "
+              f"{s[:, 1].mean() * 1e3:.1f} + joint marginals {s[:, 2].mean() * 1e3:.1f} + first "
+              f"estimate {s[:, 3].mean() * 1e3:.1f} + rest; relinearised {s[:, 4].mean():.0f}, "
+              f"re-eliminated {s[:, 5].mean():.0f}, new factors {s[:, 6].mean():.0f}")
+    print("slow keyframes:", r[total >= p95, 7].astype(int).tolist())
+    j = np.array(joint_calls).reshape(-1, 2)
+    for lo, hi in ((1, 5), (5, 9), (9, 1000)):
+        m = (j[:, 0] >= lo) & (j[:, 0] < hi)
+        if m.any():
+            print(f"joint marginals over {lo}-{min(hi, int(j[:, 0].max()) + 1) - 1} keys: n={m.sum()}, "
+                  f"CPU median {np.median(j[m, 1]) * 1e3:.2f} ms, max {j[m, 1].max() * 1e3:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
