@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lampsam.cli import main
+from lampsam.localization.map_tables import range_table_file
 
 START = (3.0, 5.5, 0.5)  # free floor of the office, 0.6 m from the nearest obstacle
 
@@ -64,7 +65,7 @@ def test_localize_finds_the_start_area_and_writes_strict_json(
         assert key in summary
     trial = doc["trial"]
     assert isinstance(trial, dict) and float(trial["error_m"]) <= 0.30
-    assert (map_dir / "range_table.npz").is_file()  # stored with the map for the next run (map_tables)
+    assert (map_dir / range_table_file(4.5)).is_file()  # stored with the map for the next run (map_tables)
 
 
 def test_replay_runs_the_frontend_lazily_with_the_same_frames(office_search: tuple[Path, Path]) -> None:
