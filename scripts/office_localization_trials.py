@@ -115,15 +115,16 @@ def main(argv: list[str] | None = None) -> int:
     a.work.mkdir(parents=True, exist_ok=True)
     csv_path = a.work / "trials.csv"
     done: set[tuple[int, str]] = set()
-    if csv_path.is_file():
+    new_file = not csv_path.is_file() or csv_path.stat().st_size == 0
+    if not new_file:
         with csv_path.open() as fh:
             done = {(int(r["seed"]), r["mode"]) for r in csv.DictReader(fh)}
     modes = a.modes.split(",")
-    new_file = not csv_path.is_file()
-    with csv_path.open("a", newline="") as fh:
+    with csv_path.open("w" if new_file else "a", newline="") as fh:
         writer = csv.DictWriter(fh, FIELDS)
         if new_file:
             writer.writeheader()
+            fh.flush()
         for seed in _seeds(a.seeds):
             todo = [m for m in modes if (seed, m) not in done]
             if not todo:
