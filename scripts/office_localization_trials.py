@@ -8,7 +8,10 @@ answer, its error against the run's truth, the robot and compute times of
 ``result.json``, and the CPU time of each command (children's user + system
 time). A row is ``table1_success`` when the answer is ``localized`` within the
 paper's 30 cm / 10 deg and the localization time (robot time + compute, as in
-``docs/table1.md``) is at most 60 s.
+``docs/table1.md``) is at most 60 s. ``result.json``'s compute is wall-clock time,
+which a loaded machine inflates many times; ``table1_success_cpu`` applies the
+same 60 s to robot time + the whole ``localize`` process's CPU time (start-up
+and map loading included: an upper bound of the localizer's own compute).
 
 Rows already in the CSV are skipped, so an interrupted run continues where it
 stopped. The summary (per mode) is printed and written next to the CSV as JSON.
@@ -34,7 +37,7 @@ from pathlib import Path
 
 FIELDS = ["seed", "mode", "status", "correct", "error_m", "error_deg", "restarts", "robot_s",
           "compute_s", "localization_s", "table1_success", "sim_cpu_s", "localize_cpu_s",
-          "localize_wall_s"]  # fmt: skip
+          "localize_wall_s", "table1_success_cpu"]  # fmt: skip
 LIMIT_S = 60.0
 
 
@@ -73,7 +76,8 @@ def _row(seed: int, mode: str, result: Path, sim_cpu: float, cpu: float, wall: f
     row.update(status=doc.get("status"), correct=correct, error_m=trial.get("error_m"),
                error_deg=trial.get("error_deg"), restarts=doc.get("restarts"), robot_s=round(robot, 2),
                compute_s=round(compute, 2), localization_s=round(robot + compute, 2),
-               table1_success=correct and robot + compute <= LIMIT_S)  # fmt: skip
+               table1_success=correct and robot + compute <= LIMIT_S,
+               table1_success_cpu=correct and robot + cpu <= LIMIT_S)  # fmt: skip
     return row
 
 
@@ -97,6 +101,7 @@ def summarize(rows: list[dict[str, str]]) -> dict[str, dict[str, object]]:
             "table1_success": sum(r["table1_success"] == "True" for r in rs),
             "table1_rate": round(sum(r["table1_success"] == "True" for r in rs) / n, 3) if n else None,
             "over_60_s": sum(r["correct"] == "True" and r["table1_success"] != "True" for r in rs),
+            "table1_success_cpu": sum(r.get("table1_success_cpu") == "True" for r in rs),
             "localization_s_mean": mean("localization_s"), "restarts_mean": mean("restarts"),
             "sim_cpu_s_mean": mean("sim_cpu_s"), "localize_cpu_s_mean": mean("localize_cpu_s"),
             "failing_seeds": [int(r["seed"]) for r in rs if r["table1_success"] != "True"],
