@@ -457,6 +457,8 @@ def _check_map_flags(args: argparse.Namespace) -> None:
     if args.localize_only and args.save_map:
         raise LampsamError("--save-map and --localize-only exclude each other: localize-only "
                            "does not change the map")
+    if args.map_priors and not args.localize_only:
+        raise LampsamError("--map-priors applies only with --localize-only")
     if (args.start or args.start_from) and not args.localize_only:
         raise LampsamError("--start / --start-from apply only with --localize-only")
     if args.start and args.start_from:
@@ -471,15 +473,22 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     import dataclasses
 
     from lampsam.backend.ceiling_map_io import read_map
+    from lampsam.backend.localize_only import LocalizeConfig
     from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
+    from lampsam.backend.map_merge import merge_maps
     from lampsam.backend.slam import summary
 
-    cmap = read_map(args.map)  # a bad map: an error before any computing
+    cmap = read_map(args.map[0])  # a bad map: an error before any computing
+    for more in args.map[1:]:
+        cmap, counts = merge_maps(cmap, read_map(more))
+        print(f"merged {more}: {counts['fused']} landmarks fused, {counts['only_b']} added, "
+              f"{counts['only_a']} kept alone")
     start = (parse_start(args.start) if args.start
              else start_from_result(args.start_from) if args.start_from else None)
     if features:
         config = dataclasses.replace(config, features=features)
-    result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start)
+    result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
+                               loc=LocalizeConfig(map_mode="priors" if args.map_priors else "fixed"))
     from lampsam.evaluation.slam_report import write_slam_plot
 
     with atomic_path(out / "slam.png") as tmp:
@@ -570,8 +579,13 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--save-map", default=None, metavar="MAP",
                    help="also write the ceiling map (landmarks, covariances, lamp axes, corner "
                         "patches, rig) to the folder MAP (docs/ceiling-map.md)")
-    p.add_argument("--map", default=None, metavar="MAP",
-                   help="with --localize-only: the ceiling map folder to track against")
+    p.add_argument("--map", default=None, metavar="MAP", action="append",
+                   help="with --localize-only: the ceiling map folder to track against; given "
+                        "twice or more, the maps of separate mapping drives are merged "
+                        "(backend/map_merge.py)")
+    p.add_argument("--map-priors", action="store_true",
+                   help="with --localize-only: the map's landmarks are priors updated during "
+                        "the run (joint EKF over pose and map landmarks), not fixed values")
     p.add_argument("--localize-only", action="store_true",
                    help="track the run against --map without adding landmarks (pose-only EKF)")
     p.add_argument("--start", default=None, metavar="X,Y,THETA",

@@ -28,11 +28,16 @@ information form: with ``W_i = (H_l,i Sigma_l,i H_l,i^T + R_i)^-1`` block by blo
 which equals eqs. 21-23 for the stacked update but costs O(K) with 2 x 2 and 3 x 3
 inverses instead of a (2K x 2K) one.
 
-Why a pose-only EKF rather than a fixed-lag iSAM2 over poses: with the map fixed,
-the pose posterior given the past is all an online tracker needs, the EKF step is
-a handful of 3 x 3 products (the smoothers' cost is one GTSAM update and a pose
-marginal per keyframe), and measured on lab (docs/ceiling-map.md) its error is
-already below the from-scratch smoothers'.
+The map as fixed values is a pose-only EKF: the step is a handful of 3 x 3 products,
+but the track inherits the map's error (its frame offset and distortion), and adding
+``Sigma_l`` to every innovation independently treats repeated sightings of one map
+landmark as independent. :attr:`LocalizeConfig.map_mode` offers the two remedies:
+``"priors"`` puts the used map landmarks in the state with the map as their prior
+(a localize-only EKF-SLAM that never adds a landmark; the run's known start then pulls
+part of the map's error out), ``"consider"`` keeps the same joint covariance but never
+moves the map (a Schmidt / consider filter: consistent, not more accurate). Their
+cost is one EKF update over ``3 + 3 L`` states per frame (``L`` the map landmarks
+used, a few dozen). Accuracy and cost of the three: docs/ceiling-map.md.
 
 Corner patches are stored in the map but used for association only when
 :attr:`LocalizeConfig.corner_ncc` is set: the frontend's patches are not rotation
@@ -45,6 +50,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -94,6 +100,18 @@ class LocalizeConfig:
             lab, every corner gave 3.6 mm RMS on lab_day2, the 28 corners passing both
             2.5 mm (lamps only 2.6 mm); the rejected corners are mostly frontend corners
             on lamp and item edges whose map position is off by centimetres.
+        map_mode: how the map's landmark positions enter (default ``"fixed"``):
+            ``"fixed"``: fixed values, their covariance added to each innovation
+            (module docstring); ``"priors"``: the used map landmarks join the state
+            (``x = (pose, p_1 .. p_L)``, prior ``N(map position, map marginal)``) and
+            every update is the joint EKF update (eqs. 19-23 with the pose-landmark
+            cross terms), so repeated sightings of one landmark are correlated through
+            it and the run's own known start can pull part of the map's error out;
+            ``"consider"``: the same state, but a Schmidt (consider) update: the
+            landmarks keep their map values and covariance, only the pose and the
+            pose-landmark cross-covariance are updated (the correlation of repeated
+            sightings without moving the map). No landmark is ever added and the
+            saved map is not changed.
     """
 
     sigma_start_xy: float = field(default=0.02, metadata=limits(gt=0.0))
@@ -105,10 +123,17 @@ class LocalizeConfig:
     max_corners: int | None = field(default=None, metadata=limits(ge=0))
     min_corner_obs: int = field(default=10, metadata=limits(ge=0))
     max_corner_sigma: float = field(default=0.005, metadata=limits(gt=0.0))
+    map_mode: MapMode = "fixed"
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
+        if self.map_mode not in MAP_MODES:
+            raise ValueError(f"map_mode {self.map_mode!r}: expected one of {', '.join(MAP_MODES)}")
+
+
+MapMode = Literal["fixed", "priors", "consider"]
+MAP_MODES: tuple[str, ...] = ("fixed", "priors", "consider")
 
 
 class _KindArrays:
@@ -139,6 +164,8 @@ class _Matches:
     r_tot: FloatArray
     obs: np.ndarray
     lm: np.ndarray
+    h_l: FloatArray
+    r: FloatArray
 
 
 def _inv2(a: FloatArray) -> FloatArray:
@@ -185,6 +212,20 @@ class MapLocalizer(SlamBackend):
         self._kinds = {LandmarkKind.LAMP.value: _KindArrays(cmap.by_kind(LandmarkKind.LAMP.value),
                                                             self.loc.map_cov_scale),
                        LandmarkKind.CORNER.value: _KindArrays(corners, self.loc.map_cov_scale)}
+        # map_mode priors / consider: the joint covariance over (pose, landmarks of _kinds in order)
+        self._offsets: dict[str, int] = {}
+        self._pj: FloatArray | None = None
+        if self.loc.map_mode != "fixed":
+            n = 3
+            for kind, arr in self._kinds.items():
+                self._offsets[kind] = n
+                n += 3 * len(arr.ids)
+            self._pj = np.zeros((n, n))
+            self._pj[:3, :3] = self.P
+            for kind, arr in self._kinds.items():
+                for j in range(len(arr.ids)):
+                    o = self._offsets[kind] + 3 * j
+                    self._pj[o:o + 3, o:o + 3] = arr.cov_p[j]
         self._gate2 = config.association.gate(2)
         self._gate1 = config.association.gate(1)
         self._last_t = -math.inf
@@ -239,11 +280,13 @@ class MapLocalizer(SlamBackend):
             sel = sel[np.argsort(d2_rc[sel], kind="stable")[: self.loc.max_corners]]
         rows, cols = rows[sel], cols[sel]
         return _Matches(nu=z[rows] - m[keep[cols]], h_x=h_x[cols], r_tot=r[rows] + s_map[cols],
-                        obs=idx[rows], lm=keep[cols])
+                        obs=idx[rows], lm=keep[cols], h_l=h_l[cols], r=r[rows])
 
     # ------------------------------------------------------------------ update
     def _update(self, obs: list[Obs]) -> int:
         """Information-form EKF update with the frame's matched observations."""
+        if self._pj is not None:
+            return self._update_joint(obs)
         info = np.zeros((3, 3))
         grad = np.zeros(3)
         n = 0
@@ -282,6 +325,88 @@ class MapLocalizer(SlamBackend):
         self.P = 0.5 * (p_new + p_new.T)
         return n
 
+    def _update_joint(self, obs: list[Obs]) -> int:
+        """``map_mode`` priors / consider: the stacked EKF update over pose and map landmarks.
+
+        Rows: ``(u, v)`` of each matched observation, ``H = [H_x, 0 .. H_l .. 0]``,
+        noise ``R`` (the landmark's uncertainty is in the state); a lamp axis adds the
+        scalar row of :meth:`_update` on ``theta`` alone with the map's ``var(phi)`` in its
+        noise (the axes are not states). Priors: ``K = P H^T S^-1``,
+        ``P+ = P - K S K^T`` (eqs. 21-23). Consider (Schmidt): the landmark rows of
+        ``K`` are zero and ``P+ = P - K H P - P H^T K^T + K S K^T`` (Joseph form, exact
+        for a gain that is not the optimal one), which leaves ``P_ll`` unchanged.
+        """
+        assert self._pj is not None
+        pj = self._pj
+        n = pj.shape[0]
+        rows_h: list[FloatArray] = []
+        rows_nu: list[float] = []
+        rows_r: list[FloatArray] = []  # (2, 2) or (1, 1) blocks
+        for kind, arr in self._kinds.items():
+            mt = self._match(obs, kind, arr)
+            if mt is None:
+                continue
+            for k in range(len(mt.obs)):
+                h = np.zeros((2, n))
+                h[:, :3] = mt.h_x[k]
+                o = self._offsets[kind] + 3 * int(mt.lm[k])
+                h[:, o:o + 3] = mt.h_l[k]
+                rows_h.append(h)
+                rows_nu.extend(mt.nu[k])
+                rows_r.append(mt.r[k])
+            if kind != LandmarkKind.LAMP.value:
+                continue
+            for i, j in zip(mt.obs, mt.lm, strict=True):
+                ob = obs[int(i)]
+                if not ob.has_axis or math.isnan(arr.phi[j]):
+                    continue
+                nu_a = float(wrap_axis(float(ob.z[2]) - (arr.phi[j] - self.x[2])))
+                var = float(ob.R[2, 2]) + float(arr.var_phi[j])
+                if nu_a * nu_a / (var + pj[2, 2]) >= self._gate1:
+                    continue
+                h = np.zeros((1, n))
+                h[0, 2] = -1.0
+                rows_h.append(h)
+                rows_nu.append(nu_a)
+                rows_r.append(np.array([[var]]))
+        if not rows_h:
+            return 0
+        hm = np.vstack(rows_h)
+        m = hm.shape[0]
+        r = np.zeros((m, m))
+        at = 0
+        for blk in rows_r:
+            b = blk.shape[0]
+            r[at:at + b, at:at + b] = blk
+            at += b
+        pht = pj @ hm.T
+        s = hm @ pht + r
+        try:
+            gain = np.linalg.solve(s, pht.T).T  # K = P H^T S^-1
+        except np.linalg.LinAlgError:
+            log.warning("innovation covariance not invertible: update skipped")
+            return 0
+        if self.loc.map_mode == "consider":
+            gain[3:] = 0.0
+            kph = gain @ pht.T  # K H P
+            pj = pj - kph - kph.T + gain @ s @ gain.T
+        else:
+            pj = pj - gain @ s @ gain.T
+        dx = gain @ np.asarray(rows_nu, float)
+        self._pj = 0.5 * (pj + pj.T)
+        self.x = self.x + dx[:3]
+        self.x[2] = wrap_angle(float(self.x[2]))
+        self.P = self._pj[:3, :3].copy()
+        for kind, arr in self._kinds.items():
+            o = self._offsets[kind]
+            k = len(arr.ids)
+            if k == 0:
+                continue
+            arr.points = arr.points + dx[o:o + 3 * k].reshape(k, 3)
+            idx = o + 3 * np.arange(k)[:, None] + np.arange(3)[None, :]
+            arr.cov_p = self._pj[idx[:, :, None], idx[:, None, :]]
+        return sum(1 for h in rows_h if h.shape[0] == 2)
+
     # ------------------------------------------------------------------ interface
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
         """See :meth:`SlamBackend.step`; ``n_new`` is always 0 (the map is not grown)."""
@@ -294,6 +419,10 @@ class MapLocalizer(SlamBackend):
             pose, f, q = self.motion.ekf_predict(self.x, u)
             self.P = f @ self.P @ f.T + q + self.loc.var_floor * np.eye(3)
             self.x = np.asarray(pose, float)
+            if self._pj is not None:  # eq. 13's F on the pose rows, landmarks static
+                self._pj[:3, :3] = self.P
+                self._pj[:3, 3:] = f @ self._pj[:3, 3:]
+                self._pj[3:, :3] = self._pj[:3, 3:].T
         n_used = 0
         if frame is not None:
             obs = observations_from_frame(frame, self.config.features, self.config.noise)

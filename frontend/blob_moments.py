@@ -291,6 +291,7 @@ def gather_reach(
     binary: np.ndarray,
     image: ImageU8,
     config: LampDetectorConfig,
+    reaches_overlap: bool = True,
 ) -> Reach:
     """Support and ring labels of every pixel near a blob (one pass over the box).
 
@@ -308,6 +309,9 @@ def gather_reach(
         binary: shape (H, W) uint8, non-zero where thresholded (measured blobs or not).
         image: shape (H, W) uint8 grey levels.
         config: detector settings (``support_px``, ``ring_px``).
+        reaches_overlap: False when no pixel lies within reach of two blobs
+            (:func:`reaches_may_overlap`): the smallest label within reach is
+            then the largest, and the second dilation for ``crowd`` is skipped.
 
     Returns:
         The gathered pixels, coordinates in the box.
@@ -335,15 +339,41 @@ def gather_reach(
         # the reversed labels (top - label) too.
         bright = (~free).nonzero()[0]
         own = comp.reshape(-1).take(in_comp.take(bright))
-        top = int(region.max()) + 1
-        rev = np.where(region > 0, top - region.astype(np.int32), 0)
-        rev = rev.astype(np.uint8 if top <= 255 else np.uint16)
-        lo_raw = dilate_disk(rev, config.support_px + config.ring_px).ravel().take(idx.take(bright))
-        lo = np.where(lo_raw > 0, top - lo_raw.astype(np.intp), 0)
         hi = outer_v.take(bright).astype(np.intp)
-        crowd = np.concatenate([hi[hi != own], lo[(lo != own) & (lo != hi)]])
+        crowd = hi[hi != own]
+        if reaches_overlap:
+            top = int(region.max()) + 1
+            if top > np.iinfo(region.dtype).max:  # top - label must fit the dtype
+                region = region.astype(np.uint16)
+            rev = region.copy()  # top - label on the blobs, 0 elsewhere
+            np.subtract(region.dtype.type(top), region, out=rev, where=region > 0)
+            lo_raw = dilate_disk(rev, config.support_px + config.ring_px).ravel()
+            lo_raw = lo_raw.take(idx.take(bright))
+            lo = np.where(lo_raw > 0, top - lo_raw.astype(np.intp), 0)
+            crowd = np.concatenate([crowd, lo[(lo != own) & (lo != hi)]])
     xy = np.array([cols, rows], dtype=np.float64)
     return Reach(xy, image.reshape(-1).take(in_image), sup, ring, crowd, in_image)
+
+
+def reaches_may_overlap(lo: np.ndarray, hi: np.ndarray, reach: int) -> bool:
+    """Whether two blobs' reaches may share a pixel (their boxes grown by ``reach`` intersect).
+
+    Args:
+        lo: shape (m, 2) int ``(left, top)`` of each blob's box, px.
+        hi: shape (m, 2) int ``(right, bottom)``, exclusive, px.
+        reach: ``support_px + ring_px``, px.
+
+    Returns:
+        False only when no two grown boxes intersect (then no pixel is within
+        ``reach`` of two blobs; the converse need not hold).
+    """
+    if lo.shape[0] < 2:
+        return False
+    a, b = lo - reach, hi + reach
+    apart = (a[:, None, :] >= b[None, :, :]) | (a[None, :, :] >= b[:, None, :])
+    together = np.asarray(~apart.any(axis=2))
+    np.fill_diagonal(together, False)
+    return bool(together.any())
 
 
 def shape_checks(

@@ -53,6 +53,7 @@ from lampsam.frontend.blob_moments import (
     gather_reach,
     measure_labels,
     measure_region,
+    reaches_may_overlap,
     shape_checks,
 )
 from lampsam.frontend.ceiling_coords import (
@@ -194,7 +195,9 @@ def measure_blobs(
     ids = np.flatnonzero(good)
     if ids.size:
         sub = (my0 - by0, my1 - by0, mx0 - bx0, mx1 - bx0)
-        reach = gather_reach(comp, sub, (bx0, by0), binary, image, config)
+        sel = good[1:].nonzero()[0]  # the blobs left in comp
+        overlap = reaches_may_overlap(lo[sel], hi[sel], config.support_px + config.ring_px)
+        reach = gather_reach(comp, sub, (bx0, by0), binary, image, config, overlap)
         res = measure_labels(reach, top, ids, border, default_bg, config, (mx0, my0), grid)
         ok_lab = np.zeros(n_keep + 1, dtype=bool)
         for i, mom in zip(ids.tolist(), res, strict=True):

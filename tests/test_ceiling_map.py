@@ -274,6 +274,14 @@ def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,
     assert s["landmarks"] == len(cmap.landmarks)
     ids = np.loadtxt(tmp_path / "loc" / "landmarks.csv", delimiter=",", skiprows=1, usecols=0)
     assert sorted(ids.astype(int).tolist()) == sorted(lm.id for lm in cmap.landmarks)
+    # the same map given twice merges into one (every landmark fused) and, with
+    # --map-priors, tracks as well
+    assert main(["slam", str(lab4), "--frames", "truth", "--map", str(mp), "--map", str(mp),
+                 "--localize-only", "--map-priors", "--out", str(tmp_path / "loc2")]) == 0
+    out = capsys.readouterr().out
+    assert f"{len(cmap.landmarks)} landmarks fused, 0 added" in out
+    s2 = json.loads((tmp_path / "loc2" / "summary.json").read_text())
+    assert s2["error"]["position_rms_m"] < 0.03 and s2["landmarks"] == len(cmap.landmarks)
 
 
 def test_cli_map_flags_and_bad_map(lab4: Path, tmp_path: Path,
@@ -284,6 +292,8 @@ def test_cli_map_flags_and_bad_map(lab4: Path, tmp_path: Path,
     assert "--map" in capsys.readouterr().err
     assert main(["slam", str(lab4), "--map", str(tmp_path), "--out", out]) == 2
     assert "--localize-only" in capsys.readouterr().err
+    assert main(["slam", str(lab4), "--map-priors", "--out", out, "--force"]) == 2
+    assert "--map-priors" in capsys.readouterr().err
     (tmp_path / "badmap").mkdir()
     (tmp_path / "badmap" / "map.yaml").write_text("format: lampsam-ceiling-map\n")
     assert main(["slam", str(lab4), "--map", str(tmp_path / "badmap"), "--localize-only",

@@ -27,7 +27,18 @@ and the best run are steadier. OpenCV runs single-threaded by default here
 (``--cv-threads``): on a busy 2-core machine its thread pool mostly waits for
 a core, and one frame is too small to gain from two.
 
+Whole run (``--run RUN``, e.g. ``lampsam simulate lab --seed 3 --out RUN``): every
+image of a logged run, as the estimators get it (``images.load`` then
+``process_image``), ``--runs`` passes (default 3). Per pass: CPU ms per frame for
+the PNG decode and for the frontend, their medians / p95 / max, the frontend's
+x real time (the run's duration over the CPU time) and its share of the data's
+frame interval; and the same frontend with the exact shortcuts turned off (the
+full path, :func:`lampsam.frontend.blob_moments.reaches_may_overlap` always True),
+frame by frame on the same images in the same pass, as a ratio. Printed: the
+median over passes, with the load average.
+
 Usage: ``.venv/bin/python scripts/bench/bench_frontend.py [--runs 7] [--repeats 100]``
+or ``.venv/bin/python scripts/bench/bench_frontend.py --run RUN [--runs 3] [--cv-threads 1]``
 """
 
 from __future__ import annotations
@@ -144,19 +155,89 @@ def bench(name: str, img: ImageU8, camera: CameraModel, runs: int, repeats: int)
     return proc_wall
 
 
+def bench_run(run_dir: str, passes: int) -> None:
+    """Whole-run timing: decode + frontend per frame, and the full path as a reference."""
+    import numpy as np
+
+    import lampsam.frontend.lamps as lamps_module
+    from lampsam.datasets.logrun import read_run
+
+    run = read_run(run_dir)
+    images = run.images
+    if images is None or len(images) == 0:
+        raise SystemExit(f"{run_dir}: the run has no images")
+    camera = run.rig.camera
+    n = len(images)
+    duration = float(run.odometry.t[-1] - run.odometry.t[0])  # as bench_backends.py
+    interval_ms = 1e3 * duration / n
+    shortcut = lamps_module.reaches_may_overlap
+
+    def full_path(lo: np.ndarray, hi: np.ndarray, reach: int) -> bool:
+        return True
+
+    rows = []
+    for k in range(passes):
+        dec = np.empty(n)
+        fast = np.empty(n)
+        full = np.empty(n)
+        for i in range(n):
+            c0 = time.process_time()
+            img = images.load(i)
+            c1 = time.process_time()
+            lamps_module.reaches_may_overlap = full_path
+            process_image(img, float(images.t[i]), i, camera)
+            c2 = time.process_time()
+            lamps_module.reaches_may_overlap = shortcut
+            process_image(img, float(images.t[i]), i, camera)
+            c3 = time.process_time()
+            dec[i], full[i], fast[i] = c1 - c0, c2 - c1, c3 - c2
+        dec, fast, full = 1e3 * dec, 1e3 * fast, 1e3 * full
+        rows.append({
+            "decode": dec.sum() / 1e3, "fast": fast.sum() / 1e3, "full": full.sum() / 1e3,
+            "fast_med": np.median(fast), "fast_p95": np.percentile(fast, 95), "fast_max": fast.max(),
+            "dec_med": np.median(dec), "ratio": fast.sum() / full.sum(),
+        })
+        r = rows[-1]
+        print(f"  pass {k}: decode {r['decode']:.2f} s, frontend {r['fast']:.2f} s, full path "
+              f"{r['full']:.2f} s CPU (ratio {r['ratio']:.3f}; load {os.getloadavg()[0]:.1f})",
+              flush=True)
+    med = {key: statistics.median(r[key] for r in rows) for key in rows[0]}
+    per_frame = 1e3 * med["fast"] / n
+    both = 1e3 * (med["fast"] + med["decode"]) / n
+    print(f"== {run_dir}: {n} frames = {duration:.1f} s of data (frame interval "
+          f"{interval_ms:.1f} ms); median of {passes} passes, CPU time")
+    print(f"  PNG decode      {med['decode']:6.2f} s = {1e3 * med['decode'] / n:.3f} ms/frame "
+          f"(median {med['dec_med']:.3f})")
+    print(f"  frontend        {med['fast']:6.2f} s = {per_frame:.3f} ms/frame (median / p95 / max "
+          f"{med['fast_med']:.2f} / {med['fast_p95']:.2f} / {med['fast_max']:.1f} ms); "
+          f"{duration / med['fast']:.0f}x real time, {per_frame / interval_ms:.3f} of the interval")
+    print(f"  decode + frontend {both:.3f} ms/frame: "
+          f"{duration / (med['fast'] + med['decode']):.0f}x real time")
+    print(f"  full path (shortcuts off) {med['full']:6.2f} s: the frontend takes "
+          f"{med['ratio']:.3f} of it (frame-interleaved, same pass)")
+
+
 def main() -> None:
     """Run the benchmark on the available frames."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=7, help="runs (default 7)")
+    parser.add_argument("--runs", type=int, default=None,
+                        help="runs (default 7; with --run: passes over the run, default 3)")
     parser.add_argument(
         "--repeats", type=int, default=100, help="interleaved rounds per run (default 100)"
     )
     parser.add_argument(
         "--cv-threads", type=int, default=1, help="OpenCV threads (default 1, see the docstring)"
     )
+    parser.add_argument("--run", help="a logged run: time every image of it (see the docstring)")
     args = parser.parse_args()
     cv2.setNumThreads(args.cv_threads)
     print("load average (1, 5, 15 min) before: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
+    print(f"OpenCV threads: {cv2.getNumThreads()}")
+    if args.run:
+        bench_run(args.run, args.runs or 3)
+        print("load average (1, 5, 15 min) after: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
+        return
+    args.runs = args.runs or 7
     img, camera = _lab_frame()
     bench("simulated lab frame 320x240", img, camera, args.runs, args.repeats)
     img, camera = _lab_frame("lab_fisheye")

@@ -7,8 +7,11 @@ Usage::
     lampsam simulate lab_day2 --out DAY2 --seed 2
     python scripts/bench/bench_localize_only.py --map MAP DAY2 [DAY3 ...] [--repeats 3]
 
-For every run the frames are made once (the frontend on the images, or
-``--frames truth``) and fed to: localize-only on MAP (:class:`MapLocalizer`), and
+``--map`` may be given more than once (maps of separate drives, merged by
+:func:`lampsam.backend.map_merge.merge_maps`). For every run the frames are made once
+(the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
+(:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
+``localize-consider``: ``LocalizeConfig.map_mode``), and
 SLAM from scratch on the same frames with the backends of ``--backends`` (default
 isam2, batch, ekf). Printed per run and method: position and heading RMS against the
 run's truth (no alignment, known start pose), and the CPU time (``time.process_time``,
@@ -42,7 +45,8 @@ from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_map_io import CeilingMap, read_map
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import SlamBackend
-from lampsam.backend.localize_only import MapLocalizer
+from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
+from lampsam.backend.map_merge import merge_maps
 from lampsam.backend.slam import (
     errors_vs_truth,
     iter_steps,
@@ -132,14 +136,18 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run directories (e.g. lab_day2 simulations)")
-    ap.add_argument("--map", required=True, help="ceiling map folder (slam --save-map)")
+    ap.add_argument("--map", required=True, action="append",
+                    help="ceiling map folder (slam --save-map); repeat to merge maps")
     ap.add_argument("--frames", default="images", choices=("images", "truth"))
     ap.add_argument("--backends", default="isam2,batch,ekf", help="SLAM from scratch backends")
     ap.add_argument("--reference", default="isam2", help="method the ratios divide by")
     ap.add_argument("--repeats", type=int, default=3, help="runs per method (timing median)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    cmap = read_map(args.map)
+    cmap = read_map(args.map[0])
+    for more in args.map[1:]:
+        cmap, counts = merge_maps(cmap, read_map(more))
+        print(f"merged {more}: {counts}")
     config = SlamConfig()
     config = dataclasses.replace(config, isam2=dataclasses.replace(config.isam2,
                                                                    final_covariances=False))
@@ -147,7 +155,7 @@ def main() -> None:
     print(f"map {args.map}: {len(cmap.by_kind('lamp'))} lamps, {len(cmap.by_kind('corner'))} "
           f"corners; frames {args.frames}; repeats {args.repeats}; load average "
           f"{load[0]:.1f} {load[1]:.1f} {load[2]:.1f} (2 cores)")
-    methods = ["localize", *[b for b in args.backends.split(",") if b]]
+    methods = ["localize", "localize-priors", "localize-consider", *[b for b in args.backends.split(",") if b]]
     rows: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     for run_dir in args.runs:
         run = read_run(run_dir)
@@ -159,13 +167,15 @@ def main() -> None:
         for m in methods:
             reps = []
             for _ in range(args.repeats):
-                if m == "localize":
-                    be: SlamBackend = MapLocalizer(run.rig.odometry, config, start, cmap,
-                                                   CeilingModel.from_camera(run.rig.camera))
+                if m.startswith("localize"):
+                    be: SlamBackend = MapLocalizer(
+                        run.rig.odometry, config, start, cmap,
+                        CeilingModel.from_camera(run.rig.camera),
+                        LocalizeConfig(map_mode=m.split("-")[1] if "-" in m else "fixed"))
                 else:
                     be = make_backend(m, run.rig.odometry, config, start, run.rig.camera)
                 reps.append(timed_run(be, run, frames, frame_fit[0] if frame_fit and
-                                      m == "localize" else None))
+                                      m.startswith("localize") else None))
             fig = {k: float(np.median([r[k] for r in reps])) for k in reps[0]}
             figures[m] = fig
             rows[m].append(fig)
