@@ -237,10 +237,27 @@ class KinectRenderer:
 
 # ---------------------------------------------------------------------------- writer
 def rotation_to_quaternion(R: FloatArray) -> FloatArray:  # noqa: N803
-    """(4,) quaternion ``(qx, qy, qz, qw)`` of a rotation matrix (3, 3), ``qw >= 0``."""
-    from scipy.spatial.transform import Rotation
+    """(4,) unit quaternion ``(qx, qy, qz, qw)`` of a rotation matrix (3, 3), ``qw >= 0``.
 
-    q = Rotation.from_matrix(R).as_quat()
+    Shepperd's method (J. Guidance and Control 1(3), 1978): the largest of
+    ``4 qw^2 = 1 + tr R`` and ``4 qi^2 = 1 + 2 R_ii - tr R`` is taken from the
+    diagonal, the other three components from the off-diagonal sums and
+    differences, so no component is divided by a small number (the method
+    SciPy's ``Rotation.from_matrix`` uses, without importing SciPy per run).
+    """
+    m = np.asarray(R, dtype=float)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    k = int(np.argmax([m[0, 0], m[1, 1], m[2, 2], tr]))
+    if k == 3:
+        q = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1.0 + tr])
+    else:
+        i, j, n = k, (k + 1) % 3, (k + 2) % 3
+        q = np.empty(4)
+        q[i] = 1.0 - tr + 2.0 * m[i, i]
+        q[j] = m[j, i] + m[i, j]
+        q[n] = m[n, i] + m[i, n]
+        q[3] = m[n, j] - m[j, n]
+    q /= np.linalg.norm(q)
     return q if q[3] >= 0 else -q
 
 

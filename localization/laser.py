@@ -35,6 +35,7 @@ from lampsam.localization.particle_filter import (
     MotionNoise,
     ParticleFilter,
     ParticleFilterConfig,
+    sample_candidate_discs,
 )
 from lampsam.localization.stages import distinct_modes
 
@@ -60,7 +61,10 @@ class LaserLocalizerConfig:
             ``search_max_move`` (m, default 3) since the first: odometry error
             on a turn would smear the joined points.
         research_after: while not accepted this many scans after the first
-            test, search again over the newest scans and re-seed (default 4).
+            test, search again over the newest scans and add the candidates
+            as extra modes (default 4).
+        research_share: the weight the re-search's candidates take together
+            (default 0.2; the filter's own particles keep the rest).
         per_candidate: particles per candidate disc (radius one search cell,
             heading spread one step). Default 2,000.
     """
@@ -85,6 +89,7 @@ class LaserLocalizerConfig:
     search_max_turn: float = 20.0
     search_max_move: float = 3.0
     research_after: int = 4
+    research_share: float = 0.2
     per_candidate: int = 2000
 
 
@@ -398,13 +403,16 @@ def _research(
     angles: FloatArray, odom: FloatArray, config: LaserLocalizerConfig,
     accept: LaserAcceptConfig, first_modes: FloatArray,
 ) -> FloatArray:
-    """Search again over the latest scans while not accepted; re-seed the filter at the last scan.
+    """Search again over the latest scans while not accepted; add the candidates as extra modes.
 
     The first scans may fit the map badly (people, a door): the newest scans
     (joined as in the first search, counted back from the last) get their own
-    candidates. The filter restarts from those and from a disc around its own
-    estimate; the new candidates, carried back to scan 0 by odometry, join the
-    competing hypotheses. Returns the hypotheses at scan 0.
+    candidates. Those not within ``accept.separation`` of the filter's estimate
+    join the filter as extra modes (:meth:`ParticleFilter.add_particles`, with
+    ``config.research_share`` of the weight), so that a cluster the filter has
+    nearly converged to is kept; the following scans decide between them. The
+    new candidates, carried back to scan 0 by odometry, also join the competing
+    hypotheses. Returns the hypotheses at scan 0.
     """
     last = len(odom) - 1
     j = last
@@ -416,8 +424,11 @@ def _research(
         return first_modes
     now = [chain(c, 0, odom[j:])[-1] for c in cands]
     mean, _ = pf.estimate()
-    pf.init_candidates([(p, pyramid.res) for p in [*now, np.asarray(mean, dtype=float)]],
-                       config.per_candidate, math.radians(config.search.angle_step_deg))  # fmt: skip
+    extra = [(p, pyramid.res) for p in now if not _near(p, mean, accept.separation)]
+    if extra:
+        pf.add_particles(sample_candidate_discs(extra, config.per_candidate,
+                                                math.radians(config.search.angle_step_deg), pf.rng),
+                         config.research_share)  # fmt: skip
     back = np.array([chain(c, last, odom)[0] for c in now])
     return np.vstack([np.asarray(first_modes).reshape(-1, 3), back])
 

@@ -103,9 +103,10 @@ class EnvironmentMaps:
         A table takes seconds to build (office map: 110,000 cells x 360 bins,
         about 20 s on a loaded machine, 77 MB), so it is kept with these maps for
         every later localization on them, and with a ``cache_dir`` it is the map
-        directory's ``range_table.npz`` (:func:`~lampsam.localization.map_tables.range_table_for_map`:
-        loaded when it was built from this grid for this ``max_range``, else
-        built and stored there: the one store of the map's lookups).
+        directory's table for this ``max_range``
+        (:func:`~lampsam.localization.map_tables.range_table_for_map`: loaded
+        when it was built from this grid, else built and stored there beside
+        the tables of other ranges: the one store of the map's lookups).
 
         Args:
             max_range: metres (the beam model's).

@@ -28,9 +28,14 @@ the build is never paired with stale tables.
 
 Files (NumPy ``.npz``, uncompressed so that loading is a plain read):
 
-- ``range_table.npz``: ``ranges_mm`` (R + 1, A) uint16, ``row_of_cell`` (H*W,) int32,
-  ``grid_shape`` (2,), ``resolution`` (), ``origin`` (3,), ``max_range`` () m,
-  ``fingerprint`` () str, ``format_version`` ();
+- ``range_table_<max_range in mm>mm_<bins>.npz`` (:func:`range_table_file`, e.g.
+  ``range_table_4500mm_360.npz``): one file per ``(max_range, n_angles)``, so
+  localizers with different beam ranges each keep their table instead of
+  rebuilding each other's; ``ranges_mm`` (R + 1, A) uint16, ``row_of_cell`` (H*W,)
+  int32, ``grid_shape`` (2,), ``resolution`` (), ``origin`` (3,), ``max_range`` () m,
+  ``fingerprint`` () str, ``format_version`` (). A ``range_table.npz`` of an earlier
+  version (one file for whichever ``max_range`` came last) is still read when its
+  parameters match;
 - ``distance_field.npz``: ``distance_cells`` (H, W) float32 (cells; ``inf`` when the
   grid has no occupied cell), ``fingerprint``, ``format_version``.
 """
@@ -53,7 +58,8 @@ from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
-#: The range table's file name in a map directory.
+#: The range table's file name in a map directory before tables were keyed by their
+#: parameters (read when its parameters match; never written).
 RANGE_TABLE_FILE = "range_table.npz"
 #: The distance field's file name in a map directory.
 DISTANCE_FIELD_FILE = "distance_field.npz"
@@ -95,13 +101,18 @@ def grid_fingerprint(grid: OccupancyGrid) -> str:
     return h.hexdigest()
 
 
+def range_table_file(max_range: float, n_angles: int = 360) -> str:
+    """The file name of the range table for ``max_range`` (m, to the millimetre) and ``n_angles`` bins."""
+    return f"range_table_{int(round(float(max_range) * 1000))}mm_{int(n_angles)}.npz"
+
+
 def build_range_table(grid: OccupancyGrid, max_range: float, n_angles: int = 360) -> RangeTable:
     """The range table the localizer uses: every non-occupied cell, ``n_angles`` bins."""
     return RangeTable.build(grid, n_angles, max_range, cells=~occupied_mask(grid))
 
 
 def save_range_table(map_dir: str | Path, grid: OccupancyGrid, table: RangeTable) -> Path:
-    """Write ``range_table.npz`` for ``grid`` (the grid as loaded from the map directory).
+    """Write the table's file (:func:`range_table_file`) for ``grid`` (as loaded from the map directory).
 
     Args:
         map_dir: the map directory.
@@ -111,7 +122,7 @@ def save_range_table(map_dir: str | Path, grid: OccupancyGrid, table: RangeTable
     Returns:
         The file written.
     """
-    path = Path(map_dir) / RANGE_TABLE_FILE
+    path = Path(map_dir) / range_table_file(table.max_range, table.ranges_mm.shape[1])
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez(fh, ranges_mm=table.ranges_mm, row_of_cell=table.row_of_cell,
                  grid_shape=np.array(table.grid_shape, dtype=np.int64),
@@ -146,10 +157,13 @@ def _open_checked(path: Path, grid: OccupancyGrid) -> dict[str, Any] | None:
 
 def load_range_table(map_dir: str | Path, grid: OccupancyGrid, max_range: float,
                      n_angles: int = 360) -> RangeTable | None:
-    """The stored range table of ``grid``, when present and valid for this use.
+    """The stored range table of ``grid`` for ``max_range`` and ``n_angles``, when present and valid.
+
+    Reads :func:`range_table_file`, else an earlier version's ``range_table.npz``
+    when that was built for the same parameters.
 
     Args:
-        map_dir: the map directory (``build_map`` wrote ``range_table.npz`` there).
+        map_dir: the map directory (``build_map`` wrote its table there).
         grid: the grid the localizer uses (loaded from the same directory).
         max_range: the beam model's maximum range, metres.
         n_angles: heading bins.
@@ -159,7 +173,10 @@ def load_range_table(map_dir: str | Path, grid: OccupancyGrid, max_range: float,
         different grid or for another ``max_range`` / ``n_angles`` (the reason is
         logged); the caller then builds it (:func:`build_range_table`).
     """
-    path = Path(map_dir) / RANGE_TABLE_FILE
+    path = Path(map_dir) / range_table_file(max_range, n_angles)
+    legacy = Path(map_dir) / RANGE_TABLE_FILE
+    if not path.is_file() and legacy.is_file():
+        path = legacy
     data = _open_checked(path, grid)
     if data is None:
         return None

@@ -373,6 +373,28 @@ class ParticleFilter:
         self.init_particles(sample_candidate_discs(candidates, per_candidate, sigma_theta,
                                                    self.rng))
 
+    def add_particles(self, particles: FloatArray, share: float) -> None:
+        """Add poses (M, 3) as extra modes that take ``share`` of the total weight.
+
+        The existing particles keep their relative weights (scaled by
+        ``1 - share``), so a converged cluster is kept, not re-spread; the new
+        ones share ``share`` equally. A defensive mixture ``(1 - share) p + share q``
+        of the current posterior ``p`` and the proposal ``q``: a new mode
+        overtakes the current one only when the next scans favour it by more
+        than ``log((1 - share) / share)`` nats per particle's likelihood ratio.
+        The evidence averages and the update count are kept.
+        """
+        new = np.asarray(particles, dtype=np.float64).reshape(-1, 3)
+        if len(new) == 0:
+            return
+        if not (0.0 < share < 1.0) or not np.all(np.isfinite(new)):
+            raise ParticleFilterError(f"extra particles must be finite with a share in (0, 1), got {share}")
+        new = new.copy()
+        new[:, 2] = wrap_angle(new[:, 2])
+        self.particles = np.concatenate([self.particles, new])
+        self.log_weights = np.concatenate([self.log_weights + math.log1p(-share),
+                                           np.full(len(new), math.log(share / len(new)))])  # fmt: skip
+
     # ------------------------------------------------------------------ cycle
     @property
     def n(self) -> int:

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -23,6 +24,9 @@ from lampsam.localization.localizer import localize
 from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.result import LocalizationResult, is_correct, summarize, write_result
 from lampsam.localization.robot import DriveFrame, GlobalLocalizationError, TurnFrame
+
+if TYPE_CHECKING:
+    from lampsam.frontend.measurements import CeilingFrame
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +98,12 @@ class ReplayRobot:
         self.kinect = read_tum_rgbd(kdir)
         self.sift = make_sift()
         self.cursor = float(min(self.t_odom[0], self.kinect.t[0]))
-        self._ceiling: list[DriveFrame] | None = None
+        self._ceiling: list[DriveFrame] = []
+        self._ceiling_source: Iterator[CeilingFrame] | None = None
+        if self.run.images is not None:
+            from lampsam.frontend.pipeline import iter_run
+
+            self._ceiling_source = iter_run(self.run)
 
     def _odom_at(self, t: float) -> FloatArray:
         i = int(np.clip(np.searchsorted(self.t_odom, t, side="right") - 1, 0, len(self.t_odom) - 1))
@@ -120,23 +129,32 @@ class ReplayRobot:
                 break
         return frames
 
-    def _ceiling_frames(self) -> list[DriveFrame]:
-        if self._ceiling is None:
-            from lampsam.frontend.pipeline import iter_run
+    def _ceiling_frames(self) -> Iterator[DriveFrame]:
+        """The run's ceiling frames in time order, each through the frontend once, when first needed.
 
-            out: list[DriveFrame] = []
-            if self.run.images is not None:
-                for f in iter_run(self.run):
-                    m = [o.m for o in f.lamps] + [o.m for o in f.corners]
-                    kinds = [True] * len(f.lamps) + [False] * len(f.corners)
-                    axis = [np.nan if o.axis is None else o.axis for o in f.lamps]
-                    axis += [np.nan] * len(f.corners)
-                    out.append(DriveFrame(
-                        f.t, self._odom_at(f.t), np.array(m, dtype=float).reshape(-1, 2),
-                        np.array(kinds, bool), np.array(axis, dtype=float),
-                    ))  # fmt: skip
-            self._ceiling = out
-        return self._ceiling
+        The frontend processes every image on its own, so running it lazily (only
+        up to the last frame a drive asks for) gives the same frames as running
+        it over the whole run first, at the cost of the frames read.
+        """
+        k = 0
+        while True:
+            while k >= len(self._ceiling) and self._ceiling_source is not None:
+                f = next(self._ceiling_source, None)
+                if f is None:
+                    self._ceiling_source = None
+                    break
+                m = [o.m for o in f.lamps] + [o.m for o in f.corners]
+                kinds = [True] * len(f.lamps) + [False] * len(f.corners)
+                axis = [np.nan if o.axis is None else o.axis for o in f.lamps]
+                axis += [np.nan] * len(f.corners)
+                self._ceiling.append(DriveFrame(
+                    f.t, self._odom_at(f.t), np.array(m, dtype=float).reshape(-1, 2),
+                    np.array(kinds, bool), np.array(axis, dtype=float),
+                ))  # fmt: skip
+            if k >= len(self._ceiling):
+                return
+            yield self._ceiling[k]
+            k += 1
 
     def drive(self, distance: float) -> list[DriveFrame]:
         """Ceiling frames until the recorded path has grown by ``distance``."""

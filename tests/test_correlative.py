@@ -21,12 +21,12 @@ from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldMode
 from lampsam.localization.map_layers import EnvironmentMaps
 from lampsam.localization.map_tables import (
     DISTANCE_FIELD_FILE,
-    RANGE_TABLE_FILE,
     load_distance_field,
     load_range_table,
+    range_table_file,
     save_distance_field,
 )
-from lampsam.localization.raycast import cast_rays, distance_field
+from lampsam.localization.raycast import RangeTable, cast_rays, distance_field
 
 ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 181)
 
@@ -154,9 +154,42 @@ def test_stored_fields_round_trip_in_one_store(tmp_path: Path) -> None:
     maps = EnvironmentMaps(g, maps.spatial_xyz, maps.spatial_descriptors, maps.ceiling_xyz,
                            maps.ceiling_body_t_camera, cache_dir=tmp_path)  # fmt: skip
     built = maps.range_table(3.0)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [DISTANCE_FIELD_FILE, RANGE_TABLE_FILE]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [DISTANCE_FIELD_FILE, range_table_file(3.0)]
     loaded = load_range_table(tmp_path, g, 3.0)
     assert loaded is not None and np.array_equal(loaded.ranges_mm, built.ranges_mm)
     again = EnvironmentMaps(g, maps.spatial_xyz, maps.spatial_descriptors, maps.ceiling_xyz,
                             maps.ceiling_body_t_camera, cache_dir=tmp_path).range_table(3.0)  # fmt: skip
     assert np.array_equal(again.row_of_cell, built.row_of_cell)
+
+
+def test_range_tables_of_two_max_ranges_live_side_by_side(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two localizers with different beam ranges on one map each build their table once, then load it."""
+    import lampsam.localization.map_tables as mt
+
+    g = _clutter_grid(np.random.default_rng(3), (4.0, 3.0), 3)
+    base = EnvironmentMaps.grid_only(g)
+
+    def fresh_maps() -> EnvironmentMaps:  # a new localize process on the same map directory
+        return EnvironmentMaps(g, base.spatial_xyz, base.spatial_descriptors, base.ceiling_xyz,
+                               base.ceiling_body_t_camera, cache_dir=tmp_path)  # fmt: skip
+
+    built: list[float] = []
+    real_build = mt.build_range_table
+
+    def counting_build(grid: OccupancyGrid, max_range: float, n_angles: int = 360) -> RangeTable:
+        built.append(max_range)
+        return real_build(grid, max_range, n_angles)
+
+    monkeypatch.setattr(mt, "build_range_table", counting_build)
+    t3 = fresh_maps().range_table(3.0)
+    t2 = fresh_maps().range_table(2.0)
+    assert built == [3.0, 2.0]
+    again3, again2 = fresh_maps().range_table(3.0), fresh_maps().range_table(2.0)
+    assert built == [3.0, 2.0]  # both loaded, neither rebuilt
+    assert np.array_equal(again3.ranges_mm, t3.ranges_mm) and np.array_equal(again2.ranges_mm, t2.ranges_mm)
+    assert int(t2.ranges_mm.max()) <= 2000 < int(t3.ranges_mm.max())  # truly different tables
+    assert {p.name for p in tmp_path.glob("range_table*")} == {range_table_file(3.0), range_table_file(2.0)}
+    # a map written before the tables were keyed: its range_table.npz is read when it matches
+    (tmp_path / range_table_file(3.0)).rename(tmp_path / mt.RANGE_TABLE_FILE)
+    legacy = fresh_maps().range_table(3.0)
+    assert built == [3.0, 2.0] and np.array_equal(legacy.ranges_mm, t3.ranges_mm)

@@ -189,3 +189,20 @@ def test_office_path_is_the_default_zigzag() -> None:
     from lampsam.datasets.world import load_world
 
     np.testing.assert_allclose(load_world("office").waypoints, zigzag_waypoints(MappingDrive()))
+
+
+def test_rotation_to_quaternion_matches_scipy_including_half_turns() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from lampsam.datasets.kinect_sim import rotation_to_quaternion
+
+    mats = Rotation.random(500, random_state=np.random.default_rng(4)).as_matrix()
+    half_turns = [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
+    for R in [*mats, np.eye(3), *half_turns]:
+        q = rotation_to_quaternion(R)
+        ref = Rotation.from_matrix(R).as_quat()
+        ref = ref if ref[3] >= 0 else -ref
+        assert q[3] >= 0 and np.linalg.norm(q) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), R, atol=1e-12)
+        if ref[3] > 1e-9:  # qw = 0: q and -q are the same rotation, either sign is right
+            np.testing.assert_allclose(q, ref, atol=1e-12)

@@ -6,6 +6,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lampsam.evaluation.laser_trials import OdometryNoise, holdout_split, simulated_odometry
 from lampsam.factors.geometry import between, wrap_angle
@@ -119,3 +120,52 @@ def test_cli_localize_carmen_log_trials(tmp_path: Path) -> None:
     assert summary["trials"] == 3 and summary["wrong_accepted"] == 0 and rc == 0
     assert summary["correct"] == summary["localized"] >= 2
     assert all(t["scans"][0] % 2 == 1 for t in doc["trials"])  # odd scans only
+
+
+def test_research_adds_modes_and_keeps_a_converged_cluster() -> None:
+    """The re-search while not accepted adds candidates as modes and keeps the filter's cluster.
+
+    In an empty rectangle the search finds the pose and its half-turn twin; the
+    filter has converged on the pose. The twin joins with ``research_share`` of
+    the weight; the cluster keeps the rest and, the twin fitting the scan as
+    well, after the next update too (before, the filter was re-seeded with
+    equal particles in every candidate's disc: half the weight on the twin).
+    """
+    from lampsam.localization.laser import LaserAcceptConfig, _research, search_pyramid
+    from lampsam.localization.particle_filter import ParticleFilter
+
+    grid = OccupancyGrid.empty(0.0, 0.0, 10.0, 8.0, RES)
+    lo = np.full((grid.height, grid.width), -4.0)
+    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
+    grid.log_odds = lo
+    rng = np.random.default_rng(9)
+    angles = np.deg2rad(np.arange(-90.0, 90.0, 2.0))
+    truth = np.array([[3.0 + 0.2 * k, 3.0, 0.0] for k in range(4)])
+    ranges = cast_rays(grid, truth, angles, 12.0) + rng.normal(0, 0.02, (4, len(angles)))
+    odom = simulated_odometry(truth, rng, OdometryNoise())
+    cfg = replace(LaserLocalizerConfig(), beam=replace(LaserLocalizerConfig().beam, max_range=12.0))
+    model = LikelihoodFieldModel(grid, cfg.beam)
+    pf = ParticleFilter(model, cfg.pf, rng)
+    pf.init_candidates([(truth[-1], 0.05)], 500, 0.01)  # converged at the last scan
+    modes = _research(model, search_pyramid(model, cfg), pf, ranges, angles, odom, cfg,
+                      LaserAcceptConfig(), np.zeros((0, 3)))  # fmt: skip
+    twin = np.array([10.0 - truth[-1, 0], 8.0 - truth[-1, 1]])
+    assert pf.n > 500 and np.any(np.hypot(*(pf.particles[500:, :2] - twin).T) < 0.3)
+    w = np.exp(pf.log_weights)
+    assert w.sum() == pytest.approx(1.0, abs=1e-9)
+    assert w[:500].sum() == pytest.approx(1.0 - cfg.research_share, abs=1e-9)  # the cluster's weight
+    assert len(modes) >= 2  # the twin is also a competing hypothesis of the acceptance test
+    pf.update(ranges[-1], angles)
+    near = np.hypot(*(pf.particles[:, :2] - truth[-1, :2]).T) < 0.2
+    assert np.exp(pf.log_weights)[near].sum() > 0.6
+
+
+def test_add_particles_rejects_a_bad_share() -> None:
+    from lampsam.localization.particle_filter import ParticleFilter, ParticleFilterError
+
+    grid = _room()
+    pf = ParticleFilter(LikelihoodFieldModel(grid, LaserLocalizerConfig().beam), LaserLocalizerConfig().pf,
+                        np.random.default_rng(1))  # fmt: skip
+    pf.init_particles(np.array([[2.0, 2.0, 0.0]]))
+    with pytest.raises(ParticleFilterError, match="share"):
+        pf.add_particles(np.array([[3.0, 3.0, 0.0]]), 1.0)

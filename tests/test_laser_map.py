@@ -15,7 +15,6 @@ from lampsam.localization.map_build import build_map
 from lampsam.localization.map_config import EnvMapConfig, LaserGridConfig
 from lampsam.localization.map_store import EnvMapError, load_env_map
 from lampsam.localization.map_tables import (
-    RANGE_TABLE_FILE,
     TableConfig,
     build_range_table,
     grid_fingerprint,
@@ -95,7 +94,7 @@ def test_stored_range_table_is_loaded_only_for_its_grid(tmp_path: Path) -> None:
     cfg = EnvMapConfig(laser=LaserGridConfig(resolution=0.2),
                        tables=TableConfig(laser_range_table=True, range_max_range=3.0))
     assert main(["build-map", str(log), "--out", str(tmp_path / "nt"), "--no-tables"]) == 0
-    assert not (tmp_path / "nt" / RANGE_TABLE_FILE).exists()
+    assert not list((tmp_path / "nt").glob("range_table*"))
     build_map(log, tmp_path / "map", config=cfg)
     env = load_env_map(tmp_path / "map")
     assert env.path == tmp_path / "map"

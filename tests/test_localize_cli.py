@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lampsam.cli import main
+from lampsam.localization.map_tables import range_table_file
 
 START = (3.0, 5.5, 0.5)  # free floor of the office, 0.6 m from the nearest obstacle
 
@@ -64,4 +65,25 @@ def test_localize_finds_the_start_area_and_writes_strict_json(
         assert key in summary
     trial = doc["trial"]
     assert isinstance(trial, dict) and float(trial["error_m"]) <= 0.30
-    assert (map_dir / "range_table.npz").is_file()  # stored with the map for the next run (map_tables)
+    assert (map_dir / range_table_file(4.5)).is_file()  # stored with the map for the next run (map_tables)
+
+
+def test_replay_runs_the_frontend_lazily_with_the_same_frames(office_search: tuple[Path, Path]) -> None:
+    from lampsam.datasets.logrun import read_run
+    from lampsam.frontend.pipeline import process_run
+    from lampsam.localization.replay import ReplayRobot
+
+    run, _ = office_search
+    full = process_run(read_run(run))
+    robot = ReplayRobot(run)
+    robot.turn(2 * math.pi, math.radians(30))
+    first = robot.drive(0.5)
+    assert 0 < len(first) < len(full)
+    assert len(robot._ceiling) == len(first)  # nothing processed beyond the frames asked for
+    rest = robot.drive(100.0)  # the rest of the run
+    got = first + rest
+    assert len(got) == len(full)
+    for a, b in zip(got, full, strict=True):
+        assert a.t == b.t
+        np.testing.assert_array_equal(a.ceiling_m, np.array([o.m for o in b.lamps] + [o.m for o in b.corners],
+                                                    dtype=float).reshape(-1, 2))

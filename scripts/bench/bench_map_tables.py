@@ -61,8 +61,7 @@ def main() -> None:
     env = load_env_map(tmp / "map")
     grid = env.grid
     table = build_range_table(grid, args.max_range)
-    save_range_table(tmp / "map", grid, table)
-    size_mb = (tmp / "map" / "range_table.npz").stat().st_size / 1e6
+    size_mb = save_range_table(tmp / "map", grid, table).stat().st_size / 1e6
     tb_w, tb_c = median_wall_cpu(lambda: build_range_table(grid, args.max_range), args.build_repeats)
     tl_w, tl_c = median_wall_cpu(lambda: load_range_table(tmp / "map", grid, args.max_range),
                        args.repeats)
