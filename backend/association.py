@@ -30,6 +30,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs
+from lampsam.factors.geometry import mahalanobis2_2x2
 
 log = logging.getLogger(__name__)
 
@@ -204,10 +205,8 @@ def pairwise_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatArray) 
     d = r[:, None, 1, 1] + s[None, :, 1, 1]
     nu0 = z[:, None, 0] - z_hat[None, :, 0]
     nu1 = z[:, None, 1] - z_hat[None, :, 1]
-    det = a * d - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = (d * nu0**2 - 2.0 * b * nu0 * nu1 + a * nu1**2) / det
-    return np.where((det > 0) & (a > 0), d2, np.inf)
+    d2, pd = mahalanobis2_2x2(nu0, nu1, a, b, d)
+    return np.where(pd, d2, np.inf)
 
 
 def screen_pairs(observations: list[Obs], kind: str, lids: list[int], z_hat: FloatArray,

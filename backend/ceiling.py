@@ -26,7 +26,7 @@ from lampsam.factors.ceiling import (
     lamp_axis,
     project_point,
 )
-from lampsam.factors.geometry import FactorError, wrap_axis
+from lampsam.factors.geometry import FactorError, mahalanobis2_2x2, wrap_axis
 
 if TYPE_CHECKING:  # models.py imports this module: the record type for annotations only
     from lampsam.backend.models import Obs
@@ -246,10 +246,8 @@ class CeilingModel:
         r0 = ms[:, 0] - ((c * dx + s * dy) - o[0]) * inv_h
         r1 = ms[:, 1] - ((-s * dx + c * dy) - o[1]) * inv_h
         a, b, d = covs[:, 0, 0], 0.5 * (covs[:, 0, 1] + covs[:, 1, 0]), covs[:, 1, 1]
-        det = a * d - b * b
-        if np.any(det <= 0.0) or np.any(a <= 0.0):
-            return math.inf
-        return float(np.sum((d * r0 * r0 - 2.0 * b * r0 * r1 + a * r1 * r1) / det))
+        d2, pd = mahalanobis2_2x2(r0, r1, a, b, d)
+        return float(np.sum(d2)) if np.all(pd) else math.inf
 
     def world_position(self, state: FloatArray) -> FloatArray:
         """(3,) world position of a landmark state, m."""

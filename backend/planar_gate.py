@@ -20,6 +20,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs
+from lampsam.factors.geometry import mahalanobis2_2x2
 
 
 def predict_point2_many(pose: FloatArray, landmarks: FloatArray, lin: FloatArray | None = None
@@ -116,10 +117,8 @@ def bearing_range_d2(z: FloatArray, r: FloatArray, z_hat: FloatArray, s: FloatAr
     nu = z[:, None, :] - z_hat[None, :, :]
     nu[..., 0] = (nu[..., 0] + math.pi) % (2.0 * math.pi) - math.pi
     a, b, d = psi[..., 0, 0], 0.5 * (psi[..., 0, 1] + psi[..., 1, 0]), psi[..., 1, 1]
-    det = a * d - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = (d * nu[..., 0] ** 2 - 2.0 * b * nu[..., 0] * nu[..., 1] + a * nu[..., 1] ** 2) / det
-    return np.where((det > 0) & (a > 0) & np.isfinite(d2), d2, np.inf)
+    d2, pd = mahalanobis2_2x2(nu[..., 0], nu[..., 1], a, b, d)
+    return np.where(pd & np.isfinite(d2), d2, np.inf)
 
 
 def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s: FloatArray,

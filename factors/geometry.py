@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from lampsam.angles import wrap_angle, wrap_axis
-from lampsam.arrays import FloatArray
+from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LampsamError
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "between",
     "compose",
     "coords_D_tangent",
+    "mahalanobis2_2x2",
     "rot2",
     "tangent_D_coords",
     "transform_from",
@@ -156,3 +157,25 @@ def transform_to(world_T_body: FloatArray, world_t_point: FloatArray) -> FloatAr
     c, s = math.cos(world_T_body[2]), math.sin(world_T_body[2])
     dx, dy = world_t_point[0] - world_T_body[0], world_t_point[1] - world_T_body[1]
     return np.array([c * dx + s * dy, -s * dx + c * dy])
+
+
+def mahalanobis2_2x2(nu0: FloatArray, nu1: FloatArray, a: FloatArray, b: FloatArray,
+                     d: FloatArray) -> tuple[FloatArray, BoolArray]:
+    """``nu^T C^-1 nu`` for 2-vectors and 2x2 covariances given entry by entry (eq. 20).
+
+    ``C = [[a, b], [b, d]]`` (``b`` the symmetrised off-diagonal), inverted in closed
+    form; every argument broadcasts, so all pairs of N observations and M predictions
+    go at once without an (N, M, 2, 2) temporary.
+
+    Args:
+        nu0, nu1: the innovation's two components.
+        a, b, d: the covariance's entries, same units squared.
+
+    Returns:
+        ``(d2, pd)``: the squared distances, and where ``C`` is positive definite
+        (``det > 0`` and ``a > 0``); ``d2`` is meaningless where ``pd`` is False.
+    """
+    det = a * d - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (d * nu0**2 - 2.0 * b * nu0 * nu1 + a * nu1**2) / det
+    return d2, (det > 0) & (a > 0)
