@@ -283,6 +283,28 @@ class MapLocalizer(SlamBackend):
                         obs=idx[rows], lm=keep[cols], h_l=h_l[cols], r=r[rows])
 
     # ------------------------------------------------------------------ update
+    def _axis_rows(self, obs: list[Obs], mt: _Matches, arr: _KindArrays,
+                   var_theta: float) -> list[tuple[float, float]]:
+        """The scalar axis rows of a frame's matched lamps (eq. 18's ``alpha = phi - theta`` mod pi).
+
+        One row per matched lamp whose observation has an axis and whose map lamp has
+        one: ``(nu, var)`` with ``nu`` the wrapped axis innovation, rad, and ``var`` the
+        observation's axis variance plus the map's ``var(phi)``, rad^2 (the axes are not
+        states); a row outside its own 1-dof gate (``var_theta``: the heading's
+        variance, rad^2) is left out. ``d alpha / d theta = -1``.
+        """
+        rows: list[tuple[float, float]] = []
+        for i, j in zip(mt.obs, mt.lm, strict=True):
+            o = obs[int(i)]
+            if not o.has_axis or math.isnan(arr.phi[j]):
+                continue
+            nu_a = float(wrap_axis(float(o.z[2]) - (arr.phi[j] - self.x[2])))
+            var = float(o.R[2, 2]) + float(arr.var_phi[j])
+            if nu_a * nu_a / (var + var_theta) >= self._gate1:
+                continue
+            rows.append((nu_a, var))
+        return rows
+
     def _update(self, obs: list[Obs]) -> int:
         """Information-form EKF update with the frame's matched observations."""
         if self._pj is not None:
@@ -301,16 +323,7 @@ class MapLocalizer(SlamBackend):
             n += len(mt.obs)
             if kind != LandmarkKind.LAMP.value:
                 continue
-            # lamp axes (eq. 18's alpha = phi - theta mod pi): a scalar row each, with
-            # the map's var(phi); a row outside its own 1-dof gate is left out
-            for i, j in zip(mt.obs, mt.lm, strict=True):
-                o = obs[int(i)]
-                if not o.has_axis or math.isnan(arr.phi[j]):
-                    continue
-                nu_a = float(wrap_axis(float(o.z[2]) - (arr.phi[j] - self.x[2])))
-                var = float(o.R[2, 2]) + float(arr.var_phi[j])
-                if nu_a * nu_a / (var + self.P[2, 2]) >= self._gate1:
-                    continue
+            for nu_a, var in self._axis_rows(obs, mt, arr, float(self.P[2, 2])):
                 info[2, 2] += 1.0 / var
                 grad[2] += -nu_a / var  # d alpha / d theta = -1
         if n == 0:
@@ -356,14 +369,7 @@ class MapLocalizer(SlamBackend):
                 rows_r.append(mt.r[k])
             if kind != LandmarkKind.LAMP.value:
                 continue
-            for i, j in zip(mt.obs, mt.lm, strict=True):
-                ob = obs[int(i)]
-                if not ob.has_axis or math.isnan(arr.phi[j]):
-                    continue
-                nu_a = float(wrap_axis(float(ob.z[2]) - (arr.phi[j] - self.x[2])))
-                var = float(ob.R[2, 2]) + float(arr.var_phi[j])
-                if nu_a * nu_a / (var + pj[2, 2]) >= self._gate1:
-                    continue
+            for nu_a, var in self._axis_rows(obs, mt, arr, float(pj[2, 2])):
                 h = np.zeros((1, n))
                 h[0, 2] = -1.0
                 rows_h.append(h)
