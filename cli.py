@@ -23,17 +23,16 @@ import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from lampsam.errors import LampsamError
 from lampsam.interrupt import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE, stop_requested
 from lampsam.safe_io import atomic_path, check_output_file
 
 if TYPE_CHECKING:
-    from lampsam.datasets.kinect_sim import KinectConfig
-
-if TYPE_CHECKING:
     from lampsam.backend.config import SlamConfig
+    from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.kinect_sim import KinectConfig
     from lampsam.datasets.logrun import LoggedRun
 
 log = logging.getLogger("lampsam")
@@ -369,9 +368,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     import dataclasses
 
     from lampsam.backend.config import SlamConfig
-    from lampsam.backend.slam import run_slam, summary
+    from lampsam.backend.slam import run_slam
     from lampsam.config_loader import load_config
-    from lampsam.evaluation.slam_report import write_slam_plot
 
     config = load_config(SlamConfig, _config_path(args))
     if args.gate_only:
@@ -430,21 +428,33 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
               f"are written to {out} (status interrupted)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    with atomic_path(out / "slam.png") as tmp:
-        write_slam_plot(tmp, result, run.groundtruth)
-    s = summary(result, run.groundtruth)
-    err = s.get("error")
-    msg = (f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} landmarks "
-           f"({s['landmarks_pruned']} pruned)")
-    if err:
-        msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
-                f" heading RMS {err['heading_rms_deg']:.2f} deg")
-    print(msg + f"; written to {out}")
+    s = _plot_and_summarize(out, result, run)
+    print(f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} "
+          f"landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; written to {out}")
     if result.status != "ok":
         print(f"{args.backend}: {result.status}; the {result.backend} estimate is written "
               f"to {out}", file=sys.stderr)
         return 1
     return 0
+
+
+def _plot_and_summarize(out: Path, result: SlamResult, run: LoggedRun) -> dict[str, Any]:
+    """Write ``out/slam.png`` (path, map, error over time) and return the run's summary."""
+    from lampsam.backend.slam import summary
+    from lampsam.evaluation.slam_report import write_slam_plot
+
+    with atomic_path(out / "slam.png") as tmp:
+        write_slam_plot(tmp, result, run.groundtruth)
+    return summary(result, run.groundtruth)
+
+
+def _error_text(s: dict[str, Any]) -> str:
+    """``"; position error RMS .., max ..; heading RMS .."`` of a summary, or "" without truth."""
+    err = s.get("error")
+    if not err:
+        return ""
+    return (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
+            f" heading RMS {err['heading_rms_deg']:.2f} deg")
 
 
 def _check_map_flags(args: argparse.Namespace) -> None:
@@ -476,7 +486,6 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     from lampsam.backend.localize_only import LocalizeConfig
     from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
     from lampsam.backend.map_merge import merge_maps
-    from lampsam.backend.slam import summary
 
     cmap = read_map(args.map[0])  # a bad map: an error before any computing
     for more in args.map[1:]:
@@ -489,18 +498,10 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
         config = dataclasses.replace(config, features=features)
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
                                loc=LocalizeConfig(map_mode="priors" if args.map_priors else "fixed"))
-    from lampsam.evaluation.slam_report import write_slam_plot
-
-    with atomic_path(out / "slam.png") as tmp:
-        write_slam_plot(tmp, result, run.groundtruth)
-    s = summary(result, run.groundtruth)
-    err = s.get("error")
-    msg = (f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
-           f"observations of {len(cmap.landmarks)} map landmarks used, none added")
-    if err:
-        msg += (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
-                f" heading RMS {err['heading_rms_deg']:.2f} deg")
-    print(msg + f"; written to {out}")
+    s = _plot_and_summarize(out, result, run)
+    print(f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
+          f"observations of {len(cmap.landmarks)} map landmarks used, none added"
+          f"{_error_text(s)}; written to {out}")
     return 0 if result.status == "ok" else (EXIT_INTERRUPTED if result.status == "interrupted" else 1)
 
 
