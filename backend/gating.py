@@ -21,7 +21,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import InnovationScale, innovation_scale, screen_pairs
+from lampsam.backend.association import screen_pairs
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -33,14 +33,6 @@ RELATIVE_GATE_KEYFRAMES = 30
 
 class Gating(GraphState):
     """Innovations and gates (mixin of :class:`~lampsam.backend.graph.GraphSlam`)."""
-
-    @property
-    def noise_scale(self) -> InnovationScale:
-        """The range-bearing gate's online innovation scale (``association.planar_noise_adapt``)."""
-        ns: InnovationScale | None = getattr(self, "_noise_scale", None)
-        if ns is None:
-            ns = self._noise_scale = innovation_scale(self.config.association)
-        return ns
 
     def _joint_cov(self, lm: GraphLandmark, k: int) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """Joint marginal blocks ``(S_kk, S_kl, S_ll)`` of keyframe ``k`` and a landmark.

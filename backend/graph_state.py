@@ -25,6 +25,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.association import innovation_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.handlers import (
@@ -65,6 +66,8 @@ class GraphState(SlamBackend):
             self.handlers[LandmarkKind.LAMP] = ceiling_handler
             self.handlers[LandmarkKind.CORNER] = ceiling_handler
         self.online = online
+        #: the range-bearing gate's online innovation scale (``association.planar_noise_adapt``)
+        self.noise_scale = innovation_scale(config.association)
         self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
         self.initial = gtsam.Values()  # initial guesses of every variable
