@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
 import time
 from collections.abc import Callable
 
 import numpy as np
+from timing import median_wall_cpu  # scripts/bench/timing.py, a sibling module
 
 from lampsam.localization.grid import OccupancyGrid, free_mask
 from lampsam.localization.likelihood import BeamModelConfig, LikelihoodFieldModel, RayCastModel
@@ -67,13 +67,8 @@ def median_ms(fn: Callable[[], object], runs: int) -> tuple[float, float]:
     time when other jobs share the cores.
     """
     fn()
-    wall, cpu = [], []
-    for _ in range(runs):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return 1000.0 * statistics.median(wall), 1000.0 * statistics.median(cpu)
+    wall, cpu = median_wall_cpu(fn, runs)
+    return 1000.0 * wall, 1000.0 * cpu
 
 
 def main() -> None:
