@@ -814,7 +814,9 @@ def _cmd_frontend_eval(args: argparse.Namespace) -> int:
             write_scores,
         )
 
-        settings = PhotoEvalSettings(width=args.width)
+        settings = PhotoEvalSettings(
+            width=args.width, auto_width=args.auto_width, second_look=args.second_look
+        )
         out_file = _out_file(args) if args.out is not None else None
         scores = evaluate_photos(Path(args.photos), Path(args.labels), settings, cfg.lamps)
         print(format_table(scores))
@@ -845,6 +847,10 @@ def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
                    help="label file of those photos (tests/data/ceiling_photo_labels.json)")
     p.add_argument("--width", type=int, default=320,
                    help="photos: working image width in px (default 320)")
+    p.add_argument("--auto-width", action="store_true",
+                   help="photos: working width per photo from its lamps (docs/photo-labels.md)")
+    p.add_argument("--second-look", action="store_true",
+                   help="photos: full-resolution look inside long or border-cut blobs")
     p.add_argument("--out", default=None,
                    help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")

@@ -30,6 +30,7 @@ from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.corners import CornerDetections, detect_corner_pixels
 from lampsam.frontend.lamps import LampDetections, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
+from lampsam.frontend.resolution import lamp_config_for_width
 from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
@@ -81,7 +82,7 @@ def config_for_width(width: int, base: FrontendConfig | None = None) -> Frontend
     s = width / REFERENCE_WIDTH
     if abs(s - 1.0) < 1e-9:
         return base
-    lamps = replace(base.lamps, min_area_px=max(int(round(base.lamps.min_area_px * s * s)), 1))
+    lamps = lamp_config_for_width(base.lamps, width)
     corners = replace(
         base.corners,
         min_spacing_px=max(int(round(base.corners.min_spacing_px * s)), 1),

@@ -161,7 +161,9 @@ def second_look(
     h, w = mask.shape
     fh, fw = fine.shape
     lab, blob_lab = _blob_regions(mask, moments)
-    cfg = replace(fine_config, threshold=math.floor(k))  # pixels > floor(k) == pixels > k
+    # pixels > floor(k) == pixels > k; the size cap is a share of the whole image (the coarse
+    # blob passed it), not of a crop around one blob.
+    cfg = replace(fine_config, threshold=math.floor(k), max_area_fraction=1.0)
     reach = cfg.support_px + cfg.ring_px + 1 + look.pad_px
     parts_of: dict[int, list[BlobMoments]] = {}
     for i in idx:
