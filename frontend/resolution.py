@@ -75,11 +75,23 @@ class ResolutionPolicy:
 
 
 def lamp_config_for_width(config: LampDetectorConfig, width: int) -> LampDetectorConfig:
-    """Scale the detector's area setting from 320 px wide frames to ``width`` (``s^2``, ``s = width / 320``)."""
+    """Scale the detector's pixel settings from 320 px wide frames to ``width`` (``s = width / 320``).
+
+    The minimum area scales with ``s^2``; the blob's reach (``support_px``, the
+    dilation that collects its blurred edge, and ``ring_px``, the background
+    ring that the contrast and crowding tests read) with ``s``, so that both
+    look at the same ceiling around a lamp at any width. ``thin_width_px``
+    stays: it is about sampling (a blob 1-2 px wide at any width), not the ceiling.
+    """
     s = width / REFERENCE_WIDTH
     if abs(s - 1.0) < 1e-9:
         return config
-    return replace(config, min_area_px=max(int(round(config.min_area_px * s * s)), 1))
+    return replace(
+        config,
+        min_area_px=max(int(round(config.min_area_px * s * s)), 1),
+        support_px=max(int(round(config.support_px * s)), 1),
+        ring_px=max(int(round(config.ring_px * s)), 1),
+    )
 
 
 def width_for_camera(fov_deg: float, range_m: float, gap_m: float, min_gap_px: float = 2.0) -> int:
