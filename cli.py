@@ -815,7 +815,9 @@ def _cmd_frontend_eval(args: argparse.Namespace) -> int:
         )
 
         settings = PhotoEvalSettings(
-            width=args.width, auto_width=args.auto_width, second_look=args.second_look
+            width=args.width or 320,
+            auto_width=args.width is None,
+            second_look=args.second_look,
         )
         out_file = _out_file(args) if args.out is not None else None
         scores = evaluate_photos(Path(args.photos), Path(args.labels), settings, cfg.lamps)
@@ -845,12 +847,12 @@ def _add_frontend_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--photos", default=None, help="folder of real ceiling photos")
     p.add_argument("--labels", default=None,
                    help="label file of those photos (tests/data/ceiling_photo_labels.json)")
-    p.add_argument("--width", type=int, default=320,
-                   help="photos: working image width in px (default 320)")
-    p.add_argument("--auto-width", action="store_true",
-                   help="photos: working width per photo from its lamps (docs/photo-labels.md)")
-    p.add_argument("--second-look", action="store_true",
-                   help="photos: full-resolution look inside long or border-cut blobs")
+    p.add_argument("--width", type=_positive_int, default=None,
+                   help="photos: working image width in px (default: per photo, from its lamps; "
+                        "docs/photo-labels.md)")
+    p.add_argument("--second-look", action=argparse.BooleanOptionalAction, default=True,
+                   help="photos: look at full resolution inside long or border-cut blobs "
+                        "(default on)")
     p.add_argument("--out", default=None,
                    help="JSON file (default RUN/frontend_eval.json; photos: none)")
     p.add_argument("--max-frames", type=int, default=None, help="only the first N images")

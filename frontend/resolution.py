@@ -18,9 +18,9 @@ take the median short-axis width of the frame's lamps, and work at the width
 that makes it ``min_gap_px / gap_to_width`` px (10 px for ``rho`` = 0.2, a
 2 cm gap beside a 10 cm fitting), never below the coarse width nor above the
 photo's. Gaps narrower than ``rho`` of the lamp width (connectors between LED
-modules) are left to the second look at full resolution
-(:mod:`lampsam.frontend.second_look`) inside the blobs that are long for the
-frame.
+modules) are left to the second look, at ``look_factor`` (4) times the working
+width or full resolution (:mod:`lampsam.frontend.second_look`), inside the
+blobs that are long for the frame or cut by the border.
 
 Pixel sizes of :class:`~lampsam.frontend.lamp_config.LampDetectorConfig` are
 for 320 px wide frames; :func:`lamp_config_for_width` scales them.
@@ -61,6 +61,11 @@ class ResolutionPolicy:
         second_look: look again at full resolution inside the blobs long for
             their frame or cut by the border (default True;
             :mod:`lampsam.frontend.second_look`).
+        look_factor: the second look is at this many times the working width,
+            or at full resolution if less (default 4: a gap a quarter of the
+            smallest the working width resolves still spans 2 px; the
+            detector's reach scales with the width, so its cost grows with
+            the cube of the factor).
         look: second-look settings.
     """
 
@@ -71,6 +76,7 @@ class ResolutionPolicy:
     gap_to_width: float = 0.2
     step_px: int = 16
     second_look: bool = True
+    look_factor: float = 4.0
     look: SecondLookConfig = SecondLookConfig()
 
 
@@ -172,8 +178,10 @@ def detect_photo_lamps(
     cfg = lamp_config_for_width(config, width)
     camera = camera_for(width, h)
     moments, k, mask, n_rej = measure_blobs(img, cfg, ceiling_grid(camera))
-    if policy.second_look and k is not None and full_w > width:
+    look_w = min(full_w, int(policy.look_factor * width))
+    if policy.second_look and k is not None and look_w > width:
+        fine = resize_width(full, look_w)
         moments, _ = second_look(
-            full, full_w / width, moments, mask, k, lamp_config_for_width(config, full_w), policy.look
+            fine, look_w / width, moments, mask, k, lamp_config_for_width(config, look_w), policy.look
         )
     return lamps_from_moments(moments, k, mask, n_rej, camera, cfg), cfg

@@ -8,9 +8,10 @@ is timed apart), the policies
 * ``640``: reduce to 640 px and detect;
 * ``auto``: a first pass at 320 px, then the width that makes the median lamp
   10 px wide (:func:`lampsam.frontend.resolution.width_for_lamps`);
-* ``320+look``: 320 px, then a full-resolution look inside the long or
+* ``320+look``: 320 px, then a second look at 4x (1280 px) inside the long or
   border-cut blobs (:mod:`lampsam.frontend.second_look`);
-* ``auto+look``: both (what ``lampsam frontend-eval --auto-width --second-look`` runs)
+* ``auto+look``: both (what ``lampsam frontend-eval --photos`` runs by default);
+* ``auto+full``: the same with the second look at full resolution
 
 are run in turn ``--runs`` times (default 5; each policy sees the same load).
 Printed per photo and policy: the median process CPU time (ms, the resize
@@ -45,6 +46,7 @@ POLICIES = {
     "auto": ResolutionPolicy(auto=True, second_look=False),
     "320+look": ResolutionPolicy(width=320, auto=False, second_look=True),
     "auto+look": ResolutionPolicy(auto=True, second_look=True),
+    "auto+full": ResolutionPolicy(auto=True, second_look=True, look_factor=1e9),
 }
 
 
