@@ -18,7 +18,7 @@ take the median short-axis width of the frame's lamps, and work at the width
 that makes it ``min_gap_px / gap_to_width`` px (10 px for ``rho`` = 0.2, a
 2 cm gap beside a 10 cm fitting), never below the coarse width nor above the
 photo's. Gaps narrower than ``rho`` of the lamp width (connectors between LED
-modules) are left to the second look, at ``look_factor`` (4) times the working
+modules) are left to the second look, at ``look_factor`` (2) times the working
 width or full resolution (:mod:`lampsam.frontend.second_look`), inside the
 blobs that are long for the frame or cut by the border.
 
@@ -62,10 +62,10 @@ class ResolutionPolicy:
             their frame or cut by the border (default True;
             :mod:`lampsam.frontend.second_look`).
         look_factor: the second look is at this many times the working width,
-            or at full resolution if less (default 4: a gap a quarter of the
-            smallest the working width resolves still spans 2 px; the
-            detector's reach scales with the width, so its cost grows with
-            the cube of the factor).
+            or at full resolution if less (default 2: a gap half the smallest
+            the working width resolves, 0.1 of a lamp's width, spans 2 px; the
+            detector's reach scales with the width, so the look's cost grows
+            with about the cube of the factor).
         look: second-look settings.
     """
 
@@ -76,7 +76,7 @@ class ResolutionPolicy:
     gap_to_width: float = 0.2
     step_px: int = 16
     second_look: bool = True
-    look_factor: float = 4.0
+    look_factor: float = 2.0
     look: SecondLookConfig = SecondLookConfig()
 
 

@@ -143,7 +143,8 @@ def test_detect_photo_lamps_policy_end_to_end() -> None:
 
     off = ResolutionPolicy(auto=False, second_look=False)
     plain, _ = detect_photo_lamps(full, cam, DEFAULT_CONFIG, off)
-    looked, _ = detect_photo_lamps(full, cam, DEFAULT_CONFIG, ResolutionPolicy(auto=False))
+    full_look = ResolutionPolicy(auto=False, look_factor=5.0)
+    looked, _ = detect_photo_lamps(full, cam, DEFAULT_CONFIG, full_look)
     assert len(plain.lamps) == 3 and len(looked.lamps) == 4
     auto, _ = detect_photo_lamps(full, cam, DEFAULT_CONFIG, ResolutionPolicy(second_look=False))
     # lamps 40 px wide at full resolution are 8 px at 320: the rule asks for 10 px -> 400 px

@@ -10,8 +10,10 @@ is timed apart), the policies
   10 px wide (:func:`lampsam.frontend.resolution.width_for_lamps`);
 * ``320+look``: 320 px, then a second look at 4x (1280 px) inside the long or
   border-cut blobs (:mod:`lampsam.frontend.second_look`);
-* ``auto+look``: both (what ``lampsam frontend-eval --photos`` runs by default);
-* ``auto+full``: the same with the second look at full resolution
+* ``auto+look``: both, the look at 2x the working width (what
+  ``lampsam frontend-eval --photos`` runs by default);
+* ``auto+look4``, ``auto+full``: the same with the second look at 4x the
+  working width or at full resolution
 
 are run in turn ``--runs`` times (default 5; each policy sees the same load).
 Printed per photo and policy: the median process CPU time (ms, the resize
@@ -44,8 +46,9 @@ POLICIES = {
     "320": ResolutionPolicy(width=320, auto=False, second_look=False),
     "640": ResolutionPolicy(width=640, auto=False, second_look=False),
     "auto": ResolutionPolicy(auto=True, second_look=False),
-    "320+look": ResolutionPolicy(width=320, auto=False, second_look=True),
+    "320+look": ResolutionPolicy(width=320, auto=False, second_look=True, look_factor=4.0),
     "auto+look": ResolutionPolicy(auto=True, second_look=True),
+    "auto+look4": ResolutionPolicy(auto=True, second_look=True, look_factor=4.0),
     "auto+full": ResolutionPolicy(auto=True, second_look=True, look_factor=1e9),
 }
 
