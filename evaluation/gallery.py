@@ -82,7 +82,9 @@ def config_for_width(width: int, base: FrontendConfig | None = None) -> Frontend
     s = width / REFERENCE_WIDTH
     if abs(s - 1.0) < 1e-9:
         return base
-    lamps = lamp_config_for_width(base.lamps, width)
+    # Area only, as before: the gallery's full-size column keeps the 320 px reach (scaling it
+    # takes a 4000 px photo from ~10 to ~17 s CPU); frontend-eval --photos scales both.
+    lamps = lamp_config_for_width(base.lamps, width, scale_reach=False)
     corners = replace(
         base.corners,
         min_spacing_px=max(int(round(base.corners.min_spacing_px * s)), 1),

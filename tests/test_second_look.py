@@ -132,6 +132,12 @@ def test_width_rules() -> None:
     assert width_for_lamps(np.array([20.0]), 320, 4000, p) == 320  # never below the first pass
     assert width_for_lamps(np.array([0.5]), 320, 4000, p) == 4000  # nor above the photo
     assert width_for_lamps(np.array([]), 320, 4000, p) == 320
+    # the detector's pixel settings at 640 px: area x4, reach x2 (or area only)
+    c = lamp_config_for_width(DEFAULT_CONFIG, 640)
+    assert (c.min_area_px, c.support_px, c.ring_px) == (24, 4, 6)
+    c = lamp_config_for_width(DEFAULT_CONFIG, 640, scale_reach=False)
+    assert (c.min_area_px, c.support_px, c.ring_px) == (24, 2, 3)
+    assert lamp_config_for_width(DEFAULT_CONFIG, 320) is DEFAULT_CONFIG
 
 
 def test_detect_photo_lamps_policy_end_to_end() -> None:
