@@ -53,8 +53,9 @@ class FrameTimes:
     Attributes:
         arrival: when each image was available (see the module docstring).
         ready: when its frame was made.
-        worker_cpu_s: the worker's CPU time for load + frontend of every frame
-            (process or thread CPU; sequential: this thread's), s.
+        worker_cpu_s: CPU time for load + frontend of every frame, s: a process
+            worker's whole CPU (with pickling the frames), a thread worker's
+            thread, or (sequential) the caller's thread while making frames.
     """
 
     arrival: list[float] = field(default_factory=list)
@@ -112,13 +113,17 @@ def unpack_frame(packed: PackedFrame) -> CeilingFrame:
 
 
 def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
-             pace: float | None, start: float) -> Iterator[tuple[CeilingFrame, float, float]]:
-    """Load and process the images in order: ``(frame, arrival, ready)``.
+             pace: float | None, start: float | None
+             ) -> Iterator[tuple[CeilingFrame, float, float, float]]:
+    """Load and process the images in order: ``(frame, arrival, ready, cpu_s)``
+    (``cpu_s``: this thread's CPU time for the load and the frontend).
 
     With ``pace`` (replay speed, x real time) image ``i`` is not read before
-    ``start + (t_i - t_0) / pace``; without it, as fast as asked.
+    ``start + (t_i - t_0) / pace`` (``start`` None: now, when the source is up);
+    without it, as fast as asked.
     """
     t0 = float(images.t[0]) if len(images) else 0.0
+    start = time.perf_counter() if start is None else start
     for i in range(len(images)):
         t = float(images.t[i])
         if pace is not None:
@@ -128,12 +133,13 @@ def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | N
                 time.sleep(wait)
         else:
             arrival = time.perf_counter()
+        c0 = time.thread_time()
         img = images.load(i)
         try:
             frame = process_image(img, t, i, camera, config)
         except FrontendError as exc:
             raise FrontendError(f"{images.files[i]}: {exc}") from exc
-        yield frame, arrival, time.perf_counter()
+        yield frame, arrival, time.perf_counter(), time.thread_time() - c0
 
 
 def _put(out: queue.Queue[object], item: object, stop: threading.Event) -> bool:
@@ -148,7 +154,7 @@ def _put(out: queue.Queue[object], item: object, stop: threading.Event) -> bool:
 
 
 def _worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
-            pace: float | None, start: float, out: queue.Queue[object],
+            pace: float | None, start: float | None, out: queue.Queue[object],
             stop: threading.Event, cv_threads: int | None, in_process: bool) -> None:
     """Worker body (thread or process): frames into ``out``, then ``("done", cpu_s)``
     or ``("error", message, is_lampsam_error)``; returns early when ``stop`` is set."""
@@ -162,7 +168,7 @@ def _worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | No
         clock = time.thread_time
     c0 = clock()
     try:
-        for frame, arrival, ready in _produce(images, camera, config, pace, start):
+        for frame, arrival, ready, _ in _produce(images, camera, config, pace, start):
             item = (pack_frame(frame) if in_process else frame, arrival, ready)
             if not _put(out, item, stop):
                 break
@@ -193,7 +199,7 @@ def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig
         pace: replay speed (x real time) at which images become available; None:
             as soon as read.
         start: ``time.perf_counter()`` at which the first image arrives when paced
-            (default: now).
+            (default: when the source is up, i.e. after a worker process started).
         times: filled with each frame's arrival / ready clock readings.
         cv_threads: OpenCV threads in a process worker (None leaves OpenCV's
             default); a thread worker shares the caller's setting.
@@ -212,20 +218,19 @@ def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig
     if depth < 1:
         raise ValueError(f"pipeline depth must be >= 1, got {depth}")
     times = times if times is not None else FrameTimes()
-    start = time.perf_counter() if start is None else start
     if mode == "sequential":
-        c0 = time.thread_time()
-        for frame, arrival, ready in _produce(images, camera, config, pace, start):
+        for frame, arrival, ready, cpu in _produce(images, camera, config, pace, start):
             times.arrival.append(arrival)
             times.ready.append(ready)
-            times.worker_cpu_s = time.thread_time() - c0
+            times.worker_cpu_s += cpu
             yield frame
         return
     yield from _from_worker(images, camera, config, mode, depth, pace, start, times, cv_threads)
 
 
 def _from_worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
-                 mode: Mode, depth: int, pace: float | None, start: float, times: FrameTimes,
+                 mode: Mode, depth: int, pace: float | None, start: float | None,
+                 times: FrameTimes,
                  cv_threads: int | None) -> Iterator[CeilingFrame]:
     """Start a worker, yield its frames in order, stop it however the caller ends."""
     if mode == "process":
