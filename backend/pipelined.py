@@ -25,9 +25,10 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import queue
+import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass, field
 from typing import Literal, cast
 
@@ -143,13 +144,16 @@ def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | N
 
 
 def _put(out: queue.Queue[object], item: object, stop: threading.Event) -> bool:
-    """Put ``item`` once there is room; False if ``stop`` was set first."""
+    """Put ``item`` once there is room; False if ``stop`` was set (or, in a worker
+    process, the parent died) first."""
+    parent = mp.parent_process()
     while not stop.is_set():
         try:
             out.put(item, timeout=_POLL_S)
             return True
         except queue.Full:
-            continue
+            if parent is not None and not parent.is_alive():
+                return False
     return False
 
 
@@ -159,6 +163,8 @@ def _worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | No
     """Worker body (thread or process): frames into ``out``, then ``("done", cpu_s)``
     or ``("error", message, is_lampsam_error)``; returns early when ``stop`` is set."""
     if in_process:
+        # Ctrl-C reaches the whole process group: the parent stops the worker itself
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         if cv_threads is not None:
             import cv2
 
@@ -185,7 +191,7 @@ def _worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | No
 def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None = None,
                  mode: Mode = "process", depth: int = 8, pace: float | None = None,
                  start: float | None = None, times: FrameTimes | None = None,
-                 cv_threads: int | None = 1) -> Iterator[CeilingFrame]:
+                 cv_threads: int | None = 1) -> Generator[CeilingFrame, None, None]:
     """The frames of a run's images, in order, made now or ahead by a worker.
 
     Args:
@@ -205,7 +211,8 @@ def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig
             default); a thread worker shares the caller's setting.
 
     Yields:
-        One :class:`CeilingFrame` per image, in time order.
+        One :class:`CeilingFrame` per image, in time order. Closing the generator
+        (or dropping it) stops the worker.
 
     Raises:
         FrontendError: an image is unusable (named by file), raised when its
@@ -231,7 +238,7 @@ def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig
 def _from_worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
                  mode: Mode, depth: int, pace: float | None, start: float | None,
                  times: FrameTimes,
-                 cv_threads: int | None) -> Iterator[CeilingFrame]:
+                 cv_threads: int | None) -> Generator[CeilingFrame, None, None]:
     """Start a worker, yield its frames in order, stop it however the caller ends."""
     if mode == "process":
         ctx = mp.get_context("spawn")  # no fork of a parent holding GTSAM / OpenCV threads

@@ -116,3 +116,20 @@ def test_cli_frontend_option_same_trajectory(lab_run: LoggedRun, tmp_path: Path)
     assert seq and [p.name for p in seq] == [p.name for p in thr]
     for a, b in zip(seq, thr, strict=True):
         assert a.read_bytes() == b.read_bytes()
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_stopping_early_ends_the_worker(lab_run: LoggedRun, mode: str) -> None:
+    """A consumer that stops after 3 frames (queue of 2, the worker blocked on a full
+    queue) leaves no worker thread or process behind once the source is closed."""
+    import multiprocessing
+    import threading
+
+    assert lab_run.images is not None
+    source = frame_source(lab_run.images, lab_run.rig.camera, mode=mode,  # type: ignore[arg-type]
+                          depth=2)
+    got = [next(source) for _ in range(3)]
+    assert [f.index for f in got] == [0, 1, 2]
+    source.close()
+    assert not [t for t in threading.enumerate() if t.name == "lampsam-frontend"]
+    assert not [p for p in multiprocessing.active_children() if p.name == "lampsam-frontend"]
