@@ -38,18 +38,16 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import (
-    Assignment,
     TentativeLandmarks,
     associate,
     corner_budget,
     innovation_scale,
-    jcbb,
     learn_scale,
-    mahalanobis2,
     screen_pairs,
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
+from lampsam.backend.ekf_joint import joint_point2
 from lampsam.backend.ekf_update import (
     gathered_s,
     invariant_remap,
@@ -421,79 +419,6 @@ class EkfSlam(SlamBackend):
                                        for sl, o, res, h_r, h_l in rows])
         return None if out is None else (rows, *out)
 
-    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment],
-                      screened: dict[int, dict[int, tuple[float, bool]]]) -> list[Assignment]:
-        """Re-pair a frame's planar observations without ids by joint compatibility (JCBB).
-
-        Candidates are the landmarks individually inside the gate (eqs. 19-20); the
-        joint innovation covariance of a hypothesis is ``H P H^T + R`` over all its
-        rows (the shared robot block correlates them). An observation JCBB leaves
-        unpaired keeps a greedy ``"new"`` (beyond the new-landmark threshold of every
-        landmark) and is otherwise dropped, so one tree is not mapped twice.
-        """
-        cfg = self.config.association
-        idx = [a.obs_index for a in assignments
-               if obs[a.obs_index].kind == LandmarkKind.POINT2 and obs[a.obs_index].landmark_id is None]
-        if not idx:
-            return assignments
-        gate = cfg.gate(2)
-        cands: dict[int, list[int]] = {}
-        for i in idx:
-            if i in screened:
-                cands[i] = [lid for lid, (d2, _) in screened[i].items() if d2 < gate]
-                continue
-            cands[i] = []
-            for lid, s in self._slots.items():
-                if s.kind != LandmarkKind.POINT2 or lid in self._doomed:
-                    continue
-                pred = self._innovation(lid, obs[i])
-                if pred is not None and mahalanobis2(*pred) < gate:
-                    cands[i].append(lid)
-        if not any(cands.values()):
-            return assignments
-        # Only the robot and candidate blocks of P enter H P H^T: gather those (an
-        # O(m^2) read) instead of a dense copy of the whole n x n covariance.
-        local: dict[int, int] = {}  # landmark id -> its first column in the gathered block
-        cols = [0, 1, 2]
-        for lid in sorted({lid for c in cands.values() for lid in c}):
-            s_lid = self._slots[lid]
-            local[lid] = len(cols)
-            cols.extend(range(s_lid.offset, s_lid.offset + s_lid.dim))
-        col_idx = np.asarray(cols)
-        P = self._cov.take(col_idx[:, None], col_idx[None, :])
-        n = len(cols)
-
-        def joint(hyp: list[tuple[int, int]]) -> tuple[FloatArray, FloatArray] | None:
-            k = 2 * len(hyp)
-            h = np.zeros((k, n))
-            nu = np.empty(k)
-            r = np.zeros((k, k))
-            for row, (i, lid) in enumerate(hyp):
-                slot = self._slots[lid]
-                try:
-                    z_hat, h_r, h_l = self._h(slot, obs[i])
-                except Exception:
-                    return None
-                h[2 * row : 2 * row + 2, :3] = h_r
-                h[2 * row : 2 * row + 2, local[lid] : local[lid] + slot.dim] = h_l
-                nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
-                r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
-            return nu, (h @ P @ h.T + r) * self.noise_scale.scale
-
-        paired = dict(jcbb(cands, joint, cfg))
-        out = []
-        for a in assignments:
-            i = a.obs_index
-            if i not in cands:
-                out.append(a)
-            elif i in paired:
-                out.append(Assignment(i, paired[i], "matched"))
-            elif a.status == "new":
-                out.append(a)
-            else:
-                out.append(Assignment(i, None, "dropped"))
-        return out
-
     # ------------------------------------------------------------------ eqs. 24-25
     def _augment(self, obs: Obs, lid: int | None) -> int | None:
         """Add a landmark from one observation with the full cross-covariance (eqs. 24-25)."""
@@ -631,7 +556,12 @@ class EkfSlam(SlamBackend):
                                         self.config.association, lambda i: i in self._slots,
                                         patches, screened)
                 if self.config.association.joint_compatibility:
-                    assignments = self._joint_point2(obs, assignments, screened)
+                    planar = {lid: (sl.offset, sl.dim) for lid, sl in self._slots.items()
+                              if sl.kind == LandmarkKind.POINT2 and lid not in self._doomed}
+                    assignments = joint_point2(
+                        obs, assignments, screened, self.config.association, planar,
+                        self._innovation, lambda lid, o: self._h(self._slots[lid], o),
+                        self._cov, self.noise_scale.scale)
                 learn_scale(self.noise_scale, obs, assignments, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
