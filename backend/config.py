@@ -253,8 +253,20 @@ class EkfConfig:
             estimate, robot and landmark columns;
             :func:`lampsam.backend.ekf_update.mismatch_noise`), the part of the
             measurement that linearising at a stale first estimate leaves out.
-            ``c >= 0``; 0 = off; None (default): on with the automatic first
-            estimates (landmark-graph logs), off elsewhere.
+            ``c >= 0``; 0 (default) = off (docs/graph-backend.md: with the
+            observability-constrained Jacobians below it no longer helps).
+        observability_constrained: the observability-constrained EKF (OC-EKF, Huang,
+            Mourikis & Roumeliotis, IJRR 29(5) 2010) for planar landmarks: measurement
+            Jacobians at the latest estimate, projected to the nearest ones that keep
+            a global translation and rotation unobservable
+            (:func:`lampsam.backend.ekf_update.observability_project`), with the
+            first-estimates prediction (so ``first_estimate_jacobians`` is implied).
+            Where a landmark's estimate has moved metres from its first estimate the
+            first-estimates ``H`` points the update the wrong way; the projected one
+            does not. True / False force it; None (default) turns it on where first
+            estimates are automatic (range-bearing runs with Pose2 odometry) and
+            not turned off (``first_estimate_jacobians = false`` keeps the paper's
+            Jacobians). Ignored with ``right_invariant``.
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -270,7 +282,8 @@ class EkfConfig:
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
     robust_kernel: str = "none"
     robust_p: float = field(default=0.999, metadata=limits(gt=0.0, lt=1.0))
-    fej_mismatch: float | None = field(default=None, metadata=limits(ge=0.0))
+    fej_mismatch: float = field(default=0.0, metadata=limits(ge=0.0))
+    observability_constrained: bool | None = None
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -54,6 +54,7 @@ from lampsam.backend.ekf_update import (
     invariant_remap,
     invariant_retract,
     mismatch_noise,
+    observability_project,
     robust_noise,
     stacked_gain,
 )
@@ -104,8 +105,6 @@ _PRUNE_CHECKS_PER_STEP = 8
 #: A planar landmark is pruned as uncertain only above this many times the sigma of
 #: one sighting (and above ``prune_sigma``).
 _PRUNE_MEAS_SIGMAS = 3.0
-#: ``ekf.fej_mismatch`` where first estimates are on automatically (docs/graph-backend.md).
-_FEJ_MISMATCH_AUTO = 1.0
 #: Doomed landmarks are removed from the state in batches of this size (or this often).
 _PRUNE_BATCH = 16
 
@@ -167,8 +166,12 @@ class EkfSlam(SlamBackend):
         if inv and ceiling is not None:
             raise EstimationError("ekf.right_invariant applies to planar range-bearing runs only")
         self._invariant = bool(inv) if inv is not None else False
+        oc = config.ekf.observability_constrained
+        self._oc = bool(auto and self._fej) if oc is None else oc
+        if self._oc:
+            self._fej = True  # the first-estimates prediction and first estimates for N
         if self._invariant:
-            self._fej = False  # the invariant error keeps the rotation unobservable itself
+            self._fej = self._oc = False  # the invariant error keeps the rotation unobservable
         # None (auto): landmarks with a known id are kept on the same runs.
         prune_known = config.ekf.prune_known_ids
         self._prune_known = not auto if prune_known is None else prune_known
@@ -178,8 +181,7 @@ class EkfSlam(SlamBackend):
                                             cfg.tentative_max_idle, cfg.new_min_separation)
         self.noise_scale = innovation_scale(config.association)
         self._robust = cfg.robust_kernel
-        mm = cfg.fej_mismatch
-        self._mismatch = (_FEJ_MISMATCH_AUTO if auto else 0.0) if mm is None else mm
+        self._mismatch = cfg.fej_mismatch
         self._robust_thr = float(chi2.ppf(cfg.robust_p, 2))
 
     # ------------------------------------------------------------------ state
@@ -230,11 +232,17 @@ class EkfSlam(SlamBackend):
         """Predicted measurement and coordinate Jacobians (robot, landmark).
 
         With ``ekf.first_estimate_jacobians`` the Jacobians are taken at the landmark's
-        first estimate (the prediction ``z_hat`` at the current one).
+        first estimate (the prediction ``z_hat`` at the current one); with
+        ``ekf.observability_constrained`` a planar landmark's are the latest ones
+        projected (:func:`lampsam.backend.ekf_update.observability_project`).
         """
         pose = self._x[:3]
         state = self._x[slot.offset : slot.offset + slot.dim]
         z_hat, z_D_pose, z_D_l = predict(slot.kind, pose, state, obs, self.ceiling)
+        if self._oc and slot.first is not None and slot.kind == LandmarkKind.POINT2:
+            h_r, h_l = observability_project(z_D_pose @ tangent_D_coords(pose[2]), z_D_l,
+                                             pose[:2], slot.first[:2])
+            return z_hat, h_r, h_l
         if self._fej and slot.first is not None:
             _, z_D_pose, z_D_l = predict(slot.kind, pose, slot.first, obs, self.ceiling)
         return z_hat, z_D_pose @ tangent_D_coords(pose[2]), z_D_l
@@ -316,7 +324,10 @@ class EkfSlam(SlamBackend):
             firsts = [self._slots[lid].first for lid in lids]
             lin = np.array([f[:2] if f is not None else self._x[o : o + 2]
                             for f, o in zip(firsts, offs, strict=True)])
-        z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
+        z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx],
+                                              None if self._oc else lin)
+        if self._oc and lin is not None:
+            h_r, h_l = observability_project(h_r, h_l, self._x[:2], lin)
         return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
                              self.config.association, self.noise_scale.scale)
 
