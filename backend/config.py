@@ -241,20 +241,6 @@ class EkfConfig:
             forgotten (default 100).
         new_min_separation: a confirmed tentative landmark within this distance of a
             mapped planar landmark is discarded as a copy, m (default 0: off).
-        robust_kernel: down-weighting of an observation whose innovation is
-            implausible (``d2 = nu^T Psi^-1 nu`` above the chi-square ``robust_p``
-            quantile of its dimension) by inflating its ``R``
-            (:func:`lampsam.backend.ekf_update.robust_noise`): ``"none"`` (default:
-            the paper's update), ``"huber"`` or ``"gate"``. Observations gated by
-            association never exceed it; it acts on known-id sightings.
-        robust_p: the chi-square probability of that threshold (default 0.999).
-        fej_mismatch: with first-estimate Jacobians, add ``c dH P dH^T`` to each
-            update row's ``R`` (``dH``: ``H`` at the latest minus ``H`` at the first
-            estimate, robot and landmark columns;
-            :func:`lampsam.backend.ekf_update.mismatch_noise`), the part of the
-            measurement that linearising at a stale first estimate leaves out.
-            ``c >= 0``; 0 (default) = off (docs/graph-backend.md: with the
-            observability-constrained Jacobians below it no longer helps).
         observability_constrained: the observability-constrained EKF (OC-EKF, Huang,
             Mourikis & Roumeliotis, IJRR 29(5) 2010) for planar landmarks: measurement
             Jacobians at the latest estimate, projected to the nearest ones that keep
@@ -280,17 +266,11 @@ class EkfConfig:
     prune_known_ids: bool | None = None
     tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
-    robust_kernel: str = "none"
-    robust_p: float = field(default=0.999, metadata=limits(gt=0.0, lt=1.0))
-    fej_mismatch: float = field(default=0.0, metadata=limits(ge=0.0))
     observability_constrained: bool | None = None
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
-        if self.robust_kernel not in ("none", "huber", "gate"):
-            raise FieldValueError("robust_kernel", "must be 'none', 'huber' or 'gate', "
-                                  f"got {self.robust_kernel!r}")
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import (
@@ -53,9 +52,7 @@ from lampsam.backend.ekf_update import (
     gathered_s,
     invariant_remap,
     invariant_retract,
-    mismatch_noise,
     observability_project,
-    robust_noise,
     stacked_gain,
 )
 from lampsam.backend.interface import (
@@ -180,9 +177,6 @@ class EkfSlam(SlamBackend):
                                             config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
         self.noise_scale = innovation_scale(config.association)
-        self._robust = cfg.robust_kernel
-        self._mismatch = cfg.fej_mismatch
-        self._robust_thr = float(chi2.ppf(cfg.robust_p, 2))
 
     # ------------------------------------------------------------------ state
     @property
@@ -435,36 +429,9 @@ class EkfSlam(SlamBackend):
                 res += h_r @ dev[:3] + h_l @ dl
                 if obs.kind == "point2":
                     res[0] = wrap_angle(float(res[0]))
-        out = stacked_gain(self._cov, [(sl.offset, sl.dim, res, h_r, h_l,
-                                        self._row_noise(sl, o, res, h_r, h_l))
+        out = stacked_gain(self._cov, [(sl.offset, sl.dim, res, h_r, h_l, o.R)
                                        for sl, o, res, h_r, h_l in rows])
         return None if out is None else (rows, *out)
-
-    def _row_noise(self, slot: _Slot, obs: Obs, res: FloatArray, h_r: FloatArray,
-                   h_l: FloatArray) -> FloatArray:
-        """``R`` of one update row, with the first-estimates mismatch and the robust weight.
-
-        With first estimates and ``ekf.fej_mismatch > 0``, ``R + c dH P_b dH^T``:
-        ``dH = H(latest) - H(first)`` over the robot and landmark columns, ``P_b``
-        their covariance block (:func:`lampsam.backend.ekf_update.mismatch_noise`).
-        Then ``ekf.robust_kernel`` (:func:`lampsam.backend.ekf_update.robust_noise`,
-        ``S = H P_b H^T`` of the row alone, eq. 19).
-        """
-        r = obs.R
-        mismatch = self._fej and slot.first is not None and self._mismatch > 0
-        if not mismatch and self._robust == "none":
-            return r
-        o, d = slot.offset, slot.dim
-        cov = self._cov
-        p_b = np.block([[cov.block(0, 3, 0, 3), cov.block(0, 3, o, o + d)],
-                        [cov.block(o, o + d, 0, 3), cov.block(o, o + d, o, o + d)]])
-        if mismatch:
-            pose = self._x[:3]
-            _, z_d_pose, z_d_l = predict(slot.kind, pose, self._x[o : o + d], obs, self.ceiling)
-            r = r + mismatch_noise(np.hstack([z_d_pose @ tangent_D_coords(pose[2]), z_d_l]),
-                                   np.hstack([h_r, h_l]), p_b, self._mismatch)
-        h = np.hstack([h_r, h_l])
-        return robust_noise(res, h @ p_b @ h.T, r, self._robust_thr, self._robust)
 
     # ------------------------------------------------------------------ eqs. 24-25
     def _augment(self, obs: Obs, lid: int | None) -> int | None:

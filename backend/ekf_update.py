@@ -12,7 +12,6 @@ columns, so ``P H^T`` is assembled from column blocks of ``P`` and
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -144,82 +143,6 @@ def invariant_remap(cov: LowerCovariance, idx: IntArray, moved: FloatArray) -> N
     b = np.column_stack([a, p_th]) @ vec
     for j in range(2):
         cov.rank_update(b[:, j : j + 1], float(lam[j]))
-
-
-#: Robust kernels of :func:`robust_noise` (``ekf.robust_kernel``).
-ROBUST_KERNELS = ("none", "huber", "gate")
-
-
-def robust_noise(nu: FloatArray, s: FloatArray, r: FloatArray, threshold: float,
-                 kernel: str) -> FloatArray:
-    """The measurement noise of one row block after a robust weight on its innovation.
-
-    ``d2 = nu^T (S + R)^-1 nu`` (eq. 20). At or below ``threshold`` (a chi-square
-    quantile of ``len(nu)`` dof) ``R`` is returned unchanged; above it the row is
-    down-weighted by inflating ``R`` (a robust Kalman filter: the M-estimator's
-    weight ``w`` applied as ``R / w``, Masreliez & Martin 1977, IRLS form):
-
-    - ``"huber"``: ``w = sqrt(threshold / d2)`` (Huber's weight ``k / |e|`` on the
-      Mahalanobis norm), ``R <- R sqrt(d2 / threshold)``;
-    - ``"gate"``: the smallest factor ``a >= 1`` with
-      ``nu^T (S + a R)^-1 nu = threshold``: the sighting is trusted only as far as
-      keeps its innovation at the gate's edge (bisection on ``log a``, 60 steps).
-
-    Args:
-        nu: (k,) innovation; s: (k, k) ``H P H^T``; r: (k, k) measurement noise.
-        threshold: the squared distance beyond which a row is down-weighted.
-        kernel: one of :data:`ROBUST_KERNELS`.
-
-    Returns:
-        (k, k) the noise to use for this row (``r`` itself when unchanged).
-    """
-    if kernel == "none":
-        return r
-    if kernel not in ROBUST_KERNELS:
-        raise ValueError(f"robust kernel {kernel!r}: expected one of {ROBUST_KERNELS}")
-    d2 = float(nu @ np.linalg.solve(s + r, nu))
-    if not d2 > threshold:
-        return r
-    if kernel == "huber":
-        out: FloatArray = r * math.sqrt(d2 / threshold)
-        return out
-    lo, hi = 0.0, math.log(d2 / threshold) + 1.0  # a first bracket, widened below
-    while float(nu @ np.linalg.solve(s + math.exp(hi) * r, nu)) > threshold:
-        hi *= 2.0
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        if float(nu @ np.linalg.solve(s + math.exp(mid) * r, nu)) > threshold:
-            lo = mid
-        else:
-            hi = mid
-    out = r * math.exp(hi)
-    return out
-
-
-def mismatch_noise(h_latest: FloatArray, h_first: FloatArray, p_b: FloatArray, scale: float
-                   ) -> FloatArray:
-    """Noise added to one row for linearising at a landmark's first estimate, ``c dH P_b dH^T``.
-
-    The first-estimates EKF (Huang, Mourikis & Roumeliotis 2010) takes ``H`` at the
-    landmark's first estimate while the innovation is taken at the latest one. To
-    first order the measurement is ``z = h(x_hat) + H_latest dx + v``, so the model the
-    update uses, ``H_first dx + v``, misses ``(H_latest - H_first) dx``, whose
-    covariance under the filter's own ``P`` is ``dH P_b dH^T``; counting it as
-    measurement noise keeps the innovation covariance (eq. 19) honest where the first
-    estimate has gone stale, and is zero where it has not.
-
-    Args:
-        h_latest: (k, m) ``H`` over the robot (3, coordinates) and landmark columns at
-            the latest estimate; h_first: (k, m) the same at the first estimate.
-        p_b: (m, m) the covariance of those columns.
-        scale: ``c`` (``ekf.fej_mismatch``).
-
-    Returns:
-        (k, k) the added noise.
-    """
-    dh = np.asarray(h_latest, float) - np.asarray(h_first, float)
-    out: FloatArray = scale * (dh @ p_b @ dh.T)
-    return out
 
 
 def observability_project(h_r: FloatArray, h_l: FloatArray, pose_xy: FloatArray,
