@@ -50,8 +50,7 @@ from lampsam.backend.covariance import LowerCovariance
 from lampsam.backend.ekf_joint import joint_point2
 from lampsam.backend.ekf_update import (
     gathered_s,
-    invariant_remap,
-    invariant_retract,
+    invariant_update,
     observability_project,
     stacked_gain,
 )
@@ -74,7 +73,7 @@ from lampsam.backend.models import (
     residual,
 )
 from lampsam.backend.odometry import OdometryConstants, Pose2Motion, motion_model
-from lampsam.backend.planar_gate import predict_point2_many, screen_point2
+from lampsam.backend.planar_gate import ekf_point2_jacobians, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
@@ -305,23 +304,16 @@ class EkfSlam(SlamBackend):
 
     def _screen_planar(self, obs: list[Obs], lids: list[int]
                        ) -> dict[int, dict[int, tuple[float, bool]]]:
-        """Exact eq.-19/20 distances of every planar observation to every planar landmark.
-
-        :func:`lampsam.backend.planar_gate.predict_point2_many` with the Jacobians at the
-        first estimates when those are on (as :meth:`_h`), ``S = H P H^T`` from
-        gathered blocks of ``P``.
-        """
+        """Exact eq.-19/20 distances of every planar observation to every planar landmark,
+        with the update's Jacobians (:func:`lampsam.backend.planar_gate.ekf_point2_jacobians`)
+        and ``S = H P H^T`` from gathered blocks of ``P``."""
         offs = np.array([self._slots[lid].offset for lid in lids])
         idx = offs[:, None] + np.arange(2)[None, :]  # (M, 2)
-        lin = None
+        firsts = None
         if self._fej:
-            firsts = [self._slots[lid].first for lid in lids]
-            lin = np.array([f[:2] if f is not None else self._x[o : o + 2]
-                            for f, o in zip(firsts, offs, strict=True)])
-        z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx],
-                                              None if self._oc else lin)
-        if self._oc and lin is not None:
-            h_r, h_l = observability_project(h_r, h_l, self._x[:2], lin)
+            firsts = np.array([sl.first[:2] if sl.first is not None else self._x[sl.offset : sl.offset + 2]
+                               for sl in (self._slots[lid] for lid in lids)])
+        z_hat, h_r, h_l = ekf_point2_jacobians(self._x[:3], self._x[idx], firsts, self._oc)
         return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
                              self.config.association, self.noise_scale.scale)
 
@@ -360,27 +352,14 @@ class EkfSlam(SlamBackend):
                 break
             dx_prev = step
         cov.downdate(w)  # eq. 23: (I - K H) P = P - K (P H^T)^T = P - W W^T
-        if self._invariant:
-            self._retract_invariant(x0)
+        if self._invariant:  # the update applied as exp(xi) x (``ekf.right_invariant``)
+            invariant_update(self._x, x0, self._cov,
+                             [0] + [s.offset for s in self._slots.values() if s.dim == 2])
         for slot, *_ in rows:
             slot.n_obs += 1
             slot.last_seen = self._step
 
         return len(rows)
-
-    def _retract_invariant(self, x0: FloatArray) -> None:
-        """Apply the last update as the right-invariant EKF does (``ekf.right_invariant``).
-
-        :func:`lampsam.backend.ekf_update.invariant_retract` on the robot and every
-        planar landmark position, then ``P`` carried to the new state's coordinates
-        (:func:`lampsam.backend.ekf_update.invariant_remap`).
-        """
-        offs = [0] + [s.offset for s in self._slots.values() if s.dim == 2]
-        idx = np.asarray(offs)[:, None] + np.arange(2)[None, :]
-        dth = wrap_angle(float(self._x[2] - x0[2]))
-        new = invariant_retract(x0[idx], self._x[idx], dth)
-        invariant_remap(self._cov, idx, new - x0[idx])
-        self._x[idx] = new
 
     def _wrap_angles(self, rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
         """Wrap the heading and the updated lamps' axis angles (after eq. 22)."""

@@ -18,6 +18,7 @@ from scipy.linalg import solve_triangular
 
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.covariance import LowerCovariance
+from lampsam.factors.geometry import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +144,26 @@ def invariant_remap(cov: LowerCovariance, idx: IntArray, moved: FloatArray) -> N
     b = np.column_stack([a, p_th]) @ vec
     for j in range(2):
         cov.rank_update(b[:, j : j + 1], float(lam[j]))
+
+
+def invariant_update(x: FloatArray, x0: FloatArray, cov: LowerCovariance,
+                     offsets: list[int]) -> None:
+    """Apply an additive update ``x0 -> x`` as the right-invariant EKF does, in place.
+
+    :func:`invariant_retract` on the robot (offset 0) and every planar landmark
+    position, then ``P`` carried to the new state's coordinates (:func:`invariant_remap`).
+
+    Args:
+        x: (n,) the state after the additive update (heading at index 2), changed in place.
+        x0: (n,) the state before it.
+        cov: ``P``, changed in place.
+        offsets: first state index of the robot and of each planar landmark.
+    """
+    idx = np.asarray(offsets)[:, None] + np.arange(2)[None, :]
+    dth = wrap_angle(float(x[2] - x0[2]))
+    new = invariant_retract(x0[idx], x[idx], dth)
+    invariant_remap(cov, idx, new - x0[idx])
+    x[idx] = new
 
 
 def observability_project(h_r: FloatArray, h_l: FloatArray, pose_xy: FloatArray,
