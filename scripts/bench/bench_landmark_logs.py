@@ -42,6 +42,7 @@ import argparse
 import dataclasses
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -118,13 +119,13 @@ def gtsam_graph(g: GraphLog, config: SlamConfig) -> gtsam.NonlinearFactorGraph:
 
 
 def gtsam_isam2(g: GraphLog, config: SlamConfig
-                ) -> tuple[gtsam.Values, float, list[float], int, np.ndarray]:
+                ) -> tuple[gtsam.Values, float, list[float], int, np.ndarray, float]:
     """GTSAM's iSAM2, one update per pose.
 
     Returns:
-        ``(final estimate, total s, step times, failures, online poses (N, 3))``; the
-        online pose of step ``k`` is iSAM2's estimate of ``X(k)`` right after its
-        update (what a filter can give at that time).
+        ``(final estimate, total s, step times, failures, online poses (N, 3), total
+        CPU s)``; the online pose of step ``k`` is iSAM2's estimate of ``X(k)`` right
+        after its update (what a filter can give at that time).
     """
     online: list[list[float]] = []
     isam = gtsam.ISAM2(config.isam2.to_gtsam())
@@ -135,6 +136,7 @@ def gtsam_isam2(g: GraphLog, config: SlamConfig
     known: set[int] = set()
     pose = start
     t0 = time.perf_counter()
+    c0 = time.process_time()
     for k in range(len(g.pose_ids)):
         ts = time.perf_counter()
         graph = gtsam.NonlinearFactorGraph()
@@ -164,7 +166,8 @@ def gtsam_isam2(g: GraphLog, config: SlamConfig
         online.append([pose.x(), pose.y(), pose.theta()])
         t_steps.append(time.perf_counter() - ts)
     est = isam.calculateEstimate()
-    return est, time.perf_counter() - t0, t_steps, failures, np.array(online)
+    return (est, time.perf_counter() - t0, t_steps, failures, np.array(online),
+            time.process_time() - c0)
 
 
 def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
@@ -225,8 +228,9 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
     graph = gtsam_graph(g, config)
     n = len(g.pose_ids)
     runs = [gtsam_isam2(g, config) for _ in range(repeats)]
-    est, _, steps, fails, online = runs[0]
+    est, _, steps, fails, online, _ = runs[0]
     t_isam = float(np.median([r[1] for r in runs]))
+    cpu_isam = float(np.median([r[5] for r in runs]))
     t0 = time.perf_counter()
     lm = gtsam.LevenbergMarquardtOptimizer(graph, est, gtsam.LevenbergMarquardtParams()).optimize()
     t_lm = time.perf_counter() - t0
@@ -249,7 +253,7 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
 
     def row(solver: str, poses: np.ndarray, lms: dict[int, np.ndarray] | None, total: float,
             step_s: np.ndarray, failures: int, n_map: int, ids: bool,
-            map_lms: dict[int, np.ndarray] | None = None) -> None:
+            map_lms: dict[int, np.ndarray] | None = None, cpu: float = math.nan) -> None:
         map_lms = lms if map_lms is None else map_lms
         chi2, missing = chi2_of(graph, lm, poses, lms) if lms is not None else (math.nan, 0)
         rows.append({"log": name, "solver": solver, "ids": "known" if ids else "none",
@@ -262,12 +266,14 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                      "mapped": n_map, "in_file": n_lm_file, "total_s": total,
                      "step_median_ms": float(np.median(step_s) * 1e3),
                      "step_p95_ms": float(np.percentile(step_s, 95) * 1e3),
-                     "x_gtsam_isam2": total / t_isam})
+                     "x_gtsam_isam2": total / t_isam, "cpu_s": cpu,
+                     "x_gtsam_isam2_cpu": cpu / cpu_isam})
 
     row("gtsam-isam2", poses_of(est, n),
         {gtsam.Symbol(k).index(): est.atPoint2(k) for k in est.keys() if gtsam.Symbol(k).chr() == ord("l")},
-        t_isam, np.asarray(steps), fails, n_lm_file, True)
-    row("gtsam-isam2-online", online, None, t_isam, np.asarray(steps), fails, n_lm_file, True)
+        t_isam, np.asarray(steps), fails, n_lm_file, True, cpu=cpu_isam)
+    row("gtsam-isam2-online", online, None, t_isam, np.asarray(steps), fails, n_lm_file, True,
+        cpu=cpu_isam)
     row("gtsam-lm", ref, {gtsam.Symbol(k).index(): lm.atPoint2(k) for k in lm.keys()
                           if gtsam.Symbol(k).chr() == ord("l")},
         t_isam + t_lm, np.asarray(steps), 0, n_lm_file, True)
@@ -282,9 +288,10 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
             res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids) for _ in range(repeats)]
             res = res_runs[0]
             total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
+            cpu = float(np.median([r.extra["total_cpu_s"] for r in res_runs]))
             found = {int(x.id): x.position[:2] for x in res.landmarks}
             row(f"lampsam-{b}", res.poses, found if ids else None, total, res.step_times_s,
-                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids, found)
+                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids, found, cpu)
             if not res.status == "ok":
                 rows[-1]["solver"] += f" ({res.status[:40]})"
     return rows
@@ -349,6 +356,7 @@ def main() -> None:
 
 def _print(rows: list[dict[str, Any]]) -> None:
     cols = list(rows[0])
+    print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
