@@ -175,9 +175,9 @@ def check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
             raise FactorError(f"{what}: covariance is not positive definite")
         return arr
     if dim in (1, 3):
-        a = arr.tolist()
-        if not all(math.isfinite(v) for row in a for v in row):
+        if not all(map(math.isfinite, arr.ravel().tolist())):
             raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
+        a = arr.tolist()
         sym = [[0.5 * (a[i][j] + a[j][i]) for j in range(dim)] for i in range(dim)]
         if not _minors_positive(sym):
             raise FactorError(f"{what}: covariance is not positive definite")
