@@ -32,8 +32,11 @@ own update, the fair reference for a filter's online poses), the chi-square (``2
 ids; landmarks a backend did not map take LM's value, counted), failures (iSAM2
 rebuilds / GTSAM exceptions), mapped landmarks against those in the file, total time
 and per-step median / p95, and the ratio of total time to GTSAM's iSAM2 measured in
-the same run. Times are medians over ``--repeats`` runs; other engineers' jobs may
-share the machine: compare ratios, not absolute times.
+the same run, wall (``x_gtsam_isam2``) and process CPU (``x_gtsam_isam2_cpu``, the
+figure to compare on a shared machine). Times are medians over ``--repeats`` runs;
+other engineers' jobs may share the machine: compare ratios, not absolute times.
+GTSAM's loop computes no covariance; lampsam's smoothers compute landmark covariances
+and, with ``--pose-covariances``, every pose's (online and final) as well.
 """
 
 from __future__ import annotations
@@ -221,9 +224,10 @@ def first_poses(g: GraphLog, n: int) -> GraphLog:
 
 
 def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[str],
-              repeats: int, no_ids: bool, config: SlamConfig | None = None
-              ) -> list[dict[str, Any]]:
-    """Rows of the table for one log."""
+              repeats: int, no_ids: bool, config: SlamConfig | None = None,
+              pose_covariances: bool = False) -> list[dict[str, Any]]:
+    """Rows of the table for one log (``pose_covariances``: lampsam's smoothers also
+    compute every pose covariance, which GTSAM's loop does not)."""
     config = config or SlamConfig()
     graph = gtsam_graph(g, config)
     n = len(g.pose_ids)
@@ -285,7 +289,9 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                        "ekf-invariant": {"right_invariant": True}}.get(b, {})
             cfg_b = dataclasses.replace(config, ekf=dataclasses.replace(config.ekf, **variant))
             backend = "ekf" if b.startswith("ekf") else b
-            res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids) for _ in range(repeats)]
+            res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids,
+                                      pose_covariances=pose_covariances)
+                        for _ in range(repeats)]
             res = res_runs[0]
             total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
             cpu = float(np.median([r.extra["total_cpu_s"] for r in res_runs]))
@@ -312,6 +318,9 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
                     help="config overrides for lampsam's backends (e.g. association.planar_merge=true)")
     ap.add_argument("--poses", type=int, default=0, help="only the first N poses of each log")
+    ap.add_argument("--pose-covariances", action="store_true",
+                    help="lampsam's smoothers also compute every pose covariance (online and "
+                         "final), which GTSAM's loop does not (run_graph_log's default: off)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     backends = [b for b in args.backends.split(",") if b]
@@ -350,7 +359,7 @@ def main() -> None:
         if args.poses:
             g, truth = first_poses(g, args.poses), (truth[: args.poses] if truth is not None else None)
         rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids,
-                          with_overrides(SlamConfig(), args.set))
+                          with_overrides(SlamConfig(), args.set), args.pose_covariances)
         _print(rows)
 
 
