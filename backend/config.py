@@ -299,11 +299,14 @@ class Isam2Config:
             1 made the lab run's updates 2-3x slower).
         extra_updates: extra ``update()`` calls per keyframe (default 0).
         sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad).
-        pose_cov_every_step: compute the pose marginal after every keyframe update
-            (default True). With the corner budget below it costs, together with the
-            pose estimate, a median 4.3 ms per keyframe on the whole lab path (truth
-            frames, against 9.0 ms for ``update()``); when False the reported pose
-            covariance is the odometry-propagated one (an upper bound), not the marginal.
+        pose_cov_every_step: every step's estimate carries its pose covariance (the
+            last keyframe's marginal composed with the odometry since; default True).
+            With the corner budget below the marginal costs, together with the pose
+            estimate, a median 4.3 ms per keyframe on the whole lab path (truth
+            frames, against 9.0 ms for ``update()``). When False the steps' covariances
+            are NaN (not computed) and the marginal is computed only when the gate or
+            a new landmark's covariance reads it (a keyframe with known ids only that
+            starts no landmark never does).
         final_covariances: compute every keyframe's final marginal covariance in
             ``finish()`` (default True; NaN covariances when False, for speed).
         odometry_floor_var: variance added to each diagonal entry of every odometry
