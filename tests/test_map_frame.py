@@ -172,3 +172,24 @@ def test_shared_offset_recovers_a_known_map_offset(rng: np.random.Generator) -> 
         assert abs(np.degrees(g[2] - g_true[2])) < 0.1, (mode, g)
         assert _rms(pos) < 0.0025, mode
         assert np.degrees(_rms(head)) < 0.2
+
+
+def test_corner_bias_floor(rng: np.random.Generator) -> None:
+    """``corner_bias_px`` adds ``(b d / f_x)^2`` to the x and y variances of the corners used
+    (d the corner's height above the camera), not to z, lamps, or the map itself."""
+    rig, _, _, poses, _, cmap = _drive(rng, map_sigma=1e-3)
+    model = CeilingModel.from_camera(rig.camera)
+    loc = dict(max_corner_sigma=0.05)
+    plain = MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model, LocalizeConfig(**loc))
+    floored = MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model,
+                           LocalizeConfig(corner_bias_px=0.2, **loc))
+    cam = rig.camera
+    a, b = plain._kinds["corner"], floored._kinds["corner"]
+    assert len(a.ids) == len(b.ids) > 10
+    d = np.array([lm.position[2] for lm in a.lms]) - cam.body_t_camera[2]
+    add = (0.2 * d / cam.fx) ** 2
+    assert np.allclose(b.cov_p[:, 0, 0] - a.cov_p[:, 0, 0], add, rtol=1e-9, atol=0)
+    assert np.allclose(b.cov_p[:, 1, 1] - a.cov_p[:, 1, 1], add, rtol=1e-9, atol=0)
+    assert np.array_equal(b.cov_p[:, 2, 2], a.cov_p[:, 2, 2])
+    assert np.array_equal(floored._kinds["lamp"].cov_p, plain._kinds["lamp"].cov_p)
+    assert all(lm.cov[0, 0] == 1e-6 for lm in cmap.by_kind("corner"))
