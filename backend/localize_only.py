@@ -39,6 +39,11 @@ moves the map (a Schmidt / consider filter: consistent, not more accurate). Thei
 cost is one EKF update over ``3 + 3 L`` states per frame (``L`` the map landmarks
 used, a few dozen). Accuracy and cost of the three: docs/ceiling-map.md.
 
+With a version-2 map and :attr:`LocalizeConfig.frame_offset`, the map frame's offset
+``g = (dx, dy, dtheta)`` (:mod:`lampsam.backend.map_frame`) joins the state after the
+pose with the map's ``S`` as its prior: landmark ``l`` is at ``p_l + C_l g`` with its
+conditional covariance ``D_l``, and ``d h / d g = H_l C_l``.
+
 Corner patches are stored in the map but used for association only when
 :attr:`LocalizeConfig.corner_ncc` is set: the frontend's patches are not rotation
 invariant, so a corner seen on another day at another heading would fail the NCC.
