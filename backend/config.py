@@ -241,6 +241,18 @@ class EkfConfig:
             forgotten (default 100).
         new_min_separation: a confirmed tentative landmark within this distance of a
             mapped planar landmark is discarded as a copy, m (default 0: off).
+        observability_constrained: the observability-constrained EKF (OC-EKF, Huang,
+            Mourikis & Roumeliotis, IJRR 29(5) 2010) for planar landmarks: measurement
+            Jacobians at the latest estimate, projected to the nearest ones that keep
+            a global translation and rotation unobservable
+            (:func:`lampsam.backend.ekf_update.observability_project`), with the
+            first-estimates prediction (so ``first_estimate_jacobians`` is implied).
+            Where a landmark's estimate has moved metres from its first estimate the
+            first-estimates ``H`` points the update the wrong way; the projected one
+            does not. True / False force it; None (default) turns it on where first
+            estimates are automatic (range-bearing runs with Pose2 odometry) and
+            not turned off (``first_estimate_jacobians = false`` keeps the paper's
+            Jacobians). Ignored with ``right_invariant``.
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -254,6 +266,7 @@ class EkfConfig:
     prune_known_ids: bool | None = None
     tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
+    observability_constrained: bool | None = None
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -6,8 +6,10 @@ Usage::
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
         [--mrclam-duration 600] [--set association.planar_noise_adapt=true ...]
 
-(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians, and
-``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``.)
+(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians,
+``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``, and ``ekf-fej``:
+plain first-estimates Jacobians without the observability constraint,
+``ekf.observability_constrained = false``.)
 
 For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``mrclam``: the shared
 MRCLAM ds0 robot 1, its first ``--mrclam-duration`` s, turned into one pose per step
@@ -276,7 +278,8 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
             # "ekf-paper": the EKF with the paper's Jacobians (at the latest estimate)
             # instead of first estimates (docs/graph-backend.md).
             variant = {"ekf-paper": {"first_estimate_jacobians": False},
-                       "ekf-invariant": {"right_invariant": True}}.get(b, {})
+                       "ekf-invariant": {"right_invariant": True},
+                       "ekf-fej": {"observability_constrained": False}}.get(b, {})
             cfg_b = dataclasses.replace(config, ekf=dataclasses.replace(config.ekf, **variant))
             backend = "ekf" if b.startswith("ekf") else b
             res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids) for _ in range(repeats)]
