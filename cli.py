@@ -471,8 +471,10 @@ def _check_map_flags(args: argparse.Namespace) -> None:
     if args.localize_only and args.save_map:
         raise LampsamError("--save-map and --localize-only exclude each other: localize-only "
                            "does not change the map")
-    if args.map_priors and not args.localize_only:
-        raise LampsamError("--map-priors applies only with --localize-only")
+    if (args.map_priors or args.map_mode) and not args.localize_only:
+        raise LampsamError("--map-priors / --map-mode apply only with --localize-only")
+    if args.map_priors and args.map_mode not in (None, "priors"):
+        raise LampsamError(f"--map-priors contradicts --map-mode {args.map_mode}")
     if (args.start or args.start_from) and not args.localize_only:
         raise LampsamError("--start / --start-from apply only with --localize-only")
     if args.start and args.start_from:
@@ -501,7 +503,7 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     if features:
         config = dataclasses.replace(config, features=features)
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
-                               loc=LocalizeConfig(map_mode="priors" if args.map_priors else "fixed"))
+                               loc=LocalizeConfig(map_mode=args.map_mode or "priors"))
     s = _plot_and_summarize(out, result, run)
     print(f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
           f"observations of {len(cmap.landmarks)} map landmarks used, none added"
@@ -594,9 +596,13 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
                         "(backend/map_merge.py)")
     p.add_argument("--map-priors", action="store_true",
                    help="with --localize-only: the map's landmarks are priors updated during "
-                        "the run (joint EKF over pose and map landmarks), not fixed values")
+                        "the run (joint EKF over pose and map landmarks; the default, same as "
+                        "--map-mode priors)")
+    p.add_argument("--map-mode", default=None, choices=("fixed", "priors", "consider"),
+                   help="with --localize-only: the map as priors (default), fixed values "
+                        "(pose-only EKF), or a consider (Schmidt) filter (docs/ceiling-map.md)")
     p.add_argument("--localize-only", action="store_true",
-                   help="track the run against --map without adding landmarks (pose-only EKF)")
+                   help="track the run against --map without adding landmarks (--map-mode)")
     p.add_argument("--start", default=None, metavar="X,Y,THETA",
                    help="with --localize-only: start pose in the map's frame (m, m, rad; "
                         "default the run's known start)")

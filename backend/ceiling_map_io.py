@@ -6,8 +6,9 @@ A ceiling map is a folder (format described in docs/ceiling-map.md)::
       map.yaml        what the map is: format and version, frames and units, the rig
                       (camera and odometry, as a run's rig.yaml) it was made with,
                       the run and backend that made it, landmark counts, file names
-      landmarks.csv   one row per landmark: id, type, x, y, z, phi, n_obs and the
-                      upper triangle of its 4x4 covariance over (x, y, z, phi)
+      landmarks.csv   one row per landmark: id, type, x, y, z, phi, n_obs, the
+                      upper triangle of its 4x4 covariance over (x, y, z, phi) and
+                      (version 2) its 4x3 gain on the map frame's offset
       patches.npz     corner appearance: ``ids`` (K,) int64 and ``patches`` (K, P, P)
                       float32, zero-mean unit-norm grey patches (NCC = dot product)
 
@@ -16,6 +17,13 @@ metres, ``z`` above the floor (not above the camera); ``phi`` the lamp's long ax
 the world, radians in ``[0, pi)`` (NaN for round lamps and corners); covariances in
 m^2, m rad, rad^2. The CSV is written with 17 significant digits so that reading it
 back gives the same floats bit for bit.
+
+Version 2 adds the map's correlation as a frame-uncertainty factor model
+(:mod:`lampsam.backend.map_frame`): ``frame_uncertainty`` in ``map.yaml`` (the
+reference point and the 3 x 3 covariance ``S`` of the frame offset ``g = (dx, dy,
+dtheta)``) and twelve ``g_*`` columns per landmark (``C_l``, row-major over rows
+``x, y, z, phi`` and columns ``dx, dy, dtheta``), empty when the map has none. The
+reader accepts versions 1 (no frame: ``CeilingMap.frame`` is None) and 2.
 
 Every file is written atomically (:func:`lampsam.safe_io.atomic_path`), ``map.yaml``
 last: a complete ``map.yaml`` means the map is complete. The reader is strict: a
@@ -37,14 +45,16 @@ import yaml
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.interface import LandmarkEstimate, LandmarkKind
+from lampsam.backend.map_frame import MapFrame
 from lampsam.datasets.rig import Rig
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
 #: ``format`` key of ``map.yaml``.
 MAP_FORMAT = "lampsam-ceiling-map"
-#: Version written; the reader accepts only this one.
-MAP_VERSION = 1
+#: Version written (2: with the frame-uncertainty columns); the reader accepts 1 and 2.
+MAP_VERSION = 2
+MAP_VERSIONS = (1, 2)
 MAP_FILE = "map.yaml"
 LANDMARKS_FILE = "landmarks.csv"
 PATCHES_FILE = "patches.npz"
@@ -52,8 +62,11 @@ PATCHES_FILE = "patches.npz"
 #: Columns of ``landmarks.csv``; ``c_ij`` is the covariance entry over (x, y, z, phi).
 COLUMNS = ("id", "type", "x", "y", "z", "phi", "n_obs",
            "c_xx", "c_xy", "c_xz", "c_xphi", "c_yy", "c_yz", "c_yphi", "c_zz", "c_zphi", "c_phiphi")
+#: Version 2's extra columns: ``C_l[r, c]``, rows x, y, z, phi; columns dx, dy, dtheta.
+GAIN_COLUMNS = tuple(f"g_{r}_{c}" for r in ("x", "y", "z", "phi") for c in ("dx", "dy", "dth"))
 _UPPER = [(i, j) for i in range(4) for j in range(i, 4)]
 _MAP_KEYS = {"format", "format_version", "frame", "units", "rig", "source", "counts", "files"}
+_FRAME_KEY = "frame_uncertainty"  # version 2, optional
 _CEILING_KINDS = (LandmarkKind.LAMP.value, LandmarkKind.CORNER.value)
 
 
@@ -102,11 +115,15 @@ class CeilingMap:
         rig: the rig (camera, odometry) of the mapping run.
         source: free mapping of where it came from (``run``, ``backend``, ``steps``,
             ``position_rms_m`` ...), written under ``source:`` in ``map.yaml``.
+        frame: the map frame's uncertainty and every landmark's gain on it
+            (:mod:`lampsam.backend.map_frame`), or None (a version-1 map, a merged
+            map, or a backend without a factor graph).
     """
 
     landmarks: list[MapLandmark]
     rig: Rig
     source: dict[str, Any] = field(default_factory=dict)
+    frame: MapFrame | None = None
 
     def by_kind(self, kind: str) -> list[MapLandmark]:
         """Landmarks of one kind, in file order."""
@@ -160,11 +177,14 @@ def write_map(folder: str | Path, cmap: CeilingMap) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     with atomic_path(folder / LANDMARKS_FILE) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(COLUMNS)
+        w.writerow(COLUMNS + GAIN_COLUMNS)
         for lm in cmap.landmarks:
             phi = math.nan if lm.phi is None else lm.phi
+            gain = (cmap.frame.gains.get(lm.id) if cmap.frame is not None else None)
             w.writerow([lm.id, lm.kind, *(_num(v) for v in lm.position), _num(phi), lm.n_obs,
-                        *(_num(lm.cov[i, j]) for i, j in _UPPER)])
+                        *(_num(lm.cov[i, j]) for i, j in _UPPER),
+                        *([_num(v) for v in np.asarray(gain, float).ravel()] if gain is not None
+                          else [""] * len(GAIN_COLUMNS))])
     with_patch = [lm for lm in cmap.landmarks if lm.patch is not None]
     size = int(with_patch[0].patch.shape[0]) if with_patch else 0  # type: ignore[union-attr]
     with_patch = [lm for lm in with_patch if lm.patch is not None and lm.patch.shape == (size, size)]
@@ -186,6 +206,13 @@ def write_map(folder: str | Path, cmap: CeilingMap) -> Path:
                    "patches": len(with_patch), "patch_size_px": size},
         "files": {"landmarks": LANDMARKS_FILE, "patches": PATCHES_FILE},
     }
+    if cmap.frame is not None:
+        doc[_FRAME_KEY] = {
+            "meaning": "g = (dx, dy, dtheta): the map frame's offset in the world, a rotation "
+                       "dtheta about center then a translation; g ~ N(0, cov); landmark l's "
+                       "error = C_l g + r_l (columns g_*), r_l independent",
+            "center": [float(v) for v in cmap.frame.center],
+            "cov": [[float(v) for v in row] for row in cmap.frame.cov]}
     with atomic_path(folder / MAP_FILE) as tmp:
         tmp.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     return folder
@@ -203,22 +230,25 @@ def _float(path: Path, line: int, col: str, text: str) -> float:
         raise _fail(path, f"line {line}, column {col}: {text!r} is not a number") from None
 
 
-def _read_landmarks(path: Path) -> list[MapLandmark]:
+def _read_landmarks(path: Path, version: int) -> tuple[list[MapLandmark], dict[int, FloatArray]]:
+    """The landmarks and (version 2) the gains of the rows that have them."""
     if not path.is_file():
         raise _fail(path, "missing: a ceiling map needs its landmarks file")
     with open(path, newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
-    if not rows or tuple(rows[0]) != COLUMNS:
+    columns = COLUMNS if version == 1 else COLUMNS + GAIN_COLUMNS
+    if not rows or tuple(rows[0]) != columns:
         got = ",".join(rows[0]) if rows else "(empty file)"
-        raise _fail(path, f"line 1: header must be {','.join(COLUMNS)}; got {got}")
+        raise _fail(path, f"line 1: header must be {','.join(columns)}; got {got}")
     out: list[MapLandmark] = []
+    gains: dict[int, FloatArray] = {}
     seen: set[int] = set()
     for line, row in enumerate(rows[1:], start=2):
         if not row:
             continue
-        if len(row) != len(COLUMNS):
-            raise _fail(path, f"line {line}: {len(row)} fields, expected {len(COLUMNS)}")
-        rec = dict(zip(COLUMNS, row, strict=True))
+        if len(row) != len(columns):
+            raise _fail(path, f"line {line}: {len(row)} fields, expected {len(columns)}")
+        rec = dict(zip(columns, row, strict=True))
         try:
             lid = int(rec["id"])
             n_obs = int(rec["n_obs"])
@@ -239,7 +269,31 @@ def _read_landmarks(path: Path) -> list[MapLandmark]:
         for (i, j), col in zip(_UPPER, COLUMNS[7:], strict=True):
             cov[i, j] = cov[j, i] = _float(path, line, col, rec[col])
         out.append(MapLandmark(lid, kind, pos, None if math.isnan(phi_v) else phi_v, cov, n_obs))
-    return out
+        if version > 1 and any(rec[c] != "" for c in GAIN_COLUMNS):
+            gains[lid] = np.array([_float(path, line, c, rec[c]) for c in GAIN_COLUMNS]
+                                  ).reshape(4, 3)
+    return out, gains
+
+
+def _read_frame(path: Path, doc: object, gains: dict[int, FloatArray]) -> MapFrame | None:
+    """``frame_uncertainty`` of ``map.yaml`` with the landmarks' gains, or None."""
+    if doc is None:
+        if gains:
+            raise _fail(path, f"landmarks have g_* gains but key {_FRAME_KEY!r} is missing")
+        return None
+    try:
+        if not isinstance(doc, dict):
+            raise TypeError
+        center: FloatArray = np.asarray(doc["center"], np.float64).reshape(2)
+        cov: FloatArray = np.asarray(doc["cov"], np.float64).reshape(3, 3)
+    except (TypeError, KeyError, ValueError):
+        raise _fail(path, f"key {_FRAME_KEY!r} needs 'center' (2 numbers) and 'cov' "
+                          "(3 x 3)") from None
+    if not (np.all(np.isfinite(center)) and np.all(np.isfinite(cov))):
+        raise _fail(path, f"key {_FRAME_KEY!r}: 'center' and 'cov' must be finite")
+    if np.min(np.linalg.eigvalsh(0.5 * (cov + cov.T))) <= 0.0:
+        raise _fail(path, f"key '{_FRAME_KEY}.cov' is not positive definite")
+    return MapFrame(center, cov, gains)
 
 
 def _read_patches(path: Path, ids: set[int]) -> dict[int, np.ndarray]:
@@ -283,19 +337,23 @@ def read_map(folder: str | Path) -> CeilingMap:
     missing = sorted(_MAP_KEYS - set(doc))
     if missing:
         raise _fail(meta_path, f"missing key {missing[0]!r}")
-    unknown = sorted(set(doc) - _MAP_KEYS)
+    unknown = sorted(set(doc) - _MAP_KEYS - {_FRAME_KEY})
     if unknown:
         raise _fail(meta_path, f"unknown key {unknown[0]!r}")
     if doc["format"] != MAP_FORMAT:
         raise _fail(meta_path, f"key 'format': {doc['format']!r} is not {MAP_FORMAT!r}")
-    if doc["format_version"] != MAP_VERSION:
-        raise _fail(meta_path, f"key 'format_version': {doc['format_version']!r} is not supported "
-                               f"(this lampsam reads version {MAP_VERSION})")
+    version = doc["format_version"]
+    if version not in MAP_VERSIONS or isinstance(version, bool):
+        raise _fail(meta_path, f"key 'format_version': {version!r} is not supported "
+                               f"(this lampsam reads versions {', '.join(map(str, MAP_VERSIONS))})")
+    if version == 1 and _FRAME_KEY in doc:
+        raise _fail(meta_path, f"unknown key {_FRAME_KEY!r} (version 1)")
     files = doc["files"]
     if not isinstance(files, dict) or set(files) != {"landmarks", "patches"}:
         raise _fail(meta_path, "key 'files' must map 'landmarks' and 'patches' to file names")
     rig = Rig.from_dict(doc["rig"], meta_path, strict=True)
-    landmarks = _read_landmarks(folder / str(files["landmarks"]))
+    landmarks, gains = _read_landmarks(folder / str(files["landmarks"]), int(version))
+    frame = _read_frame(meta_path, doc.get(_FRAME_KEY), gains)
     counts = doc["counts"] if isinstance(doc["counts"], dict) else {}
     for kind, key in (("lamp", "lamps"), ("corner", "corners")):
         n = sum(lm.kind == kind for lm in landmarks)
@@ -306,7 +364,7 @@ def read_map(folder: str | Path) -> CeilingMap:
     landmarks = [MapLandmark(lm.id, lm.kind, lm.position, lm.phi, lm.cov, lm.n_obs,
                              patches.get(lm.id)) for lm in landmarks]
     source = doc["source"] if isinstance(doc["source"], dict) else {}
-    return CeilingMap(landmarks, rig, source)
+    return CeilingMap(landmarks, rig, source, frame)
 
 
 def corner_patches(backend: object) -> dict[int, np.ndarray]:

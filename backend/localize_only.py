@@ -39,6 +39,11 @@ moves the map (a Schmidt / consider filter: consistent, not more accurate). Thei
 cost is one EKF update over ``3 + 3 L`` states per frame (``L`` the map landmarks
 used, a few dozen). Accuracy and cost of the three: docs/ceiling-map.md.
 
+With a version-2 map and :attr:`LocalizeConfig.frame_offset`, the map frame's offset
+``g = (dx, dy, dtheta)`` (:mod:`lampsam.backend.map_frame`) joins the state after the
+pose with the map's ``S`` as its prior: landmark ``l`` is at ``p_l + C_l g`` with its
+conditional covariance ``D_l``, and ``d h / d g = H_l C_l``.
+
 Corner patches are stored in the map but used for association only when
 :attr:`LocalizeConfig.corner_ncc` is set: the frontend's patches are not rotation
 invariant, so a corner seen on another day at another heading would fail the NCC.
@@ -46,6 +51,7 @@ invariant, so a corner seen on another day at another heading would fail the NCC
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -67,6 +73,7 @@ from lampsam.backend.interface import (
     SlamResult,
     StepEstimate,
 )
+from lampsam.backend.map_frame import MapFrame
 from lampsam.backend.models import Obs, observations_from_frame
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
@@ -88,6 +95,15 @@ class LocalizeConfig:
         var_floor: additive floor on the pose process covariance per step, m^2 and
             rad^2 (default 1e-10).
         map_cov_scale: factor on the map's landmark covariances (default 1).
+        corner_cov_scale: a further factor on the corners' (default 1).
+        corner_bias_px: a per-corner error floor, px: ``(b d / f_x)^2`` is added to the
+            ``x`` and ``y`` variances of every map corner (``d`` its height above the
+            mapping camera, ``f_x`` that camera's focal length). The frontend's corner
+            position has a part that is the same at every sighting (measured on lab:
+            0.17-0.21 px RMS per corner against 0.27-0.33 px that varies between
+            sightings, 0.5 px in all; docs/ceiling-map.md), which the batch, whose
+            sightings are independent, averages away: its corner marginals are 4-5x too
+            small (NEES). Default 0 (the map's covariance as saved).
         unique: use an observation only when exactly one map landmark is inside its
             gate (default True).
         corner_ncc: also require ``association.ncc_min`` NCC between a corner's patch
@@ -100,7 +116,10 @@ class LocalizeConfig:
             lab, every corner gave 3.6 mm RMS on lab_day2, the 28 corners passing both
             2.5 mm (lamps only 2.6 mm); the rejected corners are mostly frontend corners
             on lamp and item edges whose map position is off by centimetres.
-        map_mode: how the map's landmark positions enter (default ``"fixed"``):
+        map_mode: how the map's landmark positions enter (default ``"priors"``: over
+            four lab maps x three held-out lab_day2 runs its mean position RMS is 3.31 mm
+            against the fixed map's 3.59 mm, better by ~1 mm on two maps, worse by
+            0.2-0.5 mm on the other two; docs/ceiling-map.md):
             ``"fixed"``: fixed values, their covariance added to each innovation
             (module docstring); ``"priors"``: the used map landmarks join the state
             (``x = (pose, p_1 .. p_L)``, prior ``N(map position, map marginal)``) and
@@ -112,18 +131,29 @@ class LocalizeConfig:
             pose-landmark cross-covariance are updated (the correlation of repeated
             sightings without moving the map). No landmark is ever added and the
             saved map is not changed.
+        frame_offset: when the map has a frame model (a version-2 map,
+            :mod:`lampsam.backend.map_frame`), add the map frame's offset ``g = (dx,
+            dy, dtheta)`` to the state with the map's ``S`` as its prior, and use each
+            landmark's conditional covariance ``D_l`` instead of its marginal: a
+            landmark's world position is ``p_l + C_l g``. The pose is
+            then in the world frame of the start pose, and the map's common error is
+            one 3-dof state the run can correct, not many independent ones.
+            Default False: measured worse than without on lab (docs/ceiling-map.md).
     """
 
     sigma_start_xy: float = field(default=0.02, metadata=limits(gt=0.0))
     sigma_start_theta: float = field(default=0.01, metadata=limits(gt=0.0))
     var_floor: float = field(default=1e-10, metadata=limits(ge=0.0))
     map_cov_scale: float = field(default=1.0, metadata=limits(ge=0.0))
+    corner_cov_scale: float = field(default=1.0, metadata=limits(ge=0.0))
+    corner_bias_px: float = field(default=0.0, metadata=limits(ge=0.0))
     unique: bool = True
     corner_ncc: bool = False
     max_corners: int | None = field(default=None, metadata=limits(ge=0))
     min_corner_obs: int = field(default=10, metadata=limits(ge=0))
     max_corner_sigma: float = field(default=0.005, metadata=limits(gt=0.0))
-    map_mode: MapMode = "fixed"
+    map_mode: MapMode = "priors"
+    frame_offset: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -137,24 +167,36 @@ MAP_MODES: tuple[str, ...] = ("fixed", "priors", "consider")
 
 
 class _KindArrays:
-    """The map's landmarks of one kind as arrays (for vectorised prediction)."""
+    """The map's landmarks of one kind as arrays (for vectorised prediction).
 
-    def __init__(self, lms: list[MapLandmark], scale: float) -> None:
+    With a map frame (``frame``), ``cov_p`` and ``var_phi`` are the conditional
+    covariances ``D_l`` and ``gains`` (M, 4, 3) the ``C_l``; otherwise the marginals
+    and None.
+    """
+
+    def __init__(self, lms: list[MapLandmark], scale: float, frame: MapFrame | None) -> None:
         self.lms = lms
         self.ids = [lm.id for lm in lms]
         self.points = np.array([lm.position for lm in lms], float).reshape(-1, 3)
+        covs = [lm.cov if frame is None or lm.id not in frame.gains
+                else frame.conditional(lm.id, lm.cov) for lm in lms]
         # unknown marginals (NaN): no extra noise
-        self.cov_p = np.nan_to_num(scale * np.array([lm.cov[:3, :3] for lm in lms],
+        self.cov_p = np.nan_to_num(scale * np.array([c[:3, :3] for c in covs],
                                                     float).reshape(-1, 3, 3))
         self.phi = np.array([np.nan if lm.phi is None else lm.phi for lm in lms], float)
-        self.var_phi = np.nan_to_num(scale * np.array([lm.cov[3, 3] for lm in lms], float))
+        self.var_phi = np.nan_to_num(scale * np.array([c[3, 3] for c in covs], float))
+        self.gains: FloatArray | None = None
+        if frame is not None:
+            self.gains = np.array([frame.gains.get(lm.id, np.zeros((4, 3))) for lm in lms],
+                                  float).reshape(-1, 4, 3)
 
 
 @dataclass
 class _Matches:
     """The used observations of one kind and what the update needs of each (K rows).
 
-    ``nu`` (K, 2) innovations, ``h_x`` (K, 2, 3) plain-coordinate pose Jacobians,
+    ``nu`` (K, 2) innovations, ``h_x`` (K, 2, 3 + G) Jacobians on the plain-coordinate
+    pose and (G = 3 with a map frame, else 0) the frame offset ``g``,
     ``r_tot`` (K, 2, 2) ``H_l Sigma_l H_l^T + R``, ``obs`` (K,) observation indices,
     ``lm`` (K,) indices into the kind's :class:`_KindArrays`.
     """
@@ -166,6 +208,19 @@ class _Matches:
     lm: np.ndarray
     h_l: FloatArray
     r: FloatArray
+
+
+def _with_floor(lm: MapLandmark, bias_px: float, cmap: CeilingMap) -> MapLandmark:
+    """``lm`` with ``(bias_px d / f_x)^2`` added to its ``x, y`` variances
+    (:attr:`LocalizeConfig.corner_bias_px`)."""
+    if bias_px <= 0.0:
+        return lm
+    cam = cmap.rig.camera
+    depth = max(float(lm.position[2]) - float(cam.body_t_camera[2]), 0.0)
+    cov = np.array(lm.cov, float)
+    cov[0, 0] += (bias_px * depth / cam.fx) ** 2
+    cov[1, 1] += (bias_px * depth / cam.fx) ** 2
+    return dataclasses.replace(lm, cov=cov)
 
 
 def _inv2(a: FloatArray) -> FloatArray:
@@ -206,25 +261,36 @@ class MapLocalizer(SlamBackend):
         self.P = (np.diag([self.loc.sigma_start_xy**2, self.loc.sigma_start_xy**2,
                            self.loc.sigma_start_theta**2]) if start_cov is None
                   else np.asarray(start_cov, float).reshape(3, 3).copy())
-        corners = [lm for lm in cmap.by_kind(LandmarkKind.CORNER.value)
+        corners = [_with_floor(lm, self.loc.corner_bias_px, cmap)
+                   for lm in cmap.by_kind(LandmarkKind.CORNER.value)
                    if lm.n_obs >= self.loc.min_corner_obs
                    and math.sqrt(max(lm.cov[0, 0], lm.cov[1, 1])) <= self.loc.max_corner_sigma]
+        frame = cmap.frame if self.loc.frame_offset else None
         self._kinds = {LandmarkKind.LAMP.value: _KindArrays(cmap.by_kind(LandmarkKind.LAMP.value),
-                                                            self.loc.map_cov_scale),
-                       LandmarkKind.CORNER.value: _KindArrays(corners, self.loc.map_cov_scale)}
-        # map_mode priors / consider: the joint covariance over (pose, landmarks of _kinds in order)
+                                                            self.loc.map_cov_scale, frame),
+                       LandmarkKind.CORNER.value: _KindArrays(
+                           corners, self.loc.map_cov_scale * self.loc.corner_cov_scale, frame)}
+        # the map frame's offset g (module docstring of map_frame), states 3..5
+        self._g: FloatArray | None = None if frame is None else np.zeros(3)
+        self._na = 3 if frame is None else 6  # pose (+ g)
+        # the joint covariance over (pose, g, landmarks of _kinds in order): with a frame
+        # or map_mode priors / consider; the pose-only EKF otherwise
         self._offsets: dict[str, int] = {}
         self._pj: FloatArray | None = None
-        if self.loc.map_mode != "fixed":
-            n = 3
-            for kind, arr in self._kinds.items():
-                self._offsets[kind] = n
-                n += 3 * len(arr.ids)
+        if self.loc.map_mode != "fixed" or frame is not None:
+            n = self._na
+            if self.loc.map_mode != "fixed":
+                for kind, arr in self._kinds.items():
+                    self._offsets[kind] = n
+                    n += 3 * len(arr.ids)
             self._pj = np.zeros((n, n))
             self._pj[:3, :3] = self.P
-            for kind, arr in self._kinds.items():
+            if frame is not None:
+                self._pj[3:6, 3:6] = frame.cov
+            for kind, o0 in self._offsets.items():
+                arr = self._kinds[kind]
                 for j in range(len(arr.ids)):
-                    o = self._offsets[kind] + 3 * j
+                    o = o0 + 3 * j
                     self._pj[o:o + 3, o:o + 3] = arr.cov_p[j]
         self._gate2 = config.association.gate(2)
         self._gate1 = config.association.gate(1)
@@ -245,15 +311,22 @@ class MapLocalizer(SlamBackend):
         if len(idx) == 0 or not arr.ids:
             return None
         pose = self.x
-        m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, arr.points)
+        points = arr.points if self._g is None or arr.gains is None else (
+            arr.points + arr.gains[:, :3] @ self._g)
+        m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, points)
         keep = np.flatnonzero(vis)
         if len(keep) == 0:
             self.n_ignored += len(idx)
             return None
         h_x = m_d_pose[keep] @ tangent_D_coords(float(pose[2]))
         h_l = m_d_pt[keep]
+        p_a = self.P
+        if self._g is not None and arr.gains is not None:  # d h / d g = H_l C_l
+            h_x = np.concatenate([h_x, h_l @ arr.gains[keep][:, :3]], axis=2)
+            assert self._pj is not None
+            p_a = self._pj[:6, :6]
         s_map = h_l @ arr.cov_p[keep] @ np.transpose(h_l, (0, 2, 1))
-        s = h_x @ self.P @ np.transpose(h_x, (0, 2, 1)) + s_map
+        s = h_x @ p_a @ np.transpose(h_x, (0, 2, 1)) + s_map
         z = np.array([obs[i].z[:2] for i in idx], float)
         r = np.array([obs[i].R[:2, :2] for i in idx], float)
         d2 = pairwise_d2(z, r, m[keep], s)  # (N, M), eq. 20
@@ -284,25 +357,28 @@ class MapLocalizer(SlamBackend):
 
     # ------------------------------------------------------------------ update
     def _axis_rows(self, obs: list[Obs], mt: _Matches, arr: _KindArrays,
-                   var_theta: float) -> list[tuple[float, float]]:
+                   var_theta: float) -> list[tuple[float, float, int]]:
         """The scalar axis rows of a frame's matched lamps (eq. 18's ``alpha = phi - theta`` mod pi).
 
         One row per matched lamp whose observation has an axis and whose map lamp has
-        one: ``(nu, var)`` with ``nu`` the wrapped axis innovation, rad, and ``var`` the
+        one: ``(nu, var, j)`` with ``nu`` the wrapped axis innovation, rad, ``var`` the
         observation's axis variance plus the map's ``var(phi)``, rad^2 (the axes are not
-        states); a row outside its own 1-dof gate (``var_theta``: the heading's
-        variance, rad^2) is left out. ``d alpha / d theta = -1``.
+        states), and ``j`` the lamp's index; a row outside its own 1-dof gate
+        (``var_theta``: the heading's variance, rad^2) is left out. ``d alpha / d theta
+        = -1``; with a map frame the axis is ``phi + C_phi g`` (``d alpha / d g = C_phi``).
         """
-        rows: list[tuple[float, float]] = []
+        rows: list[tuple[float, float, int]] = []
         for i, j in zip(mt.obs, mt.lm, strict=True):
             o = obs[int(i)]
             if not o.has_axis or math.isnan(arr.phi[j]):
                 continue
-            nu_a = float(wrap_axis(float(o.z[2]) - (arr.phi[j] - self.x[2])))
+            phi = arr.phi[j] if self._g is None or arr.gains is None else (
+                arr.phi[j] + float(arr.gains[j, 3] @ self._g))
+            nu_a = float(wrap_axis(float(o.z[2]) - (phi - self.x[2])))
             var = float(o.R[2, 2]) + float(arr.var_phi[j])
             if nu_a * nu_a / (var + var_theta) >= self._gate1:
                 continue
-            rows.append((nu_a, var))
+            rows.append((nu_a, var, int(j)))
         return rows
 
     def _update(self, obs: list[Obs]) -> int:
@@ -323,7 +399,7 @@ class MapLocalizer(SlamBackend):
             n += len(mt.obs)
             if kind != LandmarkKind.LAMP.value:
                 continue
-            for nu_a, var in self._axis_rows(obs, mt, arr, float(self.P[2, 2])):
+            for nu_a, var, _ in self._axis_rows(obs, mt, arr, float(self.P[2, 2])):
                 info[2, 2] += 1.0 / var
                 grad[2] += -nu_a / var  # d alpha / d theta = -1
         if n == 0:
@@ -339,12 +415,15 @@ class MapLocalizer(SlamBackend):
         return n
 
     def _update_joint(self, obs: list[Obs]) -> int:
-        """``map_mode`` priors / consider: the stacked EKF update over pose and map landmarks.
+        """The stacked EKF update over pose, map frame offset and map landmarks.
 
-        Rows: ``(u, v)`` of each matched observation, ``H = [H_x, 0 .. H_l .. 0]``,
-        noise ``R`` (the landmark's uncertainty is in the state); a lamp axis adds the
-        scalar row of :meth:`_update` on ``theta`` alone with the map's ``var(phi)`` in its
-        noise (the axes are not states). Priors: ``K = P H^T S^-1``,
+        Rows: ``(u, v)`` of each matched observation, ``H = [H_x, H_l C_l, 0 .. H_l .. 0]``
+        (the ``g`` block with a map frame; the landmark block with ``map_mode`` priors /
+        consider), noise ``R`` (the landmark's uncertainty is in the state), or
+        ``H_l D_l H_l^T + R`` when the landmarks are not states (``fixed`` with a
+        frame); a lamp axis adds the scalar row of :meth:`_update` on ``theta`` (and
+        ``C_phi`` on ``g``) with the map's ``var(phi)`` in its noise (the axes are not
+        states). Priors: ``K = P H^T S^-1``,
         ``P+ = P - K S K^T`` (eqs. 21-23). Consider (Schmidt): the landmark rows of
         ``K`` are zero and ``P+ = P - K H P - P H^T K^T + K S K^T`` (Joseph form, exact
         for a gain that is not the optimal one), which leaves ``P_ll`` unchanged.
@@ -352,6 +431,8 @@ class MapLocalizer(SlamBackend):
         assert self._pj is not None
         pj = self._pj
         n = pj.shape[0]
+        na = self._na
+        in_state = bool(self._offsets)
         rows_h: list[FloatArray] = []
         rows_nu: list[float] = []
         rows_r: list[FloatArray] = []  # (2, 2) or (1, 1) blocks
@@ -361,17 +442,20 @@ class MapLocalizer(SlamBackend):
                 continue
             for k in range(len(mt.obs)):
                 h = np.zeros((2, n))
-                h[:, :3] = mt.h_x[k]
-                o = self._offsets[kind] + 3 * int(mt.lm[k])
-                h[:, o:o + 3] = mt.h_l[k]
+                h[:, :mt.h_x.shape[2]] = mt.h_x[k]
+                if in_state:
+                    o = self._offsets[kind] + 3 * int(mt.lm[k])
+                    h[:, o:o + 3] = mt.h_l[k]
                 rows_h.append(h)
                 rows_nu.extend(mt.nu[k])
-                rows_r.append(mt.r[k])
+                rows_r.append(mt.r[k] if in_state else mt.r_tot[k])
             if kind != LandmarkKind.LAMP.value:
                 continue
-            for nu_a, var in self._axis_rows(obs, mt, arr, float(pj[2, 2])):
+            for nu_a, var, j in self._axis_rows(obs, mt, arr, float(pj[2, 2])):
                 h = np.zeros((1, n))
                 h[0, 2] = -1.0
+                if self._g is not None and arr.gains is not None:
+                    h[0, 3:6] = arr.gains[j, 3]
                 rows_h.append(h)
                 rows_nu.append(nu_a)
                 rows_r.append(np.array([[var]]))
@@ -393,7 +477,7 @@ class MapLocalizer(SlamBackend):
             log.warning("innovation covariance not invertible: update skipped")
             return 0
         if self.loc.map_mode == "consider":
-            gain[3:] = 0.0
+            gain[na:] = 0.0
             kph = gain @ pht.T  # K H P
             pj = pj - kph - kph.T + gain @ s @ gain.T
         else:
@@ -403,8 +487,10 @@ class MapLocalizer(SlamBackend):
         self.x = self.x + dx[:3]
         self.x[2] = wrap_angle(float(self.x[2]))
         self.P = self._pj[:3, :3].copy()
-        for kind, arr in self._kinds.items():
-            o = self._offsets[kind]
+        if self._g is not None:
+            self._g = self._g + dx[3:6]
+        for kind, o in self._offsets.items():
+            arr = self._kinds[kind]
             k = len(arr.ids)
             if k == 0:
                 continue
@@ -460,5 +546,8 @@ class MapLocalizer(SlamBackend):
             extra={"observations_used": float(self.n_used),
                    "observations_ignored": float(self.n_ignored),
                    "observations_ambiguous": float(self.n_ambiguous),
-                   "map_landmarks": float(len(self.cmap.landmarks))},
+                   "map_landmarks": float(len(self.cmap.landmarks)),
+                   **({} if self._g is None else {
+                       "map_frame_dx_m": float(self._g[0]), "map_frame_dy_m": float(self._g[1]),
+                       "map_frame_dtheta_rad": float(self._g[2])})},
         )

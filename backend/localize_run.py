@@ -29,6 +29,7 @@ from lampsam.backend.ceiling_map_io import CeilingMap, corner_patches, map_from_
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
+from lampsam.backend.map_frame import MapFrame, map_frame
 from lampsam.backend.slam import (
     drive,
     iter_steps,
@@ -196,6 +197,23 @@ def _add_to_summary(out: Path, extra: dict[str, object]) -> None:
     write_json_atomic(path, doc)
 
 
+def frame_of_result(result: SlamResult, cmap: CeilingMap) -> MapFrame | None:
+    """The map's frame uncertainty (:func:`lampsam.backend.map_frame.map_frame`) from a
+    smoother's final graph; None for the EKF (no graph), without marginals, or when the
+    information matrix is singular (logged)."""
+    if result.graph is None or not cmap.landmarks:
+        return None
+    if not all(np.all(np.isfinite(lm.cov)) for lm in cmap.landmarks):
+        log.warning("map frame not saved: landmark marginals unavailable")
+        return None
+    try:
+        return map_frame(result.graph.factors, result.graph.values,
+                         [(lm.id, lm.position, lm.cov, lm.phi is not None) for lm in cmap.landmarks])
+    except EstimationError as exc:
+        log.warning("map frame not saved: %s", exc)
+        return None
+
+
 def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
              backend: SlamBackend | None = None) -> CeilingMap:
     """Write a SLAM result's map (with the backend's corner patches) as a ceiling map.
@@ -217,6 +235,7 @@ def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
         source["position_rms_m"] = float(s["error"]["position_rms_m"])
     cmap = map_from_estimates(result.landmarks, run.rig,
                               corner_patches(backend) if backend is not None else None, source)
+    cmap.frame = frame_of_result(result, cmap)
     write_map(folder, cmap)
     log.info("ceiling map written to %s: %d lamps, %d corners", folder,
              len(cmap.by_kind("lamp")), len(cmap.by_kind("corner")))

@@ -88,7 +88,7 @@ def test_consider_keeps_the_map_and_its_covariance(rng: np.random.Generator) -> 
     assert np.array_equal(be._pj[3:, 3:], p0)
     assert all(np.array_equal(a.points, points0[k]) for k, a in be._kinds.items())
     assert np.abs(be._pj[:3, 3:]).max() > 0
-    fixed = MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model, LocalizeConfig(**loc))
+    fixed = MapLocalizer(rig.odometry, SlamConfig(), poses[0], cmap, model, LocalizeConfig(map_mode="fixed", **loc))
     for s in steps:
         fixed.step(*s)
     assert np.trace(be.P[:2, :2]) > 1.5 * np.trace(fixed.P[:2, :2])

@@ -11,7 +11,9 @@ Usage::
 :func:`lampsam.backend.map_merge.merge_maps`). For every run the frames are made once
 (the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
 (:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
-``localize-consider``: ``LocalizeConfig.map_mode``), and
+``localize-consider``: ``LocalizeConfig.map_mode``; with a version-2 map also
+``localize-frame`` and ``localize-priors-frame``: the map frame's offset state,
+``LocalizeConfig.frame_offset``), and
 SLAM from scratch on the same frames with the backends of ``--backends`` (default
 isam2, batch, ekf). Printed per run and method: position and heading RMS against the
 run's truth (no alignment, known start pose), and the CPU time (``time.process_time``,
@@ -133,6 +135,17 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
             "status_ok": float(result.status == "ok")}
 
 
+def localize_config(method: str) -> LocalizeConfig:
+    """``localize[-priors|-consider][-frame]`` as settings; ``-frame`` uses the map's frame
+    model (version-2 maps) with the known start held as tightly as SLAM's (1 mm, 1 mrad)."""
+    parts = method.split("-")[1:]
+    mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
+    if "frame" in parts:
+        return LocalizeConfig(map_mode=mode, frame_offset=True, sigma_start_xy=1e-3,  # type: ignore[arg-type]
+                              sigma_start_theta=1e-3)
+    return LocalizeConfig(map_mode=mode)  # type: ignore[arg-type]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run directories (e.g. lab_day2 simulations)")
@@ -155,7 +168,9 @@ def main() -> None:
     print(f"map {args.map}: {len(cmap.by_kind('lamp'))} lamps, {len(cmap.by_kind('corner'))} "
           f"corners; frames {args.frames}; repeats {args.repeats}; load average "
           f"{load[0]:.1f} {load[1]:.1f} {load[2]:.1f} (2 cores)")
-    methods = ["localize", "localize-priors", "localize-consider", *[b for b in args.backends.split(",") if b]]
+    methods = ["localize", "localize-priors", "localize-consider",
+               *(["localize-frame", "localize-priors-frame"] if cmap.frame is not None else []),
+               *[b for b in args.backends.split(",") if b]]
     rows: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     for run_dir in args.runs:
         run = read_run(run_dir)
@@ -170,8 +185,7 @@ def main() -> None:
                 if m.startswith("localize"):
                     be: SlamBackend = MapLocalizer(
                         run.rig.odometry, config, start, cmap,
-                        CeilingModel.from_camera(run.rig.camera),
-                        LocalizeConfig(map_mode=m.split("-")[1] if "-" in m else "fixed"))
+                        CeilingModel.from_camera(run.rig.camera), localize_config(m))
                 else:
                     be = make_backend(m, run.rig.odometry, config, start, run.rig.camera)
                 reps.append(timed_run(be, run, frames, frame_fit[0] if frame_fit and
