@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.special import chdtri
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig
@@ -485,8 +486,6 @@ class InnovationScale:
 
     def __init__(self, dof: int = 2, gate_prob: float = 0.99, window: int = 200,
                  min_count: int = 20, floor: float = 0.05, margin: float = 2.0) -> None:
-        from scipy.stats import chi2
-
         if not (0.0 < floor <= 1.0) or margin <= 0.0 or window < 1 or min_count < 1:
             raise ValueError(f"InnovationScale: need 0 < floor <= 1, margin > 0, window, "
                              f"min_count >= 1 (got {floor}, {margin}, {window}, {min_count})")
@@ -494,7 +493,9 @@ class InnovationScale:
         self.min_count = min_count
         self.floor = floor
         self.margin = margin
-        self._ref = float(chi2.ppf(gate_prob / 2.0, dof))
+        # chi2.ppf(p / 2, dof) through scipy.special: importing scipy.stats costs
+        # ~0.5 s of CPU, once per process, and every graph backend and EKF makes one
+        self._ref = float(chdtri(dof, 1.0 - gate_prob / 2.0))
         self._d2: collections.deque[float] = collections.deque(maxlen=window)
         self.scale = 1.0
         self.n_seen = 0

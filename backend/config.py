@@ -251,6 +251,18 @@ class EkfConfig:
             forgotten (default 100).
         new_min_separation: a confirmed tentative landmark within this distance of a
             mapped planar landmark is discarded as a copy, m (default 0: off).
+        observability_constrained: the observability-constrained EKF (OC-EKF, Huang,
+            Mourikis & Roumeliotis, IJRR 29(5) 2010) for planar landmarks: measurement
+            Jacobians at the latest estimate, projected to the nearest ones that keep
+            a global translation and rotation unobservable
+            (:func:`lampsam.backend.ekf_update.observability_project`), with the
+            first-estimates prediction (so ``first_estimate_jacobians`` is implied).
+            Where a landmark's estimate has moved metres from its first estimate the
+            first-estimates ``H`` points the update the wrong way; the projected one
+            does not. True / False force it; None (default) turns it on where first
+            estimates are automatic (range-bearing runs with Pose2 odometry) and
+            not turned off (``first_estimate_jacobians = false`` keeps the paper's
+            Jacobians). Ignored with ``right_invariant``.
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -264,6 +276,7 @@ class EkfConfig:
     prune_known_ids: bool | None = None
     tentative_max_idle: int = field(default=100, metadata=limits(ge=0))
     new_min_separation: float = field(default=0.0, metadata=limits(ge=0.0))
+    observability_constrained: bool | None = None
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -296,11 +309,14 @@ class Isam2Config:
             1 made the lab run's updates 2-3x slower).
         extra_updates: extra ``update()`` calls per keyframe (default 0).
         sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad).
-        pose_cov_every_step: compute the pose marginal after every keyframe update
-            (default True). With the corner budget below it costs, together with the
-            pose estimate, a median 4.3 ms per keyframe on the whole lab path (truth
-            frames, against 9.0 ms for ``update()``); when False the reported pose
-            covariance is the odometry-propagated one (an upper bound), not the marginal.
+        pose_cov_every_step: every step's estimate carries its pose covariance (the
+            last keyframe's marginal composed with the odometry since; default True).
+            With the corner budget below the marginal costs, together with the pose
+            estimate, a median 4.3 ms per keyframe on the whole lab path (truth
+            frames, against 9.0 ms for ``update()``). When False the steps' covariances
+            are NaN (not computed) and the marginal is computed only when the gate or
+            a new landmark's covariance reads it (a keyframe with known ids only that
+            starts no landmark never does).
         final_covariances: compute every keyframe's final marginal covariance in
             ``finish()`` (default True; NaN covariances when False, for speed).
         odometry_floor_var: variance added to each diagonal entry of every odometry

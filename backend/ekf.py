@@ -38,22 +38,20 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import (
-    Assignment,
     TentativeLandmarks,
     associate,
     corner_budget,
     innovation_scale,
-    jcbb,
     learn_scale,
-    mahalanobis2,
     screen_pairs,
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
+from lampsam.backend.ekf_joint import joint_point2
 from lampsam.backend.ekf_update import (
     gathered_s,
-    invariant_remap,
-    invariant_retract,
+    invariant_update,
+    observability_project,
     stacked_gain,
 )
 from lampsam.backend.interface import (
@@ -76,7 +74,7 @@ from lampsam.backend.models import (
     residual,
 )
 from lampsam.backend.odometry import OdometryConstants, Pose2Motion, motion_model
-from lampsam.backend.planar_gate import predict_point2_many, screen_point2
+from lampsam.backend.planar_gate import ekf_point2_jacobians, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
@@ -165,8 +163,12 @@ class EkfSlam(SlamBackend):
         if inv and ceiling is not None:
             raise EstimationError("ekf.right_invariant applies to planar range-bearing runs only")
         self._invariant = bool(inv) if inv is not None else False
+        oc = config.ekf.observability_constrained
+        self._oc = bool(auto and self._fej) if oc is None else oc
+        if self._oc:
+            self._fej = True  # the first-estimates prediction and first estimates for N
         if self._invariant:
-            self._fej = False  # the invariant error keeps the rotation unobservable itself
+            self._fej = self._oc = False  # the invariant error keeps the rotation unobservable
         # None (auto): landmarks with a known id are kept on the same runs.
         prune_known = config.ekf.prune_known_ids
         self._prune_known = not auto if prune_known is None else prune_known
@@ -226,11 +228,17 @@ class EkfSlam(SlamBackend):
         """Predicted measurement and coordinate Jacobians (robot, landmark).
 
         With ``ekf.first_estimate_jacobians`` the Jacobians are taken at the landmark's
-        first estimate (the prediction ``z_hat`` at the current one).
+        first estimate (the prediction ``z_hat`` at the current one); with
+        ``ekf.observability_constrained`` a planar landmark's are the latest ones
+        projected (:func:`lampsam.backend.ekf_update.observability_project`).
         """
         pose = self._x[:3]
         state = self._x[slot.offset : slot.offset + slot.dim]
         z_hat, z_D_pose, z_D_l = predict(slot.kind, pose, state, obs, self.ceiling)
+        if self._oc and slot.first is not None and slot.kind == LandmarkKind.POINT2:
+            h_r, h_l = observability_project(z_D_pose @ tangent_D_coords(pose[2]), z_D_l,
+                                             pose[:2], slot.first[:2])
+            return z_hat, h_r, h_l
         if self._fej and slot.first is not None:
             _, z_D_pose, z_D_l = predict(slot.kind, pose, slot.first, obs, self.ceiling)
         return z_hat, z_D_pose @ tangent_D_coords(pose[2]), z_D_l
@@ -299,20 +307,16 @@ class EkfSlam(SlamBackend):
 
     def _screen_planar(self, obs: list[Obs], lids: list[int]
                        ) -> dict[int, dict[int, tuple[float, bool]]]:
-        """Exact eq.-19/20 distances of every planar observation to every planar landmark.
-
-        :func:`lampsam.backend.planar_gate.predict_point2_many` with the Jacobians at the
-        first estimates when those are on (as :meth:`_h`), ``S = H P H^T`` from
-        gathered blocks of ``P``.
-        """
+        """Exact eq.-19/20 distances of every planar observation to every planar landmark,
+        with the update's Jacobians (:func:`lampsam.backend.planar_gate.ekf_point2_jacobians`)
+        and ``S = H P H^T`` from gathered blocks of ``P``."""
         offs = np.array([self._slots[lid].offset for lid in lids])
         idx = offs[:, None] + np.arange(2)[None, :]  # (M, 2)
-        lin = None
+        firsts = None
         if self._fej:
-            firsts = [self._slots[lid].first for lid in lids]
-            lin = np.array([f[:2] if f is not None else self._x[o : o + 2]
-                            for f, o in zip(firsts, offs, strict=True)])
-        z_hat, h_r, h_l = predict_point2_many(self._x[:3], self._x[idx], lin)
+            firsts = np.array([sl.first[:2] if sl.first is not None else self._x[sl.offset : sl.offset + 2]
+                               for sl in (self._slots[lid] for lid in lids)])
+        z_hat, h_r, h_l = ekf_point2_jacobians(self._x[:3], self._x[idx], firsts, self._oc)
         return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
                              self.config.association, self.noise_scale.scale)
 
@@ -351,27 +355,14 @@ class EkfSlam(SlamBackend):
                 break
             dx_prev = step
         cov.downdate(w)  # eq. 23: (I - K H) P = P - K (P H^T)^T = P - W W^T
-        if self._invariant:
-            self._retract_invariant(x0)
+        if self._invariant:  # the update applied as exp(xi) x (``ekf.right_invariant``)
+            invariant_update(self._x, x0, self._cov,
+                             [0] + [s.offset for s in self._slots.values() if s.dim == 2])
         for slot, *_ in rows:
             slot.n_obs += 1
             slot.last_seen = self._step
 
         return len(rows)
-
-    def _retract_invariant(self, x0: FloatArray) -> None:
-        """Apply the last update as the right-invariant EKF does (``ekf.right_invariant``).
-
-        :func:`lampsam.backend.ekf_update.invariant_retract` on the robot and every
-        planar landmark position, then ``P`` carried to the new state's coordinates
-        (:func:`lampsam.backend.ekf_update.invariant_remap`).
-        """
-        offs = [0] + [s.offset for s in self._slots.values() if s.dim == 2]
-        idx = np.asarray(offs)[:, None] + np.arange(2)[None, :]
-        dth = wrap_angle(float(self._x[2] - x0[2]))
-        new = invariant_retract(x0[idx], self._x[idx], dth)
-        invariant_remap(self._cov, idx, new - x0[idx])
-        self._x[idx] = new
 
     def _wrap_angles(self, rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
         """Wrap the heading and the updated lamps' axis angles (after eq. 22)."""
@@ -423,79 +414,6 @@ class EkfSlam(SlamBackend):
         out = stacked_gain(self._cov, [(sl.offset, sl.dim, res, h_r, h_l, o.R)
                                        for sl, o, res, h_r, h_l in rows])
         return None if out is None else (rows, *out)
-
-    def _joint_point2(self, obs: list[Obs], assignments: list[Assignment],
-                      screened: dict[int, dict[int, tuple[float, bool]]]) -> list[Assignment]:
-        """Re-pair a frame's planar observations without ids by joint compatibility (JCBB).
-
-        Candidates are the landmarks individually inside the gate (eqs. 19-20); the
-        joint innovation covariance of a hypothesis is ``H P H^T + R`` over all its
-        rows (the shared robot block correlates them). An observation JCBB leaves
-        unpaired keeps a greedy ``"new"`` (beyond the new-landmark threshold of every
-        landmark) and is otherwise dropped, so one tree is not mapped twice.
-        """
-        cfg = self.config.association
-        idx = [a.obs_index for a in assignments
-               if obs[a.obs_index].kind == LandmarkKind.POINT2 and obs[a.obs_index].landmark_id is None]
-        if not idx:
-            return assignments
-        gate = cfg.gate(2)
-        cands: dict[int, list[int]] = {}
-        for i in idx:
-            if i in screened:
-                cands[i] = [lid for lid, (d2, _) in screened[i].items() if d2 < gate]
-                continue
-            cands[i] = []
-            for lid, s in self._slots.items():
-                if s.kind != LandmarkKind.POINT2 or lid in self._doomed:
-                    continue
-                pred = self._innovation(lid, obs[i])
-                if pred is not None and mahalanobis2(*pred) < gate:
-                    cands[i].append(lid)
-        if not any(cands.values()):
-            return assignments
-        # Only the robot and candidate blocks of P enter H P H^T: gather those (an
-        # O(m^2) read) instead of a dense copy of the whole n x n covariance.
-        local: dict[int, int] = {}  # landmark id -> its first column in the gathered block
-        cols = [0, 1, 2]
-        for lid in sorted({lid for c in cands.values() for lid in c}):
-            s_lid = self._slots[lid]
-            local[lid] = len(cols)
-            cols.extend(range(s_lid.offset, s_lid.offset + s_lid.dim))
-        col_idx = np.asarray(cols)
-        P = self._cov.take(col_idx[:, None], col_idx[None, :])
-        n = len(cols)
-
-        def joint(hyp: list[tuple[int, int]]) -> tuple[FloatArray, FloatArray] | None:
-            k = 2 * len(hyp)
-            h = np.zeros((k, n))
-            nu = np.empty(k)
-            r = np.zeros((k, k))
-            for row, (i, lid) in enumerate(hyp):
-                slot = self._slots[lid]
-                try:
-                    z_hat, h_r, h_l = self._h(slot, obs[i])
-                except Exception:
-                    return None
-                h[2 * row : 2 * row + 2, :3] = h_r
-                h[2 * row : 2 * row + 2, local[lid] : local[lid] + slot.dim] = h_l
-                nu[2 * row : 2 * row + 2] = residual(obs[i], z_hat)
-                r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
-            return nu, (h @ P @ h.T + r) * self.noise_scale.scale
-
-        paired = dict(jcbb(cands, joint, cfg))
-        out = []
-        for a in assignments:
-            i = a.obs_index
-            if i not in cands:
-                out.append(a)
-            elif i in paired:
-                out.append(Assignment(i, paired[i], "matched"))
-            elif a.status == "new":
-                out.append(a)
-            else:
-                out.append(Assignment(i, None, "dropped"))
-        return out
 
     # ------------------------------------------------------------------ eqs. 24-25
     def _augment(self, obs: Obs, lid: int | None) -> int | None:
@@ -658,7 +576,12 @@ class EkfSlam(SlamBackend):
                                         self.config.association, lambda i: i in self._slots,
                                         patches, screened)
                 if self.config.association.joint_compatibility:
-                    assignments = self._joint_point2(obs, assignments, screened)
+                    planar = {lid: (sl.offset, sl.dim) for lid, sl in self._slots.items()
+                              if sl.kind == LandmarkKind.POINT2 and lid not in self._doomed}
+                    assignments = joint_point2(
+                        obs, assignments, screened, self.config.association, planar,
+                        self._innovation, lambda lid, o: self._h(self._slots[lid], o),
+                        self._cov, self.noise_scale.scale)
                 learn_scale(self.noise_scale, obs, assignments, screened)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots

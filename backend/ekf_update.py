@@ -18,6 +18,7 @@ from scipy.linalg import solve_triangular
 
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.covariance import LowerCovariance
+from lampsam.factors.geometry import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -143,3 +144,60 @@ def invariant_remap(cov: LowerCovariance, idx: IntArray, moved: FloatArray) -> N
     b = np.column_stack([a, p_th]) @ vec
     for j in range(2):
         cov.rank_update(b[:, j : j + 1], float(lam[j]))
+
+
+def invariant_update(x: FloatArray, x0: FloatArray, cov: LowerCovariance,
+                     offsets: list[int]) -> None:
+    """Apply an additive update ``x0 -> x`` as the right-invariant EKF does, in place.
+
+    :func:`invariant_retract` on the robot (offset 0) and every planar landmark
+    position, then ``P`` carried to the new state's coordinates (:func:`invariant_remap`).
+
+    Args:
+        x: (n,) the state after the additive update (heading at index 2), changed in place.
+        x0: (n,) the state before it.
+        cov: ``P``, changed in place.
+        offsets: first state index of the robot and of each planar landmark.
+    """
+    idx = np.asarray(offsets)[:, None] + np.arange(2)[None, :]
+    dth = wrap_angle(float(x[2] - x0[2]))
+    new = invariant_retract(x0[idx], x[idx], dth)
+    invariant_remap(cov, idx, new - x0[idx])
+    x[idx] = new
+
+
+def observability_project(h_r: FloatArray, h_l: FloatArray, pose_xy: FloatArray,
+                          first_xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Range-bearing Jacobians projected so that the global pose stays unobservable (OC-EKF).
+
+    The observability-constrained EKF (Huang, Mourikis & Roumeliotis, "Observability-based
+    rules for designing consistent EKF SLAM estimators", IJRR 29(5) 2010, sec. 5) takes
+    the ``H`` closest in the Frobenius norm to the Jacobian at the latest estimate,
+    ``H = [H_R, H_L]``, among those with ``H* N = 0``:
+    ``H* = H (I - N (N^T N)^-1 N^T)``. ``N`` spans the directions that no measurement
+    can observe, a global translation and rotation of robot and landmark,
+    ``N = [[I_2, J p_R], [0, 1], [I_2, J p_L]]`` (rows: robot x, y, theta, landmark x, y;
+    ``J`` the +90 deg rotation), with ``p_R`` the robot's predicted position
+    ``p_{k|k-1}`` (what the first-estimates prediction's heading column propagates) and
+    ``p_L`` the landmark's first estimate. The first-estimates ``H`` satisfies the same
+    constraint but may be far from the latest ``H`` once the landmark has moved; ``H*``
+    is the nearest one that keeps the rotation unobservable.
+
+    Args:
+        h_r: (..., k, 3) robot Jacobians (plain coordinates) at the latest estimate;
+            h_l: (..., k, 2) landmark Jacobians.
+        pose_xy: (2,) ``p_R``, m; first_xy: (..., 2) ``p_L``, m.
+
+    Returns:
+        ``(H*_R (..., k, 3), H*_L (..., k, 2))``.
+    """
+    h = np.concatenate([h_r, h_l], axis=-1)  # (..., k, 5)
+    pl = np.asarray(first_xy, float)
+    n = np.zeros((*pl.shape[:-1], 5, 3))
+    n[..., 0, 0] = n[..., 1, 1] = n[..., 3, 0] = n[..., 4, 1] = n[..., 2, 2] = 1.0
+    n[..., 0, 2], n[..., 1, 2] = -float(pose_xy[1]), float(pose_xy[0])
+    n[..., 3, 2], n[..., 4, 2] = -pl[..., 1], pl[..., 0]
+    nt = np.swapaxes(n, -1, -2)
+    proj = n @ np.linalg.solve(nt @ n, nt)  # (..., 5, 5)
+    out = h - h @ proj
+    return out[..., :3], out[..., 3:]

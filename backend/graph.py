@@ -50,7 +50,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import associate, corner_budget, learn_scale
+from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.gating import Gating
@@ -105,13 +105,23 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                  ceiling: CeilingModel | None = None,
                  ceiling_handler: LandmarkHandler | None = None, online: bool = True) -> None:
         super().__init__(odometry, config, start_pose, ceiling, ceiling_handler, online)
+        self._distinct_handlers = list({id(h): h for h in self.handlers.values()}.values())
         self._flush()
 
     # ------------------------------------------------------------------ keyframe
     def _make_keyframe(self, obs: list[Obs]) -> tuple[int, int]:
         """Add a keyframe with its odometry factor and the frame's observations."""
-        pose, pose_cov = self.current()
-        gate_ctx = (self._k, pose, self._delta.copy(), self._delta_cov.copy())
+        pose = self.current_pose()
+        cov_now: list[FloatArray] = []
+
+        def pose_cov() -> FloatArray:
+            """The pose's tangent covariance, composed when first needed (the gate, a
+            new landmark's covariance, the odometry-only pass): a known-id keyframe
+            that starts no landmark never reads the last keyframe's marginal."""
+            if not cov_now:
+                cov_now.append(compose_cov(self._delta, self._kf_cov, self._delta_cov))
+            return cov_now[0]
+
         if len(self._wheel_since_kf) == 1 and self._first_rel is not None:
             delta, cov = self._first_rel  # one step's samples since the last keyframe
         else:
@@ -129,13 +139,20 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         if obs:
             gating = not self.config.association.use_known_ids or any(
                 o.landmark_id is None for o in obs)
-            cands, screened = self._screen(obs, pose, pose_cov) if gating else ({}, {})
-            self._prefetch_joint(gate_ctx[0], obs, screened)
-            patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
-            assignments = associate(
-                obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
-                self.config.association, lambda i: i in self._landmarks, patches, screened)
-            learn_scale(self.noise_scale, obs, assignments, screened)
+            cands: dict[str, list[int]] = {}
+            if gating:
+                gate_ctx = (k - 1, pose, self._delta.copy(), self._delta_cov.copy())
+                cands, screened = self._screen(obs, pose, pose_cov())
+                self._prefetch_joint(gate_ctx[0], obs, screened)
+                patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
+                assignments = associate(
+                    obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
+                    self.config.association, lambda i: i in self._landmarks, patches, screened)
+                learn_scale(self.noise_scale, obs, assignments, screened)
+            else:  # every id known: what associate() decides, without its gate machinery
+                ids = [int(o.landmark_id) for o in obs if o.landmark_id is not None]
+                assignments = [Assignment(i, lid, "matched" if lid in self._landmarks else "new")
+                               for i, lid in enumerate(ids)]
             matches: list[tuple[GraphLandmark, Obs]] = []
             for a in assignments:
                 o = obs[a.obs_index]
@@ -148,7 +165,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                     if o.kind == "lamp" and a.landmark_id is None and self._near_known_lamp(
                             pose, o, cands.get("lamp", ())):
                         continue
-                    n_new += self._start_landmark(pose, pose_cov, k, o, a.landmark_id)
+                    n_new += self._start_landmark(pose, pose_cov(), k, o, a.landmark_id)
             matches, self._entries_left = corner_budget(
                 matches, self.config.association.max_corner_updates)
             for lm, o in matches:
@@ -156,14 +173,15 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                 n_matched += 1
         if k % 10 == 0:
             self._forget_pending(k)
-        # The keyframe's own estimate: the prediction until iSAM2 updates it.
+        # The keyframe's own estimate: the prediction until iSAM2 updates it (_flush).
         self._kf_pose = pose
-        self._kf_cov = pose_cov
+        if self.isam is None:
+            self._kf_cov = pose_cov()
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf = []
         self._first_rel = None
-        for handler in {id(h): h for h in self.handlers.values()}.values():
+        for handler in self._distinct_handlers:
             for f in handler.flush(self.robust, self._pose_of):
                 self._add_factor(f)
         self._flush()
@@ -180,13 +198,15 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         if len(u):
             if self._wheel_since_kf:
                 d, c = self.motion.relative(u, _STEP_FLOOR)
+                self._delta_cov = compose_cov(d, self._delta_cov, c)
+                self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
             else:  # the first samples since the keyframe: composed once for both uses
                 floor = self.config.isam2.odometry_floor_var
                 d, c_kf = self.motion.relative(u, floor)
                 self._first_rel = (d, c_kf)  # the odometry factor's, if no samples follow
-                c = c_kf + (_STEP_FLOOR - floor) * np.eye(3)
-            self._delta_cov = compose_cov(d, self._delta_cov, c)
-            self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
+                # composed with the identity (zero covariance) since the keyframe
+                self._delta_cov = c_kf + (_STEP_FLOOR - floor) * np.eye(3)
+                self._delta = pose_array(gtsam.Pose2(*d))
             self._wheel_since_kf.append(u)
         n_matched = n_new = 0
         is_kf = False
@@ -195,17 +215,20 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             if obs and is_keyframe(self._k, self._delta, self.config.isam2):
                 n_matched, n_new = self._make_keyframe(obs)
                 is_kf = True
-        pose, cov = self.current()
+        pose = self.current_pose()
+        if self.config.isam2.pose_cov_every_step:
+            cov = tangent_to_coords_cov(
+                pose, compose_cov(self._delta, self._kf_cov, self._delta_cov))
+        else:  # not asked for: not computed
+            cov = np.full((3, 3), np.nan)
         dt = time.perf_counter() - t0
         self._times.append(t)
         self._step_kf.append(self._k)
         self._step_delta.append(self._delta.copy())
         self._step_delta_cov.append(self._delta_cov.copy())
-        self._step_online_pose.append(pose)
-        self._step_online_cov.append(cov)
         self._step_times.append(dt)
         self._keyframes.append(is_kf)
-        return StepEstimate(t, pose, tangent_to_coords_cov(pose, cov), is_kf, n_matched, n_new, dt)
+        return StepEstimate(t, pose, cov, is_kf, n_matched, n_new, dt)
 
     def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         """Final estimate, a marginal-covariance function, and why the estimate is the
@@ -232,7 +255,9 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         kf_pose = np.array([pose_array(values.atPose2(X(k))) if values.exists(X(k))
                             else self._kf_poses[k] for k in range(n_kf)])
         kf_cov = np.full((n_kf, 3, 3), np.nan)
-        if marginal is not None and self.config.isam2.final_covariances:
+        with_cov = marginal is not None and self.config.isam2.final_covariances
+        if with_cov:
+            assert marginal is not None
             for k in range(n_kf):
                 try:
                     kf_cov[k] = marginal(X(k))
@@ -240,17 +265,19 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                     continue
         n = len(self._times)
         poses = np.zeros((n, 3))
-        covs = np.zeros((n, 3, 3))
+        covs = np.full((n, 3, 3), np.nan)
         for i in range(n):
             k = self._step_kf[i]
             delta, cov_delta = self._step_delta[i], self._step_delta_cov[i]
-            if k + 1 < n_kf:  # between two keyframes: condition the odometry on both
+            # between two keyframes: condition the odometry on both (a keyframe's own
+            # step has zero odometry and covariance, which the bridge leaves as is)
+            if k + 1 < n_kf and not self._keyframes[i]:
                 delta, cov_delta = odometry_bridge(delta, cov_delta, *self._odo[k + 1],
                                                    kf_pose[k], kf_pose[k + 1])
             p = pose_array(gtsam.Pose2(*kf_pose[k]).compose(gtsam.Pose2(*delta)))
-            c = compose_cov(delta, kf_cov[k], cov_delta)
             poses[i] = p
-            covs[i] = tangent_to_coords_cov(p, c)
+            if with_cov:
+                covs[i] = tangent_to_coords_cov(p, compose_cov(delta, kf_cov[k], cov_delta))
 
         lms: list[LandmarkEstimate] = []
         provisional: list[LandmarkEstimate] = []

@@ -80,7 +80,10 @@ class GraphState(SlamBackend):
         self._add_factor(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*start),
                                                 gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
         self._kf_pose = start.copy()  # current estimate of the last keyframe
-        self._kf_cov = np.diag(prior_sigmas**2)  # its tangent covariance
+        #: its tangent covariance (:attr:`_kf_cov`); after an iSAM2 update, the key
+        #: whose marginal it is, computed when first read
+        self._kf_cov_value: FloatArray = np.diag(prior_sigmas**2)
+        self._kf_cov_key: int | None = None
         self._kf_poses: list[FloatArray] = [start.copy()]  # running (odometry-pass) estimates
         self._k = 0
         self._delta = np.zeros(3)
@@ -97,8 +100,6 @@ class GraphState(SlamBackend):
         self._step_kf: list[int] = []
         self._step_delta: list[FloatArray] = []
         self._step_delta_cov: list[FloatArray] = []
-        self._step_online_pose: list[FloatArray] = []
-        self._step_online_cov: list[FloatArray] = []
         self._step_times: list[float] = []
         self._keyframes: list[bool] = []
         self.update_times: list[float] = []  # iSAM2 update() per keyframe, s
@@ -167,11 +168,36 @@ class GraphState(SlamBackend):
             return pose
         return self._kf_poses[k]
 
+    @property
+    def _kf_cov(self) -> FloatArray:
+        """(3, 3) tangent covariance of the last keyframe.
+
+        After an iSAM2 update it is that keyframe's marginal, computed on first read:
+        iSAM2 does not change until the next update, so the value is the one an
+        eager ``marginalCovariance`` after the update gives, and a run that never
+        reads it (known ids, no gate, no online covariance) never pays for it.
+        """
+        if self._kf_cov_key is not None:
+            assert self.isam is not None
+            self._kf_cov_value = np.asarray(self.isam.marginalCovariance(self._kf_cov_key))
+            self._kf_cov_key = None
+        return self._kf_cov_value
+
+    @_kf_cov.setter
+    def _kf_cov(self, cov: FloatArray) -> None:
+        self._kf_cov_value = cov
+        self._kf_cov_key = None
+
+    def current_pose(self) -> FloatArray:
+        """Current pose (3,): the last keyframe's estimate composed with the odometry since."""
+        if not self._wheel_since_kf:  # no odometry since the keyframe: its own estimate
+            return self._kf_pose.copy()
+        return pose_array(gtsam.Pose2(*self._kf_pose).compose(gtsam.Pose2(*self._delta)))
+
     def current(self) -> tuple[FloatArray, FloatArray]:
         """Current pose (3,) and its tangent covariance (3, 3)."""
-        pose = gtsam.Pose2(*self._kf_pose).compose(gtsam.Pose2(*self._delta))
         cov = compose_cov(self._delta, self._kf_cov, self._delta_cov)
-        return pose_array(pose), cov
+        return self.current_pose(), cov
 
     def _refresh_landmark(self, lm: GraphLandmark) -> None:
         """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""

@@ -26,7 +26,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
 from lampsam.errors import EstimationError
-from lampsam.factors.gtsam_factors import bearing_range_factor
+from lampsam.factors.gtsam_factors import check_cov, noise_model
 
 #: How a graph value is read: ``Point2``/``Point3``/``Vector`` as arrays, or a ``Pose2``.
 ValueKind: TypeAlias = Literal["point2", "point3", "vector", "pose2"]
@@ -121,8 +121,37 @@ class LandmarkHandler(Protocol):
         """Graph keys of the landmark, in state order."""
 
 
+#: Distinct noise models a :class:`Point2Handler` keeps (cleared when full).
+NOISE_CACHE_SIZE = 4096
+
+
 class Point2Handler:
-    """Planar range-bearing landmarks: ``Point2`` + GTSAM's ``BearingRangeFactor2D``."""
+    """Planar range-bearing landmarks: ``Point2`` + GTSAM's ``BearingRangeFactor2D``.
+
+    One noise model per distinct ``(covariance, robust)``, validated once
+    (:func:`lampsam.factors.gtsam_factors.check_cov`) and shared by the factors
+    that carry it (GTSAM's noise models are immutable): a log with one global
+    range-bearing noise builds one, not one per sighting.
+    """
+
+    def __init__(self) -> None:
+        self._noise: dict[tuple[bytes, float | None], gtsam.noiseModel.Base] = {}
+
+    def noise(self, cov: FloatArray, robust: float | None) -> gtsam.noiseModel.Base:
+        """The (cached) noise model of a (2, 2) ``[bearing, range]`` covariance.
+
+        Raises:
+            FactorError: a covariance that is not finite, (2, 2) and positive definite.
+        """
+        arr = np.asarray(cov, dtype=float)
+        key = (arr.tobytes(), robust)
+        model = self._noise.get(key)
+        if model is None or arr.shape != (2, 2):
+            model = noise_model(check_cov(arr, 2, "range-bearing"), robust)
+            if len(self._noise) >= NOISE_CACHE_SIZE:
+                self._noise.clear()
+            self._noise[key] = model
+        return model
 
     def insert(self, lm: GraphLandmark, values: ValueSink) -> None:
         """Insert ``L(id)`` at the landmark's current ``(x, y)``."""
@@ -134,9 +163,12 @@ class Point2Handler:
 
     def factors(self, lm: GraphLandmark, k: int, obs: Obs, robust: float | None
                 ) -> list[gtsam.NonlinearFactor]:
-        """``BearingRangeFactor2D(X(k), L(id))`` (built-in C++, via the factors adapter)."""
-        return [bearing_range_factor(X(k), L(lm.id), float(obs.z[0]), float(obs.z[1]), obs.R,
-                                     robust=robust)]
+        """``BearingRangeFactor2D(X(k), L(id))``, GTSAM's built-in factor (as
+        :func:`lampsam.factors.gtsam_factors.bearing_range_factor` builds it without a
+        sensor offset), with the cached noise model of ``obs.R``."""
+        z0, z1 = obs.z.tolist()
+        return [gtsam.BearingRangeFactor2D(X(k), L(lm.id), gtsam.Rot2(z0), z1,
+                                           self.noise(obs.R, robust))]
 
     def flush(self, robust: float | None, pose_of: PoseSource) -> list[gtsam.NonlinearFactor]:
         """Nothing is buffered."""

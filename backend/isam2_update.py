@@ -14,7 +14,6 @@ import re
 import time
 
 import gtsam
-import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
@@ -48,8 +47,7 @@ class Isam2Updates(GraphState):
         self._new_values = gtsam.Values()
         self._update_factor_lids = []
         self._kf_pose = pose_array(self.isam.calculateEstimatePose2(X(self._k)))
-        if self.config.isam2.pose_cov_every_step:
-            self._kf_cov = np.asarray(self.isam.marginalCovariance(X(self._k)))
+        self._kf_cov_key = X(self._k)  # its marginal, when first read (GraphState._kf_cov)
         self.update_times.append(t1 - t0)
         self.estimate_times.append(time.perf_counter() - t1)
 

@@ -16,6 +16,7 @@ previous step as a (K, m) array and asks a :class:`MotionModel` for what it need
 
 from __future__ import annotations
 
+import math
 from typing import Protocol, TypeAlias
 
 import numpy as np
@@ -23,6 +24,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.datasets.odometry import POSE2_SAMPLE_WIDTH, Pose2OdometryModel
 from lampsam.errors import EstimationError
+from lampsam.factors.geometry import wrap_angle
 from lampsam.factors.motion import accumulate_odometry, diff_drive_step, wheel_noise_cov
 from lampsam.factors.pose2_odometry import accumulate_pose2, pose2_step
 
@@ -134,6 +136,9 @@ class Pose2Motion:
 
     def __init__(self, model: Pose2OdometryModel) -> None:
         self.model = model
+        #: the per-sample floor as :meth:`Pose2OdometryModel.sample_cov` adds it
+        self._sample_floor = np.diag([model.var_floor_xy, model.var_floor_xy,
+                                      model.var_floor_theta])
 
     def check(self, t: float, samples: FloatArray) -> FloatArray:
         """(K, 12) rows; the increments must be finite (covariances may be NaN: default)."""
@@ -148,7 +153,24 @@ class Pose2Motion:
 
     def relative(self, samples: FloatArray, floor_var: float | FloatArray
                  ) -> tuple[FloatArray, FloatArray]:
-        """:func:`lampsam.factors.pose2_odometry.accumulate_pose2` of the samples."""
+        """:func:`lampsam.factors.pose2_odometry.accumulate_pose2` of the samples.
+
+        One sample with a scalar floor (a step per pose: the dense-log case) takes a
+        short path with the same arithmetic: the increment itself (theta wrapped)
+        and ``sym(sample_cov) + floor I``.
+        """
+        if len(samples) == 1 and isinstance(floor_var, float):
+            row = samples[0]
+            dx, dy, dth = row[:3].tolist()
+            c = row[3:].reshape(3, 3)
+            if (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dth)
+                    and math.isfinite(floor_var) and floor_var >= 0.0 and np.isfinite(c).all()):
+                cov = c + self._sample_floor  # Pose2OdometryModel.sample_cov of a given cov
+                sym = 0.5 * (cov + cov.T)
+                sym[0, 0] += floor_var
+                sym[1, 1] += floor_var
+                sym[2, 2] += floor_var
+                return np.array([0.0 + dx, 0.0 + dy, wrap_angle(0.0 + dth)]), sym
         return accumulate_pose2(samples[:, :3], self._covs(samples), floor_var)
 
     def ekf_predict(self, pose: FloatArray, samples: FloatArray

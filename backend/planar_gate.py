@@ -19,6 +19,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig
+from lampsam.backend.ekf_update import observability_project
 from lampsam.backend.models import Obs
 from lampsam.factors.geometry import mahalanobis2_2x2
 
@@ -63,6 +64,29 @@ def predict_point2_many(pose: FloatArray, landmarks: FloatArray, lin: FloatArray
     h_r[:, :, :2] = -h_l
     h_r[:, 0, 2] = -1.0
     return z, h_r, h_l
+
+
+def ekf_point2_jacobians(pose: FloatArray, landmarks: FloatArray, firsts: FloatArray | None,
+                         constrained: bool) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The EKF's ``[bearing, range]`` predictions and update Jacobians of M planar landmarks.
+
+    As ``EkfSlam._h`` for each landmark: Jacobians at the latest estimate (``firsts`` None:
+    the paper's), at the first estimates (``constrained`` False), or at the latest estimate
+    projected to keep the global pose unobservable (``constrained`` True, the OC-EKF:
+    :func:`lampsam.backend.ekf_update.observability_project`).
+
+    Args:
+        pose: (3,) the predicted pose; landmarks: (M, 2) latest estimates, m.
+        firsts: (M, 2) first estimates, m, or None.
+        constrained: the observability-constrained Jacobians.
+
+    Returns:
+        ``(z_hat (M, 2), h_pose (M, 2, 3), h_landmark (M, 2, 2))``, plain coordinates.
+    """
+    z_hat, h_r, h_l = predict_point2_many(pose, landmarks, None if constrained else firsts)
+    if constrained and firsts is not None:
+        h_r, h_l = observability_project(h_r, h_l, pose[:2], firsts)
+    return z_hat, h_r, h_l
 
 
 def range_bearing_many(pose: FloatArray, pts: FloatArray

@@ -30,6 +30,7 @@ from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.corners import CornerDetections, detect_corner_pixels
 from lampsam.frontend.lamps import LampDetections, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
+from lampsam.frontend.resolution import lamp_config_for_width
 from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
@@ -81,7 +82,9 @@ def config_for_width(width: int, base: FrontendConfig | None = None) -> Frontend
     s = width / REFERENCE_WIDTH
     if abs(s - 1.0) < 1e-9:
         return base
-    lamps = replace(base.lamps, min_area_px=max(int(round(base.lamps.min_area_px * s * s)), 1))
+    # Area only, as before: the gallery's full-size column keeps the 320 px reach (scaling it
+    # takes a 4000 px photo from ~10 to ~17 s CPU); frontend-eval --photos scales both.
+    lamps = lamp_config_for_width(base.lamps, width, scale_reach=False)
     corners = replace(
         base.corners,
         min_spacing_px=max(int(round(base.corners.min_spacing_px * s)), 1),

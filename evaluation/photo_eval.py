@@ -3,10 +3,15 @@
 Each labelled photo (:mod:`lampsam.evaluation.photo_labels`) is read as grey
 in sensor orientation, reduced to the working width (``INTER_AREA``; default
 320 px, the robot camera's) and run through
-:func:`lampsam.frontend.lamps.detect_lamps` with the settings scaled to that
-width (:func:`lampsam.evaluation.gallery.config_for_width`). Blobs touching
+:func:`lampsam.frontend.resolution.detect_photo_lamps` with the settings scaled to that
+width (:func:`lampsam.frontend.resolution.lamp_config_for_width`). Blobs touching
 the border are left out, as :func:`lampsam.frontend.pipeline.process_image`
 does. The labels are scaled to the working size, then:
+
+With ``auto_width`` the working width is chosen per photo from its lamps
+(:func:`lampsam.frontend.resolution.width_for_lamps`); with ``second_look``
+the blobs long for their frame or cut by the border are looked at again at
+full resolution (:mod:`lampsam.frontend.second_look`).
 
 * a detection is **true** when its centroid lies in a ``lamp`` rectangle
   grown by ``margin`` (``max(margin_px, margin_frac * width)``); otherwise it
@@ -40,11 +45,12 @@ import numpy as np
 from lampsam.angles import wrap_axis
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
-from lampsam.evaluation.gallery import config_for_width, load_photo
+from lampsam.evaluation.gallery import load_photo
 from lampsam.evaluation.photo_labels import PhotoLabels, Region, read_labels
 from lampsam.frontend.lamp_config import LampDetectorConfig
-from lampsam.frontend.lamps import LampDetections, detect_lamps
+from lampsam.frontend.lamps import LampDetections
 from lampsam.frontend.pipeline import FrontendConfig
+from lampsam.frontend.resolution import ResolutionPolicy, detect_photo_lamps
 from lampsam.safe_io import write_text_atomic
 
 
@@ -53,14 +59,21 @@ class PhotoEvalSettings:
     """Settings of the photo evaluation.
 
     Attributes:
-        width: working image width, px (height keeps the aspect ratio).
+        width: working image width, px (height keeps the aspect ratio) when
+            ``auto_width`` is off.
         margin_px: a detection is on a lamp within this distance of its rectangle, px.
         margin_frac: ... or within this fraction of the lamp's width, if larger.
+        auto_width: choose the working width per photo from its lamps
+            (:func:`lampsam.frontend.resolution.width_for_lamps`).
+        second_look: look at full resolution inside blobs long for their
+            frame or cut by the border (:mod:`lampsam.frontend.second_look`).
     """
 
     width: int = 320
     margin_px: float = 2.0
     margin_frac: float = 0.25
+    auto_width: bool = False
+    second_look: bool = False
 
 
 @dataclass
@@ -69,6 +82,7 @@ class PhotoScore:
 
     name: str
     use: str
+    width: int = 0
     n_detections: int = 0
     n_true: int = 0
     false_by_kind: dict[str, int] = field(default_factory=dict)
@@ -98,6 +112,7 @@ class PhotoScore:
         return {
             "photo": self.name,
             "use": self.use,
+            "width": self.width,
             "detections": self.n_detections,
             "true": self.n_true,
             "false": dict(sorted(self.false_by_kind.items())),
@@ -237,13 +252,15 @@ def evaluate_photos(
                 f"{path}: {full.shape[1]}x{full.shape[0]} px, but its labels are for "
                 f"{pl.width}x{pl.height}"
             )
-        w = settings.width
-        h = round(w * pl.height / pl.width)
-        img = load_photo(path, (w, h))
         base = FrontendConfig() if config is None else replace(FrontendConfig(), lamps=config)
-        cfg = config_for_width(w, base).lamps
-        det = detect_lamps(img, CameraModel.from_fov(w, h, 70.0), cfg)
-        scores.append(score_photo(det, pl, (w, h), cfg, settings))
+        policy = ResolutionPolicy(
+            width=settings.width, auto=settings.auto_width, second_look=settings.second_look
+        )
+        det, cfg = detect_photo_lamps(full, _photo_camera, base.lamps, policy)
+        h, w = det.mask.shape
+        score = score_photo(det, pl, (w, h), cfg, settings)
+        score.width = w
+        scores.append(score)
     out = list(scores)
     for use in ("tune", "report"):
         part = [s for s in scores if s.use == use]
@@ -253,10 +270,15 @@ def evaluate_photos(
     return out
 
 
+def _photo_camera(width: int, height: int) -> CameraModel:
+    """The photos' camera at a working size: a 70 deg pinhole (the phone's is not known)."""
+    return CameraModel.from_fov(width, height, 70.0)
+
+
 def format_table(scores: list[PhotoScore]) -> str:
     """A text table of the scores (one line per photo or total)."""
     head = (
-        f"{'photo':18s} {'use':6s} {'det':>4s} {'true':>4s} {'prec':>6s} {'lamps':>5s} "
+        f"{'photo':18s} {'use':6s} {'width':>5s} {'det':>4s} {'true':>4s} {'prec':>6s} {'lamps':>5s} "
         f"{'found':>5s} {'recall':>6s} {'small':>5s} {'split':>5s} {'c_rms px':>8s} "
         f"{'ax_rms deg':>10s}  false by kind"
     )
@@ -264,7 +286,7 @@ def format_table(scores: list[PhotoScore]) -> str:
     for s in scores:
         r = s.row()
         lines.append(
-            f"{s.name:18s} {s.use:6s} {s.n_detections:4d} {s.n_true:4d} {s.precision:6.3f} "
+            f"{s.name:18s} {s.use:6s} {s.width or '':>5} {s.n_detections:4d} {s.n_true:4d} {s.precision:6.3f} "
             f"{s.n_lamps:5d} {s.n_found:5d} {s.recall:6.3f} {s.n_small:5d} {s.n_split:5d} "
             f"{r['centroid_rms_px']:8.2f} {r['axis_rms_deg']:10.2f}  "
             + (", ".join(f"{k} {v}" for k, v in sorted(s.false_by_kind.items())) or "-")

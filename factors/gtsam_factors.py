@@ -139,7 +139,12 @@ def _positive_definite(sym: FloatArray) -> bool:
     d = sym.shape[0]
     if d > 3:
         return bool(np.linalg.eigvalsh(sym)[0] > 0.0)
-    a = sym.tolist()
+    return _minors_positive(sym.tolist())
+
+
+def _minors_positive(a: list[list[float]]) -> bool:
+    """Sylvester's criterion on a symmetric (d, d) matrix given as rows, d <= 3."""
+    d = len(a)
     if not a[0][0] > 0.0:
         return False
     if d == 1:
@@ -158,7 +163,26 @@ def _positive_definite(sym: FloatArray) -> bool:
 def check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
     """``cov`` as a (dim, dim) float array; FactorError unless finite and positive definite."""
     arr = np.asarray(cov, dtype=float)
-    if arr.shape != (dim, dim) or not np.isfinite(arr).all():
+    if arr.shape != (dim, dim):
+        raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
+    if dim == 2:  # in plain floats: ~10x cheaper than the array operations below
+        (c00, c01), (c10, c11) = arr.tolist()
+        if not (math.isfinite(c00) and math.isfinite(c01) and math.isfinite(c10)
+                and math.isfinite(c11)):
+            raise FactorError(f"{what}: covariance must be a finite (2, 2) array")
+        off = 0.5 * (c01 + c10)
+        if not (c00 > 0.0 and c00 * c11 - off * off > 0.0):  # Sylvester, as _minors_positive
+            raise FactorError(f"{what}: covariance is not positive definite")
+        return arr
+    if dim in (1, 3):
+        if not all(map(math.isfinite, arr.ravel().tolist())):
+            raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
+        a = arr.tolist()
+        sym = [[0.5 * (a[i][j] + a[j][i]) for j in range(dim)] for i in range(dim)]
+        if not _minors_positive(sym):
+            raise FactorError(f"{what}: covariance is not positive definite")
+        return arr
+    if not np.isfinite(arr).all():
         raise FactorError(f"{what}: covariance must be a finite ({dim}, {dim}) array")
     if not _positive_definite(0.5 * (arr + arr.T)):
         raise FactorError(f"{what}: covariance is not positive definite")

@@ -5,7 +5,7 @@ One frozen dataclass read by every stage of the detector: the threshold
 (:mod:`lampsam.frontend.blob_moments`), glare splitting
 (:mod:`lampsam.frontend.glare`) and the conversion to ceiling coordinates
 (:mod:`lampsam.frontend.ceiling_coords`). Pixel sizes are for 320x240 frames
-(:func:`lampsam.evaluation.gallery.config_for_width` scales them).
+(:func:`lampsam.frontend.resolution.lamp_config_for_width` scales them).
 """
 
 from __future__ import annotations

@@ -250,6 +250,27 @@ def detect_lamps(
     """
     config = config or DEFAULT_CONFIG
     moments, k, mask, n_rej = measure_blobs(image, config, ceiling_grid(camera))
+    return lamps_from_moments(moments, k, mask, n_rej, camera, config)
+
+
+def lamps_from_moments(
+    moments: list[BlobMoments],
+    k: float | None,
+    mask: BoolArray,
+    n_rej: int,
+    camera: PixelToCeiling,
+    config: LampDetectorConfig,
+) -> LampDetections:
+    """Step 5 of :func:`detect_lamps`: pixel measurements -> ceiling observations.
+
+    Args:
+        moments: the accepted blobs' pixel measurements (:func:`measure_blobs`).
+        k: the threshold used (None: no lamps possible).
+        mask: shape (H, W) bool, the accepted blobs' pixels.
+        n_rej: regions rejected so far.
+        camera: pixel -> normalised ceiling coordinates map.
+        config: detector settings (ratio threshold, size gate).
+    """
     if not moments:
         return LampDetections((), (), k, mask, n_rej)
     px = np.array([mo.centroid for mo in moments])

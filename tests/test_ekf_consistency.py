@@ -128,7 +128,8 @@ def test_iterated_update_reaches_the_posterior_mode() -> None:
 def test_first_estimate_ekf_stays_near_the_batch_optimum(tmp_path: Path) -> None:
     """A 300-pose log with Victoria-Park-like noise (bearing sigma 0.1 rad, range 0.3 m,
     heading 0.01 rad per pose), known ids: the first-estimates EKF (the default for
-    range-bearing runs) ends within 0.1 m of the batch optimum's final pose and its map
+    range-bearing runs: observability-constrained, ``ekf.observability_constrained``, and
+    plain first estimates) ends within 0.1 m of the batch optimum's final pose and its map
     within 0.15 m RMS of the batch map, and so does the right-invariant EKF
     (``ekf.right_invariant``); the paper's Jacobians (at the latest estimate) are more
     than 3x farther on the map than either (inconsistent heading, docs/graph-backend.md)."""
@@ -146,27 +147,31 @@ def test_first_estimate_ekf_stays_near_the_batch_optimum(tmp_path: Path) -> None
         d = [np.linalg.norm(lm.position[:2] - ref[lm.id]) for lm in res_lms]
         return float(np.sqrt(np.mean(np.square(d))))
 
-    fej = run_graph_log(g, "ekf", cfg)
+    oc = run_graph_log(g, "ekf", cfg)
+    fej = run_graph_log(g, "ekf", dataclasses.replace(
+        cfg, ekf=dataclasses.replace(cfg.ekf, observability_constrained=False)))
     std = run_graph_log(g, "ekf", paper)
     inv = run_graph_log(g, "ekf", dataclasses.replace(
         cfg, ekf=dataclasses.replace(cfg.ekf, right_invariant=True)))
-    for res in (fej, inv):
+    for res in (oc, fej, inv):
         assert len(res.landmarks) == len(batch.landmarks)
         assert np.linalg.norm(res.poses[-1, :2] - batch.poses[-1, :2]) < 0.1
         assert map_rms(res.landmarks) < 0.15
     assert map_rms(std.landmarks) > 3 * map_rms(fej.landmarks)
     assert map_rms(std.landmarks) > 3 * map_rms(inv.landmarks)
+    assert map_rms(std.landmarks) > 3 * map_rms(oc.landmarks)
 
 
 def test_vectorised_planar_gate_equals_the_per_pair_innovation() -> None:
     """The EKF's vectorised gate (:mod:`lampsam.backend.planar_gate`) gives the same
     squared Mahalanobis distance as the per-pair eq. 19 (``_innovation``), 1e-9
-    relative, with the paper's and with first-estimate Jacobians, including a bearing
-    innovation across +-pi."""
+    relative, with the paper's, first-estimate and observability-constrained Jacobians,
+    including a bearing innovation across +-pi."""
     rng = np.random.default_rng(7)
-    for fej in (False, True):
+    for fej, oc in ((False, False), (True, False), (True, True)):
         cfg = SlamConfig()
-        cfg = dataclasses.replace(cfg, ekf=dataclasses.replace(cfg.ekf, first_estimate_jacobians=fej))
+        cfg = dataclasses.replace(cfg, ekf=dataclasses.replace(
+            cfg.ekf, first_estimate_jacobians=fej, observability_constrained=oc))
         ekf = EkfSlam(Pose2OdometryModel(), cfg, np.array([0.0, 0.0, 3.1]))
         for lid in range(6):
             ekf._augment(Obs(LandmarkKind.POINT2, np.array([rng.uniform(-3, 3), rng.uniform(3, 15)]),

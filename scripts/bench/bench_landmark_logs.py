@@ -6,8 +6,10 @@ Usage::
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
         [--mrclam-duration 600] [--set association.planar_noise_adapt=true ...]
 
-(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians, and
-``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``.)
+(``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians,
+``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``, and ``ekf-fej``:
+plain first-estimates Jacobians without the observability constraint,
+``ekf.observability_constrained = false``.)
 
 For each log (``victoria``: GTSAM's ``victoria_park.txt``; ``mrclam``: the shared
 MRCLAM ds0 robot 1, its first ``--mrclam-duration`` s, turned into one pose per step
@@ -32,8 +34,11 @@ own update, the fair reference for a filter's online poses), the chi-square (``2
 ids; landmarks a backend did not map take LM's value, counted), failures (iSAM2
 rebuilds / GTSAM exceptions), mapped landmarks against those in the file, total time
 and per-step median / p95, and the ratio of total time to GTSAM's iSAM2 measured in
-the same run. Times are medians over ``--repeats`` runs; other engineers' jobs may
-share the machine: compare ratios, not absolute times.
+the same run, wall (``x_gtsam_isam2``) and process CPU (``x_gtsam_isam2_cpu``, the
+figure to compare on a shared machine). Times are medians over ``--repeats`` runs;
+other engineers' jobs may share the machine: compare ratios, not absolute times.
+GTSAM's loop computes no covariance; lampsam's smoothers compute landmark covariances
+and, with ``--pose-covariances``, every pose's (online and final) as well.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ import argparse
 import dataclasses
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -118,13 +124,13 @@ def gtsam_graph(g: GraphLog, config: SlamConfig) -> gtsam.NonlinearFactorGraph:
 
 
 def gtsam_isam2(g: GraphLog, config: SlamConfig
-                ) -> tuple[gtsam.Values, float, list[float], int, np.ndarray]:
+                ) -> tuple[gtsam.Values, float, list[float], int, np.ndarray, float]:
     """GTSAM's iSAM2, one update per pose.
 
     Returns:
-        ``(final estimate, total s, step times, failures, online poses (N, 3))``; the
-        online pose of step ``k`` is iSAM2's estimate of ``X(k)`` right after its
-        update (what a filter can give at that time).
+        ``(final estimate, total s, step times, failures, online poses (N, 3), total
+        CPU s)``; the online pose of step ``k`` is iSAM2's estimate of ``X(k)`` right
+        after its update (what a filter can give at that time).
     """
     online: list[list[float]] = []
     isam = gtsam.ISAM2(config.isam2.to_gtsam())
@@ -135,6 +141,7 @@ def gtsam_isam2(g: GraphLog, config: SlamConfig
     known: set[int] = set()
     pose = start
     t0 = time.perf_counter()
+    c0 = time.process_time()
     for k in range(len(g.pose_ids)):
         ts = time.perf_counter()
         graph = gtsam.NonlinearFactorGraph()
@@ -164,7 +171,8 @@ def gtsam_isam2(g: GraphLog, config: SlamConfig
         online.append([pose.x(), pose.y(), pose.theta()])
         t_steps.append(time.perf_counter() - ts)
     est = isam.calculateEstimate()
-    return est, time.perf_counter() - t0, t_steps, failures, np.array(online)
+    return (est, time.perf_counter() - t0, t_steps, failures, np.array(online),
+            time.process_time() - c0)
 
 
 def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
@@ -218,15 +226,17 @@ def first_poses(g: GraphLog, n: int) -> GraphLog:
 
 
 def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[str],
-              repeats: int, no_ids: bool, config: SlamConfig | None = None
-              ) -> list[dict[str, Any]]:
-    """Rows of the table for one log."""
+              repeats: int, no_ids: bool, config: SlamConfig | None = None,
+              pose_covariances: bool = False) -> list[dict[str, Any]]:
+    """Rows of the table for one log (``pose_covariances``: lampsam's smoothers also
+    compute every pose covariance, which GTSAM's loop does not)."""
     config = config or SlamConfig()
     graph = gtsam_graph(g, config)
     n = len(g.pose_ids)
     runs = [gtsam_isam2(g, config) for _ in range(repeats)]
-    est, _, steps, fails, online = runs[0]
+    est, _, steps, fails, online, _ = runs[0]
     t_isam = float(np.median([r[1] for r in runs]))
+    cpu_isam = float(np.median([r[5] for r in runs]))
     t0 = time.perf_counter()
     lm = gtsam.LevenbergMarquardtOptimizer(graph, est, gtsam.LevenbergMarquardtParams()).optimize()
     t_lm = time.perf_counter() - t0
@@ -249,7 +259,7 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
 
     def row(solver: str, poses: np.ndarray, lms: dict[int, np.ndarray] | None, total: float,
             step_s: np.ndarray, failures: int, n_map: int, ids: bool,
-            map_lms: dict[int, np.ndarray] | None = None) -> None:
+            map_lms: dict[int, np.ndarray] | None = None, cpu: float = math.nan) -> None:
         map_lms = lms if map_lms is None else map_lms
         chi2, missing = chi2_of(graph, lm, poses, lms) if lms is not None else (math.nan, 0)
         rows.append({"log": name, "solver": solver, "ids": "known" if ids else "none",
@@ -262,12 +272,14 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                      "mapped": n_map, "in_file": n_lm_file, "total_s": total,
                      "step_median_ms": float(np.median(step_s) * 1e3),
                      "step_p95_ms": float(np.percentile(step_s, 95) * 1e3),
-                     "x_gtsam_isam2": total / t_isam})
+                     "x_gtsam_isam2": total / t_isam, "cpu_s": cpu,
+                     "x_gtsam_isam2_cpu": cpu / cpu_isam})
 
     row("gtsam-isam2", poses_of(est, n),
         {gtsam.Symbol(k).index(): est.atPoint2(k) for k in est.keys() if gtsam.Symbol(k).chr() == ord("l")},
-        t_isam, np.asarray(steps), fails, n_lm_file, True)
-    row("gtsam-isam2-online", online, None, t_isam, np.asarray(steps), fails, n_lm_file, True)
+        t_isam, np.asarray(steps), fails, n_lm_file, True, cpu=cpu_isam)
+    row("gtsam-isam2-online", online, None, t_isam, np.asarray(steps), fails, n_lm_file, True,
+        cpu=cpu_isam)
     row("gtsam-lm", ref, {gtsam.Symbol(k).index(): lm.atPoint2(k) for k in lm.keys()
                           if gtsam.Symbol(k).chr() == ord("l")},
         t_isam + t_lm, np.asarray(steps), 0, n_lm_file, True)
@@ -276,15 +288,19 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
             # "ekf-paper": the EKF with the paper's Jacobians (at the latest estimate)
             # instead of first estimates (docs/graph-backend.md).
             variant = {"ekf-paper": {"first_estimate_jacobians": False},
-                       "ekf-invariant": {"right_invariant": True}}.get(b, {})
+                       "ekf-invariant": {"right_invariant": True},
+                       "ekf-fej": {"observability_constrained": False}}.get(b, {})
             cfg_b = dataclasses.replace(config, ekf=dataclasses.replace(config.ekf, **variant))
             backend = "ekf" if b.startswith("ekf") else b
-            res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids) for _ in range(repeats)]
+            res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids,
+                                      pose_covariances=pose_covariances)
+                        for _ in range(repeats)]
             res = res_runs[0]
             total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
+            cpu = float(np.median([r.extra["total_cpu_s"] for r in res_runs]))
             found = {int(x.id): x.position[:2] for x in res.landmarks}
             row(f"lampsam-{b}", res.poses, found if ids else None, total, res.step_times_s,
-                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids, found)
+                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids, found, cpu)
             if not res.status == "ok":
                 rows[-1]["solver"] += f" ({res.status[:40]})"
     return rows
@@ -305,6 +321,9 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
                     help="config overrides for lampsam's backends (e.g. association.planar_merge=true)")
     ap.add_argument("--poses", type=int, default=0, help="only the first N poses of each log")
+    ap.add_argument("--pose-covariances", action="store_true",
+                    help="lampsam's smoothers also compute every pose covariance (online and "
+                         "final), which GTSAM's loop does not (run_graph_log's default: off)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     backends = [b for b in args.backends.split(",") if b]
@@ -343,12 +362,13 @@ def main() -> None:
         if args.poses:
             g, truth = first_poses(g, args.poses), (truth[: args.poses] if truth is not None else None)
         rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids,
-                          with_overrides(SlamConfig(), args.set))
+                          with_overrides(SlamConfig(), args.set), args.pose_covariances)
         _print(rows)
 
 
 def _print(rows: list[dict[str, Any]]) -> None:
     cols = list(rows[0])
+    print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:

@@ -3,7 +3,7 @@
 Usage::
 
     python scripts/bench/causal_reference.py [--log victoria|synthetic|FILE] [--stride 25]
-        [--variants ekf,ekf-invariant,ekf-paper]
+        [--variants ekf,ekf-invariant,ekf-paper,ekf-fej]
 
 A filter's pose at step ``k`` can only use the data up to ``k``; the best any causal
 estimator can give there is the optimum of the graph of poses ``0..k`` and the
@@ -34,7 +34,8 @@ from lampsam.datasets.graph_text import GraphLog, read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 
 VARIANTS: dict[str, dict[str, bool]] = {"ekf": {}, "ekf-invariant": {"right_invariant": True},
-            "ekf-paper": {"first_estimate_jacobians": False}}
+            "ekf-paper": {"first_estimate_jacobians": False},
+            "ekf-fej": {"observability_constrained": False}}
 
 
 def prefix_optima(g: GraphLog, config: SlamConfig, steps: list[int]) -> np.ndarray:
