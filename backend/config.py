@@ -140,6 +140,13 @@ class AssociationConfig:
             (docs/graph-backend.md).
         planar_noise_floor, planar_noise_margin, planar_noise_window: its clamp,
             safety factor and window (defaults 0.05, 2.0, 200).
+        planar_merge_every: EKF without ids: every this many steps, merge the best
+            unambiguous pair of duplicate planar landmarks
+            (:mod:`lampsam.backend.landmark_merge`: joint-marginal distance of
+            ``l_i - l_j`` below the ``gate_prob`` gate, no second partner below the
+            ``new_prob`` threshold, never seen in one frame); 0 (default) never.
+        planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
+        planar_merge_radius: only pairs closer than this are tested, m (default 30).
     """
 
     use_known_ids: bool = True
@@ -163,6 +170,9 @@ class AssociationConfig:
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))
     planar_noise_margin: float = field(default=2.0, metadata=limits(gt=0.0))
     planar_noise_window: int = field(default=200, metadata=limits(ge=1))
+    planar_merge_every: int = field(default=0, metadata=limits(ge=0))
+    planar_merge_min_obs: int = field(default=3, metadata=limits(ge=1))
+    planar_merge_radius: float = field(default=30.0, metadata=limits(gt=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

@@ -63,6 +63,7 @@ from lampsam.backend.interface import (
     StepEstimate,
     log_pruned,
 )
+from lampsam.backend.landmark_merge import CoVisibility, ekf_merge_once
 from lampsam.backend.models import (
     Obs,
     for_landmark,
@@ -176,6 +177,8 @@ class EkfSlam(SlamBackend):
                                             config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
         self.noise_scale = innovation_scale(config.association)
+        self.covis = CoVisibility()  # landmarks seen together (never merged)
+        self.n_merged = 0
 
     # ------------------------------------------------------------------ state
     @property
@@ -466,6 +469,30 @@ class EkfSlam(SlamBackend):
                       if offs else np.zeros((0, 2)))
         return self.tentative.offer(state[:2], cov[:2, :2], self._step, mapped)
 
+    def _merge_duplicates(self) -> None:
+        """Every ``planar_merge_every`` steps, fuse one duplicate planar landmark pair
+        (:func:`lampsam.backend.landmark_merge.ekf_merge_once`) and drop the newer."""
+        cfg = self.config.association
+        if cfg.use_known_ids or self._step % cfg.planar_merge_every:
+            return
+        cand = [s for s in self._slots.values() if s.kind == LandmarkKind.POINT2
+                and s.n_obs >= cfg.planar_merge_min_obs and s.id not in self._doomed]
+        if len(cand) < 2:
+            return
+        pair = ekf_merge_once(self.x, self._cov, np.array([s.id for s in cand]),
+                              np.array([s.offset for s in cand]),
+                              np.array([s.created for s in cand]), self.covis, cfg.gate(2),
+                              cfg.new_threshold(2), cfg.planar_merge_radius)
+        if pair is None:
+            return
+        keep, drop = self._slots[pair.keep], self._slots[pair.drop]
+        keep.n_obs += drop.n_obs
+        keep.last_seen = max(keep.last_seen, drop.last_seen)
+        n_pruned = self.n_pruned
+        self._remove([pair.drop])
+        self.n_pruned = n_pruned
+        self.n_merged += 1
+
     def _new_id(self) -> int:
         while self._next_id in self._slots:
             self._next_id += 1
@@ -573,7 +600,14 @@ class EkfSlam(SlamBackend):
                     if (a.landmark_id is None and obs[a.obs_index].kind == LandmarkKind.POINT2
                             and not self._confirmed(obs[a.obs_index])):
                         continue
-                    n_new += self._augment(obs[a.obs_index], a.landmark_id) is not None
+                    lid = self._augment(obs[a.obs_index], a.landmark_id)
+                    n_new += lid is not None
+                    if lid is not None:
+                        pairs.append((self._slots[lid], obs[a.obs_index]))
+                if self.config.association.planar_merge_every:
+                    self.covis.add_frame(s.id for s, _ in pairs)
+        if self.config.association.planar_merge_every:
+            self._merge_duplicates()
         if self.tentative.items:
             self.tentative.expire(self._step)
         self._prune()
