@@ -19,8 +19,10 @@ Modules:
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
 * :mod:`~lampsam.backend.ceiling_map_io` -- The saved ceiling map: write it once after mapping, read it back every day.
 * :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+* :mod:`~lampsam.backend.constellation` -- Revisit detection by constellation: a 2-D rigid alignment of recent landmarks to the map.
 * :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
 * :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
+* :mod:`~lampsam.backend.ekf_joint` -- Joint compatibility (JCBB) for the EKF's planar observations without ids (eqs. 19-20).
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
 * :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
@@ -30,12 +32,15 @@ Modules:
 * :mod:`~lampsam.backend.interface` -- One interface for the three SLAM backends (``ekf``, ``isam2``, ``batch``).
 * :mod:`~lampsam.backend.isam2_update` -- iSAM2 updates of a factor-graph backend, and recovery from a failed one.
 * :mod:`~lampsam.backend.keyframes` -- Keyframe policy of the factor-graph backends.
+* :mod:`~lampsam.backend.landmark_merge` -- Merging duplicate planar landmarks after the fact (association without ids).
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
 * :mod:`~lampsam.backend.localize_only` -- Localize-only tracking against a saved ceiling map: the map is used, never grown.
 * :mod:`~lampsam.backend.localize_run` -- Run localize-only tracking over a logged run, and save the map of a SLAM run.
+* :mod:`~lampsam.backend.map_frame` -- The map's frame uncertainty: the common part of a batch map's landmark errors.
 * :mod:`~lampsam.backend.map_merge` -- Merge ceiling maps of the same floor made on separate mapping drives.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
 * :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.
+* :mod:`~lampsam.backend.pipelined` -- Frontend and estimator overlapped: ceiling frames made ahead in a worker.
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
