@@ -320,13 +320,6 @@ class Isam2Config:
             enough parallax); until then the corner is pending (gated, not in the graph).
         corner_pending_keyframes: a pending corner not seen for this many keyframes
             is forgotten (default 30).
-        gate_bounds: settle the lamp gate decisions that bounds on eq. 19 without the
-            pose-landmark cross term decide, and ask iSAM2's joint marginal only for
-            the others (:mod:`lampsam.backend.gate_bounds`; default True: the same
-            decisions as the exact gate, without its Bayes-tree walks at revisits).
-        gate_bound_margin: the bounds take the landmark's last joint-marginal block
-            times this factor as the upper bound of its current marginal (default 2.0:
-            room for relinearisation).
     """
 
     keyframe_distance: float = field(default=0.05, metadata=limits(ge=0.0))
@@ -344,8 +337,6 @@ class Isam2Config:
     corner_init_min_sights: int = field(default=4, metadata=limits(ge=2))
     corner_init_max_rel_sigma: float = field(default=0.15, metadata=limits(gt=0.0))
     corner_pending_keyframes: int = field(default=30, metadata=limits(ge=1))
-    gate_bounds: bool = True
-    gate_bound_margin: float = field(default=2.0, metadata=limits(ge=1.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

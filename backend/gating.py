@@ -22,7 +22,6 @@ from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
-from lampsam.backend.gate_bounds import d2_interval, resolve_screened
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -56,7 +55,6 @@ class Gating(GraphState):
         full = full[np.ix_(idx, idx)]
         out = full[:3, :3], full[:3, 3:], full[3:, 3:]
         self._joint_cache[lm.id] = out
-        self._ll_bound[lm.id] = out[2]
         return out
 
     def _prefetch_joint(self, k: int, obs: list[Obs],
@@ -111,70 +109,7 @@ class Gating(GraphState):
         s_kk = full[:3, :3]
         for lid, idx in spans:
             self._joint_cache[lid] = (s_kk, full[np.ix_(np.r_[0:3], idx)], full[np.ix_(idx, idx)])
-            self._ll_bound[lid] = full[np.ix_(idx, idx)]
         return len(spans)
-
-    def _bound_gate(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], obs: list[Obs],
-                    screened: dict[int, dict[int, tuple[float, bool]]]) -> int:
-        """Settle the lamp pairs that bounds on eq. 19 decide, before any joint marginal.
-
-        For every lamp pair that :func:`associate` would send to the exact gate
-        (:meth:`_innovation`), the exact distance is bracketed without the cross term
-        (:func:`~lampsam.backend.gate_bounds.d2_interval`: the exact current pose
-        marginal ``A = H_p Sigma_x H_p^T`` and ``B = H_l S_ll H_l^T`` with ``S_ll`` the
-        landmark's block of the last joint marginal iSAM2 gave for it, times
-        ``isam2.gate_bound_margin``: a marginal only shrinks as factors are added, and
-        the margin leaves room for relinearisation; a lamp never asked about has no
-        bound and takes the exact gate, which records its block); the pairs whose outcome the brackets settle
-        are marked exact in ``screened``
-        (:func:`~lampsam.backend.gate_bounds.resolve_screened`), so
-        :meth:`_prefetch_joint` and :meth:`_innovation` skip them. Needs the pose
-        marginal of every keyframe (``isam2.pose_cov_every_step``); else a no-op.
-
-        Args:
-            gate_ctx: as for :meth:`_innovation`; obs: the frame's observations;
-            screened: :meth:`_screen`'s pre-screen, changed in place.
-
-        Returns:
-            The number of pairs settled.
-        """
-        cfg = self.config
-        if (self.isam is None or not cfg.isam2.gate_bounds or not cfg.isam2.pose_cov_every_step
-                or self.ceiling is None):
-            return 0
-        _, pose, _, _ = gate_ctx
-        _, pose_cov = self.current()
-        margin = cfg.isam2.gate_bound_margin
-        gates: dict[int, tuple[float, float]] = {}
-        rows: dict[int, list[tuple[tuple[int, int], FloatArray, FloatArray, FloatArray, FloatArray]]] = {}
-        for i, pairs in screened.items():
-            o = obs[i]
-            if o.kind != "lamp":
-                continue
-            gate = cfg.association.gate(len(o.z))
-            gates[i] = (gate, cfg.association.new_threshold(len(o.z)))
-            for lid, (d2, exact) in pairs.items():
-                lm = self._landmarks.get(lid)
-                bound = self._ll_bound.get(lid)
-                if (exact or not d2 < gate or lm is None or not lm.in_graph or bound is None
-                        or bound.shape[0] != len(lm.state)):
-                    continue
-                ol = for_landmark(o, len(lm.state))
-                try:
-                    z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, ol, self.ceiling)
-                except Exception:
-                    continue
-                nu = residual(ol, z_hat)
-                rows.setdefault(len(nu), []).append(
-                    ((i, lid), nu, h_p @ pose_cov @ h_p.T, margin * (h_l @ bound @ h_l.T), ol.R))
-        intervals: dict[tuple[int, int], tuple[float, float]] = {}
-        for group in rows.values():
-            lo, hi = d2_interval(np.array([g[1] for g in group]), np.array([g[2] for g in group]),
-                                 np.array([g[3] for g in group]), np.array([g[4] for g in group]))
-            for g, a, b in zip(group, lo, hi, strict=True):
-                intervals[g[0]] = (float(a), float(b))
-        self.gate_bound_intervals = intervals
-        return resolve_screened(screened, intervals, gates)
 
     def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
                     obs: Obs) -> tuple[FloatArray, FloatArray] | None:

@@ -130,7 +130,6 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             gating = not self.config.association.use_known_ids or any(
                 o.landmark_id is None for o in obs)
             cands, screened = self._screen(obs, pose, pose_cov) if gating else ({}, {})
-            self._bound_gate(gate_ctx, obs, screened)
             self._prefetch_joint(gate_ctx[0], obs, screened)
             patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
             assignments = associate(

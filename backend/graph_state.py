@@ -108,9 +108,6 @@ class GraphState(SlamBackend):
         self.n_recoveries = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
-        # each landmark's last joint-marginal block S_ll: an upper bound of later ones (gate_bounds)
-        self._ll_bound: dict[int, FloatArray] = {}
-        self.gate_bound_intervals: dict[tuple[int, int], tuple[float, float]] = {}
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None

@@ -2,8 +2,7 @@
 
 Usage::
 
-    python scripts/bench/profile_isam2_keyframes.py --lab RUN_DIR [--no-prefetch] [--no-bounds]
-        [--check-bounds]
+    python scripts/bench/profile_isam2_keyframes.py --lab RUN_DIR [--no-prefetch]
 
 Runs :class:`~lampsam.backend.graph.Isam2Slam` over a run's frames (the frontend on the
 images, made once before timing) with iSAM2 wrapped so that each ``update``,
@@ -14,17 +13,13 @@ variables relinearised and re-eliminated by the update, new factors, and the key
 indices of the slow ones (clusters show revisits). ``--no-prefetch`` asks one joint
 marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint` off),
 to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
-binned by their number of keys. ``--no-bounds`` turns off the bounded lamp gate
-(``isam2.gate_bounds``, :mod:`lampsam.backend.gate_bounds`); ``--check-bounds`` also
-computes the exact distance of every bounded pair (joint marginals: slower) and counts
-the pairs outside their bracket. CPU figures are inflated on a loaded machine: compare
+binned by their number of keys. CPU figures are inflated on a loaded machine: compare
 the shares and the slow/fast ratios.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import time
 from typing import Any
@@ -76,48 +71,19 @@ class _TimedIsam:
         return out
 
 
-def _check_bounds(counts: list[int]) -> None:
-    """Wrap ``Gating._bound_gate`` to check each bracket against the exact distance."""
-    bound_gate = Gating._bound_gate
-
-    def checked(self: Gating, gate_ctx: Any, obs: Any, screened: Any) -> int:
-        n = bound_gate(self, gate_ctx, obs, screened)
-        counts[2] += n
-        for (i, lid), (lo, hi) in self.gate_bound_intervals.items():
-            pred = self._innovation(gate_ctx, lid, obs[i])
-            if pred is None:
-                continue
-            nu, psi = pred
-            d2 = float(nu @ np.linalg.solve(psi, nu))
-            counts[0] += 1
-            counts[1] += not lo <= d2 <= hi
-        return n
-
-    Gating._bound_gate = checked  # type: ignore[method-assign]
-
-
 def main() -> None:
     """Parse arguments, run, print the breakdown."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lab", required=True, help="a simulated run directory")
     ap.add_argument("--no-prefetch", action="store_true", help="one joint marginal per landmark")
-    ap.add_argument("--no-bounds", action="store_true", help="isam2.gate_bounds = false")
-    ap.add_argument("--check-bounds", action="store_true",
-                    help="check every bracket against the exact distance")
     args = ap.parse_args()
     if args.no_prefetch:
         Gating._prefetch_joint = lambda *a, **k: 0  # type: ignore[method-assign]
-    checked = [0, 0, 0]  # pairs bounded, outside their bracket, settled
-    if args.check_bounds:
-        _check_bounds(checked)
     run = read_run(args.lab)
     frames, _ = make_frames(run, "images")
     frames = list(frames)
     model = CeilingModel.from_camera(run.rig.camera)
-    config = SlamConfig()
-    config = dataclasses.replace(config, isam2=dataclasses.replace(
-        config.isam2, gate_bounds=not args.no_bounds))
-    be = Isam2Slam(run.rig.odometry, config, start_pose_of(run), model, CeilingHandler(model))
+    be = Isam2Slam(run.rig.odometry, SlamConfig(), start_pose_of(run), model, CeilingHandler(model))
     parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors")
     rec = dict.fromkeys(parts, 0.0)
     joint_calls: list[tuple[int, float]] = []
@@ -144,9 +110,6 @@ def main() -> None:
               f"estimate {s[:, 3].mean() * 1e3:.1f} + rest; relinearised {s[:, 4].mean():.0f}, "
               f"re-eliminated {s[:, 5].mean():.0f}, new factors {s[:, 6].mean():.0f}")
     print("slow keyframes:", r[total >= p95, 7].astype(int).tolist())
-    if args.check_bounds:
-        print(f"bounded lamp pairs {checked[0]}, settled {checked[2]}, exact distance outside "
-              f"its bracket {checked[1]}")
     j = np.array(joint_calls).reshape(-1, 2)
     for lo, hi in ((1, 5), (5, 9), (9, 1000)):
         m = (j[:, 0] >= lo) & (j[:, 0] < hi)
