@@ -103,7 +103,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from lampsam.datasets.world import load_world
 
     world = load_world(args.world)  # bad world: an error before the output is touched
-    out = simulate_world(world, _out_dir(args), seed=args.seed, duration=args.duration)
+    out = simulate_world(world, _out_dir(args), seed=args.seed, duration=args.duration,
+                         png_compression=args.png_compression)
     import yaml
 
     meta = yaml.safe_load((out / "meta.yaml").read_text(encoding="utf-8")) or {}
@@ -122,6 +123,9 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=_nonneg_int, default=0, help="random seed (default 0)")
     p.add_argument("--duration", type=_positive, default=None,
                    help="seconds to simulate (default: whole path; longer than the path: a warning)")
+    p.add_argument("--png-compression", type=int, choices=range(10), default=0, metavar="0-9",
+                   help="zlib level of the images (default 0: stored, 5x faster to decode, "
+                        "twice the disk; the pixels are the same at every level)")
     _add_force(p)
     p.set_defaults(func=_cmd_simulate)
 
@@ -410,7 +414,7 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         capture = BackendCapture(view)
         with observing(capture if args.save_map else None):
             result = run_slam(args.run, args.backend, features, out, config, frames=args.frames,
-                              run=run)
+                              run=run, frontend=args.frontend)
     if args.save_map and result.status == "ok":
         from lampsam.backend.localize_run import save_map
 
@@ -564,6 +568,10 @@ def _add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="TOML/YAML config ([association], [ekf], [isam2], ...)")
     p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
                    help="measurement source (default auto: range-bearing log, else images)")
+    p.add_argument("--frontend", choices=("sequential", "thread", "process"), default="sequential",
+                   help="images: run the frontend when each frame is due (default), or ahead of "
+                        "the estimator in a worker process / thread (same frames; a process uses "
+                        "a second core: docs/frontend-speed.md)")
     p.add_argument("--gate-only", "--no-ids", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
     p.add_argument("--truth", default=None,
@@ -978,6 +986,9 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand registered."""
     parser = argparse.ArgumentParser(prog="lampsam", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v, -vv)")
+    parser.add_argument("--cv-threads", type=int, default=1, metavar="N",
+                        help="OpenCV threads (default 1: the frontend's images are too small for "
+                             "OpenCV's pool to pay, +6 %% CPU with 2; 0 keeps OpenCV's default)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="SUBCOMMAND")
     for add in _ADDERS:
         add(sub)
@@ -1021,6 +1032,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = [logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    if args.cv_threads > 0:  # process-wide OpenCV state: set once, here, not in the library
+        import cv2
+
+        cv2.setNumThreads(args.cv_threads)
     with stop_on_signals(graceful=getattr(args, "graceful", False)):
         try:
             return int(args.func(args))

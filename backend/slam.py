@@ -256,8 +256,8 @@ def start_pose_of(run: LoggedRun) -> FloatArray:
     return np.zeros(3)
 
 
-def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float = 0.5
-                ) -> tuple[list[Frame] | Iterable[Frame], bool]:
+def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float = 0.5,
+                frontend: str = "sequential") -> tuple[list[Frame] | Iterable[Frame], bool]:
     """The run's measurement frames.
 
     Args:
@@ -266,6 +266,9 @@ def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float 
             (frontend), ``"truth"`` (simulator projections), ``"rangebearing"``.
         rng_seed: seed of the pixel noise for ``"truth"``.
         sigma_px: pixel noise for ``"truth"``.
+        frontend: where the frontend runs for ``"images"``: ``"sequential"`` (when
+            each frame is due) or ahead in a ``"thread"`` / ``"process"``
+            (:func:`lampsam.backend.pipelined.frame_source`; the same frames).
 
     Returns:
         ``(frames, is_ceiling)``.
@@ -292,6 +295,10 @@ def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float 
         raise EstimationError(f"{run.path}: the run has no images")
     if source == "truth":
         return frames_from_projections(run, sigma_px, np.random.default_rng(rng_seed)), True
+    if frontend != "sequential":
+        from lampsam.backend.pipelined import frame_source
+
+        return frame_source(run.images, run.rig.camera, mode=frontend), True  # type: ignore[arg-type]
     from lampsam.frontend.pipeline import iter_run
 
     return iter_run(run), True
@@ -384,7 +391,7 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
              features: tuple[str, ...] | None = None, out: str | Path | None = None,
              config: SlamConfig | None = None, frames: str = "auto",
              max_dt: float = 0.5, run: LoggedRun | None = None,
-             start_pose: FloatArray | None = None) -> SlamResult:
+             start_pose: FloatArray | None = None, frontend: str = "sequential") -> SlamResult:
     """Run one backend over a logged run and write the results.
 
     Args:
@@ -400,6 +407,7 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         start_pose: (3,) known start pose ``world_T_body``; None takes it from the
             run (:func:`start_pose_of`: ground truth at the first odometry time, else
             the origin).
+        frontend: ``"sequential"``, ``"thread"`` or ``"process"`` (see :func:`make_frames`).
 
     Returns:
         The result (also written to ``out``).
@@ -420,7 +428,7 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         run = read_run(run_dir)
     if backend not in BACKENDS:
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
-    frame_list, is_ceiling = make_frames(run, frames)
+    frame_list, is_ceiling = make_frames(run, frames, frontend=frontend)
     start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
     odo_model = (pose2_model_for(run, config) if isinstance(run.odometry, Pose2OdometryLog)
                  else run.rig.odometry)

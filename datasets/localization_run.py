@@ -40,6 +40,7 @@ from lampsam.datasets.logrun import (
 from lampsam.datasets.motion import noisy_wheel_travel
 from lampsam.datasets.render_ceiling import CeilingRenderer
 from lampsam.datasets.scene3d import Scene3D, apply_changes, obstacle_footprints, scene_from_dict
+from lampsam.datasets.tables import encode_png
 from lampsam.datasets.world import World, load_world
 from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
@@ -287,10 +288,7 @@ def _render_ceiling(
     try:
         for k, i in enumerate(idx):
             img = renderer.render(poses[i], np.random.default_rng([seed, k]))
-            ok, png = cv2.imencode(".png", img)
-            if not ok:
-                raise DatasetError(f"PNG encoding failed for ceiling frame {k}")
-            images.write_encoded(float(t[i]), png.tobytes())
+            images.write_encoded(float(t[i]), encode_png(img, what=f"ceiling frame {k}"))
             truth = project_landmarks(renderer.camera, poses[i], landmarks, occ, renderer.m_max)
             proj.write_frame(k, float(t[i]), truth)
     finally:

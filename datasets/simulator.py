@@ -45,6 +45,7 @@ from lampsam.datasets.logrun import (
 )
 from lampsam.datasets.motion import dead_reckoning, follow_waypoints, noisy_wheel_travel
 from lampsam.datasets.render_ceiling import CeilingRenderer
+from lampsam.datasets.tables import PNG_COMPRESSION, encode_png
 from lampsam.datasets.world import World, load_world
 from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
@@ -55,7 +56,7 @@ log = logging.getLogger(__name__)
 _STATE: dict[str, Any] = {}
 
 
-def _init_state(world: World, seed: int) -> None:
+def _init_state(world: World, seed: int, png_compression: int = PNG_COMPRESSION) -> None:
     """Build the renderer, landmarks and occluders once per process."""
     renderer = CeilingRenderer(world)
     _STATE.update(
@@ -63,14 +64,15 @@ def _init_state(world: World, seed: int) -> None:
         landmarks=world_landmarks(world),
         occluders=occluders(world),
         seed=seed,
+        png_compression=png_compression,
     )
 
 
-def _worker_init(world: World, seed: int) -> None:
+def _worker_init(world: World, seed: int, png_compression: int = PNG_COMPRESSION) -> None:
     """Pool initializer: one OpenCV thread per worker, then the state."""
     cv2.setNumThreads(1)
     if not _STATE:
-        _init_state(world, seed)
+        _init_state(world, seed, png_compression)
 
 
 def render_frame(index: int, pose: FloatArray) -> tuple[bytes, ProjectionTable]:
@@ -86,13 +88,12 @@ def render_frame(index: int, pose: FloatArray) -> tuple[bytes, ProjectionTable]:
     renderer: CeilingRenderer = _STATE["renderer"]
     rng = np.random.default_rng([int(_STATE["seed"]), int(index)])
     img = renderer.render(pose, rng)
-    ok, png = cv2.imencode(".png", img)
-    if not ok:
-        raise DatasetError(f"PNG encoding failed for frame {index}")
+    png = encode_png(img, int(_STATE.get("png_compression", PNG_COMPRESSION)),
+                     f"frame {index}")
     truth = project_landmarks(
         renderer.camera, pose, _STATE["landmarks"], _STATE["occluders"], renderer.m_max
     )
-    return png.tobytes(), truth
+    return png, truth
 
 
 def _render_task(args: tuple[int, FloatArray]) -> tuple[int, bytes, ProjectionTable]:
@@ -140,6 +141,7 @@ def simulate_world(
     seed: int = 0,
     duration: float | None = None,
     workers: int | None = None,
+    png_compression: int = PNG_COMPRESSION,
 ) -> Path:
     """Simulate a ceiling-camera run and write it as a logged run.
 
@@ -150,13 +152,18 @@ def simulate_world(
         seed: random seed (odometry noise; image noise per frame with ``(seed, frame)``).
         duration: seconds to simulate (default: the whole path).
         workers: rendering processes (default: ``min(2, cpu_count)``; 1 = in-process).
+        png_compression: zlib level 0-9 of the images (default 0: stored, the
+            fastest to read back; :data:`lampsam.datasets.tables.PNG_COMPRESSION`).
 
     Returns:
         The run directory.
 
     Raises:
-        DatasetError: unknown/invalid world, no path, or a negative duration.
+        DatasetError: unknown/invalid world, no path, a negative duration, or a
+            PNG level outside 0-9.
     """
+    if not 0 <= png_compression <= 9:
+        raise DatasetError(f"PNG compression must be 0-9, got {png_compression}")
     w = world if isinstance(world, World) else load_world(world)
     if duration is not None and not duration > 0:
         raise DatasetError(f"duration must be positive, got {duration}")
@@ -204,7 +211,7 @@ def simulate_world(
     t_render = time.perf_counter()
     try:
         if n_workers <= 1:
-            _init_state(w, seed)
+            _init_state(w, seed, png_compression)
             results = map(_render_task, tasks)
             _consume(results, t, frame_idx, images, proj)
         else:
@@ -213,7 +220,8 @@ def simulate_world(
             # own renderer (about a second).
             _STATE.clear()
             ctx = mp.get_context("spawn")
-            with ctx.Pool(n_workers, initializer=_worker_init, initargs=(w, seed)) as pool:
+            with ctx.Pool(n_workers, initializer=_worker_init,
+                          initargs=(w, seed, png_compression)) as pool:
                 _consume(pool.imap(_render_task, tasks, chunksize=4), t, frame_idx, images, proj)
     finally:
         images.close()

@@ -34,8 +34,10 @@ the PNG decode and for the frontend, their medians / p95 / max, the frontend's
 x real time (the run's duration over the CPU time) and its share of the data's
 frame interval; and the same frontend with the exact shortcuts turned off (the
 full path, :func:`lampsam.frontend.blob_moments.reaches_may_overlap` always True),
-frame by frame on the same images in the same pass, as a ratio. Printed: the
-median over passes, with the load average.
+frame by frame on the same images in the same pass, as a ratio; and the PNG
+decode of each file's bytes in memory against the same image stored at PNG level
+0 unfiltered (what ``lampsam simulate`` writes since this option), as a ratio.
+Printed: the median over passes, with the load average.
 
 Usage: ``.venv/bin/python scripts/bench/bench_frontend.py [--runs 7] [--repeats 100]``
 or ``.venv/bin/python scripts/bench/bench_frontend.py --run RUN [--runs 3] [--cv-threads 1]``
@@ -56,6 +58,7 @@ import cv2
 from lampsam.arrays import ImageU8
 from lampsam.datasets.logrun import CameraModel
 from lampsam.datasets.paths import shared_dataset
+from lampsam.datasets.tables import encode_png
 from lampsam.frontend.corners import CornerDetectorConfig, detect_corner_pixels
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import detect_lamps
@@ -180,22 +183,33 @@ def bench_run(run_dir: str, passes: int) -> None:
         dec = np.empty(n)
         fast = np.empty(n)
         full = np.empty(n)
+        mem = np.empty(n)  # imdecode of the file's bytes
+        mem0 = np.empty(n)  # imdecode of the same image stored (level 0, unfiltered)
         for i in range(n):
             c0 = time.process_time()
             img = images.load(i)
             c1 = time.process_time()
+            raw = np.frombuffer(images.files[i].read_bytes(), np.uint8)
+            stored = np.frombuffer(encode_png(img, 0), np.uint8)
+            d0 = time.process_time()
+            cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+            d1 = time.process_time()
+            cv2.imdecode(stored, cv2.IMREAD_UNCHANGED)
+            mem[i], mem0[i] = d1 - d0, time.process_time() - d1
+            f0 = time.process_time()
             lamps_module.reaches_may_overlap = full_path
             process_image(img, float(images.t[i]), i, camera)
             c2 = time.process_time()
             lamps_module.reaches_may_overlap = shortcut
             process_image(img, float(images.t[i]), i, camera)
             c3 = time.process_time()
-            dec[i], full[i], fast[i] = c1 - c0, c2 - c1, c3 - c2
+            dec[i], full[i], fast[i] = c1 - c0, c2 - f0, c3 - c2
         dec, fast, full = 1e3 * dec, 1e3 * fast, 1e3 * full
         rows.append({
             "decode": dec.sum() / 1e3, "fast": fast.sum() / 1e3, "full": full.sum() / 1e3,
             "fast_med": np.median(fast), "fast_p95": np.percentile(fast, 95), "fast_max": fast.max(),
             "dec_med": np.median(dec), "ratio": fast.sum() / full.sum(),
+            "mem": mem.sum(), "mem0": mem0.sum(), "bytes": sum(f.stat().st_size for f in images.files),
         })
         r = rows[-1]
         print(f"  pass {k}: decode {r['decode']:.2f} s, frontend {r['fast']:.2f} s, full path "
@@ -211,6 +225,9 @@ def bench_run(run_dir: str, passes: int) -> None:
     print(f"  frontend        {med['fast']:6.2f} s = {per_frame:.3f} ms/frame (median / p95 / max "
           f"{med['fast_med']:.2f} / {med['fast_p95']:.2f} / {med['fast_max']:.1f} ms); "
           f"{duration / med['fast']:.0f}x real time, {per_frame / interval_ms:.3f} of the interval")
+    print(f"  in-memory decode of the files' bytes {1e3 * med['mem'] / n:.3f} ms/frame, of the same "
+          f"images stored (PNG level 0, unfiltered) {1e3 * med['mem0'] / n:.3f} ms/frame: ratio "
+          f"{med['mem0'] / med['mem']:.2f} (files {med['bytes'] / n / 1e3:.0f} kB a frame)")
     print(f"  decode + frontend {both:.3f} ms/frame: "
           f"{duration / (med['fast'] + med['decode']):.0f}x real time")
     print(f"  full path (shortcuts off) {med['full']:6.2f} s: the frontend takes "
