@@ -346,6 +346,11 @@ class Isam2Config:
             enough parallax); until then the corner is pending (gated, not in the graph).
         corner_pending_keyframes: a pending corner not seen for this many keyframes
             is forgotten (default 30).
+        far_lamp_recheck: a lamp whose exact gate distance was above
+            ``far_lamp_factor`` times the new-landmark threshold within this many
+            keyframes keeps that distance instead of a new joint marginal
+            (:meth:`~lampsam.backend.gating.Gating._reuse_far`; default 0: always exact).
+        far_lamp_factor: see ``far_lamp_recheck`` (default 2.0).
     """
 
     keyframe_distance: float = field(default=0.05, metadata=limits(ge=0.0))
@@ -363,6 +368,8 @@ class Isam2Config:
     corner_init_min_sights: int = field(default=4, metadata=limits(ge=2))
     corner_init_max_rel_sigma: float = field(default=0.15, metadata=limits(gt=0.0))
     corner_pending_keyframes: int = field(default=30, metadata=limits(ge=1))
+    far_lamp_recheck: int = field(default=0, metadata=limits(ge=0))
+    far_lamp_factor: float = field(default=2.0, metadata=limits(ge=1.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

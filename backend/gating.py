@@ -142,7 +142,10 @@ class Gating(GraphState):
         s_xl = ad @ s_kl
         cross = h_p @ s_xl @ h_l.T
         psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
-        return residual(obs, z_hat), psi * s_online
+        nu = residual(obs, z_hat)
+        if not planar:  # for _reuse_far: this keyframe's exact distance of the lamp
+            self._far[(lid, len(nu))] = (self._k, float(nu @ np.linalg.solve(psi * s_online, nu)))
+        return nu, psi * s_online
 
     def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
                 ) -> tuple[dict[str, list[int]], dict[int, dict[int, tuple[float, bool]]]]:
@@ -209,7 +212,7 @@ class Gating(GraphState):
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
             sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
                               exact=True)
-            screened.update(self._mark_ambiguous(obs, sc))
+            screened.update(self._reuse_far(obs, self._mark_ambiguous(obs, sc)))
         return cands, screened
 
     def _refresh_visible(self, visible: list[GraphLandmark]) -> None:
@@ -357,6 +360,38 @@ class Gating(GraphState):
             else:
                 out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
         return out
+
+    def _reuse_far(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
+                   ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Skip the joint marginal of a lamp whose recent exact distance was far beyond the gate.
+
+        A lamp whose exact eq.-19 distance (:meth:`_innovation`, same measurement size)
+        was above ``isam2.far_lamp_factor`` times the new-landmark threshold at most
+        ``isam2.far_lamp_recheck`` keyframes ago keeps that distance as final for this
+        keyframe (it can neither match nor keep the observation from being new), so
+        iSAM2 is not asked again; it is asked once the record is older. On the lab
+        path one old lamp that the exact gate rejects at every keyframe of the revisit
+        (distance 48-89 against a threshold of ~16) cost 50-60 ms a keyframe: the walk
+        from the root to its clique, deep in the Bayes tree (docs/speed.md). The
+        distance of the skipped keyframes is not the exact one; how many decisions
+        that changes is measured in docs/speed.md.
+        """
+        cfg = self.config
+        recheck = cfg.isam2.far_lamp_recheck
+        if recheck <= 0 or not self._far:
+            return screened
+        for i, pairs in screened.items():
+            o = obs[i]
+            if o.kind != "lamp":
+                continue
+            far = cfg.isam2.far_lamp_factor * cfg.association.new_threshold(len(o.z))
+            for lid, (_, exact) in pairs.items():
+                rec = self._far.get((lid, len(o.z)))
+                if (not exact and rec is not None and self._k - rec[0] <= recheck
+                        and rec[1] > far):
+                    pairs[lid] = (rec[1], True)
+                    self.n_far_reused += 1
+        return screened
 
     def _near_known_lamp(self, pose: FloatArray, obs: Obs, lamp_ids: Iterable[int]) -> bool:
         """Whether a mapped lamp is predicted within ``lamp_min_separation`` of ``obs``.

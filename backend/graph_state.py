@@ -109,6 +109,9 @@ class GraphState(SlamBackend):
         self.n_recoveries = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
+        # (lamp id, measurement size) -> (keyframe, exact eq.-19 distance there), for _reuse_far
+        self._far: dict[tuple[int, int], tuple[int, float]] = {}
+        self.n_far_reused = 0
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None

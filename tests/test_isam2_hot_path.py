@@ -20,6 +20,8 @@ from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.gating import RELATIVE_GATE_KEYFRAMES, Gating
 from lampsam.backend.graph import Isam2Slam
+from lampsam.backend.interface import LandmarkKind
+from lampsam.backend.models import Obs
 from lampsam.backend.pose_cov import compose_cov, pose_array
 from lampsam.backend.slam import drive, iter_steps
 from tests.test_backend import ceiling_world
@@ -200,3 +202,27 @@ def test_keyframe_odometry_factor_equals_composition_of_its_samples() -> None:
             np.testing.assert_allclose(factor.noiseModel().covariance(), cov, rtol=1e-12, atol=0)
             np.testing.assert_array_equal(pose_array(factor.measured()), pose_array(gtsam.Pose2(*delta)))
             chunks = []
+
+
+def test_reuse_far_keeps_a_recent_far_exact_distance_only() -> None:
+    """``isam2.far_lamp_recheck``: which lamp pairs skip the joint marginal."""
+    base = SlamConfig()
+    cfg = dataclasses.replace(base, isam2=dataclasses.replace(base.isam2, far_lamp_recheck=5))
+    far = 2.0 * cfg.association.new_threshold(3)
+    lamp = Obs(LandmarkKind.LAMP, np.zeros(3), np.eye(3), has_axis=True)
+    corner = Obs(LandmarkKind.CORNER, np.zeros(2), np.eye(2))
+    records = {(1, 3): (10, far + 1.0),   # recent and far: reused
+               (2, 3): (4, far + 1.0),    # far but 6 keyframes old: asked again
+               (3, 3): (10, far - 1.0),   # recent but not far enough
+               (4, 2): (10, far + 50.0)}  # recorded for a 2-row sight, not this 3-row one
+    w = SimpleNamespace(config=cfg, _far=records, _k=10, n_far_reused=0)
+    screened = {0: {1: (3.0, False), 2: (3.0, False), 3: (3.0, False), 4: (3.0, False),
+                    5: (1.0, True)},
+                1: {1: (3.0, False)}}
+    out = Gating._reuse_far(w, [lamp, corner], screened)  # type: ignore[arg-type]
+    assert out[0] == {1: (far + 1.0, True), 2: (3.0, False), 3: (3.0, False), 4: (3.0, False),
+                      5: (1.0, True)}
+    assert out[1] == {1: (3.0, False)}  # corners: never
+    assert w.n_far_reused == 1
+    w.config = base  # off by default
+    assert Gating._reuse_far(w, [lamp], {0: {1: (3.0, False)}}) == {0: {1: (3.0, False)}}  # type: ignore[arg-type]

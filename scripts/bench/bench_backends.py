@@ -23,6 +23,9 @@ The speed targets' measurement, one command::
         --features lamps+corners --repeats 3
 
 with ``RUN_DIR`` from ``lampsam simulate lab --seed 3 --out RUN_DIR`` (2,601 frames, 173 s).
+``--isam2-variant KEY=VALUE[,KEY=VALUE]`` (repeatable) adds an iSAM2 row with those
+``[isam2]`` settings (e.g. ``keyframe_distance=0.1``) for the first feature set, timed in
+the same run, with its online CPU as a ratio to the default iSAM2's (``cpu_vs_isam2``).
 
 ``--mrclam``: MRCLAM ds0 with known association and with the gate alone, the three
 backends and dead reckoning, errors against Vicon.
@@ -164,9 +167,30 @@ def pipeline_figures(row: dict[str, Any], run: LoggedRun, frames: list[Any],
             "pipe_frame_max_ms": float(pipe.max())}
 
 
+def isam2_variant(base: SlamConfig, spec: str) -> SlamConfig:
+    """``base`` with the ``[isam2]`` settings of ``spec`` (``KEY=VALUE[,KEY=VALUE]``).
+
+    Raises:
+        SystemExit: an unknown key or a value of the wrong type, naming it.
+    """
+    over: dict[str, Any] = {}
+    for item in spec.split(","):
+        key, _, value = item.partition("=")
+        key = key.strip()
+        default = getattr(base.isam2, key, None)
+        if not value or key not in {f.name for f in dataclasses.fields(base.isam2)}:
+            raise SystemExit(f"--isam2-variant {spec!r}: {key!r} is not an [isam2] setting=VALUE")
+        try:
+            over[key] = (value.strip().lower() in ("1", "true", "yes")) if isinstance(default, bool) \
+                else type(default)(value) if default is not None else float(value)
+        except ValueError:
+            raise SystemExit(f"--isam2-variant {spec!r}: bad value for {key!r}") from None
+    return dataclasses.replace(base, isam2=dataclasses.replace(base.isam2, **over))
+
+
 def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
-              backends: tuple[str, ...] = BACKENDS, features: tuple[str, ...] = tuple(FEATURES)
-              ) -> None:
+              backends: tuple[str, ...] = BACKENDS, features: tuple[str, ...] = tuple(FEATURES),
+              variants: tuple[str, ...] = ()) -> None:
     run = read_run(run_dir)
     load0 = os.getloadavg()[0]
     frames, ceiling, frontend_ms = frontend_frames(run, source)
@@ -197,9 +221,19 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
             table.append(row)
             print(f"  {label:14s} {name:6s} pos RMS {row['pos_rms_m']:.4f} m  "
                   f"({row['status']}, {row['online_cpu_s']:.1f} s CPU online)", flush=True)
+        if label == features[0]:
+            for spec in variants:
+                row = median_rows([one_run("isam2", run, frames, isam2_variant(cfg, spec), ceiling)
+                                   for _ in range(repeats)])
+                row.update(features=label, backend=f"isam2 {spec}")
+                row.update(pipeline_figures(row, run, frames, frontend_ms, duration))
+                table.append(row)
+                print(f"  {label:14s} {row['backend']} pos RMS {row['pos_rms_m']:.4f} m  "
+                      f"({row['status']}, {row['online_cpu_s']:.1f} s CPU online)", flush=True)
     dr = drive(EkfSlam(run.rig.odometry, base, start_pose_of(run)), iter_steps(run.odometry, []))
     table.append({"features": "none (dead reckoning)", "backend": "-", **_errors(dr, run)})
     ekf_rows = [r for r in table if r["backend"] == "ekf"]
+    isam2_rows = [r for r in table if r["backend"] == "isam2" and r["features"] == features[0]]
     for r in table:
         if "frame_median_ms" in r and ekf_rows:
             r["kf_cpu_ratio_vs_ekf"] = r["kf_cpu_median_ms"] / ekf_rows[0]["kf_cpu_median_ms"]
@@ -207,6 +241,8 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
             r["x_rt_vs_target"] = r["online_x_realtime"] / TARGET_X_REALTIME
             r["pipe_x_rt_vs_target"] = r["pipeline_x_realtime"] / TARGET_X_REALTIME
             r["kf_p95_vs_target"] = r["kf_cpu_p95_ms"] / TARGET_P95_MS
+            if isam2_rows and str(r["backend"]).startswith("isam2"):
+                r["cpu_vs_isam2"] = r["online_cpu_s"] / isam2_rows[0]["online_cpu_s"]
     print(markdown_table(table, ["features", "backend", "pos_rms_m", "pos_max_m", "head_rms_deg",
                                  "landmarks", "keyframes"]))
     print()
@@ -224,7 +260,7 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
     print(markdown_table(first, ["backend", "online_cpu_s", "online_x_realtime",
                                  "x_rt_vs_target", "pipeline_x_realtime", "pipe_x_rt_vs_target",
                                  "pipe_frame_median_ms", "pipe_frame_p95_ms", "pipe_frame_max_ms",
-                                 "kf_p95_vs_target"]))
+                                 "kf_p95_vs_target", "cpu_vs_isam2"]))
     print(f"{duration:.1f} s of data; frontend {frontend_s:.1f} s CPU for {len(frames)} frames; "
           f"targets: >= {TARGET_X_REALTIME:.0f}x real time, keyframe p95 <= {TARGET_P95_MS:.0f} ms "
           f"(ratios vs target: x real time >= 1 and p95 <= 1 meet them); update/estimate/final/"
@@ -268,6 +304,8 @@ def main() -> None:
     p.add_argument("--backends", default=",".join(BACKENDS), help="lab: comma-separated subset")
     p.add_argument("--features", default=",".join(FEATURES),
                    help="lab: comma-separated subset of " + ", ".join(FEATURES))
+    p.add_argument("--isam2-variant", action="append", default=[], metavar="KEY=VALUE[,...]",
+                   help="lab: also iSAM2 with these [isam2] settings (repeatable)")
     p.add_argument("--mrclam", action="store_true")
     p.add_argument("--duration", type=float, default=None, help="MRCLAM: first seconds only")
     args = p.parse_args()
@@ -275,7 +313,8 @@ def main() -> None:
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
     if args.lab is not None:
         bench_lab(args.lab, args.frames, args.repeats, args.max_frames,
-                  tuple(args.backends.split(",")), tuple(args.features.split(",")))
+                  tuple(args.backends.split(",")), tuple(args.features.split(",")),
+                  tuple(args.isam2_variant))
     if args.mrclam:
         bench_mrclam(args.duration)
     if args.lab is None and not args.mrclam:

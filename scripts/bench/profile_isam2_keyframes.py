@@ -13,8 +13,10 @@ variables relinearised and re-eliminated by the update, new factors, and the key
 indices of the slow ones (clusters show revisits). ``--no-prefetch`` asks one joint
 marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint` off),
 to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
-binned by their number of keys. CPU figures are inflated on a loaded machine: compare
-the shares and the slow/fast ratios.
+binned by their number of keys, and the landmarks of the calls over 20 ms are counted
+(a prefetched call names all its lamps, though its cost is its deepest one's: on the
+lab path, lamp 1, rejected at every revisit keyframe; docs/speed.md). CPU figures
+are inflated on a loaded machine: compare the shares and the slow/fast ratios.
 """
 
 from __future__ import annotations
@@ -22,8 +24,10 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections import Counter
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from lampsam.backend.ceiling import CeilingModel
@@ -34,14 +38,19 @@ from lampsam.backend.graph import Isam2Slam
 from lampsam.backend.slam import iter_steps, make_frames, start_pose_of
 from lampsam.datasets.logrun import read_run
 
+#: A joint-marginal call slower than this (s CPU) has its landmarks counted.
+SLOW_CALL_S = 0.02
+
 
 class _TimedIsam:
     """Delegates to a ``gtsam.ISAM2``, timing three of its calls into ``rec``."""
 
-    def __init__(self, isam: Any, rec: dict[str, float], joint_calls: list[tuple[int, float]]) -> None:
+    def __init__(self, isam: Any, rec: dict[str, float], joint_calls: list[tuple[int, float]],
+                 slow_ids: Counter[int]) -> None:
         self._isam = isam
         self._rec = rec
         self._joint = joint_calls
+        self._slow_ids = slow_ids
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._isam, name)
@@ -62,6 +71,8 @@ class _TimedIsam:
         dt = time.process_time() - c
         self._rec["joint"] += dt
         self._joint.append((len(keys), dt))
+        if dt > SLOW_CALL_S:  # name the landmarks (L(j), A(j) -> j) of a slow call
+            self._slow_ids.update({gtsam.Symbol(key).index() for key in list(keys)[1:]})
         return out
 
     def calculateEstimatePose2(self, key: int) -> Any:  # noqa: N802
@@ -87,7 +98,8 @@ def main() -> None:
     parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors")
     rec = dict.fromkeys(parts, 0.0)
     joint_calls: list[tuple[int, float]] = []
-    be.isam = _TimedIsam(be.isam, rec, joint_calls)  # type: ignore[assignment]
+    slow_ids: Counter[int] = Counter()
+    be.isam = _TimedIsam(be.isam, rec, joint_calls, slow_ids)  # type: ignore[assignment]
     rows = []
     for t, wheel, frame in iter_steps(run.odometry, frames):
         for key in rec:
@@ -110,6 +122,8 @@ def main() -> None:
               f"estimate {s[:, 3].mean() * 1e3:.1f} + rest; relinearised {s[:, 4].mean():.0f}, "
               f"re-eliminated {s[:, 5].mean():.0f}, new factors {s[:, 6].mean():.0f}")
     print("slow keyframes:", r[total >= p95, 7].astype(int).tolist())
+    print(f"landmarks in joint-marginal calls over {SLOW_CALL_S * 1e3:.0f} ms (id: calls): "
+          + ", ".join(f"{i}: {n}" for i, n in slow_ids.most_common(8)))
     j = np.array(joint_calls).reshape(-1, 2)
     for lo, hi in ((1, 5), (5, 9), (9, 1000)):
         m = (j[:, 0] >= lo) & (j[:, 0] < hi)
