@@ -94,21 +94,36 @@ def run_local(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str]
               interrupted: Callable[[R], bool] | None = None) -> tuple[list[R], list[J]]:
     """Every job in a fresh spawned process, ``workers`` at a time (see :func:`run_jobs`).
 
-    A stop request (SIGINT or SIGTERM, :mod:`lampsam.interrupt`) cancels the jobs not
-    started and waits for the running ones (each stops at its next step when the
-    signal reached it too, as Ctrl-C in a terminal does, or finishes); a second
-    signal stops waiting and terminates the workers.
+    A stop request (SIGINT or SIGTERM, :mod:`lampsam.interrupt`) starts no further job
+    and waits for the running ones (each stops at its next step when the signal
+    reached it too, as Ctrl-C in a terminal does, or finishes); a second signal stops
+    waiting and terminates the workers. Jobs are handed to the pool only as workers
+    free up: a job the executor had already queued for a worker could no longer be
+    cancelled, and would run after the stop.
     """
     done_results: dict[int, R] = {}
     unfinished: set[int] = set()
     ctx = mp.get_context("spawn")
     bar = _bar(len(jobs), desc, progress)
+    n_workers = max(1, workers)
     with single_threaded_children(), cf.ProcessPoolExecutor(
-        max_workers=max(1, workers), mp_context=ctx, max_tasks_per_child=1
+        max_workers=n_workers, mp_context=ctx, max_tasks_per_child=1
     ) as pool:
-        futures = {pool.submit(fn, job): i for i, job in enumerate(jobs)}
-        pending = set(futures)
+        futures: dict[cf.Future[R], int] = {}
+        pending: set[cf.Future[R]] = set()
+        queue = iter(range(len(jobs)))
+
+        def top_up() -> None:
+            while len(pending) < n_workers and stop_requested() is None:
+                i = next(queue, None)
+                if i is None:
+                    return
+                fut = pool.submit(fn, jobs[i])
+                futures[fut] = i
+                pending.add(fut)
+
         try:
+            top_up()
             while pending:
                 done, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
                 for fut in done:
@@ -119,6 +134,7 @@ def run_local(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str]
                     for fut in pending:
                         fut.cancel()
                     pending = {f for f in pending if not f.cancelled()}
+                top_up()
         except KeyboardInterrupt:  # a second signal: stop waiting for the running jobs
             pool.shutdown(wait=False, cancel_futures=True)
             for child in mp.active_children():
@@ -130,6 +146,7 @@ def run_local(fn: Callable[[J], R], jobs: Sequence[J], failed: Callable[[J, str]
                 _collect_local(fut, i, jobs, failed, done_results, unfinished)
             else:
                 unfinished.add(i)
+        unfinished |= set(queue)  # never handed to the pool
     if bar is not None:
         bar.close()
     return _ordered(jobs, done_results, unfinished, interrupted)

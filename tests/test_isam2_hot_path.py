@@ -224,5 +224,5 @@ def test_reuse_far_keeps_a_recent_far_exact_distance_only() -> None:
                       5: (1.0, True)}
     assert out[1] == {1: (3.0, False)}  # corners: never
     assert w.n_far_reused == 1
-    w.config = base  # off by default
+    w.config = dataclasses.replace(base, isam2=dataclasses.replace(base.isam2, far_lamp_recheck=0))  # 0: always exact
     assert Gating._reuse_far(w, [lamp], {0: {1: (3.0, False)}}) == {0: {1: (3.0, False)}}  # type: ignore[arg-type]
