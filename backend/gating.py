@@ -133,7 +133,7 @@ class Gating(GraphState):
         s_online = self.noise_scale.scale if planar else 1.0
         joint = self._joint_cov(lm, k)
         if joint is None:  # no joint marginal: independent pose and landmark
-            _, pose_cov = self.current()
+            pose_cov = self.current_cov()
             psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + r
             return residual(obs, z_hat), psi * s_online
         s_kk, s_kl, s_ll = joint

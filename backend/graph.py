@@ -119,7 +119,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             new landmark's covariance, the odometry-only pass): a known-id keyframe
             that starts no landmark never reads the last keyframe's marginal."""
             if not cov_now:
-                cov_now.append(compose_cov(self._delta, self._kf_cov, self._delta_cov))
+                cov_now.append(self.current_cov())
             return cov_now[0]
 
         if len(self._wheel_since_kf) == 1 and self._first_rel is not None:
@@ -217,8 +217,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                 is_kf = True
         pose = self.current_pose()
         if self.config.isam2.pose_cov_every_step:
-            cov = tangent_to_coords_cov(
-                pose, compose_cov(self._delta, self._kf_cov, self._delta_cov))
+            cov = tangent_to_coords_cov(pose, self.current_cov())
         else:  # not asked for: not computed
             cov = np.full((3, 3), np.nan)
         dt = time.perf_counter() - t0

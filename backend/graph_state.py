@@ -197,10 +197,10 @@ class GraphState(SlamBackend):
             return self._kf_pose.copy()
         return pose_array(gtsam.Pose2(*self._kf_pose).compose(gtsam.Pose2(*self._delta)))
 
-    def current(self) -> tuple[FloatArray, FloatArray]:
-        """Current pose (3,) and its tangent covariance (3, 3)."""
-        cov = compose_cov(self._delta, self._kf_cov, self._delta_cov)
-        return self.current_pose(), cov
+    def current_cov(self) -> FloatArray:
+        """Current pose's tangent covariance (3, 3): the last keyframe's marginal
+        composed with the odometry's since."""
+        return compose_cov(self._delta, self._kf_cov, self._delta_cov)
 
     def _refresh_landmark(self, lm: GraphLandmark) -> None:
         """Update the cached estimate/covariance of an in-graph landmark from iSAM2."""
