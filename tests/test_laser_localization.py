@@ -18,11 +18,19 @@ from lampsam.localization.raycast import cast_rays
 RES = 0.05
 
 
-def _room() -> OccupancyGrid:
-    """A 10 m x 8 m walled room with asymmetric boxes (log-odds +-4)."""
+def _empty_room() -> OccupancyGrid:
+    """A 10 m x 8 m room with 10 cm walls and nothing inside (log-odds +-4): symmetric."""
     g = OccupancyGrid.empty(0.0, 0.0, 10.0, 8.0, RES)
     lo = np.full((g.height, g.width), -4.0)
     lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
+    g.log_odds = lo
+    return g
+
+
+def _room() -> OccupancyGrid:
+    """The walled room of :func:`_empty_room` with asymmetric boxes (log-odds +-4)."""
+    g = _empty_room()
+    lo = g.log_odds
     for x0, y0, x1, y1 in [(1.0, 1.0, 2.5, 1.6), (6.0, 5.0, 6.6, 8.0), (4.0, 3.0, 4.4, 3.6),
                            (8.0, 0.0, 10.0, 1.5)]:  # fmt: skip
         lo[int(y0 / RES) : int(y1 / RES), int(x0 / RES) : int(x1 / RES)] = 4.0
@@ -51,10 +59,7 @@ def test_localize_scans_finds_the_pose_from_no_prior() -> None:
 
 def test_a_symmetric_room_is_never_localized() -> None:
     """An empty rectangle looks the same from a pose and its half-turn twin: no answer is staked."""
-    g = OccupancyGrid.empty(0.0, 0.0, 10.0, 8.0, RES)
-    lo = np.full((g.height, g.width), -4.0)
-    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
-    g.log_odds = lo
+    g = _empty_room()
     rng = np.random.default_rng(5)
     angles = np.deg2rad(np.arange(-90.0, 90.0, 2.0))
     truth = np.array([[3.0 + 0.2 * k, 3.0, 0.0] for k in range(6)])
@@ -134,10 +139,7 @@ def test_research_adds_modes_and_keeps_a_converged_cluster() -> None:
     from lampsam.localization.laser import LaserAcceptConfig, _research, search_pyramid
     from lampsam.localization.particle_filter import ParticleFilter
 
-    grid = OccupancyGrid.empty(0.0, 0.0, 10.0, 8.0, RES)
-    lo = np.full((grid.height, grid.width), -4.0)
-    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
-    grid.log_odds = lo
+    grid = _empty_room()
     rng = np.random.default_rng(9)
     angles = np.deg2rad(np.arange(-90.0, 90.0, 2.0))
     truth = np.array([[3.0 + 0.2 * k, 3.0, 0.0] for k in range(4)])
