@@ -488,9 +488,7 @@ class EkfSlam(SlamBackend):
         keep, drop = self._slots[pair.keep], self._slots[pair.drop]
         keep.n_obs += drop.n_obs
         keep.last_seen = max(keep.last_seen, drop.last_seen)
-        n_pruned = self.n_pruned
-        self._remove([pair.drop])
-        self.n_pruned = n_pruned
+        self._remove([pair.drop], pruned=False)
         self.n_merged += 1
 
     def _new_id(self) -> int:
@@ -501,7 +499,9 @@ class EkfSlam(SlamBackend):
         return lid
 
     # ------------------------------------------------------------------ pruning
-    def _remove(self, lids: list[int]) -> None:
+    def _remove(self, lids: list[int], pruned: bool = True) -> None:
+        """Cut landmarks ``lids`` out of ``x`` and ``P``; ``pruned``: count them in
+        ``n_pruned`` (a merged duplicate is not a pruned landmark)."""
         if not lids:
             return
         keep = np.ones(self._n, dtype=bool)
@@ -516,7 +516,8 @@ class EkfSlam(SlamBackend):
         new_offset = np.cumsum(keep) - 1
         for s in self._slots.values():
             s.offset = int(new_offset[s.offset])
-        self.n_pruned += len(lids)
+        if pruned:
+            self.n_pruned += len(lids)
 
     def _prune(self) -> None:
         """Remove landmarks seen once long ago, or still uncertain after a while.
