@@ -15,7 +15,10 @@ marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint
 to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
 binned by their number of keys, and the landmarks of the calls over 20 ms are counted
 (a prefetched call names all its lamps, though its cost is its deepest one's: on the
-lab path, lamp 1, rejected at every revisit keyframe; docs/speed.md). CPU figures
+lab path, lamp 1, rejected at every revisit keyframe; docs/speed.md). The Python
+phases of a keyframe are timed too (inclusive CPU: the screen with its point reads,
+association with the exact gate, observing and starting landmarks, the pose marginal),
+in all and per slow keyframe. CPU figures
 are inflated on a loaded machine: compare the shares and the slow/fast ratios.
 """
 
@@ -81,6 +84,32 @@ class _TimedIsam:
         self._rec["estimate"] += time.process_time() - c
         return out
 
+    def calculateEstimatePoint3(self, key: int) -> Any:  # noqa: N802
+        c = time.process_time()
+        out = self._isam.calculateEstimatePoint3(key)
+        self._rec["point reads"] += time.process_time() - c
+        return out
+
+    def marginalCovariance(self, key: int) -> Any:  # noqa: N802
+        c = time.process_time()
+        out = self._isam.marginalCovariance(key)
+        self._rec["pose marginal"] += time.process_time() - c
+        return out
+
+
+def _timed(obj: Any, name: str, rec: dict[str, float], part: str) -> None:
+    """Replace the bound method ``obj.name`` by one that adds its CPU time to ``rec[part]``."""
+    fn = getattr(obj, name)
+
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        c = time.process_time()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            rec[part] += time.process_time() - c
+
+    setattr(obj, name, wrapper)
+
 
 def main() -> None:
     """Parse arguments, run, print the breakdown."""
@@ -96,7 +125,24 @@ def main() -> None:
     model = CeilingModel.from_camera(run.rig.camera)
     be = Isam2Slam(run.rig.odometry, SlamConfig(), start_pose_of(run), model, CeilingHandler(model))
     parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors")
-    rec = dict.fromkeys(parts, 0.0)
+    # Python phases of a keyframe (inclusive: the screen contains the point reads,
+    # association the exact gate's joint marginals)
+    phases = ("screen", "associate", "observe", "new landmarks", "point reads", "pose marginal")
+    rec = dict.fromkeys(parts + phases, 0.0)
+    _timed(be, "_screen", rec, "screen")
+    _timed(be, "_observe", rec, "observe")
+    _timed(be, "_start_landmark", rec, "new landmarks")
+    import lampsam.backend.graph as graph_module
+    assoc = graph_module.associate
+
+    def timed_associate(*a: Any, **k: Any) -> Any:
+        c = time.process_time()
+        try:
+            return assoc(*a, **k)
+        finally:
+            rec["associate"] += time.process_time() - c
+
+    graph_module.associate = timed_associate  # type: ignore[assignment]
     joint_calls: list[tuple[int, float]] = []
     slow_ids: Counter[int] = Counter()
     be.isam = _TimedIsam(be.isam, rec, joint_calls, slow_ids)  # type: ignore[assignment]
@@ -107,7 +153,8 @@ def main() -> None:
         c = time.process_time()
         est = be.step(t, wheel, frame)
         if est.keyframe:
-            rows.append([time.process_time() - c, *(rec[p] for p in parts), be._k])
+            rows.append([time.process_time() - c, *(rec[p] for p in parts), be._k,
+                         *(rec[p] for p in phases)])
     r = np.array(rows)
     total = r[:, 0]
     p95 = float(np.percentile(total, 95))
@@ -122,6 +169,12 @@ def main() -> None:
               f"estimate {s[:, 3].mean() * 1e3:.1f} + rest; relinearised {s[:, 4].mean():.0f}, "
               f"re-eliminated {s[:, 5].mean():.0f}, new factors {s[:, 6].mean():.0f}")
     print("slow keyframes:", r[total >= p95, 7].astype(int).tolist())
+    print(f"keyframe CPU in all, s: total {total.sum():.2f} = " + ", ".join(
+        f"{p} {r[:, 1 + i].sum():.2f}" for i, p in enumerate(parts[:3])) + "; Python phases "
+        "(inclusive): " + ", ".join(f"{p} {r[:, 8 + i].sum():.2f}" for i, p in enumerate(phases)))
+    slow = total >= p95
+    print("slowest 5 %, mean ms per phase: " + ", ".join(
+        f"{p} {r[slow, 8 + i].mean() * 1e3:.1f}" for i, p in enumerate(phases)))
     print(f"landmarks in joint-marginal calls over {SLOW_CALL_S * 1e3:.0f} ms (id: calls): "
           + ", ".join(f"{i}: {n}" for i, n in slow_ids.most_common(8)))
     j = np.array(joint_calls).reshape(-1, 2)
