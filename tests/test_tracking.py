@@ -1,0 +1,61 @@
+"""Tracking decoupled from mapping (lampsam.backend.tracking): the backend in a worker process."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.odometry import motion_model
+from lampsam.backend.pose_cov import pose_array
+from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
+from lampsam.backend.tracking import run_decoupled
+from lampsam.datasets.logrun import LoggedRun, read_run
+from lampsam.datasets.simulator import simulate_world
+from lampsam.errors import LampsamError
+from lampsam.frontend.pipeline import iter_run
+
+
+@pytest.fixture(scope="module")
+def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+    """3 s of the simulated lab (45 frames)."""
+    out = tmp_path_factory.mktemp("track") / "lab"
+    simulate_world("lab", out, seed=3, duration=3.0, workers=1)
+    return read_run(out)
+
+
+def test_tracked_poses_are_backend_estimates_plus_odometry(lab_run: LoggedRun) -> None:
+    """The worker's estimates equal the backend stepped in turn (bit for bit), and every
+    tracked pose is its anchor step's estimate composed with the odometry since (1e-9)."""
+    frames = list(iter_run(lab_run))
+    steps = list(iter_steps(lab_run.odometry, frames))
+    start = start_pose_of(lab_run)
+    ref = make_backend("isam2", lab_run.rig.odometry, SlamConfig(), start, lab_run.rig.camera)
+    ref_poses = np.array([ref.step(t, u, f).pose for t, u, f in steps])
+    tm = run_decoupled(iter(steps), "isam2", lab_run.rig.odometry, SlamConfig(), start,
+                       lab_run.rig.camera)
+    n = len(steps)
+    assert len(tm.pose) == len(tm.anchor) == len(tm.back) == n
+    np.testing.assert_array_equal(np.array(tm.backend_pose), ref_poses)
+    assert sum(tm.keyframe) > 5
+    assert all(a < i + 1 for i, a in enumerate(tm.anchor))
+    assert all(s <= o for s, o in zip(tm.sent, tm.out, strict=True))
+    assert all(b >= s for s, b in zip(tm.sent, tm.back, strict=True))
+    assert tm.worker_cpu_s > 0.0
+    motion = motion_model(lab_run.rig.odometry)
+    for i, j in enumerate(tm.anchor):
+        base = gtsam.Pose2(*(ref_poses[j] if j >= 0 else start))
+        u = [s[1] for s in steps[j + 1:i + 1] if len(s[1])]
+        if u:
+            d, _ = motion.relative(np.concatenate(u), 1e-14)
+            base = base.compose(gtsam.Pose2(*d))
+        np.testing.assert_allclose(tm.pose[i], pose_array(base), atol=1e-9)
+
+
+def test_worker_error_is_raised(lab_run: LoggedRun) -> None:
+    """A backend that cannot be built in the worker stops the run with its message."""
+    steps = iter_steps(lab_run.odometry, [])
+    with pytest.raises(LampsamError, match="unknown backend"):
+        run_decoupled(steps, "nope", lab_run.rig.odometry, SlamConfig(), start_pose_of(lab_run),
+                      lab_run.rig.camera)
