@@ -239,7 +239,7 @@ def test_corner_budget_keeps_longest_tracks() -> None:
 
 def test_corner_budget_counts_ekf_slots_as_mapped() -> None:
     """Landmarks without ``in_graph`` (EKF slots: always in the state) all count."""
-    from lampsam.backend.ekf import _Slot
+    from lampsam.backend.ekf_landmarks import Slot as _Slot
 
     slots = [_Slot(i, "corner", 3 * i, 3, n, 0, 0) for i, n in enumerate([4, 1, 7, 2])]
     slots.append(_Slot(9, "lamp", 12, 4, 1, 0, 0))
