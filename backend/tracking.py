@@ -68,6 +68,7 @@ class DecoupledTimes:
         back: when the worker's estimate of each step came back (NaN: never read).
         keyframe: whether the backend made the step a keyframe.
         backend_pose: (N, 3) the backend's own online estimate of each step.
+        step_cpu: (N,) the worker's process CPU time for each step, s.
         worker_cpu_s: the worker process's CPU time for the steps (process clock).
         worker_done: when the worker had finished the last step.
     """
@@ -80,6 +81,7 @@ class DecoupledTimes:
     back: list[float] = field(default_factory=list)
     keyframe: list[bool] = field(default_factory=list)
     backend_pose: list[FloatArray] = field(default_factory=list)
+    step_cpu: list[float] = field(default_factory=list)
     worker_cpu_s: float = 0.0
     worker_done: float = float("nan")
 
@@ -102,7 +104,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
                     start_pose: FloatArray, camera: CameraModel | None,
                     inbox: queue.Queue[object], outbox: queue.Queue[object]) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
-    ``(i, t, samples, frame)`` and send back ``(i, pose, keyframe)``; ``("done", cpu_s)``
+    ``(i, t, samples, frame)`` and send back ``(i, pose, keyframe, step CPU s)``; ``("done", cpu_s)``
     after the stop mark, or ``("error", text)``."""
     import signal
 
@@ -118,8 +120,10 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
             if item == _STOP:
                 break
             i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
+            c = time.process_time()
             est = be.step(t, samples, _unpack(packed))
-            outbox.put((i, np.asarray(est.pose, float), bool(est.keyframe)))
+            outbox.put((i, np.asarray(est.pose, float), bool(est.keyframe),
+                        time.process_time() - c))
         outbox.put(("done", time.process_time() - c0))
     except Exception as exc:  # sent to the caller, which raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
@@ -171,8 +175,9 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 done_cpu.append(float(item[1]))
                 return
             raise LampsamError(f"mapping worker failed: {item[1]}")
-        j, pose, kf = cast(tuple[int, FloatArray, bool], item)
+        j, pose, kf, cpu = cast(tuple[int, FloatArray, bool, float], item)
         times.back[j] = time.perf_counter()
+        times.step_cpu[j] = cpu
         times.keyframe[j] = kf
         times.backend_pose[j] = pose
         if j > anchor_j:
@@ -196,6 +201,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
             times.back.append(float("nan"))
             times.keyframe.append(False)
             times.backend_pose.append(np.full(3, np.nan))
+            times.step_cpu.append(float("nan"))
             times.sent.append(time.perf_counter())
             inbox.put((i, t, samples, _pack(frame)))
             while True:  # every estimate already back
@@ -229,3 +235,25 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
             log.warning("mapping worker still running after 5 s: terminating it")
             worker.terminate()
             worker.join(timeout=1.0)
+
+
+def replay_latency(t: FloatArray, step_cpu: FloatArray, pace: float) -> FloatArray:
+    """Each step's latency (s) on a dedicated core: steps arriving at ``t / pace``, served in turn.
+
+    The Lindley recursion ``f_i = max(a_i, f_(i-1)) + c_i`` with arrival
+    ``a_i = (t_i - t_0) / pace`` and service ``c_i`` the step's measured CPU time;
+    the latency is ``f_i - a_i``. What the worker's queue would do on a core of its
+    own, from CPU times measured on a shared machine (where wall-clock latencies
+    reflect the other processes' load, not this pipeline's).
+
+    Args:
+        t: (N,) step times, s of data; step_cpu: (N,) CPU time per step, s.
+        pace: replay speed, x real time (1: a robot's camera).
+    """
+    a = (np.asarray(t, float) - float(t[0])) / pace
+    out = np.empty(len(a))
+    f = -np.inf
+    for i, (ai, ci) in enumerate(zip(a, np.asarray(step_cpu, float), strict=True)):
+        f = max(ai, f) + ci
+        out[i] = f - ai
+    return out

@@ -10,7 +10,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.odometry import motion_model
 from lampsam.backend.pose_cov import pose_array
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
-from lampsam.backend.tracking import run_decoupled
+from lampsam.backend.tracking import replay_latency, run_decoupled
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.datasets.simulator import simulate_world
 from lampsam.errors import LampsamError
@@ -59,3 +59,13 @@ def test_worker_error_is_raised(lab_run: LoggedRun) -> None:
     with pytest.raises(LampsamError, match="unknown backend"):
         run_decoupled(steps, "nope", lab_run.rig.odometry, SlamConfig(), start_pose_of(lab_run),
                       lab_run.rig.camera)
+
+
+def test_replay_latency_queues_behind_slow_steps() -> None:
+    """Steps at 1 s of data, replayed at 2x (one every 0.5 s): a 1.2 s step delays the
+    next two (latencies by hand), a fast queue has latency = service time."""
+    t = np.arange(5.0)
+    cpu = np.array([0.1, 1.2, 0.1, 0.1, 0.1])
+    # arrivals 0, 0.5, 1.0, 1.5, 2.0; finishes 0.1, 1.7, 1.8, 1.9, 2.1
+    np.testing.assert_allclose(replay_latency(t, cpu, 2.0), [0.1, 1.2, 0.8, 0.4, 0.1])
+    np.testing.assert_allclose(replay_latency(t, np.full(5, 0.2), 1.0), np.full(5, 0.2))
