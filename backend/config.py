@@ -353,6 +353,11 @@ class Isam2Config:
             path 0.78x the online CPU and keyframe p95 57 -> 43 ms, 10-seed accuracy
             unchanged, docs/speed.md; 0: always exact).
         far_lamp_factor: see ``far_lamp_recheck`` (default 2.0).
+        fixed_lag: the online iSAM2 backend smooths over the last this many keyframes
+            only (GTSAM's ``IncrementalFixedLagSmoother``; lamps never leave the
+            window; :mod:`lampsam.backend.fixed_lag`); 0 (default): full iSAM2. For
+            bounded cost on endless runs; the final trajectory is then the online
+            one (docs/speed.md, "Fixed lag").
     """
 
     keyframe_distance: float = field(default=0.05, metadata=limits(ge=0.0))
@@ -372,6 +377,7 @@ class Isam2Config:
     corner_pending_keyframes: int = field(default=30, metadata=limits(ge=1))
     far_lamp_recheck: int = field(default=5, metadata=limits(ge=0))
     far_lamp_factor: float = field(default=2.0, metadata=limits(ge=1.0))
+    fixed_lag: int = field(default=0, metadata=limits(ge=0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

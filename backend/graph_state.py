@@ -69,6 +69,13 @@ class GraphState(SlamBackend):
         #: the range-bearing gate's online innovation scale (``association.planar_noise_adapt``)
         self.noise_scale = innovation_scale(config.association)
         self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
+        #: the fixed-lag smoother (``isam2.fixed_lag``, iSAM2 backend only); ``isam`` is
+        #: then its own ISAM2 (a live reference), read as usual
+        self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        if online and config.isam2.fixed_lag > 0 and self.name == "isam2":
+            self.smoother = gtsam.IncrementalFixedLagSmoother(float(config.isam2.fixed_lag),
+                                                              config.isam2.to_gtsam())
+            self.isam = self.smoother.getISAM2()
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
         self.initial = gtsam.Values()  # initial guesses of every variable
         self._new_graph = gtsam.NonlinearFactorGraph()
@@ -116,6 +123,10 @@ class GraphState(SlamBackend):
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
         self._pose_cache: dict[int, FloatArray] = {}  # iSAM2's keyframe estimates until the next update
+        self._left_poses: set[int] = set()  # keyframes the fixed-lag smoother marginalised
+        self._fl_alive: set[int] = set()  # keys in the fixed-lag window
+        self._fl_gone: set[int] = set()  # keys it marginalised
+        self._fl_last = gtsam.Values()  # the window's estimate after the last update
 
     # ------------------------------------------------------------------ graph building
     def _add_value(self, key: int, value: GraphValue) -> None:
@@ -167,6 +178,8 @@ class GraphState(SlamBackend):
         if self.isam is not None:
             pose = self._pose_cache.get(k)
             if pose is None:
+                if k in self._left_poses:  # marginalised by the fixed-lag smoother
+                    return self._kf_poses[k]
                 pose = self._pose_cache[k] = pose_array(self.isam.calculateEstimatePose2(X(k)))
             return pose
         return self._kf_poses[k]

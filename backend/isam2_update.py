@@ -17,6 +17,7 @@ import gtsam
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
+from lampsam.backend.fixed_lag import keyframe_stamps, left_window, without_keys
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import value_at
 from lampsam.backend.pose_cov import pose_array
@@ -37,7 +38,10 @@ class Isam2Updates(GraphState):
         t0 = time.perf_counter()
         self._pose_cache = {}
         try:
-            self.isam.update(self._new_graph, self._new_values)
+            if self.smoother is not None:
+                self._fixed_lag_update()
+            else:
+                self.isam.update(self._new_graph, self._new_values)
             for _ in range(self.config.isam2.extra_updates):
                 self.isam.update()
         except RuntimeError as exc:
@@ -50,6 +54,38 @@ class Isam2Updates(GraphState):
         self._kf_cov_key = X(self._k)  # its marginal, when first read (GraphState._kf_cov)
         self.update_times.append(t1 - t0)
         self.estimate_times.append(time.perf_counter() - t1)
+
+    def _fixed_lag_update(self) -> None:
+        """One fixed-lag update (:mod:`lampsam.backend.fixed_lag`): keys stamped with the
+        keyframe, lamps kept, factors on keys that already left dropped (a corner's
+        pending sights from keyframes gone); then what left the window is dropped from
+        the backend (a keyframe keeps its last estimate, a corner is forgotten)."""
+        assert self.smoother is not None
+        lamps = [key for lm in self._landmarks.values() if lm.kind == "lamp" and lm.in_graph
+                 for key in self.handlers[lm.kind].keys(lm)]
+        graph = without_keys(self._new_graph, self._fl_gone)
+        stamps = keyframe_stamps(self._k, self._new_values, graph, lamps)
+        self.smoother.update(graph, self._new_values, stamps)
+        self._fl_alive.update(int(key) for key in stamps)
+        gone = left_window(self.smoother, self._fl_alive)
+        if gone:
+            self._fl_alive -= gone
+            self._fl_gone |= gone
+            lids = set()
+            for key in gone:
+                sym = gtsam.Symbol(key)
+                if sym.chr() == ord("x"):
+                    k = int(sym.index())
+                    if self._fl_last.exists(key):
+                        self._kf_poses[k] = pose_array(self._fl_last.atPose2(key))
+                    self._left_poses.add(k)
+                else:
+                    lids.add(int(sym.index()))
+            for lid in lids & set(self._landmarks):
+                if self._landmarks[lid].kind != "lamp":
+                    del self._landmarks[lid]
+                    self.pruned["left_window"] = self.pruned.get("left_window", 0) + 1
+        self._fl_last = self.smoother.calculateEstimate()
 
     def _recover(self, exc: RuntimeError) -> None:
         """Rebuild iSAM2 after a failed update, without the offending measurements.
@@ -66,6 +102,9 @@ class Isam2Updates(GraphState):
         Raises:
             EstimationError: the rebuilt graph fails too.
         """
+        if self.smoother is not None:  # rebuilt from the whole graph: full iSAM2 from here
+            log.warning("fixed-lag smoother failed: continuing with full iSAM2")
+            self.smoother = None
         named = {int(m.group(1)) for m in re.finditer(r"\bl(\d+)\b", str(exc))}
         new_lids = {lid for _, lid in self._update_factor_lids}
         bad = (named & set(self._landmarks)) or new_lids
