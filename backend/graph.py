@@ -269,8 +269,11 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             k = self._step_kf[i]
             delta, cov_delta = self._step_delta[i], self._step_delta_cov[i]
             # between two keyframes: condition the odometry on both (a keyframe's own
-            # step has zero odometry and covariance, which the bridge leaves as is)
-            if k + 1 < n_kf and not self._keyframes[i]:
+            # step has zero odometry and covariance, which the bridge leaves as is);
+            # not between keyframes a fixed-lag smoother let go of at different updates
+            # (estimates of two epochs: their relative pose need not fit the odometry)
+            if k + 1 < n_kf and not self._keyframes[i] and not (
+                    k in self._left_poses or k + 1 in self._left_poses):
                 delta, cov_delta = odometry_bridge(delta, cov_delta, *self._odo[k + 1],
                                                    kf_pose[k], kf_pose[k + 1])
             p = pose_array(gtsam.Pose2(*kf_pose[k]).compose(gtsam.Pose2(*delta)))
