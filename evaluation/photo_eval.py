@@ -3,8 +3,9 @@
 Each labelled photo (:mod:`lampsam.evaluation.photo_labels`) is read as grey
 in sensor orientation, reduced to the working width (``INTER_AREA``; default
 320 px, the robot camera's) and run through
-:func:`lampsam.frontend.resolution.detect_photo_lamps` with the settings scaled to that
-width (:func:`lampsam.frontend.resolution.lamp_config_for_width`). Blobs touching
+:func:`lampsam.evaluation.gallery.detect_photo` (the path that ``lampsam
+gallery`` draws) with the settings scaled to that width
+(:func:`lampsam.frontend.resolution.lamp_config_for_width`). Blobs touching
 the border are left out, as :func:`lampsam.frontend.pipeline.process_image`
 does. The labels are scaled to the working size, then:
 
@@ -43,14 +44,13 @@ from pathlib import Path
 import numpy as np
 
 from lampsam.angles import wrap_axis
-from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
-from lampsam.evaluation.gallery import load_photo
+from lampsam.evaluation.gallery import detect_photo, load_photo
 from lampsam.evaluation.photo_labels import PhotoLabels, Region, read_labels
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import LampDetections
 from lampsam.frontend.pipeline import FrontendConfig
-from lampsam.frontend.resolution import ResolutionPolicy, detect_photo_lamps
+from lampsam.frontend.resolution import ResolutionPolicy
 from lampsam.safe_io import write_text_atomic
 
 
@@ -256,7 +256,7 @@ def evaluate_photos(
         policy = ResolutionPolicy(
             width=settings.width, auto=settings.auto_width, second_look=settings.second_look
         )
-        det, cfg = detect_photo_lamps(full, _photo_camera, base.lamps, policy)
+        det, cfg = detect_photo(full, base.lamps, policy)
         h, w = det.mask.shape
         score = score_photo(det, pl, (w, h), cfg, settings)
         score.width = w
@@ -268,11 +268,6 @@ def evaluate_photos(
             out.append(total(part, f"total ({use})", use))
     out.append(total(scores, "total", "all"))
     return out
-
-
-def _photo_camera(width: int, height: int) -> CameraModel:
-    """The photos' camera at a working size: a 70 deg pinhole (the phone's is not known)."""
-    return CameraModel.from_fov(width, height, 70.0)
 
 
 def format_table(scores: list[PhotoScore]) -> str:

@@ -17,6 +17,7 @@ import pytest
 
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
+from lampsam.evaluation.gallery import make_gallery
 from lampsam.evaluation.photo_eval import PhotoEvalSettings, evaluate_photos, score_photo
 from lampsam.evaluation.photo_labels import (
     PhotoLabels,
@@ -152,3 +153,42 @@ def test_frontend_eval_cli_on_photos(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert r["precision"] >= 0.95 and r["recall"] >= 0.9, r
         assert r["split"] <= 2, r
     assert main(["frontend-eval", "--photos", str(photos)]) == 2  # --labels missing: usage error
+
+
+def test_gallery_draws_what_frontend_eval_scores(tmp_path: Path) -> None:
+    """``lampsam gallery``'s working-width column is the photo evaluation's path: same
+    width (from the lamps, not fixed) and same lamps, including the second look's split.
+
+    Hand-made 1600x1200 photo: two lamps 200 x 40 px and a row of two 360 x 40 px
+    modules 2 px apart. At 320 px the row is one blob (3 lamps); the rule's width
+    (lamps 10 px wide: 400 px) with the look at 2x finds the 4.
+    """
+    img = np.full((1200, 1600), 120.0)
+    img[300:340, 300:500] = 250.0
+    img[300:340, 1000:1200] = 250.0
+    img[780:820, 400:760] = 250.0
+    img[780:820, 762:1122] = 250.0
+    img = cv2.GaussianBlur(img, (0, 0), 1.0) + np.random.default_rng(5).normal(0.0, 2.0, img.shape)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    cv2.imwrite(str(photos / "hand.png"), np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    lamps = [((400, 320), 200), ((1100, 320), 200), ((580, 800), 360), ((942, 800), 360)]
+    labels = {
+        "format": "lampsam-photo-labels/1",
+        "photos": {"hand.png": {"width": 1600, "height": 1200, "use": "report", "regions": [
+            {"kind": "lamp", "centre": list(c), "axis_deg": 0.0, "length": ln, "width": 40}
+            for c, ln in lamps
+        ]}},
+    }
+    label_file = tmp_path / "labels.json"
+    label_file.write_text(json.dumps(labels))
+    settings = PhotoEvalSettings(auto_width=True, second_look=True)
+    score = evaluate_photos(photos, label_file, settings)[0]
+    assert (score.width, score.n_detections, score.n_true, score.n_found) == (400, 4, 4, 4)
+
+    entries = make_gallery(photos, tmp_path / "g.png")
+    small, working = entries
+    assert (small.width, small.n_lamps) == (320, 3)  # the 320 px column merges the row
+    assert (working.width, working.height) == (400, 300)
+    assert working.n_lamps == score.n_detections == 4
+    assert (tmp_path / "g.png").stat().st_size > 10_000
