@@ -384,12 +384,13 @@ def family_totals(trials: list[TrialScore], uses: tuple[str, ...]) -> dict[str, 
 
 def format_families(totals: dict[str, PhotoScore]) -> str:
     """A text table: one line per family (precision, recall, errors, false detections by kind)."""
-    lines = [f"{'family':14s} {'det':>5s} {'prec':>6s} {'lamps':>5s} {'recall':>6s} {'split':>5s} "
-             f"{'c_rms px':>8s} {'ax_rms deg':>10s}  false by kind"]
+    lines = [f"{'family':14s} {'det':>5s} {'prec':>6s} {'lamps':>5s} {'recall':>6s} {'fits':>5s} "
+             f"{'f_rec':>6s} {'split':>5s} {'c_rms px':>8s} {'ax_rms deg':>10s}  false by kind"]
     for fam, s in totals.items():
         r = s.row()
         lines.append(
             f"{fam:14s} {s.n_detections:5d} {s.precision:6.3f} {s.n_lamps:5d} {s.recall:6.3f} "
+            f"{s.n_fittings:5d} {s.recall_fitting:6.3f} "
             f"{s.n_split:5d} {r['centroid_rms_px']:8.2f} {r['axis_rms_deg']:10.2f}  "
             + (", ".join(f"{k} {v}" for k, v in sorted(s.false_by_kind.items())) or "-")
         )
