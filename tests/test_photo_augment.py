@@ -114,3 +114,29 @@ def test_run_trials_on_a_hand_made_photo(tmp_path: Path) -> None:
     # the rotation really moved the image: the lamps are found where the labels went
     tr = draw_transform("rotation", np.random.default_rng(0), SIZE)
     assert apply_geometric(_photo(np.random.default_rng(1)), tr).shape == (tr.size[1], tr.size[0])
+
+
+@pytest.mark.shared_data
+def test_tilted_470_keeps_the_module_next_to_a_border_cut_one() -> None:
+    """470 (a report photo) seen by a camera turned 27.6 deg: the frame's border cuts a
+    module of the top-left fitting, and the whole module beside it is still found
+    (before the second look kept border blobs with one whole lamp inside: 2 of 3)."""
+    from lampsam.evaluation.gallery import detect_photo
+    from lampsam.evaluation.photo_augment import inscribed_crop, load_colour, warp_labels
+    from lampsam.evaluation.photo_eval import PhotoEvalSettings, score_photo
+    from lampsam.evaluation.photo_labels import read_labels
+
+    from .conftest import require_shared
+
+    photos = require_shared("ceiling_photos")
+    labels = read_labels(Path(__file__).parent / "data" / "ceiling_photo_labels.json")
+    pl = labels["470_db_photo.jpg"]
+    hom, size = inscribed_crop(tilt_homography((4000, 3000), 27.6, 117.1), (4000, 3000))
+    assert abs(size[0] - 3433) <= 2 and abs(size[1] - 2574) <= 2
+    tr = Transform("tilt", 27.6, hom, size)
+    grey = cv2.cvtColor(load_colour(photos / pl.name), cv2.COLOR_BGR2GRAY)
+    det, cfg = detect_photo(apply_geometric(np.asarray(grey, dtype=np.uint8), tr))
+    h, w = det.mask.shape
+    sc = score_photo(det, warp_labels(pl, tr), (w, h), cfg, PhotoEvalSettings())
+    assert w == 384
+    assert (sc.n_lamps, sc.n_found, sc.n_detections, sc.n_true) == (3, 3, 4, 4)
