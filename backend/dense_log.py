@@ -238,7 +238,7 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
         graph = gtsam.NonlinearFactorGraph()
         graph.add(odo)
         new: list[tuple[int, FloatArray]] = []
-        again: list[gtsam.NonlinearFactor] = []
+        again: list[gtsam.BearingRangeFactor2D] = []
         xk = X(k)
         for j in range(a, b):
             lid = lids[j]
@@ -251,8 +251,8 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
                 return None  # first seen twice from one pose: the general path's case
             else:
                 again.append(f)
-        for f in again:
-            graph.add(f)
+        for f_again in again:
+            graph.add(f_again)
         plan.factors.append(graph)
         plan.new_lms.append(new)
         plan.sighted.append(lids[a:b])
