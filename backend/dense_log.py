@@ -238,6 +238,7 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
         graph = gtsam.NonlinearFactorGraph()
         graph.add(odo)
         new: list[tuple[int, FloatArray]] = []
+        new_ids: set[int] = set()
         again: list[gtsam.BearingRangeFactor2D] = []
         xk = X(k)
         for j in range(a, b):
@@ -245,9 +246,10 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
             f = gtsam.BearingRangeFactor2D(xk, L(lid), gtsam.Rot2(bearings[j]), ranges[j], noises[j])
             if lid not in seen:
                 seen.add(lid)
+                new_ids.add(lid)
                 new.append((lid, np.array([bearings[j], ranges[j]])))
                 graph.add(f)
-            elif any(m == lid for m, _ in new):
+            elif lid in new_ids:
                 return None  # first seen twice from one pose: the general path's case
             else:
                 again.append(f)
@@ -338,14 +340,11 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
             k = j + 1
             pose = pose_array(gtsam.Pose2(*kf_pose).compose(gtsam.Pose2(*plan.pred_delta[j])))
             values = gtsam.Values()
-            pose2 = gtsam.Pose2(*pose)
-            values.insert(X(k), pose2)
-            initial.insert(X(k), pose2)
+            values.insert(X(k), gtsam.Pose2(*pose))
             predicted.append(pose)
             for lid, z in plan.new_lms[j]:
-                point = init_point2(pose, z)[0]
-                values.insert(L(lid), point)
-                initial.insert(L(lid), point)
+                values.insert(L(lid), init_point2(pose, z)[0])
+            initial.insert(values)
             graph.push_back(factors)
             if isam is None:
                 kf_pose = pose
