@@ -45,7 +45,7 @@ from gtsam.symbol_shorthand import L, X
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph import STEP_FLOOR, batch_lm
-from lampsam.backend.handlers import MarginalSource, Point2Handler
+from lampsam.backend.handlers import MarginalSource
 from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, SlamResult, log_pruned
 from lampsam.backend.models import init_point2, landmark_estimate
 from lampsam.backend.odometry import Pose2Motion
@@ -71,7 +71,7 @@ class LogPlan:
         pred_delta: (K, 3) odometry mean from keyframe ``k - 1`` to ``k`` composed step
             by step (the new pose's initial value is the estimate of ``k - 1``
             composed with it).
-        factors: (K,) each keyframe's factors: odometry, new landmarks', re-sighted ones'.
+        factors: (K,) each keyframe's new factors: odometry, new landmarks', re-sighted ones'.
         new_lms: (K,) each keyframe's new landmarks ``(id, [bearing, range])``.
         odo: (K + 1) the odometry factor's ``(delta, cov)`` of each keyframe (entry 0:
             the start, unused).
@@ -84,7 +84,7 @@ class LogPlan:
     is_kf: BoolArray
     kf_step: list[int] = field(default_factory=list)
     pred_delta: list[FloatArray] = field(default_factory=list)
-    factors: list[list[gtsam.NonlinearFactor]] = field(default_factory=list)
+    factors: list[gtsam.NonlinearFactorGraph] = field(default_factory=list)
     new_lms: list[list[tuple[int, FloatArray]]] = field(default_factory=list)
     odo: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
     step_delta: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -118,15 +118,67 @@ def single_sample_relative(samples: FloatArray, sample_floor: FloatArray, floor_
     return delta, sym, ok
 
 
-def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig,
-             noise: Point2Handler) -> LogPlan | None:
+def sighting_arrays(g: GraphLog, r_default: FloatArray
+                    ) -> tuple[IntArray, list[int], list[float], list[float],
+                               list[gtsam.noiseModel.Base]] | None:
+    """Every usable sighting of a log, in order, with its shared noise model.
+
+    A sighting with a range or bearing that is not finite, or a range <= 0, is left
+    out (as :func:`lampsam.backend.models.observations_from_frame` does). Each
+    covariance is checked as :func:`lampsam.factors.gtsam_factors.check_cov` checks a
+    (2, 2) one (finite, Sylvester on the symmetric part), all at once, and one
+    ``Gaussian.Covariance`` is made per distinct covariance (bytewise).
+
+    Args:
+        g: the log.
+        r_default: (2, 2) ``[bearing, range]`` covariance of sightings without one.
+
+    Returns:
+        ``(bounds (N + 1,), landmark ids, bearings wrapped to (-pi, pi], ranges,
+        noise models)``: step ``i``'s sightings are ``bounds[i]:bounds[i + 1]``; or
+        None when a covariance is refused (the general path names it).
+    """
+    n = len(g.sightings)
+    lids: list[int] = []
+    bearings: list[float] = []
+    ranges: list[float] = []
+    covs: list[FloatArray] = []
+    counts = np.zeros(n + 1, int)
+    for i, ss in enumerate(g.sightings):
+        for s in ss:
+            if math.isfinite(s.range) and math.isfinite(s.bearing) and s.range > 0:
+                lids.append(s.landmark)
+                bearings.append(s.bearing)
+                ranges.append(s.range)
+                covs.append(r_default if s.cov is None else s.cov)
+                counts[i + 1] += 1
+    bounds = np.cumsum(counts)
+    if not lids:
+        return bounds, lids, bearings, ranges, []
+    try:
+        c = np.array(covs, dtype=float)
+    except ValueError:
+        return None
+    if c.shape != (len(lids), 2, 2) or not np.isfinite(c).all():
+        return None
+    off = 0.5 * (c[:, 0, 1] + c[:, 1, 0])
+    if not ((c[:, 0, 0] > 0.0) & (c[:, 0, 0] * c[:, 1, 1] - off * off > 0.0)).all():
+        return None
+    raw = np.ascontiguousarray(c).reshape(len(lids), 4)
+    _, first, inverse = np.unique(raw.view(np.dtype((np.void, 32))).ravel(), return_index=True,
+                                  return_inverse=True)
+    models = [gtsam.noiseModel.Gaussian.Covariance(c[j]) for j in first]
+    wrapped = wrap_angle(np.asarray(bearings, float)).tolist()
+    return bounds, lids, wrapped, ranges, [models[j] for j in inverse.ravel().tolist()]
+
+
+def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | None:
     """The keyframes, factors and odometry records of a known-id log (module docstring).
 
     Args:
         g: the log (one odometry sample and its sightings per pose).
         motion: the Pose2 odometry model (its floor and default covariance).
         config: ``isam2.odometry_floor_var``, the default range-bearing noise.
-        noise: the shared range-bearing noise models (validated once per covariance).
 
     Returns:
         The plan, or None where the general path must run (module docstring).
@@ -141,77 +193,77 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig,
     floor = float(config.isam2.odometry_floor_var)
     if not (math.isfinite(floor) and floor >= 0.0):
         return None
+    r_default = np.diag([config.noise.sigma_bearing ** 2, config.noise.sigma_range ** 2])
+    sights = sighting_arrays(g, r_default)
+    if sights is None:
+        return None
+    bounds, lids, bearings, ranges, noises = sights
     d_all, c_floor, ok = single_sample_relative(samples, motion._sample_floor, floor)
     _, c_step, _ = single_sample_relative(samples, motion._sample_floor, STEP_FLOOR)
-    r_default = np.diag([config.noise.sigma_bearing ** 2, config.noise.sigma_range ** 2])
+    floor_to_step = (STEP_FLOOR - floor) * np.eye(3)
     plan = LogPlan(step_kf=np.zeros(n, int), is_kf=np.zeros(n, bool),
                    odo=[(np.zeros(3), np.zeros((3, 3)))],
                    step_delta=np.zeros((n, 3)), step_cov=np.zeros((n, 3, 3)))
     seen: set[int] = set()
     k = 0
     since = 0
-    first: tuple[FloatArray, FloatArray] | None = None
+    first: tuple[FloatArray, FloatArray] = (np.zeros(3), np.zeros((3, 3)))
     delta = np.zeros(3)
-    delta_cov = np.zeros((3, 3))
+    delta_cov: FloatArray | None = None
     for i in range(n):
         if since == 0:
-            if ok[i]:
-                d, c_kf = d_all[i], c_floor[i]
-            else:
-                d, c_kf = motion.relative(samples[i : i + 1], floor)
-            first = (d, c_kf)
-            delta_cov = c_kf + (STEP_FLOOR - floor) * np.eye(3)
-            delta = pose_array(gtsam.Pose2(*d))
+            first = (d_all[i], c_floor[i]) if ok[i] else motion.relative(samples[i : i + 1], floor)
+            delta = pose_array(gtsam.Pose2(*first[0]))
+            delta_cov = None  # composed only for a step that is not a keyframe
         else:
-            if ok[i]:
-                d, c = d_all[i], c_step[i]
-            else:
-                d, c = motion.relative(samples[i : i + 1], STEP_FLOOR)
+            d, c = (d_all[i], c_step[i]) if ok[i] else motion.relative(samples[i : i + 1], STEP_FLOOR)
+            assert delta_cov is not None
             delta_cov = compose_cov(d, delta_cov, c)
             delta = pose_array(gtsam.Pose2(*delta).compose(gtsam.Pose2(*d)))
         since += 1
-        obs = [(s.landmark, float(wrap_angle(s.bearing)), s.range, s.cov) for s in g.sightings[i]
-               if math.isfinite(s.range) and math.isfinite(s.bearing) and s.range > 0]
-        if not obs:
+        a, b = int(bounds[i]), int(bounds[i + 1])
+        if a == b:  # no sighting: a step between keyframes
+            if delta_cov is None:
+                delta_cov = first[1] + floor_to_step
             plan.step_kf[i] = k
             plan.step_delta[i] = delta
             plan.step_cov[i] = delta_cov
             continue
-        if since == 1 and first is not None:
-            f_delta, f_cov = first
-        else:
-            f_delta, f_cov = motion.relative(samples[i - since + 1 : i + 1], floor)
+        f_delta, f_cov = first if since == 1 else motion.relative(samples[i - since + 1 : i + 1], floor)
         k += 1
         try:
-            factors: list[gtsam.NonlinearFactor] = [
-                odometry_factor(X(k - 1), X(k), f_delta, f_cov)]
-            new: list[tuple[int, FloatArray]] = []
-            again: list[gtsam.NonlinearFactor] = []
-            for lid, b, r, cov in obs:
-                z = np.array([b, r])
-                f = gtsam.BearingRangeFactor2D(
-                    X(k), L(lid), gtsam.Rot2(b), r,
-                    noise.noise(r_default if cov is None else cov, None))
-                if lid in seen:
-                    if any(j == lid for j, _ in new):
-                        return None  # first seen twice from one pose: the general path's case
-                    again.append(f)
-                else:
-                    seen.add(lid)
-                    new.append((lid, z))
-                    factors.append(f)
+            odo = odometry_factor(X(k - 1), X(k), f_delta, f_cov)
         except LampsamError:
-            return None  # a covariance the factors refuse: the general path says which
-        plan.factors.append(factors + again)
+            return None  # a covariance the factor refuses: the general path says which
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(odo)
+        new: list[tuple[int, FloatArray]] = []
+        new_ids: set[int] = set()
+        again: list[gtsam.BearingRangeFactor2D] = []
+        xk = X(k)
+        for j in range(a, b):
+            lid = lids[j]
+            f = gtsam.BearingRangeFactor2D(xk, L(lid), gtsam.Rot2(bearings[j]), ranges[j], noises[j])
+            if lid not in seen:
+                seen.add(lid)
+                new_ids.add(lid)
+                new.append((lid, np.array([bearings[j], ranges[j]])))
+                graph.add(f)
+            elif lid in new_ids:
+                return None  # first seen twice from one pose: the general path's case
+            else:
+                again.append(f)
+        for f_again in again:
+            graph.add(f_again)
+        plan.factors.append(graph)
         plan.new_lms.append(new)
-        plan.sighted.append([lid for lid, _, _, _ in obs])
+        plan.sighted.append(lids[a:b])
         plan.kf_step.append(i)
         plan.pred_delta.append(delta)
         plan.odo.append((np.asarray(f_delta, float), np.asarray(f_cov, float)))
         plan.is_kf[i] = True
         plan.step_kf[i] = k
         since = 0
-        first = None
     return plan
 
 
@@ -230,17 +282,18 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
 
     Returns:
         The result as :meth:`lampsam.backend.graph.GraphSlam.finish` gives it without
-        pose covariances (NaN); ``step_times_s`` is each keyframe's update, zero for
-        the other steps (their odometry is composed in the first pass). None: the
+        pose covariances (NaN); ``step_times_s`` is the first pass's time shared out
+        equally over the steps, plus each keyframe's update at its step. None: the
         general path must run (module docstring).
     """
     if backend not in ("isam2", "batch") or (backend == "batch" and config.batch.huber_k is not None):
         return None
     online = backend == "isam2" or config.batch.init == "isam2"
-    noise = Point2Handler()
-    plan = plan_log(g, motion, config, noise)
+    t_plan = time.perf_counter()
+    plan = plan_log(g, motion, config)
     if plan is None:
         return None
+    t_plan = time.perf_counter() - t_plan
     cfg = config.isam2
     n = len(plan.is_kf)
     start = np.asarray(start, float)
@@ -253,7 +306,7 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
     isam = gtsam.ISAM2(cfg.to_gtsam()) if online else None
     update_times: list[float] = []
     estimate_times: list[float] = []
-    step_times = np.zeros(n)
+    step_times = np.full(n, t_plan / max(n, 1))  # the first pass, shared out over the steps
     kf_pose = start.copy()
     predicted = [start.copy()]  # each keyframe's initial value (kept if the final estimate lacks it)
 
@@ -290,21 +343,16 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
             pose = pose_array(gtsam.Pose2(*kf_pose).compose(gtsam.Pose2(*plan.pred_delta[j])))
             values = gtsam.Values()
             values.insert(X(k), gtsam.Pose2(*pose))
-            initial.insert(X(k), gtsam.Pose2(*pose))
             predicted.append(pose)
             for lid, z in plan.new_lms[j]:
-                point = init_point2(pose, z)[0]
-                values.insert(L(lid), point)
-                initial.insert(L(lid), point)
-            new_graph = gtsam.NonlinearFactorGraph()
-            for f in factors:
-                new_graph.add(f)
-                graph.add(f)
+                values.insert(L(lid), init_point2(pose, z)[0])
+            initial.insert(values)
+            graph.push_back(factors)
             if isam is None:
                 kf_pose = pose
-            elif not update(new_graph, values, k):
+            elif not update(factors, values, k):
                 return None
-            step_times[plan.kf_step[j]] = time.perf_counter() - ts
+            step_times[plan.kf_step[j]] += time.perf_counter() - ts
             done = k
     except KeyboardInterrupt as exc:  # SIGINT / SIGTERM between keyframes (lampsam.interrupt)
         status = "interrupted"

@@ -567,8 +567,8 @@ def graph_log_steps(graph_log: GraphLog, known_ids: bool = True
 
 def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfig | None = None,
                   known_ids: bool = True, odometry_model: Pose2OdometryModel | None = None,
-                  start_pose: FloatArray | None = None, pose_covariances: bool = False
-                  ) -> SlamResult:
+                  start_pose: FloatArray | None = None, pose_covariances: bool = False,
+                  fast: bool = True) -> SlamResult:
     """Run one backend over a graph text log, one step per pose.
 
     Args:
@@ -587,6 +587,10 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
             ``lampsam slam LOG.txt`` writes has no pose covariance, and on a log with
             a keyframe per pose they cost about 15 % of GTSAM's own iSAM2 run.
             Landmark covariances are computed either way.
+        fast: with known ids, no pose covariances and no live view, iSAM2 and batch
+            take the fast path (:mod:`lampsam.backend.dense_log`: the same graph and
+            estimate, bit for bit, without the per-step machinery); False: always
+            the general per-step path.
 
     Returns:
         The result; ``extra`` has ``total_time_s`` (wall) and ``total_cpu_s`` (process
@@ -603,11 +607,11 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
     start = graph_log.start_pose() if start_pose is None else np.asarray(start_pose, float)
     model = odometry_model or config.pose2_odometry
     t0, c0 = time.perf_counter(), time.process_time()
-    fast = None
-    if known_ids and not pose_covariances and not listening():
-        fast = run_known_ids(graph_log, backend, config, Pose2Motion(model), start)
-    if fast is not None:
-        result = fast
+    quick = None
+    if fast and known_ids and not pose_covariances and not listening():
+        quick = run_known_ids(graph_log, backend, config, Pose2Motion(model), start)
+    if quick is not None:
+        result = quick
     else:
         be = make_backend(backend, model, config, start)
         result = drive(be, graph_log_steps(graph_log, known_ids))

@@ -17,7 +17,6 @@ import pytest
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.dense_log import plan_log, run_known_ids, single_sample_relative
-from lampsam.backend.handlers import Point2Handler
 from lampsam.backend.interface import SlamResult
 from lampsam.backend.odometry import Pose2Motion
 from lampsam.backend.slam import drive, graph_log_steps, make_backend, run_graph_log
@@ -117,24 +116,29 @@ def test_single_sample_relative_equals_the_motion_model() -> None:
 def test_inputs_the_fast_path_leaves_to_the_general_path(small_log: GraphLog) -> None:
     cfg = SlamConfig()
     motion = Pose2Motion(cfg.pose2_odometry)
-    noise = Point2Handler()
-    assert plan_log(small_log, motion, cfg, noise) is not None
+    assert plan_log(small_log, motion, cfg) is not None
     od = small_log.odometry
     bad_delta = od.delta.copy()
     bad_delta[50, 0] = np.nan
     nan_log = dataclasses.replace(small_log, odometry=Pose2OdometryLog(od.t, bad_delta, od.cov))
-    assert plan_log(nan_log, motion, cfg, noise) is None
+    assert plan_log(nan_log, motion, cfg) is None
     res = run_graph_log(nan_log, "isam2", cfg)  # the general path's message and partial result
     assert res.status.startswith("failed") and "NaN" in res.status and len(res.poses) == 50
     back = od.t.copy()
     back[80] = back[78]
     assert plan_log(dataclasses.replace(small_log, odometry=Pose2OdometryLog(back, od.delta, od.cov)),
-                    motion, cfg, noise) is None
+                    motion, cfg) is None
     twice = [list(ss) for ss in small_log.sightings]
     k = next(i for i, ss in enumerate(twice) if ss)
     twice[k].append(Sighting(10_000, 0.1, 5.0, np.diag([1e-4, 1e-2])))
     twice[k].append(Sighting(10_000, 0.1, 5.0, np.diag([1e-4, 1e-2])))
-    assert plan_log(dataclasses.replace(small_log, sightings=twice), motion, cfg, noise) is None
+    assert plan_log(dataclasses.replace(small_log, sightings=twice), motion, cfg) is None
+    bad_cov = [list(ss) for ss in small_log.sightings]
+    bad_cov[k][0] = dataclasses.replace(bad_cov[k][0], cov=np.diag([1e-4, -1e-2]))
+    bad_log = dataclasses.replace(small_log, sightings=bad_cov)
+    assert plan_log(bad_log, motion, cfg) is None
+    res = run_graph_log(bad_log, "isam2", cfg)  # the general path names the covariance
+    assert res.status.startswith("failed") and "positive definite" in res.status
     huber = dataclasses.replace(cfg, batch=dataclasses.replace(cfg.batch, huber_k=1.345))
     assert run_known_ids(small_log, "batch", huber, motion, small_log.start_pose()) is None
     assert run_known_ids(small_log, "ekf", cfg, motion, small_log.start_pose()) is None

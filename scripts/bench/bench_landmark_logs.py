@@ -4,7 +4,7 @@ Usage::
 
     python scripts/bench/bench_landmark_logs.py [--logs victoria,mrclam,synthetic] [--repeats 1]
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
-        [--mrclam-duration 600] [--set association.planar_noise_adapt=true ...]
+        [--mrclam-duration 600] [--set association.planar_noise_adapt=true ...] [--general]
 
 (``--backends`` also takes ``ekf-paper``: the EKF with the paper's Jacobians,
 ``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``, and ``ekf-fej``:
@@ -24,7 +24,21 @@ on the start pose, one ``BetweenFactorPose2`` per odometry record with the file'
 covariance, one ``BearingRangeFactor2D`` per sighting with its own noise. GTSAM's
 iSAM2 runs it with one ``update()`` per pose (as ``Pose2ISAM2Example.py``), then LM
 from that estimate gives the reference optimum. Each lampsam backend then runs the
-log one step per pose (:func:`lampsam.backend.slam.run_graph_log`).
+log one step per pose (:func:`lampsam.backend.slam.run_graph_log`); with known ids
+lampsam's iSAM2 and batch take the fast path (:mod:`lampsam.backend.dense_log`),
+``--general`` also runs their general per-step path and prints the largest pose
+difference between the two (``max_dpose_general``, 0.0: a pure speed-up).
+
+What is timed: GTSAM's loop from its first factor (the ``ISAM2`` object made
+before) to ``calculateEstimate()`` after the last update, building every factor
+and noise model from the parsed log inside the loop; lampsam's from the call of
+``run_graph_log`` to its result: building the factors from the same parsed log, the
+iSAM2 object, every update, the final estimate (batch: LM over the whole graph and
+``gtsam.Marginals``), each step's pose and each landmark's marginal covariance.
+Both make one ``update()`` and one ``calculateEstimatePose2`` per pose with
+sightings, with the same ``ISAM2Params`` (``Isam2Config.to_gtsam()``). lampsam's graph
+has a pose only where there are sightings (GTSAM's has every pose: MRCLAM 300 s,
+1,079 against 1,169 updates) and a separate start pose ``X(0)`` (one more update).
 
 Printed per log: for each solution the position RMS difference from GTSAM's LM
 trajectory, from GTSAM iSAM2's online poses (``rms_vs_online_m``: the fair figure for a
@@ -227,9 +241,12 @@ def first_poses(g: GraphLog, n: int) -> GraphLog:
 
 def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[str],
               repeats: int, no_ids: bool, config: SlamConfig | None = None,
-              pose_covariances: bool = False) -> list[dict[str, Any]]:
+              pose_covariances: bool = False, general: bool = False) -> list[dict[str, Any]]:
     """Rows of the table for one log (``pose_covariances``: lampsam's smoothers also
-    compute every pose covariance, which GTSAM's loop does not)."""
+    compute every pose covariance, which GTSAM's loop does not; ``general``: the
+    smoothers also run their general per-step path, ``-general`` rows, and both rows
+    give the largest pose coordinate difference between the two in
+    ``max_dpose_general``)."""
     config = config or SlamConfig()
     graph = gtsam_graph(g, config)
     n = len(g.pose_ids)
@@ -273,7 +290,7 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                      "step_median_ms": float(np.median(step_s) * 1e3),
                      "step_p95_ms": float(np.percentile(step_s, 95) * 1e3),
                      "x_gtsam_isam2": total / t_isam, "cpu_s": cpu,
-                     "x_gtsam_isam2_cpu": cpu / cpu_isam})
+                     "x_gtsam_isam2_cpu": cpu / cpu_isam, "max_dpose_general": math.nan})
 
     row("gtsam-isam2", poses_of(est, n),
         {gtsam.Symbol(k).index(): est.atPoint2(k) for k in est.keys() if gtsam.Symbol(k).chr() == ord("l")},
@@ -292,17 +309,25 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                        "ekf-fej": {"observability_constrained": False}}.get(b, {})
             cfg_b = dataclasses.replace(config, ekf=dataclasses.replace(config.ekf, **variant))
             backend = "ekf" if b.startswith("ekf") else b
-            res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids,
-                                      pose_covariances=pose_covariances)
-                        for _ in range(repeats)]
-            res = res_runs[0]
-            total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
-            cpu = float(np.median([r.extra["total_cpu_s"] for r in res_runs]))
-            found = {int(x.id): x.position[:2] for x in res.landmarks}
-            row(f"lampsam-{b}", res.poses, found if ids else None, total, res.step_times_s,
-                int(res.extra.get("n_recoveries", 0)), len(res.landmarks), ids, found, cpu)
-            if not res.status == "ok":
-                rows[-1]["solver"] += f" ({res.status[:40]})"
+            paths = [True, False] if general and backend != "ekf" else [True]
+            results = {}
+            for fast in paths:
+                res_runs = [run_graph_log(g, backend, cfg_b, known_ids=ids,
+                                          pose_covariances=pose_covariances, fast=fast)
+                            for _ in range(repeats)]
+                res = results[fast] = res_runs[0]
+                total = float(np.median([r.extra["total_time_s"] for r in res_runs]))
+                cpu = float(np.median([r.extra["total_cpu_s"] for r in res_runs]))
+                found = {int(x.id): x.position[:2] for x in res.landmarks}
+                row(f"lampsam-{b}" + ("" if fast else "-general"), res.poses, found if ids else None,
+                    total, res.step_times_s, int(res.extra.get("n_recoveries", 0)),
+                    len(res.landmarks), ids, found, cpu)
+                if not res.status == "ok":
+                    rows[-1]["solver"] += f" ({res.status[:40]})"
+                if not fast:  # what the fast path changed (a pure speed-up: 0.0)
+                    d = float(np.abs(results[True].poses - res.poses).max()) if len(
+                        res.poses) == len(results[True].poses) else math.inf
+                    rows[-2]["max_dpose_general"] = rows[-1]["max_dpose_general"] = d
     return rows
 
 
@@ -324,6 +349,10 @@ def main() -> None:
     ap.add_argument("--pose-covariances", action="store_true",
                     help="lampsam's smoothers also compute every pose covariance (online and "
                          "final), which GTSAM's loop does not (run_graph_log's default: off)")
+    ap.add_argument("--general", action="store_true",
+                    help="also run lampsam's smoothers by their general per-step path (with known "
+                         "ids they take the fast path, lampsam.backend.dense_log) and print the "
+                         "largest pose difference between the two")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     backends = [b for b in args.backends.split(",") if b]
@@ -362,7 +391,8 @@ def main() -> None:
         if args.poses:
             g, truth = first_poses(g, args.poses), (truth[: args.poses] if truth is not None else None)
         rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids,
-                          with_overrides(SlamConfig(), args.set), args.pose_covariances)
+                          with_overrides(SlamConfig(), args.set), args.pose_covariances,
+                          args.general)
         _print(rows)
 
 
