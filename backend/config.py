@@ -147,6 +147,15 @@ class AssociationConfig:
             ``new_prob`` threshold, never seen in one frame); 0 (default) never.
         planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
         planar_merge_radius: only pairs closer than this are tested, m (default 30).
+        odometry_noise_adapt: without ids, multiply the odometry covariance by a
+            variance factor learnt online from the innovations of unambiguous
+            range-bearing matches (:mod:`lampsam.backend.odometry_scale`: maximum
+            likelihood of ``nu ~ N(0, a S_x + b R)`` truncated at the gate, over the
+            last ``odometry_noise_window`` matches; the factor starts at 1, the
+            stated noise, and stays in ``[1, odometry_noise_max]``). Every backend
+            reads it; known-id runs never gate, so they are unchanged.
+        odometry_noise_max, odometry_noise_window: its upper bound (default 100) and
+            window (default 150 matches).
     """
 
     use_known_ids: bool = True
@@ -173,6 +182,9 @@ class AssociationConfig:
     planar_merge_every: int = field(default=0, metadata=limits(ge=0))
     planar_merge_min_obs: int = field(default=3, metadata=limits(ge=1))
     planar_merge_radius: float = field(default=30.0, metadata=limits(gt=0.0))
+    odometry_noise_adapt: bool = False
+    odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
+    odometry_noise_window: int = field(default=150, metadata=limits(ge=1))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

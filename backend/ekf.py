@@ -74,6 +74,12 @@ from lampsam.backend.models import (
     residual,
 )
 from lampsam.backend.odometry import OdometryConstants, Pose2Motion, motion_model
+from lampsam.backend.odometry_scale import (
+    IdleOdometry,
+    ScaledMotion,
+    feed_scale,
+    odometry_scale,
+)
 from lampsam.backend.planar_gate import ekf_point2_jacobians, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
@@ -177,6 +183,10 @@ class EkfSlam(SlamBackend):
                                             config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
         self.noise_scale = innovation_scale(config.association)
+        self.odo_scale = odometry_scale(config.association)  # learnt odometry noise, or None
+        self.idle = IdleOdometry()
+        if self.odo_scale is not None:
+            self.motion = ScaledMotion(self.motion, self.odo_scale, self.idle)
         self.covis = CoVisibility()  # landmarks seen together (never merged)
         self.n_merged = 0
 
@@ -258,6 +268,13 @@ class EkfSlam(SlamBackend):
         cross = h_r @ p_rl @ h_l.T
         psi = h_r @ p_rr @ h_r.T + cross + cross.T + h_l @ p_ll @ h_l.T + obs.R
         return residual(obs, z_hat), psi
+
+    def _innovation_h(self, lid: int, obs: Obs) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """``(nu, Psi, H_r)``: :meth:`_innovation` with the robot Jacobian (2, 3)."""
+        pred = self._innovation(lid, obs)
+        if pred is None:
+            return None
+        return pred[0], pred[1], self._h(self._slots[lid], for_landmark(obs, self._slots[lid].dim))[1]
 
     def _screen(self, obs: list[Obs]) -> tuple[dict[str, list[int]],
                                                 dict[int, dict[int, tuple[float, bool]]]]:
@@ -584,6 +601,9 @@ class EkfSlam(SlamBackend):
                         self._innovation, lambda lid, o: self._h(self._slots[lid], o),
                         self._cov, self.noise_scale.scale)
                 learn_scale(self.noise_scale, obs, assignments, screened)
+                if self.odo_scale is not None:
+                    feed_scale(self.odo_scale, self.idle, obs, assignments, screened,
+                               self._innovation_h)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]

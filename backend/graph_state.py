@@ -38,6 +38,7 @@ from lampsam.backend.handlers import (
 )
 from lampsam.backend.interface import LandmarkKind, SlamBackend
 from lampsam.backend.odometry import OdometryConstants, motion_model
+from lampsam.backend.odometry_scale import IdleOdometry, ScaledMotion, odometry_scale
 from lampsam.backend.pose_cov import compose_cov, pose_array
 from lampsam.errors import EstimationError
 
@@ -68,6 +69,10 @@ class GraphState(SlamBackend):
         self.online = online
         #: the range-bearing gate's online innovation scale (``association.planar_noise_adapt``)
         self.noise_scale = innovation_scale(config.association)
+        self.odo_scale = odometry_scale(config.association)  # learnt odometry noise, or None
+        self.idle = IdleOdometry()  # per landmark, the odometry since its last sighting
+        if self.odo_scale is not None:
+            self.motion = ScaledMotion(self.motion, self.odo_scale)
         self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
         self.initial = gtsam.Values()  # initial guesses of every variable
