@@ -440,12 +440,47 @@ class BatchConfig:
 
 
 @dataclass(frozen=True)
+class ReassociationConfig:
+    """Batch re-association without ids (:mod:`lampsam.backend.reassociate`; TOML
+    ``[reassociation]``): the batch backend without ids revises the online pass's
+    association against the optimised map.
+
+    Attributes:
+        passes: passes at most (default 0: off, the online association is final).
+        window: new landmarks per revisit constellation.
+        revisit_keyframes: an old landmark is a revisit candidate when idle this many
+            keyframes before the constellation's first landmark was made.
+        radius: old landmarks within this distance of the constellation's centre, m.
+        tol: inlier distance and pair-length tolerance, m (the optimised map's
+            non-rigidity across a revisit).
+        min_inliers: inliers a revisit alignment needs.
+        margin: inliers by which it must beat any differently-paired hypothesis.
+        max_rotation: largest rotation believed, rad.
+        merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
+    """
+
+    passes: int = field(default=0, metadata=limits(ge=0))
+    window: int = field(default=12, metadata=limits(ge=3))
+    revisit_keyframes: int = field(default=300, metadata=limits(ge=1))
+    radius: float = field(default=100.0, metadata=limits(gt=0.0))
+    tol: float = field(default=0.75, metadata=limits(gt=0.0))
+    min_inliers: int = field(default=4, metadata=limits(ge=3))
+    margin: int = field(default=2, metadata=limits(ge=1))
+    max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
+    merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+
+
+@dataclass(frozen=True)
 class SlamConfig:
     """Everything :func:`lampsam.backend.slam.run_slam` needs.
 
     Attributes:
         features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
-        association, noise, ekf, isam2, batch: the parts above. ``noise`` is also
+        association, noise, ekf, isam2, batch, reassociation: the parts above. ``noise`` is also
             the default noise of a range-bearing observation that carries no
             covariance of its own (``sigma_range``, ``sigma_bearing``).
         pose2_odometry: noise of Pose2-increment odometry samples without a
@@ -461,6 +496,7 @@ class SlamConfig:
     ekf: EkfConfig = field(default_factory=EkfConfig)
     isam2: Isam2Config = field(default_factory=Isam2Config)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    reassociation: ReassociationConfig = field(default_factory=ReassociationConfig)
     pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
 
     def __post_init__(self) -> None:

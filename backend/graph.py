@@ -356,6 +356,9 @@ class BatchSlam(GraphSlam):
 
     def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         start = self.isam.calculateEstimate() if self.isam is not None else self.initial
+        revised = self._reassociate(start) if self.isam is not None else None
+        if revised is not None:  # without ids, the association revised offline
+            start = revised
         try:
             opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
             result = opt.optimize()

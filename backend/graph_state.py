@@ -40,6 +40,7 @@ from lampsam.backend.interface import LandmarkKind, SlamBackend
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.backend.odometry_scale import IdleOdometry, ScaledMotion, odometry_scale
 from lampsam.backend.pose_cov import compose_cov, pose_array
+from lampsam.backend.reassociate import Pass
 from lampsam.errors import EstimationError
 
 
@@ -118,6 +119,10 @@ class GraphState(SlamBackend):
         self._far: dict[tuple[int, int], tuple[int, float]] = {}
         self.n_far_reused = 0
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
+        #: range-bearing sightings without ids ``(keyframe, z, R, landmark id)``, for the
+        #: batch re-association (:meth:`LandmarkLifecycle._reassociate`)
+        self._planar_sightings: list[tuple[int, FloatArray, FloatArray, int]] = []
+        self.reassociation_passes: list[Pass] = []
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
         self._pose_cache: dict[int, FloatArray] = {}  # iSAM2's keyframe estimates until the next update

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -39,7 +39,7 @@ from gtsam.symbol_shorthand import L, X
 from scipy.spatial import cKDTree
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.config import limits
+from lampsam.backend.config import ReassociationConfig
 from lampsam.backend.constellation import align_constellation
 from lampsam.backend.landmark_merge import CoVisibility, merge_pairs
 from lampsam.factors.gtsam_factors import odometry_factor
@@ -47,35 +47,6 @@ from lampsam.factors.gtsam_factors import odometry_factor
 log = logging.getLogger(__name__)
 
 IntArray = np.ndarray
-
-
-@dataclass(frozen=True)
-class ReassociationConfig:
-    """Batch re-association without ids (see the module doc).
-
-    Attributes:
-        iterations: passes at most (0: off, the online association is final).
-        window: new landmarks per revisit constellation.
-        revisit_keyframes: an old landmark is a revisit candidate when idle this many
-            keyframes before the constellation's first landmark was made.
-        radius: old landmarks within this distance of the constellation's centre, m.
-        tol: inlier distance and pair-length tolerance, m (the optimised map's
-            non-rigidity across a revisit).
-        min_inliers: inliers a revisit alignment needs.
-        margin: inliers by which it must beat any differently-paired hypothesis.
-        max_rotation: largest rotation believed, rad.
-        merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
-    """
-
-    iterations: int = field(default=0, metadata=limits(ge=0))
-    window: int = field(default=12, metadata=limits(ge=3))
-    revisit_keyframes: int = field(default=300, metadata=limits(ge=1))
-    radius: float = field(default=100.0, metadata=limits(gt=0.0))
-    tol: float = field(default=0.75, metadata=limits(gt=0.0))
-    min_inliers: int = field(default=4, metadata=limits(ge=3))
-    margin: int = field(default=2, metadata=limits(ge=1))
-    max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
-    merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
 
 
 @dataclass
@@ -308,7 +279,7 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
     graph = build_graph(prior, odometry, s)
     values = _values(poses, {i: lms[i] for i in np.unique(s.lid).tolist()})
     params = gtsam.LevenbergMarquardtParams()
-    for _ in range(cfg.iterations):
+    for _ in range(cfg.passes):
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         live = np.unique(s.lid).tolist()
         poses, lms = _read(values, n_kf, live)

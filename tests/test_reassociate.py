@@ -8,8 +8,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from lampsam.backend.config import AssociationConfig
-from lampsam.backend.reassociate import ReassociationConfig, Sightings, refine
+from lampsam.backend.config import AssociationConfig, ReassociationConfig
+from lampsam.backend.reassociate import Sightings, refine
 
 SIG_B, SIG_R = 0.01, 0.05  # sighting noise, rad and m
 
@@ -88,7 +88,7 @@ def test_planted_duplicate_is_merged() -> None:
     cfg = AssociationConfig()
     graph, values, passes = refine(_prior(poses[0]), odo, s, init, _first_sight(init, s),
                                    cfg.gate(2), cfg.new_threshold(2),
-                                   ReassociationConfig(iterations=4))
+                                   ReassociationConfig(passes=4))
     assert not np.any(s.lid == 100)
     assert np.all(s.lid[dup] == 5)
     assert len(np.unique(s.lid)) == 24
@@ -110,8 +110,8 @@ def test_revisit_copies_are_aligned_and_merged() -> None:
     cfg = AssociationConfig()
     s0 = Sightings(s.k, s.z, s.r, s.lid.copy())
     _, v0, _ = refine(_prior(poses[0]), odo, s0, init, _first_sight(init, s0), cfg.gate(2),
-                      cfg.new_threshold(2), ReassociationConfig(iterations=0))
-    rc = ReassociationConfig(iterations=5, revisit_keyframes=60, window=8, tol=1.0,
+                      cfg.new_threshold(2), ReassociationConfig(passes=0))
+    rc = ReassociationConfig(passes=5, revisit_keyframes=60, window=8, tol=1.0,
                              max_rotation=0.6)
     _, values, passes = refine(_prior(poses[0]), odo, s, init, _first_sight(init, s),
                                cfg.gate(2), cfg.new_threshold(2), rc)
