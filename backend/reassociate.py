@@ -21,8 +21,10 @@ Offline, with all data, the association can be revised (issue 15):
    optimised pose; one landmark per sighting per keyframe, best first); a sighting
    moves to a landmark inside the ``gate`` only when its current landmark is beyond
    it;
-4. landmarks left without sightings vanish; repeat until the association stops
-   changing (or ``iterations``).
+4. landmarks left without sightings vanish; the new association is optimised and
+   kept only if at most half of the moved sightings are beyond the gate at the new
+   optimum (else a wrong merge: the previous association stays); repeat until the association
+   stops changing (or ``passes``).
 
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
@@ -68,14 +70,17 @@ class Sightings:
 
 @dataclass(frozen=True)
 class Pass:
-    """What one pass did: landmarks mapped after it, sightings relabelled by revisit
-    merges and by re-association, landmarks merged, and the graph's error."""
+    """What one pass did: landmarks after it, landmarks merged, sightings relabelled by
+    the merges and by re-association, the graph's error at its optimum, and whether
+    it was kept (rejected: more than half of the moved sightings beyond the gate at the
+    new optimum, so the previous association stays and the passes stop)."""
 
     mapped: int
     merged_landmarks: int
     moved_by_merge: int
     moved_by_reassociation: int
     error: float
+    accepted: bool = True
 
 
 def build_graph(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
@@ -255,6 +260,16 @@ def reassociate(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, gat
     return out
 
 
+def sighting_d2(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings) -> FloatArray:
+    """(S,) squared Mahalanobis distance of each sighting from its landmark's prediction."""
+    out = np.empty(len(s.k))
+    for j, (k, lid) in enumerate(zip(s.k.tolist(), s.lid.tolist(), strict=True)):
+        nu = s.z[j] - predict_many(poses[k], lms[lid][None, :])[0]
+        nu[0] = np.arctan2(np.sin(nu[0]), np.cos(nu[0]))
+        out[j] = float(nu @ np.linalg.solve(s.r[j], nu))
+    return out
+
+
 def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
            s: Sightings, poses: FloatArray, lms: dict[int, FloatArray], gate: float,
            ambiguity: float, cfg: ReassociationConfig,
@@ -279,8 +294,8 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
     graph = build_graph(prior, odometry, s)
     values = _values(poses, {i: lms[i] for i in np.unique(s.lid).tolist()})
     params = gtsam.LevenbergMarquardtParams()
+    values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     for _ in range(cfg.passes):
-        values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         live = np.unique(s.lid).tolist()
         poses, lms = _read(values, n_kf, live)
         relabel = revisit_merges(lms, s, cfg)
@@ -289,21 +304,30 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
             relabel.update({a: b for a, b in dup.items()
                             if a not in relabel and b not in relabel})
         before = s.lid.copy()
-        if relabel:
-            s.lid = np.array([relabel.get(i, i) for i in s.lid.tolist()])
-        moved_merge = int(np.count_nonzero(s.lid != before))
-        live2 = np.unique(s.lid).tolist()
-        new = reassociate(poses, {i: lms[i] for i in live2}, s, gate)
-        moved_re = int(np.count_nonzero(new != s.lid))
-        s.lid = new
-        live3 = np.unique(s.lid).tolist()
-        graph = build_graph(prior, odometry, s)
-        values = _values(poses, {i: lms[i] for i in live3})
-        p = Pass(len(live3), len(relabel), moved_merge, moved_re, float(graph.error(values)))
-        passes.append(p)
-        if report is not None:
-            report(len(passes), p, poses, lms)
+        lid = np.array([relabel.get(i, i) for i in s.lid.tolist()]) if relabel else s.lid.copy()
+        moved_merge = int(np.count_nonzero(lid != before))
+        new = reassociate(poses, {i: lms[i] for i in np.unique(lid).tolist()},
+                          Sightings(s.k, s.z, s.r, lid), gate)
+        moved_re = int(np.count_nonzero(new != lid))
         if moved_merge == 0 and moved_re == 0:
             break
-    values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        g_new = build_graph(prior, odometry, Sightings(s.k, s.z, s.r, new))
+        v_new = gtsam.LevenbergMarquardtOptimizer(
+            g_new, _values(poses, {i: lms[i] for i in np.unique(new).tolist()}), params).optimize()
+        e_new = float(g_new.error(v_new))
+        # most moved sightings beyond the gate at the new optimum: a wrong merge
+        # somewhere; keep the previous association and stop
+        moved = np.flatnonzero(new != before)
+        d2 = sighting_d2(*_read(v_new, n_kf, np.unique(new).tolist()),
+                         Sightings(s.k[moved], s.z[moved], s.r[moved], new[moved]))
+        accepted = float(np.mean(d2 > gate)) <= 0.5
+        p = Pass(len(np.unique(new)), len(relabel), moved_merge, moved_re, e_new, accepted)
+        passes.append(p)
+        if not accepted:
+            log.info("re-association pass %d rejected: %d of %d moved sightings beyond the gate",
+                     len(passes), int(np.sum(d2 > gate)), len(moved))
+            break
+        s.lid, graph, values = new, g_new, v_new
+        if report is not None:
+            report(len(passes), p, *_read(values, n_kf, np.unique(s.lid).tolist()))
     return graph, values, passes
