@@ -165,6 +165,9 @@ class EkfSlam(SlamBackend):
             self.motion = ScaledMotion(self.motion, self.odo_scale, self.idle)
         self.covis = CoVisibility()  # landmarks seen together (never merged)
         self.n_merged = 0
+        #: range-bearing sightings without ids ``(step, z, R, landmark id)``, for a batch
+        #: re-association of the run (:mod:`lampsam.backend.reassociate`)
+        self.planar_sightings: list[tuple[int, FloatArray, FloatArray, int]] = []
 
     # ------------------------------------------------------------------ state
     @property
@@ -565,6 +568,9 @@ class EkfSlam(SlamBackend):
                         pairs.append((self._slots[lid], obs[a.obs_index]))
                 if self.config.association.planar_merge_every:
                     self.covis.add_frame(s.id for s, _ in pairs)
+                self.planar_sightings.extend((self._step, o.z, o.R, sl.id) for sl, o in pairs
+                                             if sl.kind == LandmarkKind.POINT2
+                                             and o.landmark_id is None)
         if self.config.association.planar_merge_every:
             self._merge_duplicates()
         if self.tentative.items:

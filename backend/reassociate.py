@@ -331,3 +331,23 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
         if report is not None:
             report(len(passes), p, *_read(values, n_kf, np.unique(s.lid).tolist()))
     return graph, values, passes
+
+
+def sightings_from(records: list[tuple[int, FloatArray, FloatArray, int]]) -> Sightings:
+    """:class:`Sightings` from a backend's ``(keyframe, z, R, landmark id)`` records."""
+    return Sightings(np.array([r[0] for r in records], int),
+                     np.array([np.asarray(r[1], float)[:2] for r in records]).reshape(-1, 2),
+                     np.array([np.asarray(r[2], float)[:2, :2] for r in records]).reshape(-1, 2, 2),
+                     np.array([r[3] for r in records], int))
+
+
+def first_sight_positions(poses: FloatArray, s: Sightings) -> dict[int, FloatArray]:
+    """Each landmark where its first sighting puts it from ``poses`` (K, 3), m."""
+    out: dict[int, FloatArray] = {}
+    for j in np.argsort(s.k, kind="stable").tolist():
+        lid = int(s.lid[j])
+        if lid not in out:
+            p = poses[int(s.k[j])]
+            a = p[2] + s.z[j, 0]
+            out[lid] = p[:2] + s.z[j, 1] * np.array([np.cos(a), np.sin(a)])
+    return out
