@@ -124,3 +124,4 @@ def test_revisit_copies_are_aligned_and_merged() -> None:
     assert rms(values) < 0.3
     assert len(np.unique(s.lid)) == 24
     assert sum(p.merged_landmarks for p in passes) >= 20
+
