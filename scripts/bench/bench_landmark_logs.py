@@ -231,7 +231,8 @@ def ekf_then_batch(g: GraphLog, config: SlamConfig) -> tuple[np.ndarray, dict[in
     """Batch without ids started from the EKF's online pass (no ids), then re-associated.
 
     The EKF (``config``, e.g. with ``pose2_odometry.cov_scale``) runs the log one step per
-    pose and records its range-bearing sightings with their landmarks; the batch graph
+    pose and records its range-bearing sightings with their landmarks (those of landmarks
+    it pruned are left out); the batch graph
     (the file's odometry with its stated covariance plus the model's floor, one keyframe
     per pose, the start prior) is then optimised and re-associated
     (:func:`lampsam.backend.reassociate.refine`, ``config.reassociation``, at least 1
@@ -246,7 +247,10 @@ def ekf_then_batch(g: GraphLog, config: SlamConfig) -> tuple[np.ndarray, dict[in
         config.association, use_known_ids=False))
     be = make_backend("ekf", cfg.pose2_odometry, cfg, g.start_pose())
     res = drive(be, graph_log_steps(g, False))
-    s = sightings_from(be.planar_sightings)  # type: ignore[attr-defined]
+    kept = {int(x.id) for x in list(res.landmarks) + list(res.provisional)}
+    # the sightings of landmarks the EKF kept (pruned ones were judged spurious online)
+    s = sightings_from([r for r in be.planar_sightings  # type: ignore[attr-defined]
+                        if r[3] in kept])
     lms = first_sight_positions(res.poses, s)
     for lm_est in list(res.landmarks) + list(res.provisional):
         if int(lm_est.id) in lms:
