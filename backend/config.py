@@ -147,6 +147,15 @@ class AssociationConfig:
             ``new_prob`` threshold, never seen in one frame); 0 (default) never.
         planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
         planar_merge_radius: only pairs closer than this are tested, m (default 30).
+        odometry_noise_adapt: without ids, multiply the odometry covariance by a
+            variance factor learnt online from the innovations of unambiguous
+            range-bearing matches (:mod:`lampsam.backend.odometry_scale`: maximum
+            likelihood of ``nu ~ N(0, a S_x + b R)`` truncated at the gate, over the
+            last ``odometry_noise_window`` matches; the factor starts at 1, the
+            stated noise, and stays in ``[1, odometry_noise_max]``). Every backend
+            reads it; known-id runs never gate, so they are unchanged.
+        odometry_noise_max, odometry_noise_window: its upper bound (default 100) and
+            window (default 150 matches).
     """
 
     use_known_ids: bool = True
@@ -173,6 +182,9 @@ class AssociationConfig:
     planar_merge_every: int = field(default=0, metadata=limits(ge=0))
     planar_merge_min_obs: int = field(default=3, metadata=limits(ge=1))
     planar_merge_radius: float = field(default=30.0, metadata=limits(gt=0.0))
+    odometry_noise_adapt: bool = False
+    odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
+    odometry_noise_window: int = field(default=150, metadata=limits(ge=1))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -434,12 +446,47 @@ class BatchConfig:
 
 
 @dataclass(frozen=True)
+class ReassociationConfig:
+    """Batch re-association without ids (:mod:`lampsam.backend.reassociate`; TOML
+    ``[reassociation]``): the batch backend without ids revises the online pass's
+    association against the optimised map.
+
+    Attributes:
+        passes: passes at most (default 0: off, the online association is final).
+        window: new landmarks per revisit constellation.
+        revisit_keyframes: an old landmark is a revisit candidate when idle this many
+            keyframes before the constellation's first landmark was made.
+        radius: old landmarks within this distance of the constellation's centre, m.
+        tol: inlier distance and pair-length tolerance, m (the optimised map's
+            non-rigidity across a revisit).
+        min_inliers: inliers a revisit alignment needs.
+        margin: inliers by which it must beat any differently-paired hypothesis.
+        max_rotation: largest rotation believed, rad.
+        merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
+    """
+
+    passes: int = field(default=0, metadata=limits(ge=0))
+    window: int = field(default=12, metadata=limits(ge=3))
+    revisit_keyframes: int = field(default=300, metadata=limits(ge=1))
+    radius: float = field(default=100.0, metadata=limits(gt=0.0))
+    tol: float = field(default=0.75, metadata=limits(gt=0.0))
+    min_inliers: int = field(default=4, metadata=limits(ge=3))
+    margin: int = field(default=2, metadata=limits(ge=1))
+    max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
+    merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+
+
+@dataclass(frozen=True)
 class SlamConfig:
     """Everything :func:`lampsam.backend.slam.run_slam` needs.
 
     Attributes:
         features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
-        association, noise, ekf, isam2, batch: the parts above. ``noise`` is also
+        association, noise, ekf, isam2, batch, reassociation: the parts above. ``noise`` is also
             the default noise of a range-bearing observation that carries no
             covariance of its own (``sigma_range``, ``sigma_bearing``).
         pose2_odometry: noise of Pose2-increment odometry samples without a
@@ -455,6 +502,7 @@ class SlamConfig:
     ekf: EkfConfig = field(default_factory=EkfConfig)
     isam2: Isam2Config = field(default_factory=Isam2Config)
     batch: BatchConfig = field(default_factory=BatchConfig)
+    reassociation: ReassociationConfig = field(default_factory=ReassociationConfig)
     pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
 
     def __post_init__(self) -> None:

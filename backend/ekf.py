@@ -82,6 +82,12 @@ from lampsam.backend.models import (
     residual,
 )
 from lampsam.backend.odometry import OdometryConstants, Pose2Motion, motion_model
+from lampsam.backend.odometry_scale import (
+    IdleOdometry,
+    ScaledMotion,
+    feed_scale,
+    odometry_scale,
+)
 from lampsam.backend.planar_gate import ekf_point2_jacobians, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
@@ -153,8 +159,15 @@ class EkfSlam(SlamBackend):
                                             config.association.gate(2),
                                             cfg.tentative_max_idle, cfg.new_min_separation)
         self.noise_scale = innovation_scale(config.association)
+        self.odo_scale = odometry_scale(config.association)  # learnt odometry noise, or None
+        self.idle = IdleOdometry()
+        if self.odo_scale is not None:
+            self.motion = ScaledMotion(self.motion, self.odo_scale, self.idle)
         self.covis = CoVisibility()  # landmarks seen together (never merged)
         self.n_merged = 0
+        #: range-bearing sightings without ids ``(step, z, R, landmark id)``, for a batch
+        #: re-association of the run (:mod:`lampsam.backend.reassociate`)
+        self.planar_sightings: list[tuple[int, FloatArray, FloatArray, int]] = []
 
     # ------------------------------------------------------------------ state
     @property
@@ -225,6 +238,13 @@ class EkfSlam(SlamBackend):
         cross = h_r @ p_rl @ h_l.T
         psi = h_r @ p_rr @ h_r.T + cross + cross.T + h_l @ p_ll @ h_l.T + obs.R
         return residual(obs, z_hat), psi
+
+    def _innovation_h(self, lid: int, obs: Obs) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """``(nu, Psi, H_r)``: :meth:`_innovation` with the robot Jacobian (2, 3)."""
+        pred = self._innovation(lid, obs)
+        if pred is None:
+            return None
+        return pred[0], pred[1], self._h(self._slots[lid], for_landmark(obs, self._slots[lid].dim))[1]
 
     def _screen(self, obs: list[Obs]) -> tuple[dict[str, list[int]],
                                                 dict[int, dict[int, tuple[float, bool]]]]:
@@ -516,6 +536,9 @@ class EkfSlam(SlamBackend):
                         self._innovation, lambda lid, o: self._h(self._slots[lid], o),
                         self._cov, self.noise_scale.scale)
                 learn_scale(self.noise_scale, obs, assignments, screened)
+                if self.odo_scale is not None:
+                    feed_scale(self.odo_scale, self.idle, obs, assignments, screened,
+                               self._innovation_h)
                 pairs = [(self._slots[a.landmark_id], obs[a.obs_index]) for a in assignments
                          if a.status == "matched" and a.landmark_id in self._slots
                          and self._slots[a.landmark_id].kind == obs[a.obs_index].kind]
@@ -539,6 +562,9 @@ class EkfSlam(SlamBackend):
                         pairs.append((self._slots[lid], obs[a.obs_index]))
                 if self.config.association.planar_merge_every:
                     self.covis.add_frame(s.id for s, _ in pairs)
+                self.planar_sightings.extend((self._step, o.z, o.R, sl.id) for sl, o in pairs
+                                             if sl.kind == LandmarkKind.POINT2
+                                             and o.landmark_id is None)
         if self.config.association.planar_merge_every:
             self._merge_duplicates()
         if self.tentative.items:

@@ -147,6 +147,17 @@ class Gating(GraphState):
             self._far[(lid, len(nu))] = (self._k, float(nu @ np.linalg.solve(psi * s_online, nu)))
         return nu, psi * s_online
 
+    def _innovation_h(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
+                      obs: Obs) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """``(nu, Psi, H_p)``: :meth:`_innovation` with the pose Jacobian (right tangent)."""
+        pred = self._innovation(gate_ctx, lid, obs)
+        if pred is None:
+            return None
+        lm = self._landmarks[lid]
+        _, h_p, _ = predict(lm.kind, gate_ctx[1], lm.state, for_landmark(obs, len(lm.state)),
+                            self.ceiling)
+        return pred[0], pred[1], h_p
+
     def _screen(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray
                 ) -> tuple[dict[str, list[int]], dict[int, dict[int, tuple[float, bool]]]]:
         """Candidates per kind and a cheap vectorised gate for ceiling observations.

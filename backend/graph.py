@@ -76,6 +76,7 @@ from lampsam.backend.models import (
     observations_from_frame,
 )
 from lampsam.backend.odometry import OdometryConstants
+from lampsam.backend.odometry_scale import feed_scale
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
 from lampsam.errors import EstimationError
 from lampsam.factors.gtsam_factors import odometry_factor
@@ -134,6 +135,8 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         self._k = k
         self._kf_poses.append(pose.copy())
         self._odo.append((np.asarray(delta, float), np.asarray(cov, float)))
+        if self.odo_scale is not None:
+            self.idle.propagate(gtsam.Pose2(*delta).inverse().AdjointMap(), cov)
         n_matched = n_new = 0
         self._joint_cache = {}
         if obs:
@@ -149,6 +152,9 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                     obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                     self.config.association, lambda i: i in self._landmarks, patches, screened)
                 learn_scale(self.noise_scale, obs, assignments, screened)
+                if self.odo_scale is not None:
+                    feed_scale(self.odo_scale, self.idle, obs, assignments, screened,
+                               lambda lid, o: self._innovation_h(gate_ctx, lid, o))
             else:  # every id known: what associate() decides, without its gate machinery
                 ids = [int(o.landmark_id) for o in obs if o.landmark_id is not None]
                 assignments = [Assignment(i, lid, "matched" if lid in self._landmarks else "new")
@@ -353,6 +359,9 @@ class BatchSlam(GraphSlam):
 
     def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         start = self.isam.calculateEstimate() if self.isam is not None else self.initial
+        revised = self._reassociate(start) if self.isam is not None else None
+        if revised is not None:  # without ids, the association revised offline
+            start = revised
         return batch_lm(self.graph, start, self.config.batch, self.isam)
 
 

@@ -38,7 +38,9 @@ from lampsam.backend.handlers import (
 )
 from lampsam.backend.interface import LandmarkKind, SlamBackend
 from lampsam.backend.odometry import OdometryConstants, motion_model
+from lampsam.backend.odometry_scale import IdleOdometry, ScaledMotion, odometry_scale
 from lampsam.backend.pose_cov import compose_cov, pose_array
+from lampsam.backend.reassociate import Pass
 from lampsam.errors import EstimationError
 
 
@@ -68,6 +70,10 @@ class GraphState(SlamBackend):
         self.online = online
         #: the range-bearing gate's online innovation scale (``association.planar_noise_adapt``)
         self.noise_scale = innovation_scale(config.association)
+        self.odo_scale = odometry_scale(config.association)  # learnt odometry noise, or None
+        self.idle = IdleOdometry()  # per landmark, the odometry since its last sighting
+        if self.odo_scale is not None:
+            self.motion = ScaledMotion(self.motion, self.odo_scale)
         self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
         #: the fixed-lag smoother (``isam2.fixed_lag``, iSAM2 backend only); ``isam`` is
         #: then its own ISAM2 (a live reference), read as usual
@@ -120,6 +126,10 @@ class GraphState(SlamBackend):
         self._far: dict[tuple[int, int], tuple[int, float]] = {}
         self.n_far_reused = 0
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
+        #: range-bearing sightings without ids ``(keyframe, z, R, landmark id)``, for the
+        #: batch re-association (:meth:`LandmarkLifecycle._reassociate`)
+        self._planar_sightings: list[tuple[int, FloatArray, FloatArray, int]] = []
+        self.reassociation_passes: list[Pass] = []
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
         self._pose_cache: dict[int, FloatArray] = {}  # iSAM2's keyframe estimates until the next update

@@ -14,11 +14,13 @@ where GTSAM's projection factor throws. Landmarks with fewer than
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 
 import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
@@ -26,6 +28,7 @@ from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark, GraphValue
 from lampsam.backend.interface import LandmarkKind, log_pruned
 from lampsam.backend.models import Obs, initialize
+from lampsam.backend.reassociate import Sightings, refine
 from lampsam.errors import EstimationError
 
 log = logging.getLogger(__name__)
@@ -63,6 +66,8 @@ class LandmarkLifecycle(GraphState):
         lm = GraphLandmark(lid, LandmarkKind(obs.kind), False, 1, state, cov, [(k, obs)], obs.patch, oriented, k,
                        cov_meas[:3, :3])
         self._landmarks[lid] = lm
+        if lm.kind == "point2" and lid_given is None:
+            self._planar_sightings.append((k, obs.z, obs.R, lid))
         if lm.kind == "lamp":
             lm.sights.append((k, obs))
         tentative = (lm.kind == "point2" and lid_given is None
@@ -144,6 +149,8 @@ class LandmarkLifecycle(GraphState):
             self.pruned["pending_stale"] = self.pruned.get("pending_stale", 0) + len(stale)
 
     def _observe(self, lm: GraphLandmark, k: int, obs: Obs) -> None:
+        if lm.kind == "point2" and obs.landmark_id is None:
+            self._planar_sightings.append((k, obs.z, obs.R, lm.id))
         lm.n_obs += 1
         lm.last_kf = k
         if lm.in_graph:
@@ -207,6 +214,51 @@ class LandmarkLifecycle(GraphState):
                 self._add_factor(f, lm.id)
         lm.pending = []
         lm.in_graph = True
+
+    def _reassociate(self, start: gtsam.Values) -> gtsam.Values | None:
+        """Batch re-association without ids (:func:`lampsam.backend.reassociate.refine`).
+
+        Applies to a run whose landmarks are all range-bearing points associated
+        without ids, with ``reassociation.passes > 0``: the sightings are re-associated
+        against the optimised map from ``start`` (iSAM2's estimate), ``self.graph``
+        becomes the graph of the final association (its first factor, the start
+        prior, and the keyframe odometry kept), landmarks left without sightings are
+        dropped and the others' sighting counts updated.
+
+        Returns:
+            The optimised values of the revised graph, or None when it does not apply.
+        """
+        cfg = self.config
+        if (cfg.reassociation.passes <= 0 or not self._planar_sightings
+                or any(lm.kind != "point2" for lm in self._landmarks.values())):
+            return None
+        live = {lid for lid, lm in self._landmarks.items() if lm.in_graph}
+        rec = [r for r in self._planar_sightings if r[3] in live]
+        if not rec or len(rec) != len(self._planar_sightings):
+            return None  # pending (unconfirmed) sightings: keep the online association
+        s = Sightings(np.array([r[0] for r in rec]), np.array([r[1][:2] for r in rec], float),
+                      np.array([r[2][:2, :2] for r in rec], float),
+                      np.array([r[3] for r in rec]))
+        n_kf = self._k + 1
+        poses = np.array([[start.atPose2(X(k)).x(), start.atPose2(X(k)).y(),
+                           start.atPose2(X(k)).theta()] for k in range(n_kf)])
+        lms = {lid: np.asarray(start.atPoint2(L(lid)), float) for lid in sorted(live)}
+        graph, values, passes = refine(self.graph.at(0), self._odo, s, poses, lms,
+                                       cfg.association.gate(2), cfg.association.new_threshold(2),
+                                       cfg.reassociation)
+        for n, p in enumerate(passes, 1):
+            log.info("re-association pass %d: %s", n, p)
+        self.reassociation_passes = passes
+        counts = collections.Counter(s.lid.tolist())
+        for lid in list(self._landmarks):
+            if lid not in counts:
+                del self._landmarks[lid]
+            else:
+                self._landmarks[lid].n_obs = counts[lid]
+        self.graph = graph
+        self._planar_sightings = [(int(k), z, r, int(lid)) for k, z, r, lid in
+                                  zip(s.k, s.z, s.r, s.lid, strict=True)]
+        return values
 
     def _prune_once_seen(self) -> list[int]:
         """Landmarks with fewer than ``min_observations`` observations (not in the map).

@@ -1,0 +1,353 @@
+"""Batch association without ids: re-associate every sighting against the optimised map.
+
+The online pass (iSAM2 without ids) decides each sighting once, with the estimate it
+had then. At a long revisit whose drift exceeds the gate (Victoria Park, steps
+3,500-4,500: trees come back 10-20 m from their estimates) the revisited trees are
+mapped a second time, and the online smoother never learns they are the same trees.
+Offline, with all data, the association can be revised (issue 15):
+
+1. optimise the graph of the current association (LM, started from the last estimate);
+2. **merges**: duplicates by the joint-marginal pair test
+   (:func:`duplicate_merges`), and **revisit merges**: the landmarks made over a short stretch keep their shape among
+   themselves even when the whole group is offset from the old map; every group of
+   ``window`` consecutive new landmarks is aligned rigidly
+   (:func:`lampsam.backend.constellation.align_constellation`) to the landmarks idle
+   for at least ``revisit_keyframes`` keyframes around it; a unique, well-supported
+   alignment (``min_inliers``, a margin over any differently-paired hypothesis,
+   rotation under ``max_rotation``) relabels its inliers' sightings to the old
+   landmarks;
+3. **re-association**: every keyframe's sightings are matched again against the
+   optimised map (squared Mahalanobis distance with the sighting's noise ``R`` at the
+   optimised pose; one landmark per sighting per keyframe, best first); a sighting
+   moves to a landmark inside the ``gate`` only when its current landmark is beyond
+   it;
+4. landmarks left without sightings vanish; the new association is optimised and
+   kept only if at most half of the moved sightings are beyond the gate at the new
+   optimum (else a wrong merge: the previous association stays); repeat until the association
+   stops changing (or ``passes``).
+
+Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, X
+from scipy.spatial import cKDTree
+
+from lampsam.arrays import FloatArray
+from lampsam.backend.config import ReassociationConfig
+from lampsam.backend.constellation import align_constellation
+from lampsam.backend.landmark_merge import CoVisibility, merge_pairs
+from lampsam.factors.gtsam_factors import odometry_factor
+
+log = logging.getLogger(__name__)
+
+IntArray = np.ndarray
+
+
+@dataclass
+class Sightings:
+    """Range-bearing sightings with their current landmark.
+
+    Attributes:
+        k: (S,) keyframe index of each sighting.
+        z: (S, 2) ``[bearing, range]``, rad and m.
+        r: (S, 2, 2) their noise.
+        lid: (S,) landmark id (the association; changed in place by :func:`refine`).
+    """
+
+    k: IntArray
+    z: FloatArray
+    r: FloatArray
+    lid: IntArray
+
+
+@dataclass(frozen=True)
+class Pass:
+    """What one pass did: landmarks after it, landmarks merged, sightings relabelled by
+    the merges and by re-association, the graph's error at its optimum, and whether
+    it was kept (rejected: more than half of the moved sightings beyond the gate at the
+    new optimum, so the previous association stays and the passes stop)."""
+
+    mapped: int
+    merged_landmarks: int
+    moved_by_merge: int
+    moved_by_reassociation: int
+    error: float
+    accepted: bool = True
+
+
+def build_graph(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
+                s: Sightings) -> gtsam.NonlinearFactorGraph:
+    """The factor graph of an association.
+
+    Args:
+        prior: the start pose's prior on ``X(0)``.
+        odometry: ``(delta (3,), cov (3, 3))`` of the factor into ``X(k)``, for
+            k = 1..K (entry 0 is ignored).
+        s: the sightings (``BearingRangeFactor2D(X(k), L(lid))`` each).
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(prior)
+    for k in range(1, len(odometry)):
+        delta, cov = odometry[k]
+        graph.add(odometry_factor(X(k - 1), X(k), delta, cov))
+    for k, z, r, lid in zip(s.k.tolist(), s.z, s.r, s.lid.tolist(), strict=True):
+        graph.add(gtsam.BearingRangeFactor2D(X(k), L(lid), gtsam.Rot2(float(z[0])), float(z[1]),
+                                             gtsam.noiseModel.Gaussian.Covariance(r)))
+    return graph
+
+
+def _values(poses: FloatArray, lms: dict[int, FloatArray]) -> gtsam.Values:
+    v = gtsam.Values()
+    for k, p in enumerate(poses):
+        v.insert(X(k), gtsam.Pose2(*p))
+    for lid, xy in lms.items():
+        v.insert(L(lid), gtsam.Point2(*xy))
+    return v
+
+
+def _read(values: gtsam.Values, n_kf: int, lids: list[int]
+          ) -> tuple[FloatArray, dict[int, FloatArray]]:
+    poses = np.array([[values.atPose2(X(k)).x(), values.atPose2(X(k)).y(),
+                       values.atPose2(X(k)).theta()] for k in range(n_kf)])
+    return poses, {lid: np.asarray(values.atPoint2(L(lid)), float) for lid in lids}
+
+
+def predict_many(pose: FloatArray, pts: FloatArray) -> FloatArray:
+    """``[bearing, range]`` (M, 2) of world points (M, 2) from ``pose`` (3,)."""
+    d = pts - pose[:2]
+    bearing = np.arctan2(d[:, 1], d[:, 0]) - pose[2]
+    return np.stack([np.arctan2(np.sin(bearing), np.cos(bearing)), np.hypot(d[:, 0], d[:, 1])], 1)
+
+
+def revisit_merges(lms: dict[int, FloatArray], s: Sightings, cfg: ReassociationConfig
+                   ) -> dict[int, int]:
+    """Relabelling ``{new landmark: old landmark}`` from rigid constellation alignments.
+
+    Landmarks are ordered by their first sighting; each run of ``window`` consecutive
+    ones (stride half a window) is aligned to the landmarks last seen at least
+    ``revisit_keyframes`` keyframes before the run's first and within ``radius``.
+    An old landmark takes at most one new one; the first accepted alignment wins.
+    """
+    ids = sorted(lms)
+    first = {lid: int(s.k[s.lid == lid].min()) for lid in ids}
+    last = {lid: int(s.k[s.lid == lid].max()) for lid in ids}
+    order = sorted(ids, key=lambda i: first[i])
+    out: dict[int, int] = {}
+    taken: set[int] = set()
+    stride = max(1, cfg.window // 2)
+    for start in range(0, max(1, len(order) - cfg.window + 1), stride):
+        group = [i for i in order[start:start + cfg.window] if i not in out]
+        if len(group) < cfg.min_inliers:
+            continue
+        k0 = first[group[0]]
+        src = np.array([lms[i] for i in group])
+        centre = src.mean(axis=0)
+        old = [i for i in ids if last[i] <= k0 - cfg.revisit_keyframes and i not in taken
+               and float(np.hypot(*(lms[i] - centre))) <= cfg.radius]
+        if len(old) < cfg.min_inliers:
+            continue
+        dst = np.array([lms[i] for i in old])
+        al = align_constellation(src, dst, cfg.tol, cfg.min_inliers, cfg.margin,
+                                 cfg.max_rotation)
+        if al is None:
+            continue
+        log.info("revisit at keyframe %d: %d landmarks onto old ones (rotation %.3f rad, "
+                 "shift %.1f m, rms %.2f m)", k0, len(al.pairs), al.theta,
+                 float(np.hypot(*al.shift)), al.rms)
+        for a, b in al.pairs:
+            out[group[a]] = old[b]
+            taken.add(old[b])
+    return out
+
+
+def duplicate_merges(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                     lms: dict[int, FloatArray], s: Sightings, gate: float, ambiguity: float,
+                     radius: float) -> dict[int, int]:
+    """Relabelling ``{duplicate: original}`` by the joint-marginal pair test.
+
+    :func:`lampsam.backend.landmark_merge.merge_pairs` on the optimised map: the
+    covariance of ``l_i - l_j`` from the joint marginal of the pair
+    (``gtsam.Marginals`` of the whole graph), merged below ``gate`` only when neither
+    has a second partner below ``ambiguity`` and the two were never sighted at the
+    same keyframe (mutual exclusion); the landmark sighted first is kept.
+    """
+    ids = np.array(sorted(lms))
+    if len(ids) < 2:
+        return {}
+    xy = np.array([lms[i] for i in ids])
+    created = np.array([int(s.k[s.lid == i].min()) for i in ids])
+    covis = CoVisibility()
+    order = np.argsort(s.k, kind="stable")
+    ks, ls = s.k[order], s.lid[order]
+    for lo, hi in zip(np.r_[0, np.flatnonzero(np.diff(ks)) + 1],
+                      np.r_[np.flatnonzero(np.diff(ks)) + 1, len(ks)], strict=True):
+        covis.add_frame(ls[lo:hi].tolist())
+    try:
+        marg = gtsam.Marginals(graph, values)
+    except RuntimeError as exc:
+        log.warning("re-association: no marginals (%s): no duplicate merges this pass", exc)
+        return {}
+
+    def diff_cov(ia: IntArray, ib: IntArray) -> FloatArray:
+        out = np.empty((len(ia), 2, 2))
+        for n, (a, b) in enumerate(zip(ia.tolist(), ib.tolist(), strict=True)):
+            j = marg.jointMarginalCovariance([L(int(ids[a])), L(int(ids[b]))]).fullMatrix()
+            out[n] = j[:2, :2] + j[2:, 2:] - j[:2, 2:] - j[2:, :2]
+        return out
+
+    pairs = merge_pairs(ids, xy, created, diff_cov, covis.together, gate, ambiguity, radius)
+    return {p.drop: p.keep for p in pairs}
+
+
+def reassociate(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, gate: float
+                ) -> IntArray:
+    """New landmark ids of the sightings against the optimised map (see the module doc).
+
+    Args:
+        poses: (K, 3) keyframe poses; lms: landmark id -> (2,) position.
+        s: the sightings; gate: squared-distance gate (2 dof).
+
+    Returns:
+        (S,) landmark ids (a sighting whose current landmark is inside the gate, or
+        with no landmark inside it, keeps its own).
+    """
+    ids = np.array(sorted(lms))
+    pts = np.array([lms[i] for i in ids])
+    tree = cKDTree(pts)
+    out = s.lid.copy()
+    by_k: dict[int, list[int]] = {}
+    for j, k in enumerate(s.k.tolist()):
+        by_k.setdefault(k, []).append(j)
+    for k, rows in by_k.items():
+        pose = poses[k]
+        reach = float(max(s.z[j, 1] for j in rows)) + 10.0
+        near = tree.query_ball_point(pose[:2], reach)
+        if not near:
+            continue
+        cand = ids[near]
+        zhat = predict_many(pose, pts[near])
+        pairs: list[tuple[float, int, int]] = []
+        cur_d2: dict[int, float] = {}
+        for j in rows:
+            nu = s.z[j] - zhat
+            nu[:, 0] = np.arctan2(np.sin(nu[:, 0]), np.cos(nu[:, 0]))
+            d2 = np.einsum("mi,ij,mj->m", nu, np.linalg.inv(s.r[j]), nu)
+            for m in np.flatnonzero(d2 < gate):
+                pairs.append((float(d2[m]), j, int(cand[m])))
+            hit = np.flatnonzero(cand == s.lid[j])
+            cur_d2[j] = float(d2[hit[0]]) if len(hit) else float("inf")
+        used: set[int] = set()
+        done: set[int] = set()
+        # sightings already inside the gate of their own landmark keep it
+        for j in rows:
+            if cur_d2[j] < gate:
+                used.add(int(s.lid[j]))
+                done.add(j)
+        for _, j, lid in sorted(pairs):
+            if j in done or lid in used:
+                continue
+            out[j] = lid
+            used.add(lid)
+            done.add(j)
+    return out
+
+
+def sighting_d2(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings) -> FloatArray:
+    """(S,) squared Mahalanobis distance of each sighting from its landmark's prediction."""
+    out = np.empty(len(s.k))
+    for j, (k, lid) in enumerate(zip(s.k.tolist(), s.lid.tolist(), strict=True)):
+        nu = s.z[j] - predict_many(poses[k], lms[lid][None, :])[0]
+        nu[0] = np.arctan2(np.sin(nu[0]), np.cos(nu[0]))
+        out[j] = float(nu @ np.linalg.solve(s.r[j], nu))
+    return out
+
+
+def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
+           s: Sightings, poses: FloatArray, lms: dict[int, FloatArray], gate: float,
+           ambiguity: float, cfg: ReassociationConfig,
+           report: Callable[[int, Pass, FloatArray, dict[int, FloatArray]], None] | None = None
+           ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[Pass]]:
+    """Iterate optimise / revisit merges / re-association (module doc); ``s.lid`` is updated.
+
+    Args:
+        prior, odometry: as :func:`build_graph`.
+        s: the online pass's sightings and association.
+        poses: (K, 3) keyframe poses and lms: landmark positions to start from.
+        gate: squared-distance gate (2 dof) of the re-association and the merges.
+        ambiguity: a second merge partner below this distance blocks a merge.
+        cfg: the passes' settings.
+        report: called after each pass with its :class:`Pass` and the estimate.
+
+    Returns:
+        ``(graph, optimised values, passes)`` of the final association.
+    """
+    n_kf = len(poses)
+    passes: list[Pass] = []
+    graph = build_graph(prior, odometry, s)
+    values = _values(poses, {i: lms[i] for i in np.unique(s.lid).tolist()})
+    params = gtsam.LevenbergMarquardtParams()
+    values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    for _ in range(cfg.passes):
+        live = np.unique(s.lid).tolist()
+        poses, lms = _read(values, n_kf, live)
+        relabel = revisit_merges(lms, s, cfg)
+        if cfg.merge_radius > 0:
+            dup = duplicate_merges(graph, values, lms, s, gate, ambiguity, cfg.merge_radius)
+            relabel.update({a: b for a, b in dup.items()
+                            if a not in relabel and b not in relabel})
+        before = s.lid.copy()
+        lid = np.array([relabel.get(i, i) for i in s.lid.tolist()]) if relabel else s.lid.copy()
+        moved_merge = int(np.count_nonzero(lid != before))
+        new = reassociate(poses, {i: lms[i] for i in np.unique(lid).tolist()},
+                          Sightings(s.k, s.z, s.r, lid), gate)
+        moved_re = int(np.count_nonzero(new != lid))
+        if moved_merge == 0 and moved_re == 0:
+            break
+        g_new = build_graph(prior, odometry, Sightings(s.k, s.z, s.r, new))
+        v_new = gtsam.LevenbergMarquardtOptimizer(
+            g_new, _values(poses, {i: lms[i] for i in np.unique(new).tolist()}), params).optimize()
+        e_new = float(g_new.error(v_new))
+        # most moved sightings beyond the gate at the new optimum: a wrong merge
+        # somewhere; keep the previous association and stop
+        moved = np.flatnonzero(new != before)
+        d2 = sighting_d2(*_read(v_new, n_kf, np.unique(new).tolist()),
+                         Sightings(s.k[moved], s.z[moved], s.r[moved], new[moved]))
+        accepted = float(np.mean(d2 > gate)) <= 0.5
+        p = Pass(len(np.unique(new)), len(relabel), moved_merge, moved_re, e_new, accepted)
+        passes.append(p)
+        if not accepted:
+            log.info("re-association pass %d rejected: %d of %d moved sightings beyond the gate",
+                     len(passes), int(np.sum(d2 > gate)), len(moved))
+            break
+        s.lid, graph, values = new, g_new, v_new
+        if report is not None:
+            report(len(passes), p, *_read(values, n_kf, np.unique(s.lid).tolist()))
+    return graph, values, passes
+
+
+def sightings_from(records: list[tuple[int, FloatArray, FloatArray, int]]) -> Sightings:
+    """:class:`Sightings` from a backend's ``(keyframe, z, R, landmark id)`` records."""
+    return Sightings(np.array([r[0] for r in records], int),
+                     np.array([np.asarray(r[1], float)[:2] for r in records]).reshape(-1, 2),
+                     np.array([np.asarray(r[2], float)[:2, :2] for r in records]).reshape(-1, 2, 2),
+                     np.array([r[3] for r in records], int))
+
+
+def first_sight_positions(poses: FloatArray, s: Sightings) -> dict[int, FloatArray]:
+    """Each landmark where its first sighting puts it from ``poses`` (K, 3), m."""
+    out: dict[int, FloatArray] = {}
+    for j in np.argsort(s.k, kind="stable").tolist():
+        lid = int(s.lid[j])
+        if lid not in out:
+            p = poses[int(s.k[j])]
+            a = p[2] + s.z[j, 0]
+            out[lid] = p[:2] + s.z[j, 1] * np.array([np.cos(a), np.sin(a)])
+    return out
