@@ -82,12 +82,13 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
     """Step a backend through the run; errors and CPU times, and the error in the map's
     frame: the poses moved by ``frame_fit`` (a saved map's) or, without it, by the fit
     of the result's own landmarks (SLAM from scratch)."""
-    step_cpu, has_frame = [], []
+    step_cpu, has_frame, online = [], [], []
     for t, wheel, frame in iter_steps(run.odometry, frames):
         c0 = time.process_time()
-        backend.step(t, wheel, frame)
+        est = backend.step(t, wheel, frame)
         step_cpu.append(time.process_time() - c0)
         has_frame.append(frame is not None)
+        online.append(est.pose)
     c0 = time.process_time()
     result = backend.finish()
     finish_cpu = time.process_time() - c0
@@ -95,7 +96,11 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
     if truth is None:
         raise SystemExit(f"{run.path}: no groundtruth.tum: nothing to measure the error against")
     pos, head = errors_vs_truth(result, truth)
-    in_map = float("nan")
+    as_online = dataclasses.replace(result, poses=np.asarray(online, dtype=np.float64).reshape(-1, 3))
+    if len(as_online.poses) != len(result.times):
+        raise SystemExit(f"{run.path}: {len(result.times)} result poses for {len(online)} steps")
+    pos_on, _ = errors_vs_truth(as_online, truth)
+    in_map = in_map_on = float("nan")
     if frame_fit is None:
         own = [lm for lm in result.landmarks if lm.type in ("lamp", "corner")]
         frame_fit = fit_frame(np.array([lm.position[:2] for lm in own]).reshape(-1, 2),
@@ -104,11 +109,16 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
         moved = dataclasses.replace(result, poses=transform_poses(frame_fit.truth_T_map, result.poses))
         pos_m, _ = errors_vs_truth(moved, truth)
         in_map = 1e3 * float(np.sqrt(np.mean(pos_m**2)))
+        moved = dataclasses.replace(result, poses=transform_poses(frame_fit.truth_T_map, as_online.poses))
+        pos_m, _ = errors_vs_truth(moved, truth)
+        in_map_on = 1e3 * float(np.sqrt(np.mean(pos_m**2)))
     cpu = np.asarray(step_cpu)
     n_frames = max(int(np.sum(has_frame)), 1)
     return {"pos_rms_mm": 1e3 * float(np.sqrt(np.mean(pos**2))),
             "pos_max_mm": 1e3 * float(pos.max()),
             "pos_rms_map_frame_mm": in_map,
+            "online_rms_mm": 1e3 * float(np.sqrt(np.mean(pos_on**2))),
+            "online_rms_map_frame_mm": in_map_on,
             "head_rms_deg": float(np.degrees(np.sqrt(np.mean(head**2)))),
             "frame_median_ms": 1e3 * float(np.median(cpu[np.asarray(has_frame)])),
             "per_frame_ms": 1e3 * (float(cpu.sum()) + finish_cpu) / n_frames,
@@ -206,22 +216,28 @@ def main() -> None:
                       f"lamps): dx {1e3 * x:.2f} mm, dy {1e3 * y:.2f} mm, dtheta "
                       f"{1e3 * math.degrees(th):.1f} mdeg; landmark residual "
                       f"{1e3 * fit.residual_rms_m:.1f} mm RMS")
-        print("| method | pos RMS mm | in map frame mm | pos max mm | head RMS deg | "
-              "CPU/frame median ms | x ref | CPU/frame mean incl. final ms | x ref |")
-        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+        print("| method | pos RMS mm | in map frame mm | online RMS mm | online in map frame mm "
+              "| pos max mm | head RMS deg | CPU/frame median ms | x ref | CPU/frame mean incl. "
+              "final ms | x ref |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
         for m, f in figures.items():
             r1 = f["frame_median_ms"] / ref["frame_median_ms"] if ref else float("nan")
             r2 = f["per_frame_ms"] / ref["per_frame_ms"] if ref else float("nan")
-            print(f"| {m} | {f['pos_rms_mm']:.2f} | {f['pos_rms_map_frame_mm']:.2f} | {f['pos_max_mm']:.1f} "
+            print(f"| {m} | {f['pos_rms_mm']:.2f} | {f['pos_rms_map_frame_mm']:.2f} | {f['online_rms_mm']:.2f} "
+                  f"| {f['online_rms_map_frame_mm']:.2f} | {f['pos_max_mm']:.1f} "
                   f"| {f['head_rms_deg']:.3f} | {f['frame_median_ms']:.2f} | {r1:.3f} "
                   f"| {f['per_frame_ms']:.2f} | {r2:.3f} |")
     if len(args.runs) > 1:
-        print("\nposition RMS mm, world frame / map frame, per run (" + ", ".join(args.runs) + ")")
-        for m, fs in rows.items():
-            cells = " | ".join(f"{f['pos_rms_mm']:.2f} / {f['pos_rms_map_frame_mm']:.2f}" for f in fs)
-            print(f"| {m} | {cells} | mean {np.mean([f['pos_rms_mm'] for f in fs]):.2f} / "
-                  f"{np.mean([f['pos_rms_map_frame_mm'] for f in fs]):.2f} | CPU/frame mean "
-                  f"{np.mean([f['per_frame_ms'] for f in fs]):.2f} ms |")
+        for key, what in (("", "final"), ("online_", "online")):
+            print(f"\n{what} position RMS mm, world frame / map frame, per run ("
+                  + ", ".join(args.runs) + ")")
+            k_w = f"{key}rms_mm" if key else "pos_rms_mm"
+            k_m = f"{key}rms_map_frame_mm" if key else "pos_rms_map_frame_mm"
+            for m, fs in rows.items():
+                cells = " | ".join(f"{f[k_w]:.2f} / {f[k_m]:.2f}" for f in fs)
+                print(f"| {m} | {cells} | mean {np.mean([f[k_w] for f in fs]):.2f} / "
+                      f"{np.mean([f[k_m] for f in fs]):.2f} | CPU/frame mean "
+                      f"{np.mean([f['per_frame_ms'] for f in fs]):.2f} ms |")
 
 
 if __name__ == "__main__":
