@@ -31,7 +31,6 @@ import collections
 import logging
 import math
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,6 +47,15 @@ from lampsam.backend.association import (
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
 from lampsam.backend.ekf_joint import joint_point2
+from lampsam.backend.ekf_landmarks import (
+    PRUNE_BATCH,
+    Slot,
+    free_id,
+    grown_state,
+    max_sigma_2x2,
+    prune_round,
+    remove_landmarks,
+)
 from lampsam.backend.ekf_update import (
     gathered_s,
     invariant_update,
@@ -81,38 +89,6 @@ from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class _Slot:
-    """Book-keeping of one landmark in the EKF state."""
-
-    id: int
-    kind: str
-    offset: int
-    dim: int
-    n_obs: int
-    created: int
-    last_seen: int
-    patch: Any = None
-    sigma_meas: float = 0.0  # largest horizontal sigma one sighting gives (planar points), m
-    first: FloatArray | None = None  # state at initialisation (first-estimates Jacobians)
-
-
-#: Landmarks examined by the EKF's pruning per step (round robin).
-_PRUNE_CHECKS_PER_STEP = 8
-#: A planar landmark is pruned as uncertain only above this many times the sigma of
-#: one sighting (and above ``prune_sigma``).
-_PRUNE_MEAS_SIGMAS = 3.0
-#: Doomed landmarks are removed from the state in batches of this size (or this often).
-_PRUNE_BATCH = 16
-
-
-def _max_sigma_2x2(cov: FloatArray) -> float:
-    """Largest standard deviation of a 2x2 covariance (closed-form eigenvalue), m."""
-    a, b, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
-    lam = 0.5 * (a + d) + math.sqrt(max(0.25 * (a - d) ** 2 + b * b, 0.0))
-    return math.sqrt(max(lam, 0.0))
-
-
 class EkfSlam(SlamBackend):
     """EKF-SLAM of paper 1 behind the :class:`SlamBackend` interface.
 
@@ -139,7 +115,7 @@ class EkfSlam(SlamBackend):
         cfg = config.ekf
         self._cov = LowerCovariance(np.diag([cfg.sigma_start_xy**2, cfg.sigma_start_xy**2,
                                              cfg.sigma_start_theta**2]), cap)
-        self._slots: dict[int, _Slot] = {}
+        self._slots: dict[int, Slot] = {}
         self._prune_queue: collections.deque[int] = collections.deque()
         self._doomed: set[int] = set()
         self._next_id = 0
@@ -191,15 +167,6 @@ class EkfSlam(SlamBackend):
         """(n, n) the current covariance (a full copy: O(n^2), for checks)."""
         return self._cov.dense()
 
-    def _grow(self, extra: int) -> None:
-        need = self._n + extra
-        cap = len(self._x)
-        if need <= cap:
-            return
-        x = np.zeros(max(need, cap + cap // 2))
-        x[: self._n] = self.x
-        self._x = x
-
     # ------------------------------------------------------------------ eqs. 13-15
     def predict(self, wheel: FloatArray) -> None:
         """Prediction with several odometry samples (eqs. 13-15 for wheel travel).
@@ -224,7 +191,7 @@ class EkfSlam(SlamBackend):
         self._x[:3] = pose
 
     # ------------------------------------------------------------------ prediction helpers
-    def _h(self, slot: _Slot, obs: Obs | None) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def _h(self, slot: Slot, obs: Obs | None) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Predicted measurement and coordinate Jacobians (robot, landmark).
 
         With ``ekf.first_estimate_jacobians`` the Jacobians are taken at the landmark's
@@ -275,7 +242,7 @@ class EkfSlam(SlamBackend):
         """
         cands: dict[str, list[int]] = {}
         screened: dict[int, dict[int, tuple[float, bool]]] = {}
-        ceiling_slots: dict[str, list[_Slot]] = {}
+        ceiling_slots: dict[str, list[Slot]] = {}
         for lid, slot in self._slots.items():
             if lid in self._doomed:
                 continue
@@ -321,7 +288,7 @@ class EkfSlam(SlamBackend):
                              self.config.association, self.noise_scale.scale)
 
     # ------------------------------------------------------------------ eqs. 21-23
-    def _update(self, pairs: list[tuple[_Slot, Obs]]) -> int:
+    def _update(self, pairs: list[tuple[Slot, Obs]]) -> int:
         """EKF update (eqs. 21-23) with all associated observations of a frame, stacked.
 
         Stacking the frame's observations into one update equals the paper's
@@ -364,7 +331,7 @@ class EkfSlam(SlamBackend):
 
         return len(rows)
 
-    def _wrap_angles(self, rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
+    def _wrap_angles(self, rows: list[tuple[Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
         """Wrap the heading and the updated lamps' axis angles (after eq. 22)."""
         self._x[2] = wrap_angle(float(self._x[2]))
         for slot, *_ in rows:
@@ -372,8 +339,8 @@ class EkfSlam(SlamBackend):
                 o = slot.offset + 3
                 self._x[o] = wrap_axis(float(self._x[o]))
 
-    def _linearise(self, pairs: list[tuple[_Slot, Obs]], x0: FloatArray | None
-                   ) -> tuple[list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]],
+    def _linearise(self, pairs: list[tuple[Slot, Obs]], x0: FloatArray | None
+                   ) -> tuple[list[tuple[Slot, Obs, FloatArray, FloatArray, FloatArray]],
                               FloatArray, FloatArray] | None:
         """One linearisation of the stacked update (eqs. 19-22) at the current state.
 
@@ -390,7 +357,7 @@ class EkfSlam(SlamBackend):
             predictable or ``Psi`` is not positive definite.
         """
         n = self._n
-        rows: list[tuple[_Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
+        rows: list[tuple[Slot, Obs, FloatArray, FloatArray, FloatArray]] = []
         for slot, obs in pairs:
             try:
                 z_hat, h_r, h_l = self._h(slot, obs)
@@ -427,7 +394,7 @@ class EkfSlam(SlamBackend):
             return None
         g_r = g_pose @ tangent_D_coords(pose[2])  # right tangent -> coordinates
         d = len(state)
-        self._grow(d)
+        self._x = grown_state(self._x, self._n, d)
         n = self._n
         p_r = self._cov.columns(0, 3)  # (n, 3) P[:, R]
         self._cov.append(g_r @ p_r.T, g_r @ p_r[:3] @ g_r.T + g_z @ cov_z @ g_z.T)
@@ -439,9 +406,9 @@ class EkfSlam(SlamBackend):
         # A planar landmark's first-sight measurement-only sigma scales the prune
         # threshold (a sparse outdoor map's landmarks are metres uncertain by nature);
         # ceiling landmarks keep the fixed ``prune_sigma``.
-        sigma_meas = (_max_sigma_2x2((g_z @ cov_z @ g_z.T)[:2, :2])
+        sigma_meas = (max_sigma_2x2((g_z @ cov_z @ g_z.T)[:2, :2])
                       if obs.kind == LandmarkKind.POINT2 else 0.0)
-        self._slots[lid] = _Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
+        self._slots[lid] = Slot(lid, obs.kind, n, d, 1, self._step, self._step, obs.patch,
                                  sigma_meas, state.copy() if self._fej else None)
         if self._prune_known or obs.landmark_id is None:
             self._prune_queue.append(lid)
@@ -492,10 +459,8 @@ class EkfSlam(SlamBackend):
         self.n_merged += 1
 
     def _new_id(self) -> int:
-        while self._next_id in self._slots:
-            self._next_id += 1
-        lid = self._next_id
-        self._next_id += 1
+        lid = free_id(self._slots, self._next_id)
+        self._next_id = lid + 1
         return lid
 
     # ------------------------------------------------------------------ pruning
@@ -504,55 +469,28 @@ class EkfSlam(SlamBackend):
         ``n_pruned`` (a merged duplicate is not a pruned landmark)."""
         if not lids:
             return
-        keep = np.ones(self._n, dtype=bool)
-        for lid in lids:
-            s = self._slots.pop(lid)
-            keep[s.offset : s.offset + s.dim] = False
-        idx = np.flatnonzero(keep)
-        x = self.x[idx].copy()
-        self._cov.delete(keep)
-        self._n = len(idx)
-        self._x[: self._n] = x
-        new_offset = np.cumsum(keep) - 1
-        for s in self._slots.values():
-            s.offset = int(new_offset[s.offset])
+        self._n = remove_landmarks(self._x, self._n, self._cov, self._slots, lids)
         if pruned:
             self.n_pruned += len(lids)
 
     def _prune(self) -> None:
         """Remove landmarks seen once long ago, or still uncertain after a while.
 
-        Amortised O(1) per step: :data:`_PRUNE_CHECKS_PER_STEP` landmarks are taken
-        from a round-robin queue each step (so each is checked every
-        ``n / _PRUNE_CHECKS_PER_STEP`` steps); doomed landmarks stop being candidates
-        at once and are cut out of ``x`` and ``P`` (an O(n^2) in-place compaction) in batches of
-        :data:`_PRUNE_BATCH` or every :data:`_PRUNE_BATCH` steps.
+        A few landmarks per step are checked
+        (:func:`lampsam.backend.ekf_landmarks.prune_round`); doomed landmarks stop being
+        candidates at once and are cut out of ``x`` and ``P`` (an O(n^2) in-place
+        compaction) in batches of :data:`~lampsam.backend.ekf_landmarks.PRUNE_BATCH` or
+        every ``PRUNE_BATCH`` steps.
         """
         cfg = self.config.association
-        for _ in range(min(_PRUNE_CHECKS_PER_STEP, len(self._prune_queue))):
-            lid = self._prune_queue.popleft()
-            s = self._slots.get(lid)
-            if s is None or lid in self._doomed:
-                continue
-            idle = self._step - s.last_seen
-            age = self._step - s.created
-            drop = ""
-            if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
-                drop = "seen_too_few"
-                if not cfg.prune_once_seen:
-                    self._provisional.append(self._estimate(s))
-            elif age > cfg.prune_after_steps and idle > cfg.prune_after_steps:
-                cov = self._cov.block(s.offset, s.offset + 2, s.offset, s.offset + 2)
-                too_wide = _max_sigma_2x2(cov) > max(cfg.prune_sigma,
-                                                     _PRUNE_MEAS_SIGMAS * s.sigma_meas)
-                drop = "uncertain" if too_wide else ""
-            if drop:
-                self._doomed.add(lid)
-                self.pruned[drop] = self.pruned.get(drop, 0) + 1
-            else:
-                self._prune_queue.append(lid)
-        if self._doomed and (len(self._doomed) >= _PRUNE_BATCH
-                             or self._step % _PRUNE_BATCH == 0):
+        for lid, drop in prune_round(self._prune_queue, self._slots, self._doomed, self._step,
+                                     cfg, lambda s: self._cov.block(s.offset, s.offset + 2,
+                                                                    s.offset, s.offset + 2)):
+            if drop == "seen_too_few" and not cfg.prune_once_seen:
+                self._provisional.append(self._estimate(self._slots[lid]))
+            self.pruned[drop] = self.pruned.get(drop, 0) + 1
+        if self._doomed and (len(self._doomed) >= PRUNE_BATCH
+                             or self._step % PRUNE_BATCH == 0):
             log.debug("pruning %d landmarks", len(self._doomed))
             self._remove(sorted(self._doomed))
             self._doomed.clear()
@@ -623,7 +561,7 @@ class EkfSlam(SlamBackend):
         self._keyframes.append(n_matched + n_new > 0)
         return StepEstimate(t, pose, cov, n_matched + n_new > 0, n_matched, n_new, dt)
 
-    def _estimate(self, s: _Slot) -> LandmarkEstimate:
+    def _estimate(self, s: Slot) -> LandmarkEstimate:
         """The current estimate of one landmark in the state."""
         st = self._x[s.offset : s.offset + s.dim].copy()
         cov = self._cov.block(s.offset, s.offset + s.dim, s.offset, s.offset + s.dim)

@@ -52,7 +52,7 @@ from gtsam.symbol_shorthand import X
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
-from lampsam.backend.config import SlamConfig
+from lampsam.backend.config import BatchConfig, SlamConfig
 from lampsam.backend.gating import Gating
 from lampsam.backend.handlers import (
     GraphLandmark,
@@ -84,7 +84,7 @@ log = logging.getLogger(__name__)
 
 #: Variance floor used for the per-step odometry composition (the factor's own floor
 #: is added once per keyframe).
-_STEP_FLOOR = 1e-14
+STEP_FLOOR = 1e-14
 
 
 class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
@@ -197,7 +197,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         u = self.motion.check(t, odometry)
         if len(u):
             if self._wheel_since_kf:
-                d, c = self.motion.relative(u, _STEP_FLOOR)
+                d, c = self.motion.relative(u, STEP_FLOOR)
                 self._delta_cov = compose_cov(d, self._delta_cov, c)
                 self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
             else:  # the first samples since the keyframe: composed once for both uses
@@ -205,7 +205,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                 d, c_kf = self.motion.relative(u, floor)
                 self._first_rel = (d, c_kf)  # the odometry factor's, if no samples follow
                 # composed with the identity (zero covariance) since the keyframe
-                self._delta_cov = c_kf + (_STEP_FLOOR - floor) * np.eye(3)
+                self._delta_cov = c_kf + (STEP_FLOOR - floor) * np.eye(3)
                 self._delta = pose_array(gtsam.Pose2(*d))
             self._wheel_since_kf.append(u)
         n_matched = n_new = 0
@@ -350,21 +350,36 @@ class BatchSlam(GraphSlam):
 
     def _final_values(self) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
         start = self.isam.calculateEstimate() if self.isam is not None else self.initial
-        try:
-            opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
-            result = opt.optimize()
-        except RuntimeError as exc:
-            if self.isam is None:
-                raise EstimationError(f"batch LM failed: {exc}") from exc
-            # e.g. a trial step put a landmark below the camera: keep the online smoother's
-            reason = f"batch LM: {type(exc).__name__}: {str(exc).strip()[:120]}"
-            log.error("%s: the result is the online iSAM2 estimate, labelled isam2", reason)
-            return start, self.isam.marginalCovariance, reason
-        log.info("batch LM: error %.4g -> %.4g in %d iterations",
-                 self.graph.error(start), self.graph.error(result), opt.iterations())
-        try:
-            marginals = gtsam.Marginals(self.graph, result)
-            return result, marginals.marginalCovariance, None
-        except RuntimeError as exc:
-            log.warning("batch marginals unavailable: %s", exc)
-            return result, None, None
+        return batch_lm(self.graph, start, self.config.batch, self.isam)
+
+
+def batch_lm(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, config: BatchConfig,
+             isam: gtsam.ISAM2 | None) -> tuple[gtsam.Values, MarginalSource | None, str | None]:
+    """One Levenberg-Marquardt over the whole graph from ``start`` (``config.to_gtsam()``).
+
+    Returns:
+        ``(estimate, marginal-covariance function or None, reason)``: ``reason`` is
+        None, or why the estimate is the online iSAM2 one (LM threw and ``isam`` is
+        given: ``start`` and iSAM2's marginals are returned).
+
+    Raises:
+        EstimationError: LM threw and there is no online estimate to keep.
+    """
+    try:
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, start, config.to_gtsam())
+        result = opt.optimize()
+    except RuntimeError as exc:
+        if isam is None:
+            raise EstimationError(f"batch LM failed: {exc}") from exc
+        # e.g. a trial step put a landmark below the camera: keep the online smoother's
+        reason = f"batch LM: {type(exc).__name__}: {str(exc).strip()[:120]}"
+        log.error("%s: the result is the online iSAM2 estimate, labelled isam2", reason)
+        return start, isam.marginalCovariance, reason
+    log.info("batch LM: error %.4g -> %.4g in %d iterations",
+             graph.error(start), graph.error(result), opt.iterations())
+    try:
+        marginals = gtsam.Marginals(graph, result)
+        return result, marginals.marginalCovariance, None
+    except RuntimeError as exc:
+        log.warning("batch marginals unavailable: %s", exc)
+        return result, None, None

@@ -188,7 +188,12 @@ class LandmarkLifecycle(GraphState):
             # triangulated corner, not the first sight's covariance, which spans most
             # of the height range and let lamps metres apart all pass the cheap gate
             # (each such sight then cost joint marginals).
-            lm.cov = self._placed_cov(cov)
+            # Only the position block: an oriented lamp keeps its axis variance, so
+            # lm.cov stays (d, d) for the gate without a joint marginal (eq. 19).
+            placed = np.zeros_like(lm.cov)
+            placed[:3, :3] = self._placed_cov(cov)
+            placed[3:, 3:] = lm.cov[3:, 3:]
+            lm.cov = placed
 
     def _enter_graph(self, lm: GraphLandmark) -> None:
         """Insert a landmark's variables, priors and its buffered factors."""

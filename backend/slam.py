@@ -39,10 +39,11 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.dense_log import run_known_ids
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate, empty_result
-from lampsam.backend.odometry import OdometryConstants
+from lampsam.backend.odometry import OdometryConstants, Pose2Motion
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.datasets.logrun import (
     CameraModel,
@@ -64,7 +65,7 @@ from lampsam.frontend.measurements import (
     RangeBearingObservation,
 )
 from lampsam.interrupt import interruptible
-from lampsam.observe import emit
+from lampsam.observe import emit, listening
 from lampsam.safe_io import atomic_path, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -600,9 +601,16 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
                                           final_covariances=pose_covariances),
         association=dataclasses.replace(config.association, use_known_ids=known_ids))
     start = graph_log.start_pose() if start_pose is None else np.asarray(start_pose, float)
-    be = make_backend(backend, odometry_model or config.pose2_odometry, config, start)
+    model = odometry_model or config.pose2_odometry
     t0, c0 = time.perf_counter(), time.process_time()
-    result = drive(be, graph_log_steps(graph_log, known_ids))
+    fast = None
+    if known_ids and not pose_covariances and not listening():
+        fast = run_known_ids(graph_log, backend, config, Pose2Motion(model), start)
+    if fast is not None:
+        result = fast
+    else:
+        be = make_backend(backend, model, config, start)
+        result = drive(be, graph_log_steps(graph_log, known_ids))
     result.extra["total_time_s"] = time.perf_counter() - t0
     result.extra["total_cpu_s"] = time.process_time() - c0
     return result

@@ -137,7 +137,9 @@ class SimulatedRobot:
 
 
 class PixelCamera(Protocol):
-    """The part of the upward camera model the ceiling sensor needs (``logrun.CameraModel``)."""
+    """The part of the upward camera model that the ceiling sensor and the localizer's
+    image-interior test (:func:`lampsam.localization.verify_drive.image_interior`) need
+    (``logrun.CameraModel``)."""
 
     @property
     def width(self) -> int:

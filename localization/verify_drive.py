@@ -12,11 +12,11 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import Protocol
 
 import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
+from lampsam.datasets.steerable_robot import PixelCamera
 from lampsam.factors.geometry import between, compose
 from lampsam.localization.filter_config import GlobalLocalizerConfig
 from lampsam.localization.map_layers import EnvironmentMaps
@@ -30,24 +30,6 @@ from lampsam.localization.verification import (
 )
 
 log = logging.getLogger(__name__)
-
-
-class PixelCamera(Protocol):
-    """The part of a camera model the image-interior test needs."""
-
-    @property
-    def width(self) -> int:
-        """Image width (px)."""
-        ...
-
-    @property
-    def height(self) -> int:
-        """Image height (px)."""
-        ...
-
-    def pixels_from_normalized(self, m: FloatArray) -> FloatArray:
-        """(N, 2) pixels of (N, 2) normalised coordinates."""
-        ...
 
 
 def image_interior(

@@ -5,6 +5,7 @@
 - a failed iSAM2 update (a corner below the camera makes GTSAM's projection factor
   throw) is recovered: the offending landmark is dropped and iSAM2 rebuilt;
 - a lamp first seen without an axis and later with one is handled by all backends;
+- an oriented lamp is gated without a joint marginal (batch, ``init = "odometry"``);
 - the vectorised projection, screening and triangulation agree with the per-point
   models.
 """
@@ -26,6 +27,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.graph import BatchSlam, Isam2Slam
 from lampsam.backend.handlers import GraphLandmark as _Landmark
+from lampsam.backend.models import observations_from_frame
 from lampsam.backend.slam import (
     drive,
     errors_vs_truth,
@@ -141,6 +143,37 @@ def test_lamp_first_seen_without_axis_then_with_axis(name: str) -> None:
     assert lamps[0].n_obs == expected
 
 
+def test_oriented_lamp_gate_without_joint_marginal() -> None:
+    """Batch with ``init = "odometry"`` (no iSAM2: every gate is the fallback without a
+    joint marginal) and no ids: an oriented lamp whose gating covariance was tightened
+    by triangulation (position block) keeps a (4, 4) covariance, so the fallback's
+    ``Psi = H_p Sigma_x H_p^T + H_l Sigma_l H_l^T + R`` has the (3, 4) axis Jacobian's
+    shape; every sight is matched to the one lamp."""
+    rig, odo, frames, poses, lamp = _line_world(np.random.default_rng(6), axis_from=0)
+    model = CeilingModel.from_camera(rig.camera)
+    base = SlamConfig()
+    cfg = dataclasses.replace(
+        base, association=dataclasses.replace(base.association, use_known_ids=False),
+        batch=dataclasses.replace(base.batch, init="odometry"))
+    be = BatchSlam(rig.odometry, cfg, poses[0], model, CeilingHandler(model))
+    result = drive(be, iter_steps(odo, frames))
+    assert result.status == "ok", result.status
+    lamps = [lm for lm in result.landmarks if lm.type == "lamp"]
+    assert len(lamps) == 1
+    assert np.linalg.norm(lamps[0].position[:2] - lamp[:2]) < 0.05
+    assert lamps[0].n_obs >= 5  # re-matched after the gate was tightened (3 sights)
+    lm = next(m for m in be._landmarks.values() if m.kind == "lamp")
+    assert lm.oriented and lm.cov.shape == (4, 4)
+    assert np.allclose(lm.cov, lm.cov.T) and np.linalg.eigvalsh(lm.cov).min() > 0
+    obs = observations_from_frame(frames[-1], cfg.features, cfg.noise)[0]
+    assert obs.kind == "lamp" and obs.has_axis
+    pose = be.current_pose()
+    nu, psi = be._innovation((be._k, pose, np.zeros(3), np.zeros((3, 3))), lm.id, obs)
+    assert nu.shape == (3,) and psi.shape == (3, 3) and np.allclose(psi, psi.T)
+    assert np.linalg.eigvalsh(psi - obs.R).min() > 0  # pose and lamp terms add to R
+    assert psi[2, 2] - obs.R[2, 2] > 0.5 * lm.cov[3, 3]  # the lamp's axis variance counts
+
+
 def test_failed_isam2_update_is_recovered(caplog: pytest.LogCaptureFixture) -> None:
     """A corner below the camera makes the update throw; it is dropped, the run goes on."""
     rig, odo, frames, poses, _ = _line_world(np.random.default_rng(5))
@@ -239,7 +272,7 @@ def test_corner_budget_keeps_longest_tracks() -> None:
 
 def test_corner_budget_counts_ekf_slots_as_mapped() -> None:
     """Landmarks without ``in_graph`` (EKF slots: always in the state) all count."""
-    from lampsam.backend.ekf import _Slot
+    from lampsam.backend.ekf_landmarks import Slot as _Slot
 
     slots = [_Slot(i, "corner", 3 * i, 3, n, 0, 0) for i, n in enumerate([4, 1, 7, 2])]
     slots.append(_Slot(9, "lamp", 12, 4, 1, 0, 0))

@@ -1,0 +1,270 @@
+"""CLI command ``slam``: EKF / iSAM2 / batch over a logged run, an iSAM/g2o text log or
+MRCLAM, with ``--save-map`` and ``--localize-only`` on a ceiling map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from lampsam.commands._args import (
+    add_force,
+    add_rerun_option,
+    config_path,
+    output_dir,
+    positive,
+    warn_partial,
+)
+from lampsam.errors import LampsamError
+from lampsam.interrupt import EXIT_INTERRUPTED
+from lampsam.safe_io import atomic_path, check_output_file
+
+if TYPE_CHECKING:
+    from lampsam.backend.config import SlamConfig
+    from lampsam.backend.interface import SlamResult
+    from lampsam.datasets.logrun import LoggedRun
+
+
+# --------------------------------------------------------------------------- slam
+def _cmd_slam(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lampsam.backend.config import SlamConfig
+    from lampsam.backend.slam import run_slam
+    from lampsam.config_loader import load_config
+
+    config = load_config(SlamConfig, config_path(args))
+    if args.gate_only:
+        config = dataclasses.replace(
+            config, association=dataclasses.replace(config.association, use_known_ids=False))
+    features = tuple(f.strip() for f in args.features.split(",") if f.strip())
+    if args.g2o:
+        check_output_file(args.g2o, force=args.force, what="--g2o")
+        if args.backend == "ekf" and Path(args.run).is_file():
+            raise LampsamError("--g2o with the EKF needs a run directory (its odometry gives the "
+                               "factors); use --backend isam2 or batch for a text log")
+    _check_map_flags(args)
+    if Path(args.run).is_file():
+        return _slam_graph_text(args, config, output_dir(args))
+    if args.duration is not None and not args.mrclam:
+        raise LampsamError("--duration applies only with --mrclam (a logged run is used whole)")
+    if args.mrclam:
+        from lampsam.datasets.mrclam import mrclam_run
+
+        run = mrclam_run(Path(args.run), duration=args.duration)
+    else:
+        from lampsam.datasets.logrun import read_run
+
+        run = read_run(args.run)
+        warn_partial(run.meta, Path(args.run))
+    out = output_dir(args)
+    if args.localize_only:
+        return _slam_localize_only(args, config, features, run, out)
+    if args.save_map:
+        from lampsam.safe_io import check_output_dir
+
+        check_output_dir(args.save_map, force=args.force, what="--save-map")
+    from lampsam.backend.localize_run import BackendCapture
+    from lampsam.evaluation.live import live_view, rerun_target
+    from lampsam.observe import observing
+
+    with live_view(rerun_target(args.rerun, out), f"slam {args.backend} {args.run}", run=run) as view:
+        capture = BackendCapture(view)
+        with observing(capture if args.save_map else None):
+            result = run_slam(args.run, args.backend, features, out, config, frames=args.frames,
+                              run=run, frontend=args.frontend)
+    if args.save_map and result.status == "ok":
+        from lampsam.backend.localize_run import save_map
+
+        cmap = save_map(args.save_map, result, run, capture.backend)
+        print(f"ceiling map written to {args.save_map}: {len(cmap.by_kind('lamp'))} lamps, "
+              f"{len(cmap.by_kind('corner'))} corners")
+    elif args.save_map:
+        print(f"{args.backend}: {result.status}: no map written to {args.save_map}", file=sys.stderr)
+    if args.g2o:
+        from lampsam.backend.g2o_export import write_result_g2o
+
+        g2o = write_result_g2o(Path(args.g2o), result, run)
+        print(f"g2o graph written to {args.g2o}: {g2o.text()}")
+    if result.status == "interrupted":
+        print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
+              f"are written to {out} (status interrupted)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    s = _plot_and_summarize(out, result, run)
+    print(f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} "
+          f"landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; written to {out}")
+    if result.status != "ok":
+        print(f"{args.backend}: {result.status}; the {result.backend} estimate is written "
+              f"to {out}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _plot_and_summarize(out: Path, result: SlamResult, run: LoggedRun) -> dict[str, Any]:
+    """Write ``out/slam.png`` (path, map, error over time) and return the run's summary."""
+    from lampsam.backend.slam import summary
+    from lampsam.evaluation.slam_report import write_slam_plot
+
+    with atomic_path(out / "slam.png") as tmp:
+        write_slam_plot(tmp, result, run.groundtruth)
+    return summary(result, run.groundtruth)
+
+
+def _error_text(s: dict[str, Any]) -> str:
+    """``"; position error RMS .., max ..; heading RMS .."`` of a summary, or "" without truth."""
+    err = s.get("error")
+    if not err:
+        return ""
+    return (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
+            f" heading RMS {err['heading_rms_deg']:.2f} deg")
+
+
+def _check_map_flags(args: argparse.Namespace) -> None:
+    """``--save-map`` / ``--map`` / ``--localize-only`` / ``--start*``: only sensible combinations."""
+    if args.localize_only and not args.map:
+        raise LampsamError("--localize-only needs --map MAP (a folder written by --save-map)")
+    if args.map and not args.localize_only:
+        raise LampsamError("--map is used with --localize-only (SLAM that extends a map is not "
+                           "implemented)")
+    if args.localize_only and args.save_map:
+        raise LampsamError("--save-map and --localize-only exclude each other: localize-only "
+                           "does not change the map")
+    if (args.map_priors or args.map_mode) and not args.localize_only:
+        raise LampsamError("--map-priors / --map-mode apply only with --localize-only")
+    if args.map_priors and args.map_mode not in (None, "priors"):
+        raise LampsamError(f"--map-priors contradicts --map-mode {args.map_mode}")
+    if (args.start or args.start_from) and not args.localize_only:
+        raise LampsamError("--start / --start-from apply only with --localize-only")
+    if args.start and args.start_from:
+        raise LampsamError("give --start or --start-from, not both")
+    if (args.map or args.save_map) and (Path(args.run).is_file() or args.mrclam):
+        raise LampsamError("--save-map / --map are for ceiling runs (a run directory)")
+
+
+def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: tuple[str, ...],
+                        run: LoggedRun, out: Path) -> int:
+    """``lampsam slam RUN --map MAP --localize-only``: track the run on the fixed map."""
+    import dataclasses
+
+    from lampsam.backend.ceiling_map_io import read_map
+    from lampsam.backend.localize_only import LocalizeConfig
+    from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
+    from lampsam.backend.map_merge import merge_maps
+
+    cmap = read_map(args.map[0])  # a bad map: an error before any computing
+    for more in args.map[1:]:
+        cmap, counts = merge_maps(cmap, read_map(more))
+        print(f"merged {more}: {counts['fused']} landmarks fused, {counts['only_b']} added, "
+              f"{counts['only_a']} kept alone")
+    start = (parse_start(args.start) if args.start
+             else start_from_result(args.start_from) if args.start_from else None)
+    if features:
+        config = dataclasses.replace(config, features=features)
+    result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
+                               loc=LocalizeConfig(map_mode=args.map_mode or "priors"))
+    s = _plot_and_summarize(out, result, run)
+    print(f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
+          f"observations of {len(cmap.landmarks)} map landmarks used, none added"
+          f"{_error_text(s)}; written to {out}")
+    return 0 if result.status == "ok" else (EXIT_INTERRUPTED if result.status == "interrupted" else 1)
+
+
+def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
+    """``lampsam slam FILE``: an iSAM / g2o text log, one step per pose."""
+    import numpy as np
+
+    from lampsam.backend.slam import run_graph_log, summary, write_landmarks, write_trajectory
+    from lampsam.datasets.graph_text import read_graph_text, read_vertices
+    from lampsam.datasets.logrun import Trajectory
+    from lampsam.errors import DatasetError
+    from lampsam.safe_io import write_json_atomic
+
+    glog = read_graph_text(args.run)
+    truth = None
+    if args.truth:
+        verts = read_vertices(args.truth)
+        missing = [i for i in glog.pose_ids if i not in verts]
+        if missing:
+            raise DatasetError(f"no VERTEX for pose {missing[0]} ({len(missing)} missing)",
+                               Path(args.truth))
+        truth = Trajectory(t=glog.odometry.t.copy(),
+                           poses=np.array([verts[i] for i in glog.pose_ids]))
+    known = not args.gate_only
+    result = run_graph_log(glog, args.backend, config, known_ids=known)
+    with atomic_path(out / "trajectory.tum") as tmp:
+        write_trajectory(tmp, result)
+    with atomic_path(out / "landmarks.csv") as tmp:
+        write_landmarks(tmp, result)
+    s = summary(result, truth)
+    s["input"] = {"file": str(glog.path), "poses": len(glog.pose_ids),
+                  "landmarks_in_file": glog.n_landmarks, "known_ids": known,
+                  "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
+                                 else "the origin (no VERTEX for the first pose)"),
+                  "skipped_non_odometry_edges": glog.n_skipped_edges}
+    write_json_atomic(out / "summary.json", s)
+    if args.g2o:
+        from lampsam.backend.g2o_export import write_result_g2o
+
+        print(f"g2o graph written to {args.g2o}: "
+              f"{write_result_g2o(Path(args.g2o), result, None).text()}")
+    msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
+           f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
+    err = s.get("error")
+    if err:
+        msg += f"; position error RMS {err['position_rms_m']:.3f} m"
+    print(msg + f"; written to {out}")
+    return 0 if result.status == "ok" else 1
+
+
+def add_slam(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("slam", help="run EKF / iSAM2 / batch SLAM over a logged run")
+    p.add_argument("run", help="run directory, an iSAM/g2o text log (.txt/.g2o/.graph: one "
+                   "step per pose), or the mrclam_ds0 folder with --mrclam")
+    p.add_argument("--backend", choices=("ekf", "isam2", "batch"), default="isam2",
+                   help="estimator (default isam2)")
+    p.add_argument("--features", default="lamps,corners",
+                   help="ceiling features to use: lamps,corners (default both)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--config", default=None, help="TOML/YAML config ([association], [ekf], [isam2], ...)")
+    p.add_argument("--frames", choices=("auto", "images", "truth", "rangebearing"), default="auto",
+                   help="measurement source (default auto: range-bearing log, else images)")
+    p.add_argument("--frontend", choices=("sequential", "thread", "process"), default="sequential",
+                   help="images: run the frontend when each frame is due (default), or ahead of "
+                        "the estimator in a worker process / thread (same frames; a process uses "
+                        "a second core: docs/frontend-speed.md)")
+    p.add_argument("--gate-only", "--no-ids", action="store_true",
+                   help="ignore known landmark ids: associate by the Mahalanobis gate alone")
+    p.add_argument("--truth", default=None,
+                   help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
+    p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--g2o", default=None, metavar="OUT.g2o",
+                   help="also write the final graph as g2o: poses, landmarks and every factor "
+                        "(custom LAMPSAM_* lines for the ceiling model; backend/g2o_export.py)")
+    p.add_argument("--duration", type=positive, default=None,
+                   help="with --mrclam: use only the first seconds (an error without --mrclam)")
+    add_rerun_option(p)
+    p.add_argument("--save-map", default=None, metavar="MAP",
+                   help="also write the ceiling map (landmarks, covariances, lamp axes, corner "
+                        "patches, rig) to the folder MAP (docs/ceiling-map.md)")
+    p.add_argument("--map", default=None, metavar="MAP", action="append",
+                   help="with --localize-only: the ceiling map folder to track against; given "
+                        "twice or more, the maps of separate mapping drives are merged "
+                        "(backend/map_merge.py)")
+    p.add_argument("--map-priors", action="store_true",
+                   help="with --localize-only: the map's landmarks are priors updated during "
+                        "the run (joint EKF over pose and map landmarks; the default, same as "
+                        "--map-mode priors)")
+    p.add_argument("--map-mode", default=None, choices=("fixed", "priors", "consider"),
+                   help="with --localize-only: the map as priors (default), fixed values "
+                        "(pose-only EKF), or a consider (Schmidt) filter (docs/ceiling-map.md)")
+    p.add_argument("--localize-only", action="store_true",
+                   help="track the run against --map without adding landmarks (--map-mode)")
+    p.add_argument("--start", default=None, metavar="X,Y,THETA",
+                   help="with --localize-only: start pose in the map's frame (m, m, rad; "
+                        "default the run's known start)")
+    p.add_argument("--start-from", default=None, metavar="RESULT.json",
+                   help="with --localize-only: start from a `lampsam localize` answer")
+    add_force(p)
+    p.set_defaults(func=_cmd_slam, graceful=True)
