@@ -30,7 +30,11 @@ is its error after moving the poses by the SE(2) transform from the map's frame 
 the truth's, fitted on the map's landmarks against the true ones
 (:func:`lampsam.evaluation.map_alignment.map_to_truth`; never on the trajectory):
 what is left is the tracking's own error. SLAM from scratch is read the same two
-ways, its ``in map frame`` fitted on the landmarks of its own result.
+ways, its ``in map frame`` fitted on the landmarks of its own result. ``online`` is
+the error of each step's estimate as the backend returned it (what a robot has at
+that moment): localize-only is a causal filter, so its online and final poses are
+the same; the smoothers' final poses are hindsight (the batch backend's online pass
+is iSAM2's). Figures: docs/ceiling-map.md.
 """
 
 from __future__ import annotations
