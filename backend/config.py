@@ -1,6 +1,6 @@
 """Configuration of the SLAM backends: frozen dataclasses with documented defaults.
 
-``SlamConfig`` composes the per-part configs; ``cli.py`` reads TOML and builds
+``SlamConfig`` composes the per-part configs; the CLI (``commands/``) reads TOML and builds
 them with the strict loader (:mod:`lampsam.config_loader`). Ranges are declared
 on the fields (``metadata=limits(...)``) and checked on construction, so a
 negative distance fails from Python as from a file. GTSAM parameter objects are

@@ -400,9 +400,8 @@ class EkfSlam(SlamBackend):
         self._cov.append(g_r @ p_r.T, g_r @ p_r[:3] @ g_r.T + g_z @ cov_z @ g_z.T)
         self._x[n : n + d] = state
         if lid is None:
-            lid = self._new_id()
-        else:
-            self._next_id = max(self._next_id, lid + 1)
+            lid = free_id(self._slots, self._next_id)
+        self._next_id = max(self._next_id, lid + 1)
         # A planar landmark's first-sight measurement-only sigma scales the prune
         # threshold (a sparse outdoor map's landmarks are metres uncertain by nature);
         # ceiling landmarks keep the fixed ``prune_sigma``.
@@ -457,11 +456,6 @@ class EkfSlam(SlamBackend):
         keep.last_seen = max(keep.last_seen, drop.last_seen)
         self._remove([pair.drop], pruned=False)
         self.n_merged += 1
-
-    def _new_id(self) -> int:
-        lid = free_id(self._slots, self._next_id)
-        self._next_id = lid + 1
-        return lid
 
     # ------------------------------------------------------------------ pruning
     def _remove(self, lids: list[int], pruned: bool = True) -> None:

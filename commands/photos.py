@@ -100,6 +100,8 @@ def add_gallery(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("gallery", help="ceiling frontend overlays on a folder of photos")
     p.add_argument("photos", help="folder of .jpg/.png ceiling photos")
     p.add_argument("--out", required=True, help="gallery PNG to write")
-    p.add_argument("--small-only", action="store_true", help="only 320x240, not full size")
+    p.add_argument("--small-only", action="store_true",
+                   help="only 320x240, not the working width (frontend-eval --photos' width rule "
+                        "and second look)")
     add_force(p)
     p.set_defaults(func=_cmd_gallery)

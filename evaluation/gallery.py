@@ -2,13 +2,17 @@
 
 Each photo is read as grey in its sensor orientation (EXIF rotation ignored, so
 the phone photos of ``ceiling_photos`` are 4000x3000 landscape like a camera
-frame), run through the frontend at 320x240 (``INTER_AREA``) and at full size,
-and drawn with its detections: oriented lamps green with their long axis
-(``+-2 sigma1``), point lamps blue, border lamps red, corners yellow.
+frame), run through the frontend at 320x240 (``INTER_AREA``, the robot camera's
+frame) and at the photo's working width, and drawn with its detections:
+oriented lamps green with their long axis (``+-2 sigma1``), point lamps blue,
+border lamps red, corners yellow.
 
-The full-size run scales the size-dependent settings with the image width
-(:func:`config_for_width`); the camera model is a pinhole with a 70 deg
-horizontal field of view (the phone's intrinsics are unknown; it only affects
+The working-width column is :func:`detect_photo`, the one path that
+``lampsam frontend-eval --photos`` scores too: the width chosen from the
+photo's lamps and the second look inside long or border-cut blobs
+(:func:`lampsam.frontend.resolution.detect_photo_lamps`, docs/photo-labels.md).
+The camera model is a pinhole with a 70 deg horizontal field of view
+(:func:`photo_camera`: the phone's intrinsics are unknown; it only affects
 ``m``, not what is drawn).
 """
 
@@ -25,12 +29,19 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import ImageU8
+from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
 from lampsam.evaluation.outputs import ensure_dir
 from lampsam.frontend.corners import CornerDetections, detect_corner_pixels
+from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import LampDetections, detect_lamps
 from lampsam.frontend.pipeline import FrontendConfig, check_image
-from lampsam.frontend.resolution import lamp_config_for_width
+from lampsam.frontend.resolution import (
+    ResolutionPolicy,
+    detect_photo_lamps,
+    lamp_config_for_width,
+    resize_width,
+)
 from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
@@ -111,6 +122,31 @@ def load_photo(path: str | Path, size: tuple[int, int] | None) -> ImageU8:
     return np.asarray(read, dtype=np.uint8)
 
 
+def photo_camera(width: int, height: int) -> CameraModel:
+    """A photo's camera at a working size: a 70 deg pinhole (a phone's is not known)."""
+    return CameraModel.from_fov(width, height, 70.0)
+
+
+def detect_photo(
+    full: ImageU8,
+    lamps: LampDetectorConfig | None = None,
+    policy: ResolutionPolicy | None = None,
+) -> tuple[LampDetections, LampDetectorConfig]:
+    """Lamps of a full-resolution photo as ``frontend-eval --photos`` and the gallery find them.
+
+    Args:
+        full: shape (H, W) uint8 grey photo at full resolution.
+        lamps: detector settings at 320 px (defaults if None; scaled to the working width).
+        policy: resolution policy (default: width from the photo's lamps, second look on).
+
+    Returns:
+        ``(detections in working-width pixels, the scaled settings)``; the working
+        size is ``detections.mask.shape``.
+    """
+    base = FrontendConfig().lamps if lamps is None else lamps
+    return detect_photo_lamps(full, photo_camera, base, policy)
+
+
 def run_photo(
     image: ImageU8, config: FrontendConfig | None = None
 ) -> tuple[LampDetections, CornerDetections, float]:
@@ -123,12 +159,10 @@ def run_photo(
     Returns:
         ``(lamps, corners, wall time ms)``.
     """
-    from lampsam.datasets.logrun import CameraModel
-
     img = check_image(image, None)
     h, w = img.shape
     config = config or config_for_width(w)
-    camera = CameraModel.from_fov(w, h, 70.0)
+    camera = photo_camera(w, h)
     t0 = time.perf_counter()
     lamps = detect_lamps(img, camera, config.lamps)
     corners = detect_corner_pixels(img, lamps.mask, config.corners)
@@ -180,6 +214,29 @@ def legend_handles() -> list[object]:
     ]
 
 
+def run_photo_working(
+    full: ImageU8, config: FrontendConfig | None = None, policy: ResolutionPolicy | None = None
+) -> tuple[ImageU8, LampDetections, CornerDetections, float]:
+    """Lamps (:func:`detect_photo`) and corners of a full-resolution photo at its working width.
+
+    Args:
+        full: shape (H, W) uint8 grey photo at full resolution.
+        config: frontend settings at 320 px (defaults if None; scaled to the working width).
+        policy: resolution policy (defaults if None).
+
+    Returns:
+        ``(the working image, lamps, corners, wall time ms)``, pixels at the working width.
+    """
+    base = config or FrontendConfig()
+    img = check_image(full, None)
+    t0 = time.perf_counter()
+    lamps, _ = detect_photo(img, base.lamps, policy)
+    w = lamps.mask.shape[1]
+    work = resize_width(img, w)
+    corners = detect_corner_pixels(work, lamps.mask, config_for_width(w, base).corners)
+    return work, lamps, corners, 1e3 * (time.perf_counter() - t0)
+
+
 def make_gallery(
     photos_dir: str | Path,
     out_png: str | Path,
@@ -191,8 +248,9 @@ def make_gallery(
     Args:
         photos_dir: folder of photos.
         out_png: the gallery image to write (one row per photo; columns: 320x240,
-            full size).
-        full_size: also run at full size.
+            working width).
+        full_size: also run on the full-resolution photo at its working width
+            (:func:`run_photo_working`, the path of ``frontend-eval --photos``).
         small: the reduced size ``(width, height)``.
 
     Returns:
@@ -219,8 +277,11 @@ def make_gallery(
     entries: list[GalleryEntry] = []
     for r, path in enumerate(files):
         for c, size in enumerate(sizes):
-            img = load_photo(path, size)
-            lamps, corners, ms = run_photo(img)
+            if size is None:
+                img, lamps, corners, ms = run_photo_working(load_photo(path, None))
+            else:
+                img = load_photo(path, size)
+                lamps, corners, ms = run_photo(img)
             used = [lm for lm in lamps.lamps if not lm.touches_border]
             entry = GalleryEntry(
                 name=path.name,
@@ -236,16 +297,16 @@ def make_gallery(
             entries.append(entry)
             log.info("%s", entry)
             shown = img
-            if size is None:  # draw full-size results on a 1000 px wide copy
-                shown = np.asarray(cv2.resize(img, (1000, 750), interpolation=cv2.INTER_AREA),
-                                   dtype=np.uint8)
+            if size is None and img.shape[1] > 1000:  # draw on a 1000 px wide copy
+                shown = resize_width(img, 1000)
             scale = shown.shape[1] / img.shape[1]
             plot_detections(
                 axes[r, c],
                 shown,
                 _scaled(lamps, scale),
                 CornerDetections(corners.pixels * scale, corners.scores, corners.patches),
-                f"{path.name} {img.shape[1]}x{img.shape[0]}: {entry.n_lamps} lamps "
+                f"{path.name} {img.shape[1]}x{img.shape[0]}"
+                f"{' (working width)' if size is None else ''}:\n{entry.n_lamps} lamps "
                 f"({entry.n_oriented} oriented), {entry.n_border} border, "
                 f"{entry.n_corners} corners",
             )

@@ -3,8 +3,9 @@
 Each labelled photo (:mod:`lampsam.evaluation.photo_labels`) is read as grey
 in sensor orientation, reduced to the working width (``INTER_AREA``; default
 320 px, the robot camera's) and run through
-:func:`lampsam.frontend.resolution.detect_photo_lamps` with the settings scaled to that
-width (:func:`lampsam.frontend.resolution.lamp_config_for_width`). Blobs touching
+:func:`lampsam.evaluation.gallery.detect_photo` (the path that ``lampsam
+gallery`` draws) with the settings scaled to that width
+(:func:`lampsam.frontend.resolution.lamp_config_for_width`). Blobs touching
 the border are left out, as :func:`lampsam.frontend.pipeline.process_image`
 does. The labels are scaled to the working size, then:
 
@@ -14,15 +15,21 @@ the blobs long for their frame or cut by the border are looked at again at
 full resolution (:mod:`lampsam.frontend.second_look`).
 
 * a detection is **true** when its centroid lies in a ``lamp`` rectangle
-  grown by ``margin`` (``max(margin_px, margin_frac * width)``); otherwise it
-  is false, and its kind is that of the region it lies in (``window``,
-  ``skylight``, ``reflection``, ``lamp_fragment``, ``other``) or
-  ``unlabelled``;
+  grown by ``margin`` (``max(margin_px, margin_frac * width)``), or in the
+  rectangle of a whole fitting (its modules merged: a detection of a fitting
+  whose modules were not parted); otherwise it is false, and its kind is that
+  of the region it lies in (``window``, ``skylight``, ``reflection``,
+  ``lamp_fragment``, ``other``) or ``unlabelled``;
 * precision = true detections / detections;
 * recall = countable lamps with a true detection / countable lamps, where a
   lamp is countable when it is not occluded, lies entirely inside the image
   and covers at least the detector's ``min_area_px`` (a lamp the working
-  resolution cannot show is reported as ``n_small``, not missed);
+  resolution cannot show is reported as ``n_small``, not missed); a lamp is one
+  module (docs/photo-labels.md), and a detection on a fitting's connector finds
+  the module nearest to it;
+* fitting recall (the other reading of a multi-module fitting): countable
+  fittings (every module countable) with a true detection on any module /
+  countable fittings; a fitting of one module is that module;
 * centroid error: distance from the labelled centre to the nearest true
   detection, px at the working size (RMS and max, over countable lamps);
 * axis error: for countable lamps at least twice as long as wide, the
@@ -43,14 +50,13 @@ from pathlib import Path
 import numpy as np
 
 from lampsam.angles import wrap_axis
-from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
-from lampsam.evaluation.gallery import load_photo
-from lampsam.evaluation.photo_labels import PhotoLabels, Region, read_labels
+from lampsam.evaluation.gallery import detect_photo, load_photo
+from lampsam.evaluation.photo_labels import PhotoLabels, Region, merge_regions, read_labels
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import LampDetections
 from lampsam.frontend.pipeline import FrontendConfig
-from lampsam.frontend.resolution import ResolutionPolicy, detect_photo_lamps
+from lampsam.frontend.resolution import ResolutionPolicy
 from lampsam.safe_io import write_text_atomic
 
 
@@ -90,6 +96,8 @@ class PhotoScore:
     n_found: int = 0
     n_small: int = 0
     n_split: int = 0
+    n_fittings: int = 0
+    n_fittings_found: int = 0
     centroid_err_px: list[float] = field(default_factory=list)
     axis_err_deg: list[float] = field(default_factory=list)
 
@@ -100,8 +108,13 @@ class PhotoScore:
 
     @property
     def recall(self) -> float:
-        """Countable lamps found / countable lamps (NaN without lamps)."""
+        """Countable lamps (modules) found / countable lamps (NaN without lamps)."""
         return self.n_found / self.n_lamps if self.n_lamps else math.nan
+
+    @property
+    def recall_fitting(self) -> float:
+        """Countable fittings found / countable fittings (NaN without fittings)."""
+        return self.n_fittings_found / self.n_fittings if self.n_fittings else math.nan
 
     def row(self) -> dict[str, object]:
         """The figures as a flat JSON-ready dict (RMS and max of the errors)."""
@@ -122,6 +135,9 @@ class PhotoScore:
             "split": self.n_split,
             "precision": self.precision,
             "recall": self.recall,
+            "fittings": self.n_fittings,
+            "fittings_found": self.n_fittings_found,
+            "recall_fitting": self.recall_fitting,
             "centroid_rms_px": rms(self.centroid_err_px),
             "centroid_max_px": max(self.centroid_err_px, default=math.nan),
             "axis_rms_deg": rms(self.axis_err_deg),
@@ -141,6 +157,8 @@ def total(scores: list[PhotoScore], name: str, use: str) -> PhotoScore:
         out.n_found += s.n_found
         out.n_small += s.n_small
         out.n_split += s.n_split
+        out.n_fittings += s.n_fittings
+        out.n_fittings_found += s.n_fittings_found
         out.centroid_err_px += s.centroid_err_px
         out.axis_err_deg += s.axis_err_deg
     return out
@@ -168,6 +186,8 @@ def score_photo(
     lamps = [r for r in regions if r.kind == "lamp"]
     others = [r for r in regions if r.kind != "lamp"]
     out = PhotoScore(labels.name, labels.use)
+    fittings = _fittings(lamps)
+    whole = [merge_regions([lamps[i] for i in f], "lamp") if len(f) > 1 else None for f in fittings]
     hits: list[list[tuple[float, float | None]]] = [[] for _ in lamps]  # (distance, theta)
     for lamp_obs, mom in zip(det.lamps, det.moments, strict=True):
         if lamp_obs.touches_border:
@@ -180,6 +200,10 @@ def score_photo(
             d = float(np.hypot(*(px - r.centre)))
             if r.contains(px, margin) and d < best_d:
                 best, best_d = i, d
+        for f, wr in zip(fittings, whole, strict=True):
+            if best < 0 and wr is not None and wr.contains(px, max(settings.margin_px, settings.margin_frac * wr.width)):
+                best = min(f, key=lambda i: float(np.hypot(*(px - lamps[i].centre))))
+                best_d = float(np.hypot(*(px - lamps[best].centre)))
         if best >= 0:
             out.n_true += 1
             theta = mom.theta if mom.ratio > config.ratio_threshold else None
@@ -201,6 +225,25 @@ def score_photo(
         out.centroid_err_px.append(d)
         if r.length >= 2.0 * r.width and theta is not None:
             out.axis_err_deg.append(abs(math.degrees(wrap_axis(theta - math.radians(r.axis_deg)))))
+    for f in fittings:
+        if all(_countable(lamps[i], w, h, config) for i in f):
+            out.n_fittings += 1
+            out.n_fittings_found += any(hits[i] for i in f)
+    return out
+
+
+def _fittings(lamps: list[Region]) -> list[list[int]]:
+    """Indices of the lamps (modules) of each fitting: by ``fitting`` number, one each without."""
+    groups: dict[int, list[int]] = {}
+    out: list[list[int]] = []
+    for i, r in enumerate(lamps):
+        if r.fitting is None:
+            out.append([i])
+        elif r.fitting in groups:
+            groups[r.fitting].append(i)
+        else:
+            groups[r.fitting] = [i]
+            out.append(groups[r.fitting])
     return out
 
 
@@ -256,7 +299,7 @@ def evaluate_photos(
         policy = ResolutionPolicy(
             width=settings.width, auto=settings.auto_width, second_look=settings.second_look
         )
-        det, cfg = detect_photo_lamps(full, _photo_camera, base.lamps, policy)
+        det, cfg = detect_photo(full, base.lamps, policy)
         h, w = det.mask.shape
         score = score_photo(det, pl, (w, h), cfg, settings)
         score.width = w
@@ -270,16 +313,11 @@ def evaluate_photos(
     return out
 
 
-def _photo_camera(width: int, height: int) -> CameraModel:
-    """The photos' camera at a working size: a 70 deg pinhole (the phone's is not known)."""
-    return CameraModel.from_fov(width, height, 70.0)
-
-
 def format_table(scores: list[PhotoScore]) -> str:
     """A text table of the scores (one line per photo or total)."""
     head = (
         f"{'photo':18s} {'use':6s} {'width':>5s} {'det':>4s} {'true':>4s} {'prec':>6s} {'lamps':>5s} "
-        f"{'found':>5s} {'recall':>6s} {'small':>5s} {'split':>5s} {'c_rms px':>8s} "
+        f"{'found':>5s} {'recall':>6s} {'fits':>5s} {'f_rec':>6s} {'small':>5s} {'split':>5s} {'c_rms px':>8s} "
         f"{'ax_rms deg':>10s}  false by kind"
     )
     lines = [head]
@@ -287,7 +325,8 @@ def format_table(scores: list[PhotoScore]) -> str:
         r = s.row()
         lines.append(
             f"{s.name:18s} {s.use:6s} {s.width or '':>5} {s.n_detections:4d} {s.n_true:4d} {s.precision:6.3f} "
-            f"{s.n_lamps:5d} {s.n_found:5d} {s.recall:6.3f} {s.n_small:5d} {s.n_split:5d} "
+            f"{s.n_lamps:5d} {s.n_found:5d} {s.recall:6.3f} {s.n_fittings:5d} {s.recall_fitting:6.3f} "
+            f"{s.n_small:5d} {s.n_split:5d} "
             f"{r['centroid_rms_px']:8.2f} {r['axis_rms_deg']:10.2f}  "
             + (", ".join(f"{k} {v}" for k, v in sorted(s.false_by_kind.items())) or "-")
         )

@@ -14,12 +14,17 @@ Every region is a rotated rectangle in the photo's full-resolution pixels
 :func:`lampsam.evaluation.gallery.load_photo` reads it): centre, long-axis
 angle in degrees (from ``+col`` towards ``+row``, the image-space ``theta`` of
 eq. 5 of paper 1), length and width in px. Kinds: ``lamp`` (one lit
-luminaire: modules joined end to end with only a seam are one lamp),
+module: the lit part of a luminaire bounded all round by unlit housing or
+ceiling; a rod or beam in front of it does not part it),
 ``lamp_fragment`` (a lit end cap or piece detached from its tube), and the
 bright regions that are not lamps: ``window``, ``skylight``, ``reflection``
 (specular highlights on ducts, sunlit or lamp-lit white surfaces), ``other``
 (signs). ``occluded``: the lamp is partly hidden (plants, beams), so its
-visible centroid is not its centre. ``use`` says whether the photo was used to
+visible centroid is not its centre. ``fitting`` (lamps only, optional int):
+lamps with the same number are modules of one fitting, mounted end to end in
+one housing or row and parted by a connector or end cap across their whole
+lit width; the evaluation counts them as modules and as one fitting
+(docs/photo-labels.md has the definition of one lamp). ``use`` says whether the photo was used to
 tune the detector (``tune``) or only to report (``report``).
 
 Tool: :func:`propose_regions` runs the lamp detector with relaxed settings
@@ -65,6 +70,8 @@ class Region:
         length: extent along the axis, px.
         width: extent across it, px.
         occluded: partly hidden (lamps only).
+        fitting: modules of one fitting share this number (lamps only; None: a
+            fitting of one module).
     """
 
     kind: RegionKind
@@ -73,6 +80,7 @@ class Region:
     length: float
     width: float
     occluded: bool = False
+    fitting: int | None = None
 
     def corners(self) -> FloatArray:
         """shape (4, 2) the rectangle's corners, px."""
@@ -137,7 +145,7 @@ def _region(raw: object, where: str) -> Region:
     """One region from its JSON object (strict: unknown keys are errors)."""
     if not isinstance(raw, dict):
         raise LampsamError(f"{where}: expected an object, got {type(raw).__name__}")
-    allowed = {"kind", "centre", "axis_deg", "length", "width", "occluded", "note"}
+    allowed = {"kind", "centre", "axis_deg", "length", "width", "occluded", "fitting", "note"}
     unknown = sorted(set(raw) - allowed)
     if unknown:
         raise LampsamError(f"{where}: unknown key(s) {unknown} (allowed: {sorted(allowed)})")
@@ -154,6 +162,9 @@ def _region(raw: object, where: str) -> Region:
     occluded = raw.get("occluded", False)
     if not isinstance(occluded, bool):
         raise LampsamError(f"{where}.occluded: expected true or false, got {occluded!r}")
+    fitting = raw.get("fitting")
+    if fitting is not None and (isinstance(fitting, bool) or not isinstance(fitting, int)):
+        raise LampsamError(f"{where}.fitting: expected an integer, got {fitting!r}")
     return Region(
         kind=cast(RegionKind, kind),
         centre=np.array([_number(c, f"{where}.centre") for c in centre]),
@@ -161,6 +172,7 @@ def _region(raw: object, where: str) -> Region:
         length=length,
         width=width,
         occluded=occluded,
+        fitting=fitting,
     )
 
 
@@ -228,6 +240,8 @@ def write_labels(labels: dict[str, PhotoLabels], path: str | Path) -> None:
             }
             if r.occluded:
                 obj["occluded"] = True
+            if r.fitting is not None:
+                obj["fitting"] = r.fitting
             lines.append("      " + json.dumps(obj) + ("," if j + 1 < len(pl.regions) else ""))
         lines.append("    ]}" + ("," if i + 1 < len(names) else ""))
     lines += ["  }", "}", ""]

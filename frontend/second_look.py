@@ -11,10 +11,13 @@ through the same detector (:func:`lampsam.frontend.lamps.measure_blobs`: the
 same size, dimness, contrast, crowding and glare tests). The blob is replaced
 by the fine blobs inside it only when they are two or more lamps each at least
 ``min_part_ratio`` of the frame's median lamp length (a lit fragment of a
-tube is not a lamp); otherwise it is kept as it was. Only blobs at least
-``long_ratio`` times the frame's median lamp length get the second look
-(a merged pair is the sum of two lamps), so the cost stays a few crops per
-photo.
+tube is not a lamp), or, for a blob cut by the image border, when one such
+lamp lies inside it clear of the border (the cut neighbour it was merged with
+is too short or too small to pass at the fine scale; a cut blob is dropped,
+so without this the whole lamp would be lost); otherwise it is kept as it
+was. Only blobs at least ``long_ratio`` times the frame's median lamp
+length, or cut by the border, get the second look (a merged pair is the sum
+of two lamps), so the cost stays a few crops per photo.
 
 Pixels: the coarse image is the fine one resized by ``1/f`` with area
 averaging (``cv2.INTER_AREA``); a fine pixel centre ``x_f`` lies at
@@ -187,7 +190,10 @@ def second_look(
             # edges lie a reach beyond the blob, so a part at an edge is at the image's.
             border = q.touches_border and moments[i].touches_border
             parts.append(scale_moments(replace(q, centroid=np.array([xf, yf])), f, border))
-        if len(parts) >= 2:
+        if len(parts) >= 2 or (
+            # a cut blob is dropped: one whole lamp clear of the border inside it is kept
+            moments[i].touches_border and len(parts) == 1 and not parts[0].touches_border
+        ):
             parts_of[i] = parts
     out: list[BlobMoments] = []
     for i, m in enumerate(moments):

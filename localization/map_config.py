@@ -1,6 +1,6 @@
 """Configuration of the environment map build: depth grid, laser grid, SIFT layer.
 
-Frozen dataclasses with documented defaults (STYLE.md sec. 5); ``cli.py`` fills
+Frozen dataclasses with documented defaults (STYLE.md sec. 5); the CLI (``commands/``) fills
 them from a TOML ``[envmap]`` table and passes them to ``build_map``.
 """
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -254,23 +254,16 @@ def filter_stage(
     angles = beam_angles()[:: fc.beam_step]
     ranges = scan[:: fc.beam_step]
     recheck = fc.recheck_modes > 0
-    first_modes = np.zeros((0, 3))
-    converged = False
-    n_updates = 0
-    while n_updates < fc.max_updates:
-        n_updates += 1
-        pf.update(ranges, angles)
-        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
-             update=n_updates)
-        if n_updates == 1:
-            first_modes = distinct_modes(
-                pf.particles, pf.log_weights, max(fc.recheck_modes, FIRST_MODES),
-                fc.mode_separation,
-            )  # fmt: skip
-        if pf.converged():
-            converged = True
-            break
-        pf.resample()
+    first: list[FloatArray] = []
+
+    def after_update(n: int) -> None:
+        if n == 1:
+            first.append(distinct_modes(pf.particles, pf.log_weights,
+                                        max(fc.recheck_modes, FIRST_MODES), fc.mode_separation))
+
+    n_updates, converged = update_until_converged(pf, ranges, angles, fc.max_updates,
+                                                  after_update)
+    first_modes = first[0] if first else np.zeros((0, 3))
     log.info("filter: %d updates, %d particles, converged %s", n_updates, pf.n, converged)
     if recheck:
         best = mode_estimate(pf.particles, pf.log_weights)
@@ -286,6 +279,40 @@ def filter_stage(
         )
         n_updates += n_more
     return pf, n_updates, converged, first_modes
+
+
+def update_until_converged(
+    pf: ParticleFilter,
+    ranges: FloatArray,
+    angles: FloatArray,
+    max_updates: int,
+    after_update: Callable[[int], None] | None = None,
+) -> tuple[int, bool]:
+    """Update ``pf`` on one scan until it converges, resampling in between.
+
+    Each update is published (``localize.particles``, :mod:`lampsam.observe`) and
+    handed to ``after_update(n)`` (n = 1, 2, ...) before the convergence test.
+
+    Args:
+        pf: the filter, initialised.
+        ranges, angles: (B,) the scan's used beams (m, NaN = no return; rad).
+        max_updates: at most this many updates.
+
+    Returns:
+        The number of updates, converged or not.
+    """
+    n_updates = 0
+    while n_updates < max_updates:
+        n_updates += 1
+        pf.update(ranges, angles)
+        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
+             update=n_updates)
+        if after_update is not None:
+            after_update(n_updates)
+        if pf.converged():
+            return n_updates, True
+        pf.resample()
+    return n_updates, False
 
 
 def distinct_modes(
@@ -353,17 +380,7 @@ def recheck_modes(
     pf.init_candidates(
         [(m, fc.recheck_radius) for m in modes], fc.recheck_particles, config.candidates.sigma_theta
     )
-    converged = False
-    n_updates = 0
-    while n_updates < fc.max_updates:
-        n_updates += 1
-        pf.update(ranges, angles)
-        emit("localize.particles", particles=pf.particles, log_weights=pf.log_weights,
-             update=n_updates)
-        if pf.converged():
-            converged = True
-            break
-        pf.resample()
+    n_updates, converged = update_until_converged(pf, ranges, angles, fc.max_updates)
     log.info(
         "re-check of %d modes by ray casting: %d updates, converged %s",
         len(modes),

@@ -155,3 +155,43 @@ def test_detect_photo_lamps_policy_end_to_end() -> None:
     auto, _ = detect_photo_lamps(full, cam, DEFAULT_CONFIG, ResolutionPolicy(second_look=False))
     # lamps 40 px wide at full resolution are 8 px at 320: the rule asks for 10 px -> 400 px
     assert auto.mask.shape == (300, 400)
+
+
+def _border_row(rng: np.random.Generator, stub: tuple[int, int]) -> np.ndarray:
+    """Two short lamps, and a 360 x 40 px lamp 2 px from a neighbour that the left border cuts.
+
+    ``stub``: ``(visible length, height)`` px of the cut neighbour at x = 0 (rows centred
+    on the row's 800).
+    """
+    w, h = FULL
+    img = np.full((h, w), 120.0)
+    img[300:340, 300:500] = 250.0
+    img[300:340, 1000:1200] = 250.0
+    ln, ht = stub
+    img[800 - ht // 2 : 800 + ht // 2, 0:ln] = 250.0
+    img[780:820, ln + 2 : ln + 362] = 250.0
+    img = cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0.0, 2.0, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("stub", [(60, 40), (4, 30)])
+def test_a_lamp_merged_with_a_border_cut_neighbour_is_kept(stub: tuple[int, int]) -> None:
+    """The border blob (cut neighbour + lamp) is dropped at 320 px; the look keeps the lamp.
+
+    (60, 40): the cut piece is found at full resolution but is shorter than half a lamp
+    (the border cut it); (4, 30): it is below the minimum area at full resolution. Either
+    way the lamp is the one whole part clear of the border, and it replaces the cut blob.
+    """
+    full = _border_row(np.random.default_rng(6), stub)
+    moments, k, mask = _coarse(full)
+    assert len(moments) == 3 and sum(m.touches_border for m in moments) == 1  # merged, cut
+    out, n_split = second_look(
+        full, 5.0, moments, mask, k, lamp_config_for_width(DEFAULT_CONFIG, FULL[0])
+    )
+    assert n_split == 1
+    inner = [m for m in out if not m.touches_border]
+    assert len(inner) == 3
+    lamp = max(inner, key=lambda m: m.sigma1)
+    x_full = stub[0] + 2 + 179.5  # the lamp's centre, full-resolution px
+    assert lamp.centroid[0] == pytest.approx((x_full + 0.5) / 5 - 0.5, abs=0.2)
+    assert SQRT12 * lamp.sigma1 == pytest.approx(72.0, rel=0.05)
