@@ -7,8 +7,9 @@ Usage::
     lampsam simulate lab_day2 --out DAY2 --seed 2
     python scripts/bench/bench_localize_only.py --map MAP DAY2 [DAY3 ...] [--repeats 3]
 
-``--map`` may be given more than once (maps of separate drives, merged by
-:func:`lampsam.backend.map_merge.merge_maps`). For every run the frames are made once
+``--map`` may be given more than once: the maps of separate drives, merged by
+:func:`lampsam.backend.map_merge.merge_maps`, or with ``--each-map`` each tracked on
+its own (SLAM from scratch then runs once per run, not once per map). For every run the frames are made once
 (the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
 (:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
 ``localize-consider``: ``LocalizeConfig.map_mode``; with a version-2 map also
@@ -25,9 +26,15 @@ time is not included (it is the same for every method).
 
 The map lives in the mapping run's frame, a few millimetres and hundredths of a
 degree off the truth's; localize-only tracks in the map's frame. ``in map frame``
-is its error after moving the poses by the rigid transform from the map's frame to
-the truth's, fitted on the lamps (:func:`map_to_truth`): what is left is the
-tracking's own error.
+is its error after moving the poses by the SE(2) transform from the map's frame to
+the truth's, fitted on the map's landmarks against the true ones
+(:func:`lampsam.evaluation.map_alignment.map_to_truth`; never on the trajectory):
+what is left is the tracking's own error. SLAM from scratch is read the same two
+ways, its ``in map frame`` fitted on the landmarks of its own result. ``online`` is
+the error of each step's estimate as the backend returned it (what a robot has at
+that moment): localize-only is a causal filter, so its online and final poses are
+the same; the smoothers' final poses are hindsight (the batch backend's online pass
+is iSAM2's). Figures: docs/ceiling-map.md.
 """
 
 from __future__ import annotations
@@ -57,59 +64,35 @@ from lampsam.backend.slam import (
     start_pose_of,
 )
 from lampsam.datasets.logrun import LoggedRun, read_run
+from lampsam.evaluation.map_alignment import MapAlignment, map_to_truth, transform_poses
 
 
-def map_to_truth(cmap: CeilingMap, run: LoggedRun) -> tuple[FloatArray, float, int] | None:
-    """The rigid 2-D transform taking the map's frame to the truth's, fitted on the lamps.
-
-    Each map lamp is paired with the nearest true lamp (within 0.1 m); the fit is the
-    least-squares rotation and translation (Kabsch). Returns ``((3,) x, y, theta of
-    truth_T_map, the residual lamp RMS in m, lamps used)`` or None without truth.
-    """
-    if run.landmarks is None:
+def fit_frame(xy: FloatArray, kinds: list[str], run: LoggedRun) -> MapAlignment | None:
+    """The map-to-truth transform of landmarks ``xy`` (L, 2) of ``kinds``, or None
+    without truth (or fewer than 3 landmarks paired with it)."""
+    if run.landmarks is None or len(xy) == 0:
         return None
-    is_lamp = np.array([t.startswith("lamp") for t in run.landmarks.types])
-    truth = run.landmarks.xyz[is_lamp, :2]
-    pairs = []
-    for lm in cmap.by_kind("lamp"):
-        d = np.linalg.norm(truth - lm.position[:2], axis=1)
-        if len(d) and d.min() < 0.1:
-            pairs.append((lm.position[:2], truth[int(np.argmin(d))]))
-    if len(pairs) < 2:
-        return None
-    a = np.array([p for p, _ in pairs])
-    b = np.array([q for _, q in pairs])
-    ca, cb = a.mean(0), b.mean(0)
-    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
-    rot = (u @ vt).T
-    if np.linalg.det(rot) < 0:
-        return None
-    t = cb - rot @ ca
-    res = (rot @ a.T).T + t - b
-    theta = float(np.arctan2(rot[1, 0], rot[0, 0]))
-    return np.array([t[0], t[1], theta]), float(np.sqrt(np.mean(np.sum(res**2, 1)))), len(pairs)
+    return map_to_truth(xy, kinds, run.landmarks.xyz[:, :2], list(run.landmarks.types))
 
 
-def in_truth_frame(poses: FloatArray, truth_t_map: FloatArray) -> FloatArray:
-    """Map-frame poses (N, 3) expressed in the truth's frame."""
-    c, s = math.cos(truth_t_map[2]), math.sin(truth_t_map[2])
-    out = np.empty_like(poses)
-    out[:, 0] = truth_t_map[0] + c * poses[:, 0] - s * poses[:, 1]
-    out[:, 1] = truth_t_map[1] + s * poses[:, 0] + c * poses[:, 1]
-    out[:, 2] = poses[:, 2] + truth_t_map[2]
-    return out
+def map_frame_fit(cmap: CeilingMap, run: LoggedRun) -> MapAlignment | None:
+    """The saved map's frame against the truth (its landmarks as saved)."""
+    return fit_frame(np.array([lm.position[:2] for lm in cmap.landmarks]).reshape(-1, 2),
+                     [lm.kind for lm in cmap.landmarks], run)
 
 
 def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
-              truth_t_map: FloatArray | None = None) -> dict[str, float]:
-    """Step a backend through the run; errors and CPU times (``truth_t_map``: also the
-    error after taking the poses from the map's frame to the truth's)."""
-    step_cpu, has_frame = [], []
+              frame_fit: MapAlignment | None = None) -> dict[str, float]:
+    """Step a backend through the run; errors and CPU times, and the error in the map's
+    frame: the poses moved by ``frame_fit`` (a saved map's) or, without it, by the fit
+    of the result's own landmarks (SLAM from scratch)."""
+    step_cpu, has_frame, online = [], [], []
     for t, wheel, frame in iter_steps(run.odometry, frames):
         c0 = time.process_time()
-        backend.step(t, wheel, frame)
+        est = backend.step(t, wheel, frame)
         step_cpu.append(time.process_time() - c0)
         has_frame.append(frame is not None)
+        online.append(est.pose)
     c0 = time.process_time()
     result = backend.finish()
     finish_cpu = time.process_time() - c0
@@ -117,16 +100,29 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
     if truth is None:
         raise SystemExit(f"{run.path}: no groundtruth.tum: nothing to measure the error against")
     pos, head = errors_vs_truth(result, truth)
-    in_map = float("nan")
-    if truth_t_map is not None:
-        moved = dataclasses.replace(result, poses=in_truth_frame(result.poses, truth_t_map))
+    as_online = dataclasses.replace(result, poses=np.asarray(online, dtype=np.float64).reshape(-1, 3))
+    if len(as_online.poses) != len(result.times):
+        raise SystemExit(f"{run.path}: {len(result.times)} result poses for {len(online)} steps")
+    pos_on, _ = errors_vs_truth(as_online, truth)
+    in_map = in_map_on = float("nan")
+    if frame_fit is None:
+        own = [lm for lm in result.landmarks if lm.type in ("lamp", "corner")]
+        frame_fit = fit_frame(np.array([lm.position[:2] for lm in own]).reshape(-1, 2),
+                              [str(lm.type) for lm in own], run)
+    if frame_fit is not None:
+        moved = dataclasses.replace(result, poses=transform_poses(frame_fit.truth_T_map, result.poses))
         pos_m, _ = errors_vs_truth(moved, truth)
         in_map = 1e3 * float(np.sqrt(np.mean(pos_m**2)))
+        moved = dataclasses.replace(result, poses=transform_poses(frame_fit.truth_T_map, as_online.poses))
+        pos_m, _ = errors_vs_truth(moved, truth)
+        in_map_on = 1e3 * float(np.sqrt(np.mean(pos_m**2)))
     cpu = np.asarray(step_cpu)
     n_frames = max(int(np.sum(has_frame)), 1)
     return {"pos_rms_mm": 1e3 * float(np.sqrt(np.mean(pos**2))),
             "pos_max_mm": 1e3 * float(pos.max()),
             "pos_rms_map_frame_mm": in_map,
+            "online_rms_mm": 1e3 * float(np.sqrt(np.mean(pos_on**2))),
+            "online_rms_map_frame_mm": in_map_on,
             "head_rms_deg": float(np.degrees(np.sqrt(np.mean(head**2)))),
             "frame_median_ms": 1e3 * float(np.median(cpu[np.asarray(has_frame)])),
             "per_frame_ms": 1e3 * (float(cpu.sum()) + finish_cpu) / n_frames,
@@ -146,74 +142,106 @@ def localize_config(method: str) -> LocalizeConfig:
     return LocalizeConfig(map_mode=mode)  # type: ignore[arg-type]
 
 
+def load_maps(paths: list[str], each: bool) -> list[tuple[str, CeilingMap]]:
+    """``(label, map)`` per map with ``each``, else one map merged from all."""
+    if each:
+        return [(os.path.basename(os.path.normpath(p)), read_map(p)) for p in paths]
+    cmap = read_map(paths[0])
+    for more in paths[1:]:
+        cmap, counts = merge_maps(cmap, read_map(more))
+        print(f"merged {more}: {counts}")
+    return [("+".join(os.path.basename(os.path.normpath(p)) for p in paths), cmap)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run directories (e.g. lab_day2 simulations)")
     ap.add_argument("--map", required=True, action="append",
                     help="ceiling map folder (slam --save-map); repeat to merge maps")
+    ap.add_argument("--each-map", action="store_true",
+                    help="track every --map on its own instead of merging them")
+    ap.add_argument("--modes", default="fixed,priors,consider,frame,priors-frame",
+                    help="localize-only variants: fixed, priors, consider, frame (the map "
+                         "frame's offset state, version-2 maps only), priors-frame, consider-frame")
     ap.add_argument("--frames", default="images", choices=("images", "truth"))
     ap.add_argument("--backends", default="isam2,batch,ekf", help="SLAM from scratch backends")
     ap.add_argument("--reference", default="isam2", help="method the ratios divide by")
     ap.add_argument("--repeats", type=int, default=3, help="runs per method (timing median)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    cmap = read_map(args.map[0])
-    for more in args.map[1:]:
-        cmap, counts = merge_maps(cmap, read_map(more))
-        print(f"merged {more}: {counts}")
+    maps = load_maps(args.map, args.each_map)
     config = SlamConfig()
     config = dataclasses.replace(config, isam2=dataclasses.replace(config.isam2,
                                                                    final_covariances=False))
     load = os.getloadavg()
-    print(f"map {args.map}: {len(cmap.by_kind('lamp'))} lamps, {len(cmap.by_kind('corner'))} "
-          f"corners; frames {args.frames}; repeats {args.repeats}; load average "
+    for label, cmap in maps:
+        print(f"map {label}: {len(cmap.by_kind('lamp'))} lamps, {len(cmap.by_kind('corner'))} "
+              f"corners, frame model {'yes' if cmap.frame is not None else 'no'}")
+    print(f"frames {args.frames}; repeats {args.repeats}; load average "
           f"{load[0]:.1f} {load[1]:.1f} {load[2]:.1f} (2 cores)")
-    methods = ["localize", "localize-priors", "localize-consider",
-               *(["localize-frame", "localize-priors-frame"] if cmap.frame is not None else []),
-               *[b for b in args.backends.split(",") if b]]
-    rows: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
+    modes = [m for m in args.modes.split(",") if m]
+    methods: list[tuple[str, CeilingMap | None, str]] = []
+    for label, cmap in maps:
+        prefix = f"{label}: " if len(maps) > 1 else ""
+        for mode in modes:
+            if "frame" in mode.split("-") and cmap.frame is None:
+                continue
+            name = "localize" if mode == "fixed" else f"localize-{mode}"
+            methods.append((prefix + name, cmap, name))
+    methods += [(b, None, b) for b in args.backends.split(",") if b]
+    rows: dict[str, list[dict[str, float]]] = {m: [] for m, _, _ in methods}
     for run_dir in args.runs:
         run = read_run(run_dir)
         made, _ = make_frames(run, args.frames)
         frames = list(made)
         start = start_pose_of(run)
-        frame_fit = map_to_truth(cmap, run)
+        fits = {label: map_frame_fit(cmap, run) for label, cmap in maps}
         figures: dict[str, dict[str, float]] = {}
-        for m in methods:
+        for m, on_map, kind in methods:
+            fit = next((fits[label] for label, c in maps if c is on_map), None)
             reps = []
             for _ in range(args.repeats):
-                if m.startswith("localize"):
+                if on_map is not None:
                     be: SlamBackend = MapLocalizer(
-                        run.rig.odometry, config, start, cmap,
-                        CeilingModel.from_camera(run.rig.camera), localize_config(m))
+                        run.rig.odometry, config, start, on_map,
+                        CeilingModel.from_camera(run.rig.camera), localize_config(kind))
                 else:
-                    be = make_backend(m, run.rig.odometry, config, start, run.rig.camera)
-                reps.append(timed_run(be, run, frames, frame_fit[0] if frame_fit and
-                                      m.startswith("localize") else None))
+                    be = make_backend(kind, run.rig.odometry, config, start, run.rig.camera)
+                reps.append(timed_run(be, run, frames, fit))
             fig = {k: float(np.median([r[k] for r in reps])) for k in reps[0]}
             figures[m] = fig
             rows[m].append(fig)
         ref = figures.get(args.reference)
         print(f"\n{run_dir} ({len(frames)} frames)")
-        if frame_fit is not None:
-            x, y, th = frame_fit[0]
-            print(f"map frame vs truth (fit on {frame_fit[2]} lamps): dx {1e3 * x:.1f} mm, dy "
-                  f"{1e3 * y:.1f} mm, dtheta {math.degrees(th):.3f} deg; lamp residual "
-                  f"{1e3 * frame_fit[1]:.1f} mm RMS")
-        print("| method | pos RMS mm | in map frame | pos max mm | head RMS deg | "
-              "CPU/frame median ms | x ref | CPU/frame mean incl. final ms | x ref |")
-        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+        for label, fit in fits.items():
+            if fit is not None:
+                x, y, th = fit.truth_T_map
+                print(f"map {label} frame vs truth (fit on {fit.n_pairs} landmarks, {fit.n_lamps} "
+                      f"lamps): dx {1e3 * x:.2f} mm, dy {1e3 * y:.2f} mm, dtheta "
+                      f"{1e3 * math.degrees(th):.1f} mdeg; landmark residual "
+                      f"{1e3 * fit.residual_rms_m:.1f} mm RMS")
+        print("| method | pos RMS mm | in map frame mm | online RMS mm | online in map frame mm "
+              "| pos max mm | head RMS deg | CPU/frame median ms | x ref | CPU/frame mean incl. "
+              "final ms | x ref |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
         for m, f in figures.items():
             r1 = f["frame_median_ms"] / ref["frame_median_ms"] if ref else float("nan")
             r2 = f["per_frame_ms"] / ref["per_frame_ms"] if ref else float("nan")
-            print(f"| {m} | {f['pos_rms_mm']:.1f} | {f['pos_rms_map_frame_mm']:.1f} | {f['pos_max_mm']:.1f} | {f['head_rms_deg']:.3f} "
-                  f"| {f['frame_median_ms']:.2f} | {r1:.3f} | {f['per_frame_ms']:.2f} | {r2:.3f} |")
+            print(f"| {m} | {f['pos_rms_mm']:.2f} | {f['pos_rms_map_frame_mm']:.2f} | {f['online_rms_mm']:.2f} "
+                  f"| {f['online_rms_map_frame_mm']:.2f} | {f['pos_max_mm']:.1f} "
+                  f"| {f['head_rms_deg']:.3f} | {f['frame_median_ms']:.2f} | {r1:.3f} "
+                  f"| {f['per_frame_ms']:.2f} | {r2:.3f} |")
     if len(args.runs) > 1:
-        print("\nmean over runs")
-        for m, fs in rows.items():
-            print(f"{m}: pos RMS {np.mean([f['pos_rms_mm'] for f in fs]):.1f} mm, CPU/frame median "
-                  f"{np.mean([f['frame_median_ms'] for f in fs]):.2f} ms, mean incl. final "
-                  f"{np.mean([f['per_frame_ms'] for f in fs]):.2f} ms")
+        for key, what in (("", "final"), ("online_", "online")):
+            print(f"\n{what} position RMS mm, world frame / map frame, per run ("
+                  + ", ".join(args.runs) + ")")
+            k_w = f"{key}rms_mm" if key else "pos_rms_mm"
+            k_m = f"{key}rms_map_frame_mm" if key else "pos_rms_map_frame_mm"
+            for m, fs in rows.items():
+                cells = " | ".join(f"{f[k_w]:.2f} / {f[k_m]:.2f}" for f in fs)
+                print(f"| {m} | {cells} | mean {np.mean([f[k_w] for f in fs]):.2f} / "
+                      f"{np.mean([f[k_m] for f in fs]):.2f} | CPU/frame mean "
+                      f"{np.mean([f['per_frame_ms'] for f in fs]):.2f} ms |")
 
 
 if __name__ == "__main__":
