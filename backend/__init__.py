@@ -26,6 +26,7 @@ Modules:
 * :mod:`~lampsam.backend.ekf_joint` -- Joint compatibility (JCBB) for the EKF's planar observations without ids (eqs. 19-20).
 * :mod:`~lampsam.backend.ekf_landmarks` -- Landmark book-keeping of the EKF state (:class:`lampsam.backend.ekf.EkfSlam`): each
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
+* :mod:`~lampsam.backend.fixed_lag` -- Fixed-lag smoothing for the online iSAM2 backend (``[isam2] fixed_lag``, keyframes).
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
 * :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
 * :mod:`~lampsam.backend.graph` -- Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
@@ -42,12 +43,15 @@ Modules:
 * :mod:`~lampsam.backend.map_merge` -- Merge ceiling maps of the same floor made on separate mapping drives.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
 * :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.
+* :mod:`~lampsam.backend.odometry_scale` -- Online odometry noise scale by covariance matching on landmark innovations.
 * :mod:`~lampsam.backend.pipelined` -- Frontend and estimator overlapped: ceiling frames made ahead in a worker.
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
+* :mod:`~lampsam.backend.reassociate` -- Batch association without ids: re-associate every sighting against the optimised map.
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
 * :mod:`~lampsam.backend.stereo` -- Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.
 * :mod:`~lampsam.backend.stereo_kitti` -- Stereo two-point relative pose on real KITTI images: pair selection and check.
+* :mod:`~lampsam.backend.tracking` -- Tracking decoupled from mapping: per-frame poses from odometry, keyframe work in a worker.
 """
 
 from lampsam._lazy import lazy_exports
