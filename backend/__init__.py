@@ -24,7 +24,7 @@ Modules:
 * :mod:`~lampsam.backend.dense_log` -- Known-id fast path of the smoothers over a planar landmark log, one step per pose.
 * :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
 * :mod:`~lampsam.backend.ekf_joint` -- Joint compatibility (JCBB) for the EKF's planar observations without ids (eqs. 19-20).
-* :mod:`~lampsam.backend.ekf_landmarks` -- Landmark book-keeping of the EKF state (:class:`lampsam.backend.ekf.EkfSlam`): each
+* :mod:`~lampsam.backend.ekf_landmarks` -- Landmark book-keeping of the EKF state.
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
 * :mod:`~lampsam.backend.fixed_lag` -- Fixed-lag smoothing for the online iSAM2 backend (``[isam2] fixed_lag``, keyframes).
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).

@@ -1,5 +1,6 @@
-"""Landmark book-keeping of the EKF state (:class:`lampsam.backend.ekf.EkfSlam`): each
-landmark's slot in ``x``/``P``, the amortised pruning test (paper 1, sec. IV: landmarks
+"""Landmark book-keeping of the EKF state.
+
+For :class:`lampsam.backend.ekf.EkfSlam`: each landmark's slot in ``x``/``P``, the amortised pruning test (paper 1, sec. IV: landmarks
 seen once long ago, or still uncertain after a while) and the removal of landmarks'
 rows and columns from ``x`` and ``P``.
 """
