@@ -376,7 +376,7 @@ def _finish(plan: LogPlan, g: GraphLog, config: SlamConfig, backend: str,
     assoc = config.association
     drop = {lid for lid, c in n_obs.items() if c < assoc.min_observations}
     pruned = {"seen_too_few": len(drop)} if drop else {}
-    log_pruned(len(drop), pruned, assoc.min_observations)
+    log_pruned(len(drop), pruned, assoc.min_observations, not assoc.prune_once_seen)
     t0 = time.perf_counter()
     source = backend
     marginal: MarginalSource | None

@@ -605,7 +605,7 @@ class EkfSlam(SlamBackend):
                 self._provisional.extend(self._estimate(self._slots[lid]) for lid in once)
         self._remove(sorted(set(once) | self._doomed))
         self._doomed.clear()
-        log_pruned(self.n_pruned, self.pruned, self.config.association.min_observations)
+        log_pruned(self.n_pruned, self.pruned, cfg.min_observations, not cfg.prune_once_seen)
         return SlamResult(
             backend=self.name,
             times=np.asarray(self._times, float),

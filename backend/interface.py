@@ -222,11 +222,23 @@ PRUNE_REASONS = {
 """What each key of :attr:`SlamResult.pruned` means (the finish log line uses these words)."""
 
 
-def log_pruned(total: int, by_reason: dict[str, int], min_obs: int) -> None:
-    """One warning giving the pruned-landmark count of ``summary.json`` and its breakdown."""
+def log_pruned(total: int, by_reason: dict[str, int], min_obs: int,
+               once_seen_kept: bool = False) -> None:
+    """One warning giving the pruned-landmark count of ``summary.json`` and its breakdown.
+
+    ``once_seen_kept``: the landmarks seen too few times are not dropped but written
+    apart, flagged ``seen_once`` (``association.prune_once_seen`` false), and the
+    warning says so, so that it agrees with ``landmarks.csv``.
+    """
     if total <= 0:
         return
-    parts = [f"{n} {PRUNE_REASONS.get(k, k).format(min_obs=min_obs)}"
-             for k, n in sorted(by_reason.items()) if n]
+    parts = []
+    for k, n in sorted(by_reason.items()):
+        if not n:
+            continue
+        text = PRUNE_REASONS.get(k, k).format(min_obs=min_obs)
+        if k == "seen_too_few" and once_seen_kept:
+            text += " (kept in landmarks.csv, flagged seen_once)"
+        parts.append(f"{n} {text}")
     logging.getLogger("lampsam.backend").warning(
         "%d landmarks pruned from the map: %s", total, "; ".join(parts))

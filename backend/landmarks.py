@@ -273,7 +273,7 @@ class LandmarkLifecycle(GraphState):
         self.n_pruned += len(drop)
         if drop:
             self.pruned["seen_too_few"] = self.pruned.get("seen_too_few", 0) + len(drop)
-        log_pruned(self.n_pruned, self.pruned, cfg.min_observations)
+        log_pruned(self.n_pruned, self.pruned, cfg.min_observations, not cfg.prune_once_seen)
         return drop
 
 

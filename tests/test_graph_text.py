@@ -128,19 +128,24 @@ def test_cli_slam_on_a_text_log(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 
 @pytest.mark.parametrize("name", ["ekf", "isam2"])
-def test_landmark_seen_once_stays_in_the_written_map_flagged(name: str, tmp_path: Path) -> None:
+def test_landmark_seen_once_stays_in_the_written_map_flagged(
+        name: str, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     p = tmp_path / "log.txt"
     p.write_text(ISAM + "BR 3 8 -0.5 4.0 0.05 0.2\n")
     out = tmp_path / "out"
     assert main(["slam", str(p), "--backend", name, "--out", str(out)]) == 0
+    # the warning agrees with the written map: the landmark is kept, flagged
+    assert "1 seen fewer than 2 times (kept in landmarks.csv, flagged seen_once)" in caplog.text
     rows = (out / "landmarks.csv").read_text().splitlines()
     assert rows[0].endswith(",flag")
     flags = {r.split(",")[0]: r.split(",")[-1] for r in rows[1:]}
     assert flags == {"7": "", "8": "seen_once"}
     g = read_graph_text(p)
     cfg = SlamConfig(association=AssociationConfig(prune_once_seen=True))
+    caplog.clear()
     res = run_graph_log(g, name, cfg)
     assert [lm.id for lm in res.landmarks] == [7] and res.provisional == []
+    assert "1 seen fewer than 2 times" in caplog.text and "kept" not in caplog.text
 
 
 @pytest.mark.parametrize("confirm", [1, 3])
