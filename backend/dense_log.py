@@ -44,7 +44,7 @@ from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.graph import STEP_FLOOR, batch_lm
+from lampsam.backend.graph import STEP_FLOOR, batch_lm, final_source
 from lampsam.backend.handlers import MarginalSource
 from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, SlamResult, log_pruned
 from lampsam.backend.models import init_point2, landmark_estimate
@@ -378,7 +378,6 @@ def _finish(plan: LogPlan, g: GraphLog, config: SlamConfig, backend: str,
     pruned = {"seen_too_few": len(drop)} if drop else {}
     log_pruned(len(drop), pruned, assoc.min_observations, not assoc.prune_once_seen)
     t0 = time.perf_counter()
-    source = backend
     marginal: MarginalSource | None
     try:
         if backend == "isam2":
@@ -391,10 +390,7 @@ def _finish(plan: LogPlan, g: GraphLog, config: SlamConfig, backend: str,
         log.error("final optimisation failed (%s): keeping the online estimates", exc)
         values, marginal, fallback = initial, None, None
         status = status if status.startswith("failed") else f"failed: {exc}"
-    if fallback is not None:  # the result is the online smoother's: say so
-        source = "isam2"
-        if status == "ok":
-            status = f"final optimisation failed: {fallback}"
+    source, status = final_source(backend, status, fallback)
     final_time = time.perf_counter() - t0
     kf_pose = [pose_array(values.atPose2(X(k))) if values.exists(X(k)) else predicted[k]
                for k in range(done + 1)]

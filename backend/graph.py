@@ -244,17 +244,13 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
         """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
         pruned = set(self._prune_once_seen())
         t0 = time.perf_counter()
-        source = self.name
         try:
             values, marginal, fallback = self._final_values()
         except (RuntimeError, EstimationError) as exc:  # a broken graph: keep the online poses
             log.error("final optimisation failed (%s): keeping the online estimates", exc)
             values, marginal, fallback = self.initial, None, None
             status = status if status.startswith("failed") else f"failed: {exc}"
-        if fallback is not None:  # the result is the online smoother's: say so
-            source = "isam2"
-            if status == "ok":
-                status = f"final optimisation failed: {fallback}"
+        source, status = final_source(self.name, status, fallback)
         final_time = time.perf_counter() - t0
         n_kf = self._k + 1
         kf_pose = np.array([pose_array(values.atPose2(X(k))) if values.exists(X(k))
@@ -363,6 +359,17 @@ class BatchSlam(GraphSlam):
         if revised is not None:  # without ids, the association revised offline
             start = revised
         return batch_lm(self.graph, start, self.config.batch, self.isam)
+
+
+def final_source(name: str, status: str, fallback: str | None) -> tuple[str, str]:
+    """The result's ``(source, status)`` after the final optimisation.
+
+    ``fallback`` is :func:`batch_lm`'s reason when the estimate is the online iSAM2
+    one: the result is then labelled ``isam2`` and a run that was ``ok`` says why.
+    """
+    if fallback is None:
+        return name, status
+    return "isam2", (f"final optimisation failed: {fallback}" if status == "ok" else status)
 
 
 def batch_lm(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, config: BatchConfig,
