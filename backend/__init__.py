@@ -30,6 +30,7 @@ Modules:
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
 * :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
 * :mod:`~lampsam.backend.graph` -- Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
+* :mod:`~lampsam.backend.graph_log` -- SLAM on a graph text log (iSAM ``ODOMETRY``/``LANDMARK``, g2o; e.g. GTSAM's
 * :mod:`~lampsam.backend.graph_state` -- The state a factor-graph backend keeps, and the primitives every part of it uses.
 * :mod:`~lampsam.backend.handlers` -- How a landmark kind lives in the factor graph: the handler protocol and its record.
 * :mod:`~lampsam.backend.interface` -- One interface for the three SLAM backends (``ekf``, ``isam2``, ``batch``).

@@ -1,6 +1,6 @@
 """Known-id fast path of the smoothers over a planar landmark log, one step per pose.
 
-:func:`lampsam.backend.slam.run_graph_log` on a log whose landmark ids are known
+:func:`lampsam.backend.graph_log.run_graph_log` on a log whose landmark ids are known
 (GTSAM/iSAM/g2o text files, MRCLAM turned into a graph log) makes the same graph
 and the same estimate as :class:`lampsam.backend.graph.Isam2Slam` /
 :class:`~lampsam.backend.graph.BatchSlam` stepped by

@@ -175,7 +175,8 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
     """``lampsam slam FILE``: an iSAM / g2o text log, one step per pose."""
     import numpy as np
 
-    from lampsam.backend.slam import run_graph_log, summary, write_landmarks, write_trajectory
+    from lampsam.backend.graph_log import run_graph_log
+    from lampsam.backend.slam import summary, write_landmarks, write_trajectory
     from lampsam.datasets.graph_text import read_graph_text, read_vertices
     from lampsam.datasets.logrun import Trajectory
     from lampsam.errors import DatasetError

@@ -17,9 +17,10 @@ import pytest
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.dense_log import plan_log, run_known_ids, single_sample_relative
+from lampsam.backend.graph_log import graph_log_steps, run_graph_log
 from lampsam.backend.interface import SlamResult
 from lampsam.backend.odometry import Pose2Motion
-from lampsam.backend.slam import drive, graph_log_steps, make_backend, run_graph_log
+from lampsam.backend.slam import drive, make_backend
 from lampsam.datasets.graph_text import GraphLog, Sighting, read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 from lampsam.datasets.odometry import Pose2OdometryLog, Pose2OdometryModel

@@ -18,12 +18,13 @@ from gtsam.symbol_shorthand import X
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph import Isam2Slam
+from lampsam.backend.graph_log import graph_log_steps, run_graph_log
 from lampsam.backend.handlers import GraphLandmark, Point2Handler
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
 from lampsam.backend.odometry import Pose2Motion
 from lampsam.backend.pose_cov import tangent_to_coords_cov
-from lampsam.backend.slam import drive, graph_log_steps, run_graph_log
+from lampsam.backend.slam import drive
 from lampsam.datasets.graph_text import read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 from lampsam.datasets.odometry import Pose2OdometryModel

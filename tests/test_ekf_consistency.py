@@ -12,10 +12,10 @@ from scipy.optimize import least_squares
 
 from lampsam.backend.config import AssociationConfig, SlamConfig
 from lampsam.backend.ekf import EkfSlam
+from lampsam.backend.graph_log import run_graph_log
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
 from lampsam.backend.odometry import Pose2Motion
-from lampsam.backend.slam import run_graph_log
 from lampsam.datasets.graph_text import read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 from lampsam.datasets.odometry import Pose2OdometryModel

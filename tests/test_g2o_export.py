@@ -17,7 +17,8 @@ import pytest
 
 from lampsam.backend.config import AssociationConfig, SlamConfig
 from lampsam.backend.g2o_export import write_result_g2o
-from lampsam.backend.slam import run_graph_log, run_slam
+from lampsam.backend.graph_log import run_graph_log
+from lampsam.backend.slam import run_slam
 from lampsam.cli import main
 from lampsam.datasets.graph_text import read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lampsam.backend.config import AssociationConfig, SlamConfig
-from lampsam.backend.slam import graph_log_steps, run_graph_log
+from lampsam.backend.graph_log import graph_log_steps, run_graph_log
 from lampsam.cli import main
 from lampsam.datasets.graph_text import read_graph_text
 from lampsam.errors import DatasetError

@@ -17,9 +17,9 @@ from lampsam.backend.association import (
     learn_scale,
 )
 from lampsam.backend.config import AssociationConfig, SlamConfig
+from lampsam.backend.graph_log import run_graph_log
 from lampsam.backend.models import Obs
 from lampsam.backend.planar_gate import screen_point2
-from lampsam.backend.slam import run_graph_log
 from lampsam.datasets.graph_text import read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 

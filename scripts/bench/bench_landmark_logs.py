@@ -25,7 +25,7 @@ on the start pose, one ``BetweenFactorPose2`` per odometry record with the file'
 covariance, one ``BearingRangeFactor2D`` per sighting with its own noise. GTSAM's
 iSAM2 runs it with one ``update()`` per pose (as ``Pose2ISAM2Example.py``), then LM
 from that estimate gives the reference optimum. Each lampsam backend then runs the
-log one step per pose (:func:`lampsam.backend.slam.run_graph_log`); with known ids
+log one step per pose (:func:`lampsam.backend.graph_log.run_graph_log`); with known ids
 lampsam's iSAM2 and batch take the fast path (:mod:`lampsam.backend.dense_log`),
 ``--general`` also runs their general per-step path and prints the largest pose
 difference between the two (``max_dpose_general``, 0.0: a pure speed-up).
@@ -73,8 +73,9 @@ from gtsam.symbol_shorthand import L, X
 from scipy.spatial import cKDTree
 
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.graph_log import run_graph_log
 from lampsam.backend.odometry import WheelMotion
-from lampsam.backend.slam import frames_from_range_bearing, iter_steps, run_graph_log
+from lampsam.backend.slam import frames_from_range_bearing, iter_steps
 from lampsam.datasets.graph_text import GraphLog, Sighting, read_graph_text, read_vertices
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 from lampsam.datasets.logrun import LoggedRun
@@ -253,8 +254,9 @@ def ekf_then_batch(g: GraphLog, config: SlamConfig) -> tuple[np.ndarray, dict[in
     pass). Returns ``(poses (N, 3), landmarks seen twice or more, wall s, CPU s,
     passes)``.
     """
+    from lampsam.backend.graph_log import graph_log_steps
     from lampsam.backend.reassociate import first_sight_positions, refine, sightings_from
-    from lampsam.backend.slam import drive, graph_log_steps, make_backend
+    from lampsam.backend.slam import drive, make_backend
 
     t0, c0 = time.perf_counter(), time.process_time()
     cfg = dataclasses.replace(config, association=dataclasses.replace(

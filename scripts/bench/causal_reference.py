@@ -29,7 +29,7 @@ from bench_landmark_logs import gtsam_isam2
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.slam import run_graph_log
+from lampsam.backend.graph_log import run_graph_log
 from lampsam.datasets.graph_text import GraphLog, read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 
