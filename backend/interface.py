@@ -238,7 +238,7 @@ def log_pruned(total: int, by_reason: dict[str, int], min_obs: int,
             continue
         text = PRUNE_REASONS.get(k, k).format(min_obs=min_obs)
         if k == "seen_too_few" and once_seen_kept:
-            text += " (kept in landmarks.csv, flagged seen_once)"
+            text += " (written apart to landmarks.csv, flagged seen_once)"
         parts.append(f"{n} {text}")
     logging.getLogger("lampsam.backend").warning(
         "%d landmarks pruned from the map: %s", total, "; ".join(parts))

@@ -135,7 +135,7 @@ def test_landmark_seen_once_stays_in_the_written_map_flagged(
     out = tmp_path / "out"
     assert main(["slam", str(p), "--backend", name, "--out", str(out)]) == 0
     # the warning agrees with the written map: the landmark is kept, flagged
-    assert "1 seen fewer than 2 times (kept in landmarks.csv, flagged seen_once)" in caplog.text
+    assert "1 seen fewer than 2 times (written apart to landmarks.csv, flagged seen_once)" in caplog.text
     rows = (out / "landmarks.csv").read_text().splitlines()
     assert rows[0].endswith(",flag")
     flags = {r.split(",")[0]: r.split(",")[-1] for r in rows[1:]}
@@ -145,7 +145,7 @@ def test_landmark_seen_once_stays_in_the_written_map_flagged(
     caplog.clear()
     res = run_graph_log(g, name, cfg)
     assert [lm.id for lm in res.landmarks] == [7] and res.provisional == []
-    assert "1 seen fewer than 2 times" in caplog.text and "kept" not in caplog.text
+    assert "1 seen fewer than 2 times" in caplog.text and "written apart" not in caplog.text
 
 
 @pytest.mark.parametrize("confirm", [1, 3])
