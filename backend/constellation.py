@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lampsam.arrays import FloatArray
+from lampsam.factors.geometry import rigid_fit_2d
 
 
 @dataclass(frozen=True)
@@ -44,23 +45,6 @@ class Alignment:
     pairs: tuple[tuple[int, int], ...]
     runner_up: int
     rms: float
-
-
-def rigid_fit(src: FloatArray, dst: FloatArray) -> tuple[float, FloatArray]:
-    """Least-squares 2-D rotation and shift with ``dst ~ R src + t`` (Arun et al. 1987).
-
-    Args:
-        src, dst: (K, 2) corresponding points, K >= 2.
-
-    Returns:
-        ``(theta, t (2,))``.
-    """
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - cs, dst - cd
-    theta = math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])),
-                       float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
-    c, s = math.cos(theta), math.sin(theta)
-    return theta, cd - np.array([[c, -s], [s, c]]) @ cs
 
 
 def _inliers(moved: FloatArray, tree: cKDTree, tol: float) -> list[tuple[int, int]]:
@@ -133,7 +117,8 @@ def align_constellation(src: FloatArray, dst: FloatArray, tol: float, min_inlier
         return None
     s_idx = np.array([p[0] for p in pairs_best])
     d_idx = np.array([p[1] for p in pairs_best])
-    theta, shift = rigid_fit(src[s_idx], dst[d_idx])
+    fit = rigid_fit_2d(src[s_idx], dst[d_idx])
+    theta, shift = float(fit[2]), fit[:2]
     c, s = math.cos(theta), math.sin(theta)
     res = src[s_idx] @ np.array([[c, -s], [s, c]]).T + shift - dst[d_idx]
     rms = float(np.sqrt(np.mean(np.sum(res * res, axis=1))))

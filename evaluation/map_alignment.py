@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lampsam.arrays import FloatArray, IntArray
+from lampsam.factors.geometry import rigid_fit_2d
 
 
 class AlignmentInputError(ValueError):
@@ -81,15 +82,7 @@ def fit_se2(src: FloatArray, dst: FloatArray, weights: FloatArray | None = None)
         raise AlignmentInputError("points and weights must be finite")
     if np.any(w < 0) or np.count_nonzero(w) < 2:
         raise AlignmentInputError("need at least 2 points with positive weight and no negative weight")
-    ms = w @ s / w.sum()
-    md = w @ d / w.sum()
-    sp, dp = s - ms, d - md
-    sin_sum = float(np.sum(w * (sp[:, 0] * dp[:, 1] - sp[:, 1] * dp[:, 0])))
-    cos_sum = float(np.sum(w * (sp[:, 0] * dp[:, 0] + sp[:, 1] * dp[:, 1])))
-    theta = math.atan2(sin_sum, cos_sum)
-    c, sn = math.cos(theta), math.sin(theta)
-    t = md - np.array([c * ms[0] - sn * ms[1], sn * ms[0] + c * ms[1]])
-    return np.array([t[0], t[1], theta])
+    return rigid_fit_2d(s, d, w)
 
 
 def transform_points(T: FloatArray, xy: FloatArray) -> FloatArray:

@@ -144,6 +144,37 @@ def transform_from(world_T_body: FloatArray, body_t_point: FloatArray) -> FloatA
     )
 
 
+def rigid_fit_2d(src: FloatArray, dst: FloatArray, weights: FloatArray | None = None) -> FloatArray:
+    """Least-squares planar rigid transform with ``dst ~ R(theta) src + t`` (2-D Kabsch;
+    Arun et al. 1987), closed form: ``theta`` from the weighted cross and dot sums of the
+    centred points.
+
+    Args:
+        src: (N, 2) points in the source frame, metres, N >= 2.
+        dst: (N, 2) the corresponding points in the destination frame, metres.
+        weights: (N,) non-negative weights (None: all 1); at least two positive.
+
+    Returns:
+        (3,) ``(t_x, t_y, theta)``: the pose ``dst_T_src`` (m, m, rad).
+    """
+    s = np.asarray(src, dtype=np.float64)
+    d = np.asarray(dst, dtype=np.float64)
+    if weights is None:
+        ms, md = s.mean(axis=0), d.mean(axis=0)
+        a, b = s - ms, d - md
+        cross = float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))
+        dot = float(np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        ms, md = w @ s / w.sum(), w @ d / w.sum()
+        a, b = s - ms, d - md
+        cross = float(np.sum(w * (a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])))
+        dot = float(np.sum(w * (a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])))
+    theta = math.atan2(cross, dot)
+    c, sn = math.cos(theta), math.sin(theta)
+    return np.array([md[0] - (c * ms[0] - sn * ms[1]), md[1] - (sn * ms[0] + c * ms[1]), theta])
+
+
 def transform_to(world_T_body: FloatArray, world_t_point: FloatArray) -> FloatArray:
     """Map a world planar point into the body frame: ``R(theta)^T (p - t)``.
 

@@ -45,7 +45,7 @@ import numpy as np
 from lampsam.arrays import BoolArray, FloatArray
 from lampsam.errors import LocalizationError
 from lampsam.factors.ceiling import project_point
-from lampsam.factors.geometry import wrap_axis
+from lampsam.factors.geometry import rigid_fit_2d, wrap_axis
 from lampsam.frontend.measurements import CeilingFrame
 
 log = logging.getLogger(__name__)
@@ -518,24 +518,6 @@ class CeilingChecker:
         return n_seen >= self.config.lamp_match_fraction * n
 
 
-def rigid_2d(source: FloatArray, target: FloatArray) -> FloatArray:
-    """Least-squares planar rigid transform with ``target ~ R(theta) source + t`` (2-D Kabsch).
-
-    Args:
-        source: (N, 2) points (body frame), N >= 2.
-        target: (N, 2) corresponding points (world frame).
-
-    Returns:
-        (3,) ``(t_x, t_y, theta)`` (m, m, rad).
-    """
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    a, b = source - cs, target - ct
-    theta = float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
-    c, s = np.cos(theta), np.sin(theta)
-    t = ct - np.array([c * cs[0] - s * cs[1], s * cs[0] + c * cs[1]])
-    return np.array([t[0], t[1], theta])
-
-
 def refine_pose(
     pose: FloatArray,
     observed: FloatArray,
@@ -552,7 +534,7 @@ def refine_pose(
     lies at ``q = h m + o_xy`` in the body frame (the inverse of
     :func:`lampsam.factors.ceiling.project_point`); the pose that maps the
     matched ``q`` onto the landmarks' ``(x, y)`` is the 2-D rigid alignment
-    (:func:`rigid_2d`). Matches are nearest predicted landmarks of the same
+    (:func:`lampsam.factors.geometry.rigid_fit_2d`). Matches are nearest predicted landmarks of the same
     kind within ``gates`` (lamps, corners; normalised units): the lamp gate is
     wide (lamps are sparse), the corner gate below half a tile (a corner
     lattice matches the wrong corner beyond that).
@@ -595,5 +577,5 @@ def refine_pose(
                 n_lamps = int(ok.sum())
         if n_lamps < 2:
             return pose, n_lamps
-        pose = rigid_2d(np.vstack(src), np.vstack(dst))
+        pose = rigid_fit_2d(np.vstack(src), np.vstack(dst))
     return pose, n_lamps

@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from lampsam.backend.constellation import align_constellation, rigid_fit
+from lampsam.backend.constellation import align_constellation
+from lampsam.factors.geometry import rigid_fit_2d
 
 
 def _trees(rng: np.random.Generator, n: int, size: float, min_sep: float) -> np.ndarray:
@@ -27,7 +28,8 @@ def test_rigid_fit_recovers_a_known_motion() -> None:
     rng = np.random.default_rng(0)
     src = rng.uniform(-10, 10, (6, 2))
     dst = src @ _rot(0.4).T + np.array([3.0, -2.0])
-    theta, t = rigid_fit(src, dst)
+    fit = rigid_fit_2d(src, dst)
+    theta, t = fit[2], fit[:2]
     assert abs(theta - 0.4) < 1e-12
     np.testing.assert_allclose(t, [3.0, -2.0], atol=1e-12)
 

@@ -291,14 +291,14 @@ def test_twin_pose_on_a_periodic_ceiling_is_rejected() -> None:
         assert verdict is Verdict.FAILED
 
 
-def test_rigid_2d_recovers_a_known_transform() -> None:
-    from lampsam.localization.verification import rigid_2d
+def test_rigid_fit_2d_recovers_a_known_transform() -> None:
+    from lampsam.factors.geometry import rigid_fit_2d
 
     rng = np.random.default_rng(21)
     src = rng.uniform(-2, 2, (20, 2))
     th, t = 0.7, np.array([1.5, -0.4])
     R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-    np.testing.assert_allclose(rigid_2d(src, src @ R.T + t), [*t, th], atol=1e-9)
+    np.testing.assert_allclose(rigid_fit_2d(src, src @ R.T + t), [*t, th], atol=1e-9)
 
 
 def test_refine_pose_corrects_a_biased_pose_on_a_tiled_ceiling() -> None:
