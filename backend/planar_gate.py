@@ -24,6 +24,18 @@ from lampsam.backend.models import Obs
 from lampsam.factors.geometry import mahalanobis2_2x2
 
 
+def predict_point2(pose: FloatArray, landmarks: FloatArray) -> FloatArray:
+    """``[bearing, range]`` (M, 2) of M planar landmarks (M, 2, world, m) seen from
+    ``pose`` (3,): ``bearing = atan2(dy, dx) - theta`` wrapped to [-pi, pi), ``range = |d|``."""
+    lm = np.asarray(landmarks, float).reshape(-1, 2)
+    d = lm - np.asarray(pose[:2], float)
+    z = np.empty((len(lm), 2))
+    z[:, 0] = np.arctan2(d[:, 1], d[:, 0]) - float(pose[2])
+    z[:, 0] = (z[:, 0] + np.pi) % (2 * np.pi) - np.pi
+    z[:, 1] = np.hypot(d[:, 0], d[:, 1])
+    return z
+
+
 def predict_point2_many(pose: FloatArray, landmarks: FloatArray, lin: FloatArray | None = None
                         ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``[bearing, range]`` of M planar landmarks and the Jacobians in plain coordinates.
@@ -46,12 +58,9 @@ def predict_point2_many(pose: FloatArray, landmarks: FloatArray, lin: FloatArray
         robot (range 0) gets infinite Jacobians (never gated in).
     """
     lm = np.asarray(landmarks, float).reshape(-1, 2)
-    d = lm - np.asarray(pose[:2], float)
-    z = np.empty((len(lm), 2))
-    z[:, 0] = np.arctan2(d[:, 1], d[:, 0]) - float(pose[2])
-    z[:, 0] = (z[:, 0] + np.pi) % (2 * np.pi) - np.pi
-    z[:, 1] = np.hypot(d[:, 0], d[:, 1])
-    dl = d if lin is None else np.asarray(lin, float).reshape(-1, 2) - np.asarray(pose[:2], float)
+    z = predict_point2(pose, lm)
+    base = lm if lin is None else np.asarray(lin, float).reshape(-1, 2)
+    dl = base - np.asarray(pose[:2], float)
     q = np.sum(dl * dl, axis=1)
     r = np.sqrt(q)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -44,6 +44,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import ReassociationConfig
 from lampsam.backend.constellation import align_constellation
 from lampsam.backend.landmark_merge import CoVisibility, merge_pairs
+from lampsam.backend.planar_gate import predict_point2
 from lampsam.factors.gtsam_factors import odometry_factor
 
 log = logging.getLogger(__name__)
@@ -118,13 +119,6 @@ def _read(values: gtsam.Values, n_kf: int, lids: list[int]
     poses = np.array([[values.atPose2(X(k)).x(), values.atPose2(X(k)).y(),
                        values.atPose2(X(k)).theta()] for k in range(n_kf)])
     return poses, {lid: np.asarray(values.atPoint2(L(lid)), float) for lid in lids}
-
-
-def predict_many(pose: FloatArray, pts: FloatArray) -> FloatArray:
-    """``[bearing, range]`` (M, 2) of world points (M, 2) from ``pose`` (3,)."""
-    d = pts - pose[:2]
-    bearing = np.arctan2(d[:, 1], d[:, 0]) - pose[2]
-    return np.stack([np.arctan2(np.sin(bearing), np.cos(bearing)), np.hypot(d[:, 0], d[:, 1])], 1)
 
 
 def revisit_merges(lms: dict[int, FloatArray], s: Sightings, cfg: ReassociationConfig
@@ -233,7 +227,7 @@ def reassociate(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, gat
         if not near:
             continue
         cand = ids[near]
-        zhat = predict_many(pose, pts[near])
+        zhat = predict_point2(pose, pts[near])
         pairs: list[tuple[float, int, int]] = []
         cur_d2: dict[int, float] = {}
         for j in rows:
@@ -264,7 +258,7 @@ def sighting_d2(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings) -> 
     """(S,) squared Mahalanobis distance of each sighting from its landmark's prediction."""
     out = np.empty(len(s.k))
     for j, (k, lid) in enumerate(zip(s.k.tolist(), s.lid.tolist(), strict=True)):
-        nu = s.z[j] - predict_many(poses[k], lms[lid][None, :])[0]
+        nu = s.z[j] - predict_point2(poses[k], lms[lid])[0]
         nu[0] = np.arctan2(np.sin(nu[0]), np.cos(nu[0]))
         out[j] = float(nu @ np.linalg.solve(s.r[j], nu))
     return out
