@@ -45,6 +45,7 @@ from lampsam.backend.config import ReassociationConfig
 from lampsam.backend.constellation import align_constellation
 from lampsam.backend.landmark_merge import CoVisibility, merge_pairs
 from lampsam.backend.planar_gate import predict_point2
+from lampsam.backend.pose_cov import pose_array
 from lampsam.factors.gtsam_factors import odometry_factor
 
 log = logging.getLogger(__name__)
@@ -116,8 +117,7 @@ def _values(poses: FloatArray, lms: dict[int, FloatArray]) -> gtsam.Values:
 
 def _read(values: gtsam.Values, n_kf: int, lids: list[int]
           ) -> tuple[FloatArray, dict[int, FloatArray]]:
-    poses = np.array([[values.atPose2(X(k)).x(), values.atPose2(X(k)).y(),
-                       values.atPose2(X(k)).theta()] for k in range(n_kf)])
+    poses = np.array([pose_array(values.atPose2(X(k))) for k in range(n_kf)])
     return poses, {lid: np.asarray(values.atPoint2(L(lid)), float) for lid in lids}
 
 
