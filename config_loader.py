@@ -169,7 +169,7 @@ def read_table_file(path: str | Path) -> dict[str, Any]:
     except OSError as exc:
         raise ConfigError("", f"cannot read: {exc.strerror or exc}", path) from exc
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # a byte-order mark (Windows editors) is dropped
     except UnicodeDecodeError as exc:
         raise ConfigError("", f"not UTF-8 text (byte {exc.start})", path) from exc
     doc: object

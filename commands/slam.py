@@ -13,6 +13,7 @@ from lampsam.commands._args import (
     add_force,
     add_rerun_option,
     config_path,
+    log,
     output_dir,
     positive,
     warn_partial,
@@ -183,6 +184,13 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
     from lampsam.safe_io import write_json_atomic
 
     glog = read_graph_text(args.run)
+    no_landmarks = None
+    if glog.n_landmarks == 0:
+        no_landmarks = ("no landmark sightings: the trajectory is the odometry chained (dead "
+                        "reckoning)" + (f" and its {glog.n_skipped_edges} loop closures are not used"
+                                        if glog.n_skipped_edges else "")
+                        + "; to optimise a pose graph use gtsam.readG2o with an optimizer")
+        log.warning("%s: %s", glog.path, no_landmarks)
     truth = None
     if args.truth:
         verts = read_vertices(args.truth)
@@ -204,6 +212,8 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                   "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
                                  else "the origin (no VERTEX for the first pose)"),
                   "skipped_non_odometry_edges": glog.n_skipped_edges}
+    if no_landmarks:
+        s["input"]["warning"] = no_landmarks
     write_json_atomic(out / "summary.json", s)
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o

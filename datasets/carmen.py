@@ -363,6 +363,15 @@ def _drop_backwards(scans: list[_Scan], strict_time: bool, path: Path) -> tuple[
     return kept, f"dropped {len(dropped)} scans stamped earlier than a previous one (lines {shown})"
 
 
+def _is_gzip(path: Path) -> bool:
+    """True when the file starts with gzip's magic bytes, whatever its suffix."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(2) == b"\x1f\x8b"
+    except OSError as exc:
+        raise DatasetError(f"cannot read: {exc.strerror or exc}", path=path) from exc
+
+
 def read_carmen(path: str | Path, max_range: float | None = None, strict_time: bool = False,
                 scan_rate_hz: float = NOMINAL_SCAN_RATE_HZ) -> CarmenLog:
     """Read a CARMEN log (plain or ``.gz``): FLASER or ROBOTLASER1 scans, ODOM records.
@@ -388,15 +397,17 @@ def read_carmen(path: str | Path, max_range: float | None = None, strict_time: b
             file and line.
     """
     path = Path(path)
+    if path.is_dir():
+        raise DatasetError("is a directory, expected a CARMEN log file", path=path)
     if not path.is_file():
         raise DatasetError("CARMEN log not found", path=path)
-    opener = gzip.open if path.suffix == ".gz" else open
+    opener = gzip.open if _is_gzip(path) else open
     flaser: list[_Scan] = []
     robot: list[_Scan] = []
     odom_t: list[float] = []
     odom_poses: list[list[float]] = []
     try:
-        with opener(path, "rt", encoding="ascii", errors="replace") as fh:
+        with opener(path, "rt", encoding="utf-8-sig", errors="replace") as fh:
             for line_no, raw in enumerate(fh, start=1):
                 tok = raw.split()
                 if not tok or tok[0].startswith("#"):

@@ -5,7 +5,8 @@ the odometry between consecutive poses and landmark sightings from poses:
 
 - iSAM (``.txt``, e.g. GTSAM's ``victoria_park.txt``):
   ``ODOMETRY i j dx dy dtheta c11 c12 c13 c22 c23 c33`` (also ``EDGE2``): the increment
-  ``i_T_j`` and the upper triangle of its covariance, as ``gtsam.load2D`` reads it;
+  ``i_T_j`` and its covariance, as ``gtsam.load2D`` reads it: the upper triangle, or
+  the ``.graph`` order ``c11 c12 c22 c33 c13 c23`` told by its zeros (``_covariance_2d``);
   ``LANDMARK i l dx dy v11 v12 v22``: landmark ``l`` at ``(dx, dy)`` in pose ``i``'s
   body frame, turned into ``[bearing, range]`` with GTSAM's rule (``sigma_bearing =
   sqrt(v11 / 10)``, ``sigma_range = sqrt(v11)`` when ``v11 == v22``, else 1 and 1, so
@@ -35,6 +36,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.datasets.odometry import Pose2OdometryLog
+from lampsam.datasets.textio import open_text
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -96,12 +98,41 @@ def _sym(u: list[float]) -> FloatArray:
     return a
 
 
+def _covariance_2d(v: list[float]) -> FloatArray:
+    """(3, 3) covariance of an iSAM ``ODOMETRY`` / ``EDGE2`` record's six numbers.
+
+    GTSAM's ``load2D`` (``NoiseFormatAUTO``) tells two layouts apart by their zeros,
+    and so does this: ``v1 0 v3 v4 0 0`` is the ``.graph`` (TORO-style) order
+    ``[[v1, v2, v5], [v2, v3, v6], [v5, v6, v4]]`` (e.g. GTSAM's ``example.graph``,
+    ``w100.graph``: ``1 0 1 1 0 0`` = identity); anything else is the upper triangle
+    ``c11 c12 c13 c22 c23 c33`` (``victoria_park.txt``, ``w20000.txt``). Both are
+    covariances (x, y, theta; m^2, rad^2).
+    """
+    if v[0] != 0 and v[1] == 0 and v[2] != 0 and v[3] != 0 and v[4] == 0 and v[5] == 0:
+        return np.array([[v[0], v[1], v[4]], [v[1], v[2], v[5]], [v[4], v[5], v[3]]])
+    return _sym(v)
+
+
+#: Records of 3-D files (GTSAM's ``pose3example.txt``, g2o SE3 graphs), refused by name.
+_TAGS_3D = ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "VERTEX3", "EDGE3", "VERTEX_TRACKXYZ",
+            "EDGE_SE3_TRACKXYZ", "VERTEX_SE3", "EDGE_SE3")
+
+
 def _cartesian_to_br(dx: float, dy: float, cov_xy: FloatArray) -> tuple[float, float, FloatArray]:
     """``(bearing, range, cov)`` of a body-frame point with (2, 2) covariance (first order)."""
     r = math.hypot(dx, dy)
     b = math.atan2(dy, dx)
     j = np.array([[-dy / r**2, dx / r**2], [dx / r, dy / r]])
     return b, r, j @ cov_xy @ j.T
+
+
+def _is_number(text: str) -> bool:
+    """True when ``text`` parses as a float."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def read_graph_text(path: str | Path) -> GraphLog:
@@ -113,8 +144,6 @@ def read_graph_text(path: str | Path) -> GraphLog:
             form one chain; the message names the file and line.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError("file not found", path)
     pose_ids: list[int] = []
     index: dict[int, int] = {}
     deltas: list[FloatArray] = [np.zeros(3)]
@@ -125,12 +154,18 @@ def read_graph_text(path: str | Path) -> GraphLog:
     counts = {"ODOMETRY": 11, "EDGE2": 11, "EDGE_SE2": 11, "LANDMARK": 7, "LANDMARK2": 7,
               "EDGE_SE2_XY": 7, "BR": 6, "VERTEX2": 4, "VERTEX_SE2": 4, "VERTEX_XY": 3,
               "VERTEX": 4}
-    with path.open() as fh:
+    with open_text(path) as fh:
         for line_no, raw in enumerate(fh, start=1):
             parts = raw.split()
             if not parts or parts[0].startswith("#"):
                 continue
             tag = parts[0]
+            if tag in _TAGS_3D:
+                raise DatasetError(f"3-D record {tag!r}: lampsam reads planar (2-D) graphs only "
+                                   "(VERTEX_SE2 / EDGE_SE2 / ODOMETRY / LANDMARK ...)", path, line_no)
+            if tag not in counts and _is_number(tag):
+                raise DatasetError(f"the line starts with a number ({tag!r}), not a record tag: not an "
+                                   "iSAM / g2o graph file (a plain table of numbers?)", path, line_no)
             if tag not in counts:
                 raise DatasetError(f"unknown record {tag!r} (known: {', '.join(sorted(counts))})",
                                    path, line_no)
@@ -153,7 +188,7 @@ def read_graph_text(path: str | Path) -> GraphLog:
                 i, j = ids
                 m = _sym(nums[3:])
                 try:
-                    cov = np.linalg.inv(m) if tag == "EDGE_SE2" else m
+                    cov = np.linalg.inv(m) if tag == "EDGE_SE2" else _covariance_2d(nums[3:])
                     np.linalg.cholesky(cov)
                 except np.linalg.LinAlgError:
                     raise DatasetError(f"{tag} {i} {j}: the {'information' if tag == 'EDGE_SE2' else 'covariance'}"
@@ -170,7 +205,10 @@ def read_graph_text(path: str | Path) -> GraphLog:
                     skipped += 1
                 else:
                     raise DatasetError(f"{tag} {i} {j}: odometry must continue from the last "
-                                       f"pose ({pose_ids[-1]})", path, line_no)
+                                       f"pose ({pose_ids[-1]}): the pose-pose records must chain "
+                                       "the poses in file order, each from the previous pose to a "
+                                       "new one (a chain written backwards, j -> j-1, is not read)",
+                                       path, line_no)
                 continue
             i, lid = ids
             if tag == "BR":
@@ -222,10 +260,8 @@ def read_vertices(path: str | Path) -> dict[int, FloatArray]:
         DatasetError: missing file, or a malformed vertex line (file and line named).
     """
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError("file not found", path)
     out: dict[int, FloatArray] = {}
-    with path.open() as fh:
+    with open_text(path) as fh:
         for line_no, raw in enumerate(fh, start=1):
             parts = raw.split()
             if not parts or parts[0] not in ("VERTEX2", "VERTEX_SE2", "VERTEX"):

@@ -29,6 +29,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray, ImageU8
 from lampsam.datasets.stereo_types import StereoRig
+from lampsam.datasets.textio import open_text
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -40,10 +41,8 @@ class KittiError(DatasetError):
 
 def _read_matrices(path: Path, expect: int | None = None) -> FloatArray:
     """Lines of 12 numbers (optionally ``label:`` first) -> (N, 3, 4)."""
-    if not path.is_file():
-        raise KittiError("file not found", path)
     mats = []
-    with open(path) as fh:
+    with open_text(path) as fh:
         for i, line in enumerate(fh, start=1):
             s = line.strip()
             if not s:

@@ -155,6 +155,24 @@ class LoggedRun:
     meta: dict[str, Any] = field(default_factory=dict)
 
 
+#: Folders of other datasets that are not logged runs: (a file they hold, what to do).
+_FOREIGN = (
+    ("ds0_RS_Control.dat", "a MRCLAM folder: add --mrclam"),
+    ("calib.txt", "a KITTI stereo sequence: `lampsam stereo-experiment` reads it (LAMPSAM_DATA)"),
+    ("pose.txt", "an RGB-D (slambook2) folder: `lampsam build-map` reads it"),
+    ("rgb.txt", "a TUM RGB-D folder: `lampsam build-map` reads it"),
+    ("kinect.yaml", "a Kinect run without a ceiling camera (kinect-sim without --ceiling)"),
+)
+
+
+def _foreign_hint(path: Path) -> str:
+    """``"; this looks like ..."`` for a known other dataset's folder, else ``""``."""
+    for name, hint in _FOREIGN:
+        if (path / name).exists() or (path / "kinect" / name).exists():
+            return f"; this looks like {hint}"
+    return ""
+
+
 def read_run(path: str | Path) -> LoggedRun:
     """Read a logged-run directory.
 
@@ -170,7 +188,11 @@ def read_run(path: str | Path) -> LoggedRun:
     """
     path = Path(path)
     if not path.is_dir():
-        raise DatasetError("run directory not found", path)
+        raise DatasetError("run directory not found" if not path.exists()
+                           else "not a directory (a logged run is a folder)", path)
+    if not (path / RIG_FILE).exists():
+        raise DatasetError(f"not a logged run: no {RIG_FILE} (docs/log-format.md)"
+                           f"{_foreign_hint(path)}", path)
     rig = Rig.from_yaml(path / RIG_FILE)
     odometry: OdometryLog | Pose2OdometryLog
     if (path / ODOMETRY_FILE).exists() or not (

@@ -37,6 +37,7 @@ from lampsam.datasets.logrun import (
     Trajectory,
     write_run,
 )
+from lampsam.datasets.textio import open_text
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -88,11 +89,9 @@ def _read_table(path: Path, ncols: int, monotonic_col: int | None = 0) -> FloatA
     Returns:
         (R, ncols) array.
     """
-    if not path.is_file():
-        raise DatasetError("file not found", path)
     rows: list[list[float]] = []
     last = -math.inf
-    with open(path) as fh:
+    with open_text(path) as fh:
         for lineno, line in enumerate(fh, start=1):
             text = line.strip()
             if not text or text.startswith("#"):

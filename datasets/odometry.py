@@ -27,6 +27,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.config_loader import check_limits, limits
+from lampsam.datasets.textio import open_text
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -183,10 +184,8 @@ def read_pose2_odometry(path: str | Path) -> Pose2OdometryLog:
             the message names the file and line.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DatasetError("file not found", path)
     rows: list[list[float]] = []
-    with path.open(newline="") as fh:
+    with open_text(path) as fh:
         reader = csv.reader(fh)
         header = next(reader, None)
         if header is None or tuple(h.strip() for h in header) != ODOMETRY_POSE2_HEADER:

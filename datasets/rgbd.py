@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
+from lampsam.datasets.textio import read_text
 from lampsam.datasets.tum import pose_from_tum_fields, read_tum_3d
 from lampsam.errors import DatasetError
 
@@ -143,11 +144,11 @@ def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
 
 def _read_list(path: Path) -> tuple[list[float], list[Path]]:
     """A TUM ``timestamp filename`` list; relative names are resolved against the list's folder."""
-    if not path.is_file():
+    if not path.exists():
         raise DatasetError("file list not found", path)
     times: list[float] = []
     files: list[Path] = []
-    for lineno, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for lineno, raw in enumerate(read_text(path).splitlines(), start=1):
         text = raw.strip()
         if not text or text.startswith("#"):
             continue
@@ -277,11 +278,11 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
     """
     root = Path(path)
     pose_file = root / "pose.txt"
-    if not pose_file.is_file():
+    if not pose_file.exists():
         raise DatasetError("pose.txt not found", pose_file)
     poses = []
-    for lineno, raw in enumerate(pose_file.read_text(encoding="utf-8").splitlines(), start=1):
-        if not raw.strip():
+    for lineno, raw in enumerate(read_text(pose_file).splitlines(), start=1):
+        if not raw.strip() or raw.lstrip().startswith("#"):
             continue
         try:
             vals = [float(v) for v in raw.split()]
@@ -292,6 +293,8 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
                 "expected 7 finite numbers 'tx ty tz qx qy qz qw'", pose_file, lineno
             )
         poses.append(pose_from_tum_fields(vals))
+    if not poses:
+        raise DatasetError("no poses (empty file)", pose_file)
     n = len(poses)
     rgb = tuple(root / "color" / f"{i + 1}.png" for i in range(n))
     depth = tuple(root / "depth" / f"{i + 1}.pgm" for i in range(n))

@@ -9,6 +9,7 @@ anything is off. Every failure is a :class:`lampsam.errors.DatasetError`.
 
 from __future__ import annotations
 
+import io
 import math
 import warnings
 from collections.abc import Callable, Sequence
@@ -26,13 +27,8 @@ FieldParser = Callable[[str, Path, int, str], Any]
 
 
 def read_yaml(path: Path) -> Any:
-    """Parse a YAML file, or DatasetError naming it."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError as exc:
-        raise DatasetError("file not found", path) from exc
-    except OSError as exc:
-        raise DatasetError(f"cannot read: {exc}", path) from exc
+    """Parse a YAML file, or DatasetError naming it (one line: problem, line and column)."""
+    text = read_text(path)
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -40,18 +36,52 @@ def read_yaml(path: Path) -> Any:
         mark = getattr(exc, "problem_mark", None)
         if mark is not None:
             line = int(mark.line) + 1
-        raise DatasetError(f"invalid YAML: {exc}", path, line) from exc
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        where = f" (column {int(mark.column) + 1})" if mark is not None else ""
+        raise DatasetError(f"invalid YAML: {problem}{where}", path, line) from exc
 
+
+#: The first bytes of a gzip stream (RFC 1952).
+GZIP_MAGIC = b"\x1f\x8b"
+
+
+def read_text(path: Path) -> str:
+    """The whole text of a UTF-8 file, or DatasetError naming it.
+
+    A UTF-8 byte-order mark is dropped (``utf-8-sig``: editors on Windows write one,
+    and it would otherwise stick to the first field). A directory, an unreadable
+    file, a gzip-compressed file and bytes that are not UTF-8 (a binary file, a
+    Latin-1 export) each get their own message; the last names the line of the
+    first bad byte.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise DatasetError("is a directory, expected a file", path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError as exc:
+        raise DatasetError("file not found", path) from exc
+    except PermissionError as exc:
+        raise DatasetError("cannot read: permission denied", path) from exc
+    except OSError as exc:
+        raise DatasetError(f"cannot read: {exc.strerror or exc}", path) from exc
+    if raw.startswith(GZIP_MAGIC):
+        raise DatasetError("gzip-compressed: decompress it first (gunzip)", path)
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise DatasetError(f"not UTF-8 text (byte 0x{raw[exc.start]:02x} at offset {exc.start}: "
+                           "a binary file, or text in another encoding?)", path, line) from exc
 
 
 def open_text(path: Path) -> TextIO:
-    """Open a text file, or DatasetError naming it."""
-    try:
-        return open(path, encoding="utf-8")
-    except FileNotFoundError as exc:
-        raise DatasetError("file not found", path) from exc
-    except OSError as exc:
-        raise DatasetError(f"cannot read: {exc}", path) from exc
+    """A UTF-8 text file as a stream with universal newlines, or DatasetError naming it.
+
+    The file is decoded whole by :func:`read_text`, so a bad byte is reported before
+    any line is parsed.
+    """
+    return io.StringIO(read_text(path), newline=None)
 
 
 def parse_float(text: str, path: Path, line: int, column: str) -> float:
@@ -138,7 +168,8 @@ def check_time(
         k = int(bad[0]) + 1
         what = "does not increase" if strict else "goes backwards"
         line_nos = lines if lines is not None else data_line_numbers(path)
-        raise DatasetError(f"time stamp {t[k]!r} {what} (previous {t[k - 1]!r})", path, line_nos[k])
+        raise DatasetError(f"time stamp {float(t[k])!r} {what} (previous {float(t[k - 1])!r})",
+                           path, line_nos[k])
 
 
 def str_field(text: str, path: Path, line: int, column: str) -> str:
@@ -158,7 +189,7 @@ def fast_columns(path: Path, header: Sequence[str], kinds: str) -> tuple[list[An
     """
     skip = 0
     try:
-        with open(path, encoding="utf-8") as fh:
+        with open(path, encoding="utf-8-sig") as fh:
             for raw in fh:
                 skip += 1
                 line = raw.strip()
