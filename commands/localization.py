@@ -183,8 +183,8 @@ def _localize_laser_log(args: argparse.Namespace) -> int:
 def _cmd_localize(args: argparse.Namespace) -> int:
     import dataclasses
 
-    if args.run.endswith((".log", ".log.gz")):
-        return _localize_laser_log(args)
+    if args.run.endswith((".log", ".log.gz")) or Path(args.run).is_file():
+        return _localize_laser_log(args)  # a file: a CARMEN log, whatever its suffix (.clf ...)
 
     from lampsam.config_loader import load_config
     from lampsam.localization.filter_config import GlobalLocalizerConfig, Mode

@@ -36,7 +36,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.datasets.odometry import Pose2OdometryLog
-from lampsam.datasets.textio import open_text
+from lampsam.datasets.textio import MAX_COORDINATE, open_text
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -179,6 +179,9 @@ def read_graph_text(path: str | Path) -> GraphLog:
                 raise DatasetError(f"{tag}: not a number ({exc})", path, line_no) from None
             if not all(math.isfinite(v) for v in nums):
                 raise DatasetError(f"{tag}: a value is not finite", path, line_no)
+            if any(abs(v) > MAX_COORDINATE for v in nums[:2]):
+                raise DatasetError(f"{tag}: x/y beyond {MAX_COORDINATE:g} m (a corrupt value, or "
+                                   "not metres)", path, line_no)
             if tag in ("VERTEX2", "VERTEX_SE2", "VERTEX"):
                 vertices[ids[0]] = np.array(nums)
                 continue

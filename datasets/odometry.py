@@ -27,7 +27,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.config_loader import check_limits, limits
-from lampsam.datasets.textio import open_text
+from lampsam.datasets.textio import check_speed, open_text
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -180,11 +180,13 @@ def read_pose2_odometry(path: str | Path) -> Pose2OdometryLog:
 
     Raises:
         DatasetError: missing file, wrong header, a malformed or non-finite field
-            (covariance fields may be empty or ``nan``), or time not increasing;
+            (covariance fields may be empty or ``nan``), time not increasing, or an
+            increment faster than ``textio.MAX_SPEED`` (100 m/s);
             the message names the file and line.
     """
     path = Path(path)
     rows: list[list[float]] = []
+    lines: list[int] = []
     with open_text(path) as fh:
         reader = csv.reader(fh)
         header = next(reader, None)
@@ -214,9 +216,11 @@ def read_pose2_odometry(path: str | Path) -> Pose2OdometryLog:
                 raise DatasetError(f"time {vals[0]} does not increase (previous {rows[-1][0]})",
                                    path, line)
             rows.append(vals)
+            lines.append(line)
     if not rows:
         raise DatasetError("no odometry samples", path)
     a = np.array(rows)
+    check_speed(a[:, 0], np.hypot(a[:, 1], a[:, 2]), lines, path, "dx/dy")
     i = [4, 5, 6, 5, 7, 8, 6, 8, 9]  # symmetric 3x3 from the upper triangle
     return Pose2OdometryLog(t=a[:, 0], delta=a[:, 1:4], cov=a[:, i].reshape(-1, 3, 3))
 

@@ -27,6 +27,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
 from lampsam.datasets.textio import (
+    check_speed,
     check_time,
     columns,
     parse_float,
@@ -274,11 +275,13 @@ def read_odometry(path: str | Path) -> OdometryLog:
     """Read ``odometry.csv`` (``t,d_left,d_right``).
 
     Raises:
-        DatasetError: missing, malformed, non-finite, empty, or time not increasing.
+        DatasetError: missing, malformed, non-finite, empty, time not increasing, or a
+            wheel faster than ``textio.MAX_SPEED`` (100 m/s) in a sample.
     """
     path = Path(path)
     (t, dl, dr), lines = columns(path, ODOMETRY_HEADER, "fff", [parse_float] * 3)
     check_time(t, lines, path)
+    check_speed(t, np.column_stack([dl, dr]), lines, path, "d_left/d_right")
     return OdometryLog(t=t, d_left=dl, d_right=dr)
 
 

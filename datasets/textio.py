@@ -172,6 +172,50 @@ def check_time(
                            path, line_nos[k])
 
 
+#: Fastest wheel or body speed a logged increment may imply, m/s (360 km/h). A faster
+#: one is a corrupt field (an exponent typo, a unit in mm or ns), not motion: taken
+#: as read it sends the EKF metres to kilometres away with exit code 0.
+MAX_SPEED = 100.0
+
+#: Largest coordinate a position may have, m (100,000 km: beyond any map frame,
+#: including UTM's 10,000 km northing). Larger values overflow the covariance products.
+MAX_COORDINATE = 1e8
+
+
+def check_speed(t: FloatArray, travel: FloatArray, lines: Sequence[int] | None, path: Path,
+                what: str) -> None:
+    """DatasetError at the first sample whose travel implies more than :data:`MAX_SPEED`.
+
+    Args:
+        t: (K,) sample times, s, increasing. travel: (K,) or (K, n) distance of each
+            sample since the previous one, m (per column: the largest counts). The first
+            sample is measured against the second's interval (1 s when alone).
+        lines: the data lines' numbers (None: re-scanned from ``path`` on error).
+        what: the column(s) named in the message.
+    """
+    d = np.abs(np.asarray(travel, dtype=np.float64).reshape(len(t), -1)).max(axis=1)
+    dt = np.diff(t, prepend=t[0] - (t[1] - t[0] if len(t) > 1 else 1.0))
+    bad = np.flatnonzero(d > MAX_SPEED * np.maximum(dt, 1e-9))
+    if len(bad):
+        k = int(bad[0])
+        line_nos = lines if lines is not None else data_line_numbers(path)
+        raise DatasetError(f"{what}: {float(d[k])!r} m in {float(dt[k]):.6g} s is faster than "
+                           f"{MAX_SPEED:g} m/s: a corrupt value, or not metres and seconds",
+                           path, line_nos[k])
+
+
+def check_coordinates(values: FloatArray, lines: Sequence[int] | None, path: Path,
+                      what: str) -> None:
+    """DatasetError at the first row with a coordinate beyond :data:`MAX_COORDINATE`."""
+    v = np.abs(np.asarray(values, dtype=np.float64).reshape(len(values), -1)).max(axis=1)
+    bad = np.flatnonzero(v > MAX_COORDINATE)
+    if len(bad):
+        k = int(bad[0])
+        line_nos = lines if lines is not None else data_line_numbers(path)
+        raise DatasetError(f"{what}: {float(v[k])!r} m is beyond {MAX_COORDINATE:g} m: a corrupt "
+                           "value, or not metres", path, line_nos[k])
+
+
 def str_field(text: str, path: Path, line: int, column: str) -> str:
     """A non-empty string field."""
     if not text:

@@ -25,7 +25,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.datasets.tables import Trajectory
-from lampsam.datasets.textio import check_time, open_text, parse_float
+from lampsam.datasets.textio import check_coordinates, check_time, open_text, parse_float
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -56,7 +56,8 @@ def read_tum_rows(path: str | Path) -> TumRows:
 
     Raises:
         DatasetError: missing file, a line without 8 fields, a non-number or non-finite
-            value, a zero quaternion, no poses, or a time stamp that does not increase.
+            value, a zero quaternion, no poses, a time stamp that does not increase, or
+            a coordinate beyond ``textio.MAX_COORDINATE`` (1e8 m).
     """
     path = Path(path)
     rows: list[list[float]] = []
@@ -82,6 +83,7 @@ def read_tum_rows(path: str | Path) -> TumRows:
         raise DatasetError("no poses (empty trajectory)", path)
     a = np.array(rows, dtype=np.float64)
     check_time(a[:, 0], lines, path)
+    check_coordinates(a[:, 1:4], lines, path, "x/y/z")
     return TumRows(t=a[:, 0].copy(), xyz=a[:, 1:4].copy(), quat_xyzw=a[:, 4:8].copy(), lines=lines)
 
 
