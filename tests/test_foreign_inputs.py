@@ -90,7 +90,7 @@ def test_pose_graph_without_landmarks_warns_dead_reckoning(
 
 
 @pytest.mark.parametrize(("files", "hint"), [
-    (["ds0_RS_Control.dat"], "MRCLAM folder: add --mrclam"),
+    (["ds0_RS_Control.dat"], "MRCLAM folder: `lampsam slam DIR --mrclam`"),
     (["calib.txt"], "KITTI stereo sequence"),
     (["pose.txt"], "RGB-D (slambook2) folder"),
     ([], "no rig.yaml"),
@@ -108,3 +108,14 @@ def test_a_file_given_as_a_run(tmp_path: Path) -> None:
     p.write_bytes(b"#ROSBAG V2.0\n")
     with pytest.raises(DatasetError, match=r"run.bag: not a directory"):
         read_run(p)
+
+
+def test_localize_takes_a_file_as_a_laser_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A file that is not ``.log`` (VP's ``.txt``, a CARMEN ``.clf``) was 'run directory not
+    found'; it is read as a CARMEN log, whose reader names what is wrong with it."""
+    p = tmp_path / "victoria.txt"
+    p.write_text("ODOMETRY 0 1 1 0 0 1 0 0 1 0 1\n")
+    (tmp_path / "map").mkdir()
+    rc = main(["localize", str(p), "--map", str(tmp_path / "map"), "--out", str(tmp_path / "o")])
+    assert rc == 2
+    assert "victoria.txt: no FLASER or ROBOTLASER1 scans in the log" in capsys.readouterr().err

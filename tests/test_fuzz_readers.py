@@ -186,3 +186,31 @@ def test_config_with_bom_reads(tmp_path: Path) -> None:
     p = tmp_path / "c.toml"
     p.write_text("\ufeff[isam2]\nrelinearize_threshold = 0.05\n", encoding="utf-8")
     assert math.isclose(load_config(SlamConfig, p).isam2.relinearize_threshold, 0.05)
+
+
+@pytest.mark.parametrize(("name", "row", "match"), [
+    ("odometry.csv", "0.2,1e300,0.02", r"hostile.txt:4: d_left/d_right: 1e\+300 m in 0.1 s is faster"),
+    ("odometry.csv", "0.2,-20.0,0.02", r"hostile.txt:4: d_left/d_right: 20.0 m in 0.1 s is faster"),
+    ("odometry_pose2.csv", "0.2,1e6,0.0,0.01,1e-4,0,0,1e-4,0,1e-5", r"hostile.txt:4: dx/dy: 1000000.0 m"),
+    ("tum", "0.2 1e300 0 0 0 0 0 1", r"hostile.txt:4: x/y/z: 1e\+300 m is beyond 1e\+08 m"),
+    ("graph_text", "ODOMETRY 1 2 1e300 0.0 0.1 0.0001 0 0 4e-06 0 4e-06",
+     r"hostile.txt:3: ODOMETRY: x/y beyond 1e\+08 m"),
+])
+def test_huge_values_are_refused_naming_the_line(name: str, row: str, match: str, tmp_path: Path) -> None:
+    """A value no robot log holds (1e300 m, 200 m/s wheels) was read and sent the EKF
+    kilometres away with exit 0, or iSAM2 into 'covariance not positive definite'."""
+    reader, text_of, _ = READERS[name]
+    lines = text_of(tmp_path).splitlines()
+    where = 3 if name != "graph_text" else 2  # the third data line (after a header/comment)
+    lines[where] = row
+    p = tmp_path / "hostile.txt"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=match):
+        reader(p)
+
+
+def test_plausible_speeds_still_read(tmp_path: Path) -> None:
+    """99 m/s and a first sample alone are within the limit."""
+    p = tmp_path / "odometry.csv"
+    p.write_text("t,d_left,d_right\n0.0,0.0,0.0\n1.0,99.0,99.0\n1.5,0.0,0.0\n")
+    assert len(tables.read_odometry(p).t) == 3
