@@ -237,12 +237,14 @@ def read_calibration(path: str | Path) -> Intrinsics:
             message names the file and the key.
     """
     path = Path(path)
+    if path.is_dir():
+        raise DatasetError("is a directory, expected a calibration file", path)
     try:
         head = path.read_text(encoding="utf-8", errors="replace")[:4096]
     except FileNotFoundError as exc:
         raise DatasetError("calibration file not found", path) from exc
     except OSError as exc:
-        raise DatasetError(f"cannot read: {exc}", path) from exc
+        raise DatasetError(f"cannot read: {exc.strerror or exc}", path) from exc
     if head.lstrip().startswith("%YAML") or "!!opencv-matrix" in head:
         return _read_opencv(path)
     return _read_ros(path)

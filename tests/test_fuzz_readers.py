@@ -214,3 +214,23 @@ def test_plausible_speeds_still_read(tmp_path: Path) -> None:
     p = tmp_path / "odometry.csv"
     p.write_text("t,d_left,d_right\n0.0,0.0,0.0\n1.0,99.0,99.0\n1.5,0.0,0.0\n")
     assert len(tables.read_odometry(p).t) == 3
+
+
+@pytest.mark.parametrize("name", list(READERS))
+def test_no_read_permission_is_named(name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """chmod 000 (emulated: the suite may run as root, which reads anything)."""
+    reader, text_of, _ = READERS[name]
+    p = tmp_path / "hostile.txt"
+    p.write_text(text_of(tmp_path))
+    real_open = open
+
+    def refuse(path: Any, *args: Any, **kwargs: Any) -> Any:
+        if Path(str(path)) == p:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", refuse)
+    monkeypatch.setattr(Path, "read_bytes", lambda self: refuse(self, "rb").read())
+    monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: refuse(self).read())
+    with pytest.raises(DatasetError, match=r"hostile.txt: cannot read: [Pp]ermission denied"):
+        reader(p)
