@@ -79,7 +79,7 @@ def add_kinect_sim(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--localize-from", default=None, metavar="X,Y,THETA|random",
                    help="instead of the mapping drive: a global-localization run from this true start (m, m, rad) "
                         "or a random one: full turns in place, each followed by a drive (for `lampsam localize`)")
-    p.add_argument("--rounds", type=int, default=4,
+    p.add_argument("--rounds", type=positive_int, default=4,
                    help="with --localize-from: full turns, each followed by a drive (default 4: 3 restarts)")
     p.add_argument("--changed", action="store_true",
                    help="with --localize-from: apply the world's scene changes (moved furniture, as in Table 1)")
@@ -226,8 +226,9 @@ def add_localize(sub: argparse._SubParsersAction) -> None:
                         "[localize.filter], [localize.verification], ...)")
     add_rerun_option(p)
     p.add_argument("--scans", default="odd", help="CARMEN log: scans the trials use: odd (default), even or all")
-    p.add_argument("--trials", type=int, default=50, help="CARMEN log: trials from evenly spread scans (default 50)")
-    p.add_argument("--updates", type=int, default=4,
+    p.add_argument("--trials", type=positive_int, default=50,
+                   help="CARMEN log: trials from evenly spread scans (default 50)")
+    p.add_argument("--updates", type=positive_int, default=4,
                    help="CARMEN log: scans before the first acceptance test (more follow while ambiguous; default 4)")
     p.set_defaults(func=_cmd_localize)
 
@@ -251,12 +252,12 @@ def _cmd_table1(args: argparse.Namespace) -> int:
 def add_table1(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("table1", help="paper 2's Table 1 on the simulated office (global localization trials)")
     p.add_argument("--out", required=True, help="output directory (trials, table1.md, table1.png); a rerun resumes")
-    p.add_argument("--trials", type=int, default=50, help="start poses (default 50)")
+    p.add_argument("--trials", type=positive_int, default=50, help="start poses (default 50)")
     p.add_argument("--work", default=None, help="cache of the mapping run and map (default OUT/work)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the map, starts and noise (default 1)")
-    p.add_argument("--clearance", type=float, default=0.6, help="free space around start poses, m (default 0.6)")
+    p.add_argument("--seed", type=nonneg_int, default=1, help="seed of the map, starts and noise (default 1)")
+    p.add_argument("--clearance", type=positive, default=0.6, help="free space around start poses, m (default 0.6)")
     p.add_argument("--modes", default="grid_only,no_ceiling,proposed,ours", help="comma-separated configurations")
     p.add_argument("--trials-list", default="", help="comma-separated trial indices to run (same starts as a full run)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes (trial i goes to worker i %% jobs)")
+    p.add_argument("--jobs", type=positive_int, default=1, help="worker processes (trial i goes to worker i %% jobs)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the report from OUT/trials.w*.jsonl")
     p.set_defaults(func=_cmd_table1)

@@ -85,7 +85,8 @@ def _cmd_gallery(args: argparse.Namespace) -> int:
     from lampsam.evaluation.gallery import make_gallery
 
     if not Path(args.photos).is_dir():
-        raise LampsamError(f"{args.photos}: photo folder not found")
+        raise LampsamError(f"{args.photos}: " + ("not a folder (give the folder of photos)"
+                                                 if Path(args.photos).exists() else "photo folder not found"))
     entries = make_gallery(Path(args.photos), output_file(args), full_size=not args.small_only)
     for e in entries:
         print(

@@ -119,3 +119,23 @@ def test_localize_takes_a_file_as_a_laser_log(tmp_path: Path, capsys: pytest.Cap
     rc = main(["localize", str(p), "--map", str(tmp_path / "map"), "--out", str(tmp_path / "o")])
     assert rc == 2
     assert "victoria.txt: no FLASER or ROBOTLASER1 scans in the log" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["table1", "--trials", "0"], ["table1", "--trials", "-3"], ["table1", "--jobs", "0"],
+    ["table1", "--clearance", "-1"], ["table1", "--seed", "-1"],
+])
+def test_table1_numbers_are_checked_before_computing(argv: list[str], tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """These started the mapping drive (minutes) before failing or doing nothing."""
+    with pytest.raises(SystemExit) as info:
+        main([*argv, "--out", str(tmp_path / "t")])
+    assert info.value.code == 2 and "must be" in capsys.readouterr().err
+    assert not (tmp_path / "t").exists()
+
+
+def test_gallery_of_a_file_says_it_is_not_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    p = tmp_path / "photo.jpg"
+    p.write_bytes(b"\xff\xd8")
+    assert main(["gallery", str(p), "--out", str(tmp_path / "g.png")]) == 2
+    assert "photo.jpg: not a folder" in capsys.readouterr().err
