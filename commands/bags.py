@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lampsam.commands._args import add_force, output_dir
+
 
 # --------------------------------------------------------------------------- ROS bags
 def _cmd_import_bag(args: argparse.Namespace) -> int:
@@ -29,7 +31,10 @@ def _cmd_import_bag(args: argparse.Namespace) -> int:
         wheel_base=args.wheel_base, k_wheel=args.k_wheel,
         rig=Path(args.rig) if args.rig else None, base_frame=args.base_frame,
     )  # fmt: skip
-    report = import_bag(Path(args.bag), Path(args.out), opts)
+    # a non-empty --out needs --force: a second import into the same folder left the first
+    # one's odometry.csv beside the new odometry_pose2.csv, and slam read the stale one
+    out = output_dir(args)
+    report = import_bag(Path(args.bag), out, opts)
     for line in report.lines():
         print(line)
     print(f"logged run written to {args.out}")
@@ -50,6 +55,7 @@ def add_import_bag(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--k-wheel", type=float, default=None, help="wheel slip constant k_r = k_l, m")
     p.add_argument("--rig", default=None, help="rig.yaml to use instead of the bag's camera_info / tf")
     p.add_argument("--base-frame", default="base_link", help="robot body frame in tf (default base_link)")
+    add_force(p)
     p.set_defaults(func=_cmd_import_bag)
 
 

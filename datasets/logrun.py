@@ -198,6 +198,10 @@ def read_run(path: str | Path) -> LoggedRun:
     if (path / ODOMETRY_FILE).exists() or not (
             (path / ODOMETRY_POSE2_FILE).exists() or (path / ODOMETRY_POSES_FILE).exists()):
         odometry = read_odometry(path / ODOMETRY_FILE)
+        others = [f for f in (ODOMETRY_POSE2_FILE, ODOMETRY_POSES_FILE) if (path / f).exists()]
+        if others:
+            log.warning("%s: both %s and %s: using %s (wheel travel); is one left from an earlier "
+                        "import?", path, ODOMETRY_FILE, " and ".join(others), ODOMETRY_FILE)
     elif (path / ODOMETRY_POSE2_FILE).exists():
         odometry = read_pose2_odometry(path / ODOMETRY_POSE2_FILE)
     else:

@@ -171,6 +171,9 @@ class ImportReport:
             out += [f"skipped {n} on {topic}: {r}" for r, n in reasons.items()]
         readable = {ty for types in KIND_TYPES.values() for ty in types}
         out += [f"not used: {t} ({ty})" + ("" if ty in readable else ", a type no lampsam kind reads")
+                + (": wheel angles? --wheel-joints L,R --wheel-radius R reads them as wheel travel"
+                   " (export-bag writes left_wheel_joint,right_wheel_joint at radius 0.05 m)"
+                   if ty.endswith("JointState") and "joints" not in self.chosen else "")
                 for t, ty in self.ignored.items()]  # fmt: skip
         return out + self.notes
 

@@ -139,3 +139,25 @@ def test_gallery_of_a_file_says_it_is_not_a_folder(tmp_path: Path, capsys: pytes
     p.write_bytes(b"\xff\xd8")
     assert main(["gallery", str(p), "--out", str(tmp_path / "g.png")]) == 2
     assert "photo.jpg: not a folder" in capsys.readouterr().err
+
+
+def test_import_bag_into_a_used_folder_needs_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A second import into the same --out left the first one's odometry.csv beside the new
+    odometry_pose2.csv, and slam read the stale file; now it is refused before reading."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "odometry.csv").write_text("t,d_left,d_right\n0,0,0\n")
+    rc = main(["import-bag", str(tmp_path / "absent.bag"), "--out", str(out)])
+    assert rc == 2 and "--force" in capsys.readouterr().err
+
+
+def test_two_odometry_files_warn(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from lampsam.datasets.logrun import OdometryLog, Rig, write_run
+
+    src = write_run(tmp_path / "src", Rig(), OdometryLog(t=np.array([0.0, 0.1]), d_left=np.zeros(2),
+                                                         d_right=np.zeros(2)))
+    (src / "odometry_pose2.csv").write_text(
+        "t,dx,dy,dtheta,var_x,cov_xy,cov_xtheta,var_y,cov_ytheta,var_theta\n0,0,0,0,,,,,,\n")
+    with caplog.at_level(logging.WARNING):
+        read_run(src)
+    assert "both odometry.csv and odometry_pose2.csv: using odometry.csv" in caplog.text
