@@ -130,7 +130,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     features = tuple(f.strip() for f in args.features.split(",")) if args.features else None
     config = load_config(SlamConfig, config_path(args))
-    rows = batch(args.runs, Path(args.out), backend=args.backend, workers=args.workers,
+    out = output_dir(args)  # before any computing: a non-empty --out needs --force
+    rows = batch(args.runs, out, backend=args.backend, workers=args.workers,
                  dask=args.dask, progress=not args.no_progress, config=config,
                  frames=args.frames, features=features)
     print(markdown_table(rows))
@@ -146,12 +147,13 @@ def add_batch(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output directory (one folder per run + summary)")
     p.add_argument("--backend", choices=("batch", "isam2", "ekf"), default="batch",
                    help="estimator (default batch: Levenberg-Marquardt over the whole log)")
-    p.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    p.add_argument("--workers", type=positive_int, default=2, help="parallel processes (default 2)")
     p.add_argument("--frames", default="auto", choices=["auto", "images", "truth", "rangebearing"],
                    help="measurement source (default auto)")
     p.add_argument("--features", default=None, help="ceiling features, e.g. lamps,corners")
     p.add_argument("--config", default=None,
                    help="TOML/YAML file with the SLAM settings of every run (as for `lampsam slam --config`)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_force(p)
     add_dask_option(p)
     p.set_defaults(func=_cmd_batch, graceful=True)

@@ -161,3 +161,12 @@ def test_two_odometry_files_warn(tmp_path: Path, caplog: pytest.LogCaptureFixtur
     with caplog.at_level(logging.WARNING):
         read_run(src)
     assert "both odometry.csv and odometry_pose2.csv: using odometry.csv" in caplog.text
+
+
+def test_batch_into_a_used_folder_needs_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``batch`` wrote its summary into any folder; README: a non-empty --out needs --force."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine\n")
+    assert main(["batch", str(tmp_path / "nothing"), "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err and not (out / "summary.json").exists()
