@@ -17,6 +17,7 @@ from lampsam.commands._args import (
     nonneg_int,
     num,
     output_dir,
+    positive_int,
 )
 from lampsam.errors import LampsamError
 
@@ -87,11 +88,12 @@ def _cmd_stereo_experiment(args: argparse.Namespace) -> int:
     from lampsam.datasets.paths import shared_dataset
     from lampsam.evaluation.stereo_experiment import stereo_experiment
 
+    out = output_dir(args)  # before the seeds run: a non-empty --out needs --force
     kitti = None if args.no_kitti else shared_dataset("kitti_stereo_seq1")
     if kitti is None and not args.no_kitti:
         log.warning("shared dataset kitti_stereo_seq1 not found (set LAMPSAM_DATA): "
                     "the KITTI check is skipped")
-    print(stereo_experiment(Path(args.out), args.seeds, kitti))
+    print(stereo_experiment(out, args.seeds, kitti))
     return 0
 
 
@@ -99,6 +101,7 @@ def add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stereo-experiment",
                        help="paper 3's experiment: seeds x scenarios x estimators, and KITTI")
     p.add_argument("--out", required=True, help="output directory (stereo_rms.md/.json, figures)")
-    p.add_argument("--seeds", type=int, default=20, help="seeds per scenario (default 20)")
+    p.add_argument("--seeds", type=positive_int, default=20, help="seeds per scenario (default 20)")
     p.add_argument("--no-kitti", action="store_true", help="skip the KITTI real-data check")
+    add_force(p)
     p.set_defaults(func=_cmd_stereo_experiment)

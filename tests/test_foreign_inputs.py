@@ -170,3 +170,13 @@ def test_batch_into_a_used_folder_needs_force(tmp_path: Path, capsys: pytest.Cap
     (out / "keep.txt").write_text("mine\n")
     assert main(["batch", str(tmp_path / "nothing"), "--out", str(out)]) == 2
     assert "--force" in capsys.readouterr().err and not (out / "summary.json").exists()
+
+
+def test_stereo_experiment_into_a_used_folder_needs_force(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "stereo_rms.md").write_text("an earlier table\n")
+    assert main(["stereo-experiment", "--out", str(out), "--seeds", "1", "--no-kitti"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (out / "stereo_rms.md").read_text() == "an earlier table\n"
