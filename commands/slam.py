@@ -152,6 +152,7 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     from lampsam.backend.localize_only import LocalizeConfig
     from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
     from lampsam.backend.map_merge import merge_maps
+    from lampsam.backend.map_smoother import MapSmootherConfig
 
     cmap = read_map(args.map[0])  # a bad map: an error before any computing
     for more in args.map[1:]:
@@ -162,8 +163,11 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
              else start_from_result(args.start_from) if args.start_from else None)
     if features:
         config = dataclasses.replace(config, features=features)
+    smooth = args.map_mode == "smooth"
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
-                               loc=LocalizeConfig(map_mode=args.map_mode or "priors"))
+                               loc=LocalizeConfig(map_mode="priors" if smooth
+                                                  else args.map_mode or "priors"),
+                               smooth=MapSmootherConfig() if smooth else None)
     s = _plot_and_summarize(out, result, run)
     print(f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
           f"observations of {len(cmap.landmarks)} map landmarks used, none added"
@@ -257,9 +261,12 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                    help="with --localize-only: the map's landmarks are priors updated during "
                         "the run (joint EKF over pose and map landmarks; the default, same as "
                         "--map-mode priors)")
-    p.add_argument("--map-mode", default=None, choices=("fixed", "priors", "consider"),
+    p.add_argument("--map-mode", default=None, choices=("fixed", "priors", "consider", "smooth"),
                    help="with --localize-only: the map as priors (default), fixed values "
-                        "(pose-only EKF), or a consider (Schmidt) filter (docs/ceiling-map.md)")
+                        "(pose-only EKF), a consider (Schmidt) filter, or smooth: the priors "
+                        "filter, then a smoother over the whole run with the map's frame "
+                        "model; trajectory.tum then holds the smoothed poses "
+                        "(docs/ceiling-map.md)")
     p.add_argument("--localize-only", action="store_true",
                    help="track the run against --map without adding landmarks (--map-mode)")
     p.add_argument("--start", default=None, metavar="X,Y,THETA",
