@@ -64,6 +64,7 @@ from lampsam.backend.ceiling_map_io import CeilingMap, MapLandmark
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
+from lampsam.backend.map_frame import MapFrame
 from lampsam.backend.models import Obs
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
@@ -88,6 +89,9 @@ class MapSmootherConfig:
     Attributes:
         frame: use the map's frame model when it has one (default True); False, or a
             version-1 or merged map: each used landmark's marginal as an independent prior.
+        frame_turn: estimate the frame's turn ``dtheta`` (default True); False: the
+            shift-only model of :func:`shift_only` (the turn's part of each landmark's
+            error goes into its independent residual).
         update_every: 0 (default): one Levenberg-Marquardt solve at :meth:`MapSmoother.finish`;
             n > 0: an iSAM2 update every n steps (and at the end), the online estimate of
             those steps being iSAM2's.
@@ -96,6 +100,7 @@ class MapSmootherConfig:
     """
 
     frame: bool = True
+    frame_turn: bool = True
     update_every: int = field(default=0, metadata=limits(ge=0))
     max_iterations: int = field(default=20, metadata=limits(ge=1))
     final_updates: int = field(default=2, metadata=limits(ge=0))
@@ -176,6 +181,8 @@ class MapSmoother(SlamBackend):
         self.motion = motion_model(odometry)
         self.body_t_camera = np.asarray(ceiling.body_t_camera, float)
         self.frame = cmap.frame if self.smooth.frame else None
+        if self.frame is not None and not self.smooth.frame_turn:
+            self.frame = shift_only(self.frame)
         self.graph = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
         self._new_graph = gtsam.NonlinearFactorGraph()
@@ -351,6 +358,28 @@ class MapSmoother(SlamBackend):
         return res
 
 
+def shift_only(frame: MapFrame) -> MapFrame:
+    """The frame model regressed on the shift ``(dx, dy)`` alone.
+
+    From the joint Gaussian of ``(e_l, g)`` (``Cov(e_l, g) = C_l S``): ``C'_l = (C_l S)_{:, xy}
+    S_xy^-1`` and ``S' = S_xy``; returned as a 3-dof frame whose turn has variance
+    :data:`D_FLOOR` and zero gain, so that :meth:`MapFrame.conditional` gives
+    ``D'_l = Sigma_ll - C'_l S_xy C'_l^T`` (the turn's share stays in ``D'_l``, independent
+    between landmarks).
+    """
+    s = np.asarray(frame.cov, float)
+    s_xy_inv = np.linalg.inv(s[:2, :2])
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = s[:2, :2]
+    cov[2, 2] = D_FLOOR
+    gains = {}
+    for lid, c in frame.gains.items():
+        g = np.zeros((4, 3))
+        g[:, :2] = (np.asarray(c, float) @ s)[:, :2] @ s_xy_inv
+        gains[lid] = g
+    return MapFrame(np.asarray(frame.center, float), cov, gains)
+
+
 def frame_to_rigid(g: FloatArray, center: FloatArray) -> FloatArray:
     """``g = (dx, dy, dtheta)`` (a turn about ``center``, then a shift) as the SE(2)
     transform ``(x, y, theta)`` it applies to the map: ``p' = R p + t`` with
@@ -361,4 +390,4 @@ def frame_to_rigid(g: FloatArray, center: FloatArray) -> FloatArray:
                      float(g[2])])
 
 
-__all__ = ["MapSmoother", "MapSmootherConfig", "frame_to_rigid", "map_tie_factor"]
+__all__ = ["MapSmoother", "MapSmootherConfig", "frame_to_rigid", "map_tie_factor", "shift_only"]

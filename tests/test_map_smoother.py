@@ -6,7 +6,8 @@
   of the truth and its final poses are under 1.5 mm RMS, where the same smoother without
   the frame model (independent marginals) stays in the map's frame (RMS above 4 mm);
 - its online poses are the filter's, step for step, and it adds no landmark;
-- the frame model's factor is zero at the map and whitened by ``D``.
+- the frame model's factor is zero at the map and whitened by ``D``; the shift-only
+  model keeps every landmark's marginal.
 
 Every test seeds its own ``numpy.random.Generator`` (the ``rng`` fixture).
 """
@@ -31,6 +32,7 @@ from lampsam.backend.map_smoother import (
     MapSmootherConfig,
     frame_to_rigid,
     map_tie_factor,
+    shift_only,
 )
 from lampsam.backend.slam import iter_steps
 from tests.test_ceiling_map import _drive, _rms, _truth_errors
@@ -131,3 +133,20 @@ def test_map_tie_factor_and_frame_to_rigid(rng: np.random.Generator) -> None:
     c, s = math.cos(0.3), math.sin(0.3)
     moved = np.array([[c, -s], [s, c]]) @ center + tr[:2]
     assert np.allclose(moved, center + [0.01, -0.02], atol=1e-12)
+
+
+def test_shift_only_keeps_the_marginals(rng: np.random.Generator) -> None:
+    """``shift_only``: ``C' S' C'^T + D' = Sigma_ll`` for every landmark, no turn gain, and
+    ``C'`` is the regression of the landmark's error on the shift (``Cov(e, g_xy) S_xy^-1``)."""
+    a = rng.normal(size=(3, 3))
+    s = 1e-5 * (a @ a.T + np.eye(3))
+    gains = {i: rng.normal(size=(4, 3)) for i in range(5)}
+    frame = MapFrame(np.array([1.0, 2.0]), s, gains)
+    sh = shift_only(frame)
+    assert np.all(sh.gains[0][:, 2] == 0.0) and sh.cov[2, 2] < 1e-11
+    for i, c in gains.items():
+        b = rng.normal(size=(4, 4))
+        marginal = c @ s @ c.T + 1e-6 * (b @ b.T + np.eye(4))
+        d_new = sh.conditional(i, marginal)
+        assert np.allclose(sh.gains[i] @ sh.cov @ sh.gains[i].T + d_new, marginal, atol=1e-14)
+        assert np.allclose(sh.gains[i][:, :2] @ s[:2, :2], (c @ s)[:, :2], atol=1e-15)
