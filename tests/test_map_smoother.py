@@ -4,7 +4,8 @@
   0.5 deg) about its centre, with the frame model saying so (S, C = the rigid Jacobian),
   and a start known to 1 mm: the smoother's estimate of g is within 1 mm and 0.05 deg
   of the truth and its final poses are under 1.5 mm RMS, where the same smoother without
-  the frame model (independent marginals) stays in the map's frame (RMS above 4 mm);
+  the frame model (independent marginals) stays in the map's frame (RMS above 4 mm); the
+  default shift-only model recovers a pure shift as well;
 - its online poses are the filter's, step for step, and it adds no landmark;
 - the frame model's factor is zero at the map and whitened by ``D``; the shift-only
   model keeps every landmark's marginal.
@@ -66,7 +67,8 @@ def test_smoother_recovers_a_known_map_frame(rng: np.random.Generator) -> None:
     model = CeilingModel.from_camera(rig.camera)
     loc = LocalizeConfig(max_corner_sigma=0.05, sigma_start_xy=1e-3, sigma_start_theta=1e-3)
     steps = list(iter_steps(odo, frames))
-    sm = MapSmoother(rig.odometry, SlamConfig(), poses[0], shifted, model, loc)
+    sm = MapSmoother(rig.odometry, SlamConfig(), poses[0], shifted, model, loc,
+                     smooth=MapSmootherConfig(frame_turn=True))
     online = [sm.step(*s).pose for s in steps]
     res = sm.finish()
     pos, head = _truth_errors(res, t, poses)
@@ -90,6 +92,17 @@ def test_smoother_recovers_a_known_map_frame(rng: np.random.Generator) -> None:
         sm.step(*s)
     pos, _ = _truth_errors(sm.finish(), t, poses)
     assert _rms(pos) > 0.004
+    # a pure shift with the default (shift-only) model
+    g_shift = np.array([0.008, -0.006, 0.0])
+    sm = MapSmoother(rig.odometry, SlamConfig(), poses[0], _shifted_map(cmap, g_shift, 3e-4),
+                     model, loc)
+    for s in steps:
+        sm.step(*s)
+    res = sm.finish()
+    pos, _ = _truth_errors(res, t, poses)
+    g = np.array([res.extra["map_frame_dx_m"], res.extra["map_frame_dy_m"]])
+    assert np.all(np.abs(g - g_shift[:2]) < 0.001), g
+    assert _rms(pos) < 0.0015
 
 
 def test_isam2_engine_matches_the_batch_solve(rng: np.random.Generator) -> None:
@@ -99,7 +112,8 @@ def test_isam2_engine_matches_the_batch_solve(rng: np.random.Generator) -> None:
     model = CeilingModel.from_camera(rig.camera)
     loc = LocalizeConfig(max_corner_sigma=0.05, sigma_start_xy=1e-3, sigma_start_theta=1e-3)
     out = []
-    for cfg in (MapSmootherConfig(), MapSmootherConfig(update_every=10)):
+    for cfg in (MapSmootherConfig(frame_turn=True),
+                MapSmootherConfig(frame_turn=True, update_every=10)):
         sm = MapSmoother(rig.odometry, SlamConfig(), poses[0], shifted, model, loc, smooth=cfg)
         for s in iter_steps(odo, frames):
             sm.step(*s)

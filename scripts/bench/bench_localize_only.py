@@ -136,7 +136,7 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
 
 
 def localize_config(method: str) -> LocalizeConfig:
-    """``localize[-priors|-consider][-frame|-tight][-smooth[-noframe]]`` as the filter's
+    """``localize[-priors|-consider][-frame|-tight][-smooth[-turn|-noframe]]`` as the filter's
     settings; ``-frame`` uses the map's frame model (version-2 maps) in the filter, with the
     known start held as tightly as SLAM's (1 mm, 1 mrad), which ``-tight`` alone also does;
     ``-smooth`` (:func:`smoother_config`) adds the smoother over the filter's poses."""
@@ -164,12 +164,13 @@ def truth_frame_offset(truth_T_map: FloatArray, frame: MapFrame | None) -> Float
 
 
 def smoother_config(method: str) -> MapSmootherConfig | None:
-    """``...-smooth``: the localize-only smoother with the map's frame model; ``-noframe``:
-    with independent landmark priors; None without ``-smooth``."""
+    """``...-smooth``: the localize-only smoother with the map's frame model reduced to its
+    shift (the default); ``-turn``: with the turn too; ``-noframe``: with independent
+    landmark priors; None without ``-smooth``."""
     parts = method.split("-")[1:]
     if "smooth" not in parts:
         return None
-    return MapSmootherConfig(frame="noframe" not in parts)
+    return MapSmootherConfig(frame="noframe" not in parts, frame_turn="turn" in parts)
 
 
 def load_maps(paths: list[str], each: bool) -> list[tuple[str, CeilingMap]]:
@@ -190,11 +191,12 @@ def main() -> None:
                     help="ceiling map folder (slam --save-map); repeat to merge maps")
     ap.add_argument("--each-map", action="store_true",
                     help="track every --map on its own instead of merging them")
-    ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth",
+    ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth,priors-smooth-turn",
                     help="localize-only variants: fixed, priors, consider, frame (the map "
                          "frame's offset state, version-2 maps only), priors-frame, "
                          "consider-frame, -tight (1 mm / 1 mrad start), priors-smooth (the "
-                         "smoother with the map's frame model), priors-smooth-noframe")
+                         "smoother with the map frame's shift), priors-smooth-turn (shift and "
+                         "turn), priors-smooth-noframe (independent landmark priors)")
     ap.add_argument("--frames", default="images", choices=("images", "truth"))
     ap.add_argument("--backends", default="isam2,batch,ekf", help="SLAM from scratch backends")
     ap.add_argument("--reference", default="isam2", help="method the ratios divide by")
