@@ -30,9 +30,11 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import queue
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.synchronize import Event as EventLike
 from typing import cast
 
@@ -76,6 +78,9 @@ class DecoupledTimes:
         step_cpu: (N,) the worker's process CPU time for each step, s.
         framed: whether each step carried a measurement frame.
         given: when each step was taken from the caller's iterator (its frame ready).
+        cpu_out: the calling thread's CPU clock (``time.thread_time``) when each
+            step's pose was given: differences are the CPU per step of making the
+            step (e.g. the frontend) and tracking it.
         worker_cpu_s: the worker process's CPU time, start-up and final optimisation
             included (process clock).
         worker_ready: when the worker had built the backend (its start-up ends).
@@ -100,6 +105,7 @@ class DecoupledTimes:
     step_cpu: list[float] = field(default_factory=list)
     framed: list[bool] = field(default_factory=list)
     given: list[float] = field(default_factory=list)
+    cpu_out: list[float] = field(default_factory=list)
     worker_cpu_s: float = 0.0
     worker_ready: float = float("nan")
     worker_done: float = float("nan")
@@ -120,6 +126,16 @@ def _unpack(item: object) -> Frame | None:
     if kind == "ceiling":
         return unpack_frame(cast(PackedFrame, payload))
     return cast(Frame | None, payload)
+
+
+def worker_context() -> ForkContext | SpawnContext:
+    """The multiprocessing context of the mapping worker: ``fork`` when this process
+    runs a single thread (the child starts at once with every module already
+    imported, ~1 s of interpreter start-up and GTSAM import saved), else ``spawn``
+    (forking a process whose other threads may hold locks can deadlock the child)."""
+    if threading.active_count() == 1 and "fork" in mp.get_all_start_methods():
+        return cast(ForkContext, mp.get_context("fork"))
+    return cast(SpawnContext, mp.get_context("spawn"))
 
 
 def _inbox_steps(inbox: queue.Queue[object], stop: EventLike, at: list[float], index: list[int]
@@ -221,13 +237,15 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         times: filled as the run goes (a new one if None).
         finish: also run the backend's final optimisation in the worker and return its
             result (``times.result``), as :func:`~lampsam.backend.slam.drive` does.
-        max_lag: back-pressure, steps: before giving step ``i``'s pose, wait until the
-            worker has finished step ``i - max_lag`` (0: every pose is the backend's
-            own, as in one process; None: never wait). A camera cannot be slowed, so a
-            robot runs with None; replaying a log faster than the backend keeps up, a
-            bound keeps the tracked poses what they would be on a robot whose backend
-            keeps up within ``max_lag`` steps (unbounded, the tracker runs ahead on
-            odometry alone and its poses are dead reckoning from an old estimate).
+        max_lag: back-pressure, steps: after giving step ``i``'s pose, wait until the
+            worker has finished step ``i - max_lag`` before taking the next step (0:
+            every pose is the previous step's estimate plus one step of odometry; None:
+            never wait). A camera cannot be slowed, so a robot runs with None;
+            replaying a log faster than the backend keeps up, a bound keeps the tracked
+            poses what they would be on a robot whose backend keeps up within
+            ``max_lag`` steps (unbounded, the tracker runs ahead on odometry alone and
+            its poses are dead reckoning from an old estimate). The wait delays the
+            next step's reading, not this step's pose.
 
     Returns:
         The per-step records (:class:`DecoupledTimes`), with every finished step's
@@ -243,7 +261,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         raise ValueError(f"max_lag must be >= 0 or None, got {max_lag}")
     times = times if times is not None else DecoupledTimes()
     motion = motion_model(odometry)
-    ctx = mp.get_context("spawn")  # no fork of a parent holding GTSAM / OpenCV threads
+    ctx = worker_context()
     inbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
     outbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
     stop: EventLike = ctx.Event()
@@ -308,13 +326,6 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                         take(outbox.get_nowait())
                     except queue.Empty:
                         break
-                while max_lag is not None and i - anchor_j > max_lag and not done:
-                    try:  # back-pressure: wait for the worker to come within max_lag
-                        take(outbox.get(timeout=_POLL_S))
-                    except queue.Empty:
-                        if not worker.is_alive():
-                            raise WorkerError("the mapping worker died after "
-                                              f"{anchor_j + 1} steps") from None
                 if anchor_j < 0:
                     x = anchor_x.compose(o)
                 else:
@@ -322,6 +333,14 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.pose.append(pose_array(x))
                 times.anchor.append(anchor_j)
                 times.out.append(time.perf_counter())
+                times.cpu_out.append(time.thread_time())
+                while max_lag is not None and i - anchor_j > max_lag and not done:
+                    try:  # back-pressure: wait for the worker to come within max_lag
+                        take(outbox.get(timeout=_POLL_S))
+                    except queue.Empty:
+                        if not worker.is_alive():
+                            raise WorkerError("the mapping worker died after "
+                                              f"{anchor_j + 1} steps") from None
                 if done:  # the worker ended early (its backend failed): nothing more to map
                     break
             inbox.put(_STOP)

@@ -73,24 +73,24 @@ def test_decoupled_result_equals_sequential(lab_run: LoggedRun, tmp_path: Path) 
 
 
 def test_tracked_poses_near_backend_at_keyframes(lab_run: LoggedRun) -> None:
-    """max_lag 0: every tracked pose is the backend's own online estimate (1e-9).
-    max_lag 1: the tracked pose of a keyframe (the previous step's estimate plus one
-    step of odometry) is within 5 mm and 1 deg of the backend's estimate after the
-    keyframe's update (keyframe corrections early in a run, when the heading is
-    least known)."""
+    """max_lag 0 (the worker finishes each step before the next is read): every tracked
+    pose is the previous step's estimate plus one step of odometry (or the step's own
+    estimate, when it is back before the pose is given); at keyframes it is
+    within 5 mm and 1 deg of the backend's estimate after the keyframe's update (the
+    update's correction; largest early in a run, when the heading is least known:
+    measured 0.58 deg, seed 2). The backend's estimates are those of max_lag None."""
     steps = list(iter_steps(lab_run.odometry, list(iter_run(lab_run))))
     args = ("isam2", lab_run.rig.odometry, SlamConfig(), start_pose_of(lab_run),
             lab_run.rig.camera)
-    tm0 = run_decoupled(iter(steps), *args, max_lag=0)
-    assert all(a == i for i, a in enumerate(tm0.anchor))
-    np.testing.assert_allclose(np.array(tm0.pose), np.array(tm0.backend_pose), atol=1e-9)
-    tm1 = run_decoupled(iter(steps), *args, max_lag=1)
-    np.testing.assert_array_equal(np.array(tm1.backend_pose), np.array(tm0.backend_pose))
-    kf = np.array(tm1.keyframe, bool)
-    assert kf.sum() > 20 and all(i - a <= 1 for i, a in enumerate(tm1.anchor))
-    d = np.array(tm1.pose)[kf] - np.array(tm1.backend_pose)[kf]
+    tm = run_decoupled(iter(steps), *args, max_lag=0)
+    assert all(i - 1 <= a <= i for i, a in enumerate(tm.anchor))
+    free = run_decoupled(iter(steps), *args, max_lag=None)
+    np.testing.assert_array_equal(np.array(tm.backend_pose), np.array(free.backend_pose))
+    kf = np.array(tm.keyframe, bool)
+    assert kf.sum() > 20
+    d = np.array(tm.pose)[kf] - np.array(tm.backend_pose)[kf]
     assert np.hypot(d[:, 0], d[:, 1]).max() < 5e-3, np.hypot(d[:, 0], d[:, 1]).max()
-    assert np.degrees(np.abs(np.angle(np.exp(1j * d[:, 2])))).max() < 1.0  # measured 0.58 deg (seed 2)
+    assert np.degrees(np.abs(np.angle(np.exp(1j * d[:, 2])))).max() < 1.0
 
 
 def _children(pid: int) -> list[int]:
