@@ -32,7 +32,7 @@ import multiprocessing as mp
 import queue
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.synchronize import Event as EventLike
@@ -55,6 +55,9 @@ log = logging.getLogger(__name__)
 
 _POLL_S = 0.5  # how often a waiting caller checks that the worker is alive
 _STOP = "stop"
+#: The worker sends its estimates when it has caught up with the caller, or after this
+#: many steps: a caller far behind wakes once per batch instead of once per step.
+_REPLY_BATCH = 16
 _FLOOR = 1e-14  # covariance floor of the odometry composition (the covariance is unused)
 
 
@@ -138,22 +141,28 @@ def worker_context() -> ForkContext | SpawnContext:
     return cast(SpawnContext, mp.get_context("spawn"))
 
 
-def _inbox_steps(inbox: queue.Queue[object], stop: EventLike, at: list[float], index: list[int]
-                 ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
+def _inbox_steps(inbox: queue.Queue[object], stop: EventLike, at: list[float], index: list[int],
+                 flush: Callable[[], None]) -> Iterator[tuple[float, FloatArray, Frame | None]]:
     """The worker's steps from ``inbox`` until the stop mark. A set ``stop`` (the caller
     was interrupted) or a dead caller raises :class:`KeyboardInterrupt`, which
     :func:`~lampsam.backend.slam.drive` turns into status ``"interrupted"``. Before each
-    step, ``index[0]`` is set to its index and ``at[0]`` to the process CPU clock."""
+    step, ``index[0]`` is set to its index and ``at[0]`` to the process CPU clock;
+    ``flush`` (send the estimates made so far) is called whenever the inbox is empty,
+    before waiting for the caller."""
     parent = mp.parent_process()
     while True:
         if stop.is_set():
             raise KeyboardInterrupt("stopped by the tracking process")
         try:
-            item = inbox.get(timeout=_POLL_S)
+            item = inbox.get_nowait()
         except queue.Empty:
-            if parent is not None and not parent.is_alive():
-                raise KeyboardInterrupt("the tracking process died") from None
-            continue
+            flush()  # caught up: the caller gets every estimate before the worker waits
+            try:
+                item = inbox.get(timeout=_POLL_S)
+            except queue.Empty:
+                if parent is not None and not parent.is_alive():
+                    raise KeyboardInterrupt("the tracking process died") from None
+                continue
         if item == _STOP:
             return
         i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
@@ -168,7 +177,8 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
                     inbox: queue.Queue[object], outbox: queue.Queue[object], stop: EventLike,
                     finish: bool) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
-    ``(i, t, samples, frame)`` and send back ``(i, pose, keyframe, step CPU s)``; after the
+    ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
+    ...])`` (batched: when the inbox is empty, else every ``_REPLY_BATCH`` steps); after the
     stop mark (or ``stop`` set) ``("done", result or None, cpu_s)``, the result being the
     backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
     fallbacks as a run in one process); ``("error", text)`` if the backend cannot be built."""
@@ -190,14 +200,23 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         return
     outbox.put(("ready", 0.0))
     at, index = [0.0], [-1]
+    pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
+
+    def flush() -> None:
+        if pending:
+            outbox.put(("steps", pending.copy()))
+            pending.clear()
 
     def on_event(event: str, fields: Mapping[str, object]) -> None:
         if event == "slam.step":
             est = cast(StepEstimate, fields["estimate"])
-            outbox.put((index[0], np.asarray(est.pose, float), bool(est.keyframe),
-                        time.process_time() - at[0]))
+            x, y, th = (float(v) for v in est.pose)
+            pending.append((index[0], (x, y, th), bool(est.keyframe),
+                            time.process_time() - at[0]))
+            if len(pending) >= _REPLY_BATCH:
+                flush()
 
-    steps = _inbox_steps(inbox, stop, at, index)
+    steps = _inbox_steps(inbox, stop, at, index, flush)
     result: SlamResult | None = None
     if finish:
         with observing(on_event):
@@ -213,6 +232,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         except Exception as exc:  # sent to the caller, which raises it
             outbox.put(("error", f"{type(exc).__name__}: {exc}"))
             return
+    flush()
     outbox.put(("done", result, time.process_time() - c0))
 
 
@@ -273,26 +293,29 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
     anchor_j, anchor_x = -1, gtsam.Pose2(*np.asarray(start_pose, float))
     done: list[bool] = []
 
-    def take(item: object) -> None:
+    def take(message: object) -> None:
         nonlocal anchor_j, anchor_x
-        if isinstance(item, tuple) and isinstance(item[0], str):
-            if item[0] == "ready":
-                times.worker_ready = time.perf_counter()
-                log.info("mapping worker ready (%s backend built)", backend)
-                return
-            if item[0] == "done":
-                times.result = cast(SlamResult | None, item[1])
-                times.worker_cpu_s = float(item[2])
-                done.append(True)
-                return
+        item = cast(tuple[str, object, object], message)
+        if item[0] == "ready":
+            times.worker_ready = time.perf_counter()
+            log.info("mapping worker ready (%s backend built)", backend)
+            return
+        if item[0] == "done":
+            times.result = cast(SlamResult | None, item[1])
+            times.worker_cpu_s = float(cast(float, item[2]))
+            done.append(True)
+            return
+        if item[0] != "steps":
             raise WorkerError(f"mapping worker failed: {item[1]}")
-        j, pose, kf, cpu = cast(tuple[int, FloatArray, bool, float], item)
-        times.back[j] = time.perf_counter()
-        times.step_cpu[j] = cpu
-        times.keyframe[j] = kf
-        times.backend_pose[j] = pose
-        if j > anchor_j:
-            anchor_j, anchor_x = j, gtsam.Pose2(*pose)
+        now = time.perf_counter()
+        for j, pose, kf, cpu in cast(list[tuple[int, tuple[float, float, float], bool, float]],
+                                     item[1]):
+            times.back[j] = now
+            times.step_cpu[j] = cpu
+            times.keyframe[j] = kf
+            times.backend_pose[j] = np.array(pose)
+            if j > anchor_j:
+                anchor_j, anchor_x = j, gtsam.Pose2(*pose)
 
     def wait_for_worker() -> None:
         while not done:
