@@ -3,7 +3,8 @@
 Usage::
 
     python scripts/bench/bench_pipeline.py --run RUN [--backend isam2]
-        [--modes sequential,process,decoupled] [--paces none,4] [--max-frames N] [--depth 8]
+        [--modes sequential,process,decoupled,decoupled-process] [--paces none,4]
+        [--repeats 3] [--max-lag 15] [--max-frames N] [--depth 8]
 
 with ``RUN`` from ``lampsam simulate lab --seed 3 --out RUN`` (2,601 frames, 173 s).
 
@@ -15,17 +16,22 @@ optimisation not counted), as ``lampsam slam --frontend MODE`` runs them.
 * ``sequential``: the frontend runs in the estimator's thread when a frame is
   due (today's default);
 * ``thread`` / ``process``: a worker makes up to ``--depth`` frames ahead.
-* ``decoupled``: the frontend in a worker process as ``process``, the backend in a
-  second worker process, and this process giving every frame's pose at once from
-  the backend's newest estimate plus odometry (:mod:`lampsam.backend.tracking`:
-  tracking vs mapping). Its latency is frame arrival -> tracked pose; it also
-  prints the keyframe latency (step handed to the backend -> its estimate back),
-  how many steps the tracked pose's anchor was behind, the wall clock until the
-  backend finished the last step (its x real time is the throughput) and the
-  tracked poses' largest difference from the backend's own online poses. On a loaded
-  machine the worker's wall-clock latencies reflect the load, so the keyframe
-  latency is also replayed from the worker's CPU time per step as if it had a core of
-  its own, steps arriving at 1x, 4x and 8x real time
+* ``decoupled``: as ``lampsam slam --online decoupled`` runs it
+  (:mod:`lampsam.backend.tracking`: tracking vs mapping): the frontend and the
+  tracking in this process, the backend in a worker process, every frame's pose
+  given at once from the backend's newest estimate plus odometry, with
+  ``--max-lag`` steps of back-pressure (default 15, as the CLI; -1 never waits, as
+  a robot's camera). ``decoupled-process``: the frontend in a third process too.
+  Its latency is frame arrival -> tracked pose. Also printed: the CPU of each part
+  of both processes (frontend, tracking, queue pickling; the backend's steps and
+  the rest), the bound two free cores would give (data duration / the busiest
+  process's CPU, independent of the other sessions' load), the CPU per frame of
+  the tracking thread (image load + frontend + tracking, p95), the keyframe latency
+  (step handed over -> its estimate back), how many steps the tracked pose's anchor
+  was behind, and the tracked poses' largest difference from the backend's own. On
+  a loaded machine the worker's wall-clock latencies reflect the load, so the
+  keyframe latency is also replayed from the worker's CPU time per step as if it
+  had a core of its own, steps arriving at 1x, 4x and 8x real time
   (:func:`~lampsam.backend.tracking.replay_latency`).
 
 Paces: ``none`` replays as fast as possible (throughput: x real time by wall
@@ -181,6 +187,7 @@ def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: 
             "frames": n, "startup_s": (first or w0) - w0, "online_wall_s": online_wall,
             "x_rt_wall": duration / online_wall, "cpu_main_s": cpu, "cpu_worker_s": worker_cpu,
             "cpu_total_s": cpu + worker_cpu, "x_rt_cpu_main": duration / cpu,
+            "x_rt_2core_bound": duration / max(cpu, worker_cpu),
             "frontend_cpu_s": times.worker_cpu_s,
             "lat_med_ms": float(np.median(lat)), "lat_p95_ms": float(np.percentile(lat, 95)),
             "lat_max_ms": float(lat.max()), "_poses": np.array(poses)}
