@@ -203,8 +203,8 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
         return None
     bounds, lids, bearings, ranges, noises = sights
     scale = motion.model.cov_scale
-    d_all, c_floor, ok = single_sample_relative(samples, motion._sample_floor, floor, scale)
-    _, c_step, _ = single_sample_relative(samples, motion._sample_floor, STEP_FLOOR, scale)
+    d_all, c_floor, ok = single_sample_relative(samples, motion.sample_floor, floor, scale)
+    _, c_step, _ = single_sample_relative(samples, motion.sample_floor, STEP_FLOOR, scale)
     floor_to_step = (STEP_FLOOR - floor) * np.eye(3)
     plan = LogPlan(step_kf=np.zeros(n, int), is_kf=np.zeros(n, bool),
                    odo=[(np.zeros(3), np.zeros((3, 3)))],

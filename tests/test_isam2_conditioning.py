@@ -154,7 +154,7 @@ def test_cov_scale_reaches_single_sample_odometry() -> None:
         _, short = motion.relative(row, 1e-9)
         _, ref = accumulate_pose2(row[:, :3], model.sample_cov(row[0, :3], cov)[None], 1e-9)
         np.testing.assert_allclose(short, ref, rtol=1e-12, atol=1e-18)
-        _, dense, ok = single_sample_relative(row, motion._sample_floor, 1e-9, model.cov_scale)
+        _, dense, ok = single_sample_relative(row, motion.sample_floor, 1e-9, model.cov_scale)
         assert ok[0]
         np.testing.assert_array_equal(dense[0], short)
     one = Pose2Motion(Pose2OdometryModel())
