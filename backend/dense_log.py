@@ -92,8 +92,8 @@ class LogPlan:
     sighted: list[list[int]] = field(default_factory=list)
 
 
-def single_sample_relative(samples: FloatArray, sample_floor: FloatArray, floor_var: float
-                           ) -> tuple[FloatArray, FloatArray, BoolArray]:
+def single_sample_relative(samples: FloatArray, sample_floor: FloatArray, floor_var: float,
+                           cov_scale: float = 1.0) -> tuple[FloatArray, FloatArray, BoolArray]:
     """Each sample's own increment and covariance, as :meth:`Pose2Motion.relative` gives
     them for one sample with a scalar floor, over all rows at once.
 
@@ -101,16 +101,20 @@ def single_sample_relative(samples: FloatArray, sample_floor: FloatArray, floor_
         samples: (N, 12) rows ``[dx, dy, dtheta, cov row-major]``.
         sample_floor: (3, 3) the model's per-sample floor (diagonal).
         floor_var: variance added to each diagonal entry (>= 0).
+        cov_scale: factor on each row's own covariance
+            (:attr:`~lampsam.datasets.odometry.Pose2OdometryModel.cov_scale`).
 
     Returns:
         ``(delta (N, 3), cov (N, 3, 3), ok (N,))``: the increment (theta wrapped),
-        ``sym(cov + sample_floor) + floor_var I``; ``ok`` False where the row's
+        ``sym(cov_scale cov + sample_floor) + floor_var I``; ``ok`` False where the row's
         covariance is not finite (the model's default applies: not computed here).
     """
     d = samples[:, :3]
     c = samples[:, 3:].reshape(-1, 3, 3)
     ok: BoolArray = np.asarray(np.isfinite(c).all(axis=(1, 2)))
     delta = np.column_stack([0.0 + d[:, 0], 0.0 + d[:, 1], wrap_angle(0.0 + d[:, 2])])
+    if cov_scale != 1.0:
+        c = cov_scale * c
     cov = c + sample_floor
     sym = 0.5 * (cov + cov.transpose(0, 2, 1))
     idx = np.arange(3)
@@ -198,8 +202,9 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
     if sights is None:
         return None
     bounds, lids, bearings, ranges, noises = sights
-    d_all, c_floor, ok = single_sample_relative(samples, motion.sample_floor, floor)
-    _, c_step, _ = single_sample_relative(samples, motion.sample_floor, STEP_FLOOR)
+    scale = motion.model.cov_scale
+    d_all, c_floor, ok = single_sample_relative(samples, motion.sample_floor, floor, scale)
+    _, c_step, _ = single_sample_relative(samples, motion.sample_floor, STEP_FLOOR, scale)
     floor_to_step = (STEP_FLOOR - floor) * np.eye(3)
     plan = LogPlan(step_kf=np.zeros(n, int), is_kf=np.zeros(n, bool),
                    odo=[(np.zeros(3), np.zeros((3, 3)))],

@@ -316,6 +316,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             graph=GraphSnapshot(self.graph, values,
                                 None if self.ceiling is None else self.ceiling.body_t_camera),
             extra={"n_recoveries": float(self.n_recoveries),
+                   "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
                    "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)

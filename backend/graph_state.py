@@ -119,7 +119,11 @@ class GraphState(SlamBackend):
         self.estimate_times: list[float] = []  # then the pose estimate + marginal, s
         self.n_pruned = 0
         self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
-        self.n_recoveries = 0
+        self.n_recoveries = 0  # failed updates whose measurements were dropped
+        #: iSAM2 rebuilt with QR after an ill-conditioned clique (nothing dropped), and
+        #: whether it factors with QR from then on (:mod:`lampsam.backend.isam2_update`)
+        self.n_refactorized = 0
+        self.qr_factorization = False
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
         # (lamp id, measurement size) -> (keyframe, exact eq.-19 distance there), for _reuse_far

@@ -2,9 +2,23 @@
 
 One ``ISAM2.update`` per keyframe (Kaess et al. 2012, "iSAM2: Incremental smoothing
 and mapping using the Bayes tree") with the keyframe's new factors and values. A
-failed update (e.g. GTSAM's CheiralityException: a relinearised landmark below the
-camera) is not fatal: the offending measurements are dropped and iSAM2 is rebuilt
-from the remaining graph (:meth:`Isam2Updates._recover`, logged).
+failed update is not fatal (:meth:`Isam2Updates._recover`, logged):
+
+- an *ill-conditioned* clique (GTSAM's ``IndeterminantLinearSystemException`` on a
+  graph whose every variable is constrained) is a numerical failure, not a bad
+  measurement: iSAM2 is rebuilt from the whole graph with QR factorisation, nothing
+  dropped (:func:`ill_conditioned`);
+- any other failure (e.g. GTSAM's CheiralityException: a relinearised landmark below
+  the camera) drops the offending measurements and rebuilds iSAM2 from the rest.
+
+Why QR: GTSAM (4.3) factors each clique's frontal block ``A`` (the joint information
+of its frontal variables) by Cholesky and refuses it when the reciprocal condition
+number of the diagonally equilibrated block is under ``sqrt(eps)`` (1.5e-8).
+Two consecutive keyframes in one clique have a joint information whose condition is
+about (odometry information) / (absolute pose information): on Victoria Park without
+ids (no loop closed for a while, the pose 10-16 m uncertain, odometry sigmas of
+mm and mrad) it is 1.9e8 at keyframe 2,081 (docs/failures.md). QR works on the
+square-root information (condition the square root: 1.4e4) and has no such test.
 """
 
 from __future__ import annotations
@@ -45,7 +59,8 @@ class Isam2Updates(GraphState):
             for _ in range(self.config.isam2.extra_updates):
                 self.isam.update()
         except RuntimeError as exc:
-            self._recover(exc)
+            if not (ill_conditioned(exc) and self._refactor_qr(exc)):
+                self._recover(exc)
         t1 = time.perf_counter()
         self._new_graph = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
@@ -86,6 +101,62 @@ class Isam2Updates(GraphState):
                     del self._landmarks[lid]
                     self.pruned["left_window"] = self.pruned.get("left_window", 0) + 1
         self._fl_last = self.smoother.calculateEstimate()
+
+    def _isam2_params(self) -> gtsam.ISAM2Params:
+        """iSAM2 parameters for a rebuild: the config's, with QR once switched to it."""
+        params = self.config.isam2.to_gtsam()
+        if self.qr_factorization:
+            params.setFactorization("QR")
+        return params
+
+    def _rebuild_values(self, removed_keys: set[int]) -> gtsam.Values:
+        """Start values for a rebuilt iSAM2: the last estimate where it has the
+        variable, else the initial value; ``removed_keys`` left out."""
+        try:
+            old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
+        except RuntimeError:
+            old = gtsam.Values()
+        values = gtsam.Values()
+        for key in self.initial.keys():
+            if key in removed_keys:
+                continue
+            src = old if old.exists(key) else self.initial
+            values.insert(key, value_at(src, key))
+        return values
+
+    def _refactor_qr(self, exc: RuntimeError) -> bool:
+        """Rebuild iSAM2 from the whole graph (this update's factors included) with QR
+        factorisation, for the rest of the run; nothing is dropped.
+
+        Returns:
+            True when the rebuild succeeded; False when it was already QR, a
+            variable has no factor (a structural failure: :meth:`_recover` handles
+            it), or the rebuild threw too.
+        """
+        if self.qr_factorization or self.smoother is not None:
+            return False
+        orphans = unconstrained_keys(self.graph, self.initial)
+        if orphans:
+            log.warning("iSAM2 update failed at keyframe %d with variables without factors "
+                        "(%s)", self._k, ", ".join(gtsam.DefaultKeyFormatter(k) for k in orphans[:5]))
+            return False
+        values = self._rebuild_values(set())
+        self.qr_factorization = True
+        isam = gtsam.ISAM2(self._isam2_params())
+        try:
+            isam.update(self.graph, values)
+        except RuntimeError as exc2:
+            log.warning("iSAM2 rebuild with QR failed at keyframe %d (%s)", self._k,
+                        str(exc2).strip()[:120])
+            return False
+        log.warning("iSAM2 update at keyframe %d: ill-conditioned clique (%s); rebuilt with QR "
+                    "factorisation for the rest of the run, no measurement dropped",
+                    self._k, str(exc).strip().splitlines()[0][:100])
+        self.isam = isam
+        self._joint_cache = {}
+        self._pose_cache = {}
+        self.n_refactorized += 1
+        return True
 
     def _recover(self, exc: RuntimeError) -> None:
         """Rebuild iSAM2 after a failed update, without the offending measurements.
@@ -135,19 +206,25 @@ class Isam2Updates(GraphState):
             if f is None or i in drop_idx or any(key in removed_keys for key in f.keys()):
                 continue
             graph.add(f)
-        values = gtsam.Values()
-        for key in self.initial.keys():
-            if key in removed_keys:
-                continue
-            src = old if old.exists(key) else self.initial
-            values.insert(key, value_at(src, key))
+        # A rebuild never leaves a variable without a factor (an indeterminate system):
+        # a landmark whose every factor went is removed with it.
+        for key in unconstrained_keys(graph, self.initial):
+            sym = gtsam.Symbol(key)
+            lid = int(sym.index())
+            if chr(sym.chr()) != "x" and lid in self._landmarks:
+                lm = self._landmarks.pop(lid)
+                removed_keys.update(self.handlers[lm.kind].keys(lm))
+                self.n_pruned += 1
+                self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
+            removed_keys.add(key)
+        values = self._rebuild_values(removed_keys)
         initial = gtsam.Values()
         for key in self.initial.keys():
             if key not in removed_keys:
                 initial.insert(key, value_at(self.initial, key))
         self.graph = graph
         self.initial = initial
-        self.isam = gtsam.ISAM2(self.config.isam2.to_gtsam())
+        self.isam = gtsam.ISAM2(self._isam2_params())
         try:
             self.isam.update(graph, values)
         except RuntimeError as exc2:
@@ -156,3 +233,18 @@ class Isam2Updates(GraphState):
         self._joint_cache = {}
         self._pose_cache = {}
         self.n_recoveries += 1
+
+
+def ill_conditioned(exc: RuntimeError) -> bool:
+    """Whether a failed update is GTSAM's ``IndeterminantLinearSystemException``
+    ("Indeterminate linear system detected while working near variable ..."): a
+    clique that is singular or too poorly conditioned for Cholesky."""
+    return "indeterminate linear system" in str(exc).lower() or (
+        "indeterminant" in type(exc).__name__.lower())
+
+
+def unconstrained_keys(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> list[int]:
+    """Keys of ``values`` that no factor of ``graph`` involves (each makes the system
+    indeterminate), in ``values``' order."""
+    used = set(graph.keys())
+    return [key for key in values.keys() if key not in used]

@@ -157,7 +157,8 @@ class Pose2Motion:
 
         One sample with a scalar floor (a step per pose: the dense-log case) takes a
         short path with the same arithmetic: the increment itself (theta wrapped)
-        and ``sym(sample_cov) + floor I``.
+        and ``sym(sample_cov) + floor I`` (``sample_cov`` with the model's
+        ``cov_scale``).
         """
         if len(samples) == 1 and isinstance(floor_var, float):
             row = samples[0]
@@ -165,7 +166,9 @@ class Pose2Motion:
             c = row[3:].reshape(3, 3)
             if (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dth)
                     and math.isfinite(floor_var) and floor_var >= 0.0 and np.isfinite(c).all()):
-                cov = c + self.sample_floor  # Pose2OdometryModel.sample_cov of a given cov
+                if self.model.cov_scale != 1.0:  # Pose2OdometryModel.sample_cov of a given cov
+                    c = self.model.cov_scale * c
+                cov = c + self.sample_floor
                 sym = 0.5 * (cov + cov.T)
                 sym[0, 0] += floor_var
                 sym[1, 1] += floor_var

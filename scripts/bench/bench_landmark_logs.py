@@ -47,7 +47,8 @@ filter) and at the final pose, the map's RMS from LM's landmarks (by id; without
 the nearest LM landmark) (``gtsam-isam2-online``: iSAM2's estimate of each pose right after its
 own update, the fair reference for a filter's online poses), the chi-square (``2 x error``) of the solution on GTSAM's graph (known
 ids; landmarks a backend did not map take LM's value, counted), failures (iSAM2
-rebuilds / GTSAM exceptions), mapped landmarks against those in the file, total time
+rebuilds that dropped measurements / GTSAM exceptions), ``qr_rebuilds`` (iSAM2 rebuilt
+with QR after an ill-conditioned clique, nothing dropped), mapped landmarks against those in the file, total time
 and per-step median / p95, and the ratio of total time to GTSAM's iSAM2 measured in
 the same run, wall (``x_gtsam_isam2``) and process CPU (``x_gtsam_isam2_cpu``, the
 figure to compare on a shared machine). Times are medians over ``--repeats`` runs;
@@ -326,7 +327,8 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
 
     def row(solver: str, poses: np.ndarray, lms: dict[int, np.ndarray] | None, total: float,
             step_s: np.ndarray, failures: int, n_map: int, ids: bool,
-            map_lms: dict[int, np.ndarray] | None = None, cpu: float = math.nan) -> None:
+            map_lms: dict[int, np.ndarray] | None = None, cpu: float = math.nan,
+            qr: int = 0) -> None:
         map_lms = lms if map_lms is None else map_lms
         chi2, missing = chi2_of(graph, lm, poses, lms) if lms is not None else (math.nan, 0)
         rows.append({"log": name, "solver": solver, "ids": "known" if ids else "none",
@@ -336,6 +338,7 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                      "map_vs_lm_m": map_rms(map_lms, ids),
                      "rms_vs_truth_m": _rms_diff(poses, truth) if truth is not None else math.nan,
                      "chi2": chi2, "lm_missing": missing, "failures": failures,
+                     "qr_rebuilds": qr,
                      "mapped": n_map, "in_file": n_lm_file, "total_s": total,
                      "step_median_ms": float(np.median(step_s) * 1e3),
                      "step_p95_ms": float(np.percentile(step_s, 95) * 1e3),
@@ -377,7 +380,7 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
                 found = {int(x.id): x.position[:2] for x in res.landmarks}
                 row(f"lampsam-{b}" + ("" if fast else "-general"), res.poses, found if ids else None,
                     total, res.step_times_s, int(res.extra.get("n_recoveries", 0)),
-                    len(res.landmarks), ids, found, cpu)
+                    len(res.landmarks), ids, found, cpu, int(res.extra.get("n_qr_rebuilds", 0)))
                 if not res.status == "ok":
                     rows[-1]["solver"] += f" ({res.status[:40]})"
                 if not fast:  # what the fast path changed (a pure speed-up: 0.0)
