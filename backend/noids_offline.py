@@ -54,6 +54,7 @@ from gtsam.symbol_shorthand import L, X
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import graph_log_steps
+from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
 from lampsam.backend.reassociate import (
     Pass,
     Sightings,
@@ -83,6 +84,7 @@ class OfflineRun:
         n_dropped: the log's range-bearing sightings the online pass did not record.
         cost: :func:`association_cost`.
         online_cpu_s, batch_cpu_s: process CPU of the EKF pass and of the batch passes.
+        graph, values: the final association's factor graph and its optimum.
     """
 
     scale: float
@@ -98,6 +100,8 @@ class OfflineRun:
     cost: float
     online_cpu_s: float
     batch_cpu_s: float
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
 
     def mapped(self, min_observations: int = 2) -> dict[int, FloatArray]:
         """Landmarks with at least ``min_observations`` sightings."""
@@ -202,7 +206,7 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
     dropped = sum(len(x) for x in g.sightings) - len(s.k)
     cost = association_cost(co + cs, len(lms), dropped, config.association.new_threshold(2))
     return OfflineRun(scale, poses, lms, s, passes, co, cs, no, ns, dropped, cost, c1 - c0,
-                      time.process_time() - c1)
+                      time.process_time() - c1, graph, values)
 
 
 def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | None = None,
@@ -220,3 +224,46 @@ def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | No
                  r.chi2_sightings, r.dof_sightings, r.cost, len(r.passes))
         runs.append(r)
     return min(runs, key=lambda r: r.cost), runs
+
+
+def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:
+    """``lampsam slam LOG --no-ids --backend {ekf,batch}`` with ``[reassociation] passes``
+    > 0: :func:`select_scale`, then the chosen run as a result.
+
+    The landmarks' covariances are their marginals on the final graph; landmarks with
+    fewer than ``association.min_observations`` sightings are ``provisional``. ``extra``
+    holds the chosen factor (``noids_scale``), its passes, every candidate's cost
+    (``noids_cost_q<q>``), the group chi-squares per dof and the CPU time.
+    """
+    t0, c0 = time.perf_counter(), time.process_time()
+    best, runs = select_scale(g, config)
+    try:
+        marg: gtsam.Marginals | None = gtsam.Marginals(best.graph, best.values)
+    except RuntimeError as exc:
+        log.warning("no-ids offline: no marginals (%s): landmark covariances NaN", exc)
+        marg = None
+    ids, counts = np.unique(best.sightings.lid, return_counts=True)
+    lm_all = [LandmarkEstimate(
+        int(i), LandmarkKind.POINT2, np.r_[best.landmarks[int(i)], np.nan], None,
+        marg.marginalCovariance(L(int(i))) if marg is not None else np.full((2, 2), np.nan),
+        int(c)) for i, c in zip(ids, counts, strict=True)]
+    n_min = config.association.min_observations
+    once = [x for x in lm_all if x.n_obs < n_min]
+    n = len(g.pose_ids)
+    seen = np.zeros(n, bool)
+    seen[best.sightings.k] = True
+    wall = time.perf_counter() - t0
+    extra = {"noids_scale": best.scale, "reassociation_passes": float(len(best.passes)),
+             "chi2_per_dof_odometry": best.chi2_odometry / max(best.dof_odometry, 1),
+             "chi2_per_dof_sightings": best.chi2_sightings / max(best.dof_sightings, 1),
+             "sightings_dropped": float(best.n_dropped),
+             **{f"noids_cost_q{r.scale:g}": r.cost for r in runs},
+             "total_time_s": wall, "total_cpu_s": time.process_time() - c0}
+    return SlamResult(
+        backend="batch", times=g.odometry.t.copy(), poses=best.poses,
+        pose_covs=np.full((n, 3, 3), np.nan),
+        landmarks=[x for x in lm_all if x.n_obs >= n_min], step_times_s=np.full(n, wall / n),
+        keyframes=seen, extra=extra,
+        provisional=[] if config.association.prune_once_seen else once,
+        n_pruned=len(once) if config.association.prune_once_seen else 0,
+        pruned={"seen_too_few": len(once)} if config.association.prune_once_seen else {})
