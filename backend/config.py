@@ -463,6 +463,12 @@ class ReassociationConfig:
         margin: inliers by which it must beat any differently-paired hypothesis.
         max_rotation: largest rotation believed, rad.
         merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
+        switch: a sighting inside the gate of its landmark moves to another landmark
+            closer by more than this in squared Mahalanobis distance (inf: never).
+        fit_noise: the re-association's gate uses the sightings' noise shrunk to their
+            own spread at each pass's optimum (its variance-component factor, never above 1:
+            :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
+            new-landmark threshold of its landmark and outside every gate splits off.
         scales: candidate odometry variance factors of the online no-ids pass that
             precedes the offline re-association of a graph log
             (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
@@ -478,6 +484,8 @@ class ReassociationConfig:
     margin: int = field(default=2, metadata=limits(ge=1))
     max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
     merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
+    switch: float = field(default=float("inf"), metadata=limits(gt=0.0))
+    fit_noise: bool = False
     scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
 
     def __post_init__(self) -> None:

@@ -147,11 +147,14 @@ def main() -> None:
             return f
 
         best, runs = select_scale(g, config, scales, report)
-        print("\n| q | passes | landmarks (2+) | dropped | chi2/dof odometry | chi2/dof sightings | C | "
-              "chosen | CPU EKF / batch [s] |")
-        print("|---|---|---|---|---|---|---|---|---|")
+        print("\n| q | passes | landmarks (2+) | dup | wrong | RMS vs known-id batch [m] | dropped | "
+              "chi2/dof odometry | chi2/dof sightings | C | chosen | CPU EKF / batch [s] |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for r in runs:
-            print(f"| {r.scale:g} | {len(r.passes)} | {len(r.landmarks)} ({len(r.mapped())}) | {r.n_dropped} | "
+            _, dup, wrong = score(r.sightings, file_ids(g, r.sightings))
+            rms = float(np.sqrt(np.mean(np.sum((r.poses[:, :2] - ref[:, :2]) ** 2, 1))))
+            print(f"| {r.scale:g} | {len(r.passes)} | {len(r.landmarks)} ({len(r.mapped())}) | {dup} | "
+                  f"{wrong} | {rms:.3f} | {r.n_dropped} | "
                   f"{r.chi2_odometry / r.dof_odometry:.3f} | {r.chi2_sightings / r.dof_sightings:.3f} | "
                   f"{r.cost:.1f} | {'**yes**' if r is best else ''} | {r.online_cpu_s:.1f} / "
                   f"{r.batch_cpu_s:.1f} |", flush=True)
