@@ -463,6 +463,16 @@ class ReassociationConfig:
         margin: inliers by which it must beat any differently-paired hypothesis.
         max_rotation: largest rotation believed, rad.
         merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
+        switch: a sighting inside the gate of its landmark moves to another landmark
+            closer by more than this in squared Mahalanobis distance (inf: never).
+        fit_noise: the re-association's gate uses the sightings' noise shrunk to their
+            own spread at each pass's optimum (its variance-component factor, never above 1:
+            :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
+            new-landmark threshold of its landmark and outside every gate splits off.
+        scales: candidate odometry variance factors of the online no-ids pass that
+            precedes the offline re-association of a graph log
+            (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
+            the least description length is kept (default 1, 4, 16, 64: sigma x1-x8).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -474,10 +484,15 @@ class ReassociationConfig:
     margin: int = field(default=2, metadata=limits(ge=1))
     max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
     merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
+    switch: float = field(default=float("inf"), metadata=limits(gt=0.0))
+    fit_noise: bool = False
+    scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
+        if not self.scales or any(not q > 0 for q in self.scales):
+            raise FieldValueError("scales", f"needs one or more factors > 0, got {self.scales}")
 
 
 @dataclass(frozen=True)

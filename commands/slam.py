@@ -243,7 +243,13 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         truth = Trajectory(t=glog.odometry.t.copy(),
                            poses=np.array([verts[i] for i in glog.pose_ids]))
     known = not args.gate_only
-    result = run_graph_log(glog, args.backend, config, known_ids=known)
+    offline = not known and args.backend in ("ekf", "batch") and config.reassociation.passes > 0
+    if offline:  # the EKF's no-ids pass at each [reassociation] scales, re-associated in batch
+        from lampsam.backend.noids_offline import run_offline
+
+        result = run_offline(glog, config)
+    else:
+        result = run_graph_log(glog, args.backend, config, known_ids=known)
     with atomic_path(out / "trajectory.tum") as tmp:
         write_trajectory(tmp, result)
     with atomic_path(out / "landmarks.csv") as tmp:
@@ -264,6 +270,10 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
               f"{write_result_g2o(Path(args.g2o), result, None).text()}")
     msg = (f"{args.backend}: {s['steps']} steps (one per pose), {s['landmarks']} landmarks "
            f"(file: {glog.n_landmarks}), start pose {s['input']['start_pose']}")
+    if offline:
+        msg += (f"; no ids offline: EKF pass with odometry variance x{s['noids_scale']:g} (chosen "
+                f"of {', '.join(f'{q:g}' for q in config.reassociation.scales)}), "
+                f"{int(s['reassociation_passes'])} batch re-association passes")
     err = s.get("error")
     if err:
         msg += f"; position error RMS {err['position_rms_m']:.3f} m"
@@ -297,7 +307,9 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                         "runs this many steps ahead of its newest estimate (default 15; -1: "
                         "never wait, as a robot's camera)")
     p.add_argument("--gate-only", "--no-ids", action="store_true",
-                   help="ignore known landmark ids: associate by the Mahalanobis gate alone")
+                   help="ignore known landmark ids: associate by the Mahalanobis gate alone (a "
+                        "text log with --backend ekf/batch and [reassociation] passes > 0: the "
+                        "offline pipeline of backend/noids_offline.py)")
     p.add_argument("--truth", default=None,
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")

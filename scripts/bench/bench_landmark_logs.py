@@ -6,8 +6,9 @@ Usage::
         [--backends ekf,isam2,batch] [--no-ids] [--file LOG.txt [--truth TRUTH.txt]]
         [--mrclam-duration 600] [--set association.planar_noise_adapt=true ...] [--general]
 
-(``--backends`` also takes ``ekf-batch``, without ids only: the EKF's online pass
-re-associated in batch (:func:`ekf_then_batch`, ``[reassociation]``); ``ekf-paper``: the EKF with the paper's Jacobians,
+(``--backends`` also takes ``ekf-batch``, without ids only: the EKF's online pass at each
+``[reassociation] scales`` factor re-associated in batch, the least description length
+kept (:func:`ekf_then_batch`, :mod:`lampsam.backend.noids_offline`); ``ekf-paper``: the EKF with the paper's Jacobians,
 ``ekf-invariant``: the right-invariant EKF, ``ekf.right_invariant``, and ``ekf-fej``:
 plain first-estimates Jacobians without the observability constraint,
 ``ekf.observability_constrained = false``.)
@@ -243,51 +244,23 @@ def first_poses(g: GraphLog, n: int) -> GraphLog:
 
 
 def ekf_then_batch(g: GraphLog, config: SlamConfig) -> tuple[np.ndarray, dict[int, np.ndarray],
-                                                                float, float, int]:
-    """Batch without ids started from the EKF's online pass (no ids), then re-associated.
-
-    The EKF (``config``, e.g. with ``pose2_odometry.cov_scale``) runs the log one step per
-    pose and records its range-bearing sightings with their landmarks (those of landmarks
-    it pruned are left out); the batch graph
-    (the file's odometry with its stated covariance plus the model's floor, one keyframe
-    per pose, the start prior) is then optimised and re-associated
-    (:func:`lampsam.backend.reassociate.refine`, ``config.reassociation``, at least 1
-    pass). Returns ``(poses (N, 3), landmarks seen twice or more, wall s, CPU s,
-    passes)``.
+                                                                float, float, int, float]:
+    """Batch without ids started from the EKF's online pass (no ids), then re-associated:
+    :func:`lampsam.backend.noids_offline.select_scale` (the EKF's pass at each
+    ``reassociation.scales`` factor, the batch with the log's stated odometry covariance,
+    the least description length kept; ``config.reassociation``, 20 passes when it says
+    0). Returns ``(poses (N, 3), landmarks seen twice or more, wall s, CPU s, passes,
+    chosen factor)``.
     """
-    from lampsam.backend.graph_log import graph_log_steps
-    from lampsam.backend.reassociate import first_sight_positions, refine, sightings_from
-    from lampsam.backend.slam import drive, make_backend
+    from lampsam.backend.noids_offline import select_scale
 
     t0, c0 = time.perf_counter(), time.process_time()
-    cfg = dataclasses.replace(config, association=dataclasses.replace(
-        config.association, use_known_ids=False))
-    be = make_backend("ekf", cfg.pose2_odometry, cfg, g.start_pose())
-    res = drive(be, graph_log_steps(g, False))
-    kept = {int(x.id) for x in list(res.landmarks) + list(res.provisional)}
-    # the sightings of landmarks the EKF kept (pruned ones were judged spurious online)
-    s = sightings_from([r for r in be.planar_sightings  # type: ignore[attr-defined]
-                        if r[3] in kept])
-    lms = first_sight_positions(res.poses, s)
-    for lm_est in list(res.landmarks) + list(res.provisional):
-        if int(lm_est.id) in lms:
-            lms[int(lm_est.id)] = np.asarray(lm_est.position[:2], float)
-    model = dataclasses.replace(cfg.pose2_odometry, cov_scale=1.0)
-    odo = [(np.zeros(3), np.eye(3))] + [
-        (g.odometry.delta[k], model.sample_cov(g.odometry.delta[k], g.odometry.cov[k]))
-        for k in range(1, len(g.pose_ids))]
-    c = cfg.isam2
-    prior = gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*g.start_pose()), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([c.sigma_start_xy, c.sigma_start_xy, c.sigma_start_theta])))
-    rc = cfg.reassociation if cfg.reassociation.passes else dataclasses.replace(
-        cfg.reassociation, passes=20)
-    _, values, passes = refine(prior, odo, s, res.poses, lms, cfg.association.gate(2),
-                               cfg.association.new_threshold(2), rc)
-    poses = poses_of(values, len(g.pose_ids))
-    ids, counts = np.unique(s.lid, return_counts=True)
-    found = {int(i): np.asarray(values.atPoint2(L(int(i))), float)
-             for i, n in zip(ids, counts, strict=True) if n >= cfg.association.min_observations}
-    return poses, found, time.perf_counter() - t0, time.process_time() - c0, len(passes)
+    rc = config.reassociation if config.reassociation.passes else dataclasses.replace(
+        config.reassociation, passes=20)
+    best, _ = select_scale(g, dataclasses.replace(config, reassociation=rc))
+    found = best.mapped(config.association.min_observations)
+    return (best.poses, found, time.perf_counter() - t0, time.process_time() - c0,
+            len(best.passes), best.scale)
 
 
 def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[str],
@@ -357,8 +330,8 @@ def bench_log(name: str, g: GraphLog, truth: np.ndarray | None, backends: list[s
         for b in backends:
             if b == "ekf-batch":  # no ids only: the EKF's pass re-associated in batch
                 if not ids:
-                    poses_b, found_b, wall_b, cpu_b, n_pass = ekf_then_batch(g, config)
-                    row(f"lampsam-ekf-batch ({n_pass} passes)", poses_b, None, wall_b,
+                    poses_b, found_b, wall_b, cpu_b, n_pass, q_b = ekf_then_batch(g, config)
+                    row(f"lampsam-ekf-batch (q={q_b:g}, {n_pass} passes)", poses_b, None, wall_b,
                         np.array([wall_b / n]), 0, len(found_b), False, found_b, cpu_b)
                 continue
             # "ekf-paper": the EKF with the paper's Jacobians (at the latest estimate)
