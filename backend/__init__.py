@@ -42,9 +42,12 @@ Modules:
 * :mod:`~lampsam.backend.localize_run` -- Run localize-only tracking over a logged run, and save the map of a SLAM run.
 * :mod:`~lampsam.backend.map_frame` -- The map's frame uncertainty: the common part of a batch map's landmark errors.
 * :mod:`~lampsam.backend.map_merge` -- Merge ceiling maps of the same floor made on separate mapping drives.
+* :mod:`~lampsam.backend.map_smoother` -- Localize-only smoothing: the run's poses and the used map landmarks in one factor graph.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
+* :mod:`~lampsam.backend.noids_offline` -- Offline SLAM without ids on a graph log: online EKF pass, batch re-association, scale choice.
 * :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.
 * :mod:`~lampsam.backend.odometry_scale` -- Online odometry noise scale by covariance matching on landmark innovations.
+* :mod:`~lampsam.backend.online_run` -- ``lampsam slam RUN --online decoupled``: a whole SLAM run with tracking decoupled from mapping.
 * :mod:`~lampsam.backend.pipelined` -- Frontend and estimator overlapped: ceiling frames made ahead in a worker.
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
