@@ -13,8 +13,10 @@ import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import gtsam
+import numpy as np
 from scipy.special import chdtri
 
 from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
@@ -295,6 +297,13 @@ class EkfConfig:
         check_limits(self)
 
 
+class IsamSymbol(NamedTuple):
+    """A graph variable character's tangent dimension and whether it is a lamp's (:meth:`Isam2Config.to_gtsam`)."""
+
+    dim: int
+    lamp: bool
+
+
 @dataclass(frozen=True)
 class Isam2Config:
     """Online smoothing with iSAM2.
@@ -316,7 +325,13 @@ class Isam2Config:
             (1,218 keyframes), 3.5 / 9.5 ms at 0.1 m and 7.5 / 43 ms with every frame.
             (Before the first frame was always a keyframe, the policy cost 3x in
             accuracy: see :func:`lampsam.backend.keyframes.is_keyframe`.)
-        relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's).
+        relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's):
+            a variable whose pending correction has a component above it (m, rad) is
+            relinearised at the next relinearisation step.
+        lamp_relinearize_threshold: the threshold for lamps' variables (position and
+            axis) where the graph's lamps have their own symbol characters (the ceiling
+            graph: :data:`~lampsam.backend.ceiling_graph.CEILING_SYMBOLS`); None: the
+            same as every variable's.
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
         extra_updates: extra ``update()`` calls per keyframe (default 0).
@@ -376,6 +391,7 @@ class Isam2Config:
     keyframe_angle: float = field(default=0.15, metadata=limits(ge=0.0))
     every_frame: bool = False
     relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0))
+    lamp_relinearize_threshold: float | None = field(default=None, metadata=limits(gt=0.0))
     relinearize_skip: int = field(default=10, metadata=limits(ge=1))
     extra_updates: int = field(default=0, metadata=limits(ge=0))
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -395,10 +411,26 @@ class Isam2Config:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
 
-    def to_gtsam(self) -> gtsam.ISAM2Params:
-        """The ``gtsam.ISAM2Params`` for this config."""
+    def to_gtsam(self, symbols: Mapping[str, IsamSymbol] | None = None) -> gtsam.ISAM2Params:
+        """The ``gtsam.ISAM2Params`` for this config.
+
+        Args:
+            symbols: every variable character of the graph -> its :class:`IsamSymbol`.
+                With it and a ``lamp_relinearize_threshold`` that differs from
+                ``relinearize_threshold``, the threshold is GTSAM's per-character map
+                (``ISAM2ThresholdMap``: one vector of the variable's dimension per
+                character, compared component-wise; every character in the graph must
+                be in it); otherwise the one scalar (the largest component).
+        """
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.relinearize_threshold)
+        lamp = self.lamp_relinearize_threshold
+        if symbols is not None and lamp is not None and lamp != self.relinearize_threshold:
+            thresholds = gtsam.ISAM2ThresholdMap()
+            for ch, sym in symbols.items():
+                thresholds.insert((ch, np.full(sym.dim, lamp if sym.lamp else self.relinearize_threshold)))
+            params.setRelinearizeThreshold(thresholds)
+        else:
+            params.setRelinearizeThreshold(self.relinearize_threshold)
         params.relinearizeSkip = self.relinearize_skip
         return params
 

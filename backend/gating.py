@@ -18,10 +18,11 @@ from collections.abc import Iterable
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
+from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -242,7 +243,8 @@ class Gating(GraphState):
                 continue
             if len(lm.state) == 3:
                 try:
-                    lm.state = np.asarray(isam.calculateEstimatePoint3(L(lm.id)), float)
+                    lm.state = np.asarray(isam.calculateEstimatePoint3(point_key(lm.kind, lm.id)),
+                                          float)
                     continue
                 except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
                     pass

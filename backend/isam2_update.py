@@ -14,9 +14,10 @@ import re
 import time
 
 import gtsam
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import X
 
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
+from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.fixed_lag import keyframe_stamps, left_window, without_keys
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import value_at
@@ -105,11 +106,13 @@ class Isam2Updates(GraphState):
         if self.smoother is not None:  # rebuilt from the whole graph: full iSAM2 from here
             log.warning("fixed-lag smoother failed: continuing with full iSAM2")
             self.smoother = None
-        named = {int(m.group(1)) for m in re.finditer(r"\bl(\d+)\b", str(exc))}
+        # GTSAM names a landmark by its key: l<id> (lamps, planar points) or c<id> (corners)
+        named = {int(m.group(1)) for m in re.finditer(r"\b[lc](\d+)\b", str(exc))}
         new_lids = {lid for _, lid in self._update_factor_lids}
         bad = (named & set(self._landmarks)) or new_lids
         drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
-        entered = {lid for lid in bad if self._new_values.exists(L(lid))}
+        entered = {lid for lid in bad if lid in self._landmarks and self._new_values.exists(
+            self.handlers[self._landmarks[lid].kind].keys(self._landmarks[lid])[0])}
         try:
             old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
         except RuntimeError:
@@ -117,8 +120,9 @@ class Isam2Updates(GraphState):
         if self.ceiling is not None:  # landmarks the failed step put under the lens
             z_min = float(self.ceiling.body_t_camera[2]) + MIN_USABLE_HEIGHT
             for lid, lm in self._landmarks.items():
-                if lm.in_graph and lm.kind in ("lamp", "corner") and old.exists(L(lid)):
-                    if float(old.atPoint3(L(lid))[2]) < z_min:
+                key = point_key(lm.kind, lid)
+                if lm.in_graph and lm.kind in ("lamp", "corner") and old.exists(key):
+                    if float(old.atPoint3(key)[2]) < z_min:
                         entered.add(lid)
         log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
                     "factors of %d landmarks (%d removed) and rebuilding iSAM2",
@@ -147,7 +151,7 @@ class Isam2Updates(GraphState):
                 initial.insert(key, value_at(self.initial, key))
         self.graph = graph
         self.initial = initial
-        self.isam = gtsam.ISAM2(self.config.isam2.to_gtsam())
+        self.isam = gtsam.ISAM2(self.isam2_params)
         try:
             self.isam.update(graph, values)
         except RuntimeError as exc2:
