@@ -380,6 +380,11 @@ class Isam2Config:
             path 0.78x the online CPU and keyframe p95 57 -> 43 ms, 10-seed accuracy
             unchanged, docs/speed.md; 0: always exact).
         far_lamp_factor: see ``far_lamp_recheck`` (default 2.0).
+        far_lamp_bound: settle a lamp without a joint marginal when a lower bound of
+            its exact gate distance, from its last joint marginal carried by the
+            odometry, is beyond the new-landmark threshold
+            (:meth:`~lampsam.backend.gating.Gating._bound_far`; the same decisions as
+            the exact gate; default False).
         fixed_lag: the online iSAM2 backend smooths over the last this many keyframes
             only (GTSAM's ``IncrementalFixedLagSmoother``; lamps never leave the
             window; :mod:`lampsam.backend.fixed_lag`); 0 (default): full iSAM2. For
@@ -405,6 +410,7 @@ class Isam2Config:
     corner_pending_keyframes: int = field(default=30, metadata=limits(ge=1))
     far_lamp_recheck: int = field(default=5, metadata=limits(ge=0))
     far_lamp_factor: float = field(default=2.0, metadata=limits(ge=1.0))
+    far_lamp_bound: bool = False
     fixed_lag: int = field(default=0, metadata=limits(ge=0))
 
     def __post_init__(self) -> None:

@@ -130,6 +130,10 @@ class GraphState(SlamBackend):
         # (lamp id, measurement size) -> (keyframe, exact eq.-19 distance there), for _reuse_far
         self._far: dict[tuple[int, int], tuple[int, float]] = {}
         self.n_far_reused = 0
+        #: landmark id -> (gate keyframe, joint blocks) of its last exact joint marginal
+        #: (:meth:`~lampsam.backend.gating.Gating._bound_far`)
+        self._joint_at: dict[int, tuple[int, tuple[FloatArray, FloatArray, FloatArray]]] = {}
+        self.n_far_bounded = 0
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         #: range-bearing sightings without ids ``(keyframe, z, R, landmark id)``, for the
         #: batch re-association (:meth:`LandmarkLifecycle._reassociate`)

@@ -41,10 +41,11 @@ class Isam2Updates(GraphState):
         try:
             if self.smoother is not None:
                 self._fixed_lag_update()
+                self._joint_at = {}  # (marginalisation relinearises: no bound across it)
             else:
-                self.isam.update(self._new_graph, self._new_values)
+                self._relinearized(self.isam.update(self._new_graph, self._new_values))
             for _ in range(self.config.isam2.extra_updates):
-                self.isam.update()
+                self._relinearized(self.isam.update())
         except RuntimeError as exc:
             self._recover(exc)
         t1 = time.perf_counter()
@@ -55,6 +56,16 @@ class Isam2Updates(GraphState):
         self._kf_cov_key = X(self._k)  # its marginal, when first read (GraphState._kf_cov)
         self.update_times.append(t1 - t0)
         self.estimate_times.append(time.perf_counter() - t1)
+
+    def _relinearized(self, result: gtsam.ISAM2Result) -> None:
+        """Forget the gate's joint-marginal records when an update relinearised variables.
+
+        :meth:`~lampsam.backend.gating.Gating._bound_far` bounds an exact distance by
+        an earlier joint marginal; that holds for one linearisation only (new
+        Jacobians can widen a marginal).
+        """
+        if result.getVariablesRelinearized():
+            self._joint_at = {}
 
     def _fixed_lag_update(self) -> None:
         """One fixed-lag update (:mod:`lampsam.backend.fixed_lag`): keys stamped with the
@@ -158,5 +169,6 @@ class Isam2Updates(GraphState):
             raise EstimationError(f"iSAM2 rebuild failed at keyframe {self._k}: "
                                   f"{type(exc2).__name__} {exc2}") from exc2
         self._joint_cache = {}
+        self._joint_at = {}
         self._pose_cache = {}
         self.n_recoveries += 1
