@@ -198,8 +198,8 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
     if sights is None:
         return None
     bounds, lids, bearings, ranges, noises = sights
-    d_all, c_floor, ok = single_sample_relative(samples, motion._sample_floor, floor)
-    _, c_step, _ = single_sample_relative(samples, motion._sample_floor, STEP_FLOOR)
+    d_all, c_floor, ok = single_sample_relative(samples, motion.sample_floor, floor)
+    _, c_step, _ = single_sample_relative(samples, motion.sample_floor, STEP_FLOOR)
     floor_to_step = (STEP_FLOOR - floor) * np.eye(3)
     plan = LogPlan(step_kf=np.zeros(n, int), is_kf=np.zeros(n, bool),
                    odo=[(np.zeros(3), np.zeros((3, 3)))],

@@ -136,8 +136,8 @@ class Pose2Motion:
 
     def __init__(self, model: Pose2OdometryModel) -> None:
         self.model = model
-        #: the per-sample floor as :meth:`Pose2OdometryModel.sample_cov` adds it
-        self._sample_floor = np.diag([model.var_floor_xy, model.var_floor_xy,
+        #: (3, 3) the per-sample covariance floor as :meth:`Pose2OdometryModel.sample_cov` adds it
+        self.sample_floor = np.diag([model.var_floor_xy, model.var_floor_xy,
                                       model.var_floor_theta])
 
     def check(self, t: float, samples: FloatArray) -> FloatArray:
@@ -165,7 +165,7 @@ class Pose2Motion:
             c = row[3:].reshape(3, 3)
             if (math.isfinite(dx) and math.isfinite(dy) and math.isfinite(dth)
                     and math.isfinite(floor_var) and floor_var >= 0.0 and np.isfinite(c).all()):
-                cov = c + self._sample_floor  # Pose2OdometryModel.sample_cov of a given cov
+                cov = c + self.sample_floor  # Pose2OdometryModel.sample_cov of a given cov
                 sym = 0.5 * (cov + cov.T)
                 sym[0, 0] += floor_var
                 sym[1, 1] += floor_var

@@ -106,7 +106,7 @@ def test_single_sample_relative_equals_the_motion_model() -> None:
                       np.einsum("nij,nkj->nik", a, a).reshape(-1, 9)])
     rows[::9, 3:] = np.nan  # the model's default: left to the model
     for floor in (1e-9, 1e-14, 0.0):
-        d, c, ok = single_sample_relative(rows, motion._sample_floor, floor)
+        d, c, ok = single_sample_relative(rows, motion.sample_floor, floor)
         assert ok.sum() == 200 - len(rows[::9])
         for i in np.flatnonzero(ok):
             d_ref, c_ref = motion.relative(rows[i : i + 1], floor)
