@@ -71,9 +71,12 @@ CEILING_SYMBOLS: dict[str, IsamSymbol] = {
 }
 
 
+_CORNER = str(LandmarkKind.CORNER)  # a plain str: comparing with it skips the enum's lookup
+
+
 def point_key(kind: str, lid: int) -> int:
     """The graph key of a ceiling landmark's position: ``C(lid)`` for a corner, else ``L(lid)``."""
-    return int(C(lid)) if kind == LandmarkKind.CORNER else int(L(lid))
+    return C(lid) if kind == _CORNER else L(lid)  # type: ignore[no-any-return]
 
 
 def find_point_key(lid: int, keys: Container[int]) -> int | None:
