@@ -334,6 +334,9 @@ class Isam2Config:
             same as every variable's.
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
+        cache_linearized_factors: GTSAM's ``cacheLinearizedFactors`` (keep each
+            factor's linearisation between relinearisations; default True, GTSAM's).
+        find_unused_factor_slots: GTSAM's ``findUnusedFactorSlots`` (default False).
         extra_updates: extra ``update()`` calls per keyframe (default 0).
         sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad).
         pose_cov_every_step: every step's estimate carries its pose covariance (the
@@ -398,6 +401,8 @@ class Isam2Config:
     relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0))
     lamp_relinearize_threshold: float | None = field(default=None, metadata=limits(gt=0.0))
     relinearize_skip: int = field(default=10, metadata=limits(ge=1))
+    cache_linearized_factors: bool = True
+    find_unused_factor_slots: bool = False
     extra_updates: int = field(default=0, metadata=limits(ge=0))
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
     sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -438,6 +443,8 @@ class Isam2Config:
         else:
             params.setRelinearizeThreshold(self.relinearize_threshold)
         params.relinearizeSkip = self.relinearize_skip
+        params.cacheLinearizedFactors = self.cache_linearized_factors
+        params.findUnusedFactorSlots = self.find_unused_factor_slots
         return params
 
 

@@ -66,3 +66,10 @@ def test_threshold_map_only_with_symbols_and_a_different_lamp_threshold() -> Non
     mapped = printed(Isam2Config(lamp_relinearize_threshold=0.01).to_gtsam(CEILING_SYMBOLS))
     assert "{mapped}" in mapped and "'c' -> [0.1 0.1 0.1 ]" in mapped
     assert "'l' -> [0.01 0.01 0.01 ]" in mapped and "'a' -> [0.01 0.01 0.01 ]" in mapped
+
+
+def test_factor_cache_and_slot_settings_reach_gtsam() -> None:
+    params = Isam2Config(cache_linearized_factors=False, find_unused_factor_slots=True).to_gtsam()
+    assert params.cacheLinearizedFactors is False and params.findUnusedFactorSlots is True
+    params = Isam2Config().to_gtsam()  # GTSAM's defaults
+    assert params.cacheLinearizedFactors is True and params.findUnusedFactorSlots is False
