@@ -303,6 +303,9 @@ class MapLocalizer(SlamBackend):
         self.n_used = 0
         self.n_ignored = 0
         self.n_ambiguous = 0
+        #: the last step's used observations: ``(observation, map landmark, axis used)``
+        #: (read by :mod:`lampsam.backend.map_smoother`)
+        self.frame_matches: list[tuple[Obs, MapLandmark, bool]] = []
 
     # ------------------------------------------------------------------ association
     def _match(self, obs: list[Obs], kind: str, arr: _KindArrays) -> _Matches | None:
@@ -355,6 +358,11 @@ class MapLocalizer(SlamBackend):
         return _Matches(nu=z[rows] - m[keep[cols]], h_x=h_x[cols], r_tot=r[rows] + s_map[cols],
                         obs=idx[rows], lm=keep[cols], h_l=h_l[cols], r=r[rows])
 
+    def _record(self, obs: list[Obs], mt: _Matches, arr: _KindArrays, axes: set[int]) -> None:
+        """Append the matches to :attr:`frame_matches` (``axes``: lamps whose axis row is used)."""
+        for i, j in zip(mt.obs, mt.lm, strict=True):
+            self.frame_matches.append((obs[int(i)], arr.lms[int(j)], int(j) in axes))
+
     # ------------------------------------------------------------------ update
     def _axis_rows(self, obs: list[Obs], mt: _Matches, arr: _KindArrays,
                    var_theta: float) -> list[tuple[float, float, int]]:
@@ -397,11 +405,13 @@ class MapLocalizer(SlamBackend):
             info += np.einsum("kij,kjl->il", hw, mt.h_x)
             grad += np.einsum("kij,kj->i", hw, mt.nu)
             n += len(mt.obs)
-            if kind != LandmarkKind.LAMP.value:
-                continue
-            for nu_a, var, _ in self._axis_rows(obs, mt, arr, float(self.P[2, 2])):
-                info[2, 2] += 1.0 / var
-                grad[2] += -nu_a / var  # d alpha / d theta = -1
+            axes: set[int] = set()
+            if kind == LandmarkKind.LAMP.value:
+                for nu_a, var, j in self._axis_rows(obs, mt, arr, float(self.P[2, 2])):
+                    info[2, 2] += 1.0 / var
+                    grad[2] += -nu_a / var  # d alpha / d theta = -1
+                    axes.add(j)
+            self._record(obs, mt, arr, axes)
         if n == 0:
             return 0
         try:
@@ -449,9 +459,10 @@ class MapLocalizer(SlamBackend):
                 rows_h.append(h)
                 rows_nu.extend(mt.nu[k])
                 rows_r.append(mt.r[k] if in_state else mt.r_tot[k])
-            if kind != LandmarkKind.LAMP.value:
-                continue
-            for nu_a, var, j in self._axis_rows(obs, mt, arr, float(pj[2, 2])):
+            axis_rows = (self._axis_rows(obs, mt, arr, float(pj[2, 2]))
+                         if kind == LandmarkKind.LAMP.value else [])
+            self._record(obs, mt, arr, {j for _, _, j in axis_rows})
+            for nu_a, var, j in axis_rows:
                 h = np.zeros((1, n))
                 h[0, 2] = -1.0
                 if self._g is not None and arr.gains is not None:
@@ -516,6 +527,7 @@ class MapLocalizer(SlamBackend):
                 self._pj[:3, 3:] = f @ self._pj[:3, 3:]
                 self._pj[3:, :3] = self._pj[:3, 3:].T
         n_used = 0
+        self.frame_matches = []
         if frame is not None:
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
             obs = [o for o in obs if o.kind != LandmarkKind.POINT2]

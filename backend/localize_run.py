@@ -30,6 +30,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
 from lampsam.backend.map_frame import MapFrame, map_frame
+from lampsam.backend.map_smoother import MapSmoother, MapSmootherConfig
 from lampsam.backend.slam import (
     drive,
     iter_steps,
@@ -142,7 +143,8 @@ def run_localize_only(run: LoggedRun, cmap: CeilingMap, out: str | Path | None =
                       config: SlamConfig | None = None, frames: str = "auto",
                       start: Start | None = None, loc: LocalizeConfig | None = None,
                       max_dt: float = 0.5,
-                      frame_list: list[Frame] | None = None) -> SlamResult:
+                      frame_list: list[Frame] | None = None,
+                      smooth: MapSmootherConfig | None = None) -> SlamResult:
     """Track a run against a fixed ceiling map and write the results.
 
     Args:
@@ -156,6 +158,9 @@ def run_localize_only(run: LoggedRun, cmap: CeilingMap, out: str | Path | None =
         loc: localize-only settings.
         max_dt: longest interval without a step, s.
         frame_list: already made frames (to share one frontend pass), else made here.
+        smooth: also smooth the run at the end (:class:`lampsam.backend.map_smoother.MapSmoother`:
+            ``trajectory.tum`` holds the smoothed poses, ``summary.json`` the map frame
+            estimate); None: the filter alone.
 
     Raises:
         EstimationError: a run without ceiling frames, or a failed run.
@@ -171,8 +176,13 @@ def run_localize_only(run: LoggedRun, cmap: CeilingMap, out: str | Path | None =
     start = start or Start(start_pose_of(run))
     odo = (Pose2OdometryModel() if isinstance(run.odometry, Pose2OdometryLog)
            else run.rig.odometry)
-    backend = MapLocalizer(odo, config, start.pose, cmap, CeilingModel.from_camera(run.rig.camera),
-                           loc, start.cov)
+    backend: SlamBackend
+    if smooth is None:
+        backend = MapLocalizer(odo, config, start.pose, cmap,
+                               CeilingModel.from_camera(run.rig.camera), loc, start.cov)
+    else:
+        backend = MapSmoother(odo, config, start.pose, cmap,
+                              CeilingModel.from_camera(run.rig.camera), loc, start.cov, smooth)
     t0 = time.perf_counter()
     c0 = time.process_time()
     result = drive(backend, steps_after(iter_steps(run.odometry, frame_list, max_dt), start.t))

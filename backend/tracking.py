@@ -30,9 +30,12 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import queue
+import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from multiprocessing.context import ForkContext, SpawnContext
+from multiprocessing.synchronize import Event as EventLike
 from typing import cast
 
 import gtsam
@@ -40,7 +43,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.interface import Frame
+from lampsam.backend.interface import Frame, SlamResult, StepEstimate
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.backend.pose_cov import pose_array
@@ -52,7 +55,14 @@ log = logging.getLogger(__name__)
 
 _POLL_S = 0.5  # how often a waiting caller checks that the worker is alive
 _STOP = "stop"
+#: The worker sends its estimates when it has caught up with the caller, or after this
+#: many steps: a caller far behind wakes once per batch instead of once per step.
+_REPLY_BATCH = 16
 _FLOOR = 1e-14  # covariance floor of the odometry composition (the covariance is unused)
+
+
+class WorkerError(LampsamError):
+    """The mapping worker failed (its message) or died."""
 
 
 @dataclass
@@ -69,8 +79,22 @@ class DecoupledTimes:
         keyframe: whether the backend made the step a keyframe.
         backend_pose: (N, 3) the backend's own online estimate of each step.
         step_cpu: (N,) the worker's process CPU time for each step, s.
-        worker_cpu_s: the worker process's CPU time for the steps (process clock).
+        framed: whether each step carried a measurement frame.
+        given: when each step was taken from the caller's iterator (its frame ready).
+        cpu_out: the calling thread's CPU clock (``time.thread_time``) when each
+            step's pose was given: differences are the CPU per step of making the
+            step (e.g. the frontend) and tracking it.
+        worker_cpu_s: the worker process's CPU time, start-up and final optimisation
+            included (process clock).
+        worker_ready: when the worker had built the backend (its start-up ends).
         worker_done: when the worker had finished the last step.
+        result: the backend's :class:`~lampsam.backend.interface.SlamResult` after
+            its ``finish`` (``run_decoupled(finish=True)``; None otherwise, or when
+            the worker was given up on).
+        interrupted: the caller's steps were stopped by a signal
+            (:mod:`lampsam.interrupt`).
+        failure: the error that stopped the caller's steps (e.g. an unreadable
+            image), or None.
     """
 
     t: list[float] = field(default_factory=list)
@@ -82,8 +106,15 @@ class DecoupledTimes:
     keyframe: list[bool] = field(default_factory=list)
     backend_pose: list[FloatArray] = field(default_factory=list)
     step_cpu: list[float] = field(default_factory=list)
+    framed: list[bool] = field(default_factory=list)
+    given: list[float] = field(default_factory=list)
+    cpu_out: list[float] = field(default_factory=list)
     worker_cpu_s: float = 0.0
+    worker_ready: float = float("nan")
     worker_done: float = float("nan")
+    result: SlamResult | None = None
+    interrupted: bool = False
+    failure: str | None = None
 
 
 def _pack(frame: Frame | None) -> object:
@@ -100,135 +131,264 @@ def _unpack(item: object) -> Frame | None:
     return cast(Frame | None, payload)
 
 
+def worker_context() -> ForkContext | SpawnContext:
+    """The multiprocessing context of the mapping worker: ``fork`` when this process
+    runs a single thread (the child starts at once with every module already
+    imported, ~1 s of interpreter start-up and GTSAM import saved), else ``spawn``
+    (forking a process whose other threads may hold locks can deadlock the child)."""
+    if threading.active_count() == 1 and "fork" in mp.get_all_start_methods():
+        return cast(ForkContext, mp.get_context("fork"))
+    return cast(SpawnContext, mp.get_context("spawn"))
+
+
+def _inbox_steps(inbox: queue.Queue[object], stop: EventLike, at: list[float], index: list[int],
+                 flush: Callable[[], None]) -> Iterator[tuple[float, FloatArray, Frame | None]]:
+    """The worker's steps from ``inbox`` until the stop mark. A set ``stop`` (the caller
+    was interrupted) or a dead caller raises :class:`KeyboardInterrupt`, which
+    :func:`~lampsam.backend.slam.drive` turns into status ``"interrupted"``. Before each
+    step, ``index[0]`` is set to its index and ``at[0]`` to the process CPU clock;
+    ``flush`` (send the estimates made so far) is called whenever the inbox is empty,
+    before waiting for the caller."""
+    parent = mp.parent_process()
+    while True:
+        if stop.is_set():
+            raise KeyboardInterrupt("stopped by the tracking process")
+        try:
+            item = inbox.get_nowait()
+        except queue.Empty:
+            flush()  # caught up: the caller gets every estimate before the worker waits
+            try:
+                item = inbox.get(timeout=_POLL_S)
+            except queue.Empty:
+                if parent is not None and not parent.is_alive():
+                    raise KeyboardInterrupt("the tracking process died") from None
+                continue
+        if item == _STOP:
+            return
+        i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
+        index[0] = i
+        frame = _unpack(packed)
+        at[0] = time.process_time()
+        yield t, samples, frame
+
+
 def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig,
                     start_pose: FloatArray, camera: CameraModel | None,
-                    inbox: queue.Queue[object], outbox: queue.Queue[object]) -> None:
+                    inbox: queue.Queue[object], outbox: queue.Queue[object], stop: EventLike,
+                    finish: bool) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
-    ``(i, t, samples, frame)`` and send back ``(i, pose, keyframe, step CPU s)``; ``("done", cpu_s)``
-    after the stop mark, or ``("error", text)``."""
+    ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
+    ...])`` (batched: when the inbox is empty, else every ``_REPLY_BATCH`` steps); after the
+    stop mark (or ``stop`` set) ``("done", result or None, cpu_s)``, the result being the
+    backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
+    fallbacks as a run in one process); ``("error", text)`` if the backend cannot be built."""
     import signal
+    from collections.abc import Mapping
 
-    from lampsam.backend.slam import make_backend
+    from lampsam.backend.slam import drive, make_backend
+    from lampsam.observe import observing
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the caller stops the worker itself
+    # the caller coordinates stopping (a signal to the process group must not kill the
+    # worker before it has written back what it finished)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     c0 = time.process_time()
     try:
         be = make_backend(backend, odometry, config, start_pose, camera)
-        outbox.put(("ready", 0.0))
-        while True:
-            item = inbox.get()
-            if item == _STOP:
-                break
-            i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
-            c = time.process_time()
-            est = be.step(t, samples, _unpack(packed))
-            outbox.put((i, np.asarray(est.pose, float), bool(est.keyframe),
-                        time.process_time() - c))
-        outbox.put(("done", time.process_time() - c0))
     except Exception as exc:  # sent to the caller, which raises it
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    outbox.put(("ready", 0.0))
+    at, index = [0.0], [-1]
+    pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
+
+    def flush() -> None:
+        if pending:
+            outbox.put(("steps", pending.copy()))
+            pending.clear()
+
+    def on_event(event: str, fields: Mapping[str, object]) -> None:
+        if event == "slam.step":
+            est = cast(StepEstimate, fields["estimate"])
+            x, y, th = (float(v) for v in est.pose)
+            pending.append((index[0], (x, y, th), bool(est.keyframe),
+                            time.process_time() - at[0]))
+            if len(pending) >= _REPLY_BATCH:
+                flush()
+
+    steps = _inbox_steps(inbox, stop, at, index, flush)
+    result: SlamResult | None = None
+    if finish:
+        with observing(on_event):
+            result = drive(be, steps)
+        result.graph = None  # GTSAM's Python-callback factors do not pickle
+    else:
+        try:
+            for t, samples, frame in steps:
+                est = be.step(t, samples, frame)
+                on_event("slam.step", {"estimate": est})
+        except KeyboardInterrupt:
+            pass
+        except Exception as exc:  # sent to the caller, which raises it
+            outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+            return
+    flush()
+    outbox.put(("done", result, time.process_time() - c0))
 
 
 def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backend: str,
                   odometry: OdometryConstants, config: SlamConfig, start_pose: FloatArray,
-                  camera: CameraModel | None = None, times: DecoupledTimes | None = None
-                  ) -> DecoupledTimes:
+                  camera: CameraModel | None = None, times: DecoupledTimes | None = None,
+                  finish: bool = False, max_lag: int | None = None) -> DecoupledTimes:
     """Track every step at once while a worker process runs the backend (see module doc).
+
+    The worker is started first and the steps are handed over as they come, so its
+    start-up (a fresh interpreter importing GTSAM) overlaps the first frames; until
+    its first estimate is back the tracked pose is the start pose plus odometry.
 
     Args:
         steps: ``(t, odometry samples, frame or None)`` in time order
-            (:func:`lampsam.backend.slam.iter_steps`).
+            (:func:`lampsam.backend.slam.iter_steps`; wrapped in
+            :func:`lampsam.interrupt.interruptible` by callers that honour signals).
         backend: the online backend's name (:func:`~lampsam.backend.slam.make_backend`).
         odometry: the odometry model's constants; config: the SLAM config.
         start_pose: (3,) known start pose ``world_T_body``, m and rad.
         camera: the upward camera for ceiling frames, or None.
         times: filled as the run goes (a new one if None).
+        finish: also run the backend's final optimisation in the worker and return its
+            result (``times.result``), as :func:`~lampsam.backend.slam.drive` does.
+        max_lag: back-pressure, steps: after giving step ``i``'s pose, wait until the
+            worker has finished step ``i - max_lag`` before taking the next step (0:
+            every pose is the previous step's estimate plus one step of odometry; None:
+            never wait). A camera cannot be slowed, so a robot runs with None;
+            replaying a log faster than the backend keeps up, a bound keeps the tracked
+            poses what they would be on a robot whose backend keeps up within
+            ``max_lag`` steps (unbounded, the tracker runs ahead on odometry alone and
+            its poses are dead reckoning from an old estimate). The wait delays the
+            next step's reading, not this step's pose.
 
     Returns:
-        The per-step records (:class:`DecoupledTimes`), with every step's backend
-        estimate (the worker is waited for at the end).
+        The per-step records (:class:`DecoupledTimes`), with every finished step's
+        backend estimate (the worker is waited for at the end). A
+        :class:`KeyboardInterrupt` from ``steps`` (a stop signal) stops the worker
+        after the step it is on: ``times.interrupted`` is set and the steps it had
+        not begun stay NaN; a second one gives up waiting for it.
 
     Raises:
-        LampsamError: the worker failed (its message) or died.
+        WorkerError: the worker failed (its message) or died.
     """
+    if max_lag is not None and max_lag < 0:
+        raise ValueError(f"max_lag must be >= 0 or None, got {max_lag}")
     times = times if times is not None else DecoupledTimes()
     motion = motion_model(odometry)
-    ctx = mp.get_context("spawn")  # no fork of a parent holding GTSAM / OpenCV threads
+    ctx = worker_context()
     inbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
     outbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
+    stop: EventLike = ctx.Event()
     worker = ctx.Process(target=_mapping_worker, name="lampsam-mapping", daemon=True,
                          args=(backend, odometry, config, np.asarray(start_pose, float), camera,
-                               inbox, outbox))
+                               inbox, outbox, stop, finish))
     worker.start()
     chain: list[gtsam.Pose2] = []  # o_i: the odometry chain of every step
     anchor_j, anchor_x = -1, gtsam.Pose2(*np.asarray(start_pose, float))
-    done_cpu: list[float] = []
-    ready: list[bool] = []
+    done: list[bool] = []
 
-    def take(item: object) -> None:
+    def take(message: object) -> None:
         nonlocal anchor_j, anchor_x
-        if isinstance(item, tuple) and isinstance(item[0], str):
-            if item[0] == "ready":
-                ready.append(True)
-                return
-            if item[0] == "done":
-                done_cpu.append(float(item[1]))
-                return
-            raise LampsamError(f"mapping worker failed: {item[1]}")
-        j, pose, kf, cpu = cast(tuple[int, FloatArray, bool, float], item)
-        times.back[j] = time.perf_counter()
-        times.step_cpu[j] = cpu
-        times.keyframe[j] = kf
-        times.backend_pose[j] = pose
-        if j > anchor_j:
-            anchor_j, anchor_x = j, gtsam.Pose2(*pose)
+        item = cast(tuple[str, object, object], message)
+        if item[0] == "ready":
+            times.worker_ready = time.perf_counter()
+            log.info("mapping worker ready (%s backend built)", backend)
+            return
+        if item[0] == "done":
+            times.result = cast(SlamResult | None, item[1])
+            times.worker_cpu_s = float(cast(float, item[2]))
+            done.append(True)
+            return
+        if item[0] != "steps":
+            raise WorkerError(f"mapping worker failed: {item[1]}")
+        now = time.perf_counter()
+        for j, pose, kf, cpu in cast(list[tuple[int, tuple[float, float, float], bool, float]],
+                                     item[1]):
+            times.back[j] = now
+            times.step_cpu[j] = cpu
+            times.keyframe[j] = kf
+            times.backend_pose[j] = np.array(pose)
+            if j > anchor_j:
+                anchor_j, anchor_x = j, gtsam.Pose2(*pose)
+
+    def wait_for_worker() -> None:
+        while not done:
+            try:
+                take(outbox.get(timeout=_POLL_S))
+            except queue.Empty:
+                if not worker.is_alive():
+                    raise WorkerError("the mapping worker stopped without a word after "
+                                       f"{anchor_j + 1} steps") from None
 
     try:
-        while not ready:  # the backend built (imports, GTSAM) before the first step
-            try:
-                take(outbox.get(timeout=_POLL_S))
-            except queue.Empty:
-                if not worker.is_alive():
-                    raise LampsamError("the mapping worker died while starting") from None
-        o = gtsam.Pose2()
-        for i, (t, samples, frame) in enumerate(steps):
-            u = motion.check(t, samples)
-            if len(u):
-                d, _ = motion.relative(u, _FLOOR)
-                o = o.compose(gtsam.Pose2(*d))
-            chain.append(o)
-            times.t.append(t)
-            times.back.append(float("nan"))
-            times.keyframe.append(False)
-            times.backend_pose.append(np.full(3, np.nan))
-            times.step_cpu.append(float("nan"))
-            times.sent.append(time.perf_counter())
-            inbox.put((i, t, samples, _pack(frame)))
-            while True:  # every estimate already back
-                try:
-                    take(outbox.get_nowait())
-                except queue.Empty:
+        try:
+            o = gtsam.Pose2()
+            for i, (t, samples, frame) in enumerate(steps):
+                times.given.append(time.perf_counter())
+                u = motion.check(t, samples)
+                if len(u):
+                    d, _ = motion.relative(u, _FLOOR)
+                    o = o.compose(gtsam.Pose2(*d))
+                chain.append(o)
+                times.t.append(t)
+                times.framed.append(frame is not None)
+                times.back.append(float("nan"))
+                times.keyframe.append(False)
+                times.backend_pose.append(np.full(3, np.nan))
+                times.step_cpu.append(float("nan"))
+                times.sent.append(time.perf_counter())
+                inbox.put((i, t, samples, _pack(frame)))
+                while True:  # every estimate already back
+                    try:
+                        take(outbox.get_nowait())
+                    except queue.Empty:
+                        break
+                if anchor_j < 0:
+                    x = anchor_x.compose(o)
+                else:
+                    x = anchor_x.compose(chain[anchor_j].between(o))
+                times.pose.append(pose_array(x))
+                times.anchor.append(anchor_j)
+                times.out.append(time.perf_counter())
+                times.cpu_out.append(time.thread_time())
+                while max_lag is not None and i - anchor_j > max_lag and not done:
+                    try:  # back-pressure: wait for the worker to come within max_lag
+                        take(outbox.get(timeout=_POLL_S))
+                    except queue.Empty:
+                        if not worker.is_alive():
+                            raise WorkerError("the mapping worker died after "
+                                              f"{anchor_j + 1} steps") from None
+                if done:  # the worker ended early (its backend failed): nothing more to map
                     break
-            if anchor_j < 0:
-                x = anchor_x.compose(o)
+            inbox.put(_STOP)
+        except KeyboardInterrupt:  # a stop signal between steps: the worker stops too
+            times.interrupted = True
+            stop.set()
+            log.warning("interrupted: waiting for the mapping worker to finish its step "
+                        "(a second signal gives up on it)")
+        except LampsamError as exc:  # bad input met mid-run: keep what the worker finished
+            if not isinstance(exc, WorkerError):
+                times.failure = str(exc)
+                stop.set()
+                log.error("%s", exc)
             else:
-                x = anchor_x.compose(chain[anchor_j].between(o))
-            times.pose.append(pose_array(x))
-            times.anchor.append(anchor_j)
-            times.out.append(time.perf_counter())
-        inbox.put(_STOP)
-        while not done_cpu:
-            try:
-                take(outbox.get(timeout=_POLL_S))
-            except queue.Empty:
-                if not worker.is_alive():
-                    raise LampsamError("the mapping worker stopped without a word after "
-                                       f"{anchor_j + 1} steps") from None
-        times.worker_cpu_s = done_cpu[0]
-        times.worker_done = max((b for b in times.back if b == b), default=float("nan"))
+                raise
+        try:
+            wait_for_worker()
+        except KeyboardInterrupt:
+            times.interrupted = True
+            log.warning("second stop signal: the mapping worker's final result is given up")
+        finished = [b for b in times.back if b == b]
+        times.worker_done = max(finished, default=float("nan"))
         return times
     finally:
-        if not done_cpu and worker.is_alive():  # stopped early: do not wait for the backlog
+        if not done and worker.is_alive():  # stopped early: do not wait for the backlog
             worker.terminate()
         worker.join(timeout=5.0)
         if worker.is_alive():

@@ -46,6 +46,13 @@ def _cmd_slam(args: argparse.Namespace) -> int:
             raise LampsamError("--g2o with the EKF needs a run directory (its odometry gives the "
                                "factors); use --backend isam2 or batch for a text log")
     _check_map_flags(args)
+    if args.online == "decoupled" and (Path(args.run).is_file() or args.mrclam or args.g2o
+                                       or args.save_map or args.localize_only
+                                       or args.rerun is not None):
+        raise LampsamError("--online decoupled is for a run directory with wheel odometry, "
+                           "without --g2o / --save-map / --localize-only / --rerun")
+    if args.max_lag is not None and args.online != "decoupled":
+        raise LampsamError("--max-lag applies only with --online decoupled")
     if Path(args.run).is_file():
         return _slam_graph_text(args, config, output_dir(args))
     if args.duration is not None and not args.mrclam:
@@ -62,6 +69,8 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     out = output_dir(args)
     if args.localize_only:
         return _slam_localize_only(args, config, features, run, out)
+    if args.online == "decoupled":
+        return _slam_decoupled(args, config, features, run, out)
     if args.save_map:
         from lampsam.safe_io import check_output_dir
 
@@ -152,6 +161,7 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     from lampsam.backend.localize_only import LocalizeConfig
     from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
     from lampsam.backend.map_merge import merge_maps
+    from lampsam.backend.map_smoother import MapSmootherConfig
 
     cmap = read_map(args.map[0])  # a bad map: an error before any computing
     for more in args.map[1:]:
@@ -162,13 +172,45 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
              else start_from_result(args.start_from) if args.start_from else None)
     if features:
         config = dataclasses.replace(config, features=features)
+    smooth = args.map_mode == "smooth"
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
-                               loc=LocalizeConfig(map_mode=args.map_mode or "priors"))
+                               loc=LocalizeConfig(map_mode="priors" if smooth
+                                                  else args.map_mode or "priors"),
+                               smooth=MapSmootherConfig() if smooth else None)
     s = _plot_and_summarize(out, result, run)
     print(f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
           f"observations of {len(cmap.landmarks)} map landmarks used, none added"
           f"{_error_text(s)}; written to {out}")
     return 0 if result.status == "ok" else (EXIT_INTERRUPTED if result.status == "interrupted" else 1)
+
+
+def _slam_decoupled(args: argparse.Namespace, config: SlamConfig, features: tuple[str, ...],
+                    run: LoggedRun, out: Path) -> int:
+    """``lampsam slam RUN --online decoupled``: tracked poses here, the backend in a worker."""
+    import dataclasses
+
+    from lampsam.backend.online_run import DEFAULT_MAX_LAG, run_slam_decoupled
+
+    if features:
+        config = dataclasses.replace(config, features=features)
+    lag = DEFAULT_MAX_LAG if args.max_lag is None else (None if args.max_lag < 0 else args.max_lag)
+    result, _ = run_slam_decoupled(run, args.backend, out, config, frames=args.frames,
+                                   frontend=args.frontend, max_lag=lag)
+    e = result.extra
+    print(f"tracked poses: latency median / p95 {e['online_tracked_latency_ms_median']:.1f} / "
+          f"{e['online_tracked_latency_ms_p95']:.1f} ms; keyframe updates: latency median / p95 "
+          f"{e['online_keyframe_latency_ms_median']:.1f} / "
+          f"{e['online_keyframe_latency_ms_p95']:.1f} ms; {e['online_x_real_time']:.1f}x real "
+          f"time; tracked.tum beside trajectory.tum")
+    if result.status == "interrupted":
+        print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
+              f"are written to {out} (status interrupted)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    s = _plot_and_summarize(out, result, run)
+    print(f"{args.backend} (decoupled): {s['steps']} steps, {s['keyframes']} keyframes, "
+          f"{s['landmarks']} landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; "
+          f"written to {out}")
+    return 0 if result.status == "ok" else 1
 
 
 def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
@@ -235,6 +277,15 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                    help="images: run the frontend when each frame is due (default), or ahead of "
                         "the estimator in a worker process / thread (same frames; a process uses "
                         "a second core: docs/frontend-speed.md)")
+    p.add_argument("--online", choices=("sequential", "decoupled"), default="sequential",
+                   help="sequential: each frame's pose is the backend's (default); decoupled: "
+                        "the backend in a worker process, each frame's pose at once from its "
+                        "newest estimate plus odometry, also written to tracked.tum "
+                        "(docs/speed.md)")
+    p.add_argument("--max-lag", type=int, default=None, metavar="STEPS",
+                   help="with --online decoupled: wait for the backend when the tracked pose "
+                        "runs this many steps ahead of its newest estimate (default 15; -1: "
+                        "never wait, as a robot's camera)")
     p.add_argument("--gate-only", "--no-ids", action="store_true",
                    help="ignore known landmark ids: associate by the Mahalanobis gate alone")
     p.add_argument("--truth", default=None,
@@ -257,9 +308,12 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                    help="with --localize-only: the map's landmarks are priors updated during "
                         "the run (joint EKF over pose and map landmarks; the default, same as "
                         "--map-mode priors)")
-    p.add_argument("--map-mode", default=None, choices=("fixed", "priors", "consider"),
+    p.add_argument("--map-mode", default=None, choices=("fixed", "priors", "consider", "smooth"),
                    help="with --localize-only: the map as priors (default), fixed values "
-                        "(pose-only EKF), or a consider (Schmidt) filter (docs/ceiling-map.md)")
+                        "(pose-only EKF), a consider (Schmidt) filter, or smooth: the priors "
+                        "filter, then a smoother over the whole run with the map's frame "
+                        "model; trajectory.tum then holds the smoothed poses "
+                        "(docs/ceiling-map.md)")
     p.add_argument("--localize-only", action="store_true",
                    help="track the run against --map without adding landmarks (--map-mode)")
     p.add_argument("--start", default=None, metavar="X,Y,THETA",

@@ -260,7 +260,8 @@ def lab4(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,
                                          capsys: pytest.CaptureFixture[str]) -> None:
-    """batch --save-map, then --map --localize-only: RMS < 3 cm, the map's landmarks only."""
+    """batch --save-map, then --map --localize-only: RMS < 3 cm, the map's landmarks only;
+    the same with merged maps and ``--map-mode smooth``."""
     mp = tmp_path / "map"
     assert main(["slam", str(lab4), "--backend", "batch", "--frames", "truth", "--out",
                  str(tmp_path / "slam"), "--save-map", str(mp)]) == 0
@@ -282,6 +283,12 @@ def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,
     assert f"{len(cmap.landmarks)} landmarks fused, 0 added" in out
     s2 = json.loads((tmp_path / "loc2" / "summary.json").read_text())
     assert s2["error"]["position_rms_m"] < 0.03 and s2["landmarks"] == len(cmap.landmarks)
+    # --map-mode smooth: the smoothed poses, and the map frame's estimate in the summary
+    assert main(["slam", str(lab4), "--frames", "truth", "--map", str(mp), "--localize-only",
+                 "--map-mode", "smooth", "--out", str(tmp_path / "loc3")]) == 0
+    s3 = json.loads((tmp_path / "loc3" / "summary.json").read_text())
+    assert s3["backend"] == "localize-smooth" and s3["error"]["position_rms_m"] < 0.03
+    assert cmap.frame is not None and abs(s3["map_frame_dtheta_rad"]) < 0.01
 
 
 def test_cli_map_flags_and_bad_map(lab4: Path, tmp_path: Path,

@@ -55,7 +55,9 @@ from lampsam.backend.ceiling_map_io import CeilingMap, read_map
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import SlamBackend
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
+from lampsam.backend.map_frame import MapFrame
 from lampsam.backend.map_merge import merge_maps
+from lampsam.backend.map_smoother import MapSmoother, MapSmootherConfig
 from lampsam.backend.slam import (
     errors_vs_truth,
     iter_steps,
@@ -118,7 +120,9 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
         in_map_on = 1e3 * float(np.sqrt(np.mean(pos_m**2)))
     cpu = np.asarray(step_cpu)
     n_frames = max(int(np.sum(has_frame)), 1)
-    return {"pos_rms_mm": 1e3 * float(np.sqrt(np.mean(pos**2))),
+    frame_est = {f"g_{k}": result.extra[f"map_frame_{k}"] for k in ("dx_m", "dy_m", "dtheta_rad")
+                 if f"map_frame_{k}" in result.extra}
+    return {**frame_est, "pos_rms_mm": 1e3 * float(np.sqrt(np.mean(pos**2))),
             "pos_max_mm": 1e3 * float(pos.max()),
             "pos_rms_map_frame_mm": in_map,
             "online_rms_mm": 1e3 * float(np.sqrt(np.mean(pos_on**2))),
@@ -132,14 +136,41 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
 
 
 def localize_config(method: str) -> LocalizeConfig:
-    """``localize[-priors|-consider][-frame]`` as settings; ``-frame`` uses the map's frame
-    model (version-2 maps) with the known start held as tightly as SLAM's (1 mm, 1 mrad)."""
+    """``localize[-priors|-consider][-frame|-tight][-smooth[-turn|-noframe]]`` as the filter's
+    settings; ``-frame`` uses the map's frame model (version-2 maps) in the filter, with the
+    known start held as tightly as SLAM's (1 mm, 1 mrad), which ``-tight`` alone also does;
+    ``-smooth`` (:func:`smoother_config`) adds the smoother over the filter's poses."""
     parts = method.split("-")[1:]
     mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
+    if "tight" in parts:
+        return LocalizeConfig(map_mode=mode, sigma_start_xy=1e-3,  # type: ignore[arg-type]
+                              sigma_start_theta=1e-3)
     if "frame" in parts:
         return LocalizeConfig(map_mode=mode, frame_offset=True, sigma_start_xy=1e-3,  # type: ignore[arg-type]
                               sigma_start_theta=1e-3)
     return LocalizeConfig(map_mode=mode)  # type: ignore[arg-type]
+
+
+def truth_frame_offset(truth_T_map: FloatArray, frame: MapFrame | None) -> FloatArray:
+    """The frame offset ``g`` (about the map frame's centre; :mod:`lampsam.backend.map_frame`)
+    of the landmark fit ``truth_T_map`` (the inverse of
+    :func:`lampsam.backend.map_smoother.frame_to_rigid`); zeros without a frame."""
+    if frame is None:
+        return np.zeros(3)
+    th = float(truth_T_map[2])
+    rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    c = np.asarray(frame.center, float)
+    return np.r_[np.asarray(truth_T_map[:2], float) - (c - rot @ c), th]
+
+
+def smoother_config(method: str) -> MapSmootherConfig | None:
+    """``...-smooth``: the localize-only smoother with the map's frame model reduced to its
+    shift (the default); ``-turn``: with the turn too; ``-noframe``: with independent
+    landmark priors; None without ``-smooth``."""
+    parts = method.split("-")[1:]
+    if "smooth" not in parts:
+        return None
+    return MapSmootherConfig(frame="noframe" not in parts, frame_turn="turn" in parts)
 
 
 def load_maps(paths: list[str], each: bool) -> list[tuple[str, CeilingMap]]:
@@ -160,9 +191,12 @@ def main() -> None:
                     help="ceiling map folder (slam --save-map); repeat to merge maps")
     ap.add_argument("--each-map", action="store_true",
                     help="track every --map on its own instead of merging them")
-    ap.add_argument("--modes", default="fixed,priors,consider,frame,priors-frame",
+    ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth,priors-smooth-turn",
                     help="localize-only variants: fixed, priors, consider, frame (the map "
-                         "frame's offset state, version-2 maps only), priors-frame, consider-frame")
+                         "frame's offset state, version-2 maps only), priors-frame, "
+                         "consider-frame, -tight (1 mm / 1 mrad start), priors-smooth (the "
+                         "smoother with the map frame's shift), priors-smooth-turn (shift and "
+                         "turn), priors-smooth-noframe (independent landmark priors)")
     ap.add_argument("--frames", default="images", choices=("images", "truth"))
     ap.add_argument("--backends", default="isam2,batch,ekf", help="SLAM from scratch backends")
     ap.add_argument("--reference", default="isam2", help="method the ratios divide by")
@@ -184,7 +218,8 @@ def main() -> None:
     for label, cmap in maps:
         prefix = f"{label}: " if len(maps) > 1 else ""
         for mode in modes:
-            if "frame" in mode.split("-") and cmap.frame is None:
+            if ("frame" in mode.split("-") or ("smooth" in mode.split("-") and "noframe" not in
+                                                mode.split("-"))) and cmap.frame is None:
                 continue
             name = "localize" if mode == "fixed" else f"localize-{mode}"
             methods.append((prefix + name, cmap, name))
@@ -201,8 +236,14 @@ def main() -> None:
             fit = next((fits[label] for label, c in maps if c is on_map), None)
             reps = []
             for _ in range(args.repeats):
-                if on_map is not None:
-                    be: SlamBackend = MapLocalizer(
+                smooth = smoother_config(kind)
+                if on_map is not None and smooth is not None:
+                    be: SlamBackend = MapSmoother(
+                        run.rig.odometry, config, start, on_map,
+                        CeilingModel.from_camera(run.rig.camera), localize_config(kind),
+                        smooth=smooth)
+                elif on_map is not None:
+                    be = MapLocalizer(
                         run.rig.odometry, config, start, on_map,
                         CeilingModel.from_camera(run.rig.camera), localize_config(kind))
                 else:
@@ -220,6 +261,16 @@ def main() -> None:
                       f"lamps): dx {1e3 * x:.2f} mm, dy {1e3 * y:.2f} mm, dtheta "
                       f"{1e3 * math.degrees(th):.1f} mdeg; landmark residual "
                       f"{1e3 * fit.residual_rms_m:.1f} mm RMS")
+        for m, on_map, _ in methods:
+            f = figures[m]
+            label = next((lb for lb, c in maps if c is on_map), None)
+            fit = None if label is None else fits[label]
+            if "g_dx_m" in f and on_map is not None and fit is not None:
+                true_g = truth_frame_offset(fit.truth_T_map, on_map.frame)
+                print(f"{m}: map frame offset g estimated {1e3 * f['g_dx_m']:.2f}, "
+                      f"{1e3 * f['g_dy_m']:.2f} mm, {1e3 * math.degrees(f['g_dtheta_rad']):.1f} "
+                      f"mdeg; from the truth fit {1e3 * true_g[0]:.2f}, {1e3 * true_g[1]:.2f} mm, "
+                      f"{1e3 * math.degrees(true_g[2]):.1f} mdeg")
         print("| method | pos RMS mm | in map frame mm | online RMS mm | online in map frame mm "
               "| pos max mm | head RMS deg | CPU/frame median ms | x ref | CPU/frame mean incl. "
               "final ms | x ref |")

@@ -3,7 +3,8 @@
 Usage::
 
     python scripts/bench/bench_pipeline.py --run RUN [--backend isam2]
-        [--modes sequential,process,decoupled] [--paces none,4] [--max-frames N] [--depth 8]
+        [--modes sequential,process,decoupled,decoupled-process] [--paces none,4]
+        [--repeats 3] [--max-lag 15] [--max-frames N] [--depth 8]
 
 with ``RUN`` from ``lampsam simulate lab --seed 3 --out RUN`` (2,601 frames, 173 s).
 
@@ -15,17 +16,22 @@ optimisation not counted), as ``lampsam slam --frontend MODE`` runs them.
 * ``sequential``: the frontend runs in the estimator's thread when a frame is
   due (today's default);
 * ``thread`` / ``process``: a worker makes up to ``--depth`` frames ahead.
-* ``decoupled``: the frontend in a worker process as ``process``, the backend in a
-  second worker process, and this process giving every frame's pose at once from
-  the backend's newest estimate plus odometry (:mod:`lampsam.backend.tracking`:
-  tracking vs mapping). Its latency is frame arrival -> tracked pose; it also
-  prints the keyframe latency (step handed to the backend -> its estimate back),
-  how many steps the tracked pose's anchor was behind, the wall clock until the
-  backend finished the last step (its x real time is the throughput) and the
-  tracked poses' largest difference from the backend's own online poses. On a loaded
-  machine the worker's wall-clock latencies reflect the load, so the keyframe
-  latency is also replayed from the worker's CPU time per step as if it had a core of
-  its own, steps arriving at 1x, 4x and 8x real time
+* ``decoupled``: as ``lampsam slam --online decoupled`` runs it
+  (:mod:`lampsam.backend.tracking`: tracking vs mapping): the frontend and the
+  tracking in this process, the backend in a worker process, every frame's pose
+  given at once from the backend's newest estimate plus odometry, with
+  ``--max-lag`` steps of back-pressure (default 15, as the CLI; -1 never waits, as
+  a robot's camera). ``decoupled-process``: the frontend in a third process too.
+  Its latency is frame arrival -> tracked pose. Also printed: the CPU of each part
+  of both processes (frontend, tracking, queue pickling; the backend's steps and
+  the rest), the bound two free cores would give (data duration / the busiest
+  process's CPU, independent of the other sessions' load), the CPU per frame of
+  the tracking thread (image load + frontend + tracking, p95), the keyframe latency
+  (step handed over -> its estimate back), how many steps the tracked pose's anchor
+  was behind, and the tracked poses' largest difference from the backend's own. On
+  a loaded machine the worker's wall-clock latencies reflect the load, so the
+  keyframe latency is also replayed from the worker's CPU time per step as if it
+  had a core of its own, steps arriving at 1x, 4x and 8x real time
   (:func:`~lampsam.backend.tracking.replay_latency`).
 
 Paces: ``none`` replays as fast as possible (throughput: x real time by wall
@@ -60,6 +66,7 @@ import cv2
 import numpy as np
 
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.online_run import DEFAULT_MAX_LAG, online_figures
 from lampsam.backend.pipelined import MODES, FrameTimes, frame_source
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
 from lampsam.backend.tracking import replay_latency, run_decoupled
@@ -82,65 +89,77 @@ def _cut(run: LoggedRun, max_frames: int | None) -> LoggedRun:
     return dataclasses.replace(run, images=images, odometry=odometry)
 
 
+#: The decoupled rows: the frontend in this process (as the CLI), or in a worker too.
+DECOUPLED = ("decoupled", "decoupled-process")
+
 #: Paces (x real time) at which the decoupled row's keyframe latency is replayed from
 #: the backend's measured CPU per step (:func:`replay_latency`).
 REPLAY_PACES = (1.0, 4.0, 8.0)
 
 
-def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int
-                  ) -> dict[str, Any]:
-    """One online run with tracking decoupled from mapping (:func:`run_decoupled`)."""
+def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
+                  frontend: str, max_lag: int | None) -> dict[str, Any]:
+    """One online run with tracking decoupled from mapping, as ``lampsam slam --online
+    decoupled`` runs it (:func:`run_decoupled`; the final optimisation not run): the
+    frontend in this process (``frontend`` "sequential") or a worker, the backend in a
+    worker process."""
     assert run.images is not None
     times = FrameTimes()
-    w0, c0 = time.perf_counter(), time.process_time()
-    source = frame_source(run.images, run.rig.camera, mode="process", depth=depth, pace=pace,
-                          times=times)
-    has_frame: list[bool] = []
-
-    def steps() -> Any:
-        for step in iter_steps(run.odometry, source):
-            has_frame.append(step[2] is not None)
-            yield step
-
-    tm = run_decoupled(steps(), backend, run.rig.odometry, SlamConfig(), start_pose_of(run),
-                       run.rig.camera)
-    cpu = time.process_time() - c0
-    fr = np.asarray(has_frame, bool)
-    out = np.asarray(tm.out)[fr]
-    n = len(out)
-    lat = 1e3 * (out - np.asarray(times.arrival[:n]))
-    track = 1e3 * (out - np.asarray(times.ready[:n]))
-    kf = np.asarray(tm.keyframe, bool)
-    kf_lat = 1e3 * (np.asarray(tm.back) - np.asarray(tm.sent))[kf]
-    lag = np.arange(len(tm.anchor)) - np.asarray(tm.anchor)
-    start = times.arrival[0] if times.arrival else w0
+    w0, c0, th0 = time.perf_counter(), time.process_time(), time.thread_time()
+    source = frame_source(run.images, run.rig.camera, mode=frontend,  # type: ignore[arg-type]
+                          depth=depth, pace=pace, times=times)
+    tm = run_decoupled(iter_steps(run.odometry, source), backend, run.rig.odometry, SlamConfig(),
+                       start_pose_of(run), run.rig.camera, max_lag=max_lag)
+    cpu, thread_cpu = time.process_time() - c0, time.thread_time() - th0
     duration = float(run.odometry.t[-1] - run.odometry.t[0])
-    wall = tm.worker_done - start
+    figs = online_figures(tm, np.asarray(times.arrival, float), duration, w0, cpu)
+    fr = np.asarray(tm.framed, bool)
+    out, ready = np.asarray(tm.out)[fr], np.asarray(times.ready[:int(fr.sum())])
+    track = 1e3 * (out - ready)  # frame made -> its tracked pose (wall)
+    step_thread_cpu = 1e3 * np.diff(np.concatenate([[th0], tm.cpu_out]))  # make + track a step
+    kf = np.asarray(tm.keyframe, bool)
     step_cpu = np.asarray(tm.step_cpu)
     replay = {f"replay_{p:g}x_kf_p95_ms": float(np.percentile(
         1e3 * replay_latency(np.asarray(tm.t), step_cpu, p)[kf], 95)) for p in REPLAY_PACES}
     poses = np.asarray(tm.pose)
     diff = poses - np.asarray(tm.backend_pose)
     diff[:, 2] = np.angle(np.exp(1j * diff[:, 2]))
-    return {"mode": "decoupled", "pace": "max" if pace is None else f"{pace:g}x",
-            "frames": n, "startup_s": start - w0, "online_wall_s": wall,
-            "x_rt_wall": duration / wall, "cpu_main_s": cpu, "cpu_worker_s": tm.worker_cpu_s,
-            "cpu_total_s": cpu + tm.worker_cpu_s + times.worker_cpu_s,
-            "x_rt_cpu_main": duration / cpu, "frontend_cpu_s": times.worker_cpu_s,
-            "lat_med_ms": float(np.median(lat)), "lat_p95_ms": float(np.percentile(lat, 95)),
-            "lat_max_ms": float(lat.max()), "track_p95_ms": float(np.percentile(track, 95)),
-            "kf_lat_med_ms": float(np.median(kf_lat)), "kf_lat_p95_ms": float(np.percentile(kf_lat, 95)),
-            "lag_p95_steps": float(np.percentile(lag, 95)),
-            "tracked_vs_backend_max": float(np.abs(diff).max()), "_poses": poses,
-            "backend_cpu_x_rt": duration / float(step_cpu.sum()),
+    frontend_cpu = times.worker_cpu_s
+    in_thread = frontend == "sequential"
+    main_cpu = cpu
+    worker_cpu = tm.worker_cpu_s + (0.0 if in_thread else frontend_cpu)
+    bound = max(main_cpu, tm.worker_cpu_s, 0.0 if in_thread else frontend_cpu)
+    return {"mode": "decoupled" if in_thread else f"decoupled-{frontend}",
+            "pace": "max" if pace is None else f"{pace:g}x",
+            "frames": int(fr.sum()), "startup_s": figs["online_worker_startup_s"],
+            "online_wall_s": figs["online_wall_s"], "x_rt_wall": figs["online_x_real_time"],
+            "cpu_main_s": main_cpu, "cpu_worker_s": worker_cpu,
+            "cpu_total_s": main_cpu + worker_cpu, "x_rt_cpu_main": duration / main_cpu,
+            "frontend_cpu_s": frontend_cpu,
+            "tracking_cpu_s": thread_cpu - (frontend_cpu if in_thread else 0.0),
+            "other_threads_cpu_s": cpu - thread_cpu,
+            "backend_steps_cpu_s": figs["online_backend_step_cpu_s"],
+            "backend_rest_cpu_s": tm.worker_cpu_s - figs["online_backend_step_cpu_s"],
+            "x_rt_2core_bound": duration / bound,
+            "lat_med_ms": figs["online_tracked_latency_ms_median"],
+            "lat_p95_ms": figs["online_tracked_latency_ms_p95"],
+            "lat_max_ms": figs["online_tracked_latency_ms_max"],
+            "track_p95_ms": float(np.percentile(track, 95)),
+            "frame_cpu_p95_ms": float(np.percentile(step_thread_cpu[fr], 95)),
+            "kf_lat_med_ms": figs["online_keyframe_latency_ms_median"],
+            "kf_lat_p95_ms": figs["online_keyframe_latency_ms_p95"],
+            "lag_p95_steps": figs["online_anchor_lag_p95_steps"],
+            "tracked_vs_backend_max": float(np.nanmax(np.abs(diff))), "_poses": poses,
+            "backend_cpu_x_rt": duration / float(np.nansum(step_cpu)),
             "kf_cpu_p95_ms": float(np.percentile(1e3 * step_cpu[kf], 95)), **replay}
 
 
-def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: int
-            ) -> dict[str, Any]:
+def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: int,
+            max_lag: int | None) -> dict[str, Any]:
     """One online run: timings, latencies and the online poses."""
-    if mode == "decoupled":
-        return decoupled_row(run, backend, pace, depth)
+    if mode.startswith("decoupled"):
+        frontend = mode.split("-", 1)[1] if "-" in mode else "sequential"
+        return decoupled_row(run, backend, pace, depth, frontend, max_lag)
     assert run.images is not None
     be = make_backend(backend, run.rig.odometry, SlamConfig(), start_pose_of(run), run.rig.camera)
     times = FrameTimes()
@@ -168,80 +187,124 @@ def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: 
             "frames": n, "startup_s": (first or w0) - w0, "online_wall_s": online_wall,
             "x_rt_wall": duration / online_wall, "cpu_main_s": cpu, "cpu_worker_s": worker_cpu,
             "cpu_total_s": cpu + worker_cpu, "x_rt_cpu_main": duration / cpu,
+            "x_rt_2core_bound": duration / max(cpu, worker_cpu),
             "frontend_cpu_s": times.worker_cpu_s,
             "lat_med_ms": float(np.median(lat)), "lat_p95_ms": float(np.percentile(lat, 95)),
             "lat_max_ms": float(lat.max()), "_poses": np.array(poses)}
 
 
+def _line(row: dict[str, Any]) -> str:
+    """One row's figures as printed while the bench runs."""
+    text = (f"  {row['pace']:>5s} {row['mode']:18s} wall {row['online_wall_s']:7.2f} s "
+            f"({row['x_rt_wall']:5.1f}x real time), CPU main {row['cpu_main_s']:6.2f} s + "
+            f"worker {row['cpu_worker_s']:6.2f} s, frontend {row['frontend_cpu_s']:6.2f} s; "
+            f"latency median / p95 / max {row['lat_med_ms']:.1f} / {row['lat_p95_ms']:.1f} / "
+            f"{row['lat_max_ms']:.0f} ms; start-up {row['startup_s']:.2f} s; "
+            f"load {os.getloadavg()[0]:.1f}")
+    if row["mode"].startswith("decoupled"):
+        text += (f"\n        main process CPU: frontend {row['frontend_cpu_s']:.2f} s, tracking "
+                 f"{row['tracking_cpu_s']:.2f} s, other threads (queue pickling) "
+                 f"{row['other_threads_cpu_s']:.2f} s; backend worker: steps "
+                 f"{row['backend_steps_cpu_s']:.2f} s, rest (start-up, unpickling, replies) "
+                 f"{row['backend_rest_cpu_s']:.2f} s; bound on 2 free cores (CPU) "
+                 f"{row['x_rt_2core_bound']:.1f}x real time"
+                 f"\n        frame made -> tracked pose p95 {row['track_p95_ms']:.2f} ms (wall), "
+                 f"CPU per frame (image load + frontend + tracking) p95 "
+                 f"{row['frame_cpu_p95_ms']:.2f} ms; keyframe latency median / p95 "
+                 f"{row['kf_lat_med_ms']:.1f} / {row['kf_lat_p95_ms']:.1f} ms; anchor lag p95 "
+                 f"{row['lag_p95_steps']:.0f} steps; tracked vs backend poses max "
+                 f"{row['tracked_vs_backend_max']:.2g}"
+                 f"\n        backend steps' CPU = {row['backend_cpu_x_rt']:.1f}x real time, keyframe "
+                 f"CPU p95 {row['kf_cpu_p95_ms']:.1f} ms; keyframe latency p95 replayed on a core "
+                 "of its own: " + ", ".join(f"{row[f'replay_{p:g}x_kf_p95_ms']:.1f} ms at {p:g}x"
+                                            for p in REPLAY_PACES))
+    return text
+
+
+def _median_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The median of every numeric figure over repeated rows of one (pace, mode)."""
+    med: dict[str, Any] = dict(rows[0])
+    for k, v in rows[0].items():
+        if isinstance(v, float) and not k.startswith("_"):
+            med[k] = float(np.median([r[k] for r in rows]))
+    med["repeats"] = len(rows)
+    return med
+
+
 def main() -> None:
-    """Run the rows, print the table."""
+    """Run the rows (round-robin over the modes, ``--repeats`` times), print the medians."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", type=Path, required=True, help="a simulated lab run directory")
     p.add_argument("--backend", default="isam2", choices=("isam2", "ekf", "batch"))
     p.add_argument("--modes", default="sequential,process",
-                   help="comma-separated subset of " + ",".join((*MODES, "decoupled")))
+                   help="comma-separated subset of " + ",".join((*MODES, *DECOUPLED)))
     p.add_argument("--paces", default="none",
                    help="comma-separated replay speeds, x real time ('none': as fast as possible)")
     p.add_argument("--depth", type=int, default=8, help="worker queue, frames (default 8)")
     p.add_argument("--max-frames", type=int, default=None, help="the run's first frames only")
     p.add_argument("--cv-threads", type=int, default=1, help="OpenCV threads (default 1)")
+    p.add_argument("--repeats", type=int, default=1, help="rounds over the modes (medians)")
+    p.add_argument("--max-lag", type=int, default=DEFAULT_MAX_LAG,
+                   help=f"decoupled rows' back-pressure, steps (default {DEFAULT_MAX_LAG}, as "
+                        "`lampsam slam --online decoupled`; -1: never wait)")
     args = p.parse_args()
     logging.basicConfig(level=logging.WARNING)
     cv2.setNumThreads(args.cv_threads)
     modes = args.modes.split(",")
+    bad = [m for m in modes if m not in (*MODES, *DECOUPLED)]
+    if bad:
+        raise SystemExit(f"unknown modes {bad}; choose from {', '.join((*MODES, *DECOUPLED))}")
+    max_lag = None if args.max_lag < 0 else args.max_lag
     paces = [None if s == "none" else float(s) for s in args.paces.split(",")]
     run = _cut(read_run(args.run), args.max_frames)
     assert run.images is not None
     duration = float(run.odometry.t[-1] - run.odometry.t[0])
     print(f"{args.run}: {len(run.images)} frames, {duration:.1f} s of data; backend "
-          f"{args.backend}; queue {args.depth}; OpenCV threads {cv2.getNumThreads()}; "
-          f"{os.cpu_count()} cores; load average {os.getloadavg()[0]:.1f}", flush=True)
+          f"{args.backend}; queue {args.depth}; max lag {max_lag}; OpenCV threads "
+          f"{cv2.getNumThreads()}; {os.cpu_count()} cores; load average "
+          f"{os.getloadavg()[0]:.1f}", flush=True)
+    done: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for rep in range(args.repeats):
+        for pace in paces:
+            for mode in modes:
+                row = one_row(run, args.backend, mode, pace, args.depth, max_lag)
+                row["load"] = os.getloadavg()[0]
+                done.setdefault((row["pace"], mode), []).append(row)
+                print(f"[round {rep + 1}]" + _line(row), flush=True)
     rows = []
     for pace in paces:
-        ref: dict[str, Any] | None = None
+        label = "max" if pace is None else f"{pace:g}x"
+        ref = _median_rows(done[(label, "sequential")]) if "sequential" in modes else None
         for mode in modes:
-            row = one_row(run, args.backend, mode, pace, args.depth)
-            if mode == "sequential":
-                ref = row
+            row = _median_rows(done[(label, mode)])
             if ref is not None:
                 row["wall_vs_seq"] = row["online_wall_s"] / ref["online_wall_s"]
                 row["lat_p95_vs_seq"] = row["lat_p95_ms"] / ref["lat_p95_ms"]
                 row["cpu_total_vs_seq"] = row["cpu_total_s"] / ref["cpu_total_s"]
+                row["cpu_main_vs_seq"] = row["cpu_main_s"] / ref["cpu_main_s"]
                 same = row["_poses"].shape == ref["_poses"].shape
                 row["max_pose_diff"] = (float(np.abs(row["_poses"] - ref["_poses"]).max())
-                                        if same else float("nan"))
+                                        if same and not mode.startswith("decoupled")
+                                        else float("nan"))
             rows.append(row)
-            print(f"  {row['pace']:>5s} {mode:10s} wall {row['online_wall_s']:7.2f} s "
-                  f"({row['x_rt_wall']:5.1f}x real time), CPU main {row['cpu_main_s']:6.2f} s + "
-                  f"worker {row['cpu_worker_s']:6.2f} s, frontend {row['frontend_cpu_s']:6.2f} s; "
-                  f"latency median / p95 / max {row['lat_med_ms']:.1f} / {row['lat_p95_ms']:.1f} / "
-                  f"{row['lat_max_ms']:.0f} ms; start-up {row['startup_s']:.2f} s; "
-                  f"load {os.getloadavg()[0]:.1f}", flush=True)
-            if mode == "decoupled":
-                print(f"        tracking (frame ready -> pose) p95 {row['track_p95_ms']:.2f} ms; "
-                      f"keyframe latency median / p95 {row['kf_lat_med_ms']:.1f} / "
-                      f"{row['kf_lat_p95_ms']:.1f} ms; anchor lag p95 {row['lag_p95_steps']:.0f} "
-                      f"steps; tracked vs backend poses max {row['tracked_vs_backend_max']:.2g}",
-                      flush=True)
-                print(f"        backend steps' CPU {duration / row['backend_cpu_x_rt']:.2f} s = "
-                      f"{row['backend_cpu_x_rt']:.1f}x real time, keyframe CPU p95 "
-                      f"{row['kf_cpu_p95_ms']:.1f} ms; keyframe latency p95 replayed on a core of "
-                      f"its own: " + ", ".join(f"{row[f'replay_{p:g}x_kf_p95_ms']:.1f} ms at {p:g}x"
-                                               for p in REPLAY_PACES), flush=True)
-    cols = ["pace", "mode", "x_rt_wall", "wall_vs_seq", "cpu_main_s", "cpu_worker_s",
-            "cpu_total_vs_seq", "lat_med_ms", "lat_p95_ms", "lat_max_ms", "lat_p95_vs_seq",
-            "startup_s", "max_pose_diff", "kf_lat_p95_ms", "lag_p95_steps"]
-    print()
+    cols = ["pace", "mode", "repeats", "x_rt_wall", "wall_vs_seq", "x_rt_2core_bound",
+            "cpu_main_s", "cpu_main_vs_seq", "cpu_worker_s", "cpu_total_vs_seq", "lat_med_ms",
+            "lat_p95_ms", "lat_max_ms", "frame_cpu_p95_ms", "startup_s", "max_pose_diff",
+            "kf_lat_p95_ms", "replay_1x_kf_p95_ms", "lag_p95_steps", "load"]
+    print(f"\nmedians of {args.repeats} rounds")
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
         cells = [r.get(c, "") for c in cols]
         print("| " + " | ".join(f"{c:.3g}" if isinstance(c, float) else str(c)
                                 for c in cells) + " |")
-    print(f"x_rt_wall: data duration / online wall clock (decoupled: until the backend "
-          f"finished); cpu_*: process CPU s (worker: the frontend process; decoupled: the "
-          f"backend process); latency: frame arrival -> pose estimate (decoupled: the tracked "
-          f"pose); load average {os.getloadavg()[0]:.1f} at the end")
+    print("x_rt_wall: data duration / online wall clock (decoupled: from the start, worker "
+          "start-up included, until the backend finished the last step); x_rt_2core_bound: "
+          "data duration / the busiest process's CPU (what two free cores would give); cpu_*: "
+          "process CPU s (worker: the frontend process, decoupled: the backend process plus "
+          "any frontend process); latency: frame arrival -> pose (decoupled: the tracked pose); "
+          "frame_cpu_p95: decoupled, the main thread's CPU to load, process and track a frame; "
+          f"load average {os.getloadavg()[0]:.1f} at the end")
 
 
 if __name__ == "__main__":
