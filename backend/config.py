@@ -13,8 +13,10 @@ import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import gtsam
+import numpy as np
 from scipy.special import chdtri
 
 from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
@@ -295,6 +297,13 @@ class EkfConfig:
         check_limits(self)
 
 
+class IsamSymbol(NamedTuple):
+    """A graph variable character's tangent dimension and whether it is a lamp's (:meth:`Isam2Config.to_gtsam`)."""
+
+    dim: int
+    lamp: bool
+
+
 @dataclass(frozen=True)
 class Isam2Config:
     """Online smoothing with iSAM2.
@@ -316,9 +325,18 @@ class Isam2Config:
             (1,218 keyframes), 3.5 / 9.5 ms at 0.1 m and 7.5 / 43 ms with every frame.
             (Before the first frame was always a keyframe, the policy cost 3x in
             accuracy: see :func:`lampsam.backend.keyframes.is_keyframe`.)
-        relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's).
+        relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's):
+            a variable whose pending correction has a component above it (m, rad) is
+            relinearised at the next relinearisation step.
+        lamp_relinearize_threshold: the threshold for lamps' variables (position and
+            axis) where the graph's lamps have their own symbol characters (the ceiling
+            graph: :data:`~lampsam.backend.ceiling_graph.CEILING_SYMBOLS`); None: the
+            same as every variable's.
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
+        cache_linearized_factors: GTSAM's ``cacheLinearizedFactors`` (keep each
+            factor's linearisation between relinearisations; default True, GTSAM's).
+        find_unused_factor_slots: GTSAM's ``findUnusedFactorSlots`` (default False).
         extra_updates: extra ``update()`` calls per keyframe (default 0).
         sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad).
         pose_cov_every_step: every step's estimate carries its pose covariance (the
@@ -365,6 +383,11 @@ class Isam2Config:
             path 0.78x the online CPU and keyframe p95 57 -> 43 ms, 10-seed accuracy
             unchanged, docs/speed.md; 0: always exact).
         far_lamp_factor: see ``far_lamp_recheck`` (default 2.0).
+        far_lamp_bound: settle a lamp without a joint marginal when a lower bound of
+            its exact gate distance, from its last joint marginal carried by the
+            odometry, is beyond the new-landmark threshold
+            (:meth:`~lampsam.backend.gating.Gating._bound_far`; the same decisions as
+            the exact gate; default False).
         fixed_lag: the online iSAM2 backend smooths over the last this many keyframes
             only (GTSAM's ``IncrementalFixedLagSmoother``; lamps never leave the
             window; :mod:`lampsam.backend.fixed_lag`); 0 (default): full iSAM2. For
@@ -376,7 +399,10 @@ class Isam2Config:
     keyframe_angle: float = field(default=0.15, metadata=limits(ge=0.0))
     every_frame: bool = False
     relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0))
+    lamp_relinearize_threshold: float | None = field(default=None, metadata=limits(gt=0.0))
     relinearize_skip: int = field(default=10, metadata=limits(ge=1))
+    cache_linearized_factors: bool = True
+    find_unused_factor_slots: bool = False
     extra_updates: int = field(default=0, metadata=limits(ge=0))
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
     sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -389,17 +415,36 @@ class Isam2Config:
     corner_pending_keyframes: int = field(default=30, metadata=limits(ge=1))
     far_lamp_recheck: int = field(default=5, metadata=limits(ge=0))
     far_lamp_factor: float = field(default=2.0, metadata=limits(ge=1.0))
+    far_lamp_bound: bool = False
     fixed_lag: int = field(default=0, metadata=limits(ge=0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
 
-    def to_gtsam(self) -> gtsam.ISAM2Params:
-        """The ``gtsam.ISAM2Params`` for this config."""
+    def to_gtsam(self, symbols: Mapping[str, IsamSymbol] | None = None) -> gtsam.ISAM2Params:
+        """The ``gtsam.ISAM2Params`` for this config.
+
+        Args:
+            symbols: every variable character of the graph -> its :class:`IsamSymbol`.
+                With it and a ``lamp_relinearize_threshold`` that differs from
+                ``relinearize_threshold``, the threshold is GTSAM's per-character map
+                (``ISAM2ThresholdMap``: one vector of the variable's dimension per
+                character, compared component-wise; every character in the graph must
+                be in it); otherwise the one scalar (the largest component).
+        """
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.relinearize_threshold)
+        lamp = self.lamp_relinearize_threshold
+        if symbols is not None and lamp is not None and lamp != self.relinearize_threshold:
+            thresholds = gtsam.ISAM2ThresholdMap()
+            for ch, sym in symbols.items():
+                thresholds.insert((ch, np.full(sym.dim, lamp if sym.lamp else self.relinearize_threshold)))
+            params.setRelinearizeThreshold(thresholds)
+        else:
+            params.setRelinearizeThreshold(self.relinearize_threshold)
         params.relinearizeSkip = self.relinearize_skip
+        params.cacheLinearizedFactors = self.cache_linearized_factors
+        params.findUnusedFactorSlots = self.find_unused_factor_slots
         return params
 
 

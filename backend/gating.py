@@ -18,10 +18,11 @@ from collections.abc import Iterable
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
+from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -29,6 +30,10 @@ from lampsam.backend.planar_gate import bearing_range_d2, range_bearing_many
 
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 RELATIVE_GATE_KEYFRAMES = 30
+#: :meth:`Gating._bound_far` settles a pair when its lower bound is this factor above
+#: the new-landmark threshold: the bound's odometry is composed per keyframe, the
+#: gate's per sample, which differ by up to 1e-5 relative in ``Psi`` (test run).
+FAR_BOUND_MARGIN = 1.01
 
 
 class Gating(GraphState):
@@ -55,6 +60,7 @@ class Gating(GraphState):
         full = full[np.ix_(idx, idx)]
         out = full[:3, :3], full[:3, 3:], full[3:, 3:]
         self._joint_cache[lm.id] = out
+        self._joint_at[lm.id] = (k, out)
         return out
 
     def _prefetch_joint(self, k: int, obs: list[Obs],
@@ -108,7 +114,9 @@ class Gating(GraphState):
             return 0
         s_kk = full[:3, :3]
         for lid, idx in spans:
-            self._joint_cache[lid] = (s_kk, full[np.ix_(np.r_[0:3], idx)], full[np.ix_(idx, idx)])
+            blocks = (s_kk, full[np.ix_(np.r_[0:3], idx)], full[np.ix_(idx, idx)])
+            self._joint_cache[lid] = blocks
+            self._joint_at[lid] = (k, blocks)
         return len(spans)
 
     def _innovation(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray], lid: int,
@@ -136,12 +144,7 @@ class Gating(GraphState):
             pose_cov = self.current_cov()
             psi = h_p @ pose_cov @ h_p.T + h_l @ lm.cov @ h_l.T + r
             return residual(obs, z_hat), psi * s_online
-        s_kk, s_kl, s_ll = joint
-        ad = gtsam.Pose2(*delta).inverse().AdjointMap()
-        s_xx = ad @ s_kk @ ad.T + delta_cov
-        s_xl = ad @ s_kl
-        cross = h_p @ s_xl @ h_l.T
-        psi = h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
+        psi = eq19_covariance(h_p, h_l, joint, delta, delta_cov, r)
         nu = residual(obs, z_hat)
         if not planar:  # for _reuse_far: this keyframe's exact distance of the lamp
             self._far[(lid, len(nu))] = (self._k, float(nu @ np.linalg.solve(psi * s_online, nu)))
@@ -223,7 +226,8 @@ class Gating(GraphState):
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
             sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
                               exact=True)
-            screened.update(self._reuse_far(obs, self._mark_ambiguous(obs, sc)))
+            screened.update(self._reuse_far(obs, self._bound_far(
+                obs, pose, self._mark_ambiguous(obs, sc))))
         return cands, screened
 
     def _refresh_visible(self, visible: list[GraphLandmark]) -> None:
@@ -242,7 +246,8 @@ class Gating(GraphState):
                 continue
             if len(lm.state) == 3:
                 try:
-                    lm.state = np.asarray(isam.calculateEstimatePoint3(L(lm.id)), float)
+                    lm.state = np.asarray(isam.calculateEstimatePoint3(point_key(lm.kind, lm.id)),
+                                          float)
                     continue
                 except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
                     pass
@@ -372,6 +377,83 @@ class Gating(GraphState):
                 out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
         return out
 
+    def _bound_far(self, obs: list[Obs], pose: FloatArray,
+                   screened: dict[int, dict[int, tuple[float, bool]]]
+                   ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Settle a lamp pair without a joint marginal when a lower bound of its eq.-19 distance is beyond the new-landmark threshold.
+
+        The lamp's last exact joint marginal, of ``(X(j), lamp)`` at an earlier gate
+        (:attr:`_joint_at`, within :data:`RELATIVE_GATE_KEYFRAMES`), is carried to the
+        current pose through the odometry since ``X(j)`` alone
+        (:func:`propagate_joint`). That is the joint marginal of a graph with fewer
+        factors than iSAM2's now: every factor added since (this path's observations,
+        other loop closures) only adds information, so at the same linearisation the
+        propagated covariance bounds the exact one from above, ``Psi`` likewise, and
+        the distance ``nu^T Psi^-1 nu`` it gives bounds the exact one from below. A
+        pair whose bound is above ``association.new_threshold`` can neither match nor
+        keep the observation from starting a landmark whatever the exact distance:
+        :func:`~lampsam.backend.association.associate` decides it the same without
+        asking iSAM2 (the exact query walks the Bayes tree to a revisited lamp's
+        old clique: 50-100 ms on the lab path, docs/speed.md). Only pairs the
+        association would ask about (lamps, not final, inside the screen's gate).
+        The records are forgotten whenever iSAM2 relinearises
+        (:meth:`~lampsam.backend.isam2_update.Isam2Updates._relinearized`): new
+        Jacobians can widen a marginal (up to 4 % in ``Psi`` on a test run), so the
+        bound holds between relinearisations only.
+        """
+        cfg = self.config
+        if not cfg.isam2.far_lamp_bound or not self._joint_at or self.ceiling is None:
+            return screened
+        rel: dict[int, FloatArray] | None = None
+        chain: dict[int, FloatArray] = {}
+        for i, pairs in screened.items():
+            o = obs[i]
+            if o.kind != "lamp":
+                continue
+            gate, new_t = cfg.association.gate(len(o.z)), cfg.association.new_threshold(len(o.z))
+            for lid, (d2, exact) in pairs.items():
+                rec = self._joint_at.get(lid)
+                if exact or not d2 < gate or rec is None:
+                    continue
+                if rel is None:
+                    rel = self._relative_covs()
+                bound = self._far_bound(rec, lid, o, pose, rel, chain)
+                if bound is not None and bound[0] > FAR_BOUND_MARGIN * new_t:
+                    pairs[lid] = (bound[0], True)
+                    self.n_far_bounded += 1
+        return screened
+
+    def _far_bound(self, rec: tuple[int, tuple[FloatArray, FloatArray, FloatArray]], lid: int,
+                   obs: Obs, pose: FloatArray, rel: dict[int, FloatArray],
+                   chain: dict[int, FloatArray]) -> tuple[float, FloatArray] | None:
+        """``(d2, Psi)`` of :meth:`_bound_far` from the joint record ``rec`` of landmark ``lid``.
+
+        ``rel`` is :meth:`_relative_covs`; ``chain`` caches :meth:`_odometry_since`.
+        None when the record is too old for ``rel``, the landmark's state changed size
+        (an axis seen since) or the prediction fails.
+        """
+        j, joint = rec
+        lm = self._landmarks[lid]
+        if j not in rel or joint[2].shape[0] != len(lm.state):
+            return None
+        if j not in chain:
+            chain[j] = self._odometry_since(j)
+        o_lm = for_landmark(obs, len(lm.state))
+        try:
+            z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, o_lm, self.ceiling)
+        except Exception:
+            return None
+        nu = residual(o_lm, z_hat)
+        psi = eq19_covariance(h_p, h_l, joint, chain[j], rel[j], o_lm.R)
+        return float(nu @ np.linalg.solve(psi, nu)), psi
+
+    def _odometry_since(self, j: int) -> FloatArray:
+        """``x_j^-1 x_k`` (x, y, theta) from the keyframes' odometry (``k`` the current keyframe)."""
+        d = gtsam.Pose2()
+        for step in range(j + 1, self._k + 1):
+            d = d.compose(gtsam.Pose2(*self._odo[step][0]))
+        return np.array([d.x(), d.y(), d.theta()])
+
     def _reuse_far(self, obs: list[Obs], screened: dict[int, dict[int, tuple[float, bool]]]
                    ) -> dict[int, dict[int, tuple[float, bool]]]:
         """Skip the joint marginal of a lamp whose recent exact distance was far beyond the gate.
@@ -420,6 +502,34 @@ class Gating(GraphState):
         m, _, _, vis = self.ceiling.project_many(pose, pts)
         d = np.hypot(m[:, 0] - obs.z[0], m[:, 1] - obs.z[1])
         return bool(np.any(vis & (d < sep)))
+
+
+def eq19_covariance(h_p: FloatArray, h_l: FloatArray,
+                    joint: tuple[FloatArray, FloatArray, FloatArray], delta: FloatArray,
+                    delta_cov: FloatArray, r: FloatArray) -> FloatArray:
+    """Innovation covariance ``Psi`` of eq. 19 from a keyframe's joint marginal with a landmark.
+
+    The current pose is ``x = x_j * delta``; in the right tangent
+    ``dx = Ad(delta^-1) dx_j + d_delta``, so with the joint blocks
+    ``(S_jj, S_jl, S_ll)`` of ``(X(j), landmark)``:
+    ``S_xx = Ad S_jj Ad^T + C``, ``S_xl = Ad S_jl`` and
+    ``Psi = H_p S_xx H_p^T + H_p S_xl H_l^T + (.)^T + H_l S_ll H_l^T + R``.
+
+    Args:
+        h_p: (m, 3) and h_l: (m, d) measurement Jacobians (pose right tangent, landmark state).
+        joint: ``(S_jj (3, 3), S_jl (3, d), S_ll (d, d))``.
+        delta: (3,) ``x_j^-1 x``; delta_cov: (3, 3) its covariance (odometry).
+        r: (m, m) measurement noise.
+
+    Returns:
+        (m, m) ``Psi``.
+    """
+    s_kk, s_kl, s_ll = joint
+    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+    s_xx = ad @ s_kk @ ad.T + delta_cov
+    s_xl = ad @ s_kl
+    cross = h_p @ s_xl @ h_l.T
+    return h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
 
 
 def propagate_relative(delta: FloatArray, cov_delta: FloatArray, covs: FloatArray) -> FloatArray:

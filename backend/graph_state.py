@@ -27,6 +27,7 @@ from gtsam.symbol_shorthand import X
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import innovation_scale
 from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_graph import CEILING_SYMBOLS
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.handlers import (
     GraphLandmark,
@@ -74,13 +75,17 @@ class GraphState(SlamBackend):
         self.idle = IdleOdometry()  # per landmark, the odometry since its last sighting
         if self.odo_scale is not None:
             self.motion = ScaledMotion(self.motion, self.odo_scale)
-        self.isam = gtsam.ISAM2(config.isam2.to_gtsam()) if online else None
+        #: iSAM2's parameters (a lamp-only relinearisation threshold needs the ceiling
+        #: graph's symbol characters: :data:`~lampsam.backend.ceiling_graph.CEILING_SYMBOLS`)
+        self.isam2_params = config.isam2.to_gtsam(
+            CEILING_SYMBOLS if ceiling_handler is not None else None)
+        self.isam = gtsam.ISAM2(self.isam2_params) if online else None
         #: the fixed-lag smoother (``isam2.fixed_lag``, iSAM2 backend only); ``isam`` is
         #: then its own ISAM2 (a live reference), read as usual
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         if online and config.isam2.fixed_lag > 0 and self.name == "isam2":
             self.smoother = gtsam.IncrementalFixedLagSmoother(float(config.isam2.fixed_lag),
-                                                              config.isam2.to_gtsam())
+                                                              self.isam2_params)
             self.isam = self.smoother.getISAM2()
         self.graph = gtsam.NonlinearFactorGraph()  # everything, for batch LM
         self.initial = gtsam.Values()  # initial guesses of every variable
@@ -129,6 +134,10 @@ class GraphState(SlamBackend):
         # (lamp id, measurement size) -> (keyframe, exact eq.-19 distance there), for _reuse_far
         self._far: dict[tuple[int, int], tuple[int, float]] = {}
         self.n_far_reused = 0
+        #: landmark id -> (gate keyframe, joint blocks) of its last exact joint marginal
+        #: (:meth:`~lampsam.backend.gating.Gating._bound_far`)
+        self._joint_at: dict[int, tuple[int, tuple[FloatArray, FloatArray, FloatArray]]] = {}
+        self.n_far_bounded = 0
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]
         #: range-bearing sightings without ids ``(keyframe, z, R, landmark id)``, for the
         #: batch re-association (:meth:`LandmarkLifecycle._reassociate`)

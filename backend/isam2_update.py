@@ -28,9 +28,10 @@ import re
 import time
 
 import gtsam
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import X
 
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
+from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.fixed_lag import keyframe_stamps, left_window, without_keys
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import value_at
@@ -54,10 +55,11 @@ class Isam2Updates(GraphState):
         try:
             if self.smoother is not None:
                 self._fixed_lag_update()
+                self._joint_at = {}  # (marginalisation relinearises: no bound across it)
             else:
-                self.isam.update(self._new_graph, self._new_values)
+                self._relinearized(self.isam.update(self._new_graph, self._new_values))
             for _ in range(self.config.isam2.extra_updates):
-                self.isam.update()
+                self._relinearized(self.isam.update())
         except RuntimeError as exc:
             if not (ill_conditioned(exc) and self._refactor_qr(exc)):
                 self._recover(exc)
@@ -69,6 +71,16 @@ class Isam2Updates(GraphState):
         self._kf_cov_key = X(self._k)  # its marginal, when first read (GraphState._kf_cov)
         self.update_times.append(t1 - t0)
         self.estimate_times.append(time.perf_counter() - t1)
+
+    def _relinearized(self, result: gtsam.ISAM2Result) -> None:
+        """Forget the gate's joint-marginal records when an update relinearised variables.
+
+        :meth:`~lampsam.backend.gating.Gating._bound_far` bounds an exact distance by
+        an earlier joint marginal; that holds for one linearisation only (new
+        Jacobians can widen a marginal).
+        """
+        if result.getVariablesRelinearized():
+            self._joint_at = {}
 
     def _fixed_lag_update(self) -> None:
         """One fixed-lag update (:mod:`lampsam.backend.fixed_lag`): keys stamped with the
@@ -103,8 +115,9 @@ class Isam2Updates(GraphState):
         self._fl_last = self.smoother.calculateEstimate()
 
     def _isam2_params(self) -> gtsam.ISAM2Params:
-        """iSAM2 parameters for a rebuild: the config's, with QR once switched to it."""
-        params = self.config.isam2.to_gtsam()
+        """iSAM2 parameters for a rebuild: the backend's (``isam2_params``, with its
+        per-symbol thresholds), switched to QR for good once a rebuild needed it."""
+        params = self.isam2_params
         if self.qr_factorization:
             params.setFactorization("QR")
         return params
@@ -176,11 +189,13 @@ class Isam2Updates(GraphState):
         if self.smoother is not None:  # rebuilt from the whole graph: full iSAM2 from here
             log.warning("fixed-lag smoother failed: continuing with full iSAM2")
             self.smoother = None
-        named = {int(m.group(1)) for m in re.finditer(r"\bl(\d+)\b", str(exc))}
+        # GTSAM names a landmark by its key: l<id> (lamps, planar points) or c<id> (corners)
+        named = {int(m.group(1)) for m in re.finditer(r"\b[lc](\d+)\b", str(exc))}
         new_lids = {lid for _, lid in self._update_factor_lids}
         bad = (named & set(self._landmarks)) or new_lids
         drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
-        entered = {lid for lid in bad if self._new_values.exists(L(lid))}
+        entered = {lid for lid in bad if lid in self._landmarks and self._new_values.exists(
+            self.handlers[self._landmarks[lid].kind].keys(self._landmarks[lid])[0])}
         try:
             old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
         except RuntimeError:
@@ -188,8 +203,9 @@ class Isam2Updates(GraphState):
         if self.ceiling is not None:  # landmarks the failed step put under the lens
             z_min = float(self.ceiling.body_t_camera[2]) + MIN_USABLE_HEIGHT
             for lid, lm in self._landmarks.items():
-                if lm.in_graph and lm.kind in ("lamp", "corner") and old.exists(L(lid)):
-                    if float(old.atPoint3(L(lid))[2]) < z_min:
+                key = point_key(lm.kind, lid)
+                if lm.in_graph and lm.kind in ("lamp", "corner") and old.exists(key):
+                    if float(old.atPoint3(key)[2]) < z_min:
                         entered.add(lid)
         log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
                     "factors of %d landmarks (%d removed) and rebuilding iSAM2",
@@ -231,6 +247,7 @@ class Isam2Updates(GraphState):
             raise EstimationError(f"iSAM2 rebuild failed at keyframe {self._k}: "
                                   f"{type(exc2).__name__} {exc2}") from exc2
         self._joint_cache = {}
+        self._joint_at = {}
         self._pose_cache = {}
         self.n_recoveries += 1
 

@@ -41,9 +41,10 @@ import gtsam
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from gtsam.symbol_shorthand import A, L
+from gtsam.symbol_shorthand import A
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.ceiling_graph import find_point_key
 from lampsam.errors import EstimationError
 
 
@@ -133,18 +134,20 @@ def map_frame(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     pos = np.array([p[:2] for _, p, _, _ in landmarks], float)
     center = pos.mean(axis=0)
     n = h.shape[0]
-    # M^T, padded to the graph's columns: rows x, y of L(id) and the angle of A(id)
+    # M^T, padded to the graph's columns: rows x, y of L(id) / C(id) and the angle of A(id)
     mt = np.zeros((n, 3))
     jtwj = np.zeros((3, 3))
+    point_col: dict[int, int] = {}
     for lid, p, cov, has_axis in landmarks:
-        if int(L(lid)) not in col or (has_axis and int(A(lid)) not in col):
+        key = find_point_key(lid, col)
+        if key is None or (has_axis and int(A(lid)) not in col):
             raise EstimationError(f"map frame: landmark {lid} is not in the graph")
         j = rigid_jacobian(p, center, has_axis)
         rows = [0, 1, 3] if has_axis else [0, 1]
         w = np.linalg.inv(np.asarray(cov, float)[np.ix_(rows, rows)])
         jw = j[rows].T @ w  # (3, k)
         jtwj += jw @ j[rows]
-        c0 = col[int(L(lid))]
+        c0 = point_col[lid] = col[key]
         mt[c0:c0 + 2] += jw[:, :2].T
         if has_axis:
             mt[col[int(A(lid))] + 2] += jw[:, 2]
@@ -158,7 +161,7 @@ def map_frame(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     s_inv = np.linalg.inv(s)
     gains: dict[int, FloatArray] = {}
     for lid, _, _, has_axis in landmarks:
-        c0 = col[int(L(lid))]
+        c0 = point_col[lid]
         cross = np.zeros((4, 3))
         cross[:3] = y[c0:c0 + 3]
         if has_axis:

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 import pytest
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import C, X
 
 from lampsam.backend.association import corner_budget, mahalanobis2, pairwise_d2
 from lampsam.backend.ceiling import CeilingModel
@@ -187,14 +187,14 @@ def test_failed_isam2_update_is_recovered(caplog: pytest.LogCaptureFixture) -> N
     bad = 999
     below = np.array([poses[0, 0] + 0.5, 0.0, model.body_t_camera[2] - 0.5])  # under the lens
     be._landmarks[bad] = _Landmark(bad, "corner", True, 2, below, np.eye(3), [], None, False, k)
-    be._add_value(L(bad), below)
-    be._add_factor(projection_factor(X(k), L(bad), np.array([0.1, 0.0]), 1e-6 * np.eye(2),
+    be._add_value(C(bad), below)
+    be._add_factor(projection_factor(X(k), C(bad), np.array([0.1, 0.0]), 1e-6 * np.eye(2),
                                      model.body_t_camera), bad)
     with caplog.at_level(logging.WARNING, logger="lampsam.backend.isam2_update"):
         be._flush()
     assert "rebuilding iSAM2" in caplog.text
     assert be.n_recoveries == 1 and bad not in be._landmarks
-    assert not be.isam.valueExists(L(bad))
+    assert not be.isam.valueExists(C(bad))
     for s in steps[half:]:
         be.step(*s)
     result = be.finish()
