@@ -1,7 +1,9 @@
-"""Shared fixtures: seeded generators and the shared real-data folder."""
+"""Shared fixtures: seeded generators, the shared real-data folder, and the environment
+for running this checkout's ``lampsam`` in a subprocess."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -22,3 +24,16 @@ def require_shared(name: str) -> Path:
     if path is None:
         pytest.skip(f"shared dataset {name!r} not found (set LAMPSAM_DATA or place ../shared/data)")
     return path
+
+
+#: the folder that holds this checkout's ``lampsam/`` (a development checkout is importable
+#: from it; an installed package is found without it)
+PACKAGE_PARENT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def cli_env() -> dict[str, str]:
+    """Environment for a subprocess running ``python -m lampsam`` (or a script importing
+    it) from this checkout, with one BLAS/OpenMP thread."""
+    path = os.pathsep.join(p for p in (str(PACKAGE_PARENT), os.environ.get("PYTHONPATH")) if p)
+    return dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")

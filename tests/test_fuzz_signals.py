@@ -8,7 +8,6 @@ whose ``finish`` fails.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -23,8 +22,6 @@ from lampsam.backend.slam import drive
 from lampsam.datasets.simulator import simulate_world
 from lampsam.interrupt import EXIT_INTERRUPTED, clear_stop, interruptible, request_stop
 
-PACKAGE_PARENT = Path(__file__).resolve().parents[2]  # holds this checkout's lampsam/ (dev)
-
 
 @pytest.fixture(scope="module")
 def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -34,9 +31,7 @@ def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def _lampsam(*args: str) -> subprocess.Popen[str]:
-    path = os.pathsep.join(p for p in (str(PACKAGE_PARENT), os.environ.get("PYTHONPATH")) if p)
-    env = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+def _lampsam(env: dict[str, str], *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "lampsam", "-v", *args], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -59,11 +54,12 @@ def _wait_for_line(proc: subprocess.Popen[str], text: str, timeout: float = 120.
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_signal_mid_slam_writes_finished_steps(run6: Path, tmp_path: Path,
-                                               sig: signal.Signals) -> None:
+                                               sig: signal.Signals,
+                                               cli_env: dict[str, str]) -> None:
     """A signal mid-run: exit 3, the finished steps written (status interrupted, fewer
     than the run's 91 frames, all finite), no traceback, no temporary files left."""
     out = tmp_path / "out"
-    proc = _lampsam("slam", str(run6), "--out", str(out), "--backend", "batch")
+    proc = _lampsam(cli_env, "slam", str(run6), "--out", str(out), "--backend", "batch")
     _wait_for_line(proc, "stepping through the run")
     time.sleep(0.4)
     proc.send_signal(sig)
@@ -81,14 +77,15 @@ def test_signal_mid_slam_writes_finished_steps(run6: Path, tmp_path: Path,
 
 
 @pytest.mark.slow
-def test_compare_interrupted_then_resumed(run6: Path, tmp_path: Path) -> None:
+def test_compare_interrupted_then_resumed(run6: Path, tmp_path: Path,
+                                          cli_env: dict[str, str]) -> None:
     """SIGTERM to ``compare`` after its first job: the report of the finished jobs is
     written (complete: false, the rest named), exit 3; ``--resume`` then runs only the
     unfinished jobs and leaves the finished ones untouched."""
     out = tmp_path / "cmp"
     args = ["compare", str(run6), "--backends", "ekf,isam2,batch", "--workers", "1",
             "--frames", "truth", "--out", str(out), "--no-progress"]
-    proc = _lampsam(*args)
+    proc = _lampsam(cli_env, *args)
     first = out / "jobs" / "run-ekf" / "job_result.json"
     t_end = time.monotonic() + 180
     while not first.exists() and time.monotonic() < t_end and proc.poll() is None:
@@ -106,7 +103,7 @@ def test_compare_interrupted_then_resumed(run6: Path, tmp_path: Path) -> None:
     assert "Interrupted" in (out / "report.md").read_text()
     stamp = first.stat().st_mtime_ns
 
-    proc = _lampsam(*args, "--resume")
+    proc = _lampsam(cli_env, *args, "--resume")
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     summary = json.loads((out / "summary.json").read_text())

@@ -5,7 +5,6 @@ a real SIGTERM / SIGINT writes what both processes finished."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -24,8 +23,6 @@ from lampsam.datasets.simulator import simulate_world
 from lampsam.datasets.tum import read_tum
 from lampsam.frontend.pipeline import iter_run
 from lampsam.interrupt import EXIT_INTERRUPTED
-
-PACKAGE_PARENT = Path(__file__).resolve().parents[2]  # holds this checkout's lampsam/ (dev)
 
 
 @pytest.fixture(scope="module")
@@ -117,17 +114,16 @@ def _gone(pid: int, wait_s: float = 10.0) -> bool:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-def test_signal_mid_decoupled_run(lab10: Path, tmp_path: Path, sig: signal.Signals) -> None:
+def test_signal_mid_decoupled_run(lab10: Path, tmp_path: Path, sig: signal.Signals,
+                                  cli_env: dict[str, str]) -> None:
     """A real signal to ``lampsam slam --online decoupled`` mid-run: exit 3, no traceback,
     the worker's finished steps written (status interrupted, fewer than the run's 151,
     finite), tracked.tum at least as long, no temporary files, the worker processes
     (the mapping worker, multiprocessing's resource tracker) ended."""
     out = tmp_path / "out"
-    path = os.pathsep.join(p for p in (str(PACKAGE_PARENT), os.environ.get("PYTHONPATH")) if p)
-    env = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     proc = subprocess.Popen([sys.executable, "-m", "lampsam", "-v", "slam", str(lab10),
                              "--out", str(out), "--online", "decoupled", "--max-lag", "0"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=cli_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stderr is not None
     lines: list[str] = []
     t_end = time.monotonic() + 120
