@@ -110,6 +110,15 @@ class OfflineRun:
                 if c >= min_observations}
 
 
+class _CandidatePruneFilter(logging.Filter):
+    """Drops the pruned-landmark warning of a candidate EKF pass: its map is an
+    intermediate one that the batch re-associates, and the warning read as if the
+    final map had been pruned once per candidate."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("%d landmarks pruned from the map")
+
+
 def online_pass(g: GraphLog, config: SlamConfig, scale: float
                 ) -> tuple[FloatArray, dict[int, FloatArray], Sightings]:
     """The no-ids EKF over the log with the odometry covariance times ``scale``.
@@ -128,7 +137,13 @@ def online_pass(g: GraphLog, config: SlamConfig, scale: float
         pose2_odometry=dataclasses.replace(config.pose2_odometry,
                                            cov_scale=config.pose2_odometry.cov_scale * scale))
     be = make_backend("ekf", cfg.pose2_odometry, cfg, g.start_pose())
-    res = drive(be, graph_log_steps(g, False))
+    backend_log = logging.getLogger("lampsam.backend")
+    quiet = _CandidatePruneFilter()
+    backend_log.addFilter(quiet)
+    try:
+        res = drive(be, graph_log_steps(g, False))
+    finally:
+        backend_log.removeFilter(quiet)
     s = sightings_from(list(be.planar_sightings))  # type: ignore[attr-defined]
     lms = first_sight_positions(res.poses, s)
     for lm in list(res.landmarks) + list(res.provisional):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lampsam.backend.config import ReassociationConfig, SlamConfig
-from lampsam.backend.noids_offline import association_cost, select_scale
+from lampsam.backend.noids_offline import association_cost, online_pass, select_scale
 from lampsam.cli import main
 from lampsam.config_loader import ConfigError
 from lampsam.datasets.graph_text import read_graph_text, read_vertices
@@ -74,3 +74,20 @@ def test_cli_runs_the_offline_pipeline_without_ids(tmp_path: Path,
     assert abs(s["landmarks"] - twice) <= 0.1 * twice
     assert s["error"]["position_rms_m"] < 0.2
     assert "no ids offline: EKF pass with odometry variance" in capsys.readouterr().out
+
+
+def test_candidate_pass_gives_no_pruned_warning(tmp_path: Path,
+                                                caplog: pytest.LogCaptureFixture) -> None:
+    """A candidate EKF pass's map is intermediate (the batch re-associates it): on a log
+    with a tree sighted once, the pass keeps it (returned with its sighting) and logs no
+    pruned-landmark warning, which read as if the final map had been pruned once per
+    candidate."""
+    spec = LandmarkLogSpec(n_poses=150, n_landmarks=200, extent=80.0, stop_every=0)
+    path, _ = write_landmark_log(tmp_path / "log.txt", spec, np.random.default_rng(1))
+    g = read_graph_text(path)
+    once = [k for k, n in Counter(x.landmark for ss in g.sightings for x in ss).items() if n == 1]
+    assert once  # the log has a tree sighted once
+    with caplog.at_level("WARNING", logger="lampsam.backend"):
+        poses, lms, _ = online_pass(g, SlamConfig(), 1.0)
+    assert poses.shape == (len(g.pose_ids), 3) and lms
+    assert not [r for r in caplog.records if "landmarks pruned from the map" in r.getMessage()]
