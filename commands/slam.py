@@ -99,9 +99,7 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         g2o = write_result_g2o(Path(args.g2o), result, run)
         print(f"g2o graph written to {args.g2o}: {g2o.text()}")
     if result.status == "interrupted":
-        print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
-              f"are written to {out} (status interrupted)", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted(args.backend, len(result.times), out)
     s = _plot_and_summarize(out, result, run)
     print(f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} "
           f"landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; written to {out}")
@@ -110,6 +108,13 @@ def _cmd_slam(args: argparse.Namespace) -> int:
               f"to {out}", file=sys.stderr)
         return 1
     return 0
+
+
+def _interrupted(backend: str, steps: int, out: Path) -> int:
+    """Say where a stopped run's finished steps are; the interrupted exit code."""
+    print(f"{backend}: interrupted after {steps} steps; the finished steps are written to "
+          f"{out} (status interrupted)", file=sys.stderr)
+    return EXIT_INTERRUPTED
 
 
 def _plot_and_summarize(out: Path, result: SlamResult, run: LoggedRun) -> dict[str, Any]:
@@ -204,9 +209,7 @@ def _slam_decoupled(args: argparse.Namespace, config: SlamConfig, features: tupl
           f"{e['online_keyframe_latency_ms_p95']:.1f} ms; {e['online_x_real_time']:.1f}x real "
           f"time; tracked.tum beside trajectory.tum")
     if result.status == "interrupted":
-        print(f"{args.backend}: interrupted after {len(result.times)} steps; the finished steps "
-              f"are written to {out} (status interrupted)", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted(args.backend, len(result.times), out)
     s = _plot_and_summarize(out, result, run)
     print(f"{args.backend} (decoupled): {s['steps']} steps, {s['keyframes']} keyframes, "
           f"{s['landmarks']} landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; "
