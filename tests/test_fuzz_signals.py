@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -21,6 +19,7 @@ from lampsam.backend.interface import SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.slam import drive
 from lampsam.datasets.simulator import simulate_world
 from lampsam.interrupt import EXIT_INTERRUPTED, clear_stop, interruptible, request_stop
+from tests.conftest import start_lampsam, wait_for_line
 
 
 @pytest.fixture(scope="module")
@@ -31,27 +30,6 @@ def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def _lampsam(env: dict[str, str], *args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "lampsam", "-v", *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def _wait_for_line(proc: subprocess.Popen[str], text: str, timeout: float = 120.0) -> list[str]:
-    """Read stderr lines until one contains ``text``; returns the lines read."""
-    assert proc.stderr is not None
-    lines = []
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        line = proc.stderr.readline()
-        if not line:
-            break
-        lines.append(line)
-        if text in line:
-            return lines
-    proc.kill()
-    raise AssertionError(f"{text!r} never printed: {''.join(lines)}")
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_signal_mid_slam_writes_finished_steps(run6: Path, tmp_path: Path,
                                                sig: signal.Signals,
@@ -59,8 +37,8 @@ def test_signal_mid_slam_writes_finished_steps(run6: Path, tmp_path: Path,
     """A signal mid-run: exit 3, the finished steps written (status interrupted, fewer
     than the run's 91 frames, all finite), no traceback, no temporary files left."""
     out = tmp_path / "out"
-    proc = _lampsam(cli_env, "slam", str(run6), "--out", str(out), "--backend", "batch")
-    _wait_for_line(proc, "stepping through the run")
+    proc = start_lampsam(cli_env, "slam", str(run6), "--out", str(out), "--backend", "batch")
+    wait_for_line(proc, "stepping through the run")
     time.sleep(0.4)
     proc.send_signal(sig)
     _, rest = proc.communicate(timeout=120)
@@ -85,7 +63,7 @@ def test_compare_interrupted_then_resumed(run6: Path, tmp_path: Path,
     out = tmp_path / "cmp"
     args = ["compare", str(run6), "--backends", "ekf,isam2,batch", "--workers", "1",
             "--frames", "truth", "--out", str(out), "--no-progress"]
-    proc = _lampsam(cli_env, *args)
+    proc = start_lampsam(cli_env, *args)
     first = out / "jobs" / "run-ekf" / "job_result.json"
     t_end = time.monotonic() + 180
     while not first.exists() and time.monotonic() < t_end and proc.poll() is None:
@@ -103,7 +81,7 @@ def test_compare_interrupted_then_resumed(run6: Path, tmp_path: Path,
     assert "Interrupted" in (out / "report.md").read_text()
     stamp = first.stat().st_mtime_ns
 
-    proc = _lampsam(cli_env, *args, "--resume")
+    proc = start_lampsam(cli_env, *args, "--resume")
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     summary = json.loads((out / "summary.json").read_text())

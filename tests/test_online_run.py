@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -23,6 +21,7 @@ from lampsam.datasets.simulator import simulate_world
 from lampsam.datasets.tum import read_tum
 from lampsam.frontend.pipeline import iter_run
 from lampsam.interrupt import EXIT_INTERRUPTED
+from tests.conftest import start_lampsam, wait_for_line
 
 
 @pytest.fixture(scope="module")
@@ -121,18 +120,9 @@ def test_signal_mid_decoupled_run(lab10: Path, tmp_path: Path, sig: signal.Signa
     finite), tracked.tum at least as long, no temporary files, the worker processes
     (the mapping worker, multiprocessing's resource tracker) ended."""
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "lampsam", "-v", "slam", str(lab10),
-                             "--out", str(out), "--online", "decoupled", "--max-lag", "0"],
-                            env=cli_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    assert proc.stderr is not None
-    lines: list[str] = []
-    t_end = time.monotonic() + 120
-    while time.monotonic() < t_end:
-        line = proc.stderr.readline()
-        lines.append(line)
-        if not line or "mapping worker ready" in line:
-            break
-    assert "mapping worker ready" in lines[-1], "".join(lines)
+    proc = start_lampsam(cli_env, "slam", str(lab10), "--out", str(out), "--online", "decoupled",
+                         "--max-lag", "0")
+    lines = wait_for_line(proc, "mapping worker ready")
     workers = _children(proc.pid)
     assert workers
     time.sleep(0.3)
