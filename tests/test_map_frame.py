@@ -133,6 +133,28 @@ def _rel_factor(rel: np.ndarray):
     return error
 
 
+def _shifted_map(cmap: CeilingMap, g_true: np.ndarray, residual: float,
+                 axis_sigma: float) -> CeilingMap:
+    """The truth-like ``cmap`` moved back by the frame offset ``g_true`` (true = map + J g)
+    about its landmarks' centre, with the frame model ``S = (1 cm, 1 cm, 1 deg)^2`` and
+    ``C = J``; each landmark's marginal is ``S``'s part plus an independent residual of
+    ``residual`` m per coordinate and ``axis_sigma`` rad on a lamp's axis."""
+    center = np.mean([lm.position[:2] for lm in cmap.landmarks], axis=0)
+    s_cov = np.diag([0.01**2, 0.01**2, np.radians(1.0) ** 2])
+    lms, gains = [], {}
+    for lm in cmap.landmarks:
+        j = rigid_jacobian(lm.position, center, lm.phi is not None)
+        pos = lm.position - j[:3] @ g_true
+        phi = None if lm.phi is None else float((lm.phi - g_true[2]) % np.pi)
+        cov = np.zeros((4, 4))
+        cov[:3, :3] = residual**2 * np.eye(3)
+        if lm.phi is not None:
+            cov[3, 3] = axis_sigma**2
+        lms.append(dataclasses.replace(lm, position=pos, phi=phi, cov=cov + j @ s_cov @ j.T))
+        gains[lm.id] = j
+    return CeilingMap(lms, cmap.rig, frame=MapFrame(center, s_cov, gains))
+
+
 def test_shared_offset_recovers_a_known_map_offset(rng: np.random.Generator) -> None:
     """The whole map moved by g = (8 mm, -6 mm, 0.5 deg) about its centre, landmarks
     otherwise within 0.3 mm; the frame model says S = (1 cm, 1 cm, 1 deg)^2 and the
@@ -142,19 +164,7 @@ def test_shared_offset_recovers_a_known_map_offset(rng: np.random.Generator) -> 
     fixed, priors and consider modes."""
     rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=3e-4)
     g_true = np.array([0.008, -0.006, np.radians(0.5)])
-    center = np.mean([lm.position[:2] for lm in cmap.landmarks], axis=0)
-    s_cov = np.diag([0.01**2, 0.01**2, np.radians(1.0) ** 2])
-    lms, gains = [], {}
-    for lm in cmap.landmarks:
-        j = rigid_jacobian(lm.position, center, lm.phi is not None)
-        # the map's value is the truth moved back by the frame offset (true = map + J g)
-        pos = lm.position - j[:3] @ g_true
-        phi = None if lm.phi is None else float((lm.phi - g_true[2]) % np.pi)
-        cov = np.array(lm.cov, float)
-        cov[:3, :3] = (3e-4) ** 2 * np.eye(3)
-        lms.append(dataclasses.replace(lm, position=pos, phi=phi, cov=cov + j @ s_cov @ j.T))
-        gains[lm.id] = j
-    shifted = CeilingMap(lms, cmap.rig, frame=MapFrame(center, s_cov, gains))
+    shifted = _shifted_map(cmap, g_true, 3e-4, axis_sigma=0.01)  # _drive's axis sigma
     model = CeilingModel.from_camera(rig.camera)
     tight = dict(max_corner_sigma=0.05, sigma_start_xy=1e-3, sigma_start_theta=1e-3)
     res = drive(MapLocalizer(rig.odometry, SlamConfig(), poses[0], shifted, model,

@@ -15,7 +15,6 @@ Every test seeds its own ``numpy.random.Generator`` (the ``rng`` fixture).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import gtsam
@@ -23,10 +22,9 @@ import numpy as np
 from gtsam.symbol_shorthand import A, L
 
 from lampsam.backend.ceiling import CeilingModel
-from lampsam.backend.ceiling_map_io import CeilingMap
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
-from lampsam.backend.map_frame import MapFrame, rigid_jacobian
+from lampsam.backend.map_frame import MapFrame
 from lampsam.backend.map_smoother import (
     G,
     MapSmoother,
@@ -37,25 +35,7 @@ from lampsam.backend.map_smoother import (
 )
 from lampsam.backend.slam import iter_steps
 from tests.test_ceiling_map import _drive, _rms, _truth_errors
-
-
-def _shifted_map(cmap: CeilingMap, g_true: np.ndarray, residual: float) -> CeilingMap:
-    """The truth-like ``cmap`` moved back by ``g_true`` (true = map + J g), with the frame
-    model ``S = (1 cm, 1 cm, 1 deg)^2``, ``C = J`` and residual sigma ``residual``."""
-    center = np.mean([lm.position[:2] for lm in cmap.landmarks], axis=0)
-    s_cov = np.diag([0.01**2, 0.01**2, np.radians(1.0) ** 2])
-    lms, gains = [], {}
-    for lm in cmap.landmarks:
-        j = rigid_jacobian(lm.position, center, lm.phi is not None)
-        pos = lm.position - j[:3] @ g_true
-        phi = None if lm.phi is None else float((lm.phi - g_true[2]) % np.pi)
-        cov = np.zeros((4, 4))
-        cov[:3, :3] = residual**2 * np.eye(3)
-        if lm.phi is not None:
-            cov[3, 3] = 0.002**2
-        lms.append(dataclasses.replace(lm, position=pos, phi=phi, cov=cov + j @ s_cov @ j.T))
-        gains[lm.id] = j
-    return CeilingMap(lms, cmap.rig, frame=MapFrame(center, s_cov, gains))
+from tests.test_map_frame import _shifted_map
 
 
 def test_smoother_recovers_a_known_map_frame(rng: np.random.Generator) -> None:
@@ -63,7 +43,7 @@ def test_smoother_recovers_a_known_map_frame(rng: np.random.Generator) -> None:
     model, > 4 mm without; online poses are the filter's."""
     rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=3e-4)
     g_true = np.array([0.008, -0.006, np.radians(0.5)])
-    shifted = _shifted_map(cmap, g_true, 3e-4)
+    shifted = _shifted_map(cmap, g_true, 3e-4, axis_sigma=0.002)
     model = CeilingModel.from_camera(rig.camera)
     loc = LocalizeConfig(max_corner_sigma=0.05, sigma_start_xy=1e-3, sigma_start_theta=1e-3)
     steps = list(iter_steps(odo, frames))
@@ -94,8 +74,8 @@ def test_smoother_recovers_a_known_map_frame(rng: np.random.Generator) -> None:
     assert _rms(pos) > 0.004
     # a pure shift with the default (shift-only) model
     g_shift = np.array([0.008, -0.006, 0.0])
-    sm = MapSmoother(rig.odometry, SlamConfig(), poses[0], _shifted_map(cmap, g_shift, 3e-4),
-                     model, loc)
+    sm = MapSmoother(rig.odometry, SlamConfig(), poses[0],
+                     _shifted_map(cmap, g_shift, 3e-4, axis_sigma=0.002), model, loc)
     for s in steps:
         sm.step(*s)
     res = sm.finish()
@@ -108,7 +88,8 @@ def test_smoother_recovers_a_known_map_frame(rng: np.random.Generator) -> None:
 def test_isam2_engine_matches_the_batch_solve(rng: np.random.Generator) -> None:
     """iSAM2 updated every 10 steps ends within 0.2 mm RMS of the one-shot solve."""
     rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=3e-4)
-    shifted = _shifted_map(cmap, np.array([0.004, 0.002, np.radians(0.2)]), 3e-4)
+    shifted = _shifted_map(cmap, np.array([0.004, 0.002, np.radians(0.2)]), 3e-4,
+                           axis_sigma=0.002)
     model = CeilingModel.from_camera(rig.camera)
     loc = LocalizeConfig(max_corner_sigma=0.05, sigma_start_xy=1e-3, sigma_start_theta=1e-3)
     out = []
