@@ -59,6 +59,7 @@ from lampsam.backend.reassociate import (
     Pass,
     Sightings,
     first_sight_positions,
+    read_estimate,
     refine,
     sightings_from,
 )
@@ -214,9 +215,7 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
         lambda i, p, ps, lm: report(i, p, ps, lm, s))  # s.lid is updated in place
     graph, values, passes = refine(prior, odo, s, poses0, lms0, config.association.gate(2),
                                    config.association.new_threshold(2), rc, hook)
-    n = len(g.pose_ids)
-    poses = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(X(k)) for k in range(n))])
-    lms = {int(i): np.asarray(values.atPoint2(L(int(i))), float) for i in np.unique(s.lid)}
+    poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist())
     co, cs, no, ns = group_chi2(graph, values)
     dropped = sum(len(x) for x in g.sightings) - len(s.k)
     cost = association_cost(co + cs, len(lms), dropped, config.association.new_threshold(2))

@@ -130,8 +130,10 @@ def _values(poses: FloatArray, lms: dict[int, FloatArray]) -> gtsam.Values:
     return v
 
 
-def _read(values: gtsam.Values, n_kf: int, lids: list[int]
-          ) -> tuple[FloatArray, dict[int, FloatArray]]:
+def read_estimate(values: gtsam.Values, n_kf: int, lids: list[int]
+                  ) -> tuple[FloatArray, dict[int, FloatArray]]:
+    """``(poses (n_kf, 3) of X(0..n_kf-1), landmark id -> (2,) position of L(id))`` in
+    ``values``; m, rad."""
     poses = np.array([pose_array(values.atPose2(X(k))) for k in range(n_kf)])
     return poses, {lid: np.asarray(values.atPoint2(L(lid)), float) for lid in lids}
 
@@ -364,7 +366,7 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
             fitting, stage_passes = True, 0
         stage_passes += 1
         live = np.unique(s.lid).tolist()
-        poses, lms = _read(values, n_kf, live)
+        poses, lms = read_estimate(values, n_kf, live)
         # the gate's noise: the stated R, or (second stage) shrunk to the sightings' spread
         f = noise_factor(sighting_d2(poses, lms, s)) if fitting else 1.0
         relabel = revisit_merges(lms, s, cfg)
@@ -394,7 +396,7 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
         # most moved sightings beyond the gate at the new optimum: a wrong merge
         # somewhere; keep the previous association and stop
         moved = np.flatnonzero(new != before)
-        d2 = sighting_d2(*_read(v_new, n_kf, np.unique(new).tolist()),
+        d2 = sighting_d2(*read_estimate(v_new, n_kf, np.unique(new).tolist()),
                          Sightings(s.k[moved], s.z[moved], r_gate[moved], new[moved]))
         accepted = float(np.mean(d2 > gate)) <= 0.5 if len(d2) else True
         if fitting:  # second stage: a pass must also shorten the description length
@@ -412,7 +414,7 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
             break
         s.lid, graph, values = new, g_new, v_new
         if report is not None:
-            report(len(passes), p, *_read(values, n_kf, np.unique(s.lid).tolist()))
+            report(len(passes), p, *read_estimate(values, n_kf, np.unique(s.lid).tolist()))
     return graph, values, passes
 
 
