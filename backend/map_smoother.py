@@ -72,7 +72,12 @@ from lampsam.config_loader import check_limits, limits
 from lampsam.errors import EstimationError
 from lampsam.factors.axis_factors import axis_anchor_prior, lamp_axis_between_factor
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle
-from lampsam.factors.gtsam_factors import noise_model, pose_array, projection_factor
+from lampsam.factors.gtsam_factors import (
+    noise_model,
+    pose_array,
+    projection_factor,
+    sqrt_information,
+)
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +142,7 @@ def map_tie_factor(lm: MapLandmark, gain: FloatArray, d_cov: FloatArray, with_ax
     lin = gtsam.Values()
     lin.insert(L(lm.id), np.asarray(lm.position, float))
     lin.insert(G, np.zeros(3))
-    w = whitener(cov)
+    w = sqrt_information(cov)
     model = gtsam.noiseModel.Unit.Create(k)
     if with_axis:
         assert lm.phi is not None
@@ -149,12 +154,6 @@ def map_tie_factor(lm: MapLandmark, gain: FloatArray, d_cov: FloatArray, with_ax
     else:
         jf = gtsam.JacobianFactor(L(lm.id), w @ j_l, G, w @ j_g, np.zeros(k), model)
     return gtsam.LinearContainerFactor(jf, lin)
-
-
-def whitener(cov: FloatArray) -> FloatArray:
-    """``W`` with ``W^T W = cov^-1`` (the transposed Cholesky factor of the information),
-    so that ``W e`` has unit covariance when ``e ~ N(0, cov)``."""
-    return np.linalg.cholesky(np.linalg.inv(np.asarray(cov, float))).T
 
 
 class MapSmoother(SlamBackend):

@@ -115,6 +115,7 @@ __all__ = [
     "pose_array",
     "projection_factor",
     "robust_wrap",
+    "sqrt_information",
     "virtual_camera",
 ]
 
@@ -210,6 +211,16 @@ def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseMode
         A ``gtsam.noiseModel`` (``Gaussian`` or ``Robust``).
     """
     return robust_wrap(gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, dtype=float)), robust)
+
+
+def sqrt_information(cov: FloatArray) -> FloatArray:
+    """Upper-triangular ``W`` with ``W^T W = cov^-1`` (the transposed Cholesky factor of
+    the information), so that ``W e`` has unit covariance when ``e ~ N(0, cov)``.
+
+    Args:
+        cov: (d, d) covariance, symmetric positive definite.
+    """
+    return np.linalg.cholesky(np.linalg.inv(np.asarray(cov, dtype=float))).T
 
 
 def huber_sqrt(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:

@@ -19,7 +19,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.factors.ceiling import HeightPrior, project_inverse_depth, project_inverse_depth_batch
 from lampsam.factors.geometry import FactorError
-from lampsam.factors.gtsam_factors import check_cov, noise_model, pose_array
+from lampsam.factors.gtsam_factors import check_cov, noise_model, pose_array, sqrt_information
 
 __all__ = [
     "InverseDepthObservation",
@@ -64,11 +64,6 @@ def _huber_sqrt_rows(e: FloatArray, k: float) -> tuple[FloatArray, FloatArray]:
             "ki,kj->kij", eb, eb
         )
     return r, r_D_e
-
-
-def _sqrt_info(cov: FloatArray) -> FloatArray:
-    """Upper-triangular ``W`` with ``W^T W = cov^-1`` (whitening matrix)."""
-    return np.linalg.cholesky(np.linalg.inv(cov)).T
 
 
 def inverse_depth_factor(
@@ -157,7 +152,7 @@ def inverse_depth_frame_factor(
     n_anchor = len(anchor_keys)
     which_anchor = np.array([anchor_slot[o.anchor_key] for o in obs])
     anchor_masks = [which_anchor == u for u in range(n_anchor)]
-    whiten = np.stack([_sqrt_info(check_cov(o.cov_m, 2, "inverse depth")) for o in obs])
+    whiten = np.stack([sqrt_information(check_cov(o.cov_m, 2, "inverse depth")) for o in obs])
     meas = np.stack([np.asarray(o.m, dtype=float) for o in obs])
     off = np.asarray(body_t_camera, dtype=float).copy()
     rows = np.arange(n)
