@@ -41,7 +41,6 @@ from lampsam.datasets.tables import OdometryLog
 from lampsam.datasets.tum import write_tum
 from lampsam.errors import EstimationError
 from lampsam.interrupt import interruptible
-from lampsam.safe_io import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -174,9 +173,8 @@ def run_slam_decoupled(run: LoggedRun, backend: str, out: Path | None,
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        with atomic_path(out / "tracked.tum") as tmp:
-            write_tum(tmp, Trajectory(t=np.asarray(tm.t, float),
-                                      poses=np.asarray(tm.pose, float).reshape(-1, 3)))
+        write_tum(out / "tracked.tum", Trajectory(t=np.asarray(tm.t, float),
+                                                  poses=np.asarray(tm.pose, float).reshape(-1, 3)))
         write_results(out, result, run)
     if result.status.startswith("failed"):
         raise EstimationError(f"{backend} on {run.path} (decoupled): {result.status} "

@@ -528,13 +528,12 @@ def summary(result: SlamResult, truth: Trajectory | None) -> dict[str, Any]:
 def write_results(out: Path, result: SlamResult, run: LoggedRun) -> None:
     """Write ``trajectory.tum``, ``landmarks.csv`` and ``summary.json`` to ``out``.
 
-    Each file is written atomically (:func:`lampsam.safe_io.atomic_path`), the
-    summary last: a complete ``summary.json`` means the other two are complete.
+    Each file is written atomically (each writer goes through
+    :func:`lampsam.safe_io.atomic_path`), the summary last: a complete ``summary.json``
+    means the other two are complete.
     """
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "trajectory.tum") as tmp:
-        write_trajectory(tmp, result)
-    with atomic_path(out / "landmarks.csv") as tmp:
-        write_landmarks(tmp, result)
+    write_trajectory(out / "trajectory.tum", result)
+    write_landmarks(out / "landmarks.csv", result)
     write_json_atomic(out / "summary.json", summary(result, run.groundtruth))
     log.info("results written to %s", out)
