@@ -122,13 +122,16 @@ class Isam2Updates(GraphState):
             params.setFactorization("QR")
         return params
 
-    def _rebuild_values(self, removed_keys: set[int]) -> gtsam.Values:
-        """Start values for a rebuilt iSAM2: the last estimate where it has the
-        variable, else the initial value; ``removed_keys`` left out."""
+    def _last_estimate(self) -> gtsam.Values:
+        """iSAM2's estimate before a failed update; empty when it cannot give one."""
         try:
-            old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
+            return self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
         except RuntimeError:
-            old = gtsam.Values()
+            return gtsam.Values()
+
+    def _rebuild_values(self, old: gtsam.Values, removed_keys: set[int]) -> gtsam.Values:
+        """Start values for a rebuilt iSAM2: ``old`` (the last estimate) where it has
+        the variable, else the initial value; ``removed_keys`` left out."""
         values = gtsam.Values()
         for key in self.initial.keys():
             if key in removed_keys:
@@ -153,7 +156,7 @@ class Isam2Updates(GraphState):
             log.warning("iSAM2 update failed at keyframe %d with variables without factors "
                         "(%s)", self._k, ", ".join(gtsam.DefaultKeyFormatter(k) for k in orphans[:5]))
             return False
-        values = self._rebuild_values(set())
+        values = self._rebuild_values(self._last_estimate(), set())
         self.qr_factorization = True
         isam = gtsam.ISAM2(self._isam2_params())
         try:
@@ -166,10 +169,16 @@ class Isam2Updates(GraphState):
                     "factorisation for the rest of the run, no measurement dropped",
                     self._k, str(exc).strip().splitlines()[0][:100])
         self.isam = isam
-        self._joint_cache = {}
-        self._pose_cache = {}
+        self._forget_linearisation()
         self.n_refactorized += 1
         return True
+
+    def _forget_linearisation(self) -> None:
+        """After a rebuild (new linearisation points): the cached joint and pose
+        marginals, and the gate's bound records (:meth:`_relinearized`), no longer hold."""
+        self._joint_cache = {}
+        self._joint_at = {}
+        self._pose_cache = {}
 
     def _recover(self, exc: RuntimeError) -> None:
         """Rebuild iSAM2 after a failed update, without the offending measurements.
@@ -196,10 +205,7 @@ class Isam2Updates(GraphState):
         drop_idx = {i for i, lid in self._update_factor_lids if lid in bad}
         entered = {lid for lid in bad if lid in self._landmarks and self._new_values.exists(
             self.handlers[self._landmarks[lid].kind].keys(self._landmarks[lid])[0])}
-        try:
-            old = self.isam.calculateEstimate() if self.isam is not None else gtsam.Values()
-        except RuntimeError:
-            old = gtsam.Values()
+        old = self._last_estimate()
         if self.ceiling is not None:  # landmarks the failed step put under the lens
             z_min = float(self.ceiling.body_t_camera[2]) + MIN_USABLE_HEIGHT
             for lid, lm in self._landmarks.items():
@@ -233,7 +239,7 @@ class Isam2Updates(GraphState):
                 self.n_pruned += 1
                 self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
             removed_keys.add(key)
-        values = self._rebuild_values(removed_keys)
+        values = self._rebuild_values(old, removed_keys)
         initial = gtsam.Values()
         for key in self.initial.keys():
             if key not in removed_keys:
@@ -246,9 +252,7 @@ class Isam2Updates(GraphState):
         except RuntimeError as exc2:
             raise EstimationError(f"iSAM2 rebuild failed at keyframe {self._k}: "
                                   f"{type(exc2).__name__} {exc2}") from exc2
-        self._joint_cache = {}
-        self._joint_at = {}
-        self._pose_cache = {}
+        self._forget_linearisation()
         self.n_recoveries += 1
 
 
