@@ -98,23 +98,25 @@ def _cmd_slam(args: argparse.Namespace) -> int:
 
         g2o = write_result_g2o(Path(args.g2o), result, run)
         print(f"g2o graph written to {args.g2o}: {g2o.text()}")
+    return _report_run(args.backend, args.backend, result, run, out)
+
+
+def _report_run(backend: str, label: str, result: SlamResult, run: LoggedRun, out: Path) -> int:
+    """The end of a ``slam`` run on a run directory: where a stopped run's finished steps
+    are (exit 3), else ``slam.png`` and the one-line summary as ``label``, and the status
+    when it is not ok (exit 1)."""
     if result.status == "interrupted":
-        return _interrupted(args.backend, len(result.times), out)
+        print(f"{backend}: interrupted after {len(result.times)} steps; the finished steps are "
+              f"written to {out} (status interrupted)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     s = _plot_and_summarize(out, result, run)
-    print(f"{args.backend}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} "
+    print(f"{label}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} "
           f"landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; written to {out}")
     if result.status != "ok":
-        print(f"{args.backend}: {result.status}; the {result.backend} estimate is written "
+        print(f"{backend}: {result.status}; the {result.backend} estimate is written "
               f"to {out}", file=sys.stderr)
         return 1
     return 0
-
-
-def _interrupted(backend: str, steps: int, out: Path) -> int:
-    """Say where a stopped run's finished steps are; the interrupted exit code."""
-    print(f"{backend}: interrupted after {steps} steps; the finished steps are written to "
-          f"{out} (status interrupted)", file=sys.stderr)
-    return EXIT_INTERRUPTED
 
 
 def _plot_and_summarize(out: Path, result: SlamResult, run: LoggedRun) -> dict[str, Any]:
@@ -208,13 +210,7 @@ def _slam_decoupled(args: argparse.Namespace, config: SlamConfig, features: tupl
           f"{e['online_keyframe_latency_ms_median']:.1f} / "
           f"{e['online_keyframe_latency_ms_p95']:.1f} ms; {e['online_x_real_time']:.1f}x real "
           f"time; tracked.tum beside trajectory.tum")
-    if result.status == "interrupted":
-        return _interrupted(args.backend, len(result.times), out)
-    s = _plot_and_summarize(out, result, run)
-    print(f"{args.backend} (decoupled): {s['steps']} steps, {s['keyframes']} keyframes, "
-          f"{s['landmarks']} landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; "
-          f"written to {out}")
-    return 0 if result.status == "ok" else 1
+    return _report_run(args.backend, f"{args.backend} (decoupled)", result, run, out)
 
 
 def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) -> int:
@@ -253,10 +249,8 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         result = run_offline(glog, config)
     else:
         result = run_graph_log(glog, args.backend, config, known_ids=known)
-    with atomic_path(out / "trajectory.tum") as tmp:
-        write_trajectory(tmp, result)
-    with atomic_path(out / "landmarks.csv") as tmp:
-        write_landmarks(tmp, result)
+    write_trajectory(out / "trajectory.tum", result)
+    write_landmarks(out / "landmarks.csv", result)
     s = summary(result, truth)
     s["input"] = {"file": str(glog.path), "poses": len(glog.pose_ids),
                   "landmarks_in_file": glog.n_landmarks, "known_ids": known,
