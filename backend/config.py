@@ -327,7 +327,7 @@ class Isam2Config:
             accuracy: see :func:`lampsam.backend.keyframes.is_keyframe`.)
         relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's):
             a variable whose pending correction has a component above it (m, rad) is
-            relinearised at the next relinearisation step.
+            relinearised at the next relinearisation step (``inf``: never).
         lamp_relinearize_threshold: the threshold for lamps' variables (position and
             axis) where the graph's lamps have their own symbol characters (the ceiling
             graph: :data:`~lampsam.backend.ceiling_graph.CEILING_SYMBOLS`); None: the
@@ -398,8 +398,9 @@ class Isam2Config:
     keyframe_distance: float = field(default=0.05, metadata=limits(ge=0.0))
     keyframe_angle: float = field(default=0.15, metadata=limits(ge=0.0))
     every_frame: bool = False
-    relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0))
-    lamp_relinearize_threshold: float | None = field(default=None, metadata=limits(gt=0.0))
+    relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0, finite=False))
+    lamp_relinearize_threshold: float | None = field(default=None,
+                                                     metadata=limits(gt=0.0, finite=False))
     relinearize_skip: int = field(default=10, metadata=limits(ge=1))
     cache_linearized_factors: bool = True
     find_unused_factor_slots: bool = False
@@ -529,7 +530,7 @@ class ReassociationConfig:
     margin: int = field(default=2, metadata=limits(ge=1))
     max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
     merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
-    switch: float = field(default=float("inf"), metadata=limits(gt=0.0))
+    switch: float = field(default=float("inf"), metadata=limits(gt=0.0, finite=False))
     fit_noise: bool = False
     scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
 
