@@ -63,7 +63,8 @@ def _cmd_export_bag(args: argparse.Namespace) -> int:
     from lampsam.datasets.rosbag_export import export_bag
 
     summary = export_bag(Path(args.run), Path(args.out), ros1=args.ros1, compressed=args.compressed,
-                         wheel_radius=args.wheel_radius, mcap=args.mcap)  # fmt: skip
+                         wheel_radius=args.wheel_radius, mcap=args.mcap,
+                         force=args.force)  # fmt: skip
     for topic, n in summary.counts.items():
         print(f"{topic}: {n} messages")
     print(f"bag written to {summary.path}")
@@ -82,4 +83,5 @@ def add_export_bag(sub: argparse._SubParsersAction) -> None:
                    help="images as sensor_msgs/CompressedImage (the run's PNG files)")
     p.add_argument("--wheel-radius", type=float, default=0.05,
                    help="wheel radius for the joint angles, m (default 0.05)")
+    add_force(p)
     p.set_defaults(func=_cmd_export_bag)
