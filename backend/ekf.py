@@ -69,6 +69,7 @@ from lampsam.backend.interface import (
     SlamBackend,
     SlamResult,
     StepEstimate,
+    StepHistory,
     log_pruned,
 )
 from lampsam.backend.landmark_merge import CoVisibility, ekf_merge_once
@@ -126,11 +127,7 @@ class EkfSlam(SlamBackend):
         self._next_id = 0
         self._step = 0
         self._last_t = -math.inf
-        self._times: list[float] = []
-        self._poses: list[FloatArray] = []
-        self._covs: list[FloatArray] = []
-        self._step_times: list[float] = []
-        self._keyframes: list[bool] = []
+        self._history = StepHistory()
         self.n_pruned = 0
         self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self._provisional: list[LandmarkEstimate] = []
@@ -518,11 +515,7 @@ class EkfSlam(SlamBackend):
         dt = time.perf_counter() - t0
         pose = self._x[:3].copy()
         cov = self._cov.block(0, 3, 0, 3)
-        self._times.append(t)
-        self._poses.append(pose)
-        self._covs.append(cov)
-        self._step_times.append(dt)
-        self._keyframes.append(n_matched + n_new > 0)
+        self._history.add(t, pose, cov, dt, n_matched + n_new > 0)
         return StepEstimate(t, pose, cov, n_matched + n_new > 0, n_matched, n_new, dt)
 
     def _estimate(self, s: Slot) -> LandmarkEstimate:
@@ -550,16 +543,6 @@ class EkfSlam(SlamBackend):
         self._remove(sorted(set(once) | self._doomed))
         self._doomed.clear()
         log_pruned(self.n_pruned, self.pruned, cfg.min_observations, not cfg.prune_once_seen)
-        return SlamResult(
-            backend=self.name,
-            times=np.asarray(self._times, float),
-            poses=np.asarray(self._poses, float).reshape(-1, 3),
-            pose_covs=np.asarray(self._covs, float).reshape(-1, 3, 3),
-            landmarks=self.landmarks(),
-            provisional=list(self._provisional),
-            step_times_s=np.asarray(self._step_times, float),
-            keyframes=np.asarray(self._keyframes, bool),
-            status=status,
-            n_pruned=self.n_pruned,
-            pruned=dict(self.pruned),
-        )
+        return self._history.result(self.name, self.landmarks(), status,
+                                    provisional=list(self._provisional),
+                                    n_pruned=self.n_pruned, pruned=dict(self.pruned))
