@@ -18,6 +18,7 @@ import numpy as np
 
 from lampsam.angles import wrap_axis
 from lampsam.arrays import BoolArray, FloatArray, ImageU8, IntArray
+from lampsam.datasets.tables import lamp_mask
 
 SUPERSAMPLE = 8
 """Supersampling factor of the synthetic renderer."""
@@ -45,8 +46,8 @@ class FrameTruth:
     fully_visible: BoolArray
 
     def is_lamp(self) -> BoolArray:
-        """shape (K,) True for lamps."""
-        return np.array([t.startswith("lamp") for t in self.types], dtype=bool)
+        """shape (K,) True for lamps (:func:`lampsam.datasets.tables.lamp_mask`)."""
+        return lamp_mask(self.types)
 
 
 
