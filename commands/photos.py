@@ -71,7 +71,7 @@ def add_frontend_eval(sub: argparse._SubParsersAction) -> None:
                         "(default on)")
     p.add_argument("--out", default=None,
                    help="JSON file (default RUN/frontend_eval.json; photos: none)")
-    p.add_argument("--max-frames", type=positive_int, default=None, help="only the first N images")
+    p.add_argument("--max-frames", type=int, default=None, help="only the first N images")
     p.add_argument("--lamp-models", action="store_true",
                    help="RUN: reject blobs whose size and shape fit none of the run's lamps")
     add_force(p)
