@@ -236,18 +236,23 @@ class Gating(GraphState):
         The same values as :meth:`~lampsam.backend.graph_state.GraphState._refresh_landmark`;
         a point (every corner, a lamp without an axis) is read with one
         ``calculateEstimatePoint3`` call instead of going through its handler (a
-        keyframe refreshes ~200 of them).
+        keyframe refreshes ~200 of them), its key kept per landmark id (a landmark's
+        kind, hence its key, never changes).
         """
         isam = self.isam
         if isam is None:
             return
+        read = isam.calculateEstimatePoint3
+        keys = self._point_keys
         for lm in visible:
             if not lm.in_graph:
                 continue
             if len(lm.state) == 3:
+                key = keys.get(lm.id)
+                if key is None:
+                    key = keys[lm.id] = point_key(lm.kind, lm.id)
                 try:
-                    lm.state = np.asarray(isam.calculateEstimatePoint3(point_key(lm.kind, lm.id)),
-                                          float)
+                    lm.state = np.asarray(read(key), float)
                     continue
                 except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
                     pass
@@ -364,18 +369,21 @@ class Gating(GraphState):
         this keeps them to the few ambiguous lamp observations. A lamp seen with its
         axis always takes the exact gate (the screen has no axis row); deciding it by
         a cheap three-row screen instead let biased sights in (docs/speed.md).
+
+        ``screened`` must come from :func:`~lampsam.backend.association.screen_pairs`
+        with ``exact=True`` (a pair's flag is then already "2-D row", the unambiguous
+        case); only the ambiguous lamps' entries are replaced (in place, no copy of
+        the ~50 corner rows per keyframe).
         """
         cfg = self.config.association
-        out: dict[int, dict[int, tuple[float, bool]]] = {}
         for i, pairs in screened.items():
             o = obs[i]
+            if o.kind == "corner" or len(pairs) <= 1:
+                continue  # the screen's own flag, exact for 2-D rows (screen_pairs, exact=True)
             gate = cfg.gate(len(o.z))
-            inside = [lid for lid, (d2, _) in pairs.items() if d2 < gate]
-            if o.kind == "corner" or len(inside) <= 1:
-                out[i] = {lid: (d2, len(o.z) == 2) for lid, (d2, _) in pairs.items()}
-            else:
-                out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
-        return out
+            if sum(d2 < gate for d2, _ in pairs.values()) > 1:
+                screened[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
+        return screened
 
     def _bound_far(self, obs: list[Obs], pose: FloatArray,
                    screened: dict[int, dict[int, tuple[float, bool]]]

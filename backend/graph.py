@@ -216,9 +216,10 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             self._wheel_since_kf.append(u)
         n_matched = n_new = 0
         is_kf = False
-        if frame is not None:
+        # a frame between keyframes is not used: its observations are not even built
+        if frame is not None and is_keyframe(self._k, self._delta, self.config.isam2):
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
-            if obs and is_keyframe(self._k, self._delta, self.config.isam2):
+            if obs:
                 n_matched, n_new = self._make_keyframe(obs)
                 is_kf = True
         pose = self.current_pose()

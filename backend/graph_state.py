@@ -146,6 +146,7 @@ class GraphState(SlamBackend):
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
         self._pose_cache: dict[int, FloatArray] = {}  # iSAM2's keyframe estimates until the next update
+        self._point_keys: dict[int, int] = {}  # landmark id -> position key (Gating._refresh_visible)
         self._left_poses: set[int] = set()  # keyframes the fixed-lag smoother marginalised
         self._fl_alive: set[int] = set()  # keys in the fixed-lag window
         self._fl_gone: set[int] = set()  # keys it marginalised
