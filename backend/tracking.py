@@ -27,6 +27,7 @@ throughput (data duration / wall clock until the worker finished) separately.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing as mp
 import queue
@@ -236,12 +237,21 @@ class CatchUp(SlamBackend):
         self.update_sizes: list[int] = []
 
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
-        """One step; defers a keyframe's update while framed steps wait (see class)."""
-        defer = self.waiting() > 0 and self.inner.n_deferred < self.max_keyframes - 1
+        """One step; defers a keyframe's update while framed steps wait (see class).
+
+        The update of ``max_keyframes`` deferred keyframes runs in the step that made
+        the last of them, and its estimate is then the updated one.
+        """
         before = self.inner.n_deferred
-        est = self.inner.step(t, wheel, frame, update=not defer)
-        if not defer and before + est.keyframe:
-            self.update_sizes.append(before + int(est.keyframe))
+        behind = self.waiting() > 0
+        est = self.inner.step(t, wheel, frame, update=not behind)
+        if not behind:
+            if before + est.keyframe:
+                self.update_sizes.append(before + int(est.keyframe))
+        elif self.inner.n_deferred >= self.max_keyframes:
+            self.update_sizes.append(self.inner.n_deferred)
+            self.inner.update()
+            est = dataclasses.replace(est, pose=self.inner.current_pose())
         return est
 
     def finish(self, status: str = "ok") -> SlamResult:
