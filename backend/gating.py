@@ -52,7 +52,7 @@ class Gating(GraphState):
         keys = [X(k), *self.handlers[lm.kind].keys(lm)]
         try:
             full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
-        except RuntimeError:
+        except (RuntimeError, IndexError):  # IndexError: not in iSAM2 yet (a deferred update)
             self._joint_cache[lm.id] = None
             return None
         # graph tangent -> EKF-form state (e.g. only the angle of a Pose2 axis)
@@ -108,7 +108,7 @@ class Gating(GraphState):
             spans.append((lid, [start + j for j in handler.state_index(lm)]))
         try:
             full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
-        except RuntimeError:
+        except (RuntimeError, IndexError):
             return 0
         if full.shape != (3 * len(keys), 3 * len(keys)):
             return 0
@@ -216,11 +216,14 @@ class Gating(GraphState):
                 continue
             rel = self._relative_covs()
             sel = [visible[j] for j in keep]
-            recent = [lm.cov_rel is not None and lm.last_kf in rel for lm in sel]
+            # relative to the last sighting iSAM2 has (a later one, in keyframes whose
+            # update is deferred, did not move the landmark: GraphSlam.step(update=False))
+            last = [min(lm.last_kf, self._k_isam) for lm in sel]
+            recent = [lm.cov_rel is not None and j in rel for lm, j in zip(sel, last, strict=True)]
             cov_l = np.array([lm.cov_rel if r else lm.cov[:3, :3]
                               for lm, r in zip(sel, recent, strict=True)], float)
-            cov_x = np.array([rel[lm.last_kf] if r else pose_cov
-                              for lm, r in zip(sel, recent, strict=True)], float)
+            cov_x = np.array([rel[j] if r else pose_cov
+                              for j, r in zip(last, recent, strict=True)], float)
             hp, hl = h_p[keep], h_l[keep]
             s_pred = (hp @ cov_x @ np.transpose(hp, (0, 2, 1))
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
