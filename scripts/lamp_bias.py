@@ -29,7 +29,10 @@ Variants (each a change to the world before rendering, the same poses and noise 
 * ``flush``: hung lamps raised to the ceiling they hang under (no parallax between the
   lamp's face and the ceiling behind it);
 * ``ss8``: the renderer's supersampling 8 instead of 2;
-* ``ideal``: plain + unsat + no noise (only the detector's own geometry is left).
+* ``ideal``: plain + unsat + no noise (only the detector's own geometry is left);
+* ``psf0.5``, ``psf0.8``: the world as simulated seen through a Gaussian lens blur of
+  0.5 / 0.8 px sigma (applied in this script to the radiance before saturation; the
+  simulator's renderer has no blur: each pixel is the exact area average).
 
 Printed per variant: the number of sightings, the mean error (bias) and RMS in px and
 mm, the radial and tangential bias binned by the lamp's distance from the image centre,
@@ -46,6 +49,7 @@ import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray
@@ -97,6 +101,28 @@ def _flush(world: World) -> World:
     return dataclasses.replace(world, lamps=lamps)
 
 
+PSF_SIGMA_PX: dict[str, float] = {"psf0.5": 0.5, "psf0.8": 0.8}
+"""Variants rendered through a Gaussian lens blur of this sigma (px) before saturation."""
+
+
+class BlurredRenderer(CeilingRenderer):
+    """The simulator's renderer with a Gaussian point-spread function on the radiance.
+
+    The blur is applied to the linear radiance (lamps above 255 included) before the
+    noise and the saturation, as a lens blurs light before the sensor clips it.
+    """
+
+    def __init__(self, world: World, sigma_px: float):
+        """Renderer of ``world`` with a PSF of ``sigma_px``."""
+        super().__init__(world)
+        self.sigma_px = sigma_px
+
+    def render_linear(self, pose: FloatArray) -> np.ndarray:
+        """The radiance image, blurred."""
+        img = super().render_linear(pose)
+        return cv2.GaussianBlur(img, (0, 0), self.sigma_px)
+
+
 VARIANTS: dict[str, Callable[[World], World]] = {
     "as-is": lambda w: w,
     "no-noise": _no_noise,
@@ -105,6 +131,8 @@ VARIANTS: dict[str, Callable[[World], World]] = {
     "flush": _flush,
     "ss8": _ss8,
     "ideal": lambda w: _no_noise(_unsat(_plain(w))),
+    "psf0.5": lambda w: w,
+    "psf0.8": lambda w: w,
 }
 
 
@@ -116,10 +144,12 @@ def truth_m(world: World, pose: FloatArray, centre: FloatArray) -> FloatArray:
     return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]]) / (centre[2] - cam.z_cam)
 
 
-def measure(world: World, poses: FloatArray, seed: int, config: LampDetectorConfig) -> list[dict]:
+def measure(
+    world: World, poses: FloatArray, seed: int, config: LampDetectorConfig, psf_px: float = 0.0
+) -> list[dict]:
     """Render and detect every pose; one record per paired sighting."""
     cam = world.rig.camera
-    renderer = CeilingRenderer(world)
+    renderer = BlurredRenderer(world, psf_px) if psf_px > 0 else CeilingRenderer(world)
     lms = world_landmarks(world)
     occ = occluders(world)
     lamp_rows = {int(i): k for k, i in enumerate(lms.ids) if lms.types[k].startswith("lamp")}
@@ -258,7 +288,7 @@ def main() -> None:
             _, poses, _, _ = simulate_trajectory(world, seed, args.duration)
             step = int(round(world.simulation.odometry_rate_hz / world.simulation.image_rate_hz))
             sel = poses[::step][:: args.every]
-            recs += measure(world, sel, seed, config)
+            recs += measure(world, sel, seed, config, PSF_SIGMA_PX.get(name, 0.0))
         results.append(summarise(name, recs, f_px, (cam.cx, cam.cy)))
         if args.out:
             out = Path(args.out)
