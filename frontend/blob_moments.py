@@ -65,6 +65,7 @@ from lampsam.frontend.label_stats import (
     lower_median_rank,
 )
 from lampsam.frontend.lamp_config import LampDetectorConfig
+from lampsam.frontend.saturated_edges import FULL_SCALE, clipped_edge_weights
 
 
 @dataclass(frozen=True)
@@ -498,7 +499,16 @@ def measure_labels(
     lab = reach.sup.take(sup)
     xy = reach.xy.take(sup, axis=1)
     level = np.array([bg, span_safe]).take(lab, axis=1)
-    wv = ((reach.grey.take(sup) - level[0]) / level[1]).clip(0.0, 1.0)
+    grey_sup = reach.grey.take(sup)
+    wv = ((grey_sup - level[0]) / level[1]).clip(0.0, 1.0)
+    free_b = (wv > 0.0) & (wv < 1.0)  # the pixels whose grey level carries the noise
+    if config.saturated_edges:
+        sat_blob = (top >= FULL_SCALE - 1) & ok
+        tol = 3.0 * sigma_n / span_safe
+        wv, _ = clipped_edge_weights(
+            wv, grey_sup, xy, sat_blob.take(lab), level[0], tol.take(lab),
+            config.saturated_edge_min_steps,
+        )
     wxy = wv * xy
     s0, sx, sy = label_sums(groups, np.array([wv, wxy[0], wxy[1]]), n)
     s0 = np.maximum(s0, 1e-12)
@@ -507,7 +517,7 @@ def measure_labels(
     q = np.empty((3, d.shape[1]))  # dx^2, dx dy, dy^2 (no fancy-indexed copies of d)
     np.multiply(d[0], d, out=q[:2])
     np.multiply(d[1], d[1], out=q[2])
-    free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
+    free = free_b.astype(np.float64)
     sums = label_sums(groups, np.concatenate([wv * q, free * q]), n)
     a, b, c = sums[:3] / s0
     fxx, fxy, fyy = sums[3:]

@@ -95,6 +95,8 @@ class LampDetectorConfig:
     sigma_axis_floor: float = 0.002
     min_fill: float = 0.85
     jacobian_step_px: float = 0.5
+    saturated_edges: bool = True
+    saturated_edge_min_steps: int = 16
 
 
 DEFAULT_CONFIG = LampDetectorConfig()  # frozen: one shared instance

@@ -1,0 +1,145 @@
+"""Coverage of the edge pixels of saturated lamps: a clipped pixel is not a covered pixel.
+
+The coverage weights of :mod:`lampsam.frontend.blob_moments` read a pixel's grey level
+``I`` as ``bg + w (top - bg)``. A lamp brighter than the sensor's full scale ``S``
+(255) breaks this: the lamp's radiance ``L > S`` is unknown, ``top`` reads ``S``, and a
+pixel that the lamp covers by ``c`` reads ``min(S, bg + c (L - bg))``. With
+``c_s = (S - bg) / (L - bg)`` (the coverage at which a pixel clips):
+
+* an unclipped edge pixel has ``w = c / c_s``, too large by ``1 / c_s``; its coverage
+  is ``c = c_s w``;
+* a clipped edge pixel (a saturated pixel next to the background) has any coverage in
+  ``[c_s, 1]`` and reads ``w = 1``; its expected coverage is ``(1 + c_s) / 2``.
+
+Along a straight edge every row's edge pixel has the same sub-pixel phase, so the edge's
+error does not average along it: with ``w`` as read, an edge sits ``min(1, phi / c_s) -
+phi`` px outward for a phase ``phi``, between 0 and ``1 - c_s`` (0.45 px on the
+simulated lab: lamps at 320, ceiling at 175), and the centroid moves by half the
+difference of its two edges' errors. Both corrections above take that to 0 for
+``phi < c_s`` and ``+-(1 - c_s) / 2`` for ``phi >= c_s`` (docs/lamp-bias.md).
+
+``c_s`` is measured on the image, not assumed: across a sharp saturated edge a row
+or column of pixels goes from clipped to background either directly (the edge pixel
+clipped: probability ``1 - c_s`` for a uniform phase) or through exactly one unclipped
+pixel (probability ``c_s``). Counting both kinds of step over all saturated blobs of the
+image gives ``c_s = n_one / (n_direct + n_one)``, and the lamps' radiance
+``L = bg + (S - bg) / c_s`` (one radiance for the image's lamps: each blob then gets its
+``c_s`` from its own background). A blurred edge (a real lens) passes through two or
+more unclipped pixels: when such steps are as many as the sharp ones, or there are fewer
+than ``min_steps`` sharp ones or fewer than ``MIN_ONE_STEPS`` through one pixel (edges
+on the pixel grid, a drawn blob), nothing is changed (the weights as read are then right
+to first order: a blurred clipped edge's coverage sum is a constant outward offset).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lampsam.arrays import FloatArray, IntArray
+
+FULL_SCALE = 255
+"""Grey level of a saturated pixel (8-bit images)."""
+
+MIN_ONE_STEPS = 4
+"""Fewest steps through one unclipped pixel for ``c_s`` to be measured: without them the
+edges show no sub-pixel coverage at all (a blob drawn on the pixel grid), not a lamp's."""
+
+
+@dataclass(frozen=True)
+class EdgeSteps:
+    """Steps from saturated pixels to the background counted on one image.
+
+    Attributes:
+        direct: clipped pixel next to a background pixel (along a row or column).
+        one: clipped, one unclipped pixel, background (collinear).
+        wide: clipped, unclipped, unclipped (a resolved, blurred edge).
+        bg_mean: mean background level of the blobs the steps were counted on.
+    """
+
+    direct: int
+    one: int
+    wide: int
+    bg_mean: float
+
+    def clip_coverage(self, min_steps: int) -> float | None:
+        """``c_s`` of the image's lamps (module docstring), or None: no sharp clipped edges."""
+        sharp = self.direct + self.one
+        if sharp < min_steps or self.wide >= sharp or self.one < MIN_ONE_STEPS:
+            return None
+        return max(self.one / sharp, 0.05)
+
+
+def _box_images(xy: FloatArray, *values: np.ndarray) -> tuple[IntArray, IntArray, list[np.ndarray]]:
+    """Scatter per-pixel values into images of the pixels' box, one pixel of padding."""
+    cols, rows = xy[0].astype(np.intp) + 1, xy[1].astype(np.intp) + 1
+    shape = (int(rows.max()) + 2, int(cols.max()) + 2)
+    out = []
+    for v in values:
+        img = np.zeros(shape, dtype=np.asarray(v).dtype)
+        img[rows, cols] = v
+        out.append(img)
+    return rows, cols, out
+
+
+def count_steps(
+    wv: FloatArray, grey: IntArray, xy: FloatArray, saturated_blob: np.ndarray, bg: FloatArray,
+    bg_tol: FloatArray,
+) -> tuple[EdgeSteps, np.ndarray]:
+    """Count the clipped-to-background steps of saturated blobs, and flag clipped edge pixels.
+
+    Args:
+        wv: shape (P,) coverage weights as read, support pixels of all blobs.
+        grey: shape (P,) their grey levels.
+        xy: shape (2, P) their ``(col, row)`` in a common box, px.
+        saturated_blob: shape (P,) bool, the pixel's blob is saturated (its level is full scale).
+        bg: shape (P,) the pixel's blob background level.
+        bg_tol: shape (P,) weight up to which a pixel counts as background (noise).
+
+    Returns:
+        The counts, and shape (P,) bool: clipped pixels with a background 4-neighbour.
+        Pixels outside the supports count as background.
+    """
+    sat = saturated_blob & (grey >= FULL_SCALE - 1)
+    partial = ~sat & (wv > bg_tol)
+    rows, cols, (s_img, p_img) = _box_images(xy, sat, partial)
+    b_img = ~s_img & ~p_img
+    direct = one = wide = 0
+    edge = np.zeros(wv.shape, dtype=bool)
+    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        n1 = (rows + dr, cols + dc)
+        at = sat & b_img[n1]
+        edge |= at
+        direct += int(np.count_nonzero(at))
+        r2, c2 = np.clip(rows + 2 * dr, 0, s_img.shape[0] - 1), np.clip(cols + 2 * dc, 0, s_img.shape[1] - 1)
+        step = sat & p_img[n1]
+        one += int(np.count_nonzero(step & b_img[r2, c2]))
+        wide += int(np.count_nonzero(step & p_img[r2, c2]))
+    bg_mean = float(bg[sat].mean()) if sat.any() else float("nan")
+    return EdgeSteps(direct, one, wide, bg_mean), edge
+
+
+def clipped_edge_weights(
+    wv: FloatArray, grey: IntArray, xy: FloatArray, saturated_blob: np.ndarray, bg: FloatArray,
+    bg_tol: FloatArray, min_steps: int,
+) -> tuple[FloatArray, np.ndarray]:
+    """Coverage of every support pixel with saturated edges taken into account.
+
+    Args: as :func:`count_steps`; ``min_steps``: fewest sharp steps to measure ``c_s``.
+
+    Returns:
+        ``(weights (P,), changed (P,) bool)``: ``c_s w`` on the unclipped pixels of
+        saturated blobs, ``(1 + c_s) / 2`` on their clipped edge pixels, ``w`` elsewhere
+        and everywhere when ``c_s`` cannot be measured (``changed`` all False).
+    """
+    steps, edge = count_steps(wv, grey, xy, saturated_blob, bg, bg_tol)
+    cs_image = steps.clip_coverage(min_steps)
+    if cs_image is None:
+        return wv, np.zeros(wv.shape, dtype=bool)
+    radiance = steps.bg_mean + (FULL_SCALE - steps.bg_mean) / cs_image
+    cs = np.clip((FULL_SCALE - bg) / np.maximum(radiance - bg, 1e-6), 0.05, 1.0)
+    sat = saturated_blob & (grey >= FULL_SCALE - 1)
+    out = np.where(saturated_blob & ~sat, wv * cs, wv)
+    out = np.where(edge, 0.5 * (1.0 + cs), out)
+    return out, saturated_blob & (edge | ~sat)
