@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray, IntArray
@@ -71,16 +72,11 @@ class EdgeSteps:
         return max(self.one / sharp, 0.05)
 
 
-def _box_images(xy: FloatArray, *values: np.ndarray) -> tuple[IntArray, IntArray, list[np.ndarray]]:
-    """Scatter per-pixel values into images of the pixels' box, one pixel of padding."""
-    cols, rows = xy[0].astype(np.intp) + 1, xy[1].astype(np.intp) + 1
-    shape = (int(rows.max()) + 2, int(cols.max()) + 2)
-    out = []
-    for v in values:
-        img = np.zeros(shape, dtype=np.asarray(v).dtype)
-        img[rows, cols] = v
-        out.append(img)
-    return rows, cols, out
+_PAD = 2
+"""Padding of the box images, px (steps look two pixels away)."""
+
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], np.uint8)
+"""4-neighbourhood structuring element."""
 
 
 def count_steps(
@@ -102,22 +98,34 @@ def count_steps(
         Pixels outside the supports count as background.
     """
     sat = saturated_blob & (grey >= FULL_SCALE - 1)
+    if not sat.any():
+        return EdgeSteps(0, 0, 0, float("nan")), np.zeros(wv.shape, dtype=bool)
     partial = ~sat & (wv > bg_tol)
-    rows, cols, (s_img, p_img) = _box_images(xy, sat, partial)
-    b_img = ~s_img & ~p_img
+    # Box images (padded), flat: the steps are looked up at the clipped pixels on the
+    # boundary of the clipped set only (4-neighbourhood erosion).
+    cols, rows = xy[0].astype(np.intp) + _PAD, xy[1].astype(np.intp) + _PAD
+    width = int(cols.max()) + 1 + _PAD
+    shape = (int(rows.max()) + 1 + _PAD, width)
+    flat = rows * width + cols
+    s_img = np.zeros(shape, np.uint8)
+    s_img.ravel()[flat.compress(sat)] = 1
+    p_flat = np.zeros(shape[0] * width, dtype=bool)
+    p_flat[flat.compress(partial)] = True
+    boundary = (s_img & (1 - cv2.erode(s_img, _CROSS))).ravel().nonzero()[0]
+    b_flat = (s_img.ravel() == 0) & ~p_flat
     direct = one = wide = 0
-    edge = np.zeros(wv.shape, dtype=bool)
-    for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        n1 = (rows + dr, cols + dc)
-        at = sat & b_img[n1]
-        edge |= at
+    at_edge = np.zeros(boundary.size, dtype=bool)
+    for off in (1, -1, width, -width):
+        at = b_flat.take(boundary + off)
+        at_edge |= at
         direct += int(np.count_nonzero(at))
-        r2, c2 = np.clip(rows + 2 * dr, 0, s_img.shape[0] - 1), np.clip(cols + 2 * dc, 0, s_img.shape[1] - 1)
-        step = sat & p_img[n1]
-        one += int(np.count_nonzero(step & b_img[r2, c2]))
-        wide += int(np.count_nonzero(step & p_img[r2, c2]))
-    bg_mean = float(bg[sat].mean()) if sat.any() else float("nan")
-    return EdgeSteps(direct, one, wide, bg_mean), edge
+        step = p_flat.take(boundary + off)
+        one += int(np.count_nonzero(step & b_flat.take(boundary + 2 * off)))
+        wide += int(np.count_nonzero(step & p_flat.take(boundary + 2 * off)))
+    edge_flat = np.zeros(shape[0] * width, dtype=bool)
+    edge_flat[boundary.compress(at_edge)] = True
+    edge = edge_flat.take(flat) & sat
+    return EdgeSteps(direct, one, wide, float(bg[sat].mean())), edge
 
 
 def clipped_edge_weights(

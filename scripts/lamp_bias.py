@@ -2,7 +2,7 @@
 
 Usage::
 
-    python scripts/lamp_bias.py --world lab --seeds 1 --every 6 --out OUT_DIR
+    python scripts/lamp_bias.py --world lab --seeds 1 --every 12 --out OUT_DIR
 
 For a world's path (image poses of ``simulate_trajectory``, every ``--every``-th image)
 each image is rendered in-process by the simulator's renderer and the lamp detector
@@ -34,9 +34,14 @@ Variants (each a change to the world before rendering, the same poses and noise 
   0.5 / 0.8 px sigma (applied in this script to the radiance before saturation; the
   simulator's renderer has no blur: each pixel is the exact area average).
 
-Printed per variant: the number of sightings, the mean error (bias) and RMS in px and
-mm, the radial and tangential bias binned by the lamp's distance from the image centre,
-and the mean error per lamp type. ``--out`` writes the sightings as CSV and a figure.
+Each image is measured with each detector setting of ``--configs``: ``model`` (the
+default, :mod:`lampsam.frontend.saturated_edges` on) and ``read`` (the coverage weights
+as read, the model off). Printed per variant and setting: the number of sightings, the
+mean error (bias) and RMS in px and mm, the radial and tangential bias binned by the
+lamp's distance from the image centre, the RMS per lamp type, and for rect lamps whose
+long edges lie along image columns the correlation of their across-axis error with the
+clipped-edge model (:func:`phase_model`: each edge off by ``min(1, phi / c_s) - phi`` at
+its true sub-pixel phase ``phi``). ``--out`` writes the sightings as CSV and a figure.
 """
 
 from __future__ import annotations
@@ -144,43 +149,81 @@ def truth_m(world: World, pose: FloatArray, centre: FloatArray) -> FloatArray:
     return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]]) / (centre[2] - cam.z_cam)
 
 
+CONFIGS: dict[str, LampDetectorConfig] = {
+    "model": LampDetectorConfig(),
+    "read": LampDetectorConfig(saturated_edges=False),
+}
+"""Detector settings compared: the default (saturated-edge model on) and the weights as read."""
+
+
 def measure(
-    world: World, poses: FloatArray, seed: int, config: LampDetectorConfig, psf_px: float = 0.0
-) -> list[dict]:
-    """Render and detect every pose; one record per paired sighting."""
+    world: World, poses: FloatArray, seed: int, configs: Sequence[str], psf_px: float = 0.0
+) -> dict[str, list[dict]]:
+    """Render every pose once and detect with each of ``configs``; one record per paired sighting."""
     cam = world.rig.camera
     renderer = BlurredRenderer(world, psf_px) if psf_px > 0 else CeilingRenderer(world)
     lms = world_landmarks(world)
     occ = occluders(world)
     lamp_rows = {int(i): k for k, i in enumerate(lms.ids) if lms.types[k].startswith("lamp")}
-    out: list[dict] = []
+    yaw = {lp.id: lp.yaw for lp in world.lamps}
+    out: dict[str, list[dict]] = {c: [] for c in configs}
     for k, pose in enumerate(poses):
         img = renderer.render(pose, np.random.default_rng([seed, k]))
-        det = detect_lamps(img, cam, config)
         truth = project_landmarks(cam, pose, lms, occ, renderer.m_max)
         full = [r for r in range(len(truth.ids))
                 if truth.fully_visible[r] and int(truth.ids[r]) in lamp_rows]  # fmt: skip
         if not full:
             continue
         tpx = truth.pixel[full]
-        for ob in det.lamps:
-            if ob.touches_border:
-                continue
-            d = np.hypot(*(tpx - ob.pixel).T)
-            j = int(np.argmin(d))
-            if d[j] > GATE_PX:
-                continue
-            lid = int(truth.ids[full[j]])
-            row = lamp_rows[lid]
-            centre = lms.xyz[row]
-            mt = truth_m(world, pose, centre)
-            out.append(dict(
-                frame=k, id=lid, type=lms.types[row], h=float(centre[2] - cam.z_cam),
-                x=pose[0], y=pose[1], theta=pose[2], u_true=mt[0], v_true=mt[1],
-                u=float(ob.m[0]), v=float(ob.m[1]), col=float(tpx[j, 0]), row=float(tpx[j, 1]),
-                ratio=ob.ratio,
-            ))  # fmt: skip
+        for name in configs:
+            for ob in detect_lamps(img, cam, CONFIGS[name]).lamps:
+                if ob.touches_border:
+                    continue
+                d = np.hypot(*(tpx - ob.pixel).T)
+                j = int(np.argmin(d))
+                if d[j] > GATE_PX:
+                    continue
+                lid = int(truth.ids[full[j]])
+                row = lamp_rows[lid]
+                centre = lms.xyz[row]
+                mt = truth_m(world, pose, centre)
+                out[name].append(dict(
+                    frame=k, id=lid, type=lms.types[row], h=float(centre[2] - cam.z_cam),
+                    x=pose[0], y=pose[1], theta=pose[2], u_true=mt[0], v_true=mt[1],
+                    u=float(ob.m[0]), v=float(ob.m[1]), col=float(tpx[j, 0]), row=float(tpx[j, 1]),
+                    ratio=ob.ratio, yaw=yaw[lid], width=float(lms.width[row]),
+                ))  # fmt: skip
     return out
+
+
+def edge_error(phi: FloatArray, cs: float) -> FloatArray:
+    """Outward error (px) of a sharp saturated edge whose edge pixel the lamp covers by ``phi``,
+    with the coverage weights as read (``w = min(1, phi / c_s)``)."""
+    return np.minimum(1.0, phi / cs) - phi
+
+
+def phase_model(recs: Sequence[dict], f_px: float, cs: float) -> tuple[FloatArray, FloatArray]:
+    """Measured and predicted across-axis error (px) of rect lamps whose long edges lie along
+    image columns within 2.6 deg: the prediction is half the difference of the two edges'
+    :func:`edge_error` at their true sub-pixel phases (pinhole looking up: ``col = cx + f v``)."""
+    meas, pred = [], []
+    for r in recs:
+        if r["type"] != "lamp_rect":
+            continue
+        a = r["yaw"] - r["theta"]  # the lamp's axis in the body frame
+        if abs(math.cos(a)) < 0.999:  # across direction (-sin a, cos a): along v = image columns
+            continue
+        half = 0.5 * r["width"] / r["h"] * f_px
+        col = CX + f_px * r["v_true"]
+        phi_r = np.mod(col + half + 0.5, 1.0)  # lamp left of the right edge
+        phi_l = 1.0 - np.mod(col - half + 0.5, 1.0)  # lamp right of the left edge
+        pred.append(0.5 * (edge_error(phi_r, cs) - edge_error(phi_l, cs)))
+        meas.append(f_px * (r["v"] - r["v_true"]))
+    return np.array(meas), np.array(pred)
+
+
+CX = 159.5
+"""Principal point column of the lab camera, px (set from the world in :func:`main`)."""
 
 
 def summarise(name: str, recs: Sequence[dict], f_px: float, cxy: tuple[float, float]) -> dict:
@@ -196,10 +239,12 @@ def summarise(name: str, recs: Sequence[dict], f_px: float, cxy: tuple[float, fl
     rad = mt / np.maximum(np.hypot(*mt.T), 1e-12)[:, None]
     tan = np.column_stack([-rad[:, 1], rad[:, 0]])
     er, et = np.sum(e_px * rad, axis=1), np.sum(e_px * tan, axis=1)
-    dist = np.hypot(np.array([r["col"] for r in recs]) - cxy[0], np.array([r["row"] for r in recs]) - cxy[1])
+    col, row = np.array([r["col"] for r in recs]), np.array([r["row"] for r in recs])
+    dist = np.hypot(col - cxy[0], row - cxy[1])
+    rms = float(np.sqrt((e_px**2).sum(1).mean()))
     print(f"\n== {name}: {len(recs)} sightings")
     print(f"  bias (u, v): {e_px.mean(0).round(4)} px, {e_mm.mean(0).round(3)} mm;"
-          f" RMS {np.sqrt((e_px**2).sum(1).mean()):.4f} px, {np.sqrt((e_mm**2).sum(1).mean()):.3f} mm")
+          f" RMS {rms:.4f} px, {np.sqrt((e_mm**2).sum(1).mean()):.3f} mm")
     print(f"  radial bias {er.mean():+.4f} px (RMS {np.sqrt((er**2).mean()):.4f}),"
           f" tangential {et.mean():+.4f} px (RMS {np.sqrt((et**2).mean()):.4f})")
     print("  from centre px | n | radial px mean | tangential px mean | radial mm mean")
@@ -212,55 +257,56 @@ def summarise(name: str, recs: Sequence[dict], f_px: float, cxy: tuple[float, fl
         print(f"  {lo:5.0f}-{hi:<5.0f} | {sel.sum():5d} | {er[sel].mean():+.4f} | {et[sel].mean():+.4f}"
               f" | {er_mm:+.3f}")
         rows.append((lo, hi, int(sel.sum()), float(er[sel].mean()), float(et[sel].mean())))
-    types = sorted({r["type"] for r in recs})
-    for t in types:
+    by_type = {}
+    for t in sorted({r["type"] for r in recs}):
         sel = np.array([r["type"] == t for r in recs])
-        print(f"  {t:11s} n={sel.sum():5d} radial {er[sel].mean():+.4f} px, RMS err "
-              f"{np.sqrt((e_px[sel]**2).sum(1).mean()):.4f} px")
-    return dict(name=name, n=len(recs), er=er, et=et, dist=dist, e_px=e_px, mt=mt, rows=rows,
-                col=np.array([r["col"] for r in recs]), row=np.array([r["row"] for r in recs]))
+        by_type[t] = float(np.sqrt((e_px[sel] ** 2).sum(1).mean()))
+        print(f"  {t:11s} n={sel.sum():5d} radial {er[sel].mean():+.4f} px, RMS err {by_type[t]:.4f} px")
+    meas, pred = phase_model(recs, f_px, CS_LAB)
+    if len(meas) > 2:
+        print(f"  aligned rect lamps (n={len(meas)}): across error RMS {np.sqrt(np.mean(meas**2)):.4f} px;"
+              f" clipped-edge model (c_s {CS_LAB:.2f}) correlation {np.corrcoef(meas, pred)[0, 1]:+.2f}")
+    return dict(name=name, n=len(recs), rms=rms, by_type=by_type, rows=rows, meas=meas, pred=pred,
+                e_px=e_px, col=col, row=row)
 
 
-def figure(results: list[dict], path: Path) -> None:
-    """Radial bias against distance from the image centre per variant, and the as-is error field."""
+CS_LAB = (255.0 - 175.0) / (320.0 - 175.0)
+"""Clip coverage of the lab's lamps (radiance 320) over its tiles (grey 175)."""
+
+
+def figure(results: dict[str, dict], path: Path) -> None:
+    """Lamp error RMS per variant and setting, and the across error of aligned rect lamps
+    against the clipped-edge model."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
-    for res in results:
-        if not res:
-            continue
-        mids = [(lo + hi) / 2 for lo, hi, *_ in res["rows"]]
-        ax1.plot(mids, [r[3] for r in res["rows"]], "o-", label=f"{res['name']} radial")
-    base = results[0]
-    if base:
-        mids = [(lo + hi) / 2 for lo, hi, *_ in base["rows"]]
-        ax1.plot(mids, [r[4] for r in base["rows"]], "k--", label=f"{base['name']} tangential")
-    ax1.axhline(0.0, color="grey", lw=0.5)
-    ax1.set_xlabel("lamp centre's distance from the image centre, px")
-    ax1.set_ylabel("mean error, px (+ = outward / counter-clockwise)")
-    ax1.set_title("lamp centroid bias by variant")
-    ax1.legend(fontsize=7)
-    if base:
-        # Mean error (pixel axes) on a 8 x 6 grid of the image.
-        gc, gr = np.floor(base["col"] / 40).astype(int), np.floor(base["row"] / 40).astype(int)
-        # e in body (u forward, v left) -> pixel axes: the lab camera's image top is forward.
-        for i in range(8):
-            for j in range(6):
-                sel = (gc == i) & (gr == j)
-                if sel.sum() < 5:
-                    continue
-                eu, ev = base["e_px"][sel].mean(0)
-                ax2.quiver(40 * i + 20, 40 * j + 20, -ev, -eu, angles="xy", scale_units="xy",
-                           scale=0.002, color="C3")  # fmt: skip
-        ax2.set_xlim(0, 320)
-        ax2.set_ylim(240, 0)
-        ax2.set_aspect("equal")
-        ax2.set_title(f"{base['name']}: mean error per 40 px cell (arrow x500)")
-        ax2.set_xlabel("col px")
-        ax2.set_ylabel("row px")
+    variants = list(dict.fromkeys(k.split("/")[0] for k in results))
+    configs = list(dict.fromkeys(k.split("/")[1] for k in results))
+    width = 0.8 / max(len(configs), 1)
+    for j, c in enumerate(configs):
+        vals = [results.get(f"{v}/{c}", {}).get("rms", np.nan) for v in variants]
+        ax1.bar(np.arange(len(variants)) + (j - (len(configs) - 1) / 2) * width, vals, width,
+                label=f"weights: {c}")  # fmt: skip
+    ax1.set_xticks(np.arange(len(variants)), variants, rotation=20)
+    ax1.set_ylabel("lamp centre error RMS, px")
+    ax1.set_title("lamp observation error on the simulated lab, by cause")
+    ax1.legend(fontsize=8)
+    for key, style in ((f"{variants[0]}/read", "o"), (f"{variants[0]}/model", "x")):
+        res = results.get(key)
+        if res and len(res["meas"]):
+            ax2.plot(res["pred"], res["meas"], style, ms=4, alpha=0.6, label=key)
+    lim = 0.3
+    ax2.plot([-lim, lim], [-lim, lim], "k-", lw=0.5)
+    ax2.set_xlim(-lim, lim)
+    ax2.set_ylim(-lim, lim)
+    ax2.set_aspect("equal")
+    ax2.set_xlabel("clipped-edge model, weights as read: (e(phi_r) - e(phi_l)) / 2, px")
+    ax2.set_ylabel("measured across-axis error, px")
+    ax2.set_title("rect lamps with edges along image columns")
+    ax2.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"figure: {path}")
@@ -268,36 +314,40 @@ def figure(results: list[dict], path: Path) -> None:
 
 def main() -> None:
     """Command line."""
+    global CX
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--world", default="lab")
     ap.add_argument("--seeds", default="1", help="comma-separated path/noise seeds")
     ap.add_argument("--every", type=int, default=6, help="use every n-th image pose")
     ap.add_argument("--duration", type=float, default=None, help="seconds of the path")
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--out", default=None, help="folder for sightings.csv and lamp_bias.png")
+    ap.add_argument("--configs", default="read,model", help=f"detector settings: {','.join(CONFIGS)}")
+    ap.add_argument("--out", default=None, help="folder for sightings_*.csv and lamp_bias.png")
     args = ap.parse_args()
     base = load_world(args.world)
     cam = base.rig.camera
+    CX = cam.cx
     f_px = math.sqrt(cam.fx * cam.fy)
-    config = LampDetectorConfig()
-    results = []
+    configs = args.configs.split(",")
+    results: dict[str, dict] = {}
     for name in args.variants.split(","):
         world = VARIANTS[name](base)
-        recs: list[dict] = []
+        recs: dict[str, list[dict]] = {c: [] for c in configs}
         for seed in (int(s) for s in args.seeds.split(",")):
             _, poses, _, _ = simulate_trajectory(world, seed, args.duration)
             step = int(round(world.simulation.odometry_rate_hz / world.simulation.image_rate_hz))
-            sel = poses[::step][:: args.every]
-            recs += measure(world, sel, seed, config, PSF_SIGMA_PX.get(name, 0.0))
-        results.append(summarise(name, recs, f_px, (cam.cx, cam.cy)))
-        if args.out:
-            out = Path(args.out)
-            os.makedirs(out, exist_ok=True)
-            if recs:
-                with open(out / f"sightings_{name}.csv", "w", newline="") as fh:
-                    wr = csv.DictWriter(fh, fieldnames=list(recs[0]))
+            got = measure(world, poses[::step][:: args.every], seed, configs, PSF_SIGMA_PX.get(name, 0.0))
+            for c in configs:
+                recs[c] += got[c]
+        for c in configs:
+            results[f"{name}/{c}"] = summarise(f"{name}/{c}", recs[c], f_px, (cam.cx, cam.cy))
+            if args.out and recs[c]:
+                out = Path(args.out)
+                os.makedirs(out, exist_ok=True)
+                with open(out / f"sightings_{name}_{c}.csv", "w", newline="") as fh:
+                    wr = csv.DictWriter(fh, fieldnames=list(recs[c][0]))
                     wr.writeheader()
-                    wr.writerows(recs)
+                    wr.writerows(recs[c])
     if args.out:
         figure(results, Path(args.out) / "lamp_bias.png")
 
