@@ -111,7 +111,7 @@ def count_steps(
     s_img.ravel()[flat.compress(sat)] = 1
     p_flat = np.zeros(shape[0] * width, dtype=bool)
     p_flat[flat.compress(partial)] = True
-    boundary = (s_img & (1 - cv2.erode(s_img, _CROSS))).ravel().nonzero()[0]
+    boundary = ((s_img > 0) & (cv2.erode(s_img, _CROSS) == 0)).ravel().nonzero()[0]
     b_flat = (s_img.ravel() == 0) & ~p_flat
     direct = one = wide = 0
     at_edge = np.zeros(boundary.size, dtype=bool)
