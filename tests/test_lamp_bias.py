@@ -28,35 +28,42 @@ from tests.test_fisheye_lamps import _draw_lamp
 
 
 def _lamp_errors(
-    world: World, every: int, config: LampDetectorConfig | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Observation errors ``m - m*`` in px (N, 2) and the true pixels (N, 2) of every
-    detected, fully visible lamp on every ``every``-th image pose of the path (seed 0)."""
+    world: World, every: int, configs: tuple[LampDetectorConfig, ...] = (LampDetectorConfig(),)
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Observation errors ``m - m*`` in px (N, 2), one array per detector setting, and the true
+    pixels (N, 2) of every fully visible lamp detected with every setting, on every
+    ``every``-th image pose of the path (seed 0)."""
     cam = world.rig.camera
     f = math.sqrt(cam.fx * cam.fy)
     renderer = CeilingRenderer(world)
     lms = world_landmarks(world)
     occ = occluders(world)
     _, poses, _, _ = simulate_trajectory(world, 0)
-    errs, pix = [], []
+    errs: list[list[np.ndarray]] = [[] for _ in configs]
+    pix = []
     for k, pose in enumerate(poses[:: 2 * every]):
         img = renderer.render(pose, np.random.default_rng([0, k]))
         truth = project_landmarks(cam, pose, lms, occ, renderer.m_max)
         rows = [r for r, t in enumerate(truth.types) if t.startswith("lamp") and truth.fully_visible[r]]
-        for ob in detect_lamps(img, cam, config).lamps:
-            if ob.touches_border or not rows:
-                continue
-            d = np.hypot(*(truth.pixel[rows] - ob.pixel).T)
-            j = int(np.argmin(d))
-            if d[j] > 4.0:
-                continue
-            xyz = lms.xyz[lms.index_of(int(truth.ids[rows[j]]))]
+        if not rows:
+            continue
+        found: list[dict[int, np.ndarray]] = []
+        for config in configs:
+            seen = {}
+            for ob in detect_lamps(img, cam, config).lamps:
+                d = np.hypot(*(truth.pixel[rows] - ob.pixel).T)
+                if not ob.touches_border and d.min() <= 4.0:
+                    seen[rows[int(np.argmin(d))]] = ob.m
+            found.append(seen)
+        for r in set.intersection(*(set(sn) for sn in found)):
+            xyz = lms.xyz[lms.index_of(int(truth.ids[r]))]
             rel = xyz[:2] - camera_center(cam, pose)
             c, s = math.cos(pose[2]), math.sin(pose[2])
             m_true = np.array([c * rel[0] + s * rel[1], -s * rel[0] + c * rel[1]]) / (xyz[2] - cam.z_cam)
-            errs.append(f * (ob.m - m_true))
-            pix.append(truth.pixel[rows[j]])
-    return np.array(errs), np.array(pix)
+            for out, seen in zip(errs, found, strict=True):
+                out.append(f * (seen[r] - m_true))
+            pix.append(truth.pixel[r])
+    return [np.array(e) for e in errs], np.array(pix)
 
 
 @pytest.fixture(scope="module")
@@ -67,9 +74,8 @@ def lab_errors() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     unsat = dataclasses.replace(
         lab, lamps=tuple(dataclasses.replace(lp, brightness=250.0) for lp in lab.lamps)
     )
-    e, px = _lamp_errors(lab, 20)
-    e_read, _ = _lamp_errors(lab, 20, LampDetectorConfig(saturated_edges=False))
-    e_unsat, _ = _lamp_errors(unsat, 20)
+    (e, e_read), px = _lamp_errors(lab, 20, (LampDetectorConfig(), LampDetectorConfig(saturated_edges=False)))
+    (e_unsat,), _ = _lamp_errors(unsat, 20)
     return e, px, e_unsat, e_read
 
 
