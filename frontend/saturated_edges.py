@@ -151,3 +151,28 @@ def clipped_edge_weights(
     out = np.where(saturated_blob & ~sat, wv * cs, wv)
     out = np.where(edge, 0.5 * (1.0 + cs), out)
     return out, saturated_blob & (edge | ~sat)
+
+
+def label_edge_weights(
+    wv: FloatArray, grey: IntArray, xy: FloatArray, lab: IntArray, saturated: np.ndarray,
+    bg: FloatArray, noise_w: FloatArray, min_steps: int,
+) -> FloatArray:
+    """:func:`clipped_edge_weights` for the support pixels of many blobs, with per-label inputs.
+
+    Args:
+        wv: shape (P,) coverage weights as read.
+        grey: shape (P,) grey levels.
+        xy: shape (2, P) ``(col, row)`` in a common box, px.
+        lab: shape (P,) each pixel's blob label.
+        saturated: shape (n,) bool per label: the blob's level is full scale (and it is measured).
+        bg: shape (n,) background level per label.
+        noise_w: shape (n,) weight up to which a pixel is background, per label.
+        min_steps: fewest sharp steps to measure ``c_s``.
+
+    Returns:
+        shape (P,) the weights.
+    """
+    out, _ = clipped_edge_weights(
+        wv, grey, xy, saturated.take(lab), bg.take(lab), noise_w.take(lab), min_steps
+    )
+    return out
