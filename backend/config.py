@@ -514,6 +514,9 @@ class ReassociationConfig:
             own spread at each pass's optimum (its variance-component factor, never above 1:
             :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
             new-landmark threshold of its landmark and outside every gate splits off.
+        cost_moves: after the passes, merge and split single landmarks by description
+            length (:mod:`lampsam.backend.landmark_moves`; the offline pipeline of
+            :mod:`lampsam.backend.noids_offline` only).
         scales: candidate odometry variance factors of the online no-ids pass that
             precedes the offline re-association of a graph log
             (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
@@ -531,6 +534,7 @@ class ReassociationConfig:
     merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
     switch: float = field(default=float("inf"), metadata=limits(gt=0.0))
     fit_noise: bool = False
+    cost_moves: bool = True
     scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
 
     def __post_init__(self) -> None:
