@@ -22,7 +22,8 @@ anything.
 Logs: ``victoria`` (GTSAM's ``victoria_park.txt``), ``synthetic``
 (:mod:`lampsam.datasets.landmark_log_sim`, seed 0, 3,000 poses), ``mrclam`` (the shared
 MRCLAM ds0 robot 1, 300 s, as ``bench_landmark_logs.py`` builds it), ``city`` (GTSAM's
-``cityTrees_reduced_1k.g2o``, 1,000 poses, 66 trees). The file ids are read only to
+``cityTrees_reduced_1k.g2o``, 1,000 poses, 66 trees), ``vp1k`` (GTSAM's
+``victoriaPark_reduced_1k.g2o``, 1,000 poses: held out, nothing was tuned on it). The file ids are read only to
 score the association. CPU figures are process time (the machine may be shared).
 """
 
@@ -67,6 +68,8 @@ def load_log(name: str, out: Path) -> GraphLog:
         return read_graph_text(data / "victoria_park.txt")
     if name == "city":
         return read_graph_text(data / "cityTrees_reduced_1k.g2o")
+    if name == "vp1k":
+        return read_graph_text(data / "victoriaPark_reduced_1k.g2o")
     if name == "synthetic":
         out.mkdir(parents=True, exist_ok=True)
         p, _ = write_landmark_log(out / "synthetic.txt", LandmarkLogSpec(), np.random.default_rng(0))
@@ -80,7 +83,7 @@ def load_log(name: str, out: Path) -> GraphLog:
             raise SystemExit("mrclam: shared dataset mrclam_ds0 not found")
         g, _ = _bench_module().graph_log_from_run(mrclam_run(root, duration=300.0), SlamConfig())
         return g
-    raise SystemExit(f"unknown log {name!r} (victoria, synthetic, mrclam, city)")
+    raise SystemExit(f"unknown log {name!r} (victoria, synthetic, mrclam, city, vp1k)")
 
 
 def file_ids(g: GraphLog, s: Sightings) -> np.ndarray:
