@@ -515,10 +515,16 @@ class ReassociationConfig:
             own spread at each pass's optimum (its variance-component factor, never above 1:
             :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
             new-landmark threshold of its landmark and outside every gate splits off.
+        cost_moves: after the passes, merge and split single landmarks by description
+            length (:mod:`lampsam.backend.landmark_moves`; the offline pipeline of
+            :mod:`lampsam.backend.noids_offline` only).
         scales: candidate odometry variance factors of the online no-ids pass that
             precedes the offline re-association of a graph log
             (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
-            the least description length is kept (default 1, 4, 16, 64: sigma x1-x8).
+            the least description length is kept (default 1/16, 1/4, 1, 4, 16, 64: sigma
+            x1/4-x8; the factors below 1 for logs that overstate their odometry noise,
+            as GTSAM's victoriaPark_reduced_1k and cityTrees_reduced_1k do ~20x in
+            sigma: docs/noids-offline.md).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -532,7 +538,8 @@ class ReassociationConfig:
     merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
     switch: float = field(default=float("inf"), metadata=limits(gt=0.0, finite=False))
     fit_noise: bool = False
-    scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
+    cost_moves: bool = True
+    scales: tuple[float, ...] = (0.0625, 0.25, 1.0, 4.0, 16.0, 64.0)
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
