@@ -74,9 +74,13 @@ class AssociationConfig:
             (``SlamResult.provisional``, ``flag = seen_once`` in ``landmarks.csv``)
             unless ``prune_once_seen``.
         joint_compatibility: without ids, planar (range-bearing) observations of a
-            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`,
-            the EKF) instead of greedy nearest neighbour (default False: on Victoria
-            Park without ids it did not prevent divergence; docs/graph-backend.md).
+            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`)
+            instead of greedy nearest neighbour: in the EKF on every frame
+            (:mod:`lampsam.backend.ekf_joint`), in the smoothers on every keyframe
+            with an ambiguity, with the joint marginal of the pose and all candidates
+            (:mod:`lampsam.backend.joint_gating`). Default False: on Victoria Park
+            without ids it did not prevent divergence (docs/graph-backend.md,
+            docs/failures.md).
         prune_once_seen: drop landmarks seen fewer than ``min_observations`` times
             from the output altogether (default False: keep them, flagged).
         prune_after_steps: a landmark not re-observed for this many steps after

@@ -53,7 +53,6 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.config import BatchConfig, SlamConfig
-from lampsam.backend.gating import Gating
 from lampsam.backend.handlers import (
     GraphLandmark,
     LandmarkHandler,
@@ -68,6 +67,7 @@ from lampsam.backend.interface import (
     StepEstimate,
 )
 from lampsam.backend.isam2_update import Isam2Updates
+from lampsam.backend.joint_gating import JointGating
 from lampsam.backend.keyframes import is_keyframe
 from lampsam.backend.landmarks import LandmarkLifecycle
 from lampsam.backend.models import (
@@ -88,7 +88,7 @@ log = logging.getLogger(__name__)
 STEP_FLOOR = 1e-14
 
 
-class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
+class GraphSlam(JointGating, LandmarkLifecycle, Isam2Updates):
     """The iSAM2 and batch backends' common pass (see module docstring).
 
     Args:
@@ -151,6 +151,8 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                 assignments = associate(
                     obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                     self.config.association, lambda i: i in self._landmarks, patches, screened)
+                if self.config.association.joint_compatibility:
+                    assignments = self._joint_planar(gate_ctx, obs, assignments, screened)
                 learn_scale(self.noise_scale, obs, assignments, screened)
                 if self.odo_scale is not None:
                     feed_scale(self.odo_scale, self.idle, obs, assignments, screened,
@@ -316,6 +318,7 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             graph=GraphSnapshot(self.graph, values,
                                 None if self.ceiling is None else self.ceiling.body_t_camera),
             extra={"n_recoveries": float(self.n_recoveries),
+                   "n_jcbb": float(self.n_jcbb), "n_jcbb_changed": float(self.n_jcbb_changed),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
