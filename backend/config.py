@@ -153,6 +153,13 @@ class AssociationConfig:
             ``new_prob`` threshold, never seen in one frame); 0 (default) never.
         planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
         planar_merge_radius: only pairs closer than this are tested, m (default 30).
+        revisit_check: smoothers without ids: after a keyframe that starts a
+            range-bearing landmark, match the landmarks made in the last 40
+            keyframes to the map idle for 150 keyframes by one unambiguous rigid
+            motion (:mod:`lampsam.backend.revisit_merge`) and tie each matched copy
+            to its old landmark (default False).
+        revisit_tol, revisit_min_inliers: its inlier distance in m (also twice the
+            tie's sigma; default 0.75) and inliers needed (default 4).
         odometry_noise_adapt: without ids, multiply the odometry covariance by a
             variance factor learnt online from the innovations of unambiguous
             range-bearing matches (:mod:`lampsam.backend.odometry_scale`: maximum
@@ -188,6 +195,9 @@ class AssociationConfig:
     planar_merge_every: int = field(default=0, metadata=limits(ge=0))
     planar_merge_min_obs: int = field(default=3, metadata=limits(ge=1))
     planar_merge_radius: float = field(default=30.0, metadata=limits(gt=0.0))
+    revisit_check: bool = False
+    revisit_tol: float = field(default=0.75, metadata=limits(gt=0.0))
+    revisit_min_inliers: int = field(default=4, metadata=limits(ge=3))
     odometry_noise_adapt: bool = False
     odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
     odometry_noise_window: int = field(default=150, metadata=limits(ge=1))

@@ -78,6 +78,7 @@ from lampsam.backend.models import (
 from lampsam.backend.odometry import OdometryConstants
 from lampsam.backend.odometry_scale import feed_scale
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
+from lampsam.backend.revisit_merge import RevisitMerge
 from lampsam.errors import EstimationError
 from lampsam.factors.gtsam_factors import odometry_factor
 
@@ -88,7 +89,7 @@ log = logging.getLogger(__name__)
 STEP_FLOOR = 1e-14
 
 
-class GraphSlam(JointGating, LandmarkLifecycle, Isam2Updates):
+class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
     """The iSAM2 and batch backends' common pass (see module docstring).
 
     Args:
@@ -179,6 +180,8 @@ class GraphSlam(JointGating, LandmarkLifecycle, Isam2Updates):
             for lm, o in matches:
                 self._observe(lm, k, o)
                 n_matched += 1
+            if self.config.association.revisit_check and gating:
+                self._revisit_check(k, n_new)
         if k % 10 == 0:
             self._forget_pending(k)
         # The keyframe's own estimate: the prediction until iSAM2 updates it (_flush).
@@ -318,7 +321,8 @@ class GraphSlam(JointGating, LandmarkLifecycle, Isam2Updates):
             graph=GraphSnapshot(self.graph, values,
                                 None if self.ceiling is None else self.ceiling.body_t_camera),
             extra={"n_recoveries": float(self.n_recoveries),
-                   "n_jcbb": float(self.n_jcbb), "n_jcbb_changed": float(self.n_jcbb_changed),
+                   "n_jcbb": float(self.n_jcbb),
+                   "n_revisit_merges": float(self.n_revisit_merges), "n_jcbb_changed": float(self.n_jcbb_changed),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
