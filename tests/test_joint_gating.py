@@ -82,17 +82,18 @@ REVISIT_TREES = np.array([[6.0, 1.0], [8.0, -3.0], [5.0, 4.0], [11.0, 2.0], [9.0
 
 def _revisit_log(tmp_path: Path) -> Path:
     """Five trees (an irregular constellation) seen from the origin at poses 0-2; a far
-    tree seen alone at poses 3-8; then the odometry claims a 15 m jump back (sigma
-    0.3 m) while the robot stays put and sees the five again at poses 9-11: beyond
-    every gate, so they are mapped again."""
+    tree seen alone at poses 3-8; then the odometry claims a 0.15 rad turn (heading
+    sigma 0.02 rad) while the robot stays put and sees the five again at poses 9-11
+    (stated bearing sigma 2 mrad): d2 ~ 50 for each, beyond the new-landmark threshold
+    (18.4), so they are mapped again 0.8-1.7 m from their first landmarks."""
     lines = []
     for k in range(12):
         if k:
-            dx = -15.0 if k == 9 else 0.0
-            lines.append(f"ODOMETRY {k - 1} {k} {dx} 0 0 0.09 0 0 0.09 0 1e-6")
+            dth = 0.15 if k == 9 else 0.0
+            lines.append(f"ODOMETRY {k - 1} {k} 0 0 {dth} 0.0025 0 0 0.0025 0 4e-4")
         trees = [(7, np.array([0.0, 25.0]))] if 3 <= k <= 8 else list(enumerate(REVISIT_TREES))
         for lid, p in trees:
-            lines.append(f"BR {k} {lid} {math.atan2(p[1], p[0])!r} {math.hypot(*p)!r} 0.01 0.05")
+            lines.append(f"BR {k} {lid} {math.atan2(p[1], p[0])!r} {math.hypot(*p)!r} 0.002 0.05")
     path = tmp_path / "revisit.txt"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -102,11 +103,11 @@ def test_isam2_revisit_check_ties_the_copies_to_the_old_map(tmp_path: Path,
                                                             monkeypatch: pytest.MonkeyPatch
                                                             ) -> None:
     """Without the check the revisit maps the five trees twice (11 landmarks for 6)
-    and the last pose stays 15 m off. With it (windows shortened to this log: recent
-    = made within 3 keyframes, old = idle 5), the five copies are matched to the old
-    constellation as one rigid motion and tied: 6 landmarks reported, each of the
-    five within 0.4 m of its tree, and the final pose pulled back towards the origin
-    (ties of sigma 0.375 m against the 0.3 m odometry: measured 1.42 m off)."""
+    and the last heading stays 0.15 rad off. With it (windows shortened to this log:
+    recent = made within 3 keyframes, old = idle 5), the five copies are matched to
+    the old constellation as one rigid motion and tied: 6 landmarks reported, each
+    of the five within 0.1 m of its tree, and the last pose back at the origin
+    (measured 9 mm, 1 mrad)."""
     from lampsam.backend import revisit_merge
 
     monkeypatch.setattr(revisit_merge, "RECENT_KEYFRAMES", 3)
@@ -118,10 +119,10 @@ def test_isam2_revisit_check_ties_the_copies_to_the_old_map(tmp_path: Path,
         res[check] = run_graph_log(g, "isam2", cfg, known_ids=False)
     off, on = res[False], res[True]
     assert len(off.landmarks) + len(off.provisional) == 11
-    assert float(np.hypot(*off.poses[-1, :2])) > 10.0
+    assert abs(off.poses[-1, 2]) > 0.1
     assert on.extra["n_revisit_merges"] == 5
     found = on.landmarks + on.provisional
     assert len(found) == 6
     for tree in REVISIT_TREES:
-        assert min(float(np.hypot(*(lm.position[:2] - tree))) for lm in found) < 0.4
-    assert float(np.hypot(*on.poses[-1, :2])) < 2.0
+        assert min(float(np.hypot(*(lm.position[:2] - tree))) for lm in found) < 0.1
+    assert float(np.hypot(*on.poses[-1, :2])) < 0.05 and abs(on.poses[-1, 2]) < 0.01

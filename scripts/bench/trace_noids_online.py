@@ -254,6 +254,11 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
     print(f"landmarks {len(by_lid)} ({n2} with 2+ sightings) for {g.n_landmarks} file ids "
           f"({seen2} sighted 2+); trees owning 2+ landmarks: "
           f"{sum(1 for v in tree_lids.values() if len(v) >= 2)}")
+    ties = getattr(be, "revisit_ties", [])
+    ok = [owner.get(c) == owner.get(o) or (owner.get(c) in ref_xy and owner.get(o) in ref_xy and float(
+        np.hypot(*(ref_xy[owner[c]] - ref_xy[owner[o]]))) < TWIN_M) for _, c, o in ties]
+    print(f"revisit ties: {len(ties)}, right (same tree or twins) {sum(ok)}; keyframes "
+          f"{sorted({kf for kf, _, _ in ties})}")
     print("wrong-match causes:", dict(sorted(causes.items())))
     print("dup causes:", dict(dup_causes))
 
