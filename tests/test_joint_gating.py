@@ -1,4 +1,6 @@
-"""The smoothers' JCBB without ids (backend/joint_gating.py) on hand-made ambiguous cases."""
+"""The smoothers' association without ids: JCBB (backend/joint_gating.py), the revisit check
+(backend/revisit_merge.py) and the planar gate at the current estimate, on hand-made and
+seeded cases."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from lampsam.backend.association import Assignment, reassign_jointly
 from lampsam.backend.config import AssociationConfig, SlamConfig
 from lampsam.backend.graph_log import run_graph_log
 from lampsam.datasets.graph_text import read_graph_text
+from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 
 TREES = {10: np.array([5.0, 0.0]), 11: np.array([5.0, 1.0])}
 
@@ -126,3 +129,21 @@ def test_isam2_revisit_check_ties_the_copies_to_the_old_map(tmp_path: Path,
     for tree in REVISIT_TREES:
         assert min(float(np.hypot(*(lm.position[:2] - tree))) for lm in found) < 0.1
     assert float(np.hypot(*on.poses[-1, :2])) < 0.05 and abs(on.poses[-1, 2]) < 0.01
+
+
+def test_isam2_no_ids_gates_at_the_current_estimate(tmp_path: Path) -> None:
+    """A 400-pose simulated log, 150 trees in an 80 m square, the stated noise right.
+    The smoothers' planar gate pairs iSAM2's joint marginal (current linearisation)
+    with the landmarks' states; when those states were the first sight's (never
+    refreshed), later sightings of a well-observed tree landed at d2 20-30 against its
+    shrunk marginal and started copies: 124 landmarks for the 66 the known-id run maps
+    (RMS 0.019 m from it). Gated at iSAM2's current estimate each tree is mapped once
+    (measured 66, 0.006 m)."""
+    spec = LandmarkLogSpec(n_poses=400, n_landmarks=150, extent=80.0, stop_every=10**6)
+    path, _ = write_landmark_log(tmp_path / "log.txt", spec, np.random.default_rng(0))
+    g = read_graph_text(path)
+    ref = run_graph_log(g, "isam2", SlamConfig())
+    res = run_graph_log(g, "isam2", SlamConfig(), known_ids=False)
+    assert abs(len(res.landmarks) + len(res.provisional) - len(ref.landmarks)) <= 1
+    err = np.linalg.norm(res.poses[:, :2] - ref.poses[:, :2], axis=1)
+    assert float(np.sqrt(np.mean(err**2))) < 0.012

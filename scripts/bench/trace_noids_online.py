@@ -180,6 +180,8 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
     shown = 0
     per_win = [Counter() for _ in windows]
     live: dict[int, Counter[int]] = defaultdict(Counter)  # sightings so far per landmark
+    last_kf_of: dict[int, int] = {}
+    shown_dup = 0
 
     def owner_now(lid: int) -> int | None:
         c = live.get(lid)
@@ -200,10 +202,18 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
                 c["dup"] += 1
                 best = min((d.cands.get(lid, math.inf) for lid in true_lids), default=math.inf)
                 dup_causes["unseen" if math.isinf(best) else "beyond new threshold"] += 1
+                if shown_dup < n_causes:
+                    shown_dup += 1
+                    n_true = max(sum(live[lid].values()) for lid in true_lids)
+                    print(f"  dup: step {d.step} kf {d.kf} tree {d.fid}: its landmark(s) "
+                          f"{true_lids} ({n_true} sightings) at d2 {best:.1f}; idle "
+                          f"{d.kf - max(last_kf_of[lid] for lid in true_lids)} keyframes")
             live[d.lid][d.fid] += 1
+            last_kf_of[d.lid] = d.kf
             continue
         now = owner_now(d.lid)
         live[d.lid][d.fid] += 1
+        last_kf_of[d.lid] = d.kf
         if owner[d.lid] != d.fid:
             c["wrong"] += 1
         if now == d.fid:
