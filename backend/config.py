@@ -555,6 +555,26 @@ class ReassociationConfig:
 
 
 @dataclass(frozen=True)
+class OnlineConfig:
+    """``lampsam slam --online decoupled`` (TOML table ``[online]``; :mod:`lampsam.backend.tracking`).
+
+    Attributes:
+        catch_up: iSAM2 keyframes per update at most when the mapping worker is
+            behind (1: off, one update per keyframe). While frames wait in its queue
+            the worker associates each new keyframe against the prediction (the
+            newest estimate plus odometry) and defers its update, up to this many
+            keyframes, then runs one update for all of them
+            (:meth:`~lampsam.backend.graph.GraphSlam.step` with ``update=False``).
+    """
+
+    catch_up: int = field(default=1, metadata=limits(ge=1))
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+
+
+@dataclass(frozen=True)
 class SlamConfig:
     """Everything :func:`lampsam.backend.slam.run_slam` needs.
 
@@ -568,6 +588,7 @@ class SlamConfig:
             (:class:`~lampsam.datasets.odometry.Pose2OdometryModel`; TOML table
             ``[pose2_odometry]``); a run's ``rig.yaml`` section of the same name
             overrides it. Wheel odometry takes its constants from ``rig.yaml``.
+        online: the decoupled online run's mapping worker (``[online]``).
     """
 
     features: tuple[str, ...] = ("lamps", "corners")
@@ -578,6 +599,7 @@ class SlamConfig:
     batch: BatchConfig = field(default_factory=BatchConfig)
     reassociation: ReassociationConfig = field(default_factory=ReassociationConfig)
     pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
 
     def __post_init__(self) -> None:
         """Check the feature names (:class:`FieldValueError` naming the key)."""

@@ -52,7 +52,7 @@ class Gating(GraphState):
         keys = [X(k), *self.handlers[lm.kind].keys(lm)]
         try:
             full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
-        except RuntimeError:
+        except (RuntimeError, IndexError):  # IndexError: not in iSAM2 yet (a deferred update)
             self._joint_cache[lm.id] = None
             return None
         # graph tangent -> EKF-form state (e.g. only the angle of a Pose2 axis)
@@ -108,7 +108,7 @@ class Gating(GraphState):
             spans.append((lid, [start + j for j in handler.state_index(lm)]))
         try:
             full = np.asarray(self.isam.jointMarginalCovariance(keys).fullMatrix())
-        except RuntimeError:
+        except (RuntimeError, IndexError):
             return 0
         if full.shape != (3 * len(keys), 3 * len(keys)):
             return 0
@@ -216,11 +216,14 @@ class Gating(GraphState):
                 continue
             rel = self._relative_covs()
             sel = [visible[j] for j in keep]
-            recent = [lm.cov_rel is not None and lm.last_kf in rel for lm in sel]
+            # relative to the last sighting iSAM2 has (a later one, in keyframes whose
+            # update is deferred, did not move the landmark: GraphSlam.step(update=False))
+            last = [min(lm.last_kf, self._k_isam) for lm in sel]
+            recent = [lm.cov_rel is not None and j in rel for lm, j in zip(sel, last, strict=True)]
             cov_l = np.array([lm.cov_rel if r else lm.cov[:3, :3]
                               for lm, r in zip(sel, recent, strict=True)], float)
-            cov_x = np.array([rel[lm.last_kf] if r else pose_cov
-                              for lm, r in zip(sel, recent, strict=True)], float)
+            cov_x = np.array([rel[j] if r else pose_cov
+                              for j, r in zip(last, recent, strict=True)], float)
             hp, hl = h_p[keep], h_l[keep]
             s_pred = (hp @ cov_x @ np.transpose(hp, (0, 2, 1))
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
@@ -236,18 +239,23 @@ class Gating(GraphState):
         The same values as :meth:`~lampsam.backend.graph_state.GraphState._refresh_landmark`;
         a point (every corner, a lamp without an axis) is read with one
         ``calculateEstimatePoint3`` call instead of going through its handler (a
-        keyframe refreshes ~200 of them).
+        keyframe refreshes ~200 of them), its key kept per landmark id (a landmark's
+        kind, hence its key, never changes).
         """
         isam = self.isam
         if isam is None:
             return
+        read = isam.calculateEstimatePoint3
+        keys = self._point_keys
         for lm in visible:
             if not lm.in_graph:
                 continue
             if len(lm.state) == 3:
+                key = keys.get(lm.id)
+                if key is None:
+                    key = keys[lm.id] = point_key(lm.kind, lm.id)
                 try:
-                    lm.state = np.asarray(isam.calculateEstimatePoint3(point_key(lm.kind, lm.id)),
-                                          float)
+                    lm.state = np.asarray(read(key), float)
                     continue
                 except (RuntimeError, IndexError):  # not in iSAM2 (yet): the handler's way
                     pass
@@ -368,18 +376,21 @@ class Gating(GraphState):
         this keeps them to the few ambiguous lamp observations. A lamp seen with its
         axis always takes the exact gate (the screen has no axis row); deciding it by
         a cheap three-row screen instead let biased sights in (docs/speed.md).
+
+        ``screened`` must come from :func:`~lampsam.backend.association.screen_pairs`
+        with ``exact=True`` (a pair's flag is then already "2-D row", the unambiguous
+        case); only the ambiguous lamps' entries are replaced (in place, no copy of
+        the ~50 corner rows per keyframe).
         """
         cfg = self.config.association
-        out: dict[int, dict[int, tuple[float, bool]]] = {}
         for i, pairs in screened.items():
             o = obs[i]
+            if o.kind == "corner" or len(pairs) <= 1:
+                continue  # the screen's own flag, exact for 2-D rows (screen_pairs, exact=True)
             gate = cfg.gate(len(o.z))
-            inside = [lid for lid, (d2, _) in pairs.items() if d2 < gate]
-            if o.kind == "corner" or len(inside) <= 1:
-                out[i] = {lid: (d2, len(o.z) == 2) for lid, (d2, _) in pairs.items()}
-            else:
-                out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
-        return out
+            if sum(d2 < gate for d2, _ in pairs.values()) > 1:
+                screened[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
+        return screened
 
     def _bound_far(self, obs: list[Obs], pose: FloatArray,
                    screened: dict[int, dict[int, tuple[float, bool]]]

@@ -52,6 +52,7 @@ from gtsam.symbol_shorthand import X
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
+from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.config import BatchConfig, SlamConfig
 from lampsam.backend.handlers import (
     GraphLandmark,
@@ -108,11 +109,19 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                  ceiling_handler: LandmarkHandler | None = None, online: bool = True) -> None:
         super().__init__(odometry, config, start_pose, ceiling, ceiling_handler, online)
         self._distinct_handlers = list({id(h): h for h in self.handlers.values()}.values())
+        #: keyframes made with ``step(update=False)`` not yet sent to iSAM2
+        self.n_deferred = 0
+        #: lamps mapped since the last update: first-sight state and covariance (3,), (3, 3)
+        self._first_sight: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._flush()
 
     # ------------------------------------------------------------------ keyframe
-    def _make_keyframe(self, obs: list[Obs]) -> tuple[int, int]:
-        """Add a keyframe with its odometry factor and the frame's observations."""
+    def _make_keyframe(self, obs: list[Obs], update: bool = True) -> tuple[int, int]:
+        """Add a keyframe with its odometry factor and the frame's observations.
+
+        ``update``: send them to iSAM2 at once (with any keyframes deferred before);
+        False defers them to a later update (:meth:`step`).
+        """
         pose = self.current_pose()
         cov_now: list[FloatArray] = []
 
@@ -139,13 +148,14 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         if self.odo_scale is not None:
             self.idle.propagate(gtsam.Pose2(*delta).inverse().AdjointMap(), cov)
         n_matched = n_new = 0
-        self._joint_cache = {}
+        if self._k_isam == k - 1:  # else iSAM2 (and X(k0)'s joint marginals) unchanged since
+            self._joint_cache = {}
         if obs:
             gating = not self.config.association.use_known_ids or any(
                 o.landmark_id is None for o in obs)
             cands: dict[str, list[int]] = {}
             if gating:
-                gate_ctx = (k - 1, pose, self._delta.copy(), self._delta_cov.copy())
+                gate_ctx = self._gate_context(k, pose)
                 cands, screened = self._screen(obs, pose, pose_cov())
                 self._prefetch_joint(gate_ctx[0], obs, screened)
                 patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
@@ -186,7 +196,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
             self._forget_pending(k)
         # The keyframe's own estimate: the prediction until iSAM2 updates it (_flush).
         self._kf_pose = pose
-        if self.isam is None:
+        if self.isam is None or not update:  # (deferred: the prediction's until the update)
             self._kf_cov = pose_cov()
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
@@ -195,12 +205,88 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         for handler in self._distinct_handlers:
             for f in handler.flush(self.robust, self._pose_of):
                 self._add_factor(f)
-        self._flush()
+        if update:
+            self.update()
+        else:  # catching up: the prediction stands until the next update
+            self.n_deferred += 1
+            self._place_deferred_lamps()
         return n_matched, n_new
 
+    def _place_deferred_lamps(self) -> None:
+        """Lamps mapped since the last update, moved to their sights' fused estimate.
+
+        A lamp enters the graph at its first sight at the height prior (eq. 25,
+        ``x0`` with covariance ``P0``); from its second sight its gate covariance is
+        the triangulation's (:meth:`~lampsam.backend.landmarks.LandmarkLifecycle._tighten_lamp_gate`).
+        Updated at once, iSAM2 moves the lamp to what prior and sights say; with the
+        update deferred the state would keep the prior's height under the
+        triangulation's covariance, and the parallax of the next keyframes pushes
+        the lamp's sights out of its gate. So the state (and the initial value iSAM2
+        will get) becomes ``x = (P0^-1 + P1^-1)^-1 (P0^-1 x0 + P1^-1 x1)`` with ``x1``,
+        ``P1`` the triangulation of its sights (keyframes at their predictions; the
+        first sight counted twice).
+        """
+        if self.ceiling is None:
+            return
+        for key in self._new_values.keys():
+            lm = self._landmarks.get(int(gtsam.Symbol(key).index()))
+            if lm is None or lm.kind != "lamp" or key != point_key(lm.kind, lm.id):
+                continue
+            if lm.id not in self._first_sight:
+                if lm.cov_rel is not None:
+                    self._first_sight[lm.id] = (lm.state[:3].copy(), np.asarray(lm.cov_rel))
+                continue
+            if len({k for k, _ in lm.sights}) < 2:
+                continue
+            x0, p0 = self._first_sight[lm.id]
+            x1, p1 = self._triangulate_sights(lm.sights)[3:5]
+            i0, i1 = np.linalg.inv(p0), np.linalg.inv(p1)
+            point = np.linalg.solve(i0 + i1, i0 @ x0 + i1 @ x1)
+            lm.state = np.concatenate([point, lm.state[3:]])
+            self._new_values.update(key, point)
+            self.initial.update(key, point)
+
+    def _gate_context(self, k: int, pose: FloatArray
+                      ) -> tuple[int, FloatArray, FloatArray, FloatArray]:
+        """``(k0, pose, delta, cov)`` of the gate (:meth:`~lampsam.backend.gating.Gating._innovation`).
+
+        ``k0`` is the newest keyframe in iSAM2 (``k - 1`` unless keyframes were
+        deferred), ``delta`` (x, y, theta) and ``cov`` (3, 3, right tangent) the
+        odometry from ``X(k0)`` to the new keyframe's predicted ``pose``: the
+        deferred keyframes' odometry factors composed with the steps' since
+        (``Sigma = Ad(d^-1) Sigma_a Ad(d^-1)^T + Sigma_d`` per factor).
+        """
+        k0 = self._k_isam
+        if k0 == k - 1:
+            return k0, pose, self._delta.copy(), self._delta_cov.copy()
+        d, c = gtsam.Pose2(), np.zeros((3, 3))
+        for delta, cov in [*self._odo[k0 + 1:k], (self._delta, self._delta_cov)]:
+            c = compose_cov(delta, c, cov)
+            d = d.compose(gtsam.Pose2(*delta))
+        return k0, pose, pose_array(d), c
+
+    def update(self) -> None:
+        """Send the keyframes' pending factors and values to iSAM2 (one update).
+
+        :meth:`step` with ``update=True`` (the default) calls it at every keyframe
+        and after deferred ones; a caller that deferred keyframes may call it itself.
+        """
+        self._flush()
+        self._k_isam = self._k
+        self.n_deferred = 0
+        self._first_sight = {}
+
     # ------------------------------------------------------------------ interface
-    def step(self, t: float, odometry: FloatArray, frame: Frame | None) -> StepEstimate:
-        """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal."""
+    def step(self, t: float, odometry: FloatArray, frame: Frame | None,
+             update: bool = True) -> StepEstimate:
+        """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal.
+
+        ``update=False`` (catching up, :mod:`lampsam.backend.tracking`): a keyframe made
+        here is associated against the prediction (the newest iSAM2 estimate plus
+        odometry) and its factors wait; the next step with ``update=True`` sends every
+        deferred keyframe to iSAM2 in one update. Each step's estimate is then the
+        prediction until that update.
+        """
         t0 = time.perf_counter()
         if t < self._last_t:
             raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
@@ -221,11 +307,14 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
             self._wheel_since_kf.append(u)
         n_matched = n_new = 0
         is_kf = False
-        if frame is not None:
+        # a frame between keyframes is not used: its observations are not even built
+        if frame is not None and is_keyframe(self._k, self._delta, self.config.isam2):
             obs = observations_from_frame(frame, self.config.features, self.config.noise)
-            if obs and is_keyframe(self._k, self._delta, self.config.isam2):
-                n_matched, n_new = self._make_keyframe(obs)
+            if obs:
+                n_matched, n_new = self._make_keyframe(obs, update)
                 is_kf = True
+        if update and self.n_deferred:
+            self.update()
         pose = self.current_pose()
         if self.config.isam2.pose_cov_every_step:
             cov = tangent_to_coords_cov(pose, self.current_cov())
@@ -247,6 +336,11 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
 
     def finish(self, status: str = "ok") -> SlamResult:
         """Final estimate; every step's pose = its keyframe's final estimate + odometry."""
+        if self.n_deferred:  # keyframes deferred by a stop mid catch-up: finished, so sent
+            try:
+                self.update()
+            except (RuntimeError, EstimationError) as exc:
+                log.error("the deferred keyframes' update failed: %s", exc)
         pruned = set(self._prune_once_seen())
         t0 = time.perf_counter()
         try:

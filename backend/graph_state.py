@@ -104,6 +104,7 @@ class GraphState(SlamBackend):
         self._kf_cov_key: int | None = None
         self._kf_poses: list[FloatArray] = [start.copy()]  # running (odometry-pass) estimates
         self._k = 0
+        self._k_isam = 0  # the newest keyframe sent to iSAM2 (< _k while keyframes are deferred)
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self._wheel_since_kf: list[FloatArray] = []
@@ -146,6 +147,7 @@ class GraphState(SlamBackend):
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
         self._pose_cache: dict[int, FloatArray] = {}  # iSAM2's keyframe estimates until the next update
+        self._point_keys: dict[int, int] = {}  # landmark id -> position key (Gating._refresh_visible)
         self._left_poses: set[int] = set()  # keyframes the fixed-lag smoother marginalised
         self._fl_alive: set[int] = set()  # keys in the fixed-lag window
         self._fl_gone: set[int] = set()  # keys it marginalised
@@ -198,6 +200,8 @@ class GraphState(SlamBackend):
         """Current estimate of keyframe ``k`` (read-only: cached until the next iSAM2 update)."""
         if k == self._k:
             return self._kf_pose
+        if k > self._k_isam:  # deferred (not yet in iSAM2): its prediction
+            return self._kf_poses[k]
         if self.isam is not None:
             pose = self._pose_cache.get(k)
             if pose is None:

@@ -75,7 +75,10 @@ def online_figures(tm: DecoupledTimes, arrival: FloatArray | None, duration_s: f
         ``online_x_real_time`` (data duration / wall clock until the last step's
         estimate), ``online_tracking_cpu_s``, ``online_backend_cpu_s`` (the worker's
         whole process CPU), ``online_backend_step_cpu_s`` (its steps alone),
-        ``online_worker_startup_s`` and ``online_anchor_lag_p95_steps``.
+        ``online_worker_startup_s``, ``online_anchor_lag_p95_steps`` and, for
+        ``[online] catch_up``, ``online_catch_up_updates`` (iSAM2 updates of more
+        than one keyframe), ``online_catch_up_keyframes`` (the keyframes in them) and
+        ``online_keyframes_per_update_max`` (1 when catch-up never triggered or is off).
     """
     n = len(tm.out)
     out = np.asarray(tm.out, float)
@@ -89,6 +92,7 @@ def online_figures(tm: DecoupledTimes, arrival: FloatArray | None, duration_s: f
     wall = tm.worker_done - start
     step_cpu = np.asarray(tm.step_cpu, float)
     lag = np.arange(n) - np.asarray(tm.anchor, float)
+    sizes = np.asarray(tm.update_sizes, int)
     return {**_percentiles(lat, "online_tracked_latency_ms"),
             **_percentiles(1e3 * (back - sent)[kf], "online_keyframe_latency_ms"),
             "online_wall_s": float(wall), "online_x_real_time": float(duration_s / wall),
@@ -96,7 +100,10 @@ def online_figures(tm: DecoupledTimes, arrival: FloatArray | None, duration_s: f
             "online_backend_cpu_s": float(tm.worker_cpu_s),
             "online_backend_step_cpu_s": float(np.nansum(step_cpu)),
             "online_worker_startup_s": float(tm.worker_ready - start),
-            "online_anchor_lag_p95_steps": float(np.percentile(lag, 95)) if n else float("nan")}
+            "online_anchor_lag_p95_steps": float(np.percentile(lag, 95)) if n else float("nan"),
+            "online_catch_up_updates": float(np.sum(sizes > 1)),
+            "online_catch_up_keyframes": float(np.sum(sizes[sizes > 1])),
+            "online_keyframes_per_update_max": float(sizes.max()) if len(sizes) else 1.0}
 
 
 def _fallback_result(backend: str, tm: DecoupledTimes, status: str) -> SlamResult:

@@ -27,11 +27,13 @@ throughput (data duration / wall clock until the worker finished) separately.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing as mp
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.context import ForkContext, SpawnContext
@@ -43,7 +45,8 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.interface import Frame, SlamResult, StepEstimate
+from lampsam.backend.graph import GraphSlam
+from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.backend.pose_cov import pose_array
@@ -88,6 +91,8 @@ class DecoupledTimes:
             included (process clock).
         worker_ready: when the worker had built the backend (its start-up ends).
         worker_done: when the worker had finished the last step.
+        update_sizes: with ``[online] catch_up`` > 1, the keyframes in each of the
+            worker's iSAM2 updates (:class:`CatchUp`; empty when off).
         result: the backend's :class:`~lampsam.backend.interface.SlamResult` after
             its ``finish`` (``run_decoupled(finish=True)``; None otherwise, or when
             the worker was given up on).
@@ -112,6 +117,7 @@ class DecoupledTimes:
     worker_cpu_s: float = 0.0
     worker_ready: float = float("nan")
     worker_done: float = float("nan")
+    update_sizes: list[int] = field(default_factory=list)
     result: SlamResult | None = None
     interrupted: bool = False
     failure: str | None = None
@@ -141,28 +147,60 @@ def worker_context() -> ForkContext | SpawnContext:
     return cast(SpawnContext, mp.get_context("spawn"))
 
 
-def _inbox_steps(inbox: queue.Queue[object], stop: EventLike, at: list[float], index: list[int],
+class _Backlog:
+    """The steps the worker has taken from its inbox and not yet run, in order;
+    ``framed`` counts those with a measurement frame (each a possible keyframe)."""
+
+    def __init__(self, inbox: queue.Queue[object]) -> None:
+        self.inbox = inbox
+        self.items: deque[object] = deque()
+        self.framed = 0
+
+    def append(self, item: object) -> None:
+        self.items.append(item)
+        if item != _STOP and cast(tuple[int, float, FloatArray, tuple[str, object]],
+                                  item)[3][1] is not None:
+            self.framed += 1
+
+    def drain(self) -> None:
+        """Take every step already waiting in the inbox (without blocking)."""
+        while True:
+            try:
+                self.append(self.inbox.get_nowait())
+            except queue.Empty:
+                return
+
+    def pop(self) -> object:
+        item = self.items.popleft()
+        if item != _STOP and cast(tuple[int, float, FloatArray, tuple[str, object]],
+                                  item)[3][1] is not None:
+            self.framed -= 1
+        return item
+
+
+def _inbox_steps(backlog: _Backlog, stop: EventLike, at: list[float], index: list[int],
                  flush: Callable[[], None]) -> Iterator[tuple[float, FloatArray, Frame | None]]:
-    """The worker's steps from ``inbox`` until the stop mark. A set ``stop`` (the caller
+    """The worker's steps from its inbox until the stop mark. A set ``stop`` (the caller
     was interrupted) or a dead caller raises :class:`KeyboardInterrupt`, which
     :func:`~lampsam.backend.slam.drive` turns into status ``"interrupted"``. Before each
-    step, ``index[0]`` is set to its index and ``at[0]`` to the process CPU clock;
-    ``flush`` (send the estimates made so far) is called whenever the inbox is empty,
-    before waiting for the caller."""
+    step the inbox is drained into ``backlog`` (so a catching-up backend sees what
+    waits), ``index[0]`` is set to the step's index and ``at[0]`` to the process CPU
+    clock; ``flush`` (send the estimates made so far) is called whenever nothing
+    waits, before waiting for the caller."""
     parent = mp.parent_process()
     while True:
         if stop.is_set():
             raise KeyboardInterrupt("stopped by the tracking process")
-        try:
-            item = inbox.get_nowait()
-        except queue.Empty:
+        backlog.drain()
+        if not backlog.items:
             flush()  # caught up: the caller gets every estimate before the worker waits
             try:
-                item = inbox.get(timeout=_POLL_S)
+                backlog.append(backlog.inbox.get(timeout=_POLL_S))
             except queue.Empty:
                 if parent is not None and not parent.is_alive():
                     raise KeyboardInterrupt("the tracking process died") from None
                 continue
+        item = backlog.pop()
         if item == _STOP:
             return
         i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
@@ -172,6 +210,57 @@ def _inbox_steps(inbox: queue.Queue[object], stop: EventLike, at: list[float], i
         yield t, samples, frame
 
 
+class CatchUp(SlamBackend):
+    """A graph backend that catches up when behind: one iSAM2 update for several keyframes.
+
+    While ``waiting()`` (framed steps queued behind this one) is positive, each
+    keyframe is associated against the prediction from the newest iSAM2 estimate
+    plus odometry and its update deferred
+    (:meth:`~lampsam.backend.graph.GraphSlam.step` with ``update=False``), up to
+    ``max_keyframes`` keyframes, which then go to iSAM2 in one update: what a
+    real-time SLAM system does when its mapping lags, instead of falling further
+    behind one update per keyframe. With nothing queued every keyframe is updated at
+    once, as without the wrapper.
+
+    Args:
+        inner: the backend (its iSAM2, or the batch backend's online pass).
+        max_keyframes: keyframes per update at most (``[online] catch_up``, >= 1).
+        waiting: how many framed steps wait behind the current one.
+    """
+
+    def __init__(self, inner: GraphSlam, max_keyframes: int, waiting: Callable[[], int]) -> None:
+        self.inner = inner
+        self.name = inner.name
+        self.max_keyframes = max_keyframes
+        self.waiting = waiting
+        #: keyframes in each iSAM2 update this run made (1: a keyframe updated alone)
+        self.update_sizes: list[int] = []
+
+    def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
+        """One step; defers a keyframe's update while framed steps wait (see class).
+
+        The update of ``max_keyframes`` deferred keyframes runs in the step that made
+        the last of them, and its estimate is then the updated one.
+        """
+        before = self.inner.n_deferred
+        behind = self.waiting() > 0
+        est = self.inner.step(t, wheel, frame, update=not behind)
+        if not behind:
+            if before + est.keyframe:
+                self.update_sizes.append(before + int(est.keyframe))
+        elif self.inner.n_deferred >= self.max_keyframes:
+            self.update_sizes.append(self.inner.n_deferred)
+            self.inner.update()
+            est = dataclasses.replace(est, pose=self.inner.current_pose())
+        return est
+
+    def finish(self, status: str = "ok") -> SlamResult:
+        """The inner backend's result (the keyframes still deferred updated first)."""
+        if self.inner.n_deferred:
+            self.update_sizes.append(self.inner.n_deferred)
+        return self.inner.finish(status)
+
+
 def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig,
                     start_pose: FloatArray, camera: CameraModel | None,
                     inbox: queue.Queue[object], outbox: queue.Queue[object], stop: EventLike,
@@ -179,8 +268,8 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
     ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
     ...])`` (batched: when the inbox is empty, else every ``_REPLY_BATCH`` steps); after the
-    stop mark (or ``stop`` set) ``("done", result or None, cpu_s)``, the result being the
-    backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
+    stop mark (or ``stop`` set) ``("done", result or None, cpu_s, keyframes per update)``
+    (:attr:`DecoupledTimes.update_sizes`), the result being the backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
     fallbacks as a run in one process); ``("error", text)`` if the backend cannot be built."""
     import signal
     from collections.abc import Mapping
@@ -201,9 +290,18 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
     outbox.put(("ready", 0.0))
     at, index = [0.0], [-1]
     pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
+    backlog = _Backlog(inbox)
+    catch_up: CatchUp | None = None
+    if config.online.catch_up > 1:
+        if isinstance(be, GraphSlam) and be.isam is not None and be.smoother is None:
+            be = catch_up = CatchUp(be, config.online.catch_up, lambda: backlog.framed)
+        else:
+            log.warning("[online] catch_up applies to iSAM2 without fixed lag: ignored")
 
     def flush() -> None:
-        if pending:
+        # a deferred keyframe's estimate is the prediction: its step (and those after
+        # it) go back with the update that includes it, as the keyframe latency says
+        if pending and (catch_up is None or not catch_up.inner.n_deferred):
             outbox.put(("steps", pending.copy()))
             pending.clear()
 
@@ -216,7 +314,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
             if len(pending) >= _REPLY_BATCH:
                 flush()
 
-    steps = _inbox_steps(inbox, stop, at, index, flush)
+    steps = _inbox_steps(backlog, stop, at, index, flush)
     result: SlamResult | None = None
     if finish:
         with observing(on_event):
@@ -232,8 +330,10 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         except Exception as exc:  # sent to the caller, which raises it
             outbox.put(("error", f"{type(exc).__name__}: {exc}"))
             return
-    flush()
-    outbox.put(("done", result, time.process_time() - c0))
+    if pending:
+        outbox.put(("steps", pending.copy()))
+    sizes = catch_up.update_sizes if catch_up is not None else []
+    outbox.put(("done", result, time.process_time() - c0, sizes))
 
 
 def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backend: str,
@@ -303,6 +403,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         if item[0] == "done":
             times.result = cast(SlamResult | None, item[1])
             times.worker_cpu_s = float(cast(float, item[2]))
+            times.update_sizes = list(cast(tuple[str, object, float, list[int]], message)[3])
             done.append(True)
             return
         if item[0] != "steps":

@@ -226,3 +226,57 @@ def test_reuse_far_keeps_a_recent_far_exact_distance_only() -> None:
     assert w.n_far_reused == 1
     w.config = dataclasses.replace(base, isam2=dataclasses.replace(base.isam2, far_lamp_recheck=0))  # 0: always exact
     assert Gating._reuse_far(w, [lamp], {0: {1: (3.0, False)}}) == {0: {1: (3.0, False)}}  # type: ignore[arg-type]
+
+
+def _mark_ambiguous_copying(cfg, obs, screened):  # type: ignore[no-untyped-def]
+    """Reference: the rule rebuilt as a new dict for every observation (the plain way)."""
+    out = {}
+    for i, pairs in screened.items():
+        o = obs[i]
+        gate = cfg.gate(len(o.z))
+        inside = [lid for lid, (d2, _) in pairs.items() if d2 < gate]
+        if o.kind == "corner" or len(inside) <= 1:
+            out[i] = {lid: (d2, len(o.z) == 2) for lid, (d2, _) in pairs.items()}
+        else:
+            out[i] = {lid: (d2, False) for lid, (d2, _) in pairs.items()}
+    return out
+
+
+def test_mark_ambiguous_in_place_matches_the_copying_rule() -> None:
+    """Corners, lamps with and without an axis, 0-4 landmarks inside the gate."""
+    rng = np.random.default_rng(8)
+    cfg = SlamConfig().association
+    obs, screened = [], {}
+    for i in range(200):
+        kind = "corner" if i % 3 == 0 else "lamp"
+        dim = 3 if kind == "lamp" and i % 2 else 2
+        obs.append(Obs(kind, np.zeros(dim), np.eye(dim), None))
+        gate = cfg.gate(dim)
+        n = int(rng.integers(0, 5))
+        screened[i] = {int(lid): (float(rng.uniform(0.0, 2.0 * gate)), dim == 2)
+                       for lid in rng.choice(50, size=n, replace=False)}
+    ref = _mark_ambiguous_copying(cfg, obs, {i: dict(p) for i, p in screened.items()})
+    assert sum(any(not e for _, e in p.values()) and len(p) > 1 for p in ref.values()) > 10
+    w = SimpleNamespace(config=SlamConfig())
+    assert Gating._mark_ambiguous(w, obs, screened) == ref  # type: ignore[arg-type]
+
+
+def test_frames_between_keyframes_are_not_turned_into_observations(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Only a frame that becomes a keyframe pays for its observations (same result)."""
+    import lampsam.backend.graph as graph_module
+
+    rig, odo, frames, gt = ceiling_world(np.random.default_rng(12), duration=6.0, n_corners=8)
+    model = CeilingModel.from_camera(rig.camera)
+    calls = []
+    build = graph_module.observations_from_frame
+
+    def counted(*a, **k):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        return build(*a, **k)
+
+    monkeypatch.setattr(graph_module, "observations_from_frame", counted)
+    be = Isam2Slam(rig.odometry, SlamConfig(), gt.poses[0], model, CeilingHandler(model))
+    result = drive(be, iter_steps(odo, frames))
+    n_frames = sum(f is not None for f in frames)
+    assert result.status == "ok"
+    assert int(result.keyframes.sum()) == len(calls) < n_frames

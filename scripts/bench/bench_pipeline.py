@@ -4,7 +4,7 @@ Usage::
 
     python scripts/bench/bench_pipeline.py --run RUN [--backend isam2]
         [--modes sequential,process,decoupled,decoupled-process] [--paces none,4]
-        [--repeats 3] [--max-lag 15] [--max-frames N] [--depth 8]
+        [--repeats 3] [--max-lag 15] [--max-frames N] [--depth 8] [--catch-up 1,8]
 
 with ``RUN`` from ``lampsam simulate lab --seed 3 --out RUN`` (2,601 frames, 173 s).
 
@@ -33,6 +33,14 @@ optimisation not counted), as ``lampsam slam --frontend MODE`` runs them.
   keyframe latency is also replayed from the worker's CPU time per step as if it
   had a core of its own, steps arriving at 1x, 4x and 8x real time
   (:func:`~lampsam.backend.tracking.replay_latency`).
+
+``--catch-up 1,8``: each decoupled mode once per ``[online] catch_up`` value (keyframes
+per iSAM2 update at most while the worker is behind; 1 = off), labelled ``cu=N``.
+Every row also gives the accuracy against the run's ground truth: the position RMS
+of the final trajectory (the decoupled rows run the backend's final step in the
+worker, after the timed steps) and of the online poses (decoupled: the tracked
+poses, ``tracked.tum``), and for catch-up how many of the worker's iSAM2 updates took
+more than one keyframe.
 
 Paces: ``none`` replays as fast as possible (throughput: x real time by wall
 clock; a frame "arrives" when its image starts to be read, so a worker that runs
@@ -65,13 +73,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-from lampsam.backend.config import SlamConfig
+from lampsam.backend.config import OnlineConfig, SlamConfig
 from lampsam.backend.online_run import DEFAULT_MAX_LAG, online_figures
 from lampsam.backend.pipelined import MODES, FrameTimes, frame_source
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
 from lampsam.backend.tracking import replay_latency, run_decoupled
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.datasets.tables import OdometryLog
+from lampsam.evaluation.metrics import interpolate_poses, pose_errors
 
 
 def _cut(run: LoggedRun, max_frames: int | None) -> LoggedRun:
@@ -97,8 +106,15 @@ DECOUPLED = ("decoupled", "decoupled-process")
 REPLAY_PACES = (1.0, 4.0, 8.0)
 
 
+def rms_mm(run: LoggedRun, t: np.ndarray, poses: np.ndarray) -> float:
+    """Position RMS (mm) of ``poses`` at times ``t`` against the run's ground truth."""
+    truth = interpolate_poses(np.asarray(t, float), run.groundtruth.t, run.groundtruth.poses)
+    err, _ = pose_errors(np.asarray(poses, float).reshape(-1, 3), truth)
+    return float(1e3 * np.sqrt(np.mean(err**2)))
+
+
 def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
-                  frontend: str, max_lag: int | None) -> dict[str, Any]:
+                  frontend: str, max_lag: int | None, catch_up: int = 1) -> dict[str, Any]:
     """One online run with tracking decoupled from mapping, as ``lampsam slam --online
     decoupled`` runs it (:func:`run_decoupled`; the final optimisation not run): the
     frontend in this process (``frontend`` "sequential") or a worker, the backend in a
@@ -108,8 +124,9 @@ def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
     w0, c0, th0 = time.perf_counter(), time.process_time(), time.thread_time()
     source = frame_source(run.images, run.rig.camera, mode=frontend,  # type: ignore[arg-type]
                           depth=depth, pace=pace, times=times)
-    tm = run_decoupled(iter_steps(run.odometry, source), backend, run.rig.odometry, SlamConfig(),
-                       start_pose_of(run), run.rig.camera, max_lag=max_lag)
+    config = SlamConfig(online=OnlineConfig(catch_up=catch_up))
+    tm = run_decoupled(iter_steps(run.odometry, source), backend, run.rig.odometry, config,
+                       start_pose_of(run), run.rig.camera, max_lag=max_lag, finish=True)
     cpu, thread_cpu = time.process_time() - c0, time.thread_time() - th0
     duration = float(run.odometry.t[-1] - run.odometry.t[0])
     figs = online_figures(tm, np.asarray(times.arrival, float), duration, w0, cpu)
@@ -129,7 +146,15 @@ def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
     main_cpu = cpu
     worker_cpu = tm.worker_cpu_s + (0.0 if in_thread else frontend_cpu)
     bound = max(main_cpu, tm.worker_cpu_s, 0.0 if in_thread else frontend_cpu)
-    return {"mode": "decoupled" if in_thread else f"decoupled-{frontend}",
+    final = tm.result
+    mode = "decoupled" if in_thread else f"decoupled-{frontend}"
+    return {"mode": mode if catch_up == 1 else f"{mode} cu={catch_up}",
+            "rms_final_mm": rms_mm(run, final.times, final.poses) if final is not None
+            else float("nan"),
+            "rms_online_mm": rms_mm(run, np.asarray(tm.t), poses),
+            "catch_up_updates": figs["online_catch_up_updates"],
+            "catch_up_keyframes": figs["online_catch_up_keyframes"],
+            "kf_per_update_max": figs["online_keyframes_per_update_max"],
             "pace": "max" if pace is None else f"{pace:g}x",
             "frames": int(fr.sum()), "startup_s": figs["online_worker_startup_s"],
             "online_wall_s": figs["online_wall_s"], "x_rt_wall": figs["online_x_real_time"],
@@ -155,11 +180,11 @@ def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
 
 
 def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: int,
-            max_lag: int | None) -> dict[str, Any]:
+            max_lag: int | None, catch_up: int = 1) -> dict[str, Any]:
     """One online run: timings, latencies and the online poses."""
     if mode.startswith("decoupled"):
         frontend = mode.split("-", 1)[1] if "-" in mode else "sequential"
-        return decoupled_row(run, backend, pace, depth, frontend, max_lag)
+        return decoupled_row(run, backend, pace, depth, frontend, max_lag, catch_up)
     assert run.images is not None
     be = make_backend(backend, run.rig.odometry, SlamConfig(), start_pose_of(run), run.rig.camera)
     times = FrameTimes()
@@ -177,7 +202,7 @@ def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: 
         if frame is not None:
             done.append(time.perf_counter())
     wall_end, cpu = time.perf_counter(), time.process_time() - c0
-    be.finish()
+    final = be.finish()
     n = len(done)
     lat = 1e3 * (np.asarray(done) - np.asarray(times.arrival[:n]))
     online_wall = wall_end - (times.arrival[0] if times.arrival else w0)
@@ -190,7 +215,9 @@ def one_row(run: LoggedRun, backend: str, mode: str, pace: float | None, depth: 
             "x_rt_2core_bound": duration / max(cpu, worker_cpu),
             "frontend_cpu_s": times.worker_cpu_s,
             "lat_med_ms": float(np.median(lat)), "lat_p95_ms": float(np.percentile(lat, 95)),
-            "lat_max_ms": float(lat.max()), "_poses": np.array(poses)}
+            "lat_max_ms": float(lat.max()), "_poses": np.array(poses),
+            "rms_final_mm": rms_mm(run, final.times, final.poses),
+            "rms_online_mm": rms_mm(run, final.times, np.array(poses))}
 
 
 def _line(row: dict[str, Any]) -> str:
@@ -200,7 +227,8 @@ def _line(row: dict[str, Any]) -> str:
             f"worker {row['cpu_worker_s']:6.2f} s, frontend {row['frontend_cpu_s']:6.2f} s; "
             f"latency median / p95 / max {row['lat_med_ms']:.1f} / {row['lat_p95_ms']:.1f} / "
             f"{row['lat_max_ms']:.0f} ms; start-up {row['startup_s']:.2f} s; "
-            f"load {os.getloadavg()[0]:.1f}")
+            f"load {os.getloadavg()[0]:.1f}; position RMS final {row['rms_final_mm']:.3f} mm, "
+            f"online {row['rms_online_mm']:.3f} mm")
     if row["mode"].startswith("decoupled"):
         text += (f"\n        main process CPU: frontend {row['frontend_cpu_s']:.2f} s, tracking "
                  f"{row['tracking_cpu_s']:.2f} s, other threads (queue pickling) "
@@ -217,7 +245,10 @@ def _line(row: dict[str, Any]) -> str:
                  f"\n        backend steps' CPU = {row['backend_cpu_x_rt']:.1f}x real time, keyframe "
                  f"CPU p95 {row['kf_cpu_p95_ms']:.1f} ms; keyframe latency p95 replayed on a core "
                  "of its own: " + ", ".join(f"{row[f'replay_{p:g}x_kf_p95_ms']:.1f} ms at {p:g}x"
-                                            for p in REPLAY_PACES))
+                                            for p in REPLAY_PACES)
+                 + f"\n        catch-up: {row['catch_up_updates']:.0f} iSAM2 updates of more "
+                 f"than one keyframe ({row['catch_up_keyframes']:.0f} keyframes), at most "
+                 f"{row['kf_per_update_max']:.0f} keyframes in one")
     return text
 
 
@@ -244,6 +275,9 @@ def main() -> None:
     p.add_argument("--max-frames", type=int, default=None, help="the run's first frames only")
     p.add_argument("--cv-threads", type=int, default=1, help="OpenCV threads (default 1)")
     p.add_argument("--repeats", type=int, default=1, help="rounds over the modes (medians)")
+    p.add_argument("--catch-up", default="1",
+                   help="decoupled rows: comma-separated [online] catch_up values (keyframes "
+                        "per iSAM2 update at most while the worker is behind; 1 = off)")
     p.add_argument("--max-lag", type=int, default=DEFAULT_MAX_LAG,
                    help=f"decoupled rows' back-pressure, steps (default {DEFAULT_MAX_LAG}, as "
                         "`lampsam slam --online decoupled`; -1: never wait)")
@@ -254,6 +288,14 @@ def main() -> None:
     bad = [m for m in modes if m not in (*MODES, *DECOUPLED)]
     if bad:
         raise SystemExit(f"unknown modes {bad}; choose from {', '.join((*MODES, *DECOUPLED))}")
+    try:
+        catch_ups = [int(c) for c in args.catch_up.split(",")]
+    except ValueError:
+        raise SystemExit(f"--catch-up: comma-separated integers >= 1, got {args.catch_up!r}") from None
+    if any(c < 1 for c in catch_ups):
+        raise SystemExit(f"--catch-up: values must be >= 1, got {args.catch_up!r}")
+    # (mode, catch-up) rows: the catch-up values apply to the decoupled modes only
+    variants = [(m, c) for m in modes for c in (catch_ups if m in DECOUPLED else [1])]
     max_lag = None if args.max_lag < 0 else args.max_lag
     paces = [None if s == "none" else float(s) for s in args.paces.split(",")]
     run = _cut(read_run(args.run), args.max_frames)
@@ -266,16 +308,16 @@ def main() -> None:
     done: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for rep in range(args.repeats):
         for pace in paces:
-            for mode in modes:
-                row = one_row(run, args.backend, mode, pace, args.depth, max_lag)
+            for mode, cu in variants:
+                row = one_row(run, args.backend, mode, pace, args.depth, max_lag, cu)
                 row["load"] = os.getloadavg()[0]
-                done.setdefault((row["pace"], mode), []).append(row)
+                done.setdefault((row["pace"], row["mode"]), []).append(row)
                 print(f"[round {rep + 1}]" + _line(row), flush=True)
     rows = []
     for pace in paces:
         label = "max" if pace is None else f"{pace:g}x"
         ref = _median_rows(done[(label, "sequential")]) if "sequential" in modes else None
-        for mode in modes:
+        for mode in dict.fromkeys(m for (pl, m) in done if pl == label):
             row = _median_rows(done[(label, mode)])
             if ref is not None:
                 row["wall_vs_seq"] = row["online_wall_s"] / ref["online_wall_s"]
@@ -290,7 +332,9 @@ def main() -> None:
     cols = ["pace", "mode", "repeats", "x_rt_wall", "wall_vs_seq", "x_rt_2core_bound",
             "cpu_main_s", "cpu_main_vs_seq", "cpu_worker_s", "cpu_total_vs_seq", "lat_med_ms",
             "lat_p95_ms", "lat_max_ms", "frame_cpu_p95_ms", "startup_s", "max_pose_diff",
-            "kf_lat_p95_ms", "replay_1x_kf_p95_ms", "lag_p95_steps", "load"]
+            "kf_lat_p95_ms", "replay_1x_kf_p95_ms", "lag_p95_steps", "backend_steps_cpu_s",
+            "kf_cpu_p95_ms", "catch_up_updates", "catch_up_keyframes", "rms_final_mm",
+            "rms_online_mm", "load"]
     print(f"\nmedians of {args.repeats} rounds")
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))

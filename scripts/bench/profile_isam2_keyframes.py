@@ -15,7 +15,9 @@ marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint
 to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
 binned by their number of keys, and the landmarks of the calls over 20 ms are counted
 (a prefetched call names all its lamps, though its cost is its deepest one's: on the
-lab path, lamp 1, rejected at every revisit keyframe; docs/speed.md). The Python
+lab path, lamp 1, rejected at every revisit keyframe; docs/speed.md), and for slow and
+cheap calls alike the keyframes since their least recently observed lamp (a lamp not
+observed at the last keyframe has left the root clique: docs/speed.md). The Python
 phases of a keyframe are timed too (inclusive CPU: the screen with its point reads,
 association with the exact gate, observing and starting landmarks, the pose marginal),
 in all and per slow keyframe. CPU figures
@@ -43,6 +45,8 @@ from lampsam.datasets.logrun import read_run
 
 #: A joint-marginal call slower than this (s CPU) has its landmarks counted.
 SLOW_CALL_S = 0.02
+#: ... and one faster than this is counted as a cheap call (near the Bayes tree's root).
+FAST_CALL_S = 0.001
 
 
 class _TimedIsam:
@@ -54,6 +58,11 @@ class _TimedIsam:
         self._rec = rec
         self._joint = joint_calls
         self._slow_ids = slow_ids
+        #: the backend (set by the caller) and, per slow / fast joint call, the most
+        #: keyframes since one of its lamps was last observed
+        self.backend: Any = None
+        self.slow_since: list[int] = []
+        self.fast_since: list[int] = []
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._isam, name)
@@ -75,7 +84,15 @@ class _TimedIsam:
         self._rec["joint"] += dt
         self._joint.append((len(keys), dt))
         if dt > SLOW_CALL_S:  # name the landmarks (L(j), A(j) -> j) of a slow call
-            self._slow_ids.update({gtsam.Symbol(key).index() for key in list(keys)[1:]})
+            ids = {gtsam.Symbol(key).index() for key in list(keys)[1:]}
+            self._slow_ids.update(ids)
+            if self.backend is not None:  # keyframes since its lamps were last observed
+                lms = self.backend._landmarks
+                self.slow_since.append(max(self.backend._k - lms[i].last_kf for i in ids if i in lms))
+        elif dt < FAST_CALL_S and len(keys) > 1 and self.backend is not None:
+            lms = self.backend._landmarks
+            ids = {gtsam.Symbol(key).index() for key in list(keys)[1:]}
+            self.fast_since.append(max(self.backend._k - lms[i].last_kf for i in ids if i in lms))
         return out
 
     def calculateEstimatePose2(self, key: int) -> Any:  # noqa: N802
@@ -145,7 +162,9 @@ def main() -> None:
     graph_module.associate = timed_associate  # type: ignore[assignment]
     joint_calls: list[tuple[int, float]] = []
     slow_ids: Counter[int] = Counter()
-    be.isam = _TimedIsam(be.isam, rec, joint_calls, slow_ids)  # type: ignore[assignment]
+    timed = _TimedIsam(be.isam, rec, joint_calls, slow_ids)
+    timed.backend = be
+    be.isam = timed  # type: ignore[assignment]
     rows = []
     for t, wheel, frame in iter_steps(run.odometry, frames):
         for key in rec:
@@ -177,6 +196,13 @@ def main() -> None:
         f"{p} {r[slow, 8 + i].mean() * 1e3:.1f}" for i, p in enumerate(phases)))
     print(f"landmarks in joint-marginal calls over {SLOW_CALL_S * 1e3:.0f} ms (id: calls): "
           + ", ".join(f"{i}: {n}" for i, n in slow_ids.most_common(8)))
+    for name, since in (("over", timed.slow_since), ("under", timed.fast_since)):
+        if since:
+            lim = SLOW_CALL_S if name == "over" else FAST_CALL_S
+            print(f"joint-marginal calls {name} {lim * 1e3:g} ms: n={len(since)}, keyframes since "
+                  f"their least recently observed lamp median {np.median(since):.0f}, "
+                  f"min {min(since)}, share with every lamp seen at the last keyframe "
+                  f"{np.mean(np.array(since) <= 1):.2f}")
     j = np.array(joint_calls).reshape(-1, 2)
     for lo, hi in ((1, 5), (5, 9), (9, 1000)):
         m = (j[:, 0] >= lo) & (j[:, 0] < hi)
