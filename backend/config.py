@@ -74,9 +74,13 @@ class AssociationConfig:
             (``SlamResult.provisional``, ``flag = seen_once`` in ``landmarks.csv``)
             unless ``prune_once_seen``.
         joint_compatibility: without ids, planar (range-bearing) observations of a
-            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`,
-            the EKF) instead of greedy nearest neighbour (default False: on Victoria
-            Park without ids it did not prevent divergence; docs/graph-backend.md).
+            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`)
+            instead of greedy nearest neighbour: in the EKF on every frame
+            (:mod:`lampsam.backend.ekf_joint`), in the smoothers on every keyframe
+            with an ambiguity, with the joint marginal of the pose and all candidates
+            (:mod:`lampsam.backend.joint_gating`). Default False: on Victoria Park
+            without ids it did not prevent divergence (docs/graph-backend.md,
+            docs/failures.md).
         prune_once_seen: drop landmarks seen fewer than ``min_observations`` times
             from the output altogether (default False: keep them, flagged).
         prune_after_steps: a landmark not re-observed for this many steps after
@@ -149,6 +153,13 @@ class AssociationConfig:
             ``new_prob`` threshold, never seen in one frame); 0 (default) never.
         planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
         planar_merge_radius: only pairs closer than this are tested, m (default 30).
+        revisit_check: smoothers without ids: after a keyframe that starts a
+            range-bearing landmark, match the landmarks made in the last 40
+            keyframes to the map idle for 150 keyframes by one unambiguous rigid
+            motion (:mod:`lampsam.backend.revisit_merge`) and tie each matched copy
+            to its old landmark (default False).
+        revisit_tol, revisit_min_inliers: its inlier distance in m (also twice the
+            tie's sigma; default 0.75) and inliers needed (default 4).
         odometry_noise_adapt: without ids, multiply the odometry covariance by a
             variance factor learnt online from the innovations of unambiguous
             range-bearing matches (:mod:`lampsam.backend.odometry_scale`: maximum
@@ -184,6 +195,9 @@ class AssociationConfig:
     planar_merge_every: int = field(default=0, metadata=limits(ge=0))
     planar_merge_min_obs: int = field(default=3, metadata=limits(ge=1))
     planar_merge_radius: float = field(default=30.0, metadata=limits(gt=0.0))
+    revisit_check: bool = False
+    revisit_tol: float = field(default=0.75, metadata=limits(gt=0.0))
+    revisit_min_inliers: int = field(default=4, metadata=limits(ge=3))
     odometry_noise_adapt: bool = False
     odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
     odometry_noise_window: int = field(default=150, metadata=limits(ge=1))
