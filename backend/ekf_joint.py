@@ -14,7 +14,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import Assignment, jcbb, mahalanobis2
+from lampsam.backend.association import Assignment, mahalanobis2, reassign_jointly
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.covariance import LowerCovariance
 from lampsam.backend.interface import LandmarkKind
@@ -100,16 +100,4 @@ def joint_point2(obs: list[Obs], assignments: list[Assignment],
             r[2 * row : 2 * row + 2, 2 * row : 2 * row + 2] = obs[i].R
         return nu, (h @ P @ h.T + r) * scale
 
-    paired = dict(jcbb(cands, joint, config))
-    out = []
-    for a in assignments:
-        i = a.obs_index
-        if i not in cands:
-            out.append(a)
-        elif i in paired:
-            out.append(Assignment(i, paired[i], "matched"))
-        elif a.status == "new":
-            out.append(a)
-        else:
-            out.append(Assignment(i, None, "dropped"))
-    return out
+    return reassign_jointly(assignments, cands, joint, config)
