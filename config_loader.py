@@ -3,10 +3,14 @@
 Every command that reads a settings file, and every reader of a YAML section
 that maps onto a dataclass (the rig, ...), goes through :func:`from_mapping`:
 
-- an unknown key is an error naming it (with a close match when there is one);
+- an unknown key is an error naming it (with a close match when there is one), an
+  unknown table likewise; a key or table given twice in one file is an error (TOML
+  says so; PyYAML would keep the last silently, :func:`parse_yaml` refuses it);
 - a value of the wrong type is an error naming the key and the expected type:
   an ``int`` is accepted where a ``float`` is expected (and stored as a float),
-  a ``bool`` is never accepted as a number, NaN never as a float;
+  a ``bool`` is never accepted as a number, NaN never as a float, and ``inf``
+  (``1e400`` in TOML) only where the field's :func:`limits` say ``finite=False``
+  (a threshold where infinite means "never");
 - nested tables build nested dataclasses; a partial table changes only the keys
   it gives (the rest keep the default, or the ``base`` object's values);
 - ``X | None`` fields take ``None`` from YAML, or the string ``"none"`` (TOML
@@ -28,6 +32,7 @@ import dataclasses
 import difflib
 import enum
 import math
+import re
 import types
 import typing
 from collections.abc import Mapping
@@ -80,12 +85,15 @@ class Limits:
     """Closed (``ge``, ``le``) and open (``gt``, ``lt``) bounds of a numeric field.
 
     A tuple field is checked element by element; ``None`` values are not checked.
+    ``finite``: infinite values are refused (the default; the loader applies it to
+    every number field, with or without declared limits).
     """
 
     ge: float | None = None
     gt: float | None = None
     le: float | None = None
     lt: float | None = None
+    finite: bool = True
 
     def problem(self, value: object) -> str | None:
         """Why ``value`` is out of range, or None when it is inside (or not a number)."""
@@ -100,6 +108,8 @@ class Limits:
         v = float(value)
         if math.isnan(v):
             return "must be a number, got nan"
+        if self.finite and math.isinf(v):
+            return f"must be finite, got {plain(value)}"
         for bound, ok, word in (
             (self.ge, lambda b: v >= b, ">="),
             (self.gt, lambda b: v > b, ">"),
@@ -113,10 +123,15 @@ class Limits:
 
 def limits(
     *, ge: float | None = None, gt: float | None = None, le: float | None = None,
-    lt: float | None = None,
+    lt: float | None = None, finite: bool = True,
 ) -> dict[str, Limits]:
-    """Field metadata declaring a range: ``x: float = field(default=1.0, metadata=limits(gt=0))``."""
-    return {LIMITS_KEY: Limits(ge=ge, gt=gt, le=le, lt=lt)}
+    """Field metadata declaring a range: ``x: float = field(default=1.0, metadata=limits(gt=0))``;
+    ``finite=False`` lets the field take ``inf``."""
+    return {LIMITS_KEY: Limits(ge=ge, gt=gt, le=le, lt=lt, finite=finite)}
+
+
+#: What a number field without declared limits is held to: finite, any sign.
+FINITE = Limits()
 
 
 def check_limits(obj: object) -> None:
@@ -149,6 +164,57 @@ def plain(value: object) -> str:
 
 
 # --------------------------------------------------------------------------- files
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping."""
+
+
+def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode,
+                    deep: bool = False) -> dict[object, object]:
+    """Build a mapping like the safe loader, but a repeated key is a ConstructorError
+    at the second key's line (YAML 1.2 says keys are unique; PyYAML keeps the last)."""
+    first: dict[object, int] = {}
+    for key_node, _ in node.value:
+        if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+            continue  # complex keys and merges (``<<``): the safe loader's own rules
+        key = loader.construct_object(key_node, deep=deep)
+        if key in first:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"key {key!r} given twice (first on line {first[key]})",
+                key_node.start_mark)
+        first.setdefault(key, key_node.start_mark.line + 1)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
+def parse_yaml(text: str) -> Any:
+    """``yaml.safe_load`` with one more rule: a key given twice in a mapping is an error.
+
+    Raises:
+        yaml.YAMLError: as ``yaml.safe_load`` (a ``ConstructorError`` naming the
+            repeated key, with the line in ``problem_mark``).
+    """
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
+
+
+def _toml_problem(exc: tomllib.TOMLDecodeError, text: str) -> str:
+    """tomllib's message with the offending line's text (tomllib names only its number),
+    and the likely cause when a key or table is given twice."""
+    msg = str(exc)
+    found = re.search(r" ?\(at line (\d+), column (\d+)\)", msg)
+    if found is None:
+        return f"invalid TOML: {msg}"
+    lineno = int(found.group(1))
+    lines = text.splitlines()
+    shown = lines[lineno - 1].strip() if 0 < lineno <= len(lines) else ""
+    problem = msg[: found.start()] + msg[found.end():]
+    hint = (": a key or table given twice"
+            if "overwrite" in msg.lower() or "twice" in msg.lower() else "")
+    return (f"invalid TOML, line {lineno} ({shown!r}, column {found.group(2)}): "
+            f"{problem}{hint}")
+
+
 def read_table_file(path: str | Path) -> dict[str, Any]:
     """Parse a settings file: TOML (``.toml``) or YAML (``.yaml``/``.yml``).
 
@@ -175,7 +241,7 @@ def read_table_file(path: str | Path) -> dict[str, Any]:
     doc: object
     if path.suffix.lower() in (".yaml", ".yml"):
         try:
-            doc = yaml.safe_load(text)
+            doc = parse_yaml(text)
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" (line {mark.line + 1})" if mark is not None else ""
@@ -187,7 +253,7 @@ def read_table_file(path: str | Path) -> dict[str, Any]:
         try:
             doc = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
-            raise ConfigError("", f"invalid TOML: {exc}", path) from exc
+            raise ConfigError("", _toml_problem(exc, text), path) from exc
     if not isinstance(doc, dict):
         raise ConfigError("", f"the top level must be a table, got {_kind(doc)}", path)
     return doc
@@ -326,18 +392,17 @@ class _Converter:
                 close = difflib.get_close_matches(name, list(fields), n=1)
                 hint = (f"did you mean {close[0]!r}?" if close
                         else f"known keys: {', '.join(sorted(fields))}")
-                raise self.fail(_join(path, name), f"unknown key ({hint})")
+                what = "table" if isinstance(data[name], Mapping) else "key"
+                raise self.fail(_join(path, name), f"unknown {what} ({hint})")
         kwargs: dict[str, object] = {}
         for name, value in data.items():
             f = fields[name]
             key = _join(path, name)
             current = getattr(base, name) if base is not None else _default_of(f)
             converted = self.convert(hints[name], value, key, current)
-            lim = f.metadata.get(LIMITS_KEY)
-            if lim is not None:
-                bad = lim.problem(converted)
-                if bad is not None:
-                    raise self.fail(key, bad)
+            bad = f.metadata.get(LIMITS_KEY, FINITE).problem(converted)
+            if bad is not None:
+                raise self.fail(key, bad)
             kwargs[name] = converted
         if base is None:
             missing = [n for n, f in fields.items() if n not in kwargs

@@ -23,6 +23,7 @@ Modules:
 * :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
 * :mod:`~lampsam.backend.dense_log` -- Known-id fast path of the smoothers over a planar landmark log, one step per pose.
 * :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
+* :mod:`~lampsam.backend.ekf_gate` -- The EKF's vectorised gate (paper 1, eqs. 19-20): a frame's candidates and distances.
 * :mod:`~lampsam.backend.ekf_joint` -- Joint compatibility (JCBB) for the EKF's planar observations without ids (eqs. 19-20).
 * :mod:`~lampsam.backend.ekf_landmarks` -- Landmark book-keeping of the EKF state.
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
@@ -35,8 +36,10 @@ Modules:
 * :mod:`~lampsam.backend.handlers` -- How a landmark kind lives in the factor graph: the handler protocol and its record.
 * :mod:`~lampsam.backend.interface` -- One interface for the three SLAM backends (``ekf``, ``isam2``, ``batch``).
 * :mod:`~lampsam.backend.isam2_update` -- iSAM2 updates of a factor-graph backend, and recovery from a failed one.
+* :mod:`~lampsam.backend.joint_gating` -- Joint compatibility for the smoothers' range-bearing observations without ids.
 * :mod:`~lampsam.backend.keyframes` -- Keyframe policy of the factor-graph backends.
 * :mod:`~lampsam.backend.landmark_merge` -- Merging duplicate planar landmarks after the fact (association without ids).
+* :mod:`~lampsam.backend.landmark_moves` -- Merge and split landmarks by description length (offline association without ids).
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
 * :mod:`~lampsam.backend.localize_only` -- Localize-only tracking against a saved ceiling map: the map is used, never grown.
 * :mod:`~lampsam.backend.localize_run` -- Run localize-only tracking over a logged run, and save the map of a SLAM run.
@@ -52,6 +55,7 @@ Modules:
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
 * :mod:`~lampsam.backend.reassociate` -- Batch association without ids: re-associate every sighting against the optimised map.
+* :mod:`~lampsam.backend.revisit_merge` -- Revisit check without ids: recent landmarks matched to the old map by constellation.
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
 * :mod:`~lampsam.backend.stereo` -- Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.
 * :mod:`~lampsam.backend.stereo_kitti` -- Stereo two-point relative pose on real KITTI images: pair selection and check.

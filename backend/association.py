@@ -356,6 +356,41 @@ def jcbb(candidates: Mapping[int, Iterable[int]], joint: JointInnovationFn,
     return best
 
 
+def reassign_jointly(assignments: list[Assignment], candidates: Mapping[int, list[int]], joint: JointInnovationFn,
+                     config: AssociationConfig) -> list[Assignment]:
+    """Re-pair the observations in ``candidates`` by :func:`jcbb` (Neira & Tardos 2001).
+
+    The observations JCBB pairs are ``"matched"`` to its landmark; one it leaves
+    unpaired keeps a ``"new"`` from the individual gate (beyond the new-landmark
+    threshold of every landmark) and is otherwise ``"dropped"`` (some landmark is
+    near, but no pairing with it is jointly compatible): one tree is then neither
+    given to its neighbour nor mapped twice. Observations not in ``candidates`` keep
+    their assignment.
+
+    Args:
+        assignments: the individual gate's decisions (:func:`associate`).
+        candidates: observation index -> landmarks individually inside the gate.
+        joint: stacked innovation and its joint covariance of a hypothesis.
+        config: the gate probability.
+
+    Returns:
+        One :class:`Assignment` per observation, in input order.
+    """
+    paired = dict(jcbb(candidates, joint, config))
+    out: list[Assignment] = []
+    for a in assignments:
+        i = a.obs_index
+        if i not in candidates:
+            out.append(a)
+        elif i in paired:
+            out.append(Assignment(i, paired[i], "matched"))
+        elif a.status == "new":
+            out.append(a)
+        else:
+            out.append(Assignment(i, None, "dropped"))
+    return out
+
+
 @dataclass(eq=False)
 class Tentative:
     """A candidate planar landmark not yet in the map.

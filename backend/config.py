@@ -74,9 +74,13 @@ class AssociationConfig:
             (``SlamResult.provisional``, ``flag = seen_once`` in ``landmarks.csv``)
             unless ``prune_once_seen``.
         joint_compatibility: without ids, planar (range-bearing) observations of a
-            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`,
-            the EKF) instead of greedy nearest neighbour (default False: on Victoria
-            Park without ids it did not prevent divergence; docs/graph-backend.md).
+            frame are paired by joint compatibility (:func:`lampsam.backend.association.jcbb`)
+            instead of greedy nearest neighbour: in the EKF on every frame
+            (:mod:`lampsam.backend.ekf_joint`), in the smoothers on every keyframe
+            with an ambiguity, with the joint marginal of the pose and all candidates
+            (:mod:`lampsam.backend.joint_gating`). Default False: on Victoria Park
+            without ids it did not prevent divergence (docs/graph-backend.md,
+            docs/failures.md).
         prune_once_seen: drop landmarks seen fewer than ``min_observations`` times
             from the output altogether (default False: keep them, flagged).
         prune_after_steps: a landmark not re-observed for this many steps after
@@ -149,6 +153,13 @@ class AssociationConfig:
             ``new_prob`` threshold, never seen in one frame); 0 (default) never.
         planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
         planar_merge_radius: only pairs closer than this are tested, m (default 30).
+        revisit_check: smoothers without ids: after a keyframe that starts a
+            range-bearing landmark, match the landmarks made in the last 40
+            keyframes to the map idle for 150 keyframes by one unambiguous rigid
+            motion (:mod:`lampsam.backend.revisit_merge`) and tie each matched copy
+            to its old landmark (default False).
+        revisit_tol, revisit_min_inliers: its inlier distance in m (also twice the
+            tie's sigma; default 0.75) and inliers needed (default 4).
         odometry_noise_adapt: without ids, multiply the odometry covariance by a
             variance factor learnt online from the innovations of unambiguous
             range-bearing matches (:mod:`lampsam.backend.odometry_scale`: maximum
@@ -184,6 +195,9 @@ class AssociationConfig:
     planar_merge_every: int = field(default=0, metadata=limits(ge=0))
     planar_merge_min_obs: int = field(default=3, metadata=limits(ge=1))
     planar_merge_radius: float = field(default=30.0, metadata=limits(gt=0.0))
+    revisit_check: bool = False
+    revisit_tol: float = field(default=0.75, metadata=limits(gt=0.0))
+    revisit_min_inliers: int = field(default=4, metadata=limits(ge=3))
     odometry_noise_adapt: bool = False
     odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
     odometry_noise_window: int = field(default=150, metadata=limits(ge=1))
@@ -327,7 +341,7 @@ class Isam2Config:
             accuracy: see :func:`lampsam.backend.keyframes.is_keyframe`.)
         relinearize_threshold: iSAM2 relinearisation threshold (default 0.1, GTSAM's):
             a variable whose pending correction has a component above it (m, rad) is
-            relinearised at the next relinearisation step.
+            relinearised at the next relinearisation step (``inf``: never).
         lamp_relinearize_threshold: the threshold for lamps' variables (position and
             axis) where the graph's lamps have their own symbol characters (the ceiling
             graph: :data:`~lampsam.backend.ceiling_graph.CEILING_SYMBOLS`); None: the
@@ -398,8 +412,9 @@ class Isam2Config:
     keyframe_distance: float = field(default=0.05, metadata=limits(ge=0.0))
     keyframe_angle: float = field(default=0.15, metadata=limits(ge=0.0))
     every_frame: bool = False
-    relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0))
-    lamp_relinearize_threshold: float | None = field(default=None, metadata=limits(gt=0.0))
+    relinearize_threshold: float = field(default=0.1, metadata=limits(ge=0.0, finite=False))
+    lamp_relinearize_threshold: float | None = field(default=None,
+                                                     metadata=limits(gt=0.0, finite=False))
     relinearize_skip: int = field(default=10, metadata=limits(ge=1))
     cache_linearized_factors: bool = True
     find_unused_factor_slots: bool = False
@@ -514,10 +529,16 @@ class ReassociationConfig:
             own spread at each pass's optimum (its variance-component factor, never above 1:
             :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
             new-landmark threshold of its landmark and outside every gate splits off.
+        cost_moves: after the passes, merge and split single landmarks by description
+            length (:mod:`lampsam.backend.landmark_moves`; the offline pipeline of
+            :mod:`lampsam.backend.noids_offline` only).
         scales: candidate odometry variance factors of the online no-ids pass that
             precedes the offline re-association of a graph log
             (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
-            the least description length is kept (default 1, 4, 16, 64: sigma x1-x8).
+            the least description length is kept (default 1/16, 1/4, 1, 4, 16, 64: sigma
+            x1/4-x8; the factors below 1 for logs that overstate their odometry noise,
+            as GTSAM's victoriaPark_reduced_1k and cityTrees_reduced_1k do ~20x in
+            sigma: docs/noids-offline.md).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -529,9 +550,10 @@ class ReassociationConfig:
     margin: int = field(default=2, metadata=limits(ge=1))
     max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
     merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
-    switch: float = field(default=float("inf"), metadata=limits(gt=0.0))
+    switch: float = field(default=float("inf"), metadata=limits(gt=0.0, finite=False))
     fit_noise: bool = False
-    scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
+    cost_moves: bool = True
+    scales: tuple[float, ...] = (0.0625, 0.25, 1.0, 4.0, 16.0, 64.0)
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

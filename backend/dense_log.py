@@ -49,11 +49,11 @@ from lampsam.backend.handlers import MarginalSource
 from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, SlamResult, log_pruned
 from lampsam.backend.models import init_point2, landmark_estimate
 from lampsam.backend.odometry import Pose2Motion
-from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array
+from lampsam.backend.pose_cov import compose_cov, odometry_bridge
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.errors import LampsamError
 from lampsam.factors.geometry import wrap_angle
-from lampsam.factors.gtsam_factors import odometry_factor
+from lampsam.factors.gtsam_factors import odometry_factor, pose_array
 from lampsam.interrupt import raise_if_stopped
 
 log = logging.getLogger(__name__)

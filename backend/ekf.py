@@ -11,7 +11,8 @@ frame; landmark states in :mod:`lampsam.backend.models`), covariance ``P``.
   and ``P_MR <- P_MR F_x^T``; the landmark block ``P_MM`` is untouched. Several odometry
   increments between two frames are composed on the 3x3 block first, so a step
   costs O(n) regardless of the odometry rate. No dense ``F P F^T``.
-- Gate (eqs. 19-20) and association: :mod:`lampsam.backend.association`.
+- Gate (eqs. 19-20), vectorised over a frame: :mod:`lampsam.backend.ekf_gate`;
+  association: :mod:`lampsam.backend.association`.
 - Update (eqs. 21-23), one observation at a time: ``H`` has nonzero columns only
   for the robot and one landmark, so ``P H^T = P[:, R] H_R^T + P[:, L] H_L^T``
   (n x k), ``K = P H^T Psi^-1`` and ``P <- P - K (P H^T)^T``, which equals
@@ -42,10 +43,10 @@ from lampsam.backend.association import (
     corner_budget,
     innovation_scale,
     learn_scale,
-    screen_pairs,
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
+from lampsam.backend.ekf_gate import Screened, screen_frame
 from lampsam.backend.ekf_joint import joint_point2
 from lampsam.backend.ekf_landmarks import (
     PRUNE_BATCH,
@@ -57,7 +58,6 @@ from lampsam.backend.ekf_landmarks import (
     remove_landmarks,
 )
 from lampsam.backend.ekf_update import (
-    gathered_s,
     invariant_update,
     observability_project,
     stacked_gain,
@@ -69,6 +69,7 @@ from lampsam.backend.interface import (
     SlamBackend,
     SlamResult,
     StepEstimate,
+    StepHistory,
     log_pruned,
 )
 from lampsam.backend.landmark_merge import CoVisibility, ekf_merge_once
@@ -88,7 +89,6 @@ from lampsam.backend.odometry_scale import (
     feed_scale,
     odometry_scale,
 )
-from lampsam.backend.planar_gate import ekf_point2_jacobians, screen_point2
 from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
@@ -127,11 +127,7 @@ class EkfSlam(SlamBackend):
         self._next_id = 0
         self._step = 0
         self._last_t = -math.inf
-        self._times: list[float] = []
-        self._poses: list[FloatArray] = []
-        self._covs: list[FloatArray] = []
-        self._step_times: list[float] = []
-        self._keyframes: list[bool] = []
+        self._history = StepHistory()
         self.n_pruned = 0
         self.pruned: dict[str, int] = {}  # by reason; sums to n_pruned
         self._provisional: list[LandmarkEstimate] = []
@@ -246,66 +242,11 @@ class EkfSlam(SlamBackend):
             return None
         return pred[0], pred[1], self._h(self._slots[lid], for_landmark(obs, self._slots[lid].dim))[1]
 
-    def _screen(self, obs: list[Obs]) -> tuple[dict[str, list[int]],
-                                                dict[int, dict[int, tuple[float, bool]]]]:
-        """Candidates per kind and the vectorised gate of ceiling observations.
-
-        All ceiling landmarks are projected at once
-        (:meth:`lampsam.backend.ceiling.CeilingModel.project_many`); for the visible
-        ones ``S = H P H^T`` (eq. 19 without ``R``, with the robot-landmark cross
-        term: exact) is built from gathered blocks of ``P``, and
-        :func:`lampsam.backend.association.screen_pairs` computes every observation x
-        landmark distance in numpy; planar landmarks: :meth:`_screen_planar`.
-
-        Returns:
-            ``(candidates, screened)`` for :func:`associate`.
-        """
-        cands: dict[str, list[int]] = {}
-        screened: dict[int, dict[int, tuple[float, bool]]] = {}
-        ceiling_slots: dict[str, list[Slot]] = {}
-        for lid, slot in self._slots.items():
-            if lid in self._doomed:
-                continue
-            if self.ceiling is None or slot.kind == "point2":
-                cands.setdefault(slot.kind, []).append(lid)
-            else:
-                ceiling_slots.setdefault(slot.kind, []).append(slot)
-        pose = self._x[:3]
-        cov = self._cov
-        planar = cands.get(LandmarkKind.POINT2, [])
-        if planar and any(o.kind == LandmarkKind.POINT2 for o in obs):
-            screened.update(self._screen_planar(obs, planar))
-        t_d_c = tangent_D_coords(pose[2])
-        for kind, slots in ceiling_slots.items():
-            offs = np.array([sl.offset for sl in slots])
-            idx = offs[:, None] + np.arange(3)[None, :]  # (M, 3) position columns
-            m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, self._x[idx])
-            keep = np.flatnonzero(vis)
-            lids = [slots[j].id for j in keep]
-            cands[kind] = lids
-            if not any(o.kind == kind for o in obs):
-                continue
-            h_r = m_d_pose[keep] @ t_d_c  # (M, 2, 3) coordinates
-            h_l = m_d_pt[keep]
-            s_pred = gathered_s(cov, idx[keep], h_r, h_l)
-            screened.update(screen_pairs(obs, kind, lids, m[keep], s_pred,
-                                         self.config.association, exact=True))
-        return cands, screened
-
-    def _screen_planar(self, obs: list[Obs], lids: list[int]
-                       ) -> dict[int, dict[int, tuple[float, bool]]]:
-        """Exact eq.-19/20 distances of every planar observation to every planar landmark,
-        with the update's Jacobians (:func:`lampsam.backend.planar_gate.ekf_point2_jacobians`)
-        and ``S = H P H^T`` from gathered blocks of ``P``."""
-        offs = np.array([self._slots[lid].offset for lid in lids])
-        idx = offs[:, None] + np.arange(2)[None, :]  # (M, 2)
-        firsts = None
-        if self._fej:
-            firsts = np.array([sl.first[:2] if sl.first is not None else self._x[sl.offset : sl.offset + 2]
-                               for sl in (self._slots[lid] for lid in lids)])
-        z_hat, h_r, h_l = ekf_point2_jacobians(self._x[:3], self._x[idx], firsts, self._oc)
-        return screen_point2(obs, lids, z_hat, gathered_s(self._cov, idx, h_r, h_l),
-                             self.config.association, self.noise_scale.scale)
+    def _screen(self, obs: list[Obs]) -> tuple[dict[str, list[int]], Screened]:
+        """Candidates per kind and the vectorised gate of the frame's observations
+        (:func:`lampsam.backend.ekf_gate.screen_frame`), for :func:`associate`."""
+        return screen_frame(obs, self._slots, self._doomed, self._x, self._cov, self.ceiling,
+                            self.config.association, self._fej, self._oc, self.noise_scale.scale)
 
     # ------------------------------------------------------------------ eqs. 21-23
     def _update(self, pairs: list[tuple[Slot, Obs]]) -> int:
@@ -574,11 +515,7 @@ class EkfSlam(SlamBackend):
         dt = time.perf_counter() - t0
         pose = self._x[:3].copy()
         cov = self._cov.block(0, 3, 0, 3)
-        self._times.append(t)
-        self._poses.append(pose)
-        self._covs.append(cov)
-        self._step_times.append(dt)
-        self._keyframes.append(n_matched + n_new > 0)
+        self._history.add(t, pose, cov, dt, n_matched + n_new > 0)
         return StepEstimate(t, pose, cov, n_matched + n_new > 0, n_matched, n_new, dt)
 
     def _estimate(self, s: Slot) -> LandmarkEstimate:
@@ -606,16 +543,6 @@ class EkfSlam(SlamBackend):
         self._remove(sorted(set(once) | self._doomed))
         self._doomed.clear()
         log_pruned(self.n_pruned, self.pruned, cfg.min_observations, not cfg.prune_once_seen)
-        return SlamResult(
-            backend=self.name,
-            times=np.asarray(self._times, float),
-            poses=np.asarray(self._poses, float).reshape(-1, 3),
-            pose_covs=np.asarray(self._covs, float).reshape(-1, 3, 3),
-            landmarks=self.landmarks(),
-            provisional=list(self._provisional),
-            step_times_s=np.asarray(self._step_times, float),
-            keyframes=np.asarray(self._keyframes, bool),
-            status=status,
-            n_pruned=self.n_pruned,
-            pruned=dict(self.pruned),
-        )
+        return self._history.result(self.name, self.landmarks(), status,
+                                    provisional=list(self._provisional),
+                                    n_pruned=self.n_pruned, pruned=dict(self.pruned))

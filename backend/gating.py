@@ -265,8 +265,9 @@ class Gating(GraphState):
                        lms: list[GraphLandmark]) -> dict[int, dict[int, tuple[float, bool]]]:
         """Range-bearing observations against every planar landmark at once (no ids).
 
-        Every landmark is first screened with the pose and landmark marginals and no
-        cross term, doubled (``2 diag(P_xx, P_ll)`` bounds the joint covariance from
+        The in-graph landmarks' cached states are first refreshed from iSAM2 (the
+        innovation and the joint marginal at one linearisation). Every landmark is
+        then screened with the pose and landmark marginals and no cross term, doubled (``2 diag(P_xx, P_ll)`` bounds the joint covariance from
         above, so a pair beyond the new-landmark threshold here is beyond it in eq. 19
         too); the pairs left are decided by the joint marginal (:meth:`_innovation`),
         exactly as without the screen. With ``association.planar_relative_gate``, a
@@ -290,9 +291,12 @@ class Gating(GraphState):
         scale = self.config.association.gate_noise_scale
         rel = self._relative_covs()
         relative = self.config.association.planar_relative_gate
-        if relative:  # else the cached states, as :meth:`_innovation` predicts from them
-            for lm in lms:
-                self._refresh_landmark(lm)
+        # iSAM2's current estimates: the joint marginal below is at the current
+        # linearisation, so the innovation must be too (a first-sight state against a
+        # marginal shrunk by later sightings inflated d2 past the new-landmark
+        # threshold: docs/failures.md, no ids online)
+        for lm in lms:
+            self._refresh_landmark(lm)
         pts = np.array([lm.state[:2] for lm in lms], float)
         z_hat, h_p, h_l = range_bearing_many(pose, pts)
         recent = np.array([relative and lm.last_kf in rel and lm.cov_rel is not None

@@ -54,7 +54,6 @@ from lampsam.backend.association import Assignment, associate, corner_budget, le
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.config import BatchConfig, SlamConfig
-from lampsam.backend.gating import Gating
 from lampsam.backend.handlers import (
     GraphLandmark,
     LandmarkHandler,
@@ -69,6 +68,7 @@ from lampsam.backend.interface import (
     StepEstimate,
 )
 from lampsam.backend.isam2_update import Isam2Updates
+from lampsam.backend.joint_gating import JointGating
 from lampsam.backend.keyframes import STEP_FLOOR as STEP_FLOOR
 from lampsam.backend.keyframes import advance_odometry, keyframe_observations
 from lampsam.backend.landmarks import LandmarkLifecycle
@@ -79,6 +79,7 @@ from lampsam.backend.models import (
 from lampsam.backend.odometry import OdometryConstants
 from lampsam.backend.odometry_scale import feed_scale
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge, pose_array, tangent_to_coords_cov
+from lampsam.backend.revisit_merge import RevisitMerge
 from lampsam.errors import EstimationError
 from lampsam.factors.gtsam_factors import odometry_factor
 
@@ -86,7 +87,7 @@ log = logging.getLogger(__name__)
 
 
 
-class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
+class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
     """The iSAM2 and batch backends' common pass (see module docstring).
 
     Args:
@@ -158,6 +159,8 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
                 assignments = associate(
                     obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                     self.config.association, lambda i: i in self._landmarks, patches, screened)
+                if self.config.association.joint_compatibility:
+                    assignments = self._joint_planar(gate_ctx, obs, assignments, screened)
                 learn_scale(self.noise_scale, obs, assignments, screened)
                 if self.odo_scale is not None:
                     feed_scale(self.odo_scale, self.idle, obs, assignments, screened,
@@ -184,6 +187,8 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             for lm, o in matches:
                 self._observe(lm, k, o)
                 n_matched += 1
+            if self.config.association.revisit_check and gating:
+                self._revisit_check(k, n_new)
         if k % 10 == 0:
             self._forget_pending(k)
         # The keyframe's own estimate: the prediction until iSAM2 updates it (_flush).
@@ -400,6 +405,9 @@ class GraphSlam(Gating, LandmarkLifecycle, Isam2Updates):
             graph=GraphSnapshot(self.graph, values,
                                 None if self.ceiling is None else self.ceiling.body_t_camera),
             extra={"n_recoveries": float(self.n_recoveries),
+                   "n_jcbb": float(self.n_jcbb), "n_jcbb_changed": float(self.n_jcbb_changed),
+                   "n_revisit_merges": float(self.n_revisit_merges),
+                   "n_revisit_rejected": float(self.n_revisit_rejected),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),

@@ -61,6 +61,7 @@ class GraphLandmark:
         last_kf: last keyframe that observed it.
         cov_rel: (3, 3) position covariance relative to the pose of ``last_kf``, or None.
         sights: first sights of a lamp (triangulated to tighten its gate).
+        first_kf: keyframe of its first sighting.
     """
 
     id: int
@@ -75,6 +76,7 @@ class GraphLandmark:
     last_kf: int = 0
     cov_rel: FloatArray | None = None
     sights: list[tuple[int, Obs]] = field(default_factory=list)
+    first_kf: int = 0
 
 
 class ValueSink(Protocol):

@@ -163,6 +163,47 @@ class SlamResult:
         return {**self.__dict__, "graph": None}
 
 
+@dataclass
+class StepHistory:
+    """What a filter keeps of each step for its :class:`SlamResult`: time (s), pose
+    ``(x, y, theta)`` (3,), its covariance (3, 3), the step's wall time (s) and whether
+    it updated (the result's ``keyframes``)."""
+
+    times: list[float] = field(default_factory=list)
+    poses: list[FloatArray] = field(default_factory=list)
+    covs: list[FloatArray] = field(default_factory=list)
+    step_times: list[float] = field(default_factory=list)
+    updated: list[bool] = field(default_factory=list)
+
+    def add(self, t: float, pose: FloatArray, cov: FloatArray, dt: float, updated: bool) -> None:
+        """Record one step (the arrays are kept, not copied)."""
+        self.times.append(t)
+        self.poses.append(pose)
+        self.covs.append(cov)
+        self.step_times.append(dt)
+        self.updated.append(updated)
+
+    def result(self, backend: str, landmarks: list[LandmarkEstimate], status: str, *,
+               provisional: list[LandmarkEstimate] | None = None, n_pruned: int = 0,
+               pruned: dict[str, int] | None = None,
+               extra: dict[str, float] | None = None) -> SlamResult:
+        """The :class:`SlamResult` of the steps so far (the other fields as named there)."""
+        return SlamResult(
+            backend=backend,
+            times=np.asarray(self.times, float),
+            poses=np.asarray(self.poses, float).reshape(-1, 3),
+            pose_covs=np.asarray(self.covs, float).reshape(-1, 3, 3),
+            landmarks=landmarks,
+            step_times_s=np.asarray(self.step_times, float),
+            keyframes=np.asarray(self.updated, bool),
+            status=status,
+            n_pruned=n_pruned,
+            pruned=pruned or {},
+            extra=extra or {},
+            provisional=provisional or [],
+        )
+
+
 class SlamBackend(abc.ABC):
     """Common interface of the EKF, iSAM2 and batch backends.
 

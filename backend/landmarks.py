@@ -64,7 +64,7 @@ class LandmarkLifecycle(GraphState):
             self._next_id = max(self._next_id, lid + 1)
         oriented = obs.kind == "lamp" and obs.has_axis
         lm = GraphLandmark(lid, LandmarkKind(obs.kind), False, 1, state, cov, [(k, obs)], obs.patch, oriented, k,
-                       cov_meas[:3, :3])
+                       cov_meas[:3, :3], first_kf=k)
         self._landmarks[lid] = lm
         if lm.kind == "point2" and lid_given is None:
             self._planar_sightings.append((k, obs.z, obs.R, lid))

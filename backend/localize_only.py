@@ -72,6 +72,7 @@ from lampsam.backend.interface import (
     SlamBackend,
     SlamResult,
     StepEstimate,
+    StepHistory,
 )
 from lampsam.backend.map_frame import MapFrame
 from lampsam.backend.models import Obs, observations_from_frame
@@ -295,11 +296,7 @@ class MapLocalizer(SlamBackend):
         self._gate2 = config.association.gate(2)
         self._gate1 = config.association.gate(1)
         self._last_t = -math.inf
-        self._times: list[float] = []
-        self._poses: list[FloatArray] = []
-        self._covs: list[FloatArray] = []
-        self._step_times: list[float] = []
-        self._used: list[bool] = []
+        self._history = StepHistory()
         self.n_used = 0
         self.n_ignored = 0
         self.n_ambiguous = 0
@@ -535,26 +532,15 @@ class MapLocalizer(SlamBackend):
                 n_used = self._update(obs)
                 self.n_used += n_used
         dt = time.perf_counter() - t0
-        self._times.append(t)
-        self._poses.append(self.x.copy())
-        self._covs.append(self.P.copy())
-        self._step_times.append(dt)
-        self._used.append(n_used > 0)
+        self._history.add(t, self.x.copy(), self.P.copy(), dt, n_used > 0)
         return StepEstimate(t, self.x.copy(), self.P.copy(), n_used > 0, n_used, 0, dt)
 
     def finish(self, status: str = "ok") -> SlamResult:
         """The tracked poses; ``landmarks`` is the map, unchanged."""
         lms = [LandmarkEstimate(lm.id, LandmarkKind(lm.kind), lm.position.copy(), lm.phi,
                                 lm.state_cov(), lm.n_obs) for lm in self.cmap.landmarks]
-        return SlamResult(
-            backend=self.name,
-            times=np.asarray(self._times, float),
-            poses=np.asarray(self._poses, float).reshape(-1, 3),
-            pose_covs=np.asarray(self._covs, float).reshape(-1, 3, 3),
-            landmarks=lms,
-            step_times_s=np.asarray(self._step_times, float),
-            keyframes=np.asarray(self._used, bool),
-            status=status,
+        return self._history.result(
+            self.name, lms, status,
             extra={"observations_used": float(self.n_used),
                    "observations_ignored": float(self.n_ignored),
                    "observations_ambiguous": float(self.n_ambiguous),

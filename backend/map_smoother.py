@@ -340,7 +340,7 @@ class MapSmoother(SlamBackend):
         filter's, plus the frame estimate ``map_frame_*`` (m, rad) with its sigmas."""
         res = self.filter.finish(status)
         values = self.solve()
-        poses = np.array([pose_array(values, X(k + 1)) for k in range(self._k)]).reshape(-1, 3)
+        poses = np.array([pose_array(values.atPose2(X(k + 1))) for k in range(self._k)]).reshape(-1, 3)
         res.poses = poses
         res.backend = self.name
         res.extra["smoother_landmarks"] = float(len(self._landmarks))

@@ -13,7 +13,9 @@ at hand, so the factor is chosen from the data:
    sighting with its landmark (:func:`online_pass`);
 2. the batch graph of that association, always with the log's *stated* odometry
    covariance, is optimised and re-associated
-   (:func:`lampsam.backend.reassociate.refine`);
+   (:func:`lampsam.backend.reassociate.refine`), then single landmarks are merged and
+   split where that shortens the description length below
+   (:func:`lampsam.backend.landmark_moves.refine_by_cost`, ``[reassociation] cost_moves``);
 3. the candidates' answers are graphs of the same factors under the same noise and
    differ only in the association, so they are compared by one cost, a description
    length of the data (:func:`association_cost`):
@@ -55,6 +57,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import graph_log_steps
 from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
+from lampsam.backend.landmark_moves import Move, refine_by_cost
 from lampsam.backend.reassociate import (
     Pass,
     Sightings,
@@ -86,6 +89,8 @@ class OfflineRun:
         cost: :func:`association_cost`.
         online_cpu_s, batch_cpu_s: process CPU of the EKF pass and of the batch passes.
         graph, values: the final association's factor graph and its optimum.
+        moves: the description-length merges and splits after the passes
+            (:mod:`lampsam.backend.landmark_moves`; ``[reassociation] cost_moves``).
     """
 
     scale: float
@@ -103,6 +108,7 @@ class OfflineRun:
     batch_cpu_s: float
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
+    moves: list[Move] = dataclasses.field(default_factory=list)
 
     def mapped(self, min_observations: int = 2) -> dict[int, FloatArray]:
         """Landmarks with at least ``min_observations`` sightings."""
@@ -200,8 +206,9 @@ PassReport = Callable[[int, Pass, FloatArray, dict[int, FloatArray], Sightings],
 def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
                   report: PassReport | None = None) -> OfflineRun:
     """One candidate: the online pass at ``scale``, then the batch re-association with the
-    stated noise (``config.reassociation``; at least one pass). ``report`` is called with
-    the online pass's answer as pass 0, then after each accepted pass."""
+    stated noise (``config.reassociation``; at least one pass) and the description-length
+    moves. ``report`` is called with the online pass's answer as pass 0, then after each
+    accepted pass, then once after the moves (if any) as one more pass."""
     c0 = time.process_time()
     poses0, lms0, s = online_pass(g, config, scale)
     c1 = time.process_time()
@@ -215,12 +222,22 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
         lambda i, p, ps, lm: report(i, p, ps, lm, s))  # s.lid is updated in place
     graph, values, passes = refine(prior, odo, s, poses0, lms0, config.association.gate(2),
                                    config.association.new_threshold(2), rc, hook)
+    moves: list[Move] = []
+    if rc.cost_moves:
+        graph, values, moves = refine_by_cost(prior, odo, s, graph, values,
+                                              config.association.new_threshold(2),
+                                              rc.merge_radius)
+        if moves and report is not None:
+            merged = sum(m.kind == "merge" for m in moves)
+            report(len(passes) + 1, Pass(len(np.unique(s.lid)), merged, 0, 0,
+                                         float(graph.error(values))),
+                   *read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist()), s)
     poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist())
     co, cs, no, ns = group_chi2(graph, values)
     dropped = sum(len(x) for x in g.sightings) - len(s.k)
     cost = association_cost(co + cs, len(lms), dropped, config.association.new_threshold(2))
     return OfflineRun(scale, poses, lms, s, passes, co, cs, no, ns, dropped, cost, c1 - c0,
-                      time.process_time() - c1, graph, values)
+                      time.process_time() - c1, graph, values, moves)
 
 
 def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | None = None,
@@ -271,6 +288,8 @@ def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:
              "chi2_per_dof_odometry": best.chi2_odometry / max(best.dof_odometry, 1),
              "chi2_per_dof_sightings": best.chi2_sightings / max(best.dof_sightings, 1),
              "sightings_dropped": float(best.n_dropped),
+             "noids_merges": float(sum(m.kind == "merge" for m in best.moves)),
+             "noids_splits": float(sum(m.kind == "split" for m in best.moves)),
              **{f"noids_cost_q{r.scale:g}": r.cost for r in runs},
              "total_time_s": wall, "total_cpu_s": time.process_time() - c0}
     return SlamResult(

@@ -14,12 +14,8 @@ import gtsam
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.factors.geometry import coords_D_tangent, wrap_angle
-
-
-def pose_array(p: gtsam.Pose2) -> FloatArray:
-    """A ``gtsam.Pose2`` as a (3,) array ``(x, y, theta)``, m and rad, theta wrapped."""
-    return np.array([p.x(), p.y(), wrap_angle(p.theta())])
+from lampsam.factors.geometry import coords_D_tangent
+from lampsam.factors.gtsam_factors import pose_array as pose_array  # the one Pose2 -> array
 
 
 def tangent_to_coords_cov(pose: FloatArray, cov_t: FloatArray) -> FloatArray:

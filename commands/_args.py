@@ -30,6 +30,17 @@ def positive(text: str) -> float:
     return value
 
 
+def nonneg(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from exc
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
 def _integer(text: str) -> int:
     """An argparse value as an integer, or argparse's error naming the text."""
     try:

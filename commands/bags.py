@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lampsam.commands._args import add_force, output_dir
+from lampsam.commands._args import add_force, nonneg, output_dir, positive
 
 
 # --------------------------------------------------------------------------- ROS bags
@@ -50,9 +50,9 @@ def add_import_bag(sub: argparse._SubParsersAction) -> None:
                         "depth, scan, groundtruth, rig); NAME 'none' skips the kind; repeatable")
     p.add_argument("--wheel-joints", default=None, metavar="L,R",
                    help="odometry from sensor_msgs/JointState: the left and right wheel joints")
-    p.add_argument("--wheel-radius", type=float, default=None, help="wheel radius, m (with --wheel-joints)")
-    p.add_argument("--wheel-base", type=float, default=None, help="distance between the wheels, m")
-    p.add_argument("--k-wheel", type=float, default=None, help="wheel slip constant k_r = k_l, m")
+    p.add_argument("--wheel-radius", type=positive, default=None, help="wheel radius, m (with --wheel-joints)")
+    p.add_argument("--wheel-base", type=positive, default=None, help="distance between the wheels, m")
+    p.add_argument("--k-wheel", type=nonneg, default=None, help="wheel slip constant k_r = k_l, m")
     p.add_argument("--rig", default=None, help="rig.yaml to use instead of the bag's camera_info / tf")
     p.add_argument("--base-frame", default="base_link", help="robot body frame in tf (default base_link)")
     add_force(p)
@@ -63,7 +63,8 @@ def _cmd_export_bag(args: argparse.Namespace) -> int:
     from lampsam.datasets.rosbag_export import export_bag
 
     summary = export_bag(Path(args.run), Path(args.out), ros1=args.ros1, compressed=args.compressed,
-                         wheel_radius=args.wheel_radius, mcap=args.mcap)  # fmt: skip
+                         wheel_radius=args.wheel_radius, mcap=args.mcap,
+                         force=args.force)  # fmt: skip
     for topic, n in summary.counts.items():
         print(f"{topic}: {n} messages")
     print(f"bag written to {summary.path}")
@@ -80,6 +81,7 @@ def add_export_bag(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mcap", action="store_true", help="ROS2 storage MCAP instead of SQLite (.db3)")
     p.add_argument("--compressed", action="store_true",
                    help="images as sensor_msgs/CompressedImage (the run's PNG files)")
-    p.add_argument("--wheel-radius", type=float, default=0.05,
+    p.add_argument("--wheel-radius", type=positive, default=0.05,
                    help="wheel radius for the joint angles, m (default 0.05)")
+    add_force(p)
     p.set_defaults(func=_cmd_export_bag)

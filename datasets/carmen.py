@@ -60,6 +60,18 @@ INTEL_MAX_RANGE = 80.0
 #: Scan rate assumed when a log has no usable time stamps at all, Hz.
 NOMINAL_SCAN_RATE_HZ = 5.0
 
+#: Message names of the CARMEN logger and of logs written in its format: a log's
+#: records (non-comment lines) start with one of these.
+CARMEN_MESSAGES = frozenset({
+    "PARAM", "SYNC", "ODOM", "TRUEPOS", "FLASER", "RLASER", "LASER3", "LASER4",
+    "ROBOTLASER1", "ROBOTLASER2", "RAWLASER1", "RAWLASER2", "RAWLASER3", "RAWLASER4",
+    "REMISSIONFLASER", "REMISSIONRLASER", "NEFF", "SONAR", "BUMPER", "SCANMARK",
+    "POSITIONLASER", "IMU", "GPSNMEA", "NMEAGGA", "NMEARMC", "ROBOTVELOCITY",
+    "BASEVELOCITY", "VECTORMOVE",
+})
+#: Records looked at to recognise a log (:func:`sniff_carmen`).
+SNIFF_RECORDS = 50
+
 
 @dataclass(frozen=True)
 class LaserScans:
@@ -370,6 +382,48 @@ def _is_gzip(path: Path) -> bool:
             return fh.read(2) == b"\x1f\x8b"
     except OSError as exc:
         raise DatasetError(f"cannot read: {exc.strerror or exc}", path=path) from exc
+
+
+def _head_records(path: Path, n: int) -> list[str]:
+    """The first ``n`` records (non-blank lines not starting with ``#``) of a text file,
+    gzip-compressed or not (the magic bytes decide), from its first 64 KiB.
+
+    Raises:
+        DatasetError: unreadable, or a gzip stream that does not decompress.
+    """
+    try:
+        with (gzip.open(path, "rb") if _is_gzip(path) else open(path, "rb")) as fh:
+            head = fh.read(65536)
+    except (OSError, EOFError) as exc:
+        raise DatasetError(f"cannot read: {getattr(exc, 'strerror', None) or exc}", path=path) from exc
+    text = head.decode("utf-8", errors="replace").lstrip("\ufeff")
+    records = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    return records[:n]
+
+
+def sniff_carmen(path: str | Path) -> tuple[bool, str]:
+    """Whether a file is a CARMEN log, by its content (whatever its name or suffix).
+
+    It is when one of its first :data:`SNIFF_RECORDS` records starts with a CARMEN
+    message name (:data:`CARMEN_MESSAGES`: ``PARAM``, ``ODOM``, ``FLASER``,
+    ``ROBOTLASER1``...); ``#`` comments and blank lines are skipped, gzip is read
+    through.
+
+    Returns:
+        ``(is_carmen, found)``: ``found`` says what the file starts with, for a
+        message (``"its first record is 'VERTEX_SE2 0 0 0 0'"``, ``"no records
+        (empty, or comments only)"``).
+
+    Raises:
+        DatasetError: the file cannot be read.
+    """
+    path = Path(path)
+    records = _head_records(path, SNIFF_RECORDS)
+    if not records:
+        return False, "no records (empty, or comments only)"
+    is_carmen = any(r.split()[0] in CARMEN_MESSAGES for r in records)
+    first = records[0] if len(records[0]) <= 60 else records[0][:57] + "..."
+    return is_carmen, f"its first record is {first!r}"
 
 
 def read_carmen(path: str | Path, max_range: float | None = None, strict_time: bool = False,

@@ -62,7 +62,7 @@ from lampsam.datasets.ros_messages import (
     quaternion_xyzw,
 )
 from lampsam.errors import DatasetError
-from lampsam.safe_io import TMP_PREFIX
+from lampsam.safe_io import TMP_PREFIX, check_output_dir, check_output_file
 
 log = logging.getLogger(__name__)
 
@@ -277,29 +277,34 @@ def compose_pose2(odo: Pose2OdometryLog) -> tuple[np.ndarray, np.ndarray]:
 
 def export_bag(
     run_dir: str | Path, out: str | Path, ros1: bool = False, compressed: bool = False,
-    wheel_radius: float = 0.05, mcap: bool = False,
+    wheel_radius: float = 0.05, mcap: bool = False, force: bool = False,
 ) -> ExportSummary:
     """Write the run at ``run_dir`` as a bag (topics in the module docstring).
 
     Args:
         run_dir: a logged run (:func:`lampsam.datasets.logrun.read_run`).
-        out: ROS1: the ``.bag`` file; ROS2: the bag directory (must not exist).
+        out: ROS1: the ``.bag`` file; ROS2: the bag directory (absent or empty).
         ros1: write ROS1 (Noetic) instead of ROS2 (Humble, CDR).
         compressed: images as ``CompressedImage`` holding the run's PNG files.
         wheel_radius: radius used to turn wheel travel into joint angles, m.
         mcap: ROS2 storage MCAP instead of SQLite 3 (``.db3``).
+        force: as every writer's ``--force``
+            (:func:`lampsam.safe_io.check_output_file` / ``check_output_dir``): ROS1
+            replaces an existing file; ROS2 writes into a non-empty directory,
+            replacing the files of the same names (``metadata.yaml`` last, so the
+            bag reads whole or as before until the last rename; other files stay).
 
     Raises:
-        DatasetError: unreadable run, or ``out`` exists already.
+        DatasetError: unreadable run.
+        InputError: ``out`` exists without ``force`` (the other writers' message),
+            or is a directory where a file belongs (ROS1) or the reverse (ROS2).
     """
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
 
+    out = check_output_file(out, force) if ros1 else check_output_dir(out, force)
     run = read_run(run_dir)
-    out = Path(out)
-    if out.exists():
-        raise DatasetError("bag exists already (not overwriting)", out)
     if not wheel_radius > 0:
         raise DatasetError(f"wheel radius must be positive, got {wheel_radius}")
     store = typestore_for(ros1)
@@ -329,7 +334,12 @@ def export_bag(
             meta = tmp / "metadata.yaml"
             meta.write_text(meta.read_text(encoding="utf-8").replace(tmp.name, out.name),
                             encoding="utf-8")
-        os.replace(tmp, out)
+            if out.is_dir() and any(out.iterdir()):  # --force: into the directory
+                for f in sorted(tmp.iterdir(), key=lambda f: f.name == meta.name):
+                    os.replace(f, out / f.name)
+                tmp.rmdir()
+        if tmp.exists():
+            os.replace(tmp, out)  # a ROS1 file over the old one; a ROS2 bag over an empty dir
     except BaseException:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)

@@ -17,7 +17,7 @@ order. Times are seconds, lengths metres, angles radians (``docs/conventions.md`
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,6 +113,12 @@ class Trajectory:
         return out
 
 
+def lamp_mask(types: Sequence[str]) -> BoolArray:
+    """(L,) True where a landmark type names a lamp (``lamp``, ``lamp_rect``, ``lamp_round``,
+    ``lamp_square``...: any type starting with ``lamp``); corners and the rest False."""
+    return np.array([str(t).startswith("lamp") for t in types], dtype=bool)
+
+
 @dataclass(frozen=True, eq=False)
 class LandmarkTable:
     """True landmarks of a world.
@@ -146,8 +152,8 @@ class LandmarkTable:
         return int(hits[0])
 
     def is_lamp(self) -> BoolArray:
-        """(L,) True for lamps."""
-        return np.array([t.startswith("lamp") for t in self.types], dtype=bool)
+        """(L,) True for lamps (:func:`lamp_mask`)."""
+        return lamp_mask(self.types)
 
     def select(self, mask: BoolArray) -> LandmarkTable:
         """The rows where ``mask`` is True."""

@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import FloatArray
+from lampsam.config_loader import parse_yaml
 from lampsam.errors import DatasetError
 
 FieldParser = Callable[[str, Path, int, str], Any]
@@ -27,10 +28,14 @@ FieldParser = Callable[[str, Path, int, str], Any]
 
 
 def read_yaml(path: Path) -> Any:
-    """Parse a YAML file, or DatasetError naming it (one line: problem, line and column)."""
+    """Parse a YAML file, or DatasetError naming it (one line: problem, line and column).
+
+    A key given twice in one mapping is an error (:func:`lampsam.config_loader.parse_yaml`;
+    PyYAML alone keeps the last value silently).
+    """
     text = read_text(path)
     try:
-        return yaml.safe_load(text)
+        return parse_yaml(text)
     except yaml.YAMLError as exc:
         line = None
         mark = getattr(exc, "problem_mark", None)

@@ -19,6 +19,7 @@ Modules:
 * :mod:`~lampsam.evaluation.demo` -- The demo job (``lampsam demo`` / ``make demo``): the main job on the built-in world.
 * :mod:`~lampsam.evaluation.fleet` -- Run many independent jobs: a local process pool, or a Dask ``distributed`` cluster.
 * :mod:`~lampsam.evaluation.frontend_eval` -- The ceiling frontend measured against truth.
+* :mod:`~lampsam.evaluation.frontend_synthetic` -- A small independent renderer of ceiling images with truth, for the frontend's tests.
 * :mod:`~lampsam.evaluation.gallery` -- Overlay gallery of the ceiling frontend on real photos (``lampsam gallery``).
 * :mod:`~lampsam.evaluation.laser_trials` -- Laser global-localization trials on a CARMEN log, scored against its corrected poses.
 * :mod:`~lampsam.evaluation.live` -- Live view of a run in Rerun (``--rerun [FILE.rrd | ADDRESS]`` on ``slam``, ``localize``, ``stereo``).

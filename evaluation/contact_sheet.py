@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from lampsam.datasets.logrun import LoggedRun, ProjectionTable, read_run
+from lampsam.datasets.tables import lamp_mask
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -48,7 +49,7 @@ def plot_frame(
     """
     h, w = image.shape
     artists: list[Any] = [ax.imshow(image, cmap="gray", vmin=0, vmax=255, interpolation="nearest")]
-    is_lamp = np.array([t.startswith("lamp") for t in truth.types], dtype=bool)
+    is_lamp = lamp_mask(truth.types)
     corners = ~is_lamp & truth.visible
     if corners.any():
         artists.append(

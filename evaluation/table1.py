@@ -132,7 +132,7 @@ class OfficeWorld:
         rect = np.array([str(k) == "lamp_rect" for k in lm.types])
         ceiling = CeilingLandmarkSensor(
             np.asarray(lm.xyz, dtype=float),
-            np.array([str(k).startswith("lamp") for k in lm.types]),
+            lm.is_lamp(),
             np.where(rect, np.asarray(lm.phi, dtype=float), np.nan),
             body_t_cam,
             cam,

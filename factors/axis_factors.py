@@ -72,7 +72,7 @@ def lamp_axis_factor(
     meas = float(alpha)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
-        pose = pose_array(values, this.keys()[0])
+        pose = pose_array(values.atPose2(this.keys()[0]))
         phi = values.atRot2(this.keys()[1]).theta()
         r, r_D_pose, r_D_phi = lamp_axis_residual(pose, phi, meas)
         if H is not None:
@@ -115,7 +115,7 @@ def lamp_axis_frame_factor(
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
         ks = this.keys()
-        pose = pose_array(values, ks[0])
+        pose = pose_array(values.atPose2(ks[0]))
         res = np.empty(n)
         d_pose = np.zeros((n, 3))
         d_phi = np.empty(n)

@@ -124,10 +124,15 @@ __all__ = [
 LOOSE_SIGMA = 1.0e3
 
 
-def pose_array(values: gtsam.Values, key: int) -> FloatArray:
-    """(3,) ``(x, y, theta)`` of the ``Pose2`` stored under ``key``."""
-    p = values.atPose2(key)
-    return np.array([p.x(), p.y(), p.theta()])
+def pose_array(p: gtsam.Pose2) -> FloatArray:
+    """A ``gtsam.Pose2`` as a (3,) array ``(x, y, theta)``, m and rad, theta in ``(-pi, pi]``.
+
+    GTSAM's ``Rot2.theta()`` is ``atan2(sin, cos)``, already in ``[-pi, pi]``; only
+    ``-pi`` is mapped to ``pi`` (docs/conventions.md), so every other angle is GTSAM's
+    to the bit. For a value in a ``gtsam.Values``: ``pose_array(values.atPose2(key))``.
+    """
+    theta = p.theta()
+    return np.array([p.x(), p.y(), math.pi if theta == -math.pi else theta])
 
 
 def _positive_definite(sym: FloatArray) -> bool:
@@ -411,7 +416,7 @@ def bearing_range_factor(
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
         ks = this.keys()
-        z, z_D_pose, z_D_lm = range_bearing(pose_array(values, ks[0]), values.atPoint2(ks[1]), off)
+        z, z_D_pose, z_D_lm = range_bearing(pose_array(values.atPose2(ks[0])), values.atPoint2(ks[1]), off)
         if H is not None:
             H[0], H[1] = z_D_pose, z_D_lm
         r = z - meas

@@ -101,7 +101,7 @@ def inverse_depth_factor(
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
         ks = this.keys()
         pred, j_pose, j_anchor, j_idp = project_inverse_depth(
-            pose_array(values, ks[0]), pose_array(values, ks[1]), values.atVector(ks[2]), off
+            pose_array(values.atPose2(ks[0])), pose_array(values.atPose2(ks[1])), values.atVector(ks[2]), off
         )
         if H is not None:
             H[0], H[1], H[2] = j_pose, j_anchor, j_idp
@@ -159,8 +159,8 @@ def inverse_depth_frame_factor(
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: Any) -> FloatArray:
         ks = this.keys()
-        pose = pose_array(values, ks[0])
-        anchors = np.stack([pose_array(values, ks[1 + u]) for u in range(n_anchor)])[which_anchor]
+        pose = pose_array(values.atPose2(ks[0]))
+        anchors = np.stack([pose_array(values.atPose2(ks[1 + u])) for u in range(n_anchor)])[which_anchor]
         idps = np.stack([values.atVector(ks[1 + n_anchor + i]) for i in range(n)])
         pred, j_pose, j_anchor, j_idp = project_inverse_depth_batch(pose, anchors, idps, off)
         e = np.einsum("kij,kj->ki", whiten, pred - meas)

@@ -24,6 +24,7 @@ Modules:
 * :mod:`~lampsam.frontend.measurements` -- Frozen measurement dataclasses: what the frontend hands to the backends.
 * :mod:`~lampsam.frontend.pipeline` -- The ceiling frontend: one grey image in, one :class:`CeilingFrame` out.
 * :mod:`~lampsam.frontend.resolution` -- The working resolution of a high-resolution photo, chosen from what the lamp detector must resolve.
+* :mod:`~lampsam.frontend.saturated_edges` -- Coverage of the edge pixels of saturated lamps: a clipped pixel is not a covered pixel.
 * :mod:`~lampsam.frontend.second_look` -- A second, finer look inside lamp blobs that are long for their frame (two lamps end to end).
 * :mod:`~lampsam.frontend.stereo_tracking` -- Corner tracking and left-right matching on rectified stereo sequences (KITTI).
 * :mod:`~lampsam.frontend.threshold` -- The lamp threshold ``k`` of paper 1, eq. 1, chosen per image from its grey-level histogram.

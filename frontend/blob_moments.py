@@ -13,7 +13,8 @@ around the blob and ``top`` the median inside it. On an anti-aliased (area
 sampled) edge the grey level is ``bg + coverage (top - bg)``, so ``w`` is the
 fraction of the pixel the lamp covers and the weighted centroid is the true
 area centroid. A pixel's coverage is spread uniformly over it, so the shape
-moments gain the pixel-box term 1/12 px^2.
+moments gain the pixel-box term 1/12 px^2. A lamp above full scale breaks the
+linear reading at its edges: :mod:`lampsam.frontend.saturated_edges` (all-blob path).
 
 Uncertainty (first-order propagation of independent grey-level noise
 ``sigma_n`` through the weights; only unclipped pixels, ``0 < w < 1``, carry
@@ -65,6 +66,7 @@ from lampsam.frontend.label_stats import (
     lower_median_rank,
 )
 from lampsam.frontend.lamp_config import LampDetectorConfig
+from lampsam.frontend.saturated_edges import FULL_SCALE, label_edge_weights
 
 
 @dataclass(frozen=True)
@@ -498,7 +500,12 @@ def measure_labels(
     lab = reach.sup.take(sup)
     xy = reach.xy.take(sup, axis=1)
     level = np.array([bg, span_safe]).take(lab, axis=1)
-    wv = ((reach.grey.take(sup) - level[0]) / level[1]).clip(0.0, 1.0)
+    grey_sup = reach.grey.take(sup)
+    wv = ((grey_sup - level[0]) / level[1]).clip(0.0, 1.0)
+    free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)  # the pixels carrying the noise
+    if config.saturated_edges:  # edge pixels of saturated lamps (frontend.saturated_edges)
+        wv = label_edge_weights(wv, grey_sup, xy, lab, (top >= FULL_SCALE - 1) & ok, bg,
+                                3.0 * sigma_n / span_safe, config.saturated_edge_min_steps)
     wxy = wv * xy
     s0, sx, sy = label_sums(groups, np.array([wv, wxy[0], wxy[1]]), n)
     s0 = np.maximum(s0, 1e-12)
@@ -507,7 +514,6 @@ def measure_labels(
     q = np.empty((3, d.shape[1]))  # dx^2, dx dy, dy^2 (no fancy-indexed copies of d)
     np.multiply(d[0], d, out=q[:2])
     np.multiply(d[1], d[1], out=q[2])
-    free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)
     sums = label_sums(groups, np.concatenate([wv * q, free * q]), n)
     a, b, c = sums[:3] / s0
     fxx, fxy, fyy = sums[3:]

@@ -72,6 +72,11 @@ class LampDetectorConfig:
             candidate (default 0.85).
         jacobian_step_px: step of the central differences for ``dm/dpx``
             (default 0.5 px).
+        saturated_edges: read the edge pixels of saturated lamps with the clip
+            coverage measured on the image (:mod:`lampsam.frontend.saturated_edges`;
+            default True; False: the coverage weights as read).
+        saturated_edge_min_steps: fewest clipped-to-background steps on an image
+            for the clip coverage to be measured (default 16).
     """
 
     threshold: int | None = None
@@ -95,6 +100,8 @@ class LampDetectorConfig:
     sigma_axis_floor: float = 0.002
     min_fill: float = 0.85
     jacobian_step_px: float = 0.5
+    saturated_edges: bool = True
+    saturated_edge_min_steps: int = 16
 
 
 DEFAULT_CONFIG = LampDetectorConfig()  # frozen: one shared instance

@@ -34,6 +34,7 @@ import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.datasets.logrun import LandmarkTable
+from lampsam.datasets.tables import lamp_mask
 from lampsam.errors import DatasetError, LocalizationError
 from lampsam.safe_io import atomic_path
 
@@ -76,8 +77,8 @@ class CeilingFeatureMap:
         return int(len(self.ids))
 
     def is_lamp(self) -> BoolArray:
-        """(L,) True for lamps (any type starting with ``lamp``)."""
-        return np.array([t.startswith("lamp") for t in self.types], dtype=bool)
+        """(L,) True for lamps (:func:`lampsam.datasets.tables.lamp_mask`)."""
+        return lamp_mask(self.types)
 
     def save(self, path: str | Path) -> Path:
         """Write ``ceiling_features.csv`` (module docstring)."""

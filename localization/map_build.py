@@ -7,8 +7,8 @@ It runs in named stages:
 1. :func:`detect_source`: what ``run`` is;
 2. the layers of that source:
 
-   - :func:`laser_layers`: a CARMEN laser log (``*.log``/``*.log.gz``, e.g. the Intel
-     lab): the scans at the log's corrected poses (or ``slam:PATH``) -> grid map only
+   - :func:`laser_layers`: a CARMEN laser log (known by its records, e.g. the Intel
+     lab's ``*.log.gz``): the scans at the log's corrected poses (or ``slam:PATH``) -> grid map only
      (``laser_grid.py``);
    - :func:`depth_layers`: a simulated/logged run with ``kinect/`` (TUM RGB-D), a TUM
      RGB-D directory or the slambook2 sample: depth frames placed with the mapping
@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.datasets.carmen import sniff_carmen
 from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.localization.ceiling_map import CeilingFeatureMap
 from lampsam.localization.depth_grid import build_depth_layers
@@ -110,20 +111,25 @@ def detect_source(run: Path) -> tuple[str, Path]:
     """Kind of input and the path to read.
 
     Args:
-        run: a CARMEN log file, or a directory: with ``kinect/`` (a run), slambook2
-            (``pose.txt`` + ``color/``), TUM RGB-D (``rgb.txt`` + ``depth.txt``), or
-            holding exactly one CARMEN log.
+        run: a CARMEN log file (recognised by its content:
+            :func:`lampsam.datasets.carmen.sniff_carmen`, whatever its name), or a
+            directory: with ``kinect/`` (a run), slambook2 (``pose.txt`` + ``color/``),
+            TUM RGB-D (``rgb.txt`` + ``depth.txt``), or holding exactly one
+            ``*.log``/``*.log.gz`` CARMEN log.
 
     Returns:
         ``(kind, path)`` with kind ``run``, ``slambook2``, ``tum_rgbd`` or ``laser``.
 
     Raises:
-        EnvMapError: none of these.
+        EnvMapError: none of these (a file: naming what it starts with).
+        DatasetError: a file that cannot be read.
     """
     if run.is_file():
-        if ".log" in run.name:
+        is_carmen, found = sniff_carmen(run)
+        if is_carmen:
             return "laser", run
-        raise EnvMapError(f"{run}: not a run directory or a CARMEN log")
+        raise EnvMapError(f"{run}: not a run directory or a CARMEN log: {found} (a CARMEN "
+                          "log's lines start with PARAM, ODOM, FLASER, ROBOTLASER1, ...)")
     if not run.is_dir():
         raise EnvMapError(f"{run}: not found")
     if (run / "kinect").is_dir():

@@ -132,7 +132,7 @@ def test_slam_config_from_toml_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"bad\.toml: isam2\.keyframe_distance: must be >= 0"):
         load_config(SlamConfig, bad)
     table = _write(tmp_path, "table.toml", "[isam3]\nx = 1\n")
-    with pytest.raises(ConfigError, match=r"table\.toml: isam3: unknown key \(did you mean 'isam2'"):
+    with pytest.raises(ConfigError, match=r"table\.toml: isam3: unknown table \(did you mean 'isam2'"):
         load_config(SlamConfig, table)
 
 
@@ -170,6 +170,112 @@ def test_unreadable_files(tmp_path: Path, name: str, text: str | None, words: st
         read_table_file(tmp_path / "missing.toml")
 
 
+@pytest.mark.parametrize(
+    ("name", "text", "key", "words"),
+    [
+        ("inf.toml", "[isam2]\nkeyframe_distance = inf\n", "isam2.keyframe_distance",
+         "must be finite, got inf"),
+        ("minus.toml", "[ekf]\nsigma_start_xy = -inf\n", "ekf.sigma_start_xy", "must be finite, got -inf"),
+        ("overflow.toml", "[batch]\nrelative_error_tol = 1e400\n", "batch.relative_error_tol",
+         "must be finite, got inf"),
+        ("nan.toml", "[ekf]\nvar_floor = nan\n", "ekf.var_floor", "must be a number, got nan"),
+        ("inf.yaml", "association:\n  prune_sigma: .inf\n", "association.prune_sigma",
+         "must be finite, got inf"),
+        ("optional.toml", "[isam2]\ncorner_huber_k = inf\n", "isam2.corner_huber_k", "must be finite"),
+        ("element.toml", "[reassociation]\nscales = [1.0, inf]\n", "reassociation.scales",
+         "element 1: must be finite, got inf"),
+        ("nolimits.toml", "[frontend.lamps]\nthin_width_px = inf\n", "frontend.lamps.thin_width_px",
+         "must be finite, got inf"),
+    ],
+)
+def test_infinite_and_nan_values_are_refused_by_key(
+    tmp_path: Path, name: str, text: str, key: str, words: str
+) -> None:
+    """``inf`` (and ``-inf``, a TOML ``1e400`` that overflows to it, YAML ``.inf``) and
+    ``nan`` are refused with the file and the dotted key, in a plain float, an optional
+    float, an array element and a field that declares no limits."""
+    from lampsam.frontend.pipeline import FrontendConfig
+
+    path = _write(tmp_path, name, text)
+    cls, table = (FrontendConfig, "frontend") if name == "nolimits.toml" else (SlamConfig, None)
+    with pytest.raises(ConfigError) as info:
+        load_config(cls, path, table=table)  # type: ignore[type-var]
+    assert str(info.value) == f"{path}: {key}: {words}" or (
+        str(info.value).startswith(f"{path}: {key}: ") and words in str(info.value)), info.value
+
+
+def test_inf_where_it_means_never(tmp_path: Path) -> None:
+    """Fields declared ``limits(finite=False)`` take ``inf``: iSAM2's relinearisation
+    thresholds (never relinearise) and the re-association's ``switch`` (default inf);
+    objects built in Python are held to the same rule."""
+    path = _write(tmp_path, "never.toml", "[isam2]\nrelinearize_threshold = inf\n"
+                                           "lamp_relinearize_threshold = inf\n"
+                                           "[reassociation]\nswitch = inf\n")
+    cfg = load_config(SlamConfig, path)
+    assert cfg.isam2.relinearize_threshold == float("inf")
+    assert cfg.isam2.lamp_relinearize_threshold == float("inf")
+    assert cfg.reassociation.switch == float("inf") == SlamConfig().reassociation.switch
+    with pytest.raises(FieldValueError, match="keyframe_distance: must be finite, got inf"):
+        Isam2Config(keyframe_distance=float("inf"))
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "words"),
+    [
+        ("key.toml", "[ekf]\nvar_floor = 1e-9\nvar_floor = 1e-8\n",
+         "invalid TOML, line 3 ('var_floor = 1e-8', column 17): Cannot overwrite a value: "
+         "a key or table given twice"),
+        ("table.toml", "[ekf]\nvar_floor = 1e-9\n[isam2]\n[ekf]\n",
+         "invalid TOML, line 4 ('[ekf]', column 5): Cannot declare ('ekf',) twice: "
+         "a key or table given twice"),
+        ("key.yaml", "ekf:\n  var_floor: 1.0e-9\n  var_floor: 1.0e-8\n",
+         "invalid YAML (line 3): key 'var_floor' given twice (first on line 2)"),
+        ("table.yaml", "ekf: {}\nisam2: {}\nekf:\n  var_floor: 1.0e-8\n",
+         "invalid YAML (line 3): key 'ekf' given twice (first on line 1)"),
+    ],
+)
+def test_key_or_table_given_twice(tmp_path: Path, name: str, text: str, words: str) -> None:
+    """A key or table given twice is refused naming the file and the line (PyYAML alone
+    keeps the last value silently)."""
+    path = _write(tmp_path, name, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(SlamConfig, path)
+    assert str(info.value) == f"{path}: {words}"
+
+
+def test_yaml_merge_keys_still_override(tmp_path: Path) -> None:
+    """YAML merge keys (``<<``) are not repeated keys: an explicit key overrides a merged one."""
+    path = _write(tmp_path, "merge.yaml", "base: &b {var_floor: 1.0e-9, update_iterations: 2}\n")
+    doc = read_table_file(path)
+    assert doc["base"]["update_iterations"] == 2
+    from lampsam.config_loader import parse_yaml
+
+    assert parse_yaml("a: &a {x: 1, y: 2}\nb:\n  <<: *a\n  y: 3\n")["b"] == {"x": 1, "y": 3}
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "words"),
+    [
+        ("[isam2.relinearize_threshold]\nx = 1\n", "isam2.relinearize_threshold",
+         "must be a number, got a table"),
+        ("[ekf]\nupdate_iterations = { n = 2 }\n", "ekf.update_iterations",
+         "must be an integer, got a table"),
+        ("isam2 = 0.1\n", "isam2", "must be a table, got a float"),
+        ("[isam3]\nx = 1\n", "isam3", "unknown table (did you mean 'isam2'?)"),
+        ("[isam2.extra]\nx = 1\n", "isam2.extra", "unknown table"),
+    ],
+)
+def test_table_where_a_value_belongs_and_unknown_tables(
+    tmp_path: Path, text: str, key: str, words: str
+) -> None:
+    """A table given for a value, a value for a table and an unknown table are each
+    refused naming the dotted key."""
+    path = _write(tmp_path, "cfg.toml", text)
+    with pytest.raises(ConfigError) as info:
+        load_config(SlamConfig, path)
+    assert str(info.value).startswith(f"{path}: {key}: ") and words in str(info.value), info.value
+
+
 def test_plain_numbers() -> None:
     """Numbers in messages print as plain numbers, never ``np.float64(...)``."""
     assert plain(np.float64(5.0)) == "5.0"
@@ -196,6 +302,9 @@ def test_plain_numbers() -> None:
          "stereo.gate_chi2"),
         (["kinect-sim", "office", "--out", "OUT"], "[kinect]\nwidth = 320.5\n", "kinect.width"),
         (["frontend-eval", "RUN"], "[frontend.lamps]\nno_such_key = 1\n", "frontend.lamps.no_such_key"),
+        (["slam", "RUN", "--out", "OUT"], "[isam2]\nkeyframe_angle = inf\n", "isam2.keyframe_angle"),
+        (["stereo", "RUN", "--estimator", "ekf", "--out", "OUT"], "[stereo]\nmin_depth = inf\n",
+         "stereo.min_depth"),
     ],
 )
 def test_cli_config_errors_name_key_and_file(

@@ -15,12 +15,8 @@ import pytest
 from lampsam.angles import wrap_axis
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import FrontendError, LampsamError
-from lampsam.evaluation.frontend_eval import (
-    SyntheticScene,
-    evaluate_frames,
-    render_view,
-    synthetic_sequence,
-)
+from lampsam.evaluation.frontend_eval import evaluate_frames
+from lampsam.evaluation.frontend_synthetic import SyntheticScene, render_view, synthetic_sequence
 from lampsam.frontend.blob_moments import measure_region
 from lampsam.frontend.ceiling_coords import (
     ceiling_jacobians,

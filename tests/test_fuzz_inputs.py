@@ -196,12 +196,20 @@ def test_slam_duration_without_mrclam(tiny_run: Path, tmp_path: Path,
         ["compare", "lab", "--out", "OUT", "--workers", "0"],
         ["build-map", "RUN", "--out", "OUT", "--resolution", "0"],
         ["simulate", "lab", "--out", "OUT", "--seed", "-1"],
+        ["export-bag", "RUN", "--out", "OUT", "--wheel-radius", "inf"],
+        ["export-bag", "RUN", "--out", "OUT", "--wheel-radius", "0"],
+        ["import-bag", "RUN", "--out", "OUT", "--wheel-joints", "l,r", "--wheel-radius", "nan"],
+        ["import-bag", "RUN", "--out", "OUT", "--wheel-base", "-0.4"],
+        ["import-bag", "RUN", "--out", "OUT", "--k-wheel", "-1e-5"],
+        ["import-bag", "RUN", "--out", "OUT", "--k-wheel", "inf"],
     ],
 )
 def test_bad_numbers_on_the_command_line(tiny_run: Path, tmp_path: Path,
                                          capsys: pytest.CaptureFixture[str],
                                          argv: list[str]) -> None:
-    """Negative or zero durations, seeds, workers, resolutions: usage errors (exit 2)."""
+    """Negative or zero durations, seeds, workers, resolutions, wheel radii and bases, and
+    infinite or negative wheel slip constants: usage errors (exit 2). The bag commands took
+    any float (a NaN radius or inf slip reached the library)."""
     args = [str(tiny_run) if a == "RUN" else str(tmp_path / "out") if a == "OUT" else a
             for a in argv]
     with pytest.raises(SystemExit) as info:

@@ -171,6 +171,17 @@ def test_yaml_error_is_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(info.value)
 
 
+def test_yaml_key_given_twice_names_both_lines(tmp_path: Path) -> None:
+    """A calibration with ``image_width`` twice was read with the last value; now an error
+    naming the file, the second line and the first."""
+    p = tmp_path / "cam.yaml"
+    p.write_text("image_width: 320\nimage_height: 240\nimage_width: 640\n")
+    with pytest.raises(DatasetError) as info:
+        calibration.read_calibration(p)
+    assert str(info.value) == (f"{p}:3: invalid YAML: key 'image_width' given twice "
+                               "(first on line 1) (column 1)")
+
+
 def test_slambook2_empty_pose_file(tmp_path: Path) -> None:
     from lampsam.datasets.rgbd import read_slambook2
 

@@ -22,8 +22,9 @@ from lampsam.backend.gating import RELATIVE_GATE_KEYFRAMES, Gating
 from lampsam.backend.graph import Isam2Slam
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
-from lampsam.backend.pose_cov import compose_cov, pose_array
+from lampsam.backend.pose_cov import compose_cov
 from lampsam.backend.slam import drive, iter_steps
+from lampsam.factors.gtsam_factors import pose_array
 from tests.test_backend import ceiling_world
 
 

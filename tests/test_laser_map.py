@@ -11,7 +11,7 @@ import pytest
 from lampsam.cli import main
 from lampsam.datasets.carmen import flaser_beam_angles
 from lampsam.localization.grid import occupied_mask
-from lampsam.localization.map_build import build_map
+from lampsam.localization.map_build import build_map, detect_source
 from lampsam.localization.map_config import EnvMapConfig, LaserGridConfig
 from lampsam.localization.map_store import EnvMapError, load_env_map
 from lampsam.localization.map_tables import (
@@ -87,6 +87,54 @@ def test_too_few_scans_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[
     (rgbd / "depth.txt").write_text("")
     with pytest.raises(EnvMapError, match="laser logs only"):
         build_map(rgbd, tmp_path / "m4", scans="even")
+
+
+def test_a_renamed_log_is_known_by_its_content(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """``build-map`` took a file for a CARMEN log only when its name held ``.log``: a
+    ``.clf`` (or gzip'd and renamed) log was refused. Now the records decide: the same
+    grid from ``room.log``, ``room.clf`` and a gzip'd ``room.dat`` (comments and a
+    ``PARAM`` line first)."""
+    import gzip
+
+    log = _room_log(tmp_path / "room.log", 24)
+    text = "# message formats defined: PARAM ODOM FLASER\nPARAM robot_frontlaser_offset 0.0\n"
+    clf = tmp_path / "room.clf"
+    clf.write_text(text + log.read_text())
+    dat = tmp_path / "room.dat"
+    dat.write_bytes(gzip.compress(clf.read_bytes()))
+    assert detect_source(clf) == ("laser", clf) and detect_source(dat) == ("laser", dat)
+    assert main(["build-map", str(log), "--out", str(tmp_path / "m0")]) == 0
+    assert main(["build-map", str(dat), "--out", str(tmp_path / "m1")]) == 0
+    assert "(laser, 24 frames" in capsys.readouterr().out
+    np.testing.assert_array_equal(load_env_map(tmp_path / "m1").grid.log_odds,
+                                  load_env_map(tmp_path / "m0").grid.log_odds)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "found"),
+    [
+        ("graph.log", b"VERTEX_SE2 0 0.0 0.0 0.0\nEDGE_SE2 0 1 1.0 0 0 1 0 0 1 0 1\n",
+         "its first record is 'VERTEX_SE2 0 0.0 0.0 0.0'"),
+        ("poses.txt", b"# tum\n0.0 1 2 0 0 0 0 1\n", "its first record is '0.0 1 2 0 0 0 0 1'"),
+        ("empty.log", b"# nothing\n\n", "no records (empty, or comments only)"),
+    ],
+)
+def test_a_file_that_is_no_log_says_what_it_holds(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str, content: bytes, found: str
+) -> None:
+    """A file that is no CARMEN log (even named ``.log``) is refused naming the file and
+    what its first record is, exit 2 and no map written."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(EnvMapError) as info:
+        detect_source(path)
+    assert str(info.value) == (f"{path}: not a run directory or a CARMEN log: {found} (a CARMEN "
+                               "log's lines start with PARAM, ODOM, FLASER, ROBOTLASER1, ...)")
+    assert main(["build-map", str(path), "--out", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err
+    assert found in err and "Traceback" not in err
+    assert not (tmp_path / "m" / "manifest.yaml").exists()
 
 
 def test_stored_range_table_is_loaded_only_for_its_grid(tmp_path: Path) -> None:

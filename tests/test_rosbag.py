@@ -22,7 +22,7 @@ from lampsam.datasets.odometry import (
 )
 from lampsam.datasets.rosbag_export import export_bag, typestore_for
 from lampsam.datasets.rosbag_import import ImportOptions, import_bag
-from lampsam.errors import DatasetError
+from lampsam.errors import DatasetError, InputError
 
 JOINTS = ("left_wheel_joint", "right_wheel_joint")
 
@@ -330,7 +330,7 @@ def test_errors_list_topics(sim_run: Path, tmp_path: Path) -> None:
                                                        wheel_radius=0.05))
     with pytest.raises(DatasetError, match="bag not found"):
         import_bag(tmp_path / "absent.bag", tmp_path / "o6")
-    with pytest.raises(DatasetError, match="exists already"):
+    with pytest.raises(InputError, match=r"--out: the output directory is not empty \(use --force"):
         export_bag(sim_run, bag)
 
 
@@ -345,6 +345,37 @@ def test_cli_export_then_import(sim_run: Path, tmp_path: Path, capsys: pytest.Ca
     assert "joints: /joint_states (31 messages used)" in printed
     assert main(["import-bag", str(bag), "--out", str(out), "--topic", "image"]) == 2
     assert "--topic expects KIND=NAME" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_cli_export_over_a_bag_needs_force(sim_run: Path, tmp_path: Path, ros1: bool,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """``export-bag`` over an existing bag: exit 2 with the other writers' message and the
+    old bag untouched; with ``--force`` the new bag replaces it (ROS1: the file; ROS2: the
+    files of the same names, a stranger file kept) and reads back as the run."""
+    bag = tmp_path / ("b.bag" if ros1 else "b")
+    argv = ["export-bag", str(sim_run), "--out", str(bag)] + (["--ros1"] if ros1 else [])
+    assert main(argv) == 0
+    if ros1:
+        bag.write_bytes(b"old bag")
+    else:
+        (bag / "metadata.yaml").write_text("old: true\n")
+        (bag / "notes.txt").write_text("mine\n")
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    what = "the output file exists (use --force to overwrite it)" if ros1 else (
+        "the output directory is not empty (use --force to overwrite its files)")
+    assert f"{bag}: --out: {what}" in err, err
+    assert (bag.read_bytes() == b"old bag" if ros1
+            else (bag / "metadata.yaml").read_text() == "old: true\n")
+    assert main([*argv, "--force"]) == 0
+    assert f"bag written to {bag}" in capsys.readouterr().out
+    if not ros1:
+        assert (bag / "notes.txt").read_text() == "mine\n"
+        assert not [f for f in tmp_path.iterdir() if f.name.startswith(".")]  # no temporary left
+    import_bag(bag, tmp_path / "back", ImportOptions(wheel_joints=JOINTS, wheel_radius=0.05))
+    _same_run(read_run(sim_run), read_run(tmp_path / "back"))
 
 
 def test_slam_writes_its_graph_as_g2o(sim_run: Path, tmp_path: Path) -> None:

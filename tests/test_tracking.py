@@ -8,12 +8,12 @@ import pytest
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.odometry import motion_model
-from lampsam.backend.pose_cov import pose_array
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
 from lampsam.backend.tracking import replay_latency, run_decoupled
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.datasets.simulator import simulate_world
 from lampsam.errors import LampsamError
+from lampsam.factors.gtsam_factors import pose_array
 from lampsam.frontend.pipeline import iter_run
 
 

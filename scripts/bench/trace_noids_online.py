@@ -1,0 +1,313 @@
+"""Score the smoothers' online association without ids against the file's ids, per window.
+
+Usage::
+
+    python scripts/bench/trace_noids_online.py [--logs victoria,mrclam,synthetic]
+        [--poses N] [--backend isam2] [--windows 0,500,2000,3500,4500]
+        [--set pose2_odometry.cov_scale=16 ...] [--causes 20]
+
+Each log runs one step per pose without ids (:func:`lampsam.backend.graph_log.graph_log_steps`,
+``known_ids=False``); every association decision of every keyframe
+(:func:`lampsam.backend.association.associate`, wrapped) is recorded with the exact
+eq.-19 distance of each screened candidate. The file's landmark id of each
+sighting is used only to score: a landmark's *owner* is the majority file id of its
+sightings at the end of the run. Per window of poses: sightings in the file, taken
+(matched or new), ``wrong`` (matched to a landmark another tree owns), ``missed``
+(dropped as ambiguous, or matched nowhere while its tree's landmark existed), ``dup``
+(a new landmark for a tree that already owned one) and the trajectory's position
+RMS from lampsam's known-id iSAM2 (fast path) over the window.
+
+Each wrong match is classified by what the gate saw at that keyframe:
+
+- ``unmapped``: the true tree owned no landmark yet (its sighting went to a neighbour
+  instead of starting one);
+- ``nn``: the true tree's landmark was inside the gate too, farther in Mahalanobis
+  distance than the chosen one (nearest neighbour picked the neighbour);
+- ``rejected``: the true tree's landmark was screened but beyond the gate;
+- ``unseen``: the true tree's landmark was not even screened (beyond the
+  new-landmark threshold: drift);
+- ``taken``: the true landmark was inside the gate and nearer, but another
+  observation of the frame took it (greedy one-to-one);
+- ``twin``: the landmark's tree and the sighting's are less than :data:`TWIN_M`
+  apart in the known-id solution (the file gives one place two ids: not counted
+  in the "not twins" column).
+
+"Owner then" is the majority file id of the landmark's sightings up to that
+keyframe; "final owner" the majority at the end (a landmark taken over later counts
+all its first tree's sightings as wrong).
+
+A ``dup`` is classified the same way (its true landmark's distance, beyond the
+new-landmark threshold or not screened). The first ``--causes`` wrong matches are
+printed with their keyframe, candidates and distances.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import logging
+import math
+import os
+import sys
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import lampsam.backend.graph as graph_mod
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.graph_log import graph_log_steps, run_graph_log
+from lampsam.backend.slam import drive, make_backend
+from lampsam.datasets.graph_text import GraphLog
+
+_HERE = Path(__file__).resolve().parent
+#: Two file ids whose known-id landmarks are closer than this (m) are one place ("twins").
+TWIN_M = 1.5
+
+
+def _sibling(name: str):  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location(name, _HERE / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@dataclass
+class Decision:
+    """One observation's association at one keyframe."""
+
+    step: int
+    kf: int
+    fid: int
+    status: str
+    lid: int | None
+    cands: dict[int, float] = field(default_factory=dict)  # lid -> exact d2
+
+
+def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
+              ) -> tuple[list[Decision], Any, Any]:
+    """Run ``backend`` without ids over ``g`` recording every decision; ``(decisions, result, backend)``."""
+    cfg = dataclasses.replace(
+        config, isam2=dataclasses.replace(config.isam2, every_frame=True),
+        association=dataclasses.replace(config.association, use_known_ids=False))
+    be = make_backend(backend, cfg.pose2_odometry, cfg, g.start_pose())
+    decisions: list[Decision] = []
+    cur = {"step": 0}
+    real_assoc, real_learn = graph_mod.associate, graph_mod.learn_scale
+    inn: dict[str, Any] = {}
+
+    def steps():  # type: ignore[no-untyped-def]
+        for n, item in enumerate(graph_log_steps(g, known_ids=False)):
+            cur["step"] = n
+            yield item
+
+    def assoc(*args, **kw):  # type: ignore[no-untyped-def]
+        inn["fn"] = args[2]
+        return real_assoc(*args, **kw)
+
+    def learn(scale, obs, out, screened):  # type: ignore[no-untyped-def]
+        # called after the association (and JCBB) of a keyframe: its final decisions
+        n = cur["step"]
+        file_s = g.sightings[n]
+        for a in out:
+            o = obs[a.obs_index]
+            j = int(np.argmin([abs(s.range - o.z[1]) + abs(math.remainder(s.bearing - o.z[0], math.tau))
+                               for s in file_s]))
+            d: dict[int, float] = {}
+            for lid, (d2, exact) in (screened or {}).get(a.obs_index, {}).items():
+                if not exact:
+                    pred = inn["fn"](lid, o)
+                    d2 = math.inf if pred is None else _m2(pred)
+                d[lid] = float(d2)
+            decisions.append(Decision(n, be._k, file_s[j].landmark, a.status, a.landmark_id, d))
+        return real_learn(scale, obs, out, screened)
+
+    graph_mod.associate, graph_mod.learn_scale = assoc, learn
+    try:
+        result = drive(be, steps())
+    finally:
+        graph_mod.associate, graph_mod.learn_scale = real_assoc, real_learn
+    # a new landmark's id is assigned by the backend: the first sighting recorded for it
+    return decisions, result, be
+
+
+def _m2(pred: tuple[np.ndarray, np.ndarray]) -> float:
+    nu, psi = pred
+    try:
+        return float(nu @ np.linalg.solve(psi, nu))
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], ref: np.ndarray,
+          poses: np.ndarray, gate: float, new_t: float, n_causes: int,
+          ref_xy: dict[int, np.ndarray]) -> None:
+    """Print the per-window table and the wrong-match causes."""
+    # landmark id of each taken sighting (new ones: from the backend's sighting record)
+    # (k, z, R, lid) per taken sighting; a keyframe's new landmarks come first, in order
+    new_ids: dict[int, list[int]] = defaultdict(list)
+    matched_ids: dict[int, set[int]] = defaultdict(set)
+    for d in decisions:
+        if d.status == "matched" and d.lid is not None:
+            matched_ids[d.kf].add(d.lid)
+    for k, _, _, lid in be._planar_sightings:
+        if int(lid) not in matched_ids[int(k)]:
+            new_ids[int(k)].append(int(lid))
+    for d in decisions:
+        if d.status == "new":
+            d.lid = new_ids[d.kf].pop(0) if new_ids[d.kf] else None
+    taken = [d for d in decisions if d.lid is not None and d.status in ("matched", "new")]
+    by_lid: dict[int, Counter[int]] = defaultdict(Counter)
+    for d in taken:
+        by_lid[d.lid][d.fid] += 1  # type: ignore[index]
+    owner = {lid: c.most_common(1)[0][0] for lid, c in by_lid.items()}
+    first_kf: dict[int, int] = {}
+    for d in taken:
+        first_kf.setdefault(d.lid, d.kf)  # type: ignore[arg-type]
+    tree_lids: dict[int, list[int]] = defaultdict(list)
+    for lid, f in owner.items():
+        tree_lids[f].append(lid)
+    bounds = [*windows, len(g.pose_ids)]
+    rows = []
+    causes: Counter[str] = Counter()
+    dup_causes: Counter[str] = Counter()
+    shown = 0
+    per_win = [Counter() for _ in windows]
+    live: dict[int, Counter[int]] = defaultdict(Counter)  # sightings so far per landmark
+    last_kf_of: dict[int, int] = {}
+    shown_dup = 0
+
+    def owner_now(lid: int) -> int | None:
+        c = live.get(lid)
+        return c.most_common(1)[0][0] if c else None
+
+    for d in decisions:
+        w = max(i for i, b in enumerate(windows) if d.step >= b)
+        c = per_win[w]
+        c["sightings"] += 1
+        # the tree's landmarks at this keyframe: those whose sightings so far are mostly it
+        true_lids = [lid for lid in live if owner_now(lid) == d.fid]
+        if d.status == "dropped" or d.lid is None:
+            c["dropped"] += 1
+            continue
+        c["taken"] += 1
+        if d.status == "new":
+            if true_lids:
+                c["dup"] += 1
+                best = min((d.cands.get(lid, math.inf) for lid in true_lids), default=math.inf)
+                dup_causes["unseen" if math.isinf(best) else "beyond new threshold"] += 1
+                if shown_dup < n_causes:
+                    shown_dup += 1
+                    n_true = max(sum(live[lid].values()) for lid in true_lids)
+                    print(f"  dup: step {d.step} kf {d.kf} tree {d.fid}: its landmark(s) "
+                          f"{true_lids} ({n_true} sightings) at d2 {best:.1f}; idle "
+                          f"{d.kf - max(last_kf_of[lid] for lid in true_lids)} keyframes")
+            live[d.lid][d.fid] += 1
+            last_kf_of[d.lid] = d.kf
+            continue
+        now = owner_now(d.lid)
+        live[d.lid][d.fid] += 1
+        last_kf_of[d.lid] = d.kf
+        if owner[d.lid] != d.fid:
+            c["wrong"] += 1
+        if now == d.fid:
+            continue
+        c["wrong_now"] += 1
+        if now is not None and now in ref_xy and d.fid in ref_xy and float(
+                np.hypot(*(ref_xy[now] - ref_xy[d.fid]))) < TWIN_M:
+            causes["twin"] += 1
+            continue  # two file ids at one place: not an error the gate could avoid
+        c["wrong_far"] += 1
+        d_chosen = d.cands.get(d.lid, math.nan)
+        d_true = min((d.cands.get(lid, math.inf) for lid in true_lids), default=math.inf)
+        if not true_lids:
+            why = "unmapped"
+        elif d_true < gate:
+            why = "nn" if d_true >= d_chosen else "taken"
+        elif math.isfinite(d_true):
+            why = "rejected" + (" (< new threshold)" if d_true < new_t else "")
+        else:
+            why = "unseen"
+        causes[why] += 1
+        n_in = sum(1 for v in d.cands.values() if v < gate)
+        causes[f"gated candidates = {min(n_in, 3)}{'+' if n_in >= 3 else ''}"] += 1
+        n_lid = sum(live[d.lid].values()) - 1
+        causes[f"chosen landmark's sightings before: {min(n_lid, 3)}{'+' if n_lid >= 3 else ''}"] += 1
+        if shown < n_causes:
+            shown += 1
+            print(f"  wrong: step {d.step} kf {d.kf} tree {d.fid} -> lm {d.lid} (tree {now} so far, "
+                  f"{n_lid} sightings before), {why}; d2 chosen {d_chosen:.2f}, true {d_true:.2f}; "
+                  f"candidates {sorted((round(v, 2), k) for k, v in d.cands.items())[:5]}")
+    print("\n| poses | sightings | taken | dropped | wrong (final owner) | wrong (owner then) | "
+          f"of which not twins (> {TWIN_M} m apart) | dup (new for a mapped tree) | "
+          "RMS vs known-id iSAM2 [m] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for w, c in enumerate(per_win):
+        lo, hi = bounds[w], bounds[w + 1]
+        dd = np.linalg.norm(poses[lo:hi, :2] - ref[lo:hi, :2], axis=1)
+        rms = float(np.sqrt(np.mean(dd ** 2))) if len(dd) else math.nan
+        rows.append(c)
+        print(f"| {lo}-{hi} | {c['sightings']} | {c['taken']} | {c['dropped']} | {c['wrong']} | "
+              f"{c['wrong_now']} | {c['wrong_far']} | {c['dup']} | {rms:.2f} |")
+    tot = sum(per_win, Counter())
+    dd = np.linalg.norm(poses[:, :2] - ref[:, :2], axis=1)
+    print(f"| all | {tot['sightings']} | {tot['taken']} | {tot['dropped']} | {tot['wrong']} | "
+          f"{tot['wrong_now']} | {tot['wrong_far']} | {tot['dup']} | {float(np.sqrt(np.mean(dd ** 2))):.2f} |")
+    seen2 = sum(1 for v in Counter(s.landmark for ss in g.sightings for s in ss).values() if v >= 2)
+    n2 = sum(1 for c in by_lid.values() if sum(c.values()) >= 2)
+    print(f"landmarks {len(by_lid)} ({n2} with 2+ sightings) for {g.n_landmarks} file ids "
+          f"({seen2} sighted 2+); trees owning 2+ landmarks: "
+          f"{sum(1 for v in tree_lids.values() if len(v) >= 2)}")
+    ties = getattr(be, "revisit_ties", [])
+    ok = [owner.get(c) == owner.get(o) or (owner.get(c) in ref_xy and owner.get(o) in ref_xy and float(
+        np.hypot(*(ref_xy[owner[c]] - ref_xy[owner[o]]))) < TWIN_M) for _, c, o in ties]
+    print(f"revisit ties: {len(ties)}, right (same tree or twins) {sum(ok)}; keyframes "
+          f"{sorted({kf for kf, _, _ in ties})}")
+    print("wrong-match causes:", dict(sorted(causes.items())))
+    print("dup causes:", dict(dup_causes))
+
+
+def main() -> None:
+    """Parse arguments, run and score each log."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--logs", default="victoria")
+    ap.add_argument("--poses", type=int, default=0)
+    ap.add_argument("--backend", default="isam2")
+    ap.add_argument("--windows", default="0,500,2000,3500,4500")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
+    ap.add_argument("--causes", type=int, default=15)
+    ap.add_argument("--out", default="/tmp/trace_noids_online")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    bench = _sibling("bench_landmark_logs")
+    scale = _sibling("bench_noids_scale")
+    config = bench.with_overrides(SlamConfig(), args.set)
+    print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
+    for name in args.logs.split(","):
+        g = scale.load_log(name, Path(args.out))
+        if args.poses:
+            g = bench.first_poses(g, args.poses)
+        ref_res = run_graph_log(g, "isam2", config)
+        ref = ref_res.poses
+        ref_xy = {lm.id: np.asarray(lm.position[:2]) for lm in ref_res.landmarks + ref_res.provisional}
+        c0 = time.process_time()
+        decisions, result, be = trace_run(g, config, args.backend)
+        cpu = time.process_time() - c0
+        windows = [int(x) for x in args.windows.split(",") if int(x) < len(g.pose_ids)]
+        print(f"\n## {name}: {len(g.pose_ids)} poses, {args.backend} no ids, {cpu:.1f} s CPU, "
+              f"status {result.status}, QR rebuilds {result.extra.get('n_qr_rebuilds')}, "
+              f"recoveries {result.extra.get('n_recoveries')}, JCBB keyframes "
+              f"{result.extra.get('n_jcbb')} (changed {result.extra.get('n_jcbb_changed')}), "
+              f"revisit merges {result.extra.get('n_revisit_merges')}")
+        score(g, decisions, be, windows, ref, result.poses, config.association.gate(2),
+              config.association.new_threshold(2), args.causes, ref_xy)
+
+
+if __name__ == "__main__":
+    main()
