@@ -69,12 +69,12 @@ from lampsam.backend.interface import (
 )
 from lampsam.backend.isam2_update import Isam2Updates
 from lampsam.backend.joint_gating import JointGating
-from lampsam.backend.keyframes import is_keyframe
+from lampsam.backend.keyframes import STEP_FLOOR as STEP_FLOOR
+from lampsam.backend.keyframes import advance_odometry, keyframe_observations
 from lampsam.backend.landmarks import LandmarkLifecycle
 from lampsam.backend.models import (
     Obs,
     landmark_estimate,
-    observations_from_frame,
 )
 from lampsam.backend.odometry import OdometryConstants
 from lampsam.backend.odometry_scale import feed_scale
@@ -85,9 +85,6 @@ from lampsam.factors.gtsam_factors import odometry_factor
 
 log = logging.getLogger(__name__)
 
-#: Variance floor used for the per-step odometry composition (the factor's own floor
-#: is added once per keyframe).
-STEP_FLOOR = 1e-14
 
 
 class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
@@ -293,26 +290,19 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         self._last_t = t
         u = self.motion.check(t, odometry)
         if len(u):
-            if self._wheel_since_kf:
-                d, c = self.motion.relative(u, STEP_FLOOR)
-                self._delta_cov = compose_cov(d, self._delta_cov, c)
-                self._delta = pose_array(gtsam.Pose2(*self._delta).compose(gtsam.Pose2(*d)))
-            else:  # the first samples since the keyframe: composed once for both uses
-                floor = self.config.isam2.odometry_floor_var
-                d, c_kf = self.motion.relative(u, floor)
-                self._first_rel = (d, c_kf)  # the odometry factor's, if no samples follow
-                # composed with the identity (zero covariance) since the keyframe
-                self._delta_cov = c_kf + (STEP_FLOOR - floor) * np.eye(3)
-                self._delta = pose_array(gtsam.Pose2(*d))
+            self._delta, self._delta_cov, first_rel = advance_odometry(
+                self.motion, u, self._delta, self._delta_cov, not self._wheel_since_kf,
+                self.config.isam2.odometry_floor_var)
+            if first_rel is not None:  # the first samples since the keyframe
+                self._first_rel = first_rel  # the odometry factor's, if no samples follow
             self._wheel_since_kf.append(u)
         n_matched = n_new = 0
         is_kf = False
-        # a frame between keyframes is not used: its observations are not even built
-        if frame is not None and is_keyframe(self._k, self._delta, self.config.isam2):
-            obs = observations_from_frame(frame, self.config.features, self.config.noise)
-            if obs:
-                n_matched, n_new = self._make_keyframe(obs, update)
-                is_kf = True
+        # a frame between keyframes is not read (a lazy frame's image never processed)
+        obs = keyframe_observations(frame, self._k, self._delta, self.config)
+        if obs:
+            n_matched, n_new = self._make_keyframe(obs, update)
+            is_kf = True
         if update and self.n_deferred:
             self.update()
         pose = self.current_pose()

@@ -13,6 +13,13 @@ trajectory. With a worker, the frontend's CPU time moves off the estimator's
 thread: on a machine with a free second core the wall clock of a run drops
 towards the larger of the two stages; on one core nothing is gained.
 
+In ``"sequential"`` mode the frames are *lazy* (:class:`LazyFrame`, unless
+``lazy=False``): the image is read and processed when the frame's lamps or corners
+are first asked for. A smoother reads only the frames that can become keyframes
+(:func:`lampsam.backend.keyframes.keyframe_observations`), so the others' images are
+never processed; a consumer that reads every frame (the EKF, a live viewer) gets
+every frame made, as before. The observations are the same either way.
+
 Each source records, per frame, when it *arrived* (the image was available:
 with ``pace`` the replay clock ``start + (t - t0) / pace``, else the moment the
 source began reading it) and when its frame was *ready*, both
@@ -28,7 +35,7 @@ import queue
 import signal
 import threading
 import time
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from typing import Literal, cast
 
@@ -113,6 +120,95 @@ def unpack_frame(packed: PackedFrame) -> CeilingFrame:
     return CeilingFrame(t, index, lamps, corners)
 
 
+class LazyFrame(CeilingFrame):
+    """A ceiling frame whose image is read and processed on first access.
+
+    ``t`` and ``index`` are known at once; :attr:`lamps` and :attr:`corners` (and
+    :meth:`resolve`) run ``make`` once and keep its frame. Pickled, it is the
+    plain :class:`CeilingFrame` it resolves to.
+
+    Args:
+        t: time stamp, s; index: image index in the run.
+        make: makes the frame (image load + :func:`process_image`); may raise
+            :class:`~lampsam.errors.FrontendError`, which then surfaces at the access.
+    """
+
+    _make: Callable[[], CeilingFrame] | None
+    _frame: CeilingFrame | None
+
+    def __init__(self, t: float, index: int, make: Callable[[], CeilingFrame]) -> None:
+        object.__setattr__(self, "t", float(t))
+        object.__setattr__(self, "index", int(index))
+        object.__setattr__(self, "_make", make)
+        object.__setattr__(self, "_frame", None)
+
+    def resolve(self) -> CeilingFrame:
+        """The frame, made on the first call."""
+        frame = self._frame
+        if frame is None:
+            assert self._make is not None
+            frame = self._make()
+            object.__setattr__(self, "_frame", frame)
+            object.__setattr__(self, "_make", None)
+        return frame
+
+    @property
+    def loaded(self) -> bool:
+        """Whether the frame was made (its image read and processed)."""
+        return self._frame is not None
+
+    @property  # type: ignore[override]
+    def lamps(self) -> tuple[LampObservation, ...]:
+        """The lamp observations (the frame made on first access)."""
+        return self.resolve().lamps
+
+    @property  # type: ignore[override]
+    def corners(self) -> tuple[CornerObservation, ...]:
+        """The corner observations (the frame made on first access)."""
+        return self.resolve().corners
+
+    def __reduce__(self) -> tuple[type[CeilingFrame], tuple[float, int, tuple[LampObservation, ...],
+                                                            tuple[CornerObservation, ...]]]:
+        """Pickled as the plain frame it resolves to."""
+        frame = self.resolve()
+        return CeilingFrame, (frame.t, frame.index, frame.lamps, frame.corners)
+
+
+def _lazy(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
+          pace: float | None, start: float | None, times: FrameTimes
+          ) -> Iterator[LazyFrame]:
+    """:class:`LazyFrame` s of the images in order (paced as :func:`_produce`); a frame
+    made records its ready time and its CPU (this thread's) in ``times``."""
+    t0 = float(images.t[0]) if len(images) else 0.0
+    start = time.perf_counter() if start is None else start
+
+    def maker(i: int, t: float, slot: int) -> Callable[[], CeilingFrame]:
+        def make() -> CeilingFrame:
+            c0 = time.thread_time()
+            img = images.load(i)
+            try:
+                frame = process_image(img, t, i, camera, config)
+            except FrontendError as exc:
+                raise FrontendError(f"{images.files[i]}: {exc}") from exc
+            times.ready[slot] = time.perf_counter()
+            times.worker_cpu_s += time.thread_time() - c0
+            return frame
+        return make
+
+    for i in range(len(images)):
+        t = float(images.t[i])
+        if pace is not None:
+            arrival = start + (t - t0) / pace
+            wait = arrival - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+        else:
+            arrival = time.perf_counter()
+        times.arrival.append(arrival)
+        times.ready.append(time.perf_counter())
+        yield LazyFrame(t, i, maker(i, t, len(times.ready) - 1))
+
+
 def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
              pace: float | None, start: float | None
              ) -> Iterator[tuple[CeilingFrame, float, float, float]]:
@@ -191,7 +287,8 @@ def _worker(images: ImageIndex, camera: CameraModel, config: FrontendConfig | No
 def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None = None,
                  mode: Mode = "process", depth: int = 8, pace: float | None = None,
                  start: float | None = None, times: FrameTimes | None = None,
-                 cv_threads: int | None = 1) -> Generator[CeilingFrame, None, None]:
+                 cv_threads: int | None = 1, lazy: bool = True
+                 ) -> Generator[CeilingFrame, None, None]:
     """The frames of a run's images, in order, made now or ahead by a worker.
 
     Args:
@@ -209,6 +306,9 @@ def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig
         times: filled with each frame's arrival / ready clock readings.
         cv_threads: OpenCV threads in a process worker (None leaves OpenCV's
             default); a thread worker shares the caller's setting.
+        lazy: ``"sequential"``: give :class:`LazyFrame` s (each image read and
+            processed when its frame is first read; a bad image raises then); False:
+            every frame made before it is given.
 
     Yields:
         One :class:`CeilingFrame` per image, in time order. Closing the generator
@@ -225,6 +325,9 @@ def frame_source(images: ImageIndex, camera: CameraModel, config: FrontendConfig
     if depth < 1:
         raise ValueError(f"pipeline depth must be >= 1, got {depth}")
     times = times if times is not None else FrameTimes()
+    if mode == "sequential" and lazy:
+        yield from _lazy(images, camera, config, pace, start, times)
+        return
     if mode == "sequential":
         for frame, arrival, ready, cpu in _produce(images, camera, config, pace, start):
             times.arrival.append(arrival)

@@ -69,6 +69,9 @@ from lampsam.safe_io import atomic_path, write_json_atomic
 log = logging.getLogger(__name__)
 
 BACKENDS = ("ekf", "isam2", "batch")
+#: Backends that read a frame only when it can become a keyframe
+#: (:func:`lampsam.backend.keyframes.keyframe_observations`): fed lazy frames.
+LAZY_BACKENDS = ("isam2", "batch")
 FRAME_SOURCES = ("auto", "images", "truth", "rangebearing")
 
 
@@ -256,7 +259,8 @@ def start_pose_of(run: LoggedRun) -> FloatArray:
 
 
 def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float = 0.5,
-                frontend: str = "sequential") -> tuple[list[Frame] | Iterable[Frame], bool]:
+                frontend: str = "sequential", lazy: bool = False
+                ) -> tuple[list[Frame] | Iterable[Frame], bool]:
     """The run's measurement frames.
 
     Args:
@@ -268,6 +272,10 @@ def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float 
         frontend: where the frontend runs for ``"images"``: ``"sequential"`` (when
             each frame is due) or ahead in a ``"thread"`` / ``"process"``
             (:func:`lampsam.backend.pipelined.frame_source`; the same frames).
+        lazy: ``"images"`` with the ``"sequential"`` frontend: lazy frames
+            (:class:`~lampsam.backend.pipelined.LazyFrame`: each image read and
+            processed when the consumer first reads the frame, so a smoother's
+            frames between keyframes are never made; a bad image raises then).
 
     Returns:
         ``(frames, is_ceiling)``.
@@ -294,10 +302,11 @@ def make_frames(run: LoggedRun, source: str, rng_seed: int = 0, sigma_px: float 
         raise EstimationError(f"{run.path}: the run has no images")
     if source == "truth":
         return frames_from_projections(run, sigma_px, np.random.default_rng(rng_seed)), True
-    if frontend != "sequential":
+    if frontend != "sequential" or lazy:
         from lampsam.backend.pipelined import frame_source
 
-        return frame_source(run.images, run.rig.camera, mode=frontend), True  # type: ignore[arg-type]
+        return frame_source(run.images, run.rig.camera, mode=frontend,  # type: ignore[arg-type]
+                            lazy=lazy), True
     from lampsam.frontend.pipeline import iter_run
 
     return iter_run(run), True
@@ -427,7 +436,10 @@ def run_slam(run_dir: str | Path, backend: str = "isam2",
         run = read_run(run_dir)
     if backend not in BACKENDS:
         raise EstimationError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
-    frame_list, is_ceiling = make_frames(run, frames, frontend=frontend)
+    # the smoothers read only the frames that can become keyframes: the others' images
+    # are never processed (the EKF reads every frame: made as they come)
+    frame_list, is_ceiling = make_frames(run, frames, frontend=frontend,
+                                         lazy=backend in LAZY_BACKENDS)
     start = start_pose_of(run) if start_pose is None else np.asarray(start_pose, float).reshape(3)
     odo_model = (pose2_model_for(run, config) if isinstance(run.odometry, Pose2OdometryLog)
                  else run.rig.odometry)

@@ -47,6 +47,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph import GraphSlam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
+from lampsam.backend.keyframes import KeyframeMirror
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.backend.pose_cov import pose_array
@@ -381,6 +382,9 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         raise ValueError(f"max_lag must be >= 0 or None, got {max_lag}")
     times = times if times is not None else DecoupledTimes()
     motion = motion_model(odometry)
+    # a graph backend reads a frame only when it can become a keyframe: the others are
+    # not sent (nor made, when lazy); the EKF reads every frame
+    mirror = KeyframeMirror(motion, config) if backend in ("isam2", "batch") else None
     ctx = worker_context()
     inbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
     outbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
@@ -436,6 +440,9 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 if len(u):
                     d, _ = motion.relative(u, _FLOOR)
                     o = o.compose(gtsam.Pose2(*d))
+                # the backend's frame: None where it will not read it (a lazy frame's
+                # image then never processed), as it decides (KeyframeMirror)
+                sent = frame if mirror is None or mirror.reads(u, frame) else None
                 chain.append(o)
                 times.t.append(t)
                 times.framed.append(frame is not None)
@@ -444,7 +451,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.backend_pose.append(np.full(3, np.nan))
                 times.step_cpu.append(float("nan"))
                 times.sent.append(time.perf_counter())
-                inbox.put((i, t, samples, _pack(frame)))
+                inbox.put((i, t, samples, _pack(sent)))
                 while True:  # every estimate already back
                     try:
                         take(outbox.get_nowait())

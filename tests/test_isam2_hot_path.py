@@ -264,18 +264,18 @@ def test_mark_ambiguous_in_place_matches_the_copying_rule() -> None:
 
 def test_frames_between_keyframes_are_not_turned_into_observations(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """Only a frame that becomes a keyframe pays for its observations (same result)."""
-    import lampsam.backend.graph as graph_module
+    import lampsam.backend.keyframes as keyframes_module
 
     rig, odo, frames, gt = ceiling_world(np.random.default_rng(12), duration=6.0, n_corners=8)
     model = CeilingModel.from_camera(rig.camera)
     calls = []
-    build = graph_module.observations_from_frame
+    build = keyframes_module.observations_from_frame
 
     def counted(*a, **k):  # type: ignore[no-untyped-def]
         calls.append(1)
         return build(*a, **k)
 
-    monkeypatch.setattr(graph_module, "observations_from_frame", counted)
+    monkeypatch.setattr(keyframes_module, "observations_from_frame", counted)
     be = Isam2Slam(rig.odometry, SlamConfig(), gt.poses[0], model, CeilingHandler(model))
     result = drive(be, iter_steps(odo, frames))
     n_frames = sum(f is not None for f in frames)
