@@ -53,6 +53,7 @@ from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.backend.pose_cov import pose_array
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
+from lampsam.interrupt import stop_requested
 from lampsam.frontend.measurements import CeilingFrame
 
 log = logging.getLogger(__name__)
@@ -424,6 +425,13 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
 
     def wait_for_worker() -> None:
         while not done:
+            if not times.interrupted and stop_requested() is not None:
+                # a stop signal after the last step was sent: the worker stops after
+                # the step it is on rather than working through its backlog
+                times.interrupted = True
+                stop.set()
+                log.warning("interrupted: the mapping worker stops after its current step "
+                            "(a second signal gives up on it)")
             try:
                 take(outbox.get(timeout=_POLL_S))
             except queue.Empty:

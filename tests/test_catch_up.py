@@ -119,16 +119,18 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     """SIGTERM to ``lampsam slam --online decoupled`` while the worker catches up
     (``catch_up = 8``, the tracker never waiting): exit 3, no traceback, the steps the
     worker finished written (deferred keyframes updated first), finite, status
-    interrupted, every keyframe counted in one update."""
+    interrupted, every keyframe counted in one update. The signal may come after the
+    tracker sent its last step (a fast machine): the worker still stops after the step
+    it is on rather than working through its backlog."""
     run = tmp_path / "lab"
-    simulate_world("lab", run, seed=1, duration=10.0, workers=1)
+    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
     cfg = tmp_path / "cu.toml"
     cfg.write_text("[online]\ncatch_up = 8\n")
     out = tmp_path / "out"
     proc = start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
                          "--max-lag", "-1", "--config", str(cfg))
     lines = wait_for_line(proc, "mapping worker ready")
-    time.sleep(0.5)
+    time.sleep(0.2)
     proc.send_signal(signal.SIGTERM)
     _, rest = proc.communicate(timeout=120)
     rest = "".join(lines) + rest
@@ -136,7 +138,7 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     assert "Traceback" not in rest
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 151
+    assert 0 < summary["steps"] < 241
     traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
     assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
     assert summary["online_keyframes_per_update_max"] <= 8

@@ -30,16 +30,25 @@ def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def run15(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """15 s of the lab world (226 images), seed 1: long enough that a signal 0.1 s into
+    the stepping lands mid-run on a fast machine (the smoothers read keyframes only)."""
+    out = tmp_path_factory.mktemp("signals15") / "run"
+    simulate_world("lab", out, seed=1, duration=15.0, workers=1)
+    return out
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-def test_signal_mid_slam_writes_finished_steps(run6: Path, tmp_path: Path,
+def test_signal_mid_slam_writes_finished_steps(run15: Path, tmp_path: Path,
                                                sig: signal.Signals,
                                                cli_env: dict[str, str]) -> None:
     """A signal mid-run: exit 3, the finished steps written (status interrupted, fewer
-    than the run's 91 frames, all finite), no traceback, no temporary files left."""
+    than the run's 226 frames, all finite), no traceback, no temporary files left."""
     out = tmp_path / "out"
-    proc = start_lampsam(cli_env, "slam", str(run6), "--out", str(out), "--backend", "batch")
+    proc = start_lampsam(cli_env, "slam", str(run15), "--out", str(out), "--backend", "batch")
     wait_for_line(proc, "stepping through the run")
-    time.sleep(0.4)
+    time.sleep(0.1)
     proc.send_signal(sig)
     _, rest = proc.communicate(timeout=120)
     assert proc.returncode == EXIT_INTERRUPTED, rest
@@ -47,7 +56,7 @@ def test_signal_mid_slam_writes_finished_steps(run6: Path, tmp_path: Path,
     assert f"{sig.name} received" in rest
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 91
+    assert 0 < summary["steps"] < 226
     traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
     assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
     assert (out / "landmarks.csv").read_text().startswith("id,type")

@@ -125,7 +125,7 @@ def test_signal_mid_decoupled_run(lab10: Path, tmp_path: Path, sig: signal.Signa
     lines = wait_for_line(proc, "mapping worker ready")
     workers = _children(proc.pid)
     assert workers
-    time.sleep(0.3)
+    time.sleep(0.1)
     proc.send_signal(sig)
     _, rest = proc.communicate(timeout=120)
     rest = "".join(lines) + rest
