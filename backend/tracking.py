@@ -53,8 +53,8 @@ from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.backend.pose_cov import pose_array
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
-from lampsam.interrupt import stop_requested
 from lampsam.frontend.measurements import CeilingFrame
+from lampsam.interrupt import stop_requested
 
 log = logging.getLogger(__name__)
 
