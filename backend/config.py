@@ -402,6 +402,12 @@ class Isam2Config:
             odometry, is beyond the new-landmark threshold
             (:meth:`~lampsam.backend.gating.Gating._bound_far`; the same decisions as
             the exact gate; default False).
+        bracket_gate: settle a lamp pair without a joint marginal when a bracket of
+            its exact gate distance from the current pose marginal, the lamp's last
+            marginal and ``R`` (no cross term) fixes the decision: surely inside the
+            gate with no competitor, or beyond the new-landmark threshold
+            (:mod:`~lampsam.backend.gate_bracket`; the same decisions as the exact
+            gate; default True; false: every such pair asks iSAM2).
         fixed_lag: the online iSAM2 backend smooths over the last this many keyframes
             only (GTSAM's ``IncrementalFixedLagSmoother``; lamps never leave the
             window; :mod:`lampsam.backend.fixed_lag`); 0 (default): full iSAM2. For
@@ -431,6 +437,7 @@ class Isam2Config:
     far_lamp_recheck: int = field(default=5, metadata=limits(ge=0))
     far_lamp_factor: float = field(default=2.0, metadata=limits(ge=1.0))
     far_lamp_bound: bool = False
+    bracket_gate: bool = True
     fixed_lag: int = field(default=0, metadata=limits(ge=0))
 
     def __post_init__(self) -> None:

@@ -23,10 +23,12 @@ from gtsam.symbol_shorthand import X
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
 from lampsam.backend.ceiling_graph import point_key
+from lampsam.backend.gate_bracket import bracket_d2, settle_bracketed
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
 from lampsam.backend.planar_gate import bearing_range_d2, range_bearing_many
+from lampsam.backend.pose_cov import eq19_covariance, propagate_relative
 
 #: Keyframes back over which the smoothers' screen uses the relative gate.
 RELATIVE_GATE_KEYFRAMES = 30
@@ -229,8 +231,8 @@ class Gating(GraphState):
                       + hl @ cov_l @ np.transpose(hl, (0, 2, 1)))
             sc = screen_pairs(obs, kind, lids, m[keep], s_pred, self.config.association,
                               exact=True)
-            screened.update(self._reuse_far(obs, self._bound_far(
-                obs, pose, self._mark_ambiguous(obs, sc))))
+            screened.update(self._bracket(obs, pose, pose_cov, self._reuse_far(obs, self._bound_far(
+                obs, pose, self._mark_ambiguous(obs, sc)))))
         return cands, screened
 
     def _refresh_visible(self, visible: list[GraphLandmark]) -> None:
@@ -501,6 +503,72 @@ class Gating(GraphState):
                     self.n_far_reused += 1
         return screened
 
+    def _bracket(self, obs: list[Obs], pose: FloatArray, pose_cov: FloatArray,
+                 screened: dict[int, dict[int, tuple[float, bool]]]
+                 ) -> dict[int, dict[int, tuple[float, bool]]]:
+        """Settle lamp pairs by a bracket of their exact distance (:mod:`~lampsam.backend.gate_bracket`).
+
+        For each lamp pair the association would ask iSAM2 about (not final, inside
+        the screen's gate), the exact eq.-20 distance is bracketed from the current
+        pose marginal ``pose_cov`` (exact), the lamp's block of its last joint marginal
+        (:attr:`_joint_at`, an upper bound of its marginal while iSAM2 has not
+        relinearised) and ``R``; :func:`~lampsam.backend.gate_bracket.settle_bracketed`
+        keeps the pairs whose decision the bracket fixes, which then cost no joint
+        marginal. The far-lamp record the exact gate would write (:meth:`_reuse_far`)
+        is written with the bracket's end. Off with ``[isam2] bracket_gate = false``
+        or while keyframes wait for an update (``pose_cov`` is then a prediction).
+        """
+        cfg = self.config
+        if (not cfg.isam2.bracket_gate or self.isam is None or self.ceiling is None
+                or self._k_isam != self._k - 1):
+            return screened
+        ac = cfg.association
+        rows = {i: pairs for i, pairs in screened.items() if obs[i].kind == "lamp"}
+        gate = {i: ac.gate(len(obs[i].z)) for i in rows}
+        asked = [(i, lid) for i, pairs in rows.items() for lid, (d2, exact) in pairs.items()
+                 if not exact and d2 < gate[i] and lid in self._landmarks
+                 and self._landmarks[lid].in_graph]
+        if not asked:
+            return screened
+        # (nu, A, B or None, R) per pair, grouped by size and whether B is known
+        groups: dict[tuple[int, bool], list[tuple[tuple[int, int], FloatArray, FloatArray,
+                                                  FloatArray | None, FloatArray]]] = {}
+        for i, lid in asked:
+            lm = self._landmarks[lid]
+            o = for_landmark(obs[i], len(lm.state))
+            try:
+                z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, o, self.ceiling)
+            except Exception:
+                continue
+            rec = self._joint_at.get(lid)
+            b = (h_l @ rec[1][2] @ h_l.T
+                 if rec is not None and rec[1][2].shape[0] == len(lm.state) else None)
+            groups.setdefault((len(z_hat), b is not None), []).append(
+                ((i, lid), residual(o, z_hat), h_p @ pose_cov @ h_p.T, b, o.R))
+        bracket: dict[tuple[int, int], tuple[float, float]] = {}
+        dof: dict[tuple[int, int], int] = {}
+        for (dim, known), group in groups.items():
+            lo, hi = bracket_d2(np.array([g[1] for g in group]), np.array([g[2] for g in group]),
+                                np.array([g[3] for g in group]) if known else None,
+                                np.array([g[4] for g in group]))
+            for g, lo_j, hi_j in zip(group, lo, hi, strict=True):
+                bracket[g[0]] = (float(lo_j), float(hi_j))
+                dof[g[0]] = dim
+        recheck = cfg.isam2.far_lamp_recheck > 0
+        settled = settle_bracketed(
+            {i: {lid: d2 for lid, (d2, _) in pairs.items()} for i, pairs in rows.items()},
+            bracket, gate, {i: ac.new_threshold(len(obs[i].z)) for i in rows},
+            {i: cfg.isam2.far_lamp_factor * ac.new_threshold(len(obs[i].z)) for i in rows}
+            if recheck else None)
+        for (i, lid), (d2, side) in settled.items():
+            screened[i][lid] = (d2, True)
+            self._far[(lid, dof[(i, lid)])] = (self._k, d2)  # as the exact gate records it
+            if side == "inside":
+                self.n_bracket_inside += 1
+            else:
+                self.n_bracket_outside += 1
+        return screened
+
     def _near_known_lamp(self, pose: FloatArray, obs: Obs, lamp_ids: Iterable[int]) -> bool:
         """Whether a mapped lamp is predicted within ``lamp_min_separation`` of ``obs``.
 
@@ -518,48 +586,3 @@ class Gating(GraphState):
         d = np.hypot(m[:, 0] - obs.z[0], m[:, 1] - obs.z[1])
         return bool(np.any(vis & (d < sep)))
 
-
-def eq19_covariance(h_p: FloatArray, h_l: FloatArray,
-                    joint: tuple[FloatArray, FloatArray, FloatArray], delta: FloatArray,
-                    delta_cov: FloatArray, r: FloatArray) -> FloatArray:
-    """Innovation covariance ``Psi`` of eq. 19 from a keyframe's joint marginal with a landmark.
-
-    The current pose is ``x = x_j * delta``; in the right tangent
-    ``dx = Ad(delta^-1) dx_j + d_delta``, so with the joint blocks
-    ``(S_jj, S_jl, S_ll)`` of ``(X(j), landmark)``:
-    ``S_xx = Ad S_jj Ad^T + C``, ``S_xl = Ad S_jl`` and
-    ``Psi = H_p S_xx H_p^T + H_p S_xl H_l^T + (.)^T + H_l S_ll H_l^T + R``.
-
-    Args:
-        h_p: (m, 3) and h_l: (m, d) measurement Jacobians (pose right tangent, landmark state).
-        joint: ``(S_jj (3, 3), S_jl (3, d), S_ll (d, d))``.
-        delta: (3,) ``x_j^-1 x``; delta_cov: (3, 3) its covariance (odometry).
-        r: (m, m) measurement noise.
-
-    Returns:
-        (m, m) ``Psi``.
-    """
-    s_kk, s_kl, s_ll = joint
-    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
-    s_xx = ad @ s_kk @ ad.T + delta_cov
-    s_xl = ad @ s_kl
-    cross = h_p @ s_xl @ h_l.T
-    return h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
-
-
-def propagate_relative(delta: FloatArray, cov_delta: FloatArray, covs: FloatArray) -> FloatArray:
-    """Relative covariances one keyframe on: ``Ad(d^-1) Sigma_j Ad(d^-1)^T + C`` for every ``j``.
-
-    :func:`~lampsam.backend.pose_cov.compose_cov` of ``x_j^-1 x_(k-1)`` with the
-    odometry ``d = x_(k-1)^-1 x_k``, vectorised over the window.
-
-    Args:
-        delta: (3,) odometry ``d`` (x, y, theta), m and rad.
-        cov_delta: (3, 3) its right-tangent covariance ``C``.
-        covs: (n, 3, 3) right-tangent covariances of ``x_j^-1 x_(k-1)``.
-
-    Returns:
-        (n, 3, 3) covariances of ``x_j^-1 x_k``.
-    """
-    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
-    return np.einsum("ab,nbc,dc->nad", ad, covs, ad) + cov_delta

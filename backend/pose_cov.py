@@ -4,8 +4,9 @@ Pose covariances inside the smoothers live in the right tangent of the pose
 (``x = x_hat Exp(xi)``, ``xi = (dx_body, dy_body, dtheta)``); the backends report
 them over plain world coordinates ``(x, y, theta)``. These pure functions compose
 odometry with its covariance to first order (Barfoot & Furgale 2014, "Associating
-uncertainty with three-dimensional poses", sec. III, in SE(2)) and condition the
-odometry between two keyframes on both keyframes' final estimates.
+uncertainty with three-dimensional poses", sec. III, in SE(2)), condition the
+odometry between two keyframes on both keyframes' final estimates, and carry a
+keyframe's joint marginal with a landmark to the current pose (the gate's eq. 19).
 """
 
 from __future__ import annotations
@@ -93,3 +94,49 @@ def odometry_bridge(delta: FloatArray, cov_delta: FloatArray, delta_kf: FloatArr
     out = d_hat.compose(gtsam.Pose2.Expmap(gain @ r))
     cov = cov_delta - gain @ m @ cov_delta
     return np.array([out.x(), out.y(), out.theta()]), 0.5 * (cov + cov.T)
+
+
+def eq19_covariance(h_p: FloatArray, h_l: FloatArray,
+                    joint: tuple[FloatArray, FloatArray, FloatArray], delta: FloatArray,
+                    delta_cov: FloatArray, r: FloatArray) -> FloatArray:
+    """Innovation covariance ``Psi`` of eq. 19 from a keyframe's joint marginal with a landmark.
+
+    The current pose is ``x = x_j * delta``; in the right tangent
+    ``dx = Ad(delta^-1) dx_j + d_delta``, so with the joint blocks
+    ``(S_jj, S_jl, S_ll)`` of ``(X(j), landmark)``:
+    ``S_xx = Ad S_jj Ad^T + C``, ``S_xl = Ad S_jl`` and
+    ``Psi = H_p S_xx H_p^T + H_p S_xl H_l^T + (.)^T + H_l S_ll H_l^T + R``.
+
+    Args:
+        h_p: (m, 3) and h_l: (m, d) measurement Jacobians (pose right tangent, landmark state).
+        joint: ``(S_jj (3, 3), S_jl (3, d), S_ll (d, d))``.
+        delta: (3,) ``x_j^-1 x``; delta_cov: (3, 3) its covariance (odometry).
+        r: (m, m) measurement noise.
+
+    Returns:
+        (m, m) ``Psi``.
+    """
+    s_kk, s_kl, s_ll = joint
+    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+    s_xx = ad @ s_kk @ ad.T + delta_cov
+    s_xl = ad @ s_kl
+    cross = h_p @ s_xl @ h_l.T
+    return h_p @ s_xx @ h_p.T + cross + cross.T + h_l @ s_ll @ h_l.T + r
+
+
+def propagate_relative(delta: FloatArray, cov_delta: FloatArray, covs: FloatArray) -> FloatArray:
+    """Relative covariances one keyframe on: ``Ad(d^-1) Sigma_j Ad(d^-1)^T + C`` for every ``j``.
+
+    :func:`~lampsam.backend.pose_cov.compose_cov` of ``x_j^-1 x_(k-1)`` with the
+    odometry ``d = x_(k-1)^-1 x_k``, vectorised over the window.
+
+    Args:
+        delta: (3,) odometry ``d`` (x, y, theta), m and rad.
+        cov_delta: (3, 3) its right-tangent covariance ``C``.
+        covs: (n, 3, 3) right-tangent covariances of ``x_j^-1 x_(k-1)``.
+
+    Returns:
+        (n, 3, 3) covariances of ``x_j^-1 x_k``.
+    """
+    ad = gtsam.Pose2(*delta).inverse().AdjointMap()
+    return np.einsum("ab,nbc,dc->nad", ad, covs, ad) + cov_delta

@@ -41,7 +41,8 @@ def _backend(bound: bool, world: Any, gate_prob: float = 0.99, new_prob: float =
     cfg = dataclasses.replace(
         base, association=dataclasses.replace(base.association, use_known_ids=False,
                                               gate_prob=gate_prob, new_prob=new_prob),
-        isam2=dataclasses.replace(base.isam2, far_lamp_recheck=0, far_lamp_bound=bound))
+        isam2=dataclasses.replace(base.isam2, far_lamp_recheck=0, far_lamp_bound=bound,
+                                   bracket_gate=False))  # every pair asks iSAM2
     model = CeilingModel.from_camera(rig.camera)
     be = Isam2Slam(rig.odometry, cfg, gt.poses[0], model, CeilingHandler(model))
     be._mark_ambiguous = _every_lamp_to_exact_gate  # type: ignore[method-assign]

@@ -26,8 +26,10 @@ with ``RUN_DIR`` from ``lampsam simulate lab --seed 3 --out RUN_DIR`` (2,601 fra
 For the smoothers, the pipeline as ``lampsam slam`` runs it is also measured (lazy
 frames: the frontend only on the frames the backend reads, ``pipe_lazy_x_realtime``,
 ``frames_read``). ``--isam2-variant KEY=VALUE[,KEY=VALUE]`` (repeatable) adds an iSAM2 row with those
-``[isam2]`` settings (e.g. ``keyframe_distance=0.1``) for the first feature set, timed in
-the same run, with its online CPU as a ratio to the default iSAM2's (``cpu_vs_isam2``).
+``[isam2]`` settings (e.g. ``keyframe_distance=0.1``; ``bracket_gate=false`` is the exact
+gate) for the first feature set, timed in the same run round-robin with the default
+(one run of each per round, and its lazy pipeline), with its online CPU as a ratio to
+the default iSAM2's (``cpu_vs_isam2``).
 
 ``--mrclam``: MRCLAM ds0 with known association and with the gate alone, the three
 backends and dead reckoning, errors against Vicon.
@@ -37,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import logging
 import os
 import time
@@ -114,6 +117,10 @@ def one_run(name: str, run: LoggedRun, frames: list[Any], config: SlamConfig,
         row["update_p95_ms"] = float(np.percentile(upd, 95) * 1e3)
         est = getattr(be, "estimate_times", [])
         row["estimate_median_ms"] = float(np.median(est) * 1e3) if est else float("nan")
+    # same trajectory = same decisions; pairs the gate's bracket settled without iSAM2
+    row["traj_sha1"] = hashlib.sha1(np.ascontiguousarray(res.poses).tobytes()).hexdigest()[:10]
+    row["bracket_settled"] = (getattr(be, "n_bracket_inside", 0)
+                              + getattr(be, "n_bracket_outside", 0))
     return row
 
 
@@ -258,24 +265,29 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
         cfg = dataclasses.replace(base, features=feats)
         for name in backends:
             reps = repeats if label == features[0] else 1
-            row = median_rows([one_run(name, run, frames, cfg, ceiling) for _ in range(reps)])
-            row["features"] = label
-            row.update(pipeline_figures(row, run, frames, frontend_ms, duration))
-            if source == "images" and name != "ekf" and label == features[0]:
-                lazy = [lazy_pipeline(name, run, cfg) for _ in range(reps)]
-                row.update({k: float(np.median([r[k] for r in lazy])) for k in lazy[0]})
-                row["pipe_lazy_x_realtime"] = duration / row["pipe_lazy_cpu_s"]
-            table.append(row)
-            print(f"  {label:14s} {name:6s} pos RMS {row['pos_rms_m']:.4f} m  "
-                  f"({row['status']}, {row['online_cpu_s']:.1f} s CPU online)", flush=True)
-        if label == features[0]:
-            for spec in variants:
-                row = median_rows([one_run("isam2", run, frames, isam2_variant(cfg, spec), ceiling)
-                                   for _ in range(repeats)])
-                row.update(features=label, backend=f"isam2 {spec}")
+            # the default iSAM2 and its variants run round-robin (one run of each per
+            # round, then one lazy pipeline of each): their ratios share the load
+            cfgs = [(name, cfg)]
+            if name == "isam2" and label == features[0]:
+                cfgs += [(f"isam2 {spec}", isam2_variant(cfg, spec)) for spec in variants]
+            runs: dict[str, list[dict[str, Any]]] = {tag: [] for tag, _ in cfgs}
+            lazies: dict[str, list[dict[str, float]]] = {tag: [] for tag, _ in cfgs}
+            lazy_on = source == "images" and name != "ekf" and label == features[0]
+            for _ in range(reps):
+                for tag, c in cfgs:
+                    runs[tag].append(one_run(name, run, frames, c, ceiling))
+                for tag, c in cfgs if lazy_on else ():
+                    lazies[tag].append(lazy_pipeline(name, run, c))
+            for tag, _ in cfgs:
+                row = median_rows(runs[tag])
+                row.update(features=label, backend=tag)
                 row.update(pipeline_figures(row, run, frames, frontend_ms, duration))
+                if lazy_on:
+                    lazy = lazies[tag]
+                    row.update({k: float(np.median([r[k] for r in lazy])) for k in lazy[0]})
+                    row["pipe_lazy_x_realtime"] = duration / row["pipe_lazy_cpu_s"]
                 table.append(row)
-                print(f"  {label:14s} {row['backend']} pos RMS {row['pos_rms_m']:.4f} m  "
+                print(f"  {label:14s} {tag} pos RMS {row['pos_rms_m']:.4f} m  "
                       f"({row['status']}, {row['online_cpu_s']:.1f} s CPU online)", flush=True)
     dr = drive(EkfSlam(run.rig.odometry, base, start_pose_of(run)), iter_steps(run.odometry, []))
     table.append({"features": "none (dead reckoning)", "backend": "-", **_errors(dr, run)})
@@ -291,7 +303,7 @@ def bench_lab(run_dir: Path, source: str, repeats: int, max_frames: int | None,
             if isam2_rows and str(r["backend"]).startswith("isam2"):
                 r["cpu_vs_isam2"] = r["online_cpu_s"] / isam2_rows[0]["online_cpu_s"]
     print(markdown_table(table, ["features", "backend", "pos_rms_m", "pos_max_m", "head_rms_deg",
-                                 "landmarks", "keyframes"]))
+                                 "landmarks", "keyframes", "traj_sha1", "bracket_settled"]))
     print()
     first = [r for r in table if r.get("features") == features[0]]
     print(f"timings (median of {repeats} runs for {features[0]}; CPU time of this process "

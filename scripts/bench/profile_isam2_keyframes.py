@@ -10,7 +10,9 @@ images, made once before timing) with iSAM2 wrapped so that each ``update``,
 time. Prints, per keyframe, the share of the backend's CPU in each, then the slowest 5 %
 of keyframes (those at or above the p95) against the faster half: mean CPU per part,
 variables relinearised and re-eliminated by the update, new factors, and the keyframe
-indices of the slow ones (clusters show revisits). ``--no-prefetch`` asks one joint
+indices of the slow ones (clusters show revisits). ``--exact-gate`` turns the gate's
+bracket off (``[isam2] bracket_gate = false``: every undecided lamp pair asks iSAM2, as
+before it). ``--no-prefetch`` asks one joint
 marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint` off),
 to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
 binned by their number of keys, and the landmarks of the calls over 20 ms are counted
@@ -27,6 +29,7 @@ are inflated on a loaded machine: compare the shares and the slow/fast ratios.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 from collections import Counter
@@ -133,6 +136,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lab", required=True, help="a simulated run directory")
     ap.add_argument("--no-prefetch", action="store_true", help="one joint marginal per landmark")
+    ap.add_argument("--exact-gate", action="store_true",
+                    help="[isam2] bracket_gate = false: every undecided lamp pair asks iSAM2")
     args = ap.parse_args()
     if args.no_prefetch:
         Gating._prefetch_joint = lambda *a, **k: 0  # type: ignore[method-assign]
@@ -140,7 +145,10 @@ def main() -> None:
     frames, _ = make_frames(run, "images")
     frames = list(frames)
     model = CeilingModel.from_camera(run.rig.camera)
-    be = Isam2Slam(run.rig.odometry, SlamConfig(), start_pose_of(run), model, CeilingHandler(model))
+    cfg = SlamConfig()
+    if args.exact_gate:
+        cfg = dataclasses.replace(cfg, isam2=dataclasses.replace(cfg.isam2, bracket_gate=False))
+    be = Isam2Slam(run.rig.odometry, cfg, start_pose_of(run), model, CeilingHandler(model))
     parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors")
     # Python phases of a keyframe (inclusive: the screen contains the point reads,
     # association the exact gate's joint marginals)
@@ -178,7 +186,9 @@ def main() -> None:
     total = r[:, 0]
     p95 = float(np.percentile(total, 95))
     print(f"{len(r)} keyframes, CPU median / p95 {np.median(total) * 1e3:.1f} / {p95 * 1e3:.1f} ms, "
-          f"load average {os.getloadavg()[0]:.1f}")
+          f"load average {os.getloadavg()[0]:.1f}; lamp pairs settled by the gate's bracket "
+          f"inside / outside {be.n_bracket_inside} / {be.n_bracket_outside}, joint-marginal "
+          f"calls {len(joint_calls)}")
     print("share of keyframe CPU: " + ", ".join(
         f"{p} {r[:, 1 + i].sum() / total.sum():.2f}" for i, p in enumerate(parts[:3])))
     for name, sel in (("slowest 5 %", total >= p95), ("faster half", total < np.median(total))):
