@@ -63,8 +63,8 @@ def _quad(s: FloatArray, nu: FloatArray) -> FloatArray:
     return np.einsum("ntm,ntm->nt", nus[..., 0], np.linalg.solve(s, nus)[..., 0])
 
 
-def bracket_d2(nu: FloatArray, a: FloatArray, b: FloatArray | None, r: FloatArray
-               ) -> tuple[FloatArray, FloatArray]:
+def bracket_d2(nu: FloatArray, a: FloatArray, b: FloatArray | None, r: FloatArray,
+               r_only: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
     """Lower and upper bounds of the exact eq.-20 distance of n pairs (module docstring).
 
     Args:
@@ -74,6 +74,8 @@ def bracket_d2(nu: FloatArray, a: FloatArray, b: FloatArray | None, r: FloatArra
             landmark marginal, or None when there is none (the bracket is then
             ``[0, nu^T R^-1 nu]``).
         r: (n, m, m) measurement noise.
+        r_only: optional (n,) bool: rows for which ``[0, nu^T R^-1 nu]`` is enough (the
+            bounds over ``t`` are not computed for them).
 
     Returns:
         ``(lo, hi)``, each (n,): ``lo <= nu^T S^-1 nu <= hi`` for every joint
@@ -81,8 +83,15 @@ def bracket_d2(nu: FloatArray, a: FloatArray, b: FloatArray | None, r: FloatArra
     """
     nu = np.asarray(nu, float)
     hi_r = _quad(np.asarray(r, float)[:, None], nu)[:, 0]
+    lo_out = np.zeros(len(nu))
     if b is None or not len(nu):
-        return np.zeros(len(nu)), hi_r
+        return lo_out, hi_r
+    if r_only is not None:
+        rows = np.flatnonzero(~np.asarray(r_only, bool))
+        if len(rows) < len(nu):
+            if len(rows):
+                lo_out[rows], hi_r[rows] = bracket_d2(nu[rows], a[rows], b[rows], r[rows])
+            return lo_out, hi_r
     na = np.einsum("ni,nij,nj->n", nu, a, nu)
     nb = np.einsum("ni,nij,nj->n", nu, b, nu)
     t_star = np.sqrt(np.maximum(nb, 1e-300) / np.maximum(na, 1e-300))
@@ -99,7 +108,28 @@ def bracket_d2(nu: FloatArray, a: FloatArray, b: FloatArray | None, r: FloatArra
     return lo, hi
 
 
-def settle_bracketed(pairs: Mapping[int, Mapping[int, float]],
+def sole_candidates(pairs: Mapping[int, Mapping[int, float]], gate: Mapping[int, float]
+                    ) -> set[tuple[int, int]]:
+    """Pairs that are their observation's only candidate, of a landmark no other observation wants.
+
+    A candidate is a pair whose screen distance is below the observation's gate (the
+    pairs :func:`~lampsam.backend.association.associate` may match). For such a pair
+    the greedy one-to-one assignment matches it exactly when it is inside the gate,
+    whatever its distance.
+
+    Args:
+        pairs: observation index -> {landmark id: screen distance} of every pair of the kind.
+        gate: the gate per observation index.
+    """
+    cand = {i: [lid for lid, d2 in row.items() if d2 < gate[i]] for i, row in pairs.items()}
+    wanted: dict[int, int] = {}
+    for lids in cand.values():
+        for lid in lids:
+            wanted[lid] = wanted.get(lid, 0) + 1
+    return {(i, lids[0]) for i, lids in cand.items() if len(lids) == 1 and wanted[lids[0]] == 1}
+
+
+def settle_bracketed(sole: set[tuple[int, int]],
                      bracket: Mapping[tuple[int, int], tuple[float, float]],
                      gate: Mapping[int, float], new_threshold: Mapping[int, float],
                      far: Mapping[int, float] | None) -> dict[tuple[int, int], tuple[float, str]]:
@@ -110,18 +140,15 @@ def settle_bracketed(pairs: Mapping[int, Mapping[int, float]],
     becomes new when its smallest distance is above the new-landmark threshold, else
     it is dropped. So a pair is settled when:
 
-    - ``hi < gate`` and it is its observation's only candidate inside the (wider)
-      screen's gate, and no other observation has its landmark there: matched
-      whatever the exact distance (``"inside"``, reported as ``hi``);
+    - ``hi < gate`` and it is in ``sole`` (:func:`sole_candidates`): matched whatever
+      the exact distance (``"inside"``, reported as ``hi``);
     - ``lo > new_threshold`` (and ``lo > far`` when given: the exact gate would have
       recorded a distance that far, :meth:`~lampsam.backend.gating.Gating._reuse_far`
       reuses it): neither a match nor keeping the observation from being new
       (``"outside"``, reported as ``lo``).
 
     Args:
-        pairs: observation index -> {landmark id: screen distance} of every pair of the
-            kind (settled or not); a pair is a candidate when its screen distance is
-            below the observation's gate.
+        sole: :func:`sole_candidates` of the kind's pairs.
         bracket: (observation index, landmark id) -> ``(lo, hi)`` for the pairs that
             would be asked for the exact distance.
         gate, new_threshold: per observation index.
@@ -130,16 +157,11 @@ def settle_bracketed(pairs: Mapping[int, Mapping[int, float]],
     Returns:
         (observation index, landmark id) -> (distance to report, "inside" | "outside").
     """
-    cand = {i: [lid for lid, d2 in row.items() if d2 < gate[i]] for i, row in pairs.items()}
-    wanted: dict[int, int] = {}
-    for lids in cand.values():
-        for lid in lids:
-            wanted[lid] = wanted.get(lid, 0) + 1
     out: dict[tuple[int, int], tuple[float, str]] = {}
     for (i, lid), (lo, hi) in bracket.items():
         if not (math.isfinite(lo) and math.isfinite(hi)):
             continue
-        if hi * (1.0 + ROUNDING) < gate[i] and cand[i] == [lid] and wanted[lid] == 1:
+        if hi * (1.0 + ROUNDING) < gate[i] and (i, lid) in sole:
             out[(i, lid)] = (hi, "inside")
         elif lo * (1.0 - ROUNDING) > max(new_threshold[i], far[i] if far is not None else 0.0):
             out[(i, lid)] = (lo, "outside")

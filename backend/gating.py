@@ -23,7 +23,7 @@ from gtsam.symbol_shorthand import X
 from lampsam.arrays import FloatArray
 from lampsam.backend.association import screen_pairs
 from lampsam.backend.ceiling_graph import point_key
-from lampsam.backend.gate_bracket import bracket_d2, settle_bracketed
+from lampsam.backend.gate_bracket import bracket_d2, settle_bracketed, sole_candidates
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs, for_landmark, predict, residual
@@ -530,34 +530,43 @@ class Gating(GraphState):
                  and self._landmarks[lid].in_graph]
         if not asked:
             return screened
-        # (nu, A, B or None, R) per pair, grouped by size and whether B is known
+        sole = sole_candidates(
+            {i: {lid: d2 for lid, (d2, _) in pairs.items()} for i, pairs in rows.items()}, gate)
+        # (nu, A, B or None, R) per pair that a bracket could settle (a sole candidate, or
+        # one with a lamp-marginal bound), grouped by size and whether B is known
         groups: dict[tuple[int, bool], list[tuple[tuple[int, int], FloatArray, FloatArray,
                                                   FloatArray | None, FloatArray]]] = {}
         for i, lid in asked:
             lm = self._landmarks[lid]
+            rec = self._joint_at.get(lid)
+            if rec is not None and rec[1][2].shape[0] != len(lm.state):
+                rec = None
+            if rec is None and (i, lid) not in sole:
+                continue
             o = for_landmark(obs[i], len(lm.state))
             try:
                 z_hat, h_p, h_l = predict(lm.kind, pose, lm.state, o, self.ceiling)
             except Exception:
                 continue
-            rec = self._joint_at.get(lid)
-            b = (h_l @ rec[1][2] @ h_l.T
-                 if rec is not None and rec[1][2].shape[0] == len(lm.state) else None)
+            b = None if rec is None else h_l @ rec[1][2] @ h_l.T
             groups.setdefault((len(z_hat), b is not None), []).append(
                 ((i, lid), residual(o, z_hat), h_p @ pose_cov @ h_p.T, b, o.R))
         bracket: dict[tuple[int, int], tuple[float, float]] = {}
         dof: dict[tuple[int, int], int] = {}
         for (dim, known), group in groups.items():
-            lo, hi = bracket_d2(np.array([g[1] for g in group]), np.array([g[2] for g in group]),
-                                np.array([g[3] for g in group]) if known else None,
-                                np.array([g[4] for g in group]))
+            nu, r = np.array([g[1] for g in group]), np.array([g[4] for g in group])
+            # sole candidates that R alone puts inside need no bounds over t
+            r_only = np.array([g[0] in sole for g in group]) & (
+                np.einsum("ni,ni->n", nu, np.linalg.solve(r, nu[..., None])[..., 0])
+                < np.array([gate[g[0][0]] for g in group]))
+            lo, hi = bracket_d2(nu, np.array([g[2] for g in group]),
+                                np.array([g[3] for g in group]) if known else None, r, r_only)
             for g, lo_j, hi_j in zip(group, lo, hi, strict=True):
                 bracket[g[0]] = (float(lo_j), float(hi_j))
                 dof[g[0]] = dim
         recheck = cfg.isam2.far_lamp_recheck > 0
         settled = settle_bracketed(
-            {i: {lid: d2 for lid, (d2, _) in pairs.items()} for i, pairs in rows.items()},
-            bracket, gate, {i: ac.new_threshold(len(obs[i].z)) for i in rows},
+            sole, bracket, gate, {i: ac.new_threshold(len(obs[i].z)) for i in rows},
             {i: cfg.isam2.far_lamp_factor * ac.new_threshold(len(obs[i].z)) for i in rows}
             if recheck else None)
         for (i, lid), (d2, side) in settled.items():

@@ -20,7 +20,7 @@ from lampsam.backend.association import Assignment
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.gate_bracket import bracket_d2, settle_bracketed
+from lampsam.backend.gate_bracket import bracket_d2, settle_bracketed, sole_candidates
 from lampsam.backend.graph import Isam2Slam
 from lampsam.backend.slam import drive, iter_steps
 from tests.test_backend import ceiling_world
@@ -73,6 +73,11 @@ def test_bracket_contains_the_exact_distance() -> None:
             assert np.mean(hi < 0.5 * hi_r) > 0.5  # the lower covariance bound helps
     lo, hi = bracket_d2(nu, a, None, r)  # no landmark bound: [0, nu^T R^-1 nu]
     assert np.all(lo == 0.0) and np.allclose(hi, hi_r)
+    mask = np.arange(len(nu)) % 2 == 0  # rows asking only for R's end
+    lo_m, hi_m = bracket_d2(nu, a, b, r, mask)
+    lo_f, hi_f = bracket_d2(nu, a, b, r)
+    assert np.all(lo_m[mask] == 0.0) and np.allclose(hi_m[mask], hi_r[mask])
+    assert np.allclose(lo_m[~mask], lo_f[~mask]) and np.allclose(hi_m[~mask], hi_f[~mask])
 
 
 def test_settle_only_what_the_bracket_decides() -> None:
@@ -80,17 +85,21 @@ def test_settle_only_what_the_bracket_decides() -> None:
     pairs = {0: {5: 3.0}, 1: {6: 4.0, 7: 30.0}, 2: {8: 2.0, 9: 5.0}}
     bracket = {(0, 5): (1.0, 9.0), (1, 6): (25.0, 80.0), (2, 8): (0.1, 3.0),
                (2, 9): (0.1, 3.0)}
-    got = settle_bracketed(pairs, bracket, gate, new, None)
+    sole = sole_candidates(pairs, gate)
+    assert sole == {(0, 5), (1, 6)}
+    got = settle_bracketed(sole, bracket, gate, new, None)
     # 0: sole candidate, surely inside; 1: beyond the new-landmark threshold;
     # 2: two candidates inside: the exact distances pick the winner
     assert got == {(0, 5): (9.0, "inside"), (1, 6): (25.0, "outside")}
     # a landmark wanted by two observations is not settled inside
-    assert settle_bracketed({0: {5: 3.0}, 1: {5: 4.0}}, {(0, 5): (1.0, 9.0)}, gate, new, None) == {}
+    assert sole_candidates({0: {5: 3.0}, 1: {5: 4.0}}, gate) == set()
+    assert settle_bracketed(set(), {(0, 5): (1.0, 9.0)}, gate, new, None) == {}
     # hi above the gate: undecided; lo beyond new but not beyond the far-reuse threshold
-    assert settle_bracketed({0: {5: 3.0}}, {(0, 5): (1.0, 12.0)}, gate, new, None) == {}
+    one = {(0, 5)}
+    assert settle_bracketed(one, {(0, 5): (1.0, 12.0)}, gate, new, None) == {}
     far = {0: 42.2}
-    assert settle_bracketed({0: {5: 3.0}}, {(0, 5): (30.0, 90.0)}, gate, new, far) == {}
-    assert settle_bracketed({0: {5: 3.0}}, {(0, 5): (50.0, 90.0)}, gate, new, far) == {
+    assert settle_bracketed(one, {(0, 5): (30.0, 90.0)}, gate, new, far) == {}
+    assert settle_bracketed(one, {(0, 5): (50.0, 90.0)}, gate, new, far) == {
         (0, 5): (50.0, "outside")}
 
 
