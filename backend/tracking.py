@@ -71,6 +71,31 @@ class WorkerError(LampsamError):
 
 
 @dataclass
+class WorkerClocks:
+    """Where the mapping worker's time goes besides its steps (process CPU s, or wall s).
+
+    Attributes:
+        startup_cpu_s: building the backend, before ``("ready", ...)``.
+        inbox_cpu_s: taking the steps from the inbox: reading and unpickling the
+            messages, unpacking the frames.
+        reply_cpu_s: handing the estimates to the outbox (the queue's feeder thread
+            pickles and writes them apart: in the process CPU, not here).
+        finish_cpu_s: after the stop mark: the backend's final optimisation
+            (``finish``).
+        idle_s: wall clock blocked on an empty inbox, waiting for the caller.
+        online_cpu_s: process CPU from start to the stop mark (start-up, steps, inbox,
+            replies, the feeder thread).
+    """
+
+    startup_cpu_s: float = 0.0
+    inbox_cpu_s: float = 0.0
+    reply_cpu_s: float = 0.0
+    finish_cpu_s: float = 0.0
+    idle_s: float = 0.0
+    online_cpu_s: float = 0.0
+
+
+@dataclass
 class DecoupledTimes:
     """Per-step records of :func:`run_decoupled` (``time.perf_counter`` s, step order).
 
@@ -95,6 +120,8 @@ class DecoupledTimes:
         worker_done: when the worker had finished the last step.
         update_sizes: with ``[online] catch_up`` > 1, the keyframes in each of the
             worker's iSAM2 updates (:class:`CatchUp`; empty when off).
+        clocks: the worker's time besides its steps (:class:`WorkerClocks`).
+        lag_wait_s: wall clock this process waited on back-pressure (``max_lag``).
         result: the backend's :class:`~lampsam.backend.interface.SlamResult` after
             its ``finish`` (``run_decoupled(finish=True)``; None otherwise, or when
             the worker was given up on).
@@ -120,6 +147,8 @@ class DecoupledTimes:
     worker_ready: float = float("nan")
     worker_done: float = float("nan")
     update_sizes: list[int] = field(default_factory=list)
+    clocks: WorkerClocks = field(default_factory=WorkerClocks)
+    lag_wait_s: float = 0.0
     result: SlamResult | None = None
     interrupted: bool = False
     failure: str | None = None
@@ -151,18 +180,22 @@ def worker_context() -> ForkContext | SpawnContext:
 
 class _Backlog:
     """The steps the worker has taken from its inbox and not yet run, in order;
-    ``framed`` counts those with a measurement frame (each a possible keyframe)."""
+    ``framed`` counts those with a measurement frame (each a possible keyframe),
+    ``newest`` is the index of the newest step taken."""
 
     def __init__(self, inbox: queue.Queue[object]) -> None:
         self.inbox = inbox
         self.items: deque[object] = deque()
         self.framed = 0
+        self.newest = -1
 
     def append(self, item: object) -> None:
         self.items.append(item)
-        if item != _STOP and cast(tuple[int, float, FloatArray, tuple[str, object]],
-                                  item)[3][1] is not None:
-            self.framed += 1
+        if item != _STOP:
+            step = cast(tuple[int, float, FloatArray, tuple[str, object]], item)
+            self.newest = step[0]
+            if step[3][1] is not None:
+                self.framed += 1
 
     def drain(self) -> None:
         """Take every step already waiting in the inbox (without blocking)."""
@@ -181,34 +214,48 @@ class _Backlog:
 
 
 def _inbox_steps(backlog: _Backlog, stop: EventLike, at: list[float], index: list[int],
-                 flush: Callable[[], None]) -> Iterator[tuple[float, FloatArray, Frame | None]]:
+                 flush: Callable[[], None], clocks: WorkerClocks
+                 ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
     """The worker's steps from its inbox until the stop mark. A set ``stop`` (the caller
     was interrupted) or a dead caller raises :class:`KeyboardInterrupt`, which
     :func:`~lampsam.backend.slam.drive` turns into status ``"interrupted"``. Before each
     step the inbox is drained into ``backlog`` (so a catching-up backend sees what
     waits), ``index[0]`` is set to the step's index and ``at[0]`` to the process CPU
     clock; ``flush`` (send the estimates made so far) is called whenever nothing
-    waits, before waiting for the caller."""
+    waits, before waiting for the caller, and at the stop mark. The CPU spent here (flushes apart) adds to
+    ``clocks.inbox_cpu_s``, the wall clock blocked on the empty inbox to
+    ``clocks.idle_s``."""
     parent = mp.parent_process()
     while True:
+        c0 = time.process_time()
         if stop.is_set():
             raise KeyboardInterrupt("stopped by the tracking process")
         backlog.drain()
         if not backlog.items:
+            r0 = time.process_time()
             flush()  # caught up: the caller gets every estimate before the worker waits
+            clocks.reply_cpu_s += time.process_time() - r0
+            c0 += time.process_time() - r0
+            w0 = time.perf_counter()
             try:
-                backlog.append(backlog.inbox.get(timeout=_POLL_S))
+                item = backlog.inbox.get(timeout=_POLL_S)
             except queue.Empty:
+                clocks.idle_s += time.perf_counter() - w0
                 if parent is not None and not parent.is_alive():
                     raise KeyboardInterrupt("the tracking process died") from None
                 continue
+            clocks.idle_s += time.perf_counter() - w0
+            backlog.append(item)
         item = backlog.pop()
         if item == _STOP:
+            flush()  # every step's estimate back before the final optimisation
+            clocks.inbox_cpu_s += time.process_time() - c0
             return
         i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
         index[0] = i
         frame = _unpack(packed)
         at[0] = time.process_time()
+        clocks.inbox_cpu_s += at[0] - c0
         yield t, samples, frame
 
 
@@ -266,13 +313,19 @@ class CatchUp(SlamBackend):
 def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig,
                     start_pose: FloatArray, camera: CameraModel | None,
                     inbox: queue.Queue[object], outbox: queue.Queue[object], stop: EventLike,
-                    finish: bool) -> None:
+                    finish: bool, max_lag: int | None) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
     ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
-    ...])`` (batched: when the inbox is empty, else every ``_REPLY_BATCH`` steps); after the
-    stop mark (or ``stop`` set) ``("done", result or None, cpu_s, keyframes per update)``
-    (:attr:`DecoupledTimes.update_sizes`), the result being the backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
-    fallbacks as a run in one process); ``("error", text)`` if the backend cannot be built."""
+    ...])``, batched: when the inbox is empty, every ``_REPLY_BATCH`` steps, at the stop
+    mark, and as soon as a step lets the caller go on when it may be waiting on
+    back-pressure (``max_lag``: the newest step taken is more than ``max_lag`` ahead of
+    the last estimate sent and at most that ahead of this one; replying only in batches
+    would leave the worker without steps while the caller resumes). After the stop mark
+    (or ``stop`` set) ``("done", result or None, cpu_s, keyframes per update, clocks)``
+    (:attr:`DecoupledTimes.update_sizes`, :class:`WorkerClocks`), the result being the
+    backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
+    fallbacks as a run in one process); ``("error", text)`` if the backend cannot be
+    built."""
     import signal
     from collections.abc import Mapping
 
@@ -290,7 +343,8 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         outbox.put(("error", f"{type(exc).__name__}: {exc}"))
         return
     outbox.put(("ready", 0.0))
-    at, index = [0.0], [-1]
+    clocks = WorkerClocks(startup_cpu_s=time.process_time() - c0)
+    at, index, replied = [0.0], [-1], [-1]
     pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
     backlog = _Backlog(inbox)
     catch_up: CatchUp | None = None
@@ -305,6 +359,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         # it) go back with the update that includes it, as the keyframe latency says
         if pending and (catch_up is None or not catch_up.inner.n_deferred):
             outbox.put(("steps", pending.copy()))
+            replied[0] = pending[-1][0]
             pending.clear()
 
     def on_event(event: str, fields: Mapping[str, object]) -> None:
@@ -313,18 +368,26 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
             x, y, th = (float(v) for v in est.pose)
             pending.append((index[0], (x, y, th), bool(est.keyframe),
                             time.process_time() - at[0]))
-            if len(pending) >= _REPLY_BATCH:
+            ahead = backlog.newest - index[0]  # steps the caller has sent beyond this one
+            if len(pending) >= _REPLY_BATCH or (
+                    max_lag is not None and ahead <= max_lag
+                    and backlog.newest - replied[0] > max_lag):
+                r0 = time.process_time()
                 flush()
+                clocks.reply_cpu_s += time.process_time() - r0
 
-    steps = _inbox_steps(backlog, stop, at, index, flush)
+    def steps() -> Iterator[tuple[float, FloatArray, Frame | None]]:
+        yield from _inbox_steps(backlog, stop, at, index, flush, clocks)
+        clocks.online_cpu_s = time.process_time() - c0  # the stop mark: online work done
+
     result: SlamResult | None = None
     if finish:
         with observing(on_event):
-            result = drive(be, steps)
+            result = drive(be, steps())
         result.graph = None  # GTSAM's Python-callback factors do not pickle
     else:
         try:
-            for t, samples, frame in steps:
+            for t, samples, frame in steps():
                 est = be.step(t, samples, frame)
                 on_event("slam.step", {"estimate": est})
         except KeyboardInterrupt:
@@ -335,7 +398,10 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
     if pending:
         outbox.put(("steps", pending.copy()))
     sizes = catch_up.update_sizes if catch_up is not None else []
-    outbox.put(("done", result, time.process_time() - c0, sizes))
+    total = time.process_time() - c0
+    clocks.online_cpu_s = clocks.online_cpu_s or total  # stopped early: all of it
+    clocks.finish_cpu_s = total - clocks.online_cpu_s
+    outbox.put(("done", result, total, sizes, clocks))
 
 
 def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backend: str,
@@ -392,7 +458,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
     stop: EventLike = ctx.Event()
     worker = ctx.Process(target=_mapping_worker, name="lampsam-mapping", daemon=True,
                          args=(backend, odometry, config, np.asarray(start_pose, float), camera,
-                               inbox, outbox, stop, finish))
+                               inbox, outbox, stop, finish, max_lag))
     worker.start()
     chain: list[gtsam.Pose2] = []  # o_i: the odometry chain of every step
     anchor_j, anchor_x = -1, gtsam.Pose2(*np.asarray(start_pose, float))
@@ -408,7 +474,9 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         if item[0] == "done":
             times.result = cast(SlamResult | None, item[1])
             times.worker_cpu_s = float(cast(float, item[2]))
-            times.update_sizes = list(cast(tuple[str, object, float, list[int]], message)[3])
+            done_item = cast(tuple[str, object, float, list[int], WorkerClocks], message)
+            times.update_sizes = list(done_item[3])
+            times.clocks = done_item[4]
             done.append(True)
             return
         if item[0] != "steps":
@@ -473,6 +541,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.anchor.append(anchor_j)
                 times.out.append(time.perf_counter())
                 times.cpu_out.append(time.thread_time())
+                w0 = time.perf_counter()
                 while max_lag is not None and i - anchor_j > max_lag and not done:
                     try:  # back-pressure: wait for the worker to come within max_lag
                         take(outbox.get(timeout=_POLL_S))
@@ -480,6 +549,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                         if not worker.is_alive():
                             raise WorkerError("the mapping worker died after "
                                               f"{anchor_j + 1} steps") from None
+                times.lag_wait_s += time.perf_counter() - w0
                 if done:  # the worker ended early (its backend failed): nothing more to map
                     break
             inbox.put(_STOP)
