@@ -36,6 +36,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
 from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.synchronize import Event as EventLike
 from typing import cast
@@ -78,13 +79,15 @@ class WorkerClocks:
         startup_cpu_s: building the backend, before ``("ready", ...)``.
         inbox_cpu_s: taking the steps from the inbox: reading and unpickling the
             messages, unpacking the frames.
-        reply_cpu_s: handing the estimates to the outbox (the queue's feeder thread
-            pickles and writes them apart: in the process CPU, not here).
+        reply_cpu_s: sending the estimates back (pickled and written to the pipe).
         finish_cpu_s: after the stop mark: the backend's final optimisation
             (``finish``).
         idle_s: wall clock blocked on an empty inbox, waiting for the caller.
         online_cpu_s: process CPU from start to the stop mark (start-up, steps, inbox,
-            replies, the feeder thread).
+            replies).
+        online_wall_s: wall clock from start to the stop mark; ``online_wall_s -
+            online_cpu_s - idle_s`` is the time the worker wanted a core and had none
+            (other processes' load).
     """
 
     startup_cpu_s: float = 0.0
@@ -93,6 +96,7 @@ class WorkerClocks:
     finish_cpu_s: float = 0.0
     idle_s: float = 0.0
     online_cpu_s: float = 0.0
+    online_wall_s: float = 0.0
 
 
 @dataclass
@@ -310,9 +314,33 @@ class CatchUp(SlamBackend):
         return self.inner.finish(status)
 
 
+def _send(outbox: Connection, message: object) -> None:
+    """Write a message to the caller in this thread (a queue's feeder thread would wait
+    for the GIL while GTSAM holds it in the next step: the estimates would come back a
+    step late); a caller gone is nothing to report to."""
+    try:
+        outbox.send(message)
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+
+
+def _receive(inbox: Connection, timeout: float) -> object:
+    """The worker's next message; :class:`queue.Empty` after ``timeout`` s without one.
+
+    Raises:
+        WorkerError: the worker's end closed without a ``"done"`` (it died).
+    """
+    if not inbox.poll(timeout):
+        raise queue.Empty
+    try:
+        return inbox.recv()
+    except EOFError:
+        raise WorkerError("the mapping worker stopped without a word") from None
+
+
 def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig,
                     start_pose: FloatArray, camera: CameraModel | None,
-                    inbox: queue.Queue[object], outbox: queue.Queue[object], stop: EventLike,
+                    inbox: queue.Queue[object], outbox: Connection, stop: EventLike,
                     finish: bool, max_lag: int | None) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
     ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
@@ -336,13 +364,13 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
     # worker before it has written back what it finished)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    c0 = time.process_time()
+    c0, w0 = time.process_time(), time.perf_counter()
     try:
         be = make_backend(backend, odometry, config, start_pose, camera)
     except Exception as exc:  # sent to the caller, which raises it
-        outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+        _send(outbox, ("error", f"{type(exc).__name__}: {exc}"))
         return
-    outbox.put(("ready", 0.0))
+    _send(outbox, ("ready", 0.0))
     clocks = WorkerClocks(startup_cpu_s=time.process_time() - c0)
     at, index, replied = [0.0], [-1], [-1]
     pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
@@ -358,7 +386,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         # a deferred keyframe's estimate is the prediction: its step (and those after
         # it) go back with the update that includes it, as the keyframe latency says
         if pending and (catch_up is None or not catch_up.inner.n_deferred):
-            outbox.put(("steps", pending.copy()))
+            _send(outbox, ("steps", pending.copy()))
             replied[0] = pending[-1][0]
             pending.clear()
 
@@ -379,6 +407,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
     def steps() -> Iterator[tuple[float, FloatArray, Frame | None]]:
         yield from _inbox_steps(backlog, stop, at, index, flush, clocks)
         clocks.online_cpu_s = time.process_time() - c0  # the stop mark: online work done
+        clocks.online_wall_s = time.perf_counter() - w0
 
     result: SlamResult | None = None
     if finish:
@@ -393,15 +422,17 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
         except KeyboardInterrupt:
             pass
         except Exception as exc:  # sent to the caller, which raises it
-            outbox.put(("error", f"{type(exc).__name__}: {exc}"))
+            _send(outbox, ("error", f"{type(exc).__name__}: {exc}"))
             return
     if pending:
-        outbox.put(("steps", pending.copy()))
+        _send(outbox, ("steps", pending.copy()))
     sizes = catch_up.update_sizes if catch_up is not None else []
     total = time.process_time() - c0
-    clocks.online_cpu_s = clocks.online_cpu_s or total  # stopped early: all of it
+    if not clocks.online_cpu_s:  # stopped early: all of it
+        clocks.online_cpu_s, clocks.online_wall_s = total, time.perf_counter() - w0
     clocks.finish_cpu_s = total - clocks.online_cpu_s
-    outbox.put(("done", result, total, sizes, clocks))
+    _send(outbox, ("done", result, total, sizes, clocks))
+    outbox.close()
 
 
 def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backend: str,
@@ -454,12 +485,13 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
     mirror = KeyframeMirror(motion, config) if backend in ("isam2", "batch") else None
     ctx = worker_context()
     inbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
-    outbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
+    outbox, worker_end = ctx.Pipe(duplex=False)  # estimates back: (read end, write end)
     stop: EventLike = ctx.Event()
     worker = ctx.Process(target=_mapping_worker, name="lampsam-mapping", daemon=True,
                          args=(backend, odometry, config, np.asarray(start_pose, float), camera,
-                               inbox, outbox, stop, finish, max_lag))
+                               inbox, worker_end, stop, finish, max_lag))
     worker.start()
+    worker_end.close()  # the worker's copy only: its exit closes the pipe
     chain: list[gtsam.Pose2] = []  # o_i: the odometry chain of every step
     anchor_j, anchor_x = -1, gtsam.Pose2(*np.asarray(start_pose, float))
     done: list[bool] = []
@@ -501,7 +533,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 log.warning("interrupted: the mapping worker stops after its current step "
                             "(a second signal gives up on it)")
             try:
-                take(outbox.get(timeout=_POLL_S))
+                take(_receive(outbox, _POLL_S))
             except queue.Empty:
                 if not worker.is_alive():
                     raise WorkerError("the mapping worker stopped without a word after "
@@ -530,7 +562,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 inbox.put((i, t, samples, _pack(sent)))
                 while True:  # every estimate already back
                     try:
-                        take(outbox.get_nowait())
+                        take(_receive(outbox, 0.0))
                     except queue.Empty:
                         break
                 if anchor_j < 0:
@@ -544,7 +576,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 w0 = time.perf_counter()
                 while max_lag is not None and i - anchor_j > max_lag and not done:
                     try:  # back-pressure: wait for the worker to come within max_lag
-                        take(outbox.get(timeout=_POLL_S))
+                        take(_receive(outbox, _POLL_S))
                     except queue.Empty:
                         if not worker.is_alive():
                             raise WorkerError("the mapping worker died after "
@@ -581,6 +613,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
             log.warning("mapping worker still running after 5 s: terminating it")
             worker.terminate()
             worker.join(timeout=1.0)
+        outbox.close()
 
 
 def replay_latency(t: FloatArray, step_cpu: FloatArray, pace: float) -> FloatArray:
