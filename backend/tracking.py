@@ -314,6 +314,25 @@ class CatchUp(SlamBackend):
         return self.inner.finish(status)
 
 
+def reply_due(n_pending: int, step: int, newest: int, replied: int, max_lag: int | None) -> bool:
+    """Whether the worker sends its pending estimates after finishing ``step``.
+
+    Every ``_REPLY_BATCH`` steps, and at once when the caller may be waiting on
+    back-pressure for this very step: the caller, having sent up to ``newest``, waits
+    while ``newest - (newest estimate it has) > max_lag``; the estimates it has end at
+    ``replied``. Replying only in batches would keep it waiting while the worker works
+    through its backlog, then leave the worker without steps while it resumes.
+
+    Args:
+        n_pending: estimates finished and not yet sent; step: the step just finished;
+        newest: the newest step taken from the inbox; replied: the newest step sent
+            back (-1: none); max_lag: the caller's back-pressure, steps (None: none).
+    """
+    if n_pending >= _REPLY_BATCH:
+        return True
+    return max_lag is not None and newest - step <= max_lag < newest - replied
+
+
 def _send(outbox: Connection, message: object) -> None:
     """Write a message to the caller in this thread (a queue's feeder thread would wait
     for the GIL while GTSAM holds it in the next step: the estimates would come back a
@@ -344,11 +363,8 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
                     finish: bool, max_lag: int | None) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
     ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
-    ...])``, batched: when the inbox is empty, every ``_REPLY_BATCH`` steps, at the stop
-    mark, and as soon as a step lets the caller go on when it may be waiting on
-    back-pressure (``max_lag``: the newest step taken is more than ``max_lag`` ahead of
-    the last estimate sent and at most that ahead of this one; replying only in batches
-    would leave the worker without steps while the caller resumes). After the stop mark
+    ...])``, batched: when the inbox is empty, at the stop mark and when
+    :func:`reply_due`. After the stop mark
     (or ``stop`` set) ``("done", result or None, cpu_s, keyframes per update, clocks)``
     (:attr:`DecoupledTimes.update_sizes`, :class:`WorkerClocks`), the result being the
     backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
@@ -396,10 +412,7 @@ def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfi
             x, y, th = (float(v) for v in est.pose)
             pending.append((index[0], (x, y, th), bool(est.keyframe),
                             time.process_time() - at[0]))
-            ahead = backlog.newest - index[0]  # steps the caller has sent beyond this one
-            if len(pending) >= _REPLY_BATCH or (
-                    max_lag is not None and ahead <= max_lag
-                    and backlog.newest - replied[0] > max_lag):
+            if reply_due(len(pending), index[0], backlog.newest, replied[0], max_lag):
                 r0 = time.process_time()
                 flush()
                 clocks.reply_cpu_s += time.process_time() - r0

@@ -25,9 +25,11 @@ optimisation not counted), as ``lampsam slam --frontend MODE`` runs them.
   Its latency is frame arrival -> tracked pose. Also printed: the CPU of each part
   of both processes (frontend, tracking, queue pickling; the backend's steps, taking
   them from the inbox, the rest, and apart its final optimisation, which runs after
-  the timed steps), the worker's idle time and the tracker's back-pressure waits
-  (wall), the bound two free cores would give (data duration / the busiest
-  process's CPU until the last step, independent of the other sessions' load), the CPU per frame of
+  the timed steps), the worker's idle time, its stalls and the tracker's
+  back-pressure waits (wall; a stall: the worker neither computing nor waiting for
+  steps, i.e. waiting for a core while other processes load the machine), the bound
+  two free cores would give (data duration / the busiest process's CPU until the
+  last step, independent of the other sessions' load), the CPU per frame of
   the tracking thread (image load + frontend + tracking, p95), the keyframe latency
   (step handed over -> its estimate back), how many steps the tracked pose's anchor
   was behind, and the tracked poses' largest difference from the backend's own. On
@@ -173,6 +175,7 @@ def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
             "backend_inbox_cpu_s": figs["online_backend_inbox_cpu_s"],
             "backend_finish_cpu_s": figs["online_backend_finish_cpu_s"],
             "backend_idle_s": figs["online_backend_idle_s"],
+            "backend_stalled_s": figs["online_backend_stalled_s"],
             "lag_wait_s": figs["online_lag_wait_s"],
             "x_rt_2core_bound": duration / bound,
             "lat_med_ms": figs["online_tracked_latency_ms_median"],
@@ -246,7 +249,8 @@ def _line(row: dict[str, Any]) -> str:
                  f"rest {row['backend_rest_cpu_s']:.2f} s (of which taking the steps "
                  f"{row['backend_inbox_cpu_s']:.2f} s; the remainder start-up, replies); final "
                  f"optimisation {row['backend_finish_cpu_s']:.2f} s (not timed); worker idle "
-                 f"{row['backend_idle_s']:.2f} s, tracker waiting on back-pressure "
+                 f"{row['backend_idle_s']:.2f} s, stalled (no core: the load) "
+                 f"{row['backend_stalled_s']:.2f} s, tracker waiting on back-pressure "
                  f"{row['lag_wait_s']:.2f} s (wall); bound on 2 free cores (CPU) "
                  f"{row['x_rt_2core_bound']:.1f}x real time"
                  f"\n        frame made -> tracked pose p95 {row['track_p95_ms']:.2f} ms (wall), "
@@ -346,7 +350,7 @@ def main() -> None:
             "cpu_main_s", "cpu_main_vs_seq", "cpu_worker_s", "cpu_total_vs_seq", "lat_med_ms",
             "lat_p95_ms", "lat_max_ms", "frame_cpu_p95_ms", "startup_s", "max_pose_diff",
             "kf_lat_p95_ms", "replay_1x_kf_p95_ms", "lag_p95_steps", "backend_online_cpu_s",
-            "backend_steps_cpu_s", "backend_rest_cpu_s", "backend_idle_s",
+            "backend_steps_cpu_s", "backend_rest_cpu_s", "backend_idle_s", "backend_stalled_s",
             "kf_cpu_p95_ms", "catch_up_updates", "catch_up_keyframes", "rms_final_mm",
             "rms_online_mm", "load"]
     print(f"\nmedians of {args.repeats} rounds")
