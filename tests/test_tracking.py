@@ -76,7 +76,7 @@ def test_reply_due_releases_a_waiting_tracker_at_once() -> None:
     tracker has sent up to 40 and holds estimates to 20: with max_lag 15 it waits for
     step 25), not before it, not again until it could wait again; every 16 steps anyway;
     never for back-pressure when there is none."""
-    from lampsam.backend.tracking import reply_due
+    from lampsam.backend.mapping_worker import reply_due
 
     assert not reply_due(3, 24, 40, 20, 15)
     assert reply_due(4, 25, 40, 20, 15)
@@ -93,12 +93,12 @@ def test_inbox_flushes_at_the_stop_mark() -> None:
     import queue
     import threading
 
-    from lampsam.backend.tracking import _STOP, WorkerClocks, _Backlog, _inbox_steps
+    from lampsam.backend.mapping_worker import STOP, WorkerClocks, _Backlog, _inbox_steps
 
     inbox: queue.Queue[object] = queue.Queue()
     for i in range(3):
         inbox.put((i, 0.1 * i, np.zeros((1, 2)), ("raw", None)))
-    inbox.put(_STOP)
+    inbox.put(STOP)
     flushes: list[int] = []
     taken: list[int] = []
     clocks = WorkerClocks()
