@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 POLL_S = 0.5  # how often a waiting process checks that the other is alive
 STOP = "stop"  # the inbox's stop mark: no more steps
 #: The worker sends its estimates when it has caught up with the caller, or after this
-#: many steps: a caller far behind wakes once per batch instead of once per step.
+#: many steps (or when the caller waits for them, :func:`reply_due`).
 _REPLY_BATCH = 16
 
 
@@ -86,6 +86,7 @@ def pack_step_frame(frame: Frame | None) -> object:
 
 
 def unpack_step_frame(item: object) -> Frame | None:
+    """The frame :func:`pack_step_frame` packed."""
     kind, payload = cast(tuple[str, object], item)
     if kind == "ceiling":
         return unpack_frame(cast(PackedFrame, payload))
