@@ -139,14 +139,16 @@ def localize_config(method: str) -> LocalizeConfig:
     """``localize[-priors|-consider][-nooffset][-loose][-smooth[-turn|-noframe]]`` as the
     filter's settings: the defaults of :class:`LocalizeConfig` (the map frame's offset state
     with a version-2 map, the known start held at 1 mm / 1 mrad as SLAM holds it) with
-    ``-nooffset`` without the frame state (``frame_offset`` off) and ``-loose`` with the start at 2 cm / 0.01 rad (the
+    ``-nooffset`` without the frame state (``frame_offset`` off), ``-gturn`` with its turn
+    estimated too (``frame_turn``), and ``-loose`` with the start at 2 cm / 0.01 rad (the
     settings before the eleventh session); ``-frame`` and ``-tight`` are the defaults now
     (accepted, no effect); ``-smooth`` (:func:`smoother_config`) adds the smoother over the
     filter's poses."""
     parts = method.split("-")[1:]
     mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
     loose = {"sigma_start_xy": 0.02, "sigma_start_theta": 0.01} if "loose" in parts else {}
-    return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts, **loose)  # type: ignore[arg-type]
+    return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts,  # type: ignore[arg-type]
+                          frame_turn="gturn" in parts, **loose)
 
 
 def truth_frame_offset(truth_T_map: FloatArray, frame: MapFrame | None) -> FloatArray:
@@ -192,7 +194,8 @@ def main() -> None:
     ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth,priors-smooth-turn",
                     help="localize-only variants: fixed, priors, consider (the defaults: the "
                          "map frame's offset state with a version-2 map, the known start at 1 mm "
-                         "/ 1 mrad), -nooffset (without the frame state), -loose (2 cm / 0.01 rad "
+                         "/ 1 mrad), -nooffset (without the frame state), -gturn (the frame state's turn "
+                         "estimated too), -loose (2 cm / 0.01 rad "
                          "start), priors-smooth (the smoother with the map frame's shift), "
                          "priors-smooth-turn (shift and turn), priors-smooth-noframe "
                          "(independent landmark priors)")
