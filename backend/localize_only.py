@@ -122,9 +122,7 @@ class LocalizeConfig:
             on lamp and item edges whose map position is off by centimetres.
         map_mode: how the map's landmark positions enter (default ``"priors"``: with
             the map frame state, over four lab maps x three lab_day2 runs its mean
-            position RMS is 2.69 mm against the fixed map's 2.68 mm, and 2.89 against
-            3.47 mm on four maps built before the saturated-edge model;
-            docs/ceiling-map.md):
+            position RMS is 2.47 mm against the fixed map's 2.50 mm; docs/ceiling-map.md):
             ``"fixed"``: fixed values, their covariance added to each innovation
             (module docstring); ``"priors"``: the used map landmarks join the state
             (``x = (pose, p_1 .. p_L)``, prior ``N(map position, map marginal)``) and
@@ -146,9 +144,10 @@ class LocalizeConfig:
             True (maps without a frame model, version 1 or merged, run without it): with
             lamp sightings read through the saturated-edge model
             (:mod:`lampsam.frontend.saturated_edges`) and the 1 mm start, its mean
-            position RMS over four lab maps x three lab_day2 runs is 2.69 mm against
-            3.94 mm without it; before that model the biased lamp sightings pulled ``g``
-            off and it was worse (docs/ceiling-map.md).
+            position RMS over four lab maps x three lab_day2 runs is 2.47 mm against
+            3.94 mm without it (and the 2 cm start): the start ties the map's frame to the
+            world. Before that model the biased lamp sightings pulled ``g`` off and it was
+            worse (docs/ceiling-map.md).
         frame_turn: with :attr:`frame_offset`, estimate the frame's turn too (default
             False: the frame model reduced to its shift,
             :func:`lampsam.backend.map_frame.shift_only`, as the localize-only smoother
