@@ -29,6 +29,7 @@ Modules:
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
 * :mod:`~lampsam.backend.fixed_lag` -- Fixed-lag smoothing for the online iSAM2 backend (``[isam2] fixed_lag``, keyframes).
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
+* :mod:`~lampsam.backend.gate_bracket` -- A bracket of the exact gate distance from the pose and landmark marginals alone (issue 19).
 * :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
 * :mod:`~lampsam.backend.graph` -- Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
 * :mod:`~lampsam.backend.graph_log` -- SLAM on a graph text log (iSAM ``ODOMETRY``/``LANDMARK``, g2o; e.g. GTSAM's
