@@ -258,6 +258,16 @@ class EkfConfig:
             estimate.
         update_tol: convergence threshold of the iterated update on the largest
             change of any state entry between iterations, m or rad (default 1e-4).
+        young_lamp_iterations: iterations of the update for the observations of
+            young lamps (default 5; 1: the paper's single linearisation everywhere).
+            A lamp starts as a long ellipse along its viewing ray (the height prior
+            of eqs. 24-25) and ``(u, v)`` goes with the inverse of its height: the
+            single linearisation at the prior's mean overshoots along the ray, leaves
+            the lamp sure of a wrong height, the next sightings fail the gate and
+            start a copy of the lamp (docs/ekf-lamps.md). Those observations are
+            applied after the frame's others, as an iterated update.
+        young_lamp_rel_sigma: a lamp is young while its height's standard deviation
+            is above this fraction of its height above the camera (default 0.02).
         right_invariant: the right-invariant EKF (Barrau & Bonnabel, "An EKF-SLAM
             algorithm with consistency properties", 2015) for planar range-bearing
             runs: Jacobians at the latest estimates (as the paper's), but each update
@@ -299,6 +309,8 @@ class EkfConfig:
     corner_budget: bool = False
     update_iterations: int = field(default=1, metadata=limits(ge=1))
     update_tol: float = field(default=1e-4, metadata=limits(gt=0.0))
+    young_lamp_iterations: int = field(default=5, metadata=limits(ge=1))
+    young_lamp_rel_sigma: float = field(default=0.02, metadata=limits(ge=0.0))
     first_estimate_jacobians: bool | None = None
     right_invariant: bool | None = None
     prune_known_ids: bool | None = None

@@ -250,13 +250,12 @@ class EkfSlam(SlamBackend):
 
     # ------------------------------------------------------------------ eqs. 21-23
     def _update(self, pairs: list[tuple[Slot, Obs]]) -> int:
-        """EKF update (eqs. 21-23) with all associated observations of a frame, stacked.
+        """EKF update (eqs. 21-23) with all associated observations of a frame.
 
-        Stacking the frame's observations into one update equals the paper's
-        sequential ``K_i`` updates for a linear model; it needs one ``n x n`` rank-K
-        correction instead of K (:meth:`_linearise`). With
-        ``ekf.update_iterations > 1`` the state is re-linearised at each iterate
-        (iterated EKF); ``P`` is corrected once, with the last ``W``.
+        The observations of young lamps (:meth:`_young_lamp`) are applied after the
+        others, as a second update with ``ekf.young_lamp_iterations`` iterations
+        (sequential updates equal one stacked update for a linear model; the paper
+        applies its ``K_i`` one observation at a time).
 
         Args:
             pairs: (landmark slot, observation) pairs.
@@ -264,11 +263,50 @@ class EkfSlam(SlamBackend):
         Returns:
             Number of observations used.
         """
+        pairs = [(slot, for_landmark(obs, slot.dim)) for slot, obs in pairs]
+        cfg = self.config.ekf
+        young = ([p for p in pairs if self._young_lamp(p[0])]
+                 if cfg.young_lamp_iterations > cfg.update_iterations else [])
+        if not young:
+            return self._update_rows(pairs, cfg.update_iterations)
+        ids = {id(p) for p in young}
+        rest = [p for p in pairs if id(p) not in ids]
+        used = self._update_rows(rest, cfg.update_iterations) if rest else 0
+        return used + self._update_rows(young, cfg.young_lamp_iterations)
+
+    def _young_lamp(self, slot: Slot) -> bool:
+        """Whether lamp ``slot``'s height is still uncertain: its standard deviation
+        above ``ekf.young_lamp_rel_sigma`` times its height above the camera.
+
+        A lamp starts (eqs. 24-25) as a long ellipse along the viewing ray (the 0-5 m
+        height prior); the next frames see it from a few centimetres further on, so
+        its predicted ``(u, v)`` is far from linear in the state over that ellipse
+        (``u`` goes with ``1/h``). Linearised once at the prior's mean height, the
+        update overshoots along the ray and leaves the lamp confident at the wrong
+        height (docs/ekf-lamps.md); the iterated update (Bell & Cathey 1993) does not.
+        """
+        if slot.kind != LandmarkKind.LAMP or self.ceiling is None:
+            return False
+        o = slot.offset + 2
+        height = float(self._x[o]) - float(self.ceiling.body_t_camera[2])
+        var_h = float(self._cov.block(o, o + 1, o, o + 1)[0, 0])
+        return var_h > (self.config.ekf.young_lamp_rel_sigma * max(height, 1e-6)) ** 2
+
+    def _update_rows(self, pairs: list[tuple[Slot, Obs]], iterations: int) -> int:
+        """One stacked update (eqs. 19-23) of ``pairs``, iterated ``iterations`` times.
+
+        Stacking the observations into one update equals the paper's sequential
+        ``K_i`` updates for a linear model; it needs one ``n x n`` rank-K correction
+        instead of K (:meth:`_linearise`). With ``iterations > 1`` the state is
+        re-linearised at each iterate (iterated EKF) until the step changes by less
+        than ``ekf.update_tol``; ``P`` is corrected once, with the last ``W``.
+
+        Returns:
+            Number of observations used.
+        """
         n = self._n
         cov = self._cov
-        pairs = [(slot, for_landmark(obs, slot.dim)) for slot, obs in pairs]
         x0 = self._x[:n].copy()
-        iterations = self.config.ekf.update_iterations
         dx_prev: FloatArray | None = None
         for it in range(iterations):
             lin = self._linearise(pairs, x0 if it > 0 else None)
@@ -289,7 +327,6 @@ class EkfSlam(SlamBackend):
         for slot, *_ in rows:
             slot.n_obs += 1
             slot.last_seen = self._step
-
         return len(rows)
 
     def _wrap_angles(self, rows: list[tuple[Slot, Obs, FloatArray, FloatArray, FloatArray]]) -> None:
