@@ -24,13 +24,15 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L
 
-from lampsam.backend.constellation import align_constellation
+from lampsam.backend.constellation import align_constellation, best_and_rival, rank_hypotheses
 from lampsam.backend.graph_state import GraphState
+from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.pose_cov import tangent_to_coords_cov
 
 log = logging.getLogger(__name__)
@@ -47,6 +49,26 @@ SEARCH_RADIUS = 80.0
 #: drift is beyond the new-landmark threshold (~4.3 sigma at 0.9999), so the bound
 #: must be wider than that: it keeps a chance alignment far from the prediction out.
 REVISIT_SIGMAS = 8.0
+
+
+@dataclass(frozen=True)
+class RevisitRecord:
+    """One run of the revisit check (for tracing why it tied or not).
+
+    Attributes:
+        k: keyframe; recent, old: landmark ids of the two constellations.
+        n_best, runner_up: inliers of the best hypothesis and of its best rival.
+        outcome: ``few`` (too few landmarks), ``weak`` (best under the inliers
+            needed), ``ambiguous`` (rival within the margin), ``drift`` (beyond the
+            drift bound) or ``tied``.
+    """
+
+    k: int
+    recent: tuple[int, ...]
+    old: tuple[int, ...]
+    n_best: int
+    runner_up: int
+    outcome: str
 
 
 class RevisitMerge(GraphState):
@@ -66,6 +88,18 @@ class RevisitMerge(GraphState):
     def revisit_ties(self) -> list[tuple[int, int, int]]:
         """``(keyframe, copy id, old id)`` of every tie made (created on first use)."""
         return self.__dict__.setdefault("_revisit_ties", [])
+
+    @property
+    def revisit_log(self) -> list[RevisitRecord]:
+        """Every run of the check, when ``_trace_revisit`` is set (else empty)."""
+        return self.__dict__.setdefault("_revisit_log", [])
+
+    def _record(self, k: int, recent: list[GraphLandmark], old: list[GraphLandmark],
+                n_best: int, runner: int, outcome: str) -> None:
+        if getattr(self, "_trace_revisit", False):
+            self.revisit_log.append(RevisitRecord(k, tuple(lm.id for lm in recent),
+                                                  tuple(lm.id for lm in old), n_best, runner,
+                                                  outcome))
 
     def _revisit_check(self, k: int, n_new: int) -> int:
         """Match recent range-bearing landmarks to old ones (module doc); the merges made.
@@ -90,6 +124,7 @@ class RevisitMerge(GraphState):
                   and float(np.hypot(*(lm.state[:2] - pose[:2]))) <= SEARCH_RADIUS):
                 old.append(lm)
         if len(recent) < cfg.revisit_min_inliers or len(old) < cfg.revisit_min_inliers:
+            self._record(k, recent, old, 0, 0, "few")
             return 0
         for lm in (*recent, *old):
             self._refresh_landmark(lm)
@@ -97,17 +132,25 @@ class RevisitMerge(GraphState):
         dst = np.array([lm.state[:2] for lm in old])
         cov = tangent_to_coords_cov(pose, self.current_cov())
         sigma_theta = math.sqrt(max(float(cov[2, 2]), 0.0))
+        hyps = rank_hypotheses(src, dst, cfg.revisit_tol,
+                               min(math.pi, REVISIT_SIGMAS * sigma_theta + 0.05))
+        n_best, runner = best_and_rival(hyps)
+        if n_best < cfg.revisit_min_inliers or n_best - runner < 2:
+            self._record(k, recent, old, n_best, runner,
+                         "weak" if n_best < cfg.revisit_min_inliers else "ambiguous")
+            return 0
         al = align_constellation(src, dst, cfg.revisit_tol, cfg.revisit_min_inliers, 2,
                                  min(math.pi, REVISIT_SIGMAS * sigma_theta + 0.05))
-        if al is None:
-            return 0
+        assert al is not None
         # the motion moves the current pose by the drift it claims: near the prediction
         c, s = math.cos(al.theta), math.sin(al.theta)
         moved = np.array([[c, -s], [s, c]]) @ pose[:2] + al.shift
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
         if float(np.hypot(*(moved - pose[:2]))) > REVISIT_SIGMAS * sigma_xy + cfg.revisit_tol:
             self.n_revisit_rejected += 1
+            self._record(k, recent, old, n_best, runner, "drift")
             return 0
+        self._record(k, recent, old, n_best, runner, "tied")
         noise = gtsam.noiseModel.Isotropic.Sigma(2, cfg.revisit_tol / 2.0)
         self.revisit_ties.extend((k, recent[a].id, old[b].id) for a, b in al.pairs)
         for a, b in al.pairs:
