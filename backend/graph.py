@@ -408,6 +408,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_jcbb": float(self.n_jcbb), "n_jcbb_changed": float(self.n_jcbb_changed),
                    "n_revisit_merges": float(self.n_revisit_merges),
                    "n_revisit_rejected": float(self.n_revisit_rejected),
+                   "n_revisit_ambiguous": float(self.n_revisit_ambiguous),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
