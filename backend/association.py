@@ -141,10 +141,10 @@ def associate(
         else:
             items = ((lid, (float("nan"), False)) for lid in candidates.get(obs.kind, ()))
         unique = config.planar_unique and obs.kind == "point2"
-        new_t = config.new_threshold(len(obs.z))
+        unique_t = config.unique_threshold(len(obs.z))
         for lid, (d2_screen, exact) in items:
             screen_only = not math.isnan(d2_screen)
-            if screen_only and d2_screen >= gate and not (unique and d2_screen < new_t):
+            if screen_only and d2_screen >= gate and not (unique and d2_screen < unique_t):
                 best = min(best, d2_screen)  # cannot match: the screen is wider
                 continue
             ncc = 0.0
@@ -161,7 +161,7 @@ def associate(
                     continue
                 d2 = mahalanobis2(*pred)
             best = min(best, d2)
-            if unique and d2 < new_t:
+            if unique and d2 < unique_t:
                 near[i] = near.get(i, 0) + 1
             if d2 >= gate:
                 continue

@@ -129,6 +129,9 @@ class AssociationConfig:
             no second landmark is within the new-landmark threshold of it (exact
             distances, eq. 19); else it is dropped (neither matched nor mapped).
             Default False.
+        planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
+            quantile of this probability (0, default: the new-landmark threshold,
+            ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).
         planar_relative_gate: without ids, gate range-bearing observations of
             landmarks seen in the last 30 keyframes relative to their last sighting
             (odometry covariance since then; final, no joint marginal) instead of
@@ -195,6 +198,7 @@ class AssociationConfig:
     planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
     planar_reject_ambiguous: bool = False
     planar_unique: bool = False
+    planar_unique_prob: float = field(default=0.0, metadata=limits(ge=0.0, lt=1.0))
     planar_relative_gate: bool = False
     planar_noise_adapt: bool = False
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))
@@ -225,6 +229,13 @@ class AssociationConfig:
     def gate(self, dof: int) -> float:
         """Mahalanobis gate ``d`` of paper eq. 20 for a ``dof``-dimensional innovation."""
         return _chi2_quantile(self.gate_prob, dof)
+
+    def unique_threshold(self, dof: int) -> float:
+        """Squared distance inside which a second landmark makes a sighting ambiguous
+        (``planar_unique``)."""
+        if self.planar_unique_prob > 0.0:
+            return _chi2_quantile(self.planar_unique_prob, dof)
+        return self.new_threshold(dof)
 
     def new_threshold(self, dof: int) -> float:
         """Squared Mahalanobis distance beyond which an observation starts a new landmark."""
