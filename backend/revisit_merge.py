@@ -40,6 +40,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.constellation import align_constellation, best_and_rival, rank_hypotheses
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
+from lampsam.backend.models import Obs
 from lampsam.backend.pose_cov import tangent_to_coords_cov
 
 log = logging.getLogger(__name__)
@@ -104,6 +105,7 @@ class RevisitMerge(GraphState):
     n_revisit_merges = 0
     n_revisit_rejected = 0
     n_revisit_ambiguous = 0
+    n_revisit_resolved = 0
 
     @property
     def revisit_ties(self) -> list[tuple[int, int, int]]:
@@ -122,25 +124,34 @@ class RevisitMerge(GraphState):
                                                   tuple(lm.id for lm in old), n_best, runner,
                                                   outcome))
 
-    def _revisit_check(self, k: int, n_new: int) -> int:
+    @property
+    def _held(self) -> list[tuple[int, Obs]]:
+        """Range-bearing sightings dropped as ambiguous in the window ``(keyframe, obs)``."""
+        return self.__dict__.setdefault("_held_sightings", [])
+
+    def _revisit_check(self, k: int, n_new: int, dropped: list[Obs] | None = None) -> int:
         """Match the local scan to the older map (module doc); the merges made.
 
         Runs at a keyframe that started a range-bearing landmark (``n_new``): a
-        sighting beyond every gate, the sign of a revisit with drift.
+        sighting beyond every gate, the sign of a revisit with drift; or that
+        dropped sightings as ambiguous (``dropped``: held for the scan).
         """
         cfg = self.config.association
-        if not n_new:
-            return 0
         lo = k - RECENT_KEYFRAMES
+        held = [(kk, o) for kk, o in self._held if kk > lo]
+        held += [(k, o) for o in dropped or []]
+        self.__dict__["_held_sightings"] = held
+        if not n_new and not dropped:
+            return 0
         pose = self.current_pose()
         # the local scan: each landmark sighted in the window at its sightings' mean,
         # every sighting placed from its keyframe's current estimate
         pts: dict[int, list[FloatArray]] = {}
         max_range = 0.0
         for kk, z, _, lid in reversed(self._planar_sightings):
-            if kk <= lo:
-                break
-            if lid not in self._landmarks:
+            if kk <= lo - RECENT_KEYFRAMES:
+                break  # (held sightings placed later are at most a window out of order)
+            if kk <= lo or lid not in self._landmarks:
                 continue
             p = self._pose_of(int(kk))
             b, r = float(z[0]), float(z[1])
@@ -148,6 +159,19 @@ class RevisitMerge(GraphState):
                 p[:2] + r * np.array([math.cos(p[2] + b), math.sin(p[2] + b)]))
             max_range = max(max_range, r)
         recent = [self._landmarks[lid] for lid in pts]
+        # held sightings: one point per cluster (the same tree from several keyframes)
+        clusters: list[list[tuple[int, Obs, FloatArray]]] = []
+        for kk, o in held:
+            p = self._pose_of(kk)
+            b, r = float(o.z[0]), float(o.z[1])
+            pt = p[:2] + r * np.array([math.cos(p[2] + b), math.sin(p[2] + b)])
+            max_range = max(max_range, r)
+            for cl in clusters:
+                if float(np.hypot(*(np.mean([q for _, _, q in cl], axis=0) - pt))) < cfg.revisit_tol:
+                    cl.append((kk, o, pt))
+                    break
+            else:
+                clusters.append([(kk, o, pt)])
         cov = tangent_to_coords_cov(pose, self.current_cov())
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
         sigma_theta = math.sqrt(max(float(cov[2, 2]), 0.0))
@@ -158,10 +182,12 @@ class RevisitMerge(GraphState):
                     and float(np.hypot(*(lm.state[:2] - pose[:2]))) <= radius):
                 self._refresh_landmark(lm)
                 old.append(lm)
-        if len(recent) < cfg.revisit_min_inliers or len(old) < cfg.revisit_min_inliers:
+        n_src = len(recent) + len(clusters)
+        if n_src < cfg.revisit_min_inliers or len(old) < cfg.revisit_min_inliers:
             self._record(k, recent, old, 0, 0, "few")
             return 0
-        src = np.array([np.mean(pts[lm.id], axis=0) for lm in recent])
+        src = np.array([*(np.mean(pts[lm.id], axis=0) for lm in recent),
+                        *(np.mean([q for _, _, q in cl], axis=0) for cl in clusters)])
         dst = np.array([lm.state[:2] for lm in old])
         max_rot = min(math.pi, REVISIT_SIGMAS * sigma_theta + 0.05)
         hyps = rank_hypotheses(src, dst, cfg.revisit_tol, max_rot)
@@ -188,12 +214,24 @@ class RevisitMerge(GraphState):
             return 0
         # an older landmark sighted in the window must pair with itself (else a
         # sighting went to the wrong landmark, or the alignment is wrong: no tie)
-        pairs = [(recent[a], old[b]) for a, b in al.pairs]
+        pairs = [(recent[a], old[b]) for a, b in al.pairs if a < len(recent)]
         if any(r.first_kf <= lo and r.id != o.id for r, o in pairs):
             self._record(k, recent, old, n_best, runner, "contradicts")
             return 0
         copies = [(r, o) for r, o in pairs if r.first_kf > lo]
-        self._record(k, recent, old, n_best, runner, "tied" if copies else "confirmed")
+        resolved = [(clusters[a - len(recent)], old[b]) for a, b in al.pairs if a >= len(recent)]
+        self._record(k, recent, old, n_best, runner,
+                     "tied" if copies or resolved else "confirmed")
+        for cl, orig in resolved:  # held sightings given to the landmark they match
+            for kk, o, _ in cl:
+                for f in self.handlers[orig.kind].factors(orig, kk, o, self._robust_for(orig.kind)):
+                    self._add_factor(f, orig.id)
+                self._planar_sightings.append((kk, o.z, o.R, orig.id))
+                orig.n_obs += 1
+            orig.last_kf = k
+            self.n_revisit_resolved += len(cl)
+        taken = {id(o) for cl, _ in resolved for _, o, _ in cl}
+        self.__dict__["_held_sightings"] = [(kk, o) for kk, o in held if id(o) not in taken]
         noise = gtsam.noiseModel.Isotropic.Sigma(2, cfg.revisit_tie_sigma)
         self.revisit_ties.extend((k, copy.id, orig.id) for copy, orig in copies)
         for copy, orig in copies:
@@ -208,4 +246,4 @@ class RevisitMerge(GraphState):
                      "%.3f rad, shift %.1f m, rms %.2f m, %d inliers, runner-up %d)", k,
                      len(copies), al.theta, float(np.hypot(*al.shift)), al.rms, n_best,
                      al.runner_up)
-        return len(copies)
+        return len(copies) + len(resolved)
