@@ -46,6 +46,7 @@ Modules:
 * :mod:`~lampsam.backend.map_frame` -- The map's frame uncertainty: the common part of a batch map's landmark errors.
 * :mod:`~lampsam.backend.map_merge` -- Merge ceiling maps of the same floor made on separate mapping drives.
 * :mod:`~lampsam.backend.map_smoother` -- Localize-only smoothing: the run's poses and the used map landmarks in one factor graph.
+* :mod:`~lampsam.backend.mapping_worker` -- The mapping worker of :mod:`lampsam.backend.tracking`: the backend stepped in its own process.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
 * :mod:`~lampsam.backend.noids_offline` -- Offline SLAM without ids on a graph log: online EKF pass, batch re-association, scale choice.
 * :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.

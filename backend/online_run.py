@@ -75,6 +75,13 @@ def online_figures(tm: DecoupledTimes, arrival: FloatArray | None, duration_s: f
         ``online_x_real_time`` (data duration / wall clock until the last step's
         estimate), ``online_tracking_cpu_s``, ``online_backend_cpu_s`` (the worker's
         whole process CPU), ``online_backend_step_cpu_s`` (its steps alone),
+        ``online_backend_online_cpu_s`` (until the stop mark: the final optimisation
+        apart), ``online_backend_inbox_cpu_s`` (taking the steps: unpickling,
+        unpacking), ``online_backend_finish_cpu_s`` (the final optimisation),
+        ``online_backend_idle_s`` (wall clock the worker waited for steps),
+        ``online_backend_stalled_s`` (wall clock until the stop mark neither computing
+        nor waiting for steps: mostly waiting for a core, i.e. other processes' load),
+        ``online_lag_wait_s`` (wall clock the tracker waited on back-pressure),
         ``online_worker_startup_s``, ``online_anchor_lag_p95_steps`` and, for
         ``[online] catch_up``, ``online_catch_up_updates`` (iSAM2 updates of more
         than one keyframe), ``online_catch_up_keyframes`` (the keyframes in them) and
@@ -99,6 +106,13 @@ def online_figures(tm: DecoupledTimes, arrival: FloatArray | None, duration_s: f
             "online_tracking_cpu_s": float(tracking_cpu_s),
             "online_backend_cpu_s": float(tm.worker_cpu_s),
             "online_backend_step_cpu_s": float(np.nansum(step_cpu)),
+            "online_backend_online_cpu_s": float(tm.clocks.online_cpu_s),
+            "online_backend_inbox_cpu_s": float(tm.clocks.inbox_cpu_s),
+            "online_backend_finish_cpu_s": float(tm.clocks.finish_cpu_s),
+            "online_backend_idle_s": float(tm.clocks.idle_s),
+            "online_backend_stalled_s": float(tm.clocks.online_wall_s - tm.clocks.online_cpu_s
+                                              - tm.clocks.idle_s),
+            "online_lag_wait_s": float(tm.lag_wait_s),
             "online_worker_startup_s": float(tm.worker_ready - start),
             "online_anchor_lag_p95_steps": float(np.percentile(lag, 95)) if n else float("nan"),
             "online_catch_up_updates": float(np.sum(sizes > 1)),

@@ -18,6 +18,8 @@ the pose is the last estimate plus odometry, as between keyframes in the backend
 itself (:class:`~lampsam.backend.graph.GraphSlam`). A process, not a thread: GTSAM's
 Python calls hold the GIL (an optimisation in a thread stalled the calling thread for
 its whole duration, measured), so a thread would not bound the tracking latency.
+The worker's side (its inbox, replies, clocks and catch-up) is
+:mod:`lampsam.backend.mapping_worker`.
 
 :func:`run_decoupled` records per step when it was handed over and when the
 backend's estimate came back, so a caller can report the tracking latency (frame
@@ -27,16 +29,11 @@ throughput (data duration / wall clock until the worker finished) separately.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-import multiprocessing as mp
 import queue
-import threading
 import time
-from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.synchronize import Event as EventLike
 from typing import cast
 
@@ -45,29 +42,27 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.graph import GraphSlam
-from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
+from lampsam.backend.interface import Frame, SlamResult
 from lampsam.backend.keyframes import KeyframeMirror
+from lampsam.backend.mapping_worker import (
+    POLL_S,
+    STOP,
+    WorkerClocks,
+    WorkerError,
+    mapping_worker,
+    pack_step_frame,
+    receive,
+    worker_context,
+)
 from lampsam.backend.odometry import OdometryConstants, motion_model
-from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.backend.pose_cov import pose_array
 from lampsam.datasets.logrun import CameraModel
 from lampsam.errors import LampsamError
-from lampsam.frontend.measurements import CeilingFrame
 from lampsam.interrupt import stop_requested
 
 log = logging.getLogger(__name__)
 
-_POLL_S = 0.5  # how often a waiting caller checks that the worker is alive
-_STOP = "stop"
-#: The worker sends its estimates when it has caught up with the caller, or after this
-#: many steps: a caller far behind wakes once per batch instead of once per step.
-_REPLY_BATCH = 16
 _FLOOR = 1e-14  # covariance floor of the odometry composition (the covariance is unused)
-
-
-class WorkerError(LampsamError):
-    """The mapping worker failed (its message) or died."""
 
 
 @dataclass
@@ -94,7 +89,9 @@ class DecoupledTimes:
         worker_ready: when the worker had built the backend (its start-up ends).
         worker_done: when the worker had finished the last step.
         update_sizes: with ``[online] catch_up`` > 1, the keyframes in each of the
-            worker's iSAM2 updates (:class:`CatchUp`; empty when off).
+            worker's iSAM2 updates (:class:`~lampsam.backend.mapping_worker.CatchUp`; empty when off).
+        clocks: the worker's time besides its steps (:class:`~lampsam.backend.mapping_worker.WorkerClocks`).
+        lag_wait_s: wall clock this process waited on back-pressure (``max_lag``).
         result: the backend's :class:`~lampsam.backend.interface.SlamResult` after
             its ``finish`` (``run_decoupled(finish=True)``; None otherwise, or when
             the worker was given up on).
@@ -120,222 +117,11 @@ class DecoupledTimes:
     worker_ready: float = float("nan")
     worker_done: float = float("nan")
     update_sizes: list[int] = field(default_factory=list)
+    clocks: WorkerClocks = field(default_factory=WorkerClocks)
+    lag_wait_s: float = 0.0
     result: SlamResult | None = None
     interrupted: bool = False
     failure: str | None = None
-
-
-def _pack(frame: Frame | None) -> object:
-    """A step's frame for the queue (ceiling frames stacked, :func:`pack_frame`)."""
-    if isinstance(frame, CeilingFrame):
-        return ("ceiling", pack_frame(frame))
-    return ("raw", frame)
-
-
-def _unpack(item: object) -> Frame | None:
-    kind, payload = cast(tuple[str, object], item)
-    if kind == "ceiling":
-        return unpack_frame(cast(PackedFrame, payload))
-    return cast(Frame | None, payload)
-
-
-def worker_context() -> ForkContext | SpawnContext:
-    """The multiprocessing context of the mapping worker: ``fork`` when this process
-    runs a single thread (the child starts at once with every module already
-    imported, ~1 s of interpreter start-up and GTSAM import saved), else ``spawn``
-    (forking a process whose other threads may hold locks can deadlock the child)."""
-    if threading.active_count() == 1 and "fork" in mp.get_all_start_methods():
-        return cast(ForkContext, mp.get_context("fork"))
-    return cast(SpawnContext, mp.get_context("spawn"))
-
-
-class _Backlog:
-    """The steps the worker has taken from its inbox and not yet run, in order;
-    ``framed`` counts those with a measurement frame (each a possible keyframe)."""
-
-    def __init__(self, inbox: queue.Queue[object]) -> None:
-        self.inbox = inbox
-        self.items: deque[object] = deque()
-        self.framed = 0
-
-    def append(self, item: object) -> None:
-        self.items.append(item)
-        if item != _STOP and cast(tuple[int, float, FloatArray, tuple[str, object]],
-                                  item)[3][1] is not None:
-            self.framed += 1
-
-    def drain(self) -> None:
-        """Take every step already waiting in the inbox (without blocking)."""
-        while True:
-            try:
-                self.append(self.inbox.get_nowait())
-            except queue.Empty:
-                return
-
-    def pop(self) -> object:
-        item = self.items.popleft()
-        if item != _STOP and cast(tuple[int, float, FloatArray, tuple[str, object]],
-                                  item)[3][1] is not None:
-            self.framed -= 1
-        return item
-
-
-def _inbox_steps(backlog: _Backlog, stop: EventLike, at: list[float], index: list[int],
-                 flush: Callable[[], None]) -> Iterator[tuple[float, FloatArray, Frame | None]]:
-    """The worker's steps from its inbox until the stop mark. A set ``stop`` (the caller
-    was interrupted) or a dead caller raises :class:`KeyboardInterrupt`, which
-    :func:`~lampsam.backend.slam.drive` turns into status ``"interrupted"``. Before each
-    step the inbox is drained into ``backlog`` (so a catching-up backend sees what
-    waits), ``index[0]`` is set to the step's index and ``at[0]`` to the process CPU
-    clock; ``flush`` (send the estimates made so far) is called whenever nothing
-    waits, before waiting for the caller."""
-    parent = mp.parent_process()
-    while True:
-        if stop.is_set():
-            raise KeyboardInterrupt("stopped by the tracking process")
-        backlog.drain()
-        if not backlog.items:
-            flush()  # caught up: the caller gets every estimate before the worker waits
-            try:
-                backlog.append(backlog.inbox.get(timeout=_POLL_S))
-            except queue.Empty:
-                if parent is not None and not parent.is_alive():
-                    raise KeyboardInterrupt("the tracking process died") from None
-                continue
-        item = backlog.pop()
-        if item == _STOP:
-            return
-        i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
-        index[0] = i
-        frame = _unpack(packed)
-        at[0] = time.process_time()
-        yield t, samples, frame
-
-
-class CatchUp(SlamBackend):
-    """A graph backend that catches up when behind: one iSAM2 update for several keyframes.
-
-    While ``waiting()`` (framed steps queued behind this one) is positive, each
-    keyframe is associated against the prediction from the newest iSAM2 estimate
-    plus odometry and its update deferred
-    (:meth:`~lampsam.backend.graph.GraphSlam.step` with ``update=False``), up to
-    ``max_keyframes`` keyframes, which then go to iSAM2 in one update: what a
-    real-time SLAM system does when its mapping lags, instead of falling further
-    behind one update per keyframe. With nothing queued every keyframe is updated at
-    once, as without the wrapper.
-
-    Args:
-        inner: the backend (its iSAM2, or the batch backend's online pass).
-        max_keyframes: keyframes per update at most (``[online] catch_up``, >= 1).
-        waiting: how many framed steps wait behind the current one.
-    """
-
-    def __init__(self, inner: GraphSlam, max_keyframes: int, waiting: Callable[[], int]) -> None:
-        self.inner = inner
-        self.name = inner.name
-        self.max_keyframes = max_keyframes
-        self.waiting = waiting
-        #: keyframes in each iSAM2 update this run made (1: a keyframe updated alone)
-        self.update_sizes: list[int] = []
-
-    def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
-        """One step; defers a keyframe's update while framed steps wait (see class).
-
-        The update of ``max_keyframes`` deferred keyframes runs in the step that made
-        the last of them, and its estimate is then the updated one.
-        """
-        before = self.inner.n_deferred
-        behind = self.waiting() > 0
-        est = self.inner.step(t, wheel, frame, update=not behind)
-        if not behind:
-            if before + est.keyframe:
-                self.update_sizes.append(before + int(est.keyframe))
-        elif self.inner.n_deferred >= self.max_keyframes:
-            self.update_sizes.append(self.inner.n_deferred)
-            self.inner.update()
-            est = dataclasses.replace(est, pose=self.inner.current_pose())
-        return est
-
-    def finish(self, status: str = "ok") -> SlamResult:
-        """The inner backend's result (the keyframes still deferred updated first)."""
-        if self.inner.n_deferred:
-            self.update_sizes.append(self.inner.n_deferred)
-        return self.inner.finish(status)
-
-
-def _mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig,
-                    start_pose: FloatArray, camera: CameraModel | None,
-                    inbox: queue.Queue[object], outbox: queue.Queue[object], stop: EventLike,
-                    finish: bool) -> None:
-    """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
-    ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
-    ...])`` (batched: when the inbox is empty, else every ``_REPLY_BATCH`` steps); after the
-    stop mark (or ``stop`` set) ``("done", result or None, cpu_s, keyframes per update)``
-    (:attr:`DecoupledTimes.update_sizes`), the result being the backend's ``finish`` through :func:`~lampsam.backend.slam.drive` (same statuses and
-    fallbacks as a run in one process); ``("error", text)`` if the backend cannot be built."""
-    import signal
-    from collections.abc import Mapping
-
-    from lampsam.backend.slam import drive, make_backend
-    from lampsam.observe import observing
-
-    # the caller coordinates stopping (a signal to the process group must not kill the
-    # worker before it has written back what it finished)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    c0 = time.process_time()
-    try:
-        be = make_backend(backend, odometry, config, start_pose, camera)
-    except Exception as exc:  # sent to the caller, which raises it
-        outbox.put(("error", f"{type(exc).__name__}: {exc}"))
-        return
-    outbox.put(("ready", 0.0))
-    at, index = [0.0], [-1]
-    pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
-    backlog = _Backlog(inbox)
-    catch_up: CatchUp | None = None
-    if config.online.catch_up > 1:
-        if isinstance(be, GraphSlam) and be.isam is not None and be.smoother is None:
-            be = catch_up = CatchUp(be, config.online.catch_up, lambda: backlog.framed)
-        else:
-            log.warning("[online] catch_up applies to iSAM2 without fixed lag: ignored")
-
-    def flush() -> None:
-        # a deferred keyframe's estimate is the prediction: its step (and those after
-        # it) go back with the update that includes it, as the keyframe latency says
-        if pending and (catch_up is None or not catch_up.inner.n_deferred):
-            outbox.put(("steps", pending.copy()))
-            pending.clear()
-
-    def on_event(event: str, fields: Mapping[str, object]) -> None:
-        if event == "slam.step":
-            est = cast(StepEstimate, fields["estimate"])
-            x, y, th = (float(v) for v in est.pose)
-            pending.append((index[0], (x, y, th), bool(est.keyframe),
-                            time.process_time() - at[0]))
-            if len(pending) >= _REPLY_BATCH:
-                flush()
-
-    steps = _inbox_steps(backlog, stop, at, index, flush)
-    result: SlamResult | None = None
-    if finish:
-        with observing(on_event):
-            result = drive(be, steps)
-        result.graph = None  # GTSAM's Python-callback factors do not pickle
-    else:
-        try:
-            for t, samples, frame in steps:
-                est = be.step(t, samples, frame)
-                on_event("slam.step", {"estimate": est})
-        except KeyboardInterrupt:
-            pass
-        except Exception as exc:  # sent to the caller, which raises it
-            outbox.put(("error", f"{type(exc).__name__}: {exc}"))
-            return
-    if pending:
-        outbox.put(("steps", pending.copy()))
-    sizes = catch_up.update_sizes if catch_up is not None else []
-    outbox.put(("done", result, time.process_time() - c0, sizes))
 
 
 def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backend: str,
@@ -388,12 +174,13 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
     mirror = KeyframeMirror(motion, config) if backend in ("isam2", "batch") else None
     ctx = worker_context()
     inbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
-    outbox: queue.Queue[object] = ctx.Queue()  # type: ignore[assignment]
+    outbox, worker_end = ctx.Pipe(duplex=False)  # estimates back: (read end, write end)
     stop: EventLike = ctx.Event()
-    worker = ctx.Process(target=_mapping_worker, name="lampsam-mapping", daemon=True,
+    worker = ctx.Process(target=mapping_worker, name="lampsam-mapping", daemon=True,
                          args=(backend, odometry, config, np.asarray(start_pose, float), camera,
-                               inbox, outbox, stop, finish))
+                               inbox, worker_end, stop, finish, max_lag))
     worker.start()
+    worker_end.close()  # the worker's copy only: its exit closes the pipe
     chain: list[gtsam.Pose2] = []  # o_i: the odometry chain of every step
     anchor_j, anchor_x = -1, gtsam.Pose2(*np.asarray(start_pose, float))
     done: list[bool] = []
@@ -408,7 +195,9 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         if item[0] == "done":
             times.result = cast(SlamResult | None, item[1])
             times.worker_cpu_s = float(cast(float, item[2]))
-            times.update_sizes = list(cast(tuple[str, object, float, list[int]], message)[3])
+            done_item = cast(tuple[str, object, float, list[int], WorkerClocks], message)
+            times.update_sizes = list(done_item[3])
+            times.clocks = done_item[4]
             done.append(True)
             return
         if item[0] != "steps":
@@ -433,7 +222,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 log.warning("interrupted: the mapping worker stops after its current step "
                             "(a second signal gives up on it)")
             try:
-                take(outbox.get(timeout=_POLL_S))
+                take(receive(outbox, POLL_S))
             except queue.Empty:
                 if not worker.is_alive():
                     raise WorkerError("the mapping worker stopped without a word after "
@@ -459,10 +248,10 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.backend_pose.append(np.full(3, np.nan))
                 times.step_cpu.append(float("nan"))
                 times.sent.append(time.perf_counter())
-                inbox.put((i, t, samples, _pack(sent)))
+                inbox.put((i, t, samples, pack_step_frame(sent)))
                 while True:  # every estimate already back
                     try:
-                        take(outbox.get_nowait())
+                        take(receive(outbox, 0.0))
                     except queue.Empty:
                         break
                 if anchor_j < 0:
@@ -473,16 +262,18 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.anchor.append(anchor_j)
                 times.out.append(time.perf_counter())
                 times.cpu_out.append(time.thread_time())
+                w0 = time.perf_counter()
                 while max_lag is not None and i - anchor_j > max_lag and not done:
                     try:  # back-pressure: wait for the worker to come within max_lag
-                        take(outbox.get(timeout=_POLL_S))
+                        take(receive(outbox, POLL_S))
                     except queue.Empty:
                         if not worker.is_alive():
                             raise WorkerError("the mapping worker died after "
                                               f"{anchor_j + 1} steps") from None
+                times.lag_wait_s += time.perf_counter() - w0
                 if done:  # the worker ended early (its backend failed): nothing more to map
                     break
-            inbox.put(_STOP)
+            inbox.put(STOP)
         except KeyboardInterrupt:  # a stop signal between steps: the worker stops too
             times.interrupted = True
             stop.set()
@@ -511,6 +302,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
             log.warning("mapping worker still running after 5 s: terminating it")
             worker.terminate()
             worker.join(timeout=1.0)
+        outbox.close()
 
 
 def replay_latency(t: FloatArray, step_cpu: FloatArray, pace: float) -> FloatArray:

@@ -14,8 +14,9 @@ import pytest
 from lampsam.backend.config import OnlineConfig, SlamConfig
 from lampsam.backend.graph import GraphSlam
 from lampsam.backend.interface import Frame
+from lampsam.backend.mapping_worker import CatchUp
 from lampsam.backend.slam import drive, iter_steps, make_backend, start_pose_of
-from lampsam.backend.tracking import CatchUp, run_decoupled
+from lampsam.backend.tracking import run_decoupled
 from lampsam.config_loader import ConfigError
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.datasets.simulator import simulate_world

@@ -65,7 +65,8 @@ def test_decoupled_result_equals_sequential(lab_run: LoggedRun, tmp_path: Path) 
     for key in ("online_tracked_latency_ms_p95", "online_keyframe_latency_ms_p95",
                 "online_x_real_time", "online_backend_cpu_s"):
         assert summary[key] > 0.0
-    assert summary["online_anchor_lag_p95_steps"] <= 15  # the default back-pressure
+    # the default back-pressure (15): step i + 1's pose is given before the wait for i - 15
+    assert summary["online_anchor_lag_p95_steps"] <= 16
 
 
 def test_tracked_poses_near_backend_at_keyframes(lab_run: LoggedRun) -> None:

@@ -69,3 +69,44 @@ def test_replay_latency_queues_behind_slow_steps() -> None:
     # arrivals 0, 0.5, 1.0, 1.5, 2.0; finishes 0.1, 1.7, 1.8, 1.9, 2.1
     np.testing.assert_allclose(replay_latency(t, cpu, 2.0), [0.1, 1.2, 0.8, 0.4, 0.1])
     np.testing.assert_allclose(replay_latency(t, np.full(5, 0.2), 1.0), np.full(5, 0.2))
+
+
+def test_reply_due_releases_a_waiting_tracker_at_once() -> None:
+    """The worker replies after the step a tracker waiting on back-pressure needs (the
+    tracker has sent up to 40 and holds estimates to 20: with max_lag 15 it waits for
+    step 25), not before it, not again until it could wait again; every 16 steps anyway;
+    never for back-pressure when there is none."""
+    from lampsam.backend.mapping_worker import reply_due
+
+    assert not reply_due(3, 24, 40, 20, 15)
+    assert reply_due(4, 25, 40, 20, 15)
+    assert not reply_due(1, 26, 40, 25, 15)  # 40 - 25 = 15: the tracker is not waiting
+    assert reply_due(1, 26, 41, 25, 15)
+    assert reply_due(16, 5, 6, -1, None) and not reply_due(15, 5, 60, -1, None)
+    assert reply_due(1, 7, 7, 6, 0) and not reply_due(1, 7, 8, 6, 0)
+
+
+def test_inbox_flushes_at_the_stop_mark() -> None:
+    """The worker's step source sends the pending estimates when it reaches the stop mark,
+    before the backend's final optimisation runs (not after it), and when the inbox is
+    empty; its clocks count the steps taken."""
+    import queue
+    import threading
+
+    from lampsam.backend.mapping_worker import STOP, WorkerClocks, _Backlog, _inbox_steps
+
+    inbox: queue.Queue[object] = queue.Queue()
+    for i in range(3):
+        inbox.put((i, 0.1 * i, np.zeros((1, 2)), ("raw", None)))
+    inbox.put(STOP)
+    flushes: list[int] = []
+    taken: list[int] = []
+    clocks = WorkerClocks()
+    index, at = [-1], [0.0]
+    steps = _inbox_steps(_Backlog(inbox), threading.Event(), at, index,
+                         lambda: flushes.append(index[0]), clocks)
+    for _t, _u, frame in steps:
+        assert frame is None and not flushes  # everything queued: no flush while steps wait
+        taken.append(index[0])
+    assert taken == [0, 1, 2] and flushes == [2]  # the flush at the stop mark
+    assert clocks.inbox_cpu_s >= 0.0 and clocks.idle_s == 0.0

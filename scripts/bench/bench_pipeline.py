@@ -23,9 +23,13 @@ optimisation not counted), as ``lampsam slam --frontend MODE`` runs them.
   ``--max-lag`` steps of back-pressure (default 15, as the CLI; -1 never waits, as
   a robot's camera). ``decoupled-process``: the frontend in a third process too.
   Its latency is frame arrival -> tracked pose. Also printed: the CPU of each part
-  of both processes (frontend, tracking, queue pickling; the backend's steps and
-  the rest), the bound two free cores would give (data duration / the busiest
-  process's CPU, independent of the other sessions' load), the CPU per frame of
+  of both processes (frontend, tracking, queue pickling; the backend's steps, taking
+  them from the inbox, the rest, and apart its final optimisation, which runs after
+  the timed steps), the worker's idle time, its stalls and the tracker's
+  back-pressure waits (wall; a stall: the worker neither computing nor waiting for
+  steps, i.e. waiting for a core while other processes load the machine), the bound
+  two free cores would give (data duration / the busiest process's CPU until the
+  last step, independent of the other sessions' load), the CPU per frame of
   the tracking thread (image load + frontend + tracking, p95), the keyframe latency
   (step handed over -> its estimate back), how many steps the tracked pose's anchor
   was behind, and the tracked poses' largest difference from the backend's own. On
@@ -145,7 +149,9 @@ def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
     in_thread = frontend == "sequential"
     main_cpu = cpu
     worker_cpu = tm.worker_cpu_s + (0.0 if in_thread else frontend_cpu)
-    bound = max(main_cpu, tm.worker_cpu_s, 0.0 if in_thread else frontend_cpu)
+    # the backend worker's online CPU: its final optimisation (after the timed steps) apart
+    online_cpu = figs["online_backend_online_cpu_s"]
+    bound = max(main_cpu, online_cpu, 0.0 if in_thread else frontend_cpu)
     final = tm.result
     mode = "decoupled" if in_thread else f"decoupled-{frontend}"
     return {"mode": mode if catch_up == 1 else f"{mode} cu={catch_up}",
@@ -164,7 +170,13 @@ def decoupled_row(run: LoggedRun, backend: str, pace: float | None, depth: int,
             "tracking_cpu_s": thread_cpu - (frontend_cpu if in_thread else 0.0),
             "other_threads_cpu_s": cpu - thread_cpu,
             "backend_steps_cpu_s": figs["online_backend_step_cpu_s"],
-            "backend_rest_cpu_s": tm.worker_cpu_s - figs["online_backend_step_cpu_s"],
+            "backend_online_cpu_s": online_cpu,
+            "backend_rest_cpu_s": online_cpu - figs["online_backend_step_cpu_s"],
+            "backend_inbox_cpu_s": figs["online_backend_inbox_cpu_s"],
+            "backend_finish_cpu_s": figs["online_backend_finish_cpu_s"],
+            "backend_idle_s": figs["online_backend_idle_s"],
+            "backend_stalled_s": figs["online_backend_stalled_s"],
+            "lag_wait_s": figs["online_lag_wait_s"],
             "x_rt_2core_bound": duration / bound,
             "lat_med_ms": figs["online_tracked_latency_ms_median"],
             "lat_p95_ms": figs["online_tracked_latency_ms_p95"],
@@ -232,9 +244,14 @@ def _line(row: dict[str, Any]) -> str:
     if row["mode"].startswith("decoupled"):
         text += (f"\n        main process CPU: frontend {row['frontend_cpu_s']:.2f} s, tracking "
                  f"{row['tracking_cpu_s']:.2f} s, other threads (queue pickling) "
-                 f"{row['other_threads_cpu_s']:.2f} s; backend worker: steps "
-                 f"{row['backend_steps_cpu_s']:.2f} s, rest (start-up, unpickling, replies) "
-                 f"{row['backend_rest_cpu_s']:.2f} s; bound on 2 free cores (CPU) "
+                 f"{row['other_threads_cpu_s']:.2f} s; backend worker until the last step "
+                 f"{row['backend_online_cpu_s']:.2f} s: steps {row['backend_steps_cpu_s']:.2f} s, "
+                 f"rest {row['backend_rest_cpu_s']:.2f} s (of which taking the steps "
+                 f"{row['backend_inbox_cpu_s']:.2f} s; the remainder start-up, replies); final "
+                 f"optimisation {row['backend_finish_cpu_s']:.2f} s (not timed); worker idle "
+                 f"{row['backend_idle_s']:.2f} s, stalled (no core: the load) "
+                 f"{row['backend_stalled_s']:.2f} s, tracker waiting on back-pressure "
+                 f"{row['lag_wait_s']:.2f} s (wall); bound on 2 free cores (CPU) "
                  f"{row['x_rt_2core_bound']:.1f}x real time"
                  f"\n        frame made -> tracked pose p95 {row['track_p95_ms']:.2f} ms (wall), "
                  f"CPU per frame (image load + frontend + tracking) p95 "
@@ -332,7 +349,8 @@ def main() -> None:
     cols = ["pace", "mode", "repeats", "x_rt_wall", "wall_vs_seq", "x_rt_2core_bound",
             "cpu_main_s", "cpu_main_vs_seq", "cpu_worker_s", "cpu_total_vs_seq", "lat_med_ms",
             "lat_p95_ms", "lat_max_ms", "frame_cpu_p95_ms", "startup_s", "max_pose_diff",
-            "kf_lat_p95_ms", "replay_1x_kf_p95_ms", "lag_p95_steps", "backend_steps_cpu_s",
+            "kf_lat_p95_ms", "replay_1x_kf_p95_ms", "lag_p95_steps", "backend_online_cpu_s",
+            "backend_steps_cpu_s", "backend_rest_cpu_s", "backend_idle_s", "backend_stalled_s",
             "kf_cpu_p95_ms", "catch_up_updates", "catch_up_keyframes", "rms_final_mm",
             "rms_online_mm", "load"]
     print(f"\nmedians of {args.repeats} rounds")
@@ -344,7 +362,8 @@ def main() -> None:
                                 for c in cells) + " |")
     print("x_rt_wall: data duration / online wall clock (decoupled: from the start, worker "
           "start-up included, until the backend finished the last step); x_rt_2core_bound: "
-          "data duration / the busiest process's CPU (what two free cores would give); cpu_*: "
+          "data duration / the busiest process's CPU until the last step (what two free cores "
+          "would give; the backend worker's final optimisation apart); cpu_*: "
           "process CPU s (worker: the frontend process, decoupled: the backend process plus "
           "any frontend process); latency: frame arrival -> pose (decoupled: the tracked pose); "
           "frame_cpu_p95: decoupled, the main thread's CPU to load, process and track a frame; "
