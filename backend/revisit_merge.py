@@ -48,6 +48,10 @@ log = logging.getLogger(__name__)
 #: Landmarks sighted within this many keyframes are the local scan; those made
 #: before them are the older map.
 RECENT_KEYFRAMES = 40
+#: Points of the local scan aligned at most (the newest), and old landmarks at most
+#: (the nearest): the enumeration of pairs grows with the square of each.
+MAX_SCAN = 16
+MAX_OLD = 40
 #: The pose-uncertainty part of the search window is capped at this, m.
 SEARCH_RADIUS = 80.0
 #: The drift an alignment may claim, in sigmas of the current pose's marginal (plus
@@ -182,6 +186,11 @@ class RevisitMerge(GraphState):
                     and float(np.hypot(*(lm.state[:2] - pose[:2]))) <= radius):
                 self._refresh_landmark(lm)
                 old.append(lm)
+        old = sorted(old, key=lambda lm: float(np.hypot(*(lm.state[:2] - pose[:2]))))[:MAX_OLD]
+        # the scan's newest MAX_SCAN points (the enumeration grows with their square)
+        recent = sorted(recent, key=lambda lm: -lm.last_kf)[:MAX_SCAN]
+        clusters = sorted(clusters, key=lambda cl: -max(kk for kk, _, _ in cl))[
+            :max(MAX_SCAN - len(recent), 0)]
         n_src = len(recent) + len(clusters)
         if n_src < cfg.revisit_min_inliers or len(old) < cfg.revisit_min_inliers:
             self._record(k, recent, old, 0, 0, "few")
