@@ -163,6 +163,8 @@ class RevisitMerge(GraphState):
                 p[:2] + r * np.array([math.cos(p[2] + b), math.sin(p[2] + b)]))
             max_range = max(max_range, r)
         recent = [self._landmarks[lid] for lid in pts]
+        if len(recent) + len(held) < cfg.revisit_min_inliers:
+            return 0  # (no marginal asked for: a ceiling run has no range-bearing scan)
         # held sightings: one point per cluster (the same tree from several keyframes)
         clusters: list[list[tuple[int, Obs, FloatArray]]] = []
         for kk, o in held:
