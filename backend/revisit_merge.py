@@ -167,17 +167,23 @@ class RevisitMerge(GraphState):
             return 0  # (no marginal asked for: a ceiling run has no range-bearing scan)
         # held sightings: one point per cluster (the same tree from several keyframes)
         clusters: list[list[tuple[int, Obs, FloatArray]]] = []
+        sums = np.zeros((len(held), 2))  # running sum of each cluster's points
         for kk, o in held:
             p = self._pose_of(kk)
             b, r = float(o.z[0]), float(o.z[1])
             pt = p[:2] + r * np.array([math.cos(p[2] + b), math.sin(p[2] + b)])
             max_range = max(max_range, r)
-            for cl in clusters:
-                if float(np.hypot(*(np.mean([q for _, _, q in cl], axis=0) - pt))) < cfg.revisit_tol:
-                    cl.append((kk, o, pt))
-                    break
-            else:
-                clusters.append([(kk, o, pt)])
+            n_cl = len(clusters)
+            if n_cl:
+                means = sums[:n_cl] / np.array([len(cl) for cl in clusters])[:, None]
+                inside = np.flatnonzero(np.hypot(*(means - pt).T) < cfg.revisit_tol)
+                if len(inside):  # the first cluster within the tolerance
+                    j = int(inside[0])
+                    clusters[j].append((kk, o, pt))
+                    sums[j] += pt
+                    continue
+            clusters.append([(kk, o, pt)])
+            sums[n_cl] = pt
         cov = tangent_to_coords_cov(pose, self.current_cov())
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
         sigma_theta = math.sqrt(max(float(cov[2, 2]), 0.0))
