@@ -74,7 +74,7 @@ from lampsam.backend.interface import (
     StepEstimate,
     StepHistory,
 )
-from lampsam.backend.map_frame import MapFrame
+from lampsam.backend.map_frame import MapFrame, shift_only
 from lampsam.backend.models import Obs, observations_from_frame
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
@@ -89,10 +89,13 @@ class LocalizeConfig:
     """Localize-only tracking.
 
     Attributes:
-        sigma_start_xy: standard deviation of the start position, m (default 0.02),
-            used when the start has no covariance of its own (a known start pose or
-            ``--start``; ``--start-from`` takes the global localizer's covariance).
-        sigma_start_theta: of the start heading, rad (default 0.01, 0.6 deg).
+        sigma_start_xy: standard deviation of the start position, m (default 1e-3, as
+            the SLAM backends hold a known start: :class:`lampsam.backend.config.EkfConfig`),
+            used when the start has no covariance of its own (the run's known start pose;
+            a typed ``--start`` carries its own, looser one, and ``--start-from`` the
+            global localizer's). The known start is the run's only tie to the world: with
+            :attr:`frame_offset` it is what fixes the map frame's offset ``g``.
+        sigma_start_theta: of the start heading, rad (default 1e-3).
         var_floor: additive floor on the pose process covariance per step, m^2 and
             rad^2 (default 1e-10).
         map_cov_scale: factor on the map's landmark covariances (default 1).
@@ -117,10 +120,9 @@ class LocalizeConfig:
             lab, every corner gave 3.6 mm RMS on lab_day2, the 28 corners passing both
             2.5 mm (lamps only 2.6 mm); the rejected corners are mostly frontend corners
             on lamp and item edges whose map position is off by centimetres.
-        map_mode: how the map's landmark positions enter (default ``"priors"``: over
-            four lab maps x three held-out lab_day2 runs its mean position RMS is 3.31 mm
-            against the fixed map's 3.59 mm, better by ~1 mm on two maps, worse by
-            0.2-0.5 mm on the other two; docs/ceiling-map.md):
+        map_mode: how the map's landmark positions enter (default ``"priors"``: with
+            the map frame state, over four lab maps x three lab_day2 runs its mean
+            position RMS is 2.47 mm against the fixed map's 2.50 mm; docs/ceiling-map.md):
             ``"fixed"``: fixed values, their covariance added to each innovation
             (module docstring); ``"priors"``: the used map landmarks join the state
             (``x = (pose, p_1 .. p_L)``, prior ``N(map position, map marginal)``) and
@@ -138,12 +140,25 @@ class LocalizeConfig:
             landmark's conditional covariance ``D_l`` instead of its marginal: a
             landmark's world position is ``p_l + C_l g``. The pose is
             then in the world frame of the start pose, and the map's common error is
-            one 3-dof state the run can correct, not many independent ones.
-            Default False: measured worse than without on lab (docs/ceiling-map.md).
+            one 3-dof state the run can correct, not many independent ones. Default
+            True (maps without a frame model, version 1 or merged, run without it): with
+            lamp sightings read through the saturated-edge model
+            (:mod:`lampsam.frontend.saturated_edges`) and the 1 mm start, its mean
+            position RMS over four lab maps x three lab_day2 runs is 2.47 mm against
+            3.94 mm without it (and the 2 cm start): the start ties the map's frame to the
+            world. Before that model the biased lamp sightings pulled ``g`` off and it was
+            worse (docs/ceiling-map.md).
+        frame_turn: with :attr:`frame_offset`, estimate the frame's turn too (default
+            False: the frame model reduced to its shift,
+            :func:`lampsam.backend.map_frame.shift_only`, as the localize-only smoother
+            does; the turn's share of each landmark's error stays in its own covariance).
+            A known start pose does not observe the map's turn (its posterior sigma stays
+            at its prior's), and the run's own sightings pull it: estimated, it came out
+            13 mdeg from the truth on map 1 and 17 on map 3 of lab (docs/ceiling-map.md).
     """
 
-    sigma_start_xy: float = field(default=0.02, metadata=limits(gt=0.0))
-    sigma_start_theta: float = field(default=0.01, metadata=limits(gt=0.0))
+    sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
+    sigma_start_theta: float = field(default=1e-3, metadata=limits(gt=0.0))
     var_floor: float = field(default=1e-10, metadata=limits(ge=0.0))
     map_cov_scale: float = field(default=1.0, metadata=limits(ge=0.0))
     corner_cov_scale: float = field(default=1.0, metadata=limits(ge=0.0))
@@ -154,7 +169,8 @@ class LocalizeConfig:
     min_corner_obs: int = field(default=10, metadata=limits(ge=0))
     max_corner_sigma: float = field(default=0.005, metadata=limits(gt=0.0))
     map_mode: MapMode = "priors"
-    frame_offset: bool = False
+    frame_offset: bool = True
+    frame_turn: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -267,6 +283,8 @@ class MapLocalizer(SlamBackend):
                    if lm.n_obs >= self.loc.min_corner_obs
                    and math.sqrt(max(lm.cov[0, 0], lm.cov[1, 1])) <= self.loc.max_corner_sigma]
         frame = cmap.frame if self.loc.frame_offset else None
+        if frame is not None and not self.loc.frame_turn:
+            frame = shift_only(frame)
         self._kinds = {LandmarkKind.LAMP.value: _KindArrays(cmap.by_kind(LandmarkKind.LAMP.value),
                                                             self.loc.map_cov_scale, frame),
                        LandmarkKind.CORNER.value: _KindArrays(

@@ -66,8 +66,14 @@ class Start:
     source: str = "the run's known start pose"
 
 
+#: standard deviations of a typed ``--start`` (m, m, rad): a pose read off a plan or
+#: measured by hand, looser than the run's known start (:class:`LocalizeConfig`'s 1 mm)
+TYPED_START_SIGMA = (0.02, 0.02, 0.01)
+
+
 def parse_start(text: str) -> Start:
-    """``X,Y,THETA`` (m, m, rad) as a :class:`Start` at the run's first step.
+    """``X,Y,THETA`` (m, m, rad) as a :class:`Start` at the run's first step, with the
+    covariance of :data:`TYPED_START_SIGMA`.
 
     Raises:
         InputError: not three finite numbers.
@@ -78,7 +84,7 @@ def parse_start(text: str) -> Start:
         vals = []
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
         raise InputError(f"--start {text!r}: expected X,Y,THETA (m, m, rad), three numbers")
-    return Start(np.array(vals), source=f"--start {text}")
+    return Start(np.array(vals), np.diag(np.square(TYPED_START_SIGMA)), source=f"--start {text}")
 
 
 def start_from_result(path: str | Path) -> Start:

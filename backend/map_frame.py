@@ -168,3 +168,30 @@ def map_frame(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             cross[3] = y[col[int(A(lid))] + 2]
         gains[lid] = cross @ s_inv
     return MapFrame(center, s, gains)
+
+
+#: variance added to the diagonal of a landmark's residual covariance ``D`` (m^2, rad^2):
+#: ``D`` is a difference of covariances, clipped at 0, and may be singular
+D_FLOOR = 1e-12
+
+
+def shift_only(frame: MapFrame) -> MapFrame:
+    """The frame model regressed on the shift ``(dx, dy)`` alone.
+
+    From the joint Gaussian of ``(e_l, g)`` (``Cov(e_l, g) = C_l S``): ``C'_l = (C_l S)_{:, xy}
+    S_xy^-1`` and ``S' = S_xy``; returned as a 3-dof frame whose turn has variance
+    :data:`D_FLOOR` and zero gain, so that :meth:`MapFrame.conditional` gives
+    ``D'_l = Sigma_ll - C'_l S_xy C'_l^T`` (the turn's share stays in ``D'_l``, independent
+    between landmarks).
+    """
+    s = np.asarray(frame.cov, float)
+    s_xy_inv = np.linalg.inv(s[:2, :2])
+    cov = np.zeros((3, 3))
+    cov[:2, :2] = s[:2, :2]
+    cov[2, 2] = D_FLOOR
+    gains = {}
+    for lid, c in frame.gains.items():
+        g = np.zeros((4, 3))
+        g[:, :2] = (np.asarray(c, float) @ s)[:, :2] @ s_xy_inv
+        gains[lid] = g
+    return MapFrame(np.asarray(frame.center, float), cov, gains)

@@ -65,7 +65,7 @@ from lampsam.backend.ceiling_map_io import CeilingMap, MapLandmark
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
-from lampsam.backend.map_frame import MapFrame
+from lampsam.backend.map_frame import D_FLOOR, shift_only
 from lampsam.backend.models import Obs
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
@@ -83,9 +83,6 @@ log = logging.getLogger(__name__)
 
 #: key of the map frame's offset ``g``
 G = gtsam.symbol("g", 0)
-#: variance added to the diagonal of a landmark's residual covariance ``D`` (m^2, rad^2):
-#: ``D`` is a difference of covariances, clipped at 0, and may be singular
-D_FLOOR = 1e-12
 
 
 @dataclass(frozen=True)
@@ -358,28 +355,6 @@ class MapSmoother(SlamBackend):
                 log.warning("map frame covariance unavailable: %s", exc)
         self.online_poses = np.asarray(self._online, float).reshape(-1, 3)
         return res
-
-
-def shift_only(frame: MapFrame) -> MapFrame:
-    """The frame model regressed on the shift ``(dx, dy)`` alone.
-
-    From the joint Gaussian of ``(e_l, g)`` (``Cov(e_l, g) = C_l S``): ``C'_l = (C_l S)_{:, xy}
-    S_xy^-1`` and ``S' = S_xy``; returned as a 3-dof frame whose turn has variance
-    :data:`D_FLOOR` and zero gain, so that :meth:`MapFrame.conditional` gives
-    ``D'_l = Sigma_ll - C'_l S_xy C'_l^T`` (the turn's share stays in ``D'_l``, independent
-    between landmarks).
-    """
-    s = np.asarray(frame.cov, float)
-    s_xy_inv = np.linalg.inv(s[:2, :2])
-    cov = np.zeros((3, 3))
-    cov[:2, :2] = s[:2, :2]
-    cov[2, 2] = D_FLOOR
-    gains = {}
-    for lid, c in frame.gains.items():
-        g = np.zeros((4, 3))
-        g[:, :2] = (np.asarray(c, float) @ s)[:, :2] @ s_xy_inv
-        gains[lid] = g
-    return MapFrame(np.asarray(frame.center, float), cov, gains)
 
 
 def frame_to_rigid(g: FloatArray, center: FloatArray) -> FloatArray:

@@ -230,7 +230,10 @@ def test_localize_only_recovers_from_an_offset_start(rng: np.random.Generator) -
 
 def test_start_parsing(tmp_path: Path) -> None:
     """--start X,Y,THETA and a localize result.json; bad ones are named."""
-    assert np.allclose(parse_start("1,2,0.5").pose, [1, 2, 0.5])
+    typed = parse_start("1,2,0.5")
+    assert np.allclose(typed.pose, [1, 2, 0.5])
+    assert typed.cov is not None  # a typed start is looser than the known start's 1 mm
+    assert np.allclose(np.sqrt(np.diag(typed.cov)), [0.02, 0.02, 0.01])
     with pytest.raises(InputError, match="X,Y,THETA"):
         parse_start("1,2")
     doc = {"status": "localized", "pose": [1.0, 2.0, 0.1],

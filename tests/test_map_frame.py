@@ -161,7 +161,8 @@ def test_shared_offset_recovers_a_known_map_offset(rng: np.random.Generator) -> 
     marginals are S's part plus the residual. A start known to 1 mm: the fixed map (no
     frame) drags the track to the map's frame, RMS above 5 mm; with the offset state the
     estimated g is within 1.5 mm and 0.1 deg of the truth and the RMS under 2.5 mm, in
-    fixed, priors and consider modes."""
+    fixed, priors and consider modes (the offset state and the 1 mm start are
+    :class:`LocalizeConfig`'s defaults; the turn with ``frame_turn``)."""
     rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=3e-4)
     g_true = np.array([0.008, -0.006, np.radians(0.5)])
     shifted = _shifted_map(cmap, g_true, 3e-4, axis_sigma=0.01)  # _drive's axis sigma
@@ -174,7 +175,8 @@ def test_shared_offset_recovers_a_known_map_offset(rng: np.random.Generator) -> 
     assert _rms(pos) > 0.005
     for mode in ("fixed", "priors", "consider"):
         res = drive(MapLocalizer(rig.odometry, SlamConfig(), poses[0], shifted, model,
-                                 LocalizeConfig(map_mode=mode, frame_offset=True, **tight)),
+                                 LocalizeConfig(map_mode=mode, max_corner_sigma=0.05,
+                                                frame_turn=True)),
                     iter_steps(odo, frames))
         pos, head = _truth_errors(res, t, poses)
         g = np.array([res.extra["map_frame_dx_m"], res.extra["map_frame_dy_m"],
@@ -183,6 +185,30 @@ def test_shared_offset_recovers_a_known_map_offset(rng: np.random.Generator) -> 
         assert abs(np.degrees(g[2] - g_true[2])) < 0.1, (mode, g)
         assert _rms(pos) < 0.0025, mode
         assert np.degrees(_rms(head)) < 0.2
+
+
+def test_default_estimates_the_shift_alone(rng: np.random.Generator) -> None:
+    """The default frame state is the shift alone (``frame_turn`` False): a map moved by
+    (8 mm, -6 mm) without a turn is tracked within 2.5 mm RMS, the shift recovered within
+    1.5 mm and the turn left at 0; the fixed map without the state is off by over 5 mm."""
+    rig, odo, frames, poses, t, cmap = _drive(rng, map_sigma=3e-4)
+    g_true = np.array([0.008, -0.006, 0.0])
+    shifted = _shifted_map(cmap, g_true, 3e-4, axis_sigma=0.01)
+    model = CeilingModel.from_camera(rig.camera)
+    res = drive(MapLocalizer(rig.odometry, SlamConfig(), poses[0], shifted, model,
+                             LocalizeConfig(map_mode="fixed", max_corner_sigma=0.05,
+                                            frame_offset=False)),
+                iter_steps(odo, frames))
+    pos, _ = _truth_errors(res, t, poses)
+    assert _rms(pos) > 0.005
+    res = drive(MapLocalizer(rig.odometry, SlamConfig(), poses[0], shifted, model,
+                             LocalizeConfig(max_corner_sigma=0.05)), iter_steps(odo, frames))
+    pos, _ = _truth_errors(res, t, poses)
+    g = np.array([res.extra["map_frame_dx_m"], res.extra["map_frame_dy_m"],
+                  res.extra["map_frame_dtheta_rad"]])
+    assert np.all(np.abs(g[:2] - g_true[:2]) < 0.0015), g
+    assert g[2] == 0.0
+    assert _rms(pos) < 0.0025
 
 
 def test_corner_bias_floor(rng: np.random.Generator) -> None:

@@ -12,9 +12,9 @@ Usage::
 its own (SLAM from scratch then runs once per run, not once per map). For every run the frames are made once
 (the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
 (:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
-``localize-consider``: ``LocalizeConfig.map_mode``; with a version-2 map also
-``localize-frame`` and ``localize-priors-frame``: the map frame's offset state,
-``LocalizeConfig.frame_offset``), and
+``localize-consider``: ``LocalizeConfig.map_mode``; every mode with the map frame's offset
+state when the map has a frame model, ``-nooffset`` without it, ``-loose`` with a 2 cm
+start; ``-smooth``: the smoother after the filter; :func:`localize_config`), and
 SLAM from scratch on the same frames with the backends of ``--backends`` (default
 isam2, batch, ekf). Printed per run and method: position and heading RMS against the
 run's truth (no alignment, known start pose), and the CPU time (``time.process_time``,
@@ -136,19 +136,19 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
 
 
 def localize_config(method: str) -> LocalizeConfig:
-    """``localize[-priors|-consider][-frame|-tight][-smooth[-turn|-noframe]]`` as the filter's
-    settings; ``-frame`` uses the map's frame model (version-2 maps) in the filter, with the
-    known start held as tightly as SLAM's (1 mm, 1 mrad), which ``-tight`` alone also does;
-    ``-smooth`` (:func:`smoother_config`) adds the smoother over the filter's poses."""
+    """``localize[-priors|-consider][-nooffset][-loose][-smooth[-turn|-noframe]]`` as the
+    filter's settings: the defaults of :class:`LocalizeConfig` (the map frame's offset state
+    with a version-2 map, the known start held at 1 mm / 1 mrad as SLAM holds it) with
+    ``-nooffset`` without the frame state (``frame_offset`` off), ``-gturn`` with its turn
+    estimated too (``frame_turn``), and ``-loose`` with the start at 2 cm / 0.01 rad (the
+    settings before the eleventh session); ``-frame`` and ``-tight`` are the defaults now
+    (accepted, no effect); ``-smooth`` (:func:`smoother_config`) adds the smoother over the
+    filter's poses."""
     parts = method.split("-")[1:]
     mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
-    if "tight" in parts:
-        return LocalizeConfig(map_mode=mode, sigma_start_xy=1e-3,  # type: ignore[arg-type]
-                              sigma_start_theta=1e-3)
-    if "frame" in parts:
-        return LocalizeConfig(map_mode=mode, frame_offset=True, sigma_start_xy=1e-3,  # type: ignore[arg-type]
-                              sigma_start_theta=1e-3)
-    return LocalizeConfig(map_mode=mode)  # type: ignore[arg-type]
+    loose = {"sigma_start_xy": 0.02, "sigma_start_theta": 0.01} if "loose" in parts else {}
+    return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts,  # type: ignore[arg-type]
+                          frame_turn="gturn" in parts, **loose)
 
 
 def truth_frame_offset(truth_T_map: FloatArray, frame: MapFrame | None) -> FloatArray:
@@ -192,11 +192,13 @@ def main() -> None:
     ap.add_argument("--each-map", action="store_true",
                     help="track every --map on its own instead of merging them")
     ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth,priors-smooth-turn",
-                    help="localize-only variants: fixed, priors, consider, frame (the map "
-                         "frame's offset state, version-2 maps only), priors-frame, "
-                         "consider-frame, -tight (1 mm / 1 mrad start), priors-smooth (the "
-                         "smoother with the map frame's shift), priors-smooth-turn (shift and "
-                         "turn), priors-smooth-noframe (independent landmark priors)")
+                    help="localize-only variants: fixed, priors, consider (the defaults: the "
+                         "map frame's offset state with a version-2 map, the known start at 1 mm "
+                         "/ 1 mrad), -nooffset (without the frame state), -gturn (the frame state's turn "
+                         "estimated too), -loose (2 cm / 0.01 rad "
+                         "start), priors-smooth (the smoother with the map frame's shift), "
+                         "priors-smooth-turn (shift and turn), priors-smooth-noframe "
+                         "(independent landmark priors)")
     ap.add_argument("--frames", default="images", choices=("images", "truth"))
     ap.add_argument("--backends", default="isam2,batch,ekf", help="SLAM from scratch backends")
     ap.add_argument("--reference", default="isam2", help="method the ratios divide by")
@@ -218,8 +220,8 @@ def main() -> None:
     for label, cmap in maps:
         prefix = f"{label}: " if len(maps) > 1 else ""
         for mode in modes:
-            if ("frame" in mode.split("-") or ("smooth" in mode.split("-") and "noframe" not in
-                                                mode.split("-"))) and cmap.frame is None:
+            if ("smooth" in mode.split("-") and "noframe" not in mode.split("-")
+                    and cmap.frame is None):
                 continue
             name = "localize" if mode == "fixed" else f"localize-{mode}"
             methods.append((prefix + name, cmap, name))
