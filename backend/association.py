@@ -127,6 +127,7 @@ def associate(
     result: dict[int, Assignment] = {}
     pairs: list[tuple[float, int, int, float]] = []  # (score, obs, landmark, d2)
     best_d2: dict[int, float] = {}
+    near: dict[int, int] = {}  # planar_unique: landmarks within the new-landmark threshold
     for i, obs in enumerate(observations):
         if config.use_known_ids and obs.landmark_id is not None:
             lid = int(obs.landmark_id)
@@ -139,10 +140,12 @@ def associate(
             items = screened[i].items()
         else:
             items = ((lid, (float("nan"), False)) for lid in candidates.get(obs.kind, ()))
+        unique = config.planar_unique and obs.kind == "point2"
+        unique_t = config.unique_threshold(len(obs.z))
         for lid, (d2_screen, exact) in items:
             screen_only = not math.isnan(d2_screen)
-            if screen_only and d2_screen >= gate:  # cannot match: the screen is wider
-                best = min(best, d2_screen)
+            if screen_only and d2_screen >= gate and not (unique and d2_screen < unique_t):
+                best = min(best, d2_screen)  # cannot match: the screen is wider
                 continue
             ncc = 0.0
             if obs.kind == "corner":
@@ -158,6 +161,8 @@ def associate(
                     continue
                 d2 = mahalanobis2(*pred)
             best = min(best, d2)
+            if unique and d2 < unique_t:
+                near[i] = near.get(i, 0) + 1
             if d2 >= gate:
                 continue
             if obs.kind == "corner":
@@ -171,6 +176,9 @@ def associate(
     used: set[int] = set()
     for score, i, lid, d2 in sorted(pairs):
         if i in result or lid in used:
+            continue
+        if near.get(i, 0) >= 2:  # a rival within the new-landmark threshold: dropped
+            result[i] = Assignment(i, None, "dropped", d2)
             continue
         del score
         result[i] = Assignment(i, lid, "matched", d2)

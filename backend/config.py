@@ -125,6 +125,13 @@ class AssociationConfig:
             or more landmarks inside the relative gate (of
             :meth:`lampsam.backend.gating.Gating._screen_planar`) is dropped instead
             of given to the nearest (default False).
+        planar_unique: without ids, a range-bearing observation is matched only when
+            no second landmark is within the new-landmark threshold of it (exact
+            distances, eq. 19); else it is dropped (neither matched nor mapped).
+            Default False.
+        planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
+            quantile of this probability (0, default: the new-landmark threshold,
+            ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).
         planar_relative_gate: without ids, gate range-bearing observations of
             landmarks seen in the last 30 keyframes relative to their last sighting
             (odometry covariance since then; final, no joint marginal) instead of
@@ -154,12 +161,15 @@ class AssociationConfig:
         planar_merge_min_obs: sightings each landmark of a pair needs (default 3).
         planar_merge_radius: only pairs closer than this are tested, m (default 30).
         revisit_check: smoothers without ids: after a keyframe that starts a
-            range-bearing landmark, match the landmarks made in the last 40
-            keyframes to the map idle for 150 keyframes by one unambiguous rigid
-            motion (:mod:`lampsam.backend.revisit_merge`) and tie each matched copy
-            to its old landmark (default False).
-        revisit_tol, revisit_min_inliers: its inlier distance in m (also twice the
-            tie's sigma; default 0.75) and inliers needed (default 4).
+            range-bearing landmark, match the local scan (every landmark sighted in
+            the last 40 keyframes) to the landmarks made before it near the
+            prediction by one unambiguous rigid motion
+            (:mod:`lampsam.backend.revisit_merge`) and merge each matched copy with
+            its old landmark (default False).
+        revisit_tol, revisit_min_inliers: its inlier distance in m (default 0.75)
+            and inliers needed (default 4).
+        revisit_tie_sigma: the merge's tie (``BetweenFactorPoint2``) sigma per
+            axis, m (default 0.05).
         odometry_noise_adapt: without ids, multiply the odometry covariance by a
             variance factor learnt online from the innovations of unambiguous
             range-bearing matches (:mod:`lampsam.backend.odometry_scale`: maximum
@@ -187,6 +197,8 @@ class AssociationConfig:
     gate_noise_scale: float = field(default=1.0, metadata=limits(gt=0.0, le=1.0))
     planar_confirm_sightings: int = field(default=1, metadata=limits(ge=1))
     planar_reject_ambiguous: bool = False
+    planar_unique: bool = False
+    planar_unique_prob: float = field(default=0.0, metadata=limits(ge=0.0, lt=1.0))
     planar_relative_gate: bool = False
     planar_noise_adapt: bool = False
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))
@@ -198,6 +210,7 @@ class AssociationConfig:
     revisit_check: bool = False
     revisit_tol: float = field(default=0.75, metadata=limits(gt=0.0))
     revisit_min_inliers: int = field(default=4, metadata=limits(ge=3))
+    revisit_tie_sigma: float = field(default=0.05, metadata=limits(gt=0.0))
     odometry_noise_adapt: bool = False
     odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
     odometry_noise_window: int = field(default=150, metadata=limits(ge=1))
@@ -216,6 +229,13 @@ class AssociationConfig:
     def gate(self, dof: int) -> float:
         """Mahalanobis gate ``d`` of paper eq. 20 for a ``dof``-dimensional innovation."""
         return _chi2_quantile(self.gate_prob, dof)
+
+    def unique_threshold(self, dof: int) -> float:
+        """Squared distance inside which a second landmark makes a sighting ambiguous
+        (``planar_unique``)."""
+        if self.planar_unique_prob > 0.0:
+            return _chi2_quantile(self.planar_unique_prob, dof)
+        return self.new_threshold(dof)
 
     def new_threshold(self, dof: int) -> float:
         """Squared Mahalanobis distance beyond which an observation starts a new landmark."""

@@ -61,25 +61,20 @@ def _inliers(moved: FloatArray, tree: cKDTree, tol: float) -> list[tuple[int, in
     return out
 
 
-def align_constellation(src: FloatArray, dst: FloatArray, tol: float, min_inliers: int,
-                        margin: int = 2, max_rotation: float = math.pi) -> Alignment | None:
-    """The unique rigid motion taking most of ``src`` onto ``dst`` (see the module doc).
+def rank_hypotheses(src: FloatArray, dst: FloatArray, tol: float,
+                    max_rotation: float = math.pi) -> list[tuple[int, frozenset[tuple[int, int]],
+                                                                 list[tuple[int, int]]]]:
+    """Every distinct pairing with 3+ inliers, most inliers first (see the module doc).
 
-    Args:
-        src: (N, 2) recent landmarks (their shape is trusted); dst: (M, 2) old landmarks.
-        tol: inlier distance and pair-length tolerance, m (the map's non-rigidity).
-        min_inliers: inliers needed (>= 3: two points always fit).
-        margin: the best must beat every differently-paired hypothesis by this many.
-        max_rotation: hypotheses rotating more than this (rad) are skipped (the
-            heading drift the caller can believe).
+    Args: as :func:`align_constellation`.
 
     Returns:
-        The alignment, or None (too few inliers, or not unique).
+        ``(n inliers, pairs as a set, pairs nearest first)`` per hypothesis.
     """
     src = np.asarray(src, float).reshape(-1, 2)
     dst = np.asarray(dst, float).reshape(-1, 2)
     if len(src) < 2 or len(dst) < 2:
-        return None
+        return []
     tree = cKDTree(dst)
     ii, jj = np.triu_indices(len(dst), 1)
     dlen = np.linalg.norm(dst[jj] - dst[ii], axis=1)
@@ -107,14 +102,44 @@ def align_constellation(src: FloatArray, dst: FloatArray, tol: float, min_inlier
                 if len(pairs) >= 3 and key not in seen:
                     seen.add(key)
                     hyps.append((len(pairs), key, pairs))
-    if not hyps:
-        return None
     hyps.sort(key=lambda h: -h[0])
-    n_best, key_best, pairs_best = hyps[0]
-    # a rival pairs most of its landmarks differently from the best
+    return hyps
+
+
+def best_and_rival(hyps: list[tuple[int, frozenset[tuple[int, int]], list[tuple[int, int]]]]
+                   ) -> tuple[int, int]:
+    """Inliers of the best hypothesis and of the best one pairing most of its
+    landmarks differently (a rival shares fewer than half of its pairs with the best);
+    ``(0, 0)`` without any."""
+    if not hyps:
+        return 0, 0
+    n_best, key_best, _ = hyps[0]
     runner = max((n for n, k, _ in hyps[1:] if 2 * len(k & key_best) < len(k)), default=0)
-    if n_best < min_inliers or n_best - runner < margin:
+    return n_best, runner
+
+
+def align_constellation(src: FloatArray, dst: FloatArray, tol: float, min_inliers: int,
+                        margin: int = 2, max_rotation: float = math.pi) -> Alignment | None:
+    """The unique rigid motion taking most of ``src`` onto ``dst`` (see the module doc).
+
+    Args:
+        src: (N, 2) recent landmarks (their shape is trusted); dst: (M, 2) old landmarks.
+        tol: inlier distance and pair-length tolerance, m (the map's non-rigidity).
+        min_inliers: inliers needed (>= 3: two points always fit).
+        margin: the best must beat every differently-paired hypothesis by this many.
+        max_rotation: hypotheses rotating more than this (rad) are skipped (the
+            heading drift the caller can believe).
+
+    Returns:
+        The alignment, or None (too few inliers, or not unique).
+    """
+    src = np.asarray(src, float).reshape(-1, 2)
+    dst = np.asarray(dst, float).reshape(-1, 2)
+    hyps = rank_hypotheses(src, dst, tol, max_rotation)
+    n_best, runner = best_and_rival(hyps)
+    if not hyps or n_best < min_inliers or n_best - runner < margin:
         return None
+    pairs_best = hyps[0][2]
     s_idx = np.array([p[0] for p in pairs_best])
     d_idx = np.array([p[1] for p in pairs_best])
     fit = rigid_fit_2d(src[s_idx], dst[d_idx])

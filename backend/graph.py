@@ -188,7 +188,9 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                 self._observe(lm, k, o)
                 n_matched += 1
             if self.config.association.revisit_check and gating:
-                self._revisit_check(k, n_new)
+                self._revisit_check(k, n_new, [
+                    obs[a.obs_index] for a in assignments if a.status == "dropped"
+                    and obs[a.obs_index].kind == "point2" and obs[a.obs_index].landmark_id is None])
         if k % 10 == 0:
             self._forget_pending(k)
         # The keyframe's own estimate: the prediction until iSAM2 updates it (_flush).
@@ -408,6 +410,8 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_jcbb": float(self.n_jcbb), "n_jcbb_changed": float(self.n_jcbb_changed),
                    "n_revisit_merges": float(self.n_revisit_merges),
                    "n_revisit_rejected": float(self.n_revisit_rejected),
+                   "n_revisit_ambiguous": float(self.n_revisit_ambiguous),
+                   "n_revisit_resolved": float(self.n_revisit_resolved),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),

@@ -107,14 +107,13 @@ def test_isam2_revisit_check_ties_the_copies_to_the_old_map(tmp_path: Path,
                                                             ) -> None:
     """Without the check the revisit maps the five trees twice (11 landmarks for 6)
     and the last heading stays 0.15 rad off. With it (windows shortened to this log:
-    recent = made within 3 keyframes, old = idle 5), the five copies are matched to
+    the local scan = the last 3 keyframes), the five copies are matched to
     the old constellation as one rigid motion and tied: 6 landmarks reported, each
     of the five within 0.1 m of its tree, and the last pose back at the origin
     (measured 9 mm, 1 mrad)."""
     from lampsam.backend import revisit_merge
 
     monkeypatch.setattr(revisit_merge, "RECENT_KEYFRAMES", 3)
-    monkeypatch.setattr(revisit_merge, "IDLE_KEYFRAMES", 5)
     g = read_graph_text(_revisit_log(tmp_path))
     res = {}
     for check in (False, True):

@@ -38,7 +38,8 @@ all its first tree's sightings as wrong).
 
 A ``dup`` is classified the same way (its true landmark's distance, beyond the
 new-landmark threshold or not screened). The first ``--causes`` wrong matches are
-printed with their keyframe, candidates and distances.
+(from the first ``--detail`` step on) printed with their keyframe, candidates and
+distances.
 """
 
 from __future__ import annotations
@@ -88,6 +89,8 @@ class Decision:
     status: str
     lid: int | None
     cands: dict[int, float] = field(default_factory=dict)  # lid -> exact d2
+    sigma_xy: float = math.nan  # the online pose marginal's largest position sigma, m
+    xy: tuple[float, float] = (math.nan, math.nan)  # the online pose estimate then, m
 
 
 def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
@@ -97,6 +100,7 @@ def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
         config, isam2=dataclasses.replace(config.isam2, every_frame=True),
         association=dataclasses.replace(config.association, use_known_ids=False))
     be = make_backend(backend, cfg.pose2_odometry, cfg, g.start_pose())
+    be._trace_revisit = True
     decisions: list[Decision] = []
     cur = {"step": 0}
     real_assoc, real_learn = graph_mod.associate, graph_mod.learn_scale
@@ -115,6 +119,9 @@ def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
         # called after the association (and JCBB) of a keyframe: its final decisions
         n = cur["step"]
         file_s = g.sightings[n]
+        cov = be.current_cov()
+        sig = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0)))
+        here = be.current_pose()
         for a in out:
             o = obs[a.obs_index]
             j = int(np.argmin([abs(s.range - o.z[1]) + abs(math.remainder(s.bearing - o.z[0], math.tau))
@@ -125,7 +132,8 @@ def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
                     pred = inn["fn"](lid, o)
                     d2 = math.inf if pred is None else _m2(pred)
                 d[lid] = float(d2)
-            decisions.append(Decision(n, be._k, file_s[j].landmark, a.status, a.landmark_id, d))
+            decisions.append(Decision(n, be._k, file_s[j].landmark, a.status, a.landmark_id, d, sig,
+                                      (float(here[0]), float(here[1]))))
         return real_learn(scale, obs, out, screened)
 
     graph_mod.associate, graph_mod.learn_scale = assoc, learn
@@ -147,8 +155,11 @@ def _m2(pred: tuple[np.ndarray, np.ndarray]) -> float:
 
 def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], ref: np.ndarray,
           poses: np.ndarray, gate: float, new_t: float, n_causes: int,
-          ref_xy: dict[int, np.ndarray]) -> None:
-    """Print the per-window table and the wrong-match causes."""
+          ref_xy: dict[int, np.ndarray], detail: tuple[int, int] = (0, 0),
+          detail_csv: Path | None = None) -> None:
+    """Print the per-window table and the wrong-match causes; with ``detail``
+    ``(first, last)`` steps, a per-keyframe record of that range (``detail_csv``) and
+    its summary per 100 steps, and why each revisit check there tied or not."""
     # landmark id of each taken sighting (new ones: from the backend's sighting record)
     # (k, z, R, lid) per taken sighting; a keyframe's new landmarks come first, in order
     new_ids: dict[int, list[int]] = defaultdict(list)
@@ -187,6 +198,14 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
         c = live.get(lid)
         return c.most_common(1)[0][0] if c else None
 
+    per_kf: dict[int, Counter[str]] = defaultdict(Counter)
+    kf_info: dict[int, tuple[int, float, tuple[float, float]]] = {}
+
+    def mark(d: Decision, what: str) -> None:
+        if detail[0] <= d.step < detail[1]:
+            per_kf[d.kf][what] += 1
+            kf_info[d.kf] = (d.step, d.sigma_xy, d.xy)
+
     for d in decisions:
         w = max(i for i, b in enumerate(windows) if d.step >= b)
         c = per_win[w]
@@ -195,14 +214,16 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
         true_lids = [lid for lid in live if owner_now(lid) == d.fid]
         if d.status == "dropped" or d.lid is None:
             c["dropped"] += 1
+            mark(d, "dropped")
             continue
         c["taken"] += 1
         if d.status == "new":
+            mark(d, "dup" if true_lids else "new_tree")
             if true_lids:
                 c["dup"] += 1
                 best = min((d.cands.get(lid, math.inf) for lid in true_lids), default=math.inf)
                 dup_causes["unseen" if math.isinf(best) else "beyond new threshold"] += 1
-                if shown_dup < n_causes:
+                if shown_dup < n_causes and d.step >= detail[0]:
                     shown_dup += 1
                     n_true = max(sum(live[lid].values()) for lid in true_lids)
                     print(f"  dup: step {d.step} kf {d.kf} tree {d.fid}: its landmark(s) "
@@ -217,13 +238,16 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
         if owner[d.lid] != d.fid:
             c["wrong"] += 1
         if now == d.fid:
+            mark(d, "right")
             continue
         c["wrong_now"] += 1
         if now is not None and now in ref_xy and d.fid in ref_xy and float(
                 np.hypot(*(ref_xy[now] - ref_xy[d.fid]))) < TWIN_M:
             causes["twin"] += 1
+            mark(d, "right")
             continue  # two file ids at one place: not an error the gate could avoid
         c["wrong_far"] += 1
+        mark(d, "wrong")
         d_chosen = d.cands.get(d.lid, math.nan)
         d_true = min((d.cands.get(lid, math.inf) for lid in true_lids), default=math.inf)
         if not true_lids:
@@ -239,7 +263,7 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
         causes[f"gated candidates = {min(n_in, 3)}{'+' if n_in >= 3 else ''}"] += 1
         n_lid = sum(live[d.lid].values()) - 1
         causes[f"chosen landmark's sightings before: {min(n_lid, 3)}{'+' if n_lid >= 3 else ''}"] += 1
-        if shown < n_causes:
+        if shown < n_causes and d.step >= detail[0]:
             shown += 1
             print(f"  wrong: step {d.step} kf {d.kf} tree {d.fid} -> lm {d.lid} (tree {now} so far, "
                   f"{n_lid} sightings before), {why}; d2 chosen {d_chosen:.2f}, true {d_true:.2f}; "
@@ -264,6 +288,9 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
     print(f"landmarks {len(by_lid)} ({n2} with 2+ sightings) for {g.n_landmarks} file ids "
           f"({seen2} sighted 2+); trees owning 2+ landmarks: "
           f"{sum(1 for v in tree_lids.values() if len(v) >= 2)}")
+    if detail[1] > detail[0]:
+        _detail_report(per_kf, kf_info, ref, poses, detail, detail_csv)
+        _revisit_report(be, owner, first_kf, ref_xy, detail, kf_info)
     ties = getattr(be, "revisit_ties", [])
     ok = [owner.get(c) == owner.get(o) or (owner.get(c) in ref_xy and owner.get(o) in ref_xy and float(
         np.hypot(*(ref_xy[owner[c]] - ref_xy[owner[o]]))) < TWIN_M) for _, c, o in ties]
@@ -271,6 +298,86 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
           f"{sorted({kf for kf, _, _ in ties})}")
     print("wrong-match causes:", dict(sorted(causes.items())))
     print("dup causes:", dict(dup_causes))
+
+
+def _detail_report(per_kf: dict[int, Counter[str]],
+                   kf_info: dict[int, tuple[int, float, tuple[float, float]]],
+                   ref: np.ndarray, poses: np.ndarray, detail: tuple[int, int],
+                   csv: Path | None) -> None:
+    """Per keyframe of the detail range: the online pose estimate's error against the
+    known-id run (and the final one's), the online sigma, the sightings and what
+    became of them."""
+    keys = ("right", "wrong", "dup", "new_tree", "dropped")
+    lines = ["kf,step,online_err_m,final_err_m,sigma_xy_m," + ",".join(keys)]
+    fin: dict[int, list[float]] = defaultdict(list)
+    bins: dict[int, Counter[str]] = defaultdict(Counter)
+    errs: dict[int, list[float]] = defaultdict(list)
+    sigs: dict[int, list[float]] = defaultdict(list)
+    for kf in sorted(per_kf):
+        step, sig, xy = kf_info[kf]
+        err = float(np.hypot(xy[0] - ref[step, 0], xy[1] - ref[step, 1]))
+        err_final = float(np.hypot(*(poses[step, :2] - ref[step, :2])))
+        lines.append(f"{kf},{step},{err:.3f},{err_final:.3f},{sig:.3f},"
+                     + ",".join(str(per_kf[kf][x]) for x in keys))
+        b = step // 100 * 100
+        bins[b].update(per_kf[kf])
+        bins[b]["kf"] += 1
+        errs[b].append(err)
+        fin[b].append(err_final)
+        sigs[b].append(sig)
+    if csv is not None:
+        csv.parent.mkdir(parents=True, exist_ok=True)
+        csv.write_text("\n".join(lines) + "\n")
+        print(f"per-keyframe record: {csv}")
+    print("\n| steps | keyframes | online pose error vs known id, max [m] | final, max [m] | "
+          "online sigma_xy, max [m] | right | wrong | mapped again | new tree | dropped |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for b in sorted(bins):
+        c = bins[b]
+        print(f"| {b}-{b + 100} | {c['kf']} | {max(errs[b]):.2f} | {max(fin[b]):.2f} | "
+              f"{max(sigs[b]):.2f} | "
+              + " | ".join(str(c[x]) for x in keys) + " |")
+
+
+def _revisit_report(be: Any, owner: dict[int, int], first_kf: dict[int, int],
+                    ref_xy: dict[int, np.ndarray], detail: tuple[int, int],
+                    kf_info: dict[int, tuple[int, float, tuple[float, float]]]) -> None:
+    """Why the revisit check tied or not at each run in the detail range: outcome, the
+    recent landmarks that copy a tree mapped before (possible inliers), how many of
+    those have the tree's landmark in the old set, and the best/rival inliers."""
+    log = getattr(be, "revisit_log", [])
+    kfs = [kf for kf in kf_info]
+    if not log or not kfs:
+        print("revisit check: no run recorded in the detail range")
+        return
+    lo, hi = min(kfs), max(kfs)
+    tree_first: dict[int, list[tuple[int, int]]] = defaultdict(list)
+    for lid, f in owner.items():
+        tree_first[f].append((first_kf.get(lid, 0), lid))
+    outcomes: Counter[str] = Counter()
+    print("\n| keyframe | recent | old | recent copying an older landmark | "
+          "of which its landmark in 'old' | best | rival | outcome |")
+    print("|---|---|---|---|---|---|---|---|")
+    shown = 0
+    for r in log:
+        if not lo <= r.k <= hi:
+            continue
+        outcomes[r.outcome] += 1
+        old = set(r.old)
+        copies = in_old = 0
+        for lid in r.recent:
+            f = owner.get(lid)
+            olders = [x for fk, x in tree_first.get(f, []) if fk < first_kf.get(lid, 0)]
+            if olders:
+                copies += 1
+                in_old += any(x in old for x in olders)
+        if r.outcome != "few" or copies:
+            outcomes[f"{r.outcome}, copies {min(copies, 4)}{'+' if copies >= 4 else ''}"] += 1
+            if shown < 40 and copies:
+                shown += 1
+                print(f"| {r.k} | {len(r.recent)} | {len(r.old)} | {copies} | {in_old} | "
+                      f"{r.n_best} | {r.runner_up} | {r.outcome} |")
+    print("revisit check outcomes in the detail range:", dict(sorted(outcomes.items())))
 
 
 def main() -> None:
@@ -283,6 +390,8 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--causes", type=int, default=15)
     ap.add_argument("--out", default="/tmp/trace_noids_online")
+    ap.add_argument("--detail", default="", metavar="FIRST,LAST",
+                    help="steps to record per keyframe (and trace the revisit check in)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     bench = _sibling("bench_landmark_logs")
@@ -304,9 +413,12 @@ def main() -> None:
               f"status {result.status}, QR rebuilds {result.extra.get('n_qr_rebuilds')}, "
               f"recoveries {result.extra.get('n_recoveries')}, JCBB keyframes "
               f"{result.extra.get('n_jcbb')} (changed {result.extra.get('n_jcbb_changed')}), "
-              f"revisit merges {result.extra.get('n_revisit_merges')}")
+              f"revisit merges {result.extra.get('n_revisit_merges')}, held sightings resolved "
+              f"{result.extra.get('n_revisit_resolved')}")
+        detail = tuple(int(x) for x in args.detail.split(",")) if args.detail else (0, 0)
         score(g, decisions, be, windows, ref, result.poses, config.association.gate(2),
-              config.association.new_threshold(2), args.causes, ref_xy)
+              config.association.new_threshold(2), args.causes, ref_xy, detail,  # type: ignore[arg-type]
+              Path(args.out) / f"{name}_keyframes.csv")
 
 
 if __name__ == "__main__":

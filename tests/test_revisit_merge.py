@@ -1,0 +1,131 @@
+"""The smoothers' revisit check without ids (backend/revisit_merge.py) and the unique-match
+rule (``association.planar_unique``) on seeded hand-made loops: a revisit after a stretch
+without trees, its odometry heading biased beyond the stated noise, among random trees
+(resolved) and among a regular grid of trees (refused)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from lampsam.backend.config import AssociationConfig, SlamConfig
+from lampsam.backend.graph_log import run_graph_log
+from lampsam.datasets.graph_text import read_graph_text
+
+RADIUS = 20.0  # m, the loop's
+PER_LAP = 120  # poses per lap
+
+
+def _loop_log(path: Path, trees: np.ndarray, rng: np.random.Generator, n: int = 190,
+              bias: float = 0.004, max_range: float = 9.0) -> np.ndarray:
+    """A robot on a circle about (0, RADIUS) from the origin, 1.6 laps; the odometry's
+    heading is biased by ``bias`` rad per pose (stated sigma 3.2 mrad, 1 cm): across
+    a stretch without trees the drift grows beyond the gate. Sightings within
+    ``max_range`` (noise 2 mrad, 2 cm, as stated). Returns the true poses (n, 3)."""
+    dth = 2 * math.pi / PER_LAP
+    chord = 2 * RADIUS * math.sin(dth / 2)
+    inc = [chord * math.cos(dth / 2), chord * math.sin(dth / 2), dth]
+    pose = np.zeros(3)
+    truth = [pose.copy()]
+    lines = []
+    for k in range(n):
+        if k:
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            pose = pose + np.array([c * inc[0] - s * inc[1], s * inc[0] + c * inc[1], inc[2]])
+            truth.append(pose.copy())
+            lines.append(f"ODOMETRY {k - 1} {k} {inc[0]!r} {inc[1]!r} {inc[2] + bias!r} "
+                         "1e-4 0 0 1e-4 0 1e-5")
+        for lid, p in enumerate(trees):
+            r = float(np.hypot(*(p - pose[:2])))
+            if r < max_range:
+                b = math.remainder(math.atan2(p[1] - pose[1], p[0] - pose[0]) - pose[2], math.tau)
+                lines.append(f"BR {k} {lid} {b + float(rng.normal(0, 0.002))!r} "
+                             f"{r + float(rng.normal(0, 0.02))!r} 0.002 0.02")
+    path.write_text("\n".join(lines) + "\n")
+    return np.array(truth)
+
+
+def _in_band(p: np.ndarray) -> np.ndarray:
+    """Trees 2.5-7 m either side of the loop, none on its last quarter (the stretch
+    without trees before the revisit)."""
+    rr = np.hypot(p[:, 0], p[:, 1] - RADIUS)
+    aa = np.mod(np.arctan2(p[:, 1] - RADIUS, p[:, 0]) + math.pi / 2, 2 * math.pi)
+    return (np.abs(rr - RADIUS) > 2.5) & (np.abs(rr - RADIUS) < 7.0) & (aa < 1.5 * math.pi)
+
+
+def _rms(res_poses: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((res_poses[:, :2] - truth[:, :2]) ** 2, axis=1))))
+
+
+def _runs(path: Path) -> dict[str, object]:
+    g = read_graph_text(path)
+    out: dict[str, object] = {"known": run_graph_log(g, "isam2", SlamConfig())}
+    for check in (False, True):
+        cfg = SlamConfig(association=AssociationConfig(revisit_check=check))
+        out[str(check)] = run_graph_log(g, "isam2", cfg, known_ids=False)
+    return out
+
+
+def test_revisit_check_resolves_a_drifted_revisit_among_random_trees(tmp_path: Path) -> None:
+    """45 random trees. Without the check the revisit (drift ~2 m, beyond the gate)
+    maps the first trees again: 81 landmarks, 1.25 m RMS from the truth (seed 1).
+    With it, the local scan of the last 40 keyframes matches the older map by one
+    unique rigid motion, the copies are merged with their trees and the loop closes:
+    45 landmarks, RMS within 2x the known-id run's (measured 0.035 m vs 0.026 m)."""
+    rng = np.random.default_rng(1)
+    ang = -math.pi / 2 + rng.uniform(0.0, 1.5 * math.pi, 45)
+    rad = RADIUS + rng.choice([-1.0, 1.0], 45) * rng.uniform(3.0, 7.0, 45)
+    trees = np.c_[rad * np.cos(ang), RADIUS + rad * np.sin(ang)]
+    truth = _loop_log(tmp_path / "loop.txt", trees, rng)
+    runs = _runs(tmp_path / "loop.txt")
+    known, off, on = runs["known"], runs["False"], runs["True"]
+    n_known = len(known.landmarks)  # type: ignore[attr-defined]
+    assert n_known == 45
+    assert len(off.landmarks) + len(off.provisional) > 70  # type: ignore[attr-defined]
+    assert _rms(off.poses, truth) > 0.5  # type: ignore[attr-defined]
+    assert on.extra["n_revisit_merges"] >= 4  # type: ignore[attr-defined]
+    assert len(on.landmarks) + len(on.provisional) == 45  # type: ignore[attr-defined]
+    assert _rms(on.poses, truth) < 2.0 * _rms(known.poses, truth)  # type: ignore[attr-defined]
+
+
+def test_revisit_check_refuses_a_grid_of_trees(tmp_path: Path) -> None:
+    """The same loop among trees on a 4 m grid: every constellation matches the map
+    shifted by one spacing too. Before the self-similarity test the check tied 7
+    copies, all to the wrong trees (seed 0); now every alignment is refused as
+    ambiguous (measured 42 refusals), nothing is merged and the result is the one
+    without the check."""
+    rng = np.random.default_rng(0)
+    gx, gy = np.meshgrid(np.arange(-30.0, 31.0, 4.0), np.arange(-10.0, 51.0, 4.0))
+    pts = np.c_[gx.ravel(), gy.ravel()]
+    truth = _loop_log(tmp_path / "grid.txt", pts[_in_band(pts)], rng)
+    runs = _runs(tmp_path / "grid.txt")
+    off, on = runs["False"], runs["True"]
+    assert on.extra["n_revisit_merges"] == 0  # type: ignore[attr-defined]
+    assert on.extra["n_revisit_ambiguous"] > 0  # type: ignore[attr-defined]
+    assert np.array_equal(on.poses, off.poses)  # type: ignore[attr-defined]
+    assert _rms(on.poses, truth) > 0.5  # type: ignore[attr-defined]
+
+
+def test_planar_unique_drops_a_sighting_with_a_rival_inside_the_new_threshold() -> None:
+    """Exact eq.-19 distances 0.1 (landmark 1) and 14.0 (landmark 2: beyond the 99 %
+    gate 9.21, inside the new-landmark threshold 18.4): nearest neighbour takes
+    landmark 1; with ``planar_unique`` the sighting is dropped. A rival at 25
+    (beyond the threshold) leaves the match."""
+    from lampsam.backend.association import associate
+    from lampsam.backend.models import Obs
+
+    o = Obs("point2", np.array([0.0, 10.0]), np.eye(2))
+    for rival, unique, expect in ((14.0, False, "matched"), (14.0, True, "dropped"),
+                                  (25.0, True, "matched")):
+        d2 = {1: 0.1, 2: rival}
+
+        def inn(lid: int, obs: Obs, d2: dict[int, float] = d2) -> tuple[np.ndarray, np.ndarray]:
+            return np.array([math.sqrt(d2[lid]), 0.0]), np.eye(2)
+
+        cfg = AssociationConfig(use_known_ids=False, planar_unique=unique)
+        a = associate([o], {"point2": [1, 2]}, inn, cfg, lambda i: True)[0]
+        assert a.status == expect, (rival, unique)
+        if expect == "matched":
+            assert a.landmark_id == 1
