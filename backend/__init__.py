@@ -57,7 +57,7 @@ Modules:
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
 * :mod:`~lampsam.backend.reassociate` -- Batch association without ids: re-associate every sighting against the optimised map.
-* :mod:`~lampsam.backend.revisit_merge` -- Revisit check without ids: recent landmarks matched to the old map by constellation.
+* :mod:`~lampsam.backend.revisit_merge` -- Revisit check without ids: the local scan matched to the older map by constellation.
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
 * :mod:`~lampsam.backend.stereo` -- Stereo two-point relative pose estimators (paper 3): raw, EKF, iSAM2, batch.
 * :mod:`~lampsam.backend.stereo_kitti` -- Stereo two-point relative pose on real KITTI images: pair selection and check.
