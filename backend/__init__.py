@@ -19,6 +19,7 @@ Modules:
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
 * :mod:`~lampsam.backend.ceiling_map_io` -- The saved ceiling map: write it once after mapping, read it back every day.
 * :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+* :mod:`~lampsam.backend.config_offline` -- Configuration of the offline passes: batch Levenberg-Marquardt (``[batch]``) and the
 * :mod:`~lampsam.backend.constellation` -- Revisit detection by constellation: a 2-D rigid alignment of recent landmarks to the map.
 * :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
 * :mod:`~lampsam.backend.dense_log` -- Known-id fast path of the smoothers over a planar landmark log, one step per pose.

@@ -53,7 +53,8 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import point_key
-from lampsam.backend.config import BatchConfig, SlamConfig
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.config_offline import BatchConfig
 from lampsam.backend.handlers import (
     GraphLandmark,
     LandmarkHandler,

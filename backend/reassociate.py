@@ -56,7 +56,7 @@ from gtsam.symbol_shorthand import L, X
 from scipy.spatial import cKDTree
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.config import ReassociationConfig
+from lampsam.backend.config_offline import ReassociationConfig
 from lampsam.backend.constellation import align_constellation
 from lampsam.backend.landmark_merge import CoVisibility, merge_pairs
 from lampsam.backend.planar_gate import predict_point2

@@ -1,0 +1,113 @@
+"""Configuration of the offline passes: batch Levenberg-Marquardt (``[batch]``) and the
+batch re-association without ids (``[reassociation]``).
+
+Frozen dataclasses with documented defaults, checked on construction like the rest of
+:mod:`lampsam.backend.config` (which composes them into ``SlamConfig`` and re-exports them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+
+from lampsam.config_loader import FieldValueError, check_limits, limits
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """Offline Levenberg-Marquardt over the whole run.
+
+    Attributes:
+        init: ``"isam2"`` (start LM from the online iSAM2 estimate, default) or
+            ``"odometry"`` (start from odometry and first-sight landmark estimates;
+            association then uses that running estimate).
+        huber_k: Huber threshold in sigmas for measurement factors, or None for
+            plain Gaussian noise (default None).
+        max_iterations: LM iterations (default 100).
+        relative_error_tol: LM relative error decrease to stop (default 1e-4).
+            From the iSAM2 start the whole lab graph's error settles within 1e-4
+            after three iterations (1e-6 took six, with no change in the
+            estimate's accuracy: each iteration is about a second on the lab run).
+        ordering: GTSAM's elimination ordering for LM, ``"METIS"`` (default) or
+            ``"COLAMD"``; METIS was about 10 % faster on the lab graph.
+    """
+
+    init: str = "isam2"
+    huber_k: float | None = field(default=None, metadata=limits(gt=0.0))
+    max_iterations: int = field(default=100, metadata=limits(ge=1))
+    relative_error_tol: float = field(default=1e-4, metadata=limits(ge=0.0))
+    ordering: str = "METIS"
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+        if self.init not in ("isam2", "odometry"):
+            raise FieldValueError("init", f"must be 'isam2' or 'odometry', got {self.init!r}")
+        if self.ordering not in ("METIS", "COLAMD", "NATURAL"):
+            raise FieldValueError("ordering", f"must be 'METIS', 'COLAMD' or 'NATURAL', got {self.ordering!r}")
+
+    def to_gtsam(self) -> gtsam.LevenbergMarquardtParams:
+        """The ``gtsam.LevenbergMarquardtParams`` for this config."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(self.max_iterations)
+        params.setRelativeErrorTol(self.relative_error_tol)
+        params.setOrderingType(self.ordering)
+        return params
+
+
+@dataclass(frozen=True)
+class ReassociationConfig:
+    """Batch re-association without ids (:mod:`lampsam.backend.reassociate`; TOML
+    ``[reassociation]``): the batch backend without ids revises the online pass's
+    association against the optimised map.
+
+    Attributes:
+        passes: passes at most (default 0: off, the online association is final).
+        window: new landmarks per revisit constellation.
+        revisit_keyframes: an old landmark is a revisit candidate when idle this many
+            keyframes before the constellation's first landmark was made.
+        radius: old landmarks within this distance of the constellation's centre, m.
+        tol: inlier distance and pair-length tolerance, m (the optimised map's
+            non-rigidity across a revisit).
+        min_inliers: inliers a revisit alignment needs.
+        margin: inliers by which it must beat any differently-paired hypothesis.
+        max_rotation: largest rotation believed, rad.
+        merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
+        switch: a sighting inside the gate of its landmark moves to another landmark
+            closer by more than this in squared Mahalanobis distance (inf: never).
+        fit_noise: the re-association's gate uses the sightings' noise shrunk to their
+            own spread at each pass's optimum (its variance-component factor, never above 1:
+            :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
+            new-landmark threshold of its landmark and outside every gate splits off.
+        cost_moves: after the passes, merge and split single landmarks by description
+            length (:mod:`lampsam.backend.landmark_moves`; the offline pipeline of
+            :mod:`lampsam.backend.noids_offline` only).
+        scales: candidate odometry variance factors of the online no-ids pass that
+            precedes the offline re-association of a graph log
+            (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
+            the least description length is kept (default 1/16, 1/4, 1, 4, 16, 64: sigma
+            x1/4-x8; the factors below 1 for logs that overstate their odometry noise,
+            as GTSAM's victoriaPark_reduced_1k and cityTrees_reduced_1k do ~20x in
+            sigma: docs/noids-offline.md).
+    """
+
+    passes: int = field(default=0, metadata=limits(ge=0))
+    window: int = field(default=12, metadata=limits(ge=3))
+    revisit_keyframes: int = field(default=300, metadata=limits(ge=1))
+    radius: float = field(default=100.0, metadata=limits(gt=0.0))
+    tol: float = field(default=0.75, metadata=limits(gt=0.0))
+    min_inliers: int = field(default=4, metadata=limits(ge=3))
+    margin: int = field(default=2, metadata=limits(ge=1))
+    max_rotation: float = field(default=0.5, metadata=limits(gt=0.0))
+    merge_radius: float = field(default=10.0, metadata=limits(ge=0.0))
+    switch: float = field(default=float("inf"), metadata=limits(gt=0.0, finite=False))
+    fit_noise: bool = False
+    cost_moves: bool = True
+    scales: tuple[float, ...] = (0.0625, 0.25, 1.0, 4.0, 16.0, 64.0)
+
+    def __post_init__(self) -> None:
+        """Check the declared ranges (:class:`FieldValueError` naming the key)."""
+        check_limits(self)
+        if not self.scales or any(not q > 0 for q in self.scales):
+            raise FieldValueError("scales", f"needs one or more factors > 0, got {self.scales}")
