@@ -174,6 +174,19 @@ class LazyFrame(CeilingFrame):
         return CeilingFrame, (frame.t, frame.index, frame.lamps, frame.corners)
 
 
+def _arrive(t: float, t0: float, start: float, pace: float | None) -> float:
+    """The arrival time (``time.perf_counter`` clock) of a frame stamped ``t`` s: with
+    ``pace`` (replay speed, x real time) ``start + (t - t0) / pace``, slept until then;
+    without it, now."""
+    if pace is None:
+        return time.perf_counter()
+    arrival = start + (t - t0) / pace
+    wait = arrival - time.perf_counter()
+    if wait > 0:
+        time.sleep(wait)
+    return arrival
+
+
 def _lazy(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
           pace: float | None, start: float | None, times: FrameTimes
           ) -> Iterator[LazyFrame]:
@@ -197,13 +210,7 @@ def _lazy(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None
 
     for i in range(len(images)):
         t = float(images.t[i])
-        if pace is not None:
-            arrival = start + (t - t0) / pace
-            wait = arrival - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
-        else:
-            arrival = time.perf_counter()
+        arrival = _arrive(t, t0, start, pace)
         times.arrival.append(arrival)
         times.ready.append(time.perf_counter())
         yield LazyFrame(t, i, maker(i, t, len(times.ready) - 1))
@@ -223,13 +230,7 @@ def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | N
     start = time.perf_counter() if start is None else start
     for i in range(len(images)):
         t = float(images.t[i])
-        if pace is not None:
-            arrival = start + (t - t0) / pace
-            wait = arrival - time.perf_counter()
-            if wait > 0:
-                time.sleep(wait)
-        else:
-            arrival = time.perf_counter()
+        arrival = _arrive(t, t0, start, pace)
         c0 = time.thread_time()
         img = images.load(i)
         try:
