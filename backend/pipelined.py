@@ -45,7 +45,7 @@ from lampsam.datasets.logrun import CameraModel
 from lampsam.datasets.tables import ImageIndex
 from lampsam.errors import FrontendError, LampsamError
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation
-from lampsam.frontend.pipeline import FrontendConfig, process_image
+from lampsam.frontend.pipeline import FrontendConfig, process_indexed_image
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ class LazyFrame(CeilingFrame):
 
     Args:
         t: time stamp, s; index: image index in the run.
-        make: makes the frame (image load + :func:`process_image`); may raise
+        make: makes the frame (:func:`~lampsam.frontend.pipeline.process_indexed_image`: image load + frontend); may raise
             :class:`~lampsam.errors.FrontendError`, which then surfaces at the access.
     """
 
@@ -195,14 +195,10 @@ def _lazy(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None
     t0 = float(images.t[0]) if len(images) else 0.0
     start = time.perf_counter() if start is None else start
 
-    def maker(i: int, t: float, slot: int) -> Callable[[], CeilingFrame]:
+    def maker(i: int, slot: int) -> Callable[[], CeilingFrame]:
         def make() -> CeilingFrame:
             c0 = time.thread_time()
-            img = images.load(i)
-            try:
-                frame = process_image(img, t, i, camera, config)
-            except FrontendError as exc:
-                raise FrontendError(f"{images.files[i]}: {exc}") from exc
+            frame = process_indexed_image(images, i, camera, config)
             times.ready[slot] = time.perf_counter()
             times.worker_cpu_s += time.thread_time() - c0
             return frame
@@ -213,7 +209,7 @@ def _lazy(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None
         arrival = _arrive(t, t0, start, pace)
         times.arrival.append(arrival)
         times.ready.append(time.perf_counter())
-        yield LazyFrame(t, i, maker(i, t, len(times.ready) - 1))
+        yield LazyFrame(t, i, maker(i, len(times.ready) - 1))
 
 
 def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | None,
@@ -232,11 +228,7 @@ def _produce(images: ImageIndex, camera: CameraModel, config: FrontendConfig | N
         t = float(images.t[i])
         arrival = _arrive(t, t0, start, pace)
         c0 = time.thread_time()
-        img = images.load(i)
-        try:
-            frame = process_image(img, t, i, camera, config)
-        except FrontendError as exc:
-            raise FrontendError(f"{images.files[i]}: {exc}") from exc
+        frame = process_indexed_image(images, i, camera, config)
         yield frame, arrival, time.perf_counter(), time.thread_time() - c0
 
 

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import ImageU8
+from lampsam.datasets.tables import ImageIndex
 from lampsam.errors import FrontendError
 from lampsam.frontend.ceiling_coords import (
     PixelToCeiling,
@@ -209,11 +210,22 @@ def iter_run(run: Any, config: FrontendConfig | None = None) -> Iterator[Ceiling
     if images is None:
         raise FrontendError(f"{run.path}: the run has no ceiling images")
     for i in range(len(images.t)):
-        img = images.load(i)
-        try:
-            yield process_image(img, float(images.t[i]), i, camera, config)
-        except FrontendError as exc:
-            raise FrontendError(f"{images.files[i]}: {exc}") from exc
+        yield process_indexed_image(images, i, camera, config)
+
+
+def process_indexed_image(images: ImageIndex, i: int, camera: PixelToCeiling,
+                          config: FrontendConfig | None = None) -> CeilingFrame:
+    """Load image ``i`` of a run's image index and process it (:func:`process_image`,
+    stamped ``images.t[i]``).
+
+    Raises:
+        FrontendError: the image is unusable, naming its file.
+    """
+    img = images.load(i)
+    try:
+        return process_image(img, float(images.t[i]), i, camera, config)
+    except FrontendError as exc:
+        raise FrontendError(f"{images.files[i]}: {exc}") from exc
 
 
 def process_run(run: Any, config: FrontendConfig | None = None) -> list[CeilingFrame]:

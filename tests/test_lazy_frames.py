@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import lampsam.backend.pipelined as pipelined
 import lampsam.frontend.pipeline as frontend_pipeline
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.keyframes import KeyframeMirror
@@ -82,13 +81,13 @@ def _same_files(a: Path, b: Path) -> None:
 def counted(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """The image indices the frontend processes (process_image calls, lazy or not)."""
     seen: list[int] = []
-    real = pipelined.process_image
+    real = frontend_pipeline.process_image
 
     def spy(image: object, t: float, index: int, *a: object, **k: object) -> CeilingFrame:
         seen.append(index)
         return real(image, t, index, *a, **k)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(pipelined, "process_image", spy)
+    # every path (iter_run, lazy and eager frame sources) goes through this one
     monkeypatch.setattr(frontend_pipeline, "process_image", spy)
     return seen
 
