@@ -20,6 +20,7 @@ Frames: world, m and rad.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,16 +107,21 @@ def rank_hypotheses(src: FloatArray, dst: FloatArray, tol: float,
     return hyps
 
 
+def best_apart(hyps: Iterable[tuple[int, frozenset[tuple[int, int]], list[tuple[int, int]]]],
+               key: frozenset[tuple[int, int]]) -> int:
+    """Inliers of the best hypothesis that pairs most of its landmarks differently
+    from ``key`` (shares fewer than half of its pairs with it); 0 without any."""
+    return max((n for n, k, _ in hyps if 2 * len(k & key) < len(k)), default=0)
+
+
 def best_and_rival(hyps: list[tuple[int, frozenset[tuple[int, int]], list[tuple[int, int]]]]
                    ) -> tuple[int, int]:
-    """Inliers of the best hypothesis and of the best one pairing most of its
-    landmarks differently (a rival shares fewer than half of its pairs with the best);
+    """Inliers of the best hypothesis and of its best rival (:func:`best_apart`);
     ``(0, 0)`` without any."""
     if not hyps:
         return 0, 0
     n_best, key_best, _ = hyps[0]
-    runner = max((n for n, k, _ in hyps[1:] if 2 * len(k & key_best) < len(k)), default=0)
-    return n_best, runner
+    return n_best, best_apart(hyps[1:], key_best)
 
 
 def align_constellation(src: FloatArray, dst: FloatArray, tol: float, min_inliers: int,

@@ -37,7 +37,12 @@ import numpy as np
 from gtsam.symbol_shorthand import L
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.constellation import align_constellation, best_and_rival, rank_hypotheses
+from lampsam.backend.constellation import (
+    align_constellation,
+    best_and_rival,
+    best_apart,
+    rank_hypotheses,
+)
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.models import Obs
@@ -72,8 +77,7 @@ def self_similarity(dst: FloatArray, idx: list[int], tol: float, max_rotation: f
     """
     sub = np.asarray(dst, float)[idx]
     ident = frozenset((i, b) for i, b in enumerate(idx))
-    hyps = rank_hypotheses(sub, dst, tol, max_rotation)
-    return max((n for n, key, _ in hyps if 2 * len(key & ident) < len(key)), default=0)
+    return best_apart(rank_hypotheses(sub, dst, tol, max_rotation), ident)
 
 
 @dataclass(frozen=True)
