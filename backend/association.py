@@ -31,6 +31,7 @@ from scipy.special import chdtri
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs
+from lampsam.backend.planar_gate import rival_material
 from lampsam.factors.geometry import mahalanobis2_2x2
 
 log = logging.getLogger(__name__)
@@ -127,7 +128,8 @@ def associate(
     result: dict[int, Assignment] = {}
     pairs: list[tuple[float, int, int, float]] = []  # (score, obs, landmark, d2)
     best_d2: dict[int, float] = {}
-    near: dict[int, int] = {}  # planar_unique: landmarks within the new-landmark threshold
+    # planar_unique: (d2, log det Psi) of the landmarks within its threshold (NaN: not known)
+    near: dict[int, list[tuple[float, float]]] = {}
     for i, obs in enumerate(observations):
         if config.use_known_ids and obs.landmark_id is not None:
             lid = int(obs.landmark_id)
@@ -153,6 +155,7 @@ def associate(
                 if ncc < config.ncc_min and screen_only:
                     best = min(best, d2_screen)
                     continue
+            logdet = math.nan
             if exact:
                 d2 = d2_screen
             else:
@@ -160,9 +163,12 @@ def associate(
                 if pred is None:
                     continue
                 d2 = mahalanobis2(*pred)
+                if unique:
+                    sign, ld = np.linalg.slogdet(pred[1])
+                    logdet = float(ld) if sign > 0 else math.nan
             best = min(best, d2)
             if unique and d2 < unique_t:
-                near[i] = near.get(i, 0) + 1
+                near.setdefault(i, []).append((d2, logdet))
             if d2 >= gate:
                 continue
             if obs.kind == "corner":
@@ -177,7 +183,7 @@ def associate(
     for score, i, lid, d2 in sorted(pairs):
         if i in result or lid in used:
             continue
-        if near.get(i, 0) >= 2:  # a rival within the new-landmark threshold: dropped
+        if i in near and rival_material(near[i], config):  # a likely rival: held
             result[i] = Assignment(i, None, "dropped", d2)
             continue
         del score

@@ -134,6 +134,12 @@ class AssociationConfig:
         planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
             quantile of this probability (0, default: the new-landmark threshold,
             ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).
+        planar_unique_ratio: with ``planar_unique``, a rival in that zone holds the
+            sighting only when its likelihood (eq. 19, Gaussian with its own ``Psi``)
+            is at least this fraction of the nearest landmark's
+            (:func:`lampsam.backend.planar_gate.rival_ratio`); 0: any rival holds it.
+            Held sightings are re-gated later and given back once unambiguous
+            (:mod:`lampsam.backend.held_sightings`).
         planar_relative_gate: without ids, gate range-bearing observations of
             landmarks seen in the last 30 keyframes relative to their last sighting
             (odometry covariance since then; final, no joint marginal) instead of
@@ -201,6 +207,7 @@ class AssociationConfig:
     planar_reject_ambiguous: bool = False
     planar_unique: bool = False
     planar_unique_prob: float = field(default=0.0, metadata=limits(ge=0.0, lt=1.0))
+    planar_unique_ratio: float = field(default=0.0, metadata=limits(ge=0.0, le=1.0))
     planar_relative_gate: bool = False
     planar_noise_adapt: bool = False
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))

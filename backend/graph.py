@@ -61,6 +61,7 @@ from lampsam.backend.handlers import (
     MarginalSource,
     value_of_kind,
 )
+from lampsam.backend.held_sightings import held_candidates
 from lampsam.backend.interface import (
     Frame,
     GraphSnapshot,
@@ -188,10 +189,17 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
             for lm, o in matches:
                 self._observe(lm, k, o)
                 n_matched += 1
-            if self.config.association.revisit_check and gating:
-                self._revisit_check(k, n_new, [
-                    obs[a.obs_index] for a in assignments if a.status == "dropped"
-                    and obs[a.obs_index].kind == "point2" and obs[a.obs_index].landmark_id is None])
+            acfg = self.config.association
+            if gating and (acfg.planar_unique or acfg.revisit_check):
+                held = [(obs[a.obs_index], held_candidates(screened, a.obs_index))
+                        for a in assignments if a.status == "dropped"
+                        and obs[a.obs_index].kind == "point2"
+                        and obs[a.obs_index].landmark_id is None]
+                self._hold(k, held)
+                if acfg.planar_unique:
+                    self._give_back(k)
+                if acfg.revisit_check:
+                    self._revisit_check(k, n_new, [o for o, _ in held])
         if k % 10 == 0:
             self._forget_pending(k)
         # The keyframe's own estimate: the prediction until iSAM2 updates it (_flush).
@@ -413,6 +421,8 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_revisit_rejected": float(self.n_revisit_rejected),
                    "n_revisit_ambiguous": float(self.n_revisit_ambiguous),
                    "n_revisit_resolved": float(self.n_revisit_resolved),
+                   "n_held": float(self.n_held),
+                   "n_held_given_back": float(self.n_held_given_back),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),

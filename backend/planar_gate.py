@@ -14,6 +14,7 @@ the right tangent: :func:`range_bearing_many`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -187,3 +188,36 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
         keep = np.flatnonzero(d2[row] < thr)
         out[i] = {lids[j]: (float(d2[row, j]), True) for j in keep}
     return out
+
+
+def rival_ratio(cands: Sequence[tuple[float, float]]) -> float:
+    """Likelihood of the second likeliest landmark over the likeliest's (eq. 19-20).
+
+    For an innovation ``nu ~ N(0, Psi_j)`` under "the sighting is landmark ``j``" the
+    likelihood is ``|2 pi Psi_j|^(-1/2) exp(-d2_j / 2)`` with
+    ``d2_j = nu^T Psi_j^-1 nu``; with equal priors over the candidates the ratio of
+    two is the ratio of their posterior probabilities.
+
+    Args:
+        cands: ``(d2, log det Psi)`` of each candidate (log det 0 when unknown:
+            then the ratio is ``exp(-(d2_2 - d2_1) / 2)``).
+
+    Returns:
+        The ratio in [0, 1]; 0 with fewer than two candidates.
+    """
+    if len(cands) < 2:
+        return 0.0
+    ll = sorted((-0.5 * (d2 + logdet) for d2, logdet in cands), reverse=True)
+    return math.exp(ll[1] - ll[0])
+
+
+def rival_material(cands: Sequence[tuple[float, float]], config: AssociationConfig) -> bool:
+    """Whether a sighting with these candidates (``(d2, log det Psi)`` each, all within
+    :meth:`AssociationConfig.unique_threshold`) is held (``planar_unique``): two or more
+    of them when ``planar_unique_ratio`` is 0, else a rival at least that likely
+    (:func:`rival_ratio`; a NaN log det, unknown, counts every candidate's as 0)."""
+    if any(math.isnan(ld) for _, ld in cands):
+        cands = [(d2, 0.0) for d2, _ in cands]
+    if config.planar_unique_ratio <= 0.0:
+        return len(cands) >= 2
+    return rival_ratio(cands) >= config.planar_unique_ratio

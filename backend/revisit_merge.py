@@ -43,8 +43,8 @@ from lampsam.backend.constellation import (
     best_apart,
     rank_hypotheses,
 )
-from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark
+from lampsam.backend.held_sightings import HeldSightings
 from lampsam.backend.models import Obs
 from lampsam.backend.pose_cov import tangent_to_coords_cov
 
@@ -100,7 +100,7 @@ class RevisitRecord:
     outcome: str
 
 
-class RevisitMerge(GraphState):
+class RevisitMerge(HeldSightings):
     """Constellation revisit check (mixin of :class:`~lampsam.backend.graph.GraphSlam`).
 
     Attributes:
@@ -132,23 +132,16 @@ class RevisitMerge(GraphState):
                                                   tuple(lm.id for lm in old), n_best, runner,
                                                   outcome))
 
-    @property
-    def _held(self) -> list[tuple[int, Obs]]:
-        """Range-bearing sightings dropped as ambiguous in the window ``(keyframe, obs)``."""
-        return self.__dict__.setdefault("_held_sightings", [])
-
     def _revisit_check(self, k: int, n_new: int, dropped: list[Obs] | None = None) -> int:
         """Match the local scan to the older map (module doc); the merges made.
 
         Runs at a keyframe that started a range-bearing landmark (``n_new``): a
         sighting beyond every gate, the sign of a revisit with drift; or that
-        dropped sightings as ambiguous (``dropped``: held for the scan).
+        held sightings as ambiguous (``dropped``; :meth:`_hold` keeps them for the scan).
         """
         cfg = self.config.association
         lo = k - RECENT_KEYFRAMES
-        held = [(kk, o) for kk, o in self._held if kk > lo]
-        held += [(k, o) for o in dropped or []]
-        self.__dict__["_held_sightings"] = held
+        held = [(kk, o) for kk, o in self._held if kk > lo]  # (this keyframe's: _hold)
         if not n_new and not dropped:
             return 0
         pose = self.current_pose()
