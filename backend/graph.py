@@ -421,6 +421,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_revisit_rejected": float(self.n_revisit_rejected),
                    "n_revisit_ambiguous": float(self.n_revisit_ambiguous),
                    "n_revisit_resolved": float(self.n_revisit_resolved),
+                   "n_revisit_moved": float(self.n_revisit_moved),
                    "n_held": float(self.n_held),
                    "n_held_given_back": float(self.n_held_given_back),
                    "n_qr_rebuilds": float(self.n_refactorized),

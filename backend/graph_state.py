@@ -38,6 +38,7 @@ from lampsam.backend.handlers import (
     value_of_kind,
 )
 from lampsam.backend.interface import LandmarkKind, SlamBackend
+from lampsam.backend.models import Obs
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.backend.odometry_scale import IdleOdometry, ScaledMotion, odometry_scale
 from lampsam.backend.pose_cov import compose_cov, pose_array
@@ -146,6 +147,9 @@ class GraphState(SlamBackend):
         #: range-bearing sightings without ids ``(keyframe, z, R, landmark id)``, for the
         #: batch re-association (:meth:`LandmarkLifecycle._reassociate`)
         self._planar_sightings: list[tuple[int, FloatArray, FloatArray, int]] = []
+        #: (keyframe, landmark id) -> graph indices of that range-bearing sighting's
+        #: factors (no ids: a contradicted association is moved by index)
+        self._planar_factor_at: dict[tuple[int, int], list[int]] = {}
         self.reassociation_passes: list[Pass] = []
         self._entries_left = 1 << 30  # corners that may still enter the graph this keyframe
         self._rel_cache: tuple[int, dict[int, FloatArray]] | None = None
@@ -167,6 +171,13 @@ class GraphState(SlamBackend):
         self.graph.add(factor)
         if lid is not None:
             self._update_factor_lids.append((self.graph.size() - 1, lid))
+
+    def _add_planar_sighting(self, lm: GraphLandmark, k: int, obs: Obs) -> None:
+        """A range-bearing sighting without id of keyframe ``k`` as factors of ``lm``
+        (recorded with their graph indices in ``_planar_factor_at``)."""
+        for f in self.handlers[lm.kind].factors(lm, k, obs, self._robust_for(lm.kind)):
+            self._add_factor(f, lm.id)
+            self._planar_factor_at.setdefault((k, lm.id), []).append(self.graph.size() - 1)
 
     def _require_ceiling(self) -> CeilingModel:
         """The ceiling model; an EstimationError for a ceiling kind without one."""

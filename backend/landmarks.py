@@ -154,8 +154,11 @@ class LandmarkLifecycle(GraphState):
         lm.n_obs += 1
         lm.last_kf = k
         if lm.in_graph:
-            for f in self.handlers[lm.kind].factors(lm, k, obs, self._robust_for(lm.kind)):
-                self._add_factor(f, lm.id)
+            if lm.kind == "point2" and obs.landmark_id is None:
+                self._add_planar_sighting(lm, k, obs)
+            else:
+                for f in self.handlers[lm.kind].factors(lm, k, obs, self._robust_for(lm.kind)):
+                    self._add_factor(f, lm.id)
             if lm.kind == "lamp" and self.ceiling is not None:
                 self._tighten_lamp_gate(lm, k, obs)
             return

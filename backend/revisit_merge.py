@@ -45,6 +45,7 @@ from lampsam.backend.constellation import (
 )
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.held_sightings import HeldSightings
+from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
 from lampsam.backend.pose_cov import tangent_to_coords_cov
 
@@ -114,6 +115,7 @@ class RevisitMerge(HeldSightings):
     n_revisit_rejected = 0
     n_revisit_ambiguous = 0
     n_revisit_resolved = 0
+    n_revisit_moved = 0
 
     @property
     def revisit_ties(self) -> list[tuple[int, int, int]]:
@@ -229,7 +231,8 @@ class RevisitMerge(HeldSightings):
         # an older landmark sighted in the window must pair with itself (else a
         # sighting went to the wrong landmark, or the alignment is wrong: no tie)
         pairs = [(recent[a], old[b]) for a, b in al.pairs if a < len(recent)]
-        if any(r.first_kf <= lo and r.id != o.id for r, o in pairs):
+        wrong = [(r, o) for r, o in pairs if r.first_kf <= lo and r.id != o.id]
+        if wrong and not (2 * len(wrong) < n_best and self._move_window_sightings(wrong, lo)):
             self._record(k, recent, old, n_best, runner, "contradicts")
             return 0
         copies = [(r, o) for r, o in pairs if r.first_kf > lo]
@@ -238,8 +241,7 @@ class RevisitMerge(HeldSightings):
                      "tied" if copies or resolved else "confirmed")
         for cl, orig in resolved:  # held sightings given to the landmark they match
             for kk, o, _ in cl:
-                for f in self.handlers[orig.kind].factors(orig, kk, o, self._robust_for(orig.kind)):
-                    self._add_factor(f, orig.id)
+                self._add_planar_sighting(orig, kk, o)
                 self._planar_sightings.append((kk, o.z, o.R, orig.id))
                 orig.n_obs += 1
             orig.last_kf = k
@@ -261,3 +263,54 @@ class RevisitMerge(HeldSightings):
                      len(copies), al.theta, float(np.hypot(*al.shift)), al.rms, n_best,
                      al.runner_up)
         return len(copies) + len(resolved)
+
+    def _move_window_sightings(self, wrong: list[tuple[GraphLandmark, GraphLandmark]],
+                               lo: int) -> bool:
+        """Give the window's sightings of each landmark ``r`` to ``o`` (``wrong`` pairs):
+        the alignment says they were another tree's.
+
+        Their factors are removed from iSAM2 (``ISAM2.update``'s ``removeFactorIndices``;
+        a factor of the current keyframe, not yet sent, is emptied in the pending
+        update, keeping iSAM2's factor indices those of the full graph) and from the
+        full graph (its slot emptied), and re-added as factors of ``o``. Refused
+        (False, nothing changed) with a fixed-lag smoother, when iSAM2's factors are
+        not the full graph's (a rebuild dropped some), or when ``r`` would be left
+        without a sighting before the window.
+        """
+        if self.isam is None or self.smoother is not None:
+            return False
+        n_isam = self.graph.size() - self._new_graph.size()
+        if self.isam.getFactorsUnsafe().size() != n_isam:
+            return False
+        moves: list[tuple[GraphLandmark, GraphLandmark, list[tuple[int, int]]]] = []
+        for r, o in wrong:
+            at = [kk for kk, lid in self._planar_factor_at if lid == r.id]
+            if not any(kk <= lo for kk in at):
+                return False
+            moves.append((r, o, [(kk, i) for kk in at if kk > lo
+                                 for i in self._planar_factor_at[(kk, r.id)]]))
+        remove: list[int] = []
+        for r, o, idx in moves:
+            for _, i in idx:
+                if i < n_isam:
+                    remove.append(i)
+                else:
+                    self._new_graph.remove(i - n_isam)
+                self.graph.remove(i)
+            kks = sorted({kk for kk, _ in idx})
+            for kk in kks:
+                del self._planar_factor_at[(kk, r.id)]
+            for j, (kk, z, cov, lid) in enumerate(self._planar_sightings):
+                if lid == r.id and kk > lo:
+                    self._add_planar_sighting(o, kk, Obs(LandmarkKind.POINT2, z, cov))
+                    self._planar_sightings[j] = (kk, z, cov, o.id)
+                    r.n_obs -= 1
+                    o.n_obs += 1
+            o.last_kf = max(o.last_kf, kks[-1] if kks else o.last_kf)
+            self.n_revisit_moved += len(kks)
+        if remove:
+            self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), remove)
+        self._joint_cache, self._joint_at, self._pose_cache = {}, {}, {}
+        log.info("revisit: %d sightings of %d landmarks moved to the landmarks the "
+                 "alignment pairs them with", sum(len(i) for _, _, i in moves), len(moves))
+        return True

@@ -185,3 +185,60 @@ def test_rival_ratio_is_the_ratio_of_gaussian_likelihoods() -> None:
     assert rival_material(near, AssociationConfig(planar_unique_ratio=0.0))
     assert rival_material(near, AssociationConfig(planar_unique_ratio=0.05))
     assert not rival_material(near, AssociationConfig(planar_unique_ratio=0.06))
+
+
+def test_contradicted_association_is_moved_out_of_isam2(tmp_path: Path) -> None:
+    """``_move_window_sightings``: the window's sightings of one landmark are taken out
+    of iSAM2 (``removeFactorIndices``) and the full graph and re-added as factors of
+    another (here an arbitrary one: the mechanics, not the decision). Afterwards
+    iSAM2's factors are the full graph's, slot for slot (the same error at iSAM2's
+    estimate), none of the moved sightings still measures the first landmark and the
+    second has them all."""
+    import dataclasses
+
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    from lampsam.backend.graph_log import graph_log_steps
+    from lampsam.backend.slam import make_backend
+
+    rng = np.random.default_rng(1)
+    ang = -math.pi / 2 + rng.uniform(0.0, 1.5 * math.pi, 45)
+    rad = RADIUS + rng.choice([-1.0, 1.0], 45) * rng.uniform(3.0, 7.0, 45)
+    trees = np.c_[rad * np.cos(ang), RADIUS + rad * np.sin(ang)]
+    _loop_log(tmp_path / "loop.txt", trees, rng, n=80, bias=0.0)
+    g = read_graph_text(tmp_path / "loop.txt")
+    cfg = SlamConfig(association=AssociationConfig(use_known_ids=False))
+    cfg = dataclasses.replace(cfg, isam2=dataclasses.replace(cfg.isam2, every_frame=True))
+    be = make_backend("isam2", cfg.pose2_odometry, cfg, g.start_pose())
+    for t, odo, frame in graph_log_steps(g, known_ids=False):
+        be.step(t, odo, frame)
+    k = be._k
+    lo = k - 15
+    at: dict[int, list[int]] = {}
+    for kk, lid in be._planar_factor_at:
+        at.setdefault(lid, []).append(kk)
+    r_id = next(lid for lid, kks in sorted(at.items()) if min(kks) <= lo < max(kks))
+    o_id = next(lid for lid in sorted(at) if lid != r_id and be._landmarks[lid].in_graph)
+    moved = sorted(kk for kk in at[r_id] if kk > lo)
+    n_o = sum(1 for i in range(be.graph.size())
+              if isinstance(be.graph.at(i), gtsam.BearingRangeFactor2D)
+              and be.graph.at(i).keys()[1] == L(o_id))
+    r, o = be._landmarks[r_id], be._landmarks[o_id]
+    assert be._move_window_sightings([(r, o)], lo)
+    be.update()
+    isam_f, full = be.isam.getFactorsUnsafe(), be.graph
+    assert isam_f.size() == full.size()
+    for i in range(full.size()):
+        a, b = isam_f.at(i), full.at(i)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert list(a.keys()) == list(b.keys())
+    pairs = [tuple(full.at(i).keys()) for i in range(full.size())
+             if isinstance(full.at(i), gtsam.BearingRangeFactor2D)]
+    assert not any((X(kk), L(r_id)) in pairs for kk in moved)
+    assert all((X(kk), L(o_id)) in pairs for kk in moved)
+    assert sum(1 for p in pairs if p[1] == L(o_id)) == n_o + len(moved)
+    assert be.n_revisit_moved == len(moved) > 0
+    est = be.isam.calculateEstimate()
+    assert isam_f.error(est) == pytest.approx(full.error(est), rel=1e-12)
