@@ -102,6 +102,7 @@ def associate(
     existing: Callable[[int], bool],
     patches: Mapping[int, np.ndarray | None] | None = None,
     screened: dict[int, dict[int, tuple[float, bool]]] | None = None,
+    same_place: Callable[[int, int], bool] | None = None,
 ) -> list[Assignment]:
     """Associate one frame's observations with the map (paper eqs. 19-20, NCC for corners).
 
@@ -121,6 +122,9 @@ def associate(
             inexact one (a cheaper, wider gate) only to skip the pair or, when it is
             below the gate and the NCC passes, to ask ``innovation`` for the exact
             one. Corner pairs failing the NCC never cost an innovation call.
+        same_place: ``planar_unique``: ``same_place(a, b)`` tells that landmarks ``a``
+            and ``b`` stand at one place (a tree mapped twice): such a rival of the
+            nearest landmark does not hold the sighting.
 
     Returns:
         One :class:`Assignment` per observation, in input order.
@@ -129,7 +133,7 @@ def associate(
     pairs: list[tuple[float, int, int, float]] = []  # (score, obs, landmark, d2)
     best_d2: dict[int, float] = {}
     # planar_unique: (d2, log det Psi) of the landmarks within its threshold (NaN: not known)
-    near: dict[int, list[tuple[float, float]]] = {}
+    near: dict[int, list[tuple[float, float, int]]] = {}
     for i, obs in enumerate(observations):
         if config.use_known_ids and obs.landmark_id is not None:
             lid = int(obs.landmark_id)
@@ -168,7 +172,7 @@ def associate(
                     logdet = float(ld) if sign > 0 else math.nan
             best = min(best, d2)
             if unique and d2 < unique_t:
-                near.setdefault(i, []).append((d2, logdet))
+                near.setdefault(i, []).append((d2, logdet, lid))
             if d2 >= gate:
                 continue
             if obs.kind == "corner":
@@ -183,7 +187,9 @@ def associate(
     for score, i, lid, d2 in sorted(pairs):
         if i in result or lid in used:
             continue
-        if i in near and rival_material(near[i], config):  # a likely rival: held
+        rivals = [(d, ld) for d, ld, b in near.get(i, ())
+                  if b == lid or same_place is None or not same_place(lid, b)]
+        if rival_material(rivals, config):  # a likely rival elsewhere: held
             result[i] = Assignment(i, None, "dropped", d2)
             continue
         del score

@@ -129,8 +129,11 @@ class AssociationConfig:
             of given to the nearest (default False).
         planar_unique: without ids, a range-bearing observation is matched only when
             no second landmark is within the new-landmark threshold of it (exact
-            distances, eq. 19); else it is dropped (neither matched nor mapped).
-            Default False.
+            distances, eq. 19); else it is held (neither matched nor mapped) and
+            re-gated at later keyframes, given back once unambiguous
+            (:mod:`lampsam.backend.held_sightings`; the result's ``extra`` counts
+            ``n_held`` and ``n_held_given_back``). Default False (docs/failures.md:
+            worse on Victoria Park's first 3,500 poses, 0.56 against 0.44 m).
         planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
             quantile of this probability (0, default: the new-landmark threshold,
             ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).

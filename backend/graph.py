@@ -160,7 +160,8 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                 patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
                 assignments = associate(
                     obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
-                    self.config.association, lambda i: i in self._landmarks, patches, screened)
+                    self.config.association, lambda i: i in self._landmarks, patches, screened,
+                    self._same_place)
                 if self.config.association.joint_compatibility:
                     assignments = self._joint_planar(gate_ctx, obs, assignments, screened)
                 learn_scale(self.noise_scale, obs, assignments, screened)
@@ -424,6 +425,9 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_revisit_moved": float(self.n_revisit_moved),
                    "n_held": float(self.n_held),
                    "n_held_given_back": float(self.n_held_given_back),
+                   # held sightings (planar_unique) that never became a factor
+                   "n_held_unused": float(self.n_held - self.n_held_given_back
+                                          - self.n_revisit_resolved),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),

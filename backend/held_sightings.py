@@ -99,8 +99,9 @@ class HeldSightings(Gating):
             scored = self._regate(kk, o, lids)
             if not scored:
                 continue
-            near = [(d2, ld) for d2, ld, _ in scored if d2 < unique_t]
             best = min(scored)
+            near = [(d2, ld) for d2, ld, lid in scored if d2 < unique_t
+                    and (lid == best[2] or not self._same_place(best[2], lid))]
             if best[0] >= gate or rival_material(near, cfg):
                 continue
             lm = self._landmarks[best[2]]
@@ -117,6 +118,13 @@ class HeldSightings(Gating):
                                                 if id(o) not in given]
             self.n_held_given_back += len(given)
         return len(given)
+
+    def _same_place(self, a: int, b: int) -> bool:
+        """Whether planar landmarks ``a`` and ``b`` stand closer than ``revisit_tol``
+        (one tree mapped twice, or two file ids at one place): a rival there cannot
+        pull the pose to another tree, so it does not hold a sighting."""
+        pa, pb = self._landmarks[a].state[:2], self._landmarks[b].state[:2]
+        return float(np.hypot(*(pa - pb))) < self.config.association.revisit_tol
 
     def _regate(self, kk: int, obs: Obs, lids: list[int]) -> list[tuple[float, float, int]]:
         """``(d2, log det Psi, landmark id)`` of a sighting of keyframe ``kk`` against each

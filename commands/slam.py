@@ -271,6 +271,9 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         msg += (f"; no ids offline: EKF pass with odometry variance x{s['noids_scale']:g} (chosen "
                 f"of {', '.join(f'{q:g}' for q in config.reassociation.scales)}), "
                 f"{int(s['reassociation_passes'])} batch re-association passes")
+    if result.extra.get("n_held"):
+        msg += (f"; {int(result.extra['n_held'])} sightings held as ambiguous, "
+                f"{int(result.extra['n_held_unused'])} of them never used")
     err = s.get("error")
     if err:
         msg += f"; position error RMS {err['position_rms_m']:.3f} m"
