@@ -414,7 +414,9 @@ def main() -> None:
               f"recoveries {result.extra.get('n_recoveries')}, JCBB keyframes "
               f"{result.extra.get('n_jcbb')} (changed {result.extra.get('n_jcbb_changed')}), "
               f"revisit merges {result.extra.get('n_revisit_merges')}, held sightings resolved "
-              f"{result.extra.get('n_revisit_resolved')}")
+              f"{result.extra.get('n_revisit_resolved')}, moved {result.extra.get('n_revisit_moved')}; "
+              f"held {result.extra.get('n_held')}, given back {result.extra.get('n_held_given_back')}, "
+              f"never used {result.extra.get('n_held_unused')}")
         detail = tuple(int(x) for x in args.detail.split(",")) if args.detail else (0, 0)
         score(g, decisions, be, windows, ref, result.poses, config.association.gate(2),
               config.association.new_threshold(2), args.causes, ref_xy, detail,  # type: ignore[arg-type]
