@@ -37,6 +37,9 @@ STEP_FLOOR = 1e-14
 #: ``(delta, cov)`` of the first samples since a keyframe with the odometry factor's floor.
 FirstRelative = tuple[FloatArray, FloatArray]
 
+#: What :func:`advance_odometry` returns: ``(delta, cov, first_rel)``.
+Advanced = tuple[FloatArray, FloatArray, FirstRelative | None]
+
 
 def is_keyframe(k: int, delta: FloatArray, config: Isam2Config) -> bool:
     """Whether a frame with observations becomes keyframe ``k + 1``.
@@ -130,6 +133,11 @@ class KeyframeMirror:
         self.cov = np.zeros((3, 3))
         self.since = False  # samples since the last keyframe
         self.n_read = 0
+        #: the last step's :func:`advance_odometry` result (None: the step had no
+        #: samples), the one the backend computes from the same state: a backend in
+        #: another process can take it instead of composing the samples again
+        #: (:meth:`lampsam.backend.graph.GraphSlam.give_odometry`)
+        self.advanced: Advanced | None = None
 
     def reads(self, u: FloatArray, frame: Frame | None) -> bool:
         """Whether the backend reads this step's frame (reading it here, if so).
@@ -138,10 +146,12 @@ class KeyframeMirror:
             u: (K, width) the step's checked samples (``motion.check``).
             frame: the step's frame, or None.
         """
+        self.advanced = None
         if len(u):
-            self.delta, self.cov, _ = advance_odometry(
+            self.advanced = advance_odometry(
                 self.motion, u, self.delta, self.cov, not self.since,
                 self.config.isam2.odometry_floor_var)
+            self.delta, self.cov = self.advanced[0], self.advanced[1]
             self.since = True
         obs = keyframe_observations(frame, self.k, self.delta, self.config)
         if obs is None:

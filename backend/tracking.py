@@ -50,6 +50,7 @@ from lampsam.backend.mapping_worker import (
     WorkerClocks,
     WorkerError,
     mapping_worker,
+    pack_odometry,
     pack_step_frame,
     receive,
     worker_context,
@@ -250,7 +251,8 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.backend_pose.append(np.full(3, np.nan))
                 times.step_cpu.append(float("nan"))
                 times.sent.append(time.perf_counter())
-                inbox.put((i, t, samples, pack_step_frame(sent)))
+                inbox.put((i, t, samples, pack_step_frame(sent),
+                           pack_odometry(mirror.advanced if mirror is not None else None)))
                 while True:  # every estimate already back
                     try:
                         take(receive(outbox, 0.0))
