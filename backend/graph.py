@@ -309,7 +309,8 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         if len(u):
             self._delta, self._delta_cov, first_rel = given if given is not None else (
                 advance_odometry(self.motion, u, self._delta, self._delta_cov,
-                                 not self._wheel_since_kf, self.config.isam2.odometry_floor_var))
+                                 not self._wheel_since_kf,
+                                 self.config.isam2.odometry_floor_var)[:3])
             if first_rel is not None:  # the first samples since the keyframe
                 self._first_rel = first_rel  # the odometry factor's, if no samples follow
             self._wheel_since_kf.append(u)

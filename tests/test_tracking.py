@@ -117,7 +117,8 @@ def test_backend_takes_the_mirrors_odometry_bit_for_bit(lab_run: LoggedRun,
     """A graph backend given each step's odometry as the tracker's KeyframeMirror advanced
     it (packed for the queue and unpacked, as the worker gets it) composes none itself
     and ends bit for bit where the backend composing its own samples ends: every step's
-    pose and covariance, the final trajectory and map."""
+    pose and covariance, the final trajectory and map. The mirror's step motion is bit for
+    bit the tracker's own composition (its odometry chain)."""
     import lampsam.backend.graph as graph_module
     from lampsam.backend.keyframes import KeyframeMirror
     from lampsam.backend.mapping_worker import pack_odometry, unpack_odometry
@@ -139,8 +140,11 @@ def test_backend_takes_the_mirrors_odometry_bit_for_bit(lab_run: LoggedRun,
     monkeypatch.setattr(graph_module, "advance_odometry", never)
     given = 0
     for (t, u, f), want in zip(steps, ref_est, strict=True):
-        mirror.reads(motion.check(t, u), f)
+        checked = motion.check(t, u)
+        mirror.reads(checked, f)
         given += mirror.advanced is not None
+        if len(checked):  # the tracker's chain increment: what it composed itself before
+            np.testing.assert_array_equal(mirror.step_motion, motion.relative(checked, 1e-14)[0])
         be.give_odometry(unpack_odometry(pack_odometry(mirror.advanced)))
         got = be.step(t, u, f)
         np.testing.assert_array_equal(got.pose, want.pose)
