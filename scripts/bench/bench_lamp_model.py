@@ -182,12 +182,36 @@ def per_lamp_means(s: dict[str, np.ndarray], run_of: np.ndarray) -> tuple[FloatA
     return means, n
 
 
+PASS_GAP_FRAMES = 3
+"""Sightings of a lamp more than this many images apart belong to different passes."""
+
+
+def pass_means(run_of: np.ndarray, ids: np.ndarray, frames: np.ndarray, e: FloatArray
+               ) -> tuple[FloatArray, np.ndarray, np.ndarray]:
+    """Mean error of each pass (a lamp's sightings in consecutive images of one run).
+
+    Returns:
+        ``(means (K, 2), counts (K,), pass index of each sighting (N,))``.
+    """
+    order = np.lexsort((frames, ids, run_of))
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = ((run_of[order][1:] != run_of[order][:-1]) | (ids[order][1:] != ids[order][:-1])
+               | (np.diff(frames[order]) > PASS_GAP_FRAMES))
+    label = np.empty(len(order), dtype=np.intp)
+    label[order] = np.cumsum(new) - 1
+    k = int(label.max()) + 1 if len(label) else 0
+    n = np.bincount(label, minlength=k).astype(float)
+    means = np.stack([np.bincount(label, e[:, j], k) / np.maximum(n, 1) for j in (0, 1)], 1)
+    return means, n, label
+
+
 def sighting_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
     """Print the sightings' bias, RMS, per-lamp means and claimed sigma per arm."""
     print("\nlamp sightings against truth (all runs):")
     print("| arm | sightings | bias px (u, v) | RMS px | RMS mm (ceiling) | per-lamp mean: RMS mm "
-          "| share of MSE | lamps | claimed sigma px | NSE (2 ideal) |")
-    print("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|")
+          "| share of MSE | lamps | per-pass mean: RMS px | share of MSE | passes "
+          "| claimed sigma px | NSE (2 ideal) |")
+    print("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for arm, runs in all_s.items():
         s = {k: np.concatenate([r[k] for r in runs]) for k in runs[0]}
         run_of = np.concatenate([np.full(len(r["id"]), i) for i, r in enumerate(runs)])
@@ -197,11 +221,15 @@ def sighting_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
         means, n = per_lamp_means(s, run_of)
         lamp_rms = float(np.sqrt(np.mean(np.sum(means**2, 1) / 2)))
         share = float(np.sum(n * np.sum(means**2, 1)) / np.sum(s["e_world_mm"] ** 2))
+        pm, pn, _ = pass_means(run_of, s["id"], s["frame"], s["e_px"])
+        pass_rms = float(np.sqrt(np.mean(np.sum(pm**2, 1) / 2)))
+        pass_share = float(np.sum(pn * np.sum(pm**2, 1)) / np.sum(s["e_px"] ** 2))
         claimed = float(np.sqrt(np.mean(s["cov_m"][:, 0, 0] + s["cov_m"][:, 1, 1]) / 2)
                         * s["focal"][0])
         nse = np.einsum("ni,nij,nj->n", s["e_m"], np.linalg.inv(s["cov_m"]), s["e_m"])
         print(f"| {arm} | {len(s['id'])} | {bias[0]:+.3f}, {bias[1]:+.3f} | {rms_px:.3f} | "
-              f"{rms_mm:.2f} | {lamp_rms:.2f} | {share:.0%} | {len(n)} | {claimed:.3f} | "
+              f"{rms_mm:.2f} | {lamp_rms:.2f} | {share:.0%} | {len(n)} | {pass_rms:.3f} | "
+              f"{pass_share:.0%} | {len(pn)} | {claimed:.3f} | "
               f"{np.mean(nse):.2f} |")
 
 
