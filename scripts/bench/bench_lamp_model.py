@@ -264,6 +264,42 @@ def tilt_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
             print(f"| {typ} | {lo:g}-{hi:g} | {n} | " + " | ".join(cells) + " |")
 
 
+def tilt_figure(path: Path, all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
+    """RMS error and claimed sigma (px per axis) against the heading's tilt from the grid."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    edges = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 45.0])
+    mids = np.sqrt(np.maximum(edges[:-1], 0.1) * edges[1:])
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), sharey=True)
+    cat = {a: {k: np.concatenate([r[k] for r in runs]) for k in runs[0]} for a, runs in all_s.items()}
+    for ax, typ in zip(axes, ("lamp_rect", "lamp_square", "lamp_round"), strict=True):
+        drawn: list[FloatArray] = []
+        for k, (arm, s) in enumerate(cat.items()):
+            t = np.degrees(np.abs((s["theta"] + np.pi / 4) % (np.pi / 2) - np.pi / 4))
+            rms, claim = np.full(mids.size, np.nan), np.full(mids.size, np.nan)
+            for i in range(mids.size):
+                sel = (s["type"] == typ) & (t >= edges[i]) & (t < edges[i + 1])
+                if sel.sum() >= 20:
+                    rms[i] = np.sqrt(np.mean(s["e_px"][sel] ** 2))
+                    claim[i] = np.sqrt(np.mean(s["cov_m"][sel, 0, 0] + s["cov_m"][sel, 1, 1]) / 2
+                                       ) * s["focal"][0]
+            color = f"C{k}"
+            if not any(np.allclose(rms, r, equal_nan=True) for r in drawn):  # same sightings
+                ax.semilogx(mids, rms, "o-", color=color, label=f"{arm}: RMS error")
+                drawn.append(rms)
+            ax.semilogx(mids, claim, "--", color=color, label=f"{arm}: claimed sigma")
+        ax.set_title(typ.replace("lamp_", "") + " lamps")
+        ax.set_xlabel("heading's tilt from the pixel grid, deg")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("centroid error per axis, px")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def write_csv(path: Path, all_s: dict[str, list[dict[str, np.ndarray]]], names: list[str]) -> None:
     """Every paired sighting as one CSV row."""
     with path.open("w", newline="") as fh:
@@ -325,6 +361,8 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=None,
                    help="use the first S seconds of each run only")
     p.add_argument("--jobs", type=int, default=1, help="runs measured in parallel processes")
+    p.add_argument("--figure", type=Path, default=None,
+                   help="write the error / claimed sigma against grid tilt figure here")
     p.add_argument("--no-slam", action="store_true", help="sightings only")
     args = p.parse_args()
     logging.basicConfig(level=logging.ERROR)
@@ -373,6 +411,8 @@ def main() -> None:
     tilt_table(all_s)
     if args.csv is not None:
         write_csv(args.csv, all_s, names)
+    if args.figure is not None:
+        tilt_figure(args.figure, all_s)
     print(f"\nload average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} now, "
           f"on {os.cpu_count()} cores")
 
