@@ -90,6 +90,8 @@ class BlobMoments:
         ceiling: the same coverage's moments taken in normalised ceiling
             coordinates (:mod:`lampsam.frontend.ceiling_grid`) when measured with
             the camera's table, else None (the pixel -> ``m`` map is affine).
+        clip_coverage: ``c_s`` of a saturated blob (:mod:`lampsam.frontend.saturated_edges`),
+            NaN when unsaturated or not measured.
     """
 
     centroid: FloatArray
@@ -104,6 +106,7 @@ class BlobMoments:
     touches_border: bool
     contrast: float
     ceiling: CeilingMoments | None = None
+    clip_coverage: float = math.nan
 
 
 def _hist(grey: FloatArray, mask: np.ndarray) -> FloatArray:
@@ -503,9 +506,11 @@ def measure_labels(
     grey_sup = reach.grey.take(sup)
     wv = ((grey_sup - level[0]) / level[1]).clip(0.0, 1.0)
     free = ((wv > 0.0) & (wv < 1.0)).astype(np.float64)  # the pixels carrying the noise
-    if config.saturated_edges:  # edge pixels of saturated lamps (frontend.saturated_edges)
-        wv = label_edge_weights(wv, grey_sup, xy, lab, (top >= FULL_SCALE - 1) & ok, bg,
-                                3.0 * sigma_n / span_safe, config.saturated_edge_min_steps)
+    clip_cov = np.full(n, np.nan)
+    if config.saturated_edges or config.edge_phase_noise:  # (frontend.saturated_edges)
+        wv, clip_cov = label_edge_weights(
+            wv, grey_sup, xy, lab, (top >= FULL_SCALE - 1) & ok, bg, 3.0 * sigma_n / span_safe,
+            config.saturated_edge_min_steps, apply=config.saturated_edges)
     wxy = wv * xy
     s0, sx, sy = label_sums(groups, np.array([wv, wxy[0], wxy[1]]), n)
     s0 = np.maximum(s0, 1e-12)
@@ -545,12 +550,14 @@ def measure_labels(
     touches = border.take(ids).tolist()
     out: list[BlobMoments | None] = []
     j = 0
-    for cl, edge, on_c in zip(closed, touches, on_ceiling, strict=True):
+    for cl, edge, on_c, cs in zip(closed, touches, on_ceiling, clip_cov.take(ids).tolist(),
+                                  strict=True):
         if cl is None:
             out.append(None)
             continue
         # (positional: the frozen dataclass's __init__ is about twice as fast)
-        out.append(BlobMoments(centroids[j], covs[j], shapes[j], *cl[4:10], edge, cl[10], on_c))
+        out.append(BlobMoments(centroids[j], covs[j], shapes[j], *cl[4:10], edge, cl[10], on_c,
+                               cs))
         j += 1
     return out
 

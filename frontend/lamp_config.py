@@ -77,6 +77,10 @@ class LampDetectorConfig:
             default True; False: the coverage weights as read).
         saturated_edge_min_steps: fewest clipped-to-background steps on an image
             for the clip coverage to be measured (default 16).
+        edge_phase_noise: add to an oriented saturated blob's centroid covariance the
+            error its straight edges keep from the clip (:mod:`lampsam.frontend.lamp_noise`:
+            largest when the edges are parallel to the pixel grid); default False (the
+            floor alone).
     """
 
     threshold: int | None = None
@@ -102,6 +106,7 @@ class LampDetectorConfig:
     jacobian_step_px: float = 0.5
     saturated_edges: bool = True
     saturated_edge_min_steps: int = 16
+    edge_phase_noise: bool = False
 
 
 DEFAULT_CONFIG = LampDetectorConfig()  # frozen: one shared instance

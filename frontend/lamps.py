@@ -41,7 +41,9 @@ by region. Benchmark: ``scripts/bench/bench_frontend.py``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -68,6 +70,7 @@ from lampsam.frontend.glare import split_glare
 from lampsam.frontend.label_stats import label_blobs
 from lampsam.frontend.lamp_config import DEFAULT_CONFIG, LampDetectorConfig
 from lampsam.frontend.lamp_models import within_size_gate
+from lampsam.frontend.lamp_noise import edge_phase_cov
 from lampsam.frontend.measurements import LampObservation
 from lampsam.frontend.threshold import grey_histogram, threshold_and_peak
 
@@ -231,7 +234,19 @@ def measure_blobs(
                 continue
             out.append(mom)
             mask[r0:r1, c0:c1] |= reg
+    if config.edge_phase_noise:
+        out = [with_edge_phase_noise(mo, config.ratio_threshold, config.saturated_edges)
+               for mo in out]
     return out, k, mask, n_rejected
+
+
+def with_edge_phase_noise(mom: BlobMoments, ratio_threshold: float, model_on: bool) -> BlobMoments:
+    """The blob with its straight edges' clip error added to the centroid covariance
+    (:func:`lampsam.frontend.lamp_noise.edge_phase_cov`; oriented saturated blobs only)."""
+    if mom.ratio <= ratio_threshold or not math.isfinite(mom.clip_coverage):
+        return mom
+    extra = edge_phase_cov(mom.theta, mom.sigma1, mom.sigma2, mom.clip_coverage, model_on)
+    return dataclasses.replace(mom, cov_centroid=np.asarray(mom.cov_centroid) + extra)
 
 
 def detect_lamps(

@@ -131,32 +131,38 @@ def count_steps(
 def clipped_edge_weights(
     wv: FloatArray, grey: IntArray, xy: FloatArray, saturated_blob: np.ndarray, bg: FloatArray,
     bg_tol: FloatArray, min_steps: int,
-) -> tuple[FloatArray, np.ndarray]:
+) -> tuple[FloatArray, np.ndarray, float | None]:
     """Coverage of every support pixel with saturated edges taken into account.
 
     Args: as :func:`count_steps`; ``min_steps``: fewest sharp steps to measure ``c_s``.
 
     Returns:
-        ``(weights (P,), changed (P,) bool)``: ``c_s w`` on the unclipped pixels of
-        saturated blobs, ``(1 + c_s) / 2`` on their clipped edge pixels, ``w`` elsewhere
-        and everywhere when ``c_s`` cannot be measured (``changed`` all False).
+        ``(weights (P,), changed (P,) bool, radiance)``: ``c_s w`` on the unclipped
+        pixels of saturated blobs, ``(1 + c_s) / 2`` on their clipped edge pixels, ``w``
+        elsewhere and everywhere when ``c_s`` cannot be measured (``changed`` all False,
+        ``radiance`` None); ``radiance``: the lamps' level ``L`` (grey, above full scale).
     """
     steps, edge = count_steps(wv, grey, xy, saturated_blob, bg, bg_tol)
     cs_image = steps.clip_coverage(min_steps)
     if cs_image is None:
-        return wv, np.zeros(wv.shape, dtype=bool)
+        return wv, np.zeros(wv.shape, dtype=bool), None
     radiance = steps.bg_mean + (FULL_SCALE - steps.bg_mean) / cs_image
-    cs = np.clip((FULL_SCALE - bg) / np.maximum(radiance - bg, 1e-6), 0.05, 1.0)
+    cs = clip_coverage_at(radiance, bg)
     sat = saturated_blob & (grey >= FULL_SCALE - 1)
     out = np.where(saturated_blob & ~sat, wv * cs, wv)
     out = np.where(edge, 0.5 * (1.0 + cs), out)
-    return out, saturated_blob & (edge | ~sat)
+    return out, saturated_blob & (edge | ~sat), radiance
+
+
+def clip_coverage_at(radiance: float, bg: FloatArray) -> FloatArray:
+    """``c_s = (S - bg) / (L - bg)`` of lamps at ``radiance`` over backgrounds ``bg`` (clipped 0.05-1)."""
+    return np.clip((FULL_SCALE - bg) / np.maximum(radiance - bg, 1e-6), 0.05, 1.0)
 
 
 def label_edge_weights(
     wv: FloatArray, grey: IntArray, xy: FloatArray, lab: IntArray, saturated: np.ndarray,
-    bg: FloatArray, noise_w: FloatArray, min_steps: int,
-) -> FloatArray:
+    bg: FloatArray, noise_w: FloatArray, min_steps: int, apply: bool = True,
+) -> tuple[FloatArray, FloatArray]:
     """:func:`clipped_edge_weights` for the support pixels of many blobs, with per-label inputs.
 
     Args:
@@ -168,11 +174,16 @@ def label_edge_weights(
         bg: shape (n,) background level per label.
         noise_w: shape (n,) weight up to which a pixel is background, per label.
         min_steps: fewest sharp steps to measure ``c_s``.
+        apply: change the weights (False: only measure ``c_s``, the weights as read).
 
     Returns:
-        shape (P,) the weights.
+        ``(weights (P,), c_s (n,))``: each label's clip coverage, NaN where the blob is not
+        saturated or ``c_s`` could not be measured on the image.
     """
-    out, _ = clipped_edge_weights(
+    out, _, radiance = clipped_edge_weights(
         wv, grey, xy, saturated.take(lab), bg.take(lab), noise_w.take(lab), min_steps
     )
-    return out
+    cs = np.full(bg.shape, np.nan)
+    if radiance is not None:
+        cs = np.where(saturated, clip_coverage_at(radiance, bg), np.nan)
+    return (out if apply else wv), cs
