@@ -20,6 +20,7 @@ Modules:
 * :mod:`~lampsam.frontend.label_stats` -- Connected-component labelling and per-label statistics over pixel lists.
 * :mod:`~lampsam.frontend.lamp_config` -- Settings of the ceiling-lamp detector (paper 1, eqs. 1-7; DESIGN.md sec. 1).
 * :mod:`~lampsam.frontend.lamp_models` -- Lamp size against the lamp models a ceiling is known to carry, so that daylight is not taken for a lamp.
+* :mod:`~lampsam.frontend.lamp_noise` -- Per-observation centroid noise of a lamp from its straight edges' alignment with the pixel grid.
 * :mod:`~lampsam.frontend.lamps` -- Ceiling-lamp detection on one grey image: the stages of paper 1, eqs. 1-7, in order.
 * :mod:`~lampsam.frontend.measurements` -- Frozen measurement dataclasses: what the frontend hands to the backends.
 * :mod:`~lampsam.frontend.pipeline` -- The ceiling frontend: one grey image in, one :class:`CeilingFrame` out.
