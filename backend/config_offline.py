@@ -83,6 +83,11 @@ class ReassociationConfig:
         cost_moves: after the passes, merge and split single landmarks by description
             length (:mod:`lampsam.backend.landmark_moves`; the offline pipeline of
             :mod:`lampsam.backend.noids_offline` only).
+        final_pass: on the chosen candidate only, single sightings move to another
+            landmark inside their gate (or a new one), and landmark pairs merge with the
+            poses free, where that lowers the description length
+            (:func:`lampsam.backend.final_moves.refine_final`).
+        final_rounds: LM re-solves of the final pass at most.
         scales: candidate odometry variance factors of the online no-ids pass that
             precedes the offline re-association of a graph log
             (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
@@ -104,6 +109,8 @@ class ReassociationConfig:
     switch: float = field(default=float("inf"), metadata=limits(gt=0.0, finite=False))
     fit_noise: bool = False
     cost_moves: bool = True
+    final_pass: bool = True
+    final_rounds: int = field(default=30, metadata=limits(ge=1))
     scales: tuple[float, ...] = (0.0625, 0.25, 1.0, 4.0, 16.0, 64.0)
 
     def __post_init__(self) -> None:

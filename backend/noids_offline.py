@@ -16,6 +16,8 @@ at hand, so the factor is chosen from the data:
    (:func:`lampsam.backend.reassociate.refine`), then single landmarks are merged and
    split where that shortens the description length below
    (:func:`lampsam.backend.landmark_moves.refine_by_cost`, ``[reassociation] cost_moves``);
+   the chosen candidate (step 3) then gets a last pass of single-sighting moves and
+   merges with the poses free (:func:`final_pass`, ``[reassociation] final_pass``);
 3. the candidates' answers are graphs of the same factors under the same noise and
    differ only in the association, so they are compared by one cost, a description
    length of the data (:func:`association_cost`):
@@ -55,6 +57,7 @@ from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.final_moves import refine_final
 from lampsam.backend.graph_log import graph_log_steps
 from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
 from lampsam.backend.landmark_moves import Move, refine_by_cost
@@ -232,20 +235,57 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
             report(len(passes) + 1, Pass(len(np.unique(s.lid)), merged, 0, 0,
                                          float(graph.error(values))),
                    *read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist()), s)
+    return _answer(g, config, scale, s, passes, c1 - c0, time.process_time() - c1, graph,
+                   values, moves)
+
+
+def _answer(g: GraphLog, config: SlamConfig, scale: float, s: Sightings, passes: list[Pass],
+            online_cpu_s: float, batch_cpu_s: float, graph: gtsam.NonlinearFactorGraph,
+            values: gtsam.Values, moves: list[Move]) -> OfflineRun:
+    """The :class:`OfflineRun` of an association and its optimum."""
     poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist())
     co, cs, no, ns = group_chi2(graph, values)
     dropped = sum(len(x) for x in g.sightings) - len(s.k)
     cost = association_cost(co + cs, len(lms), dropped, config.association.new_threshold(2))
-    return OfflineRun(scale, poses, lms, s, passes, co, cs, no, ns, dropped, cost, c1 - c0,
-                      time.process_time() - c1, graph, values, moves)
+    return OfflineRun(scale, poses, lms, s, passes, co, cs, no, ns, dropped, cost,
+                      online_cpu_s, batch_cpu_s, graph, values, moves)
+
+
+def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
+               report: PassReport | None = None) -> OfflineRun:
+    """:func:`lampsam.backend.final_moves.refine_final` on one candidate's answer (the
+    chosen one): single sightings and merges with the poses free, each kept only if
+    ``C`` falls, so the chosen candidate stays the least. ``report`` is called once
+    after it (as one more pass) if anything moved."""
+    c0 = time.process_time()
+    prior, odo = batch_graph_inputs(g, config)
+    s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
+    graph, values, moves = refine_final(
+        prior, odo, s, run.graph, run.values, config.association.new_threshold(2),
+        config.reassociation.merge_radius, config.association.gate(2),
+        config.reassociation.final_rounds)
+    if not moves:
+        return run
+    out = _answer(g, config, run.scale, s, run.passes, run.online_cpu_s,
+                  run.batch_cpu_s + time.process_time() - c0, graph, values,
+                  run.moves + moves)
+    if report is not None:
+        report(len(run.passes) + 2, Pass(len(out.landmarks),
+                                         sum(m.kind == "merge" for m in moves), 0,
+                                         sum(m.kind == "sighting" for m in moves),
+                                         float(graph.error(values))),
+               out.poses, out.landmarks, s)
+    return out
 
 
 def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | None = None,
                  report: Callable[[float], PassReport] | None = None
                  ) -> tuple[OfflineRun, list[OfflineRun]]:
     """Run every candidate scale (``scales``, else ``config.reassociation.scales``) and
-    return ``(the least-cost run, all runs in the given order)``; ``report(q)`` gives the
-    pass report of candidate ``q``."""
+    return ``(the least-cost run, all runs in the given order)``; with
+    ``[reassociation] final_pass`` the least-cost run gets :func:`final_pass` (it can
+    only lower its cost, so it stays the least; in ``runs`` it is replaced by its final
+    answer). ``report(q)`` gives the pass report of candidate ``q``."""
     cand = tuple(scales if scales is not None else config.reassociation.scales) or (1.0,)
     runs = []
     for q in cand:
@@ -254,7 +294,13 @@ def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | No
                  "cost %.1f, %d passes", q, len(r.landmarks), r.chi2_odometry, r.dof_odometry,
                  r.chi2_sightings, r.dof_sightings, r.cost, len(r.passes))
         runs.append(r)
-    return min(runs, key=lambda r: r.cost), runs
+    best = min(range(len(runs)), key=lambda i: runs[i].cost)
+    if config.reassociation.final_pass:
+        runs[best] = final_pass(g, config, runs[best],
+                                None if report is None else report(runs[best].scale))
+        log.info("no-ids final pass on scale %.3g: cost %.1f", runs[best].scale,
+                 runs[best].cost)
+    return runs[best], runs
 
 
 def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:
