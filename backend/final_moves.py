@@ -300,3 +300,48 @@ def refine_final(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, 
         moves.extend(more)
         c_old = description_cost(graph, values, s.lid, new_cost)
     return graph, values, moves
+
+
+def readmit(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, dk: IntArray,
+            dz: FloatArray, dr: FloatArray, new_cost: float) -> IntArray:
+    """Landmarks for sightings the online pass left out, where taking one back pays.
+
+    The online pass drops a sighting that falls between its gate and the new-landmark
+    threshold (neither a match nor a new landmark); the description length charges each
+    dropped sighting ``c_new``. Against the optimised map a dropped sighting whose
+    squared Mahalanobis distance to a landmark is ``d2 < c_new`` costs less matched
+    (``d2``, to first order) than dropped. Each keyframe's dropped sightings take their
+    landmarks best first, one sighting per landmark, and never a landmark the keyframe
+    already sights (mutual exclusion).
+
+    Args:
+        poses: (K, 3) keyframe poses; lms: landmark id -> (2,) position, world, m.
+        s: the recorded sightings and their landmarks.
+        dk: (D,) keyframe of each dropped sighting; dz: (D, 2) ``[bearing, range]``;
+            dr: (D, 2, 2) their noise.
+        new_cost: ``c_new``.
+
+    Returns:
+        (D,) landmark id of each dropped sighting, -1 where it stays dropped.
+    """
+    out = np.full(len(dk), -1, int)
+    if len(dk) == 0 or not lms:
+        return out
+    ids = np.array(sorted(lms))
+    xy = np.array([lms[int(i)] for i in ids])
+    tree = cKDTree(xy)
+    w = np.linalg.inv(dr)
+    pts = sighted_points(poses[dk], dz)
+    taken = {(int(a), int(b)) for a, b in zip(s.k.tolist(), s.lid.tolist(), strict=True)}
+    pairs: list[tuple[float, int, int]] = []
+    for j in range(len(dk)):
+        near = tree.query_ball_point(pts[j], 10.0)
+        for m in near:
+            d2 = float(point_chi2(poses[dk[j]][None], dz[j][None], w[j][None], xy[m])[0])
+            if d2 < new_cost:
+                pairs.append((d2, j, int(ids[m])))
+    for _, j, b in sorted(pairs):
+        if out[j] < 0 and (int(dk[j]), b) not in taken:
+            out[j] = b
+            taken.add((int(dk[j]), b))
+    return out

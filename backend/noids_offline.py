@@ -55,12 +55,12 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from lampsam.arrays import FloatArray
+from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.final_moves import refine_final
+from lampsam.backend.final_moves import readmit, refine_final
 from lampsam.backend.graph_log import graph_log_steps
 from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
-from lampsam.backend.landmark_moves import Move, refine_by_cost
+from lampsam.backend.landmark_moves import Move, refine_by_cost, solve_association
 from lampsam.backend.reassociate import (
     Pass,
     Sightings,
@@ -251,21 +251,66 @@ def _answer(g: GraphLog, config: SlamConfig, scale: float, s: Sightings, passes:
                       online_cpu_s, batch_cpu_s, graph, values, moves)
 
 
+def dropped_sightings(g: GraphLog, s: Sightings) -> tuple[IntArray, FloatArray, FloatArray]:
+    """``(keyframe (D,), z (D, 2), R (D, 2, 2))`` of the log's range-bearing sightings
+    that are not among the recorded ``s`` (matched per pose by ``[bearing, range]``)."""
+    ks: list[int] = []
+    zs: list[list[float]] = []
+    rs: list[FloatArray] = []
+    by_k: dict[int, list[FloatArray]] = {}
+    for k, z in zip(s.k.tolist(), s.z, strict=True):
+        by_k.setdefault(k, []).append(z)
+    for k, seen in enumerate(g.sightings):
+        rec = by_k.get(k, [])
+        for x in seen:
+            z = np.array([x.bearing, x.range])
+            if any(abs(float(np.angle(np.exp(1j * (z[0] - q[0]))))) < 1e-9
+                   and abs(z[1] - q[1]) < 1e-9 for q in rec):
+                continue
+            ks.append(k)
+            zs.append([float(np.arctan2(np.sin(z[0]), np.cos(z[0]))), float(z[1])])
+            rs.append(np.asarray(x.cov, float)[:2, :2])
+    return (np.array(ks, int), np.array(zs, float).reshape(-1, 2),
+            np.array(rs, float).reshape(-1, 2, 2))
+
+
 def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
                report: PassReport | None = None) -> OfflineRun:
     """:func:`lampsam.backend.final_moves.refine_final` on one candidate's answer (the
-    chosen one): single sightings and merges with the poses free, each kept only if
-    ``C`` falls, so the chosen candidate stays the least. ``report`` is called once
+    chosen one): with ``[reassociation] readmit_dropped`` the dropped sightings a
+    landmark explains first (:func:`lampsam.backend.final_moves.readmit`), then single
+    sightings and merges with the poses free; each kept only if ``C`` falls, so the
+    chosen candidate stays the least. ``report`` is called once
     after it (as one more pass) if anything moved."""
     c0 = time.process_time()
     prior, odo = batch_graph_inputs(g, config)
     s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
+    graph, values = run.graph, run.values
+    c_new = config.association.new_threshold(2)
+    n_back = 0
+    if config.reassociation.readmit_dropped:
+        dk, dz, dr = dropped_sightings(g, s)
+        back = readmit(run.poses, run.landmarks, s, dk, dz, dr, c_new)
+        n_back = int(np.count_nonzero(back >= 0))
+    if n_back:
+        t = back >= 0
+        s2 = Sightings(np.r_[s.k, dk[t]], np.r_[s.z, dz[t]], np.r_[s.r, dr[t]],
+                       np.r_[s.lid, back[t]])
+        g2, v2, _ = solve_association(prior, odo, s2, s2.lid, run.poses, run.landmarks, {},
+                                      c_new)
+        c2 = association_cost(2.0 * float(g2.error(v2)) - 2.0 * float(prior.error(v2)),
+                              len(run.landmarks), run.n_dropped - n_back, c_new)
+        log.info("no-ids final pass: %d dropped sightings taken back, C %.1f -> %.1f",
+                 n_back, run.cost, c2)
+        if c2 < run.cost:
+            s, graph, values = s2, g2, v2
     graph, values, moves = refine_final(
-        prior, odo, s, run.graph, run.values, config.association.new_threshold(2),
+        prior, odo, s, graph, values, config.association.new_threshold(2),
         config.reassociation.merge_radius, config.association.gate(2),
         config.reassociation.final_rounds)
-    if not moves:
+    if not moves and len(s.k) == len(run.sightings.k):
         return run
+    moves = [Move("readmit", (-1, -1), 0.0)] * (len(s.k) - len(run.sightings.k)) + moves
     out = _answer(g, config, run.scale, s, run.passes, run.online_cpu_s,
                   run.batch_cpu_s + time.process_time() - c0, graph, values,
                   run.moves + moves)

@@ -9,7 +9,7 @@ from gtsam.symbol_shorthand import L, X
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
 from lampsam.backend.config import AssociationConfig
-from lampsam.backend.final_moves import refine_final, sighting_moves
+from lampsam.backend.final_moves import readmit, refine_final, sighting_moves
 from lampsam.backend.landmark_moves import (
     cost_moves,
     fit_point,
@@ -248,3 +248,21 @@ def test_missed_revisit_is_merged_only_with_the_poses_free() -> None:
         assert len(tree) == 1
         assert np.hypot(*(np.asarray(values.atPoint2(L(lid)))
                           - np.asarray(v_true.atPoint2(L(int(tree[0])))))) < 1e-3
+
+
+def test_dropped_sightings_are_taken_back_only_where_that_pays() -> None:
+    """Two trees 0.25 m apart (seed 21); three sightings taken out as if the online
+    pass had dropped them: one of tree 1 at keyframe 15 (d2 ~0 to its landmark: taken
+    back), the same sighting again at keyframe 15 (landmark 1 is then taken at that
+    keyframe, so it takes landmark 0, 0.25 m away and still under c_new), and one 3 m
+    off every landmark (d2 far above c_new: stays dropped)."""
+    rng = np.random.default_rng(21)
+    poses, _, s = _two_trees(rng)
+    lms = _fitted(poses, s)
+    keep = np.arange(len(s.k)) != 15
+    rec = Sightings(s.k[keep], s.z[keep], s.r[keep], s.lid[keep])
+    far = s.z[3] + np.array([0.0, 3.0])
+    dk = np.array([15, 15, 3])
+    dz = np.array([s.z[15], s.z[15] + [1e-4, 0.0], far])
+    back = readmit(poses, lms, rec, dk, dz, s.r[:3], C_NEW)
+    np.testing.assert_array_equal(back, [1, 0, -1])
