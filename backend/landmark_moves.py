@@ -69,13 +69,13 @@ def point_residuals(poses: FloatArray, z: FloatArray, xy: FloatArray
 
     Args:
         poses: (n, 3) the sighting poses; z: (n, 2) ``[bearing, range]``; xy: (2,) the
-            point, world.
+            point, world (or (n, 2): one point per sighting).
 
     Returns:
         ``(nu (n, 2) = z - h(pose, xy)`` with the bearing wrapped, ``h_D_xy (n, 2, 2))``:
         ``d bearing / d xy = (-dy, dx) / r^2``, ``d range / d xy = (dx, dy) / r``.
     """
-    d = np.asarray(xy, float)[None, :] - poses[:, :2]
+    d = np.asarray(xy, float) - poses[:, :2]
     q = np.maximum(np.einsum("ni,ni->n", d, d), 1e-12)
     r = np.sqrt(q)
     nu = np.empty_like(z)
@@ -90,7 +90,7 @@ def point_residuals(poses: FloatArray, z: FloatArray, xy: FloatArray
 
 def point_chi2(poses: FloatArray, z: FloatArray, w: FloatArray, xy: FloatArray) -> FloatArray:
     """(n,) squared Mahalanobis distances ``nu^T W nu`` of the sightings (``w`` (n, 2, 2)
-    their information ``R^-1``) from the point ``xy`` (2,)."""
+    their information ``R^-1``) from the point ``xy`` (2,) (or (n, 2), one each)."""
     nu, _ = point_residuals(poses, z, xy)
     out: FloatArray = np.einsum("ni,nij,nj->n", nu, w, nu)
     return out
@@ -134,7 +134,7 @@ def fit_point(poses: FloatArray, z: FloatArray, w: FloatArray, xy0: FloatArray,
     return xy, chi2
 
 
-def _sighted_points(poses: FloatArray, z: FloatArray) -> FloatArray:
+def sighted_points(poses: FloatArray, z: FloatArray) -> FloatArray:
     """(n, 2) where each sighting puts its landmark, world."""
     a = poses[:, 2] + z[:, 0]
     return poses[:, :2] + z[:, 1:2] * np.c_[np.cos(a), np.sin(a)]
@@ -171,7 +171,7 @@ def best_split(poses: FloatArray, z: FloatArray, w: FloatArray, xy: FloatArray,
     n = len(z)
     if n < 2 * min_side:
         return None
-    pts = _sighted_points(poses, z)
+    pts = sighted_points(poses, z)
     d2 = point_chi2(poses, z, w, xy)
     seeds = [pts[int(np.argmax(d2))], pts[int(np.argmax(np.hypot(*(pts - xy).T)))]]
     best: tuple[float, IntArray, FloatArray, FloatArray] | None = None
@@ -279,6 +279,29 @@ def cost_moves(poses: FloatArray, k: IntArray, z: FloatArray, r: FloatArray, lid
     return out, moved, moves
 
 
+def description_cost(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, lid: IntArray,
+          new_cost: float) -> float:
+    """``2 E + new_cost n_landmarks`` of an association at ``values``."""
+    return 2.0 * float(graph.error(values)) + new_cost * len(np.unique(lid))
+
+
+def solve_association(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
+           s: Sightings, new: IntArray, poses: FloatArray, lms: dict[int, FloatArray],
+           moved: dict[int, FloatArray], new_cost: float
+           ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, float]:
+    """The graph of the association ``new``, its LM optimum from ``poses`` and the
+    landmarks (``moved`` first, else ``lms``), and its ``2 E + new_cost n``."""
+    g_new = build_graph(prior, odometry, Sightings(s.k, s.z, s.r, new))
+    start = gtsam.Values()
+    for kk in range(len(odometry)):
+        start.insert(X(kk), gtsam.Pose2(*poses[kk]))
+    for i in np.unique(new).tolist():
+        start.insert(L(i), gtsam.Point2(*(moved[i] if i in moved else lms[i])))
+    v_new = gtsam.LevenbergMarquardtOptimizer(g_new, start,
+                                              gtsam.LevenbergMarquardtParams()).optimize()
+    return g_new, v_new, description_cost(g_new, v_new, new, new_cost)
+
+
 def refine_by_cost(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
                    s: Sightings, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                    new_cost: float, radius: float, rounds: int = 10
@@ -299,26 +322,14 @@ def refine_by_cost(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray
         ``(graph, values, accepted moves)`` of the final association.
     """
     n_kf = len(odometry)
-    params = gtsam.LevenbergMarquardtParams()
     moves: list[Move] = []
-
-    def cost(g: gtsam.NonlinearFactorGraph, v: gtsam.Values, lid: IntArray) -> float:
-        return 2.0 * float(g.error(v)) + new_cost * len(np.unique(lid))
-
-    c_old = cost(graph, values, s.lid)
+    c_old = description_cost(graph, values, s.lid, new_cost)
     for _ in range(rounds):
         poses, lms = read_estimate(values, n_kf, np.unique(s.lid).tolist())
         new, moved, round_moves = cost_moves(poses, s.k, s.z, s.r, s.lid, lms, new_cost, radius)
         if not round_moves:
             break
-        g_new = build_graph(prior, odometry, Sightings(s.k, s.z, s.r, new))
-        start = gtsam.Values()
-        for kk in range(n_kf):
-            start.insert(X(kk), gtsam.Pose2(*poses[kk]))
-        for i in np.unique(new).tolist():
-            start.insert(L(i), gtsam.Point2(*(moved[i] if i in moved else lms[i])))
-        v_new = gtsam.LevenbergMarquardtOptimizer(g_new, start, params).optimize()
-        c_new = cost(g_new, v_new, new)
+        g_new, v_new, c_new = solve_association(prior, odometry, s, new, poses, lms, moved, new_cost)
         log.info("description-length round: %d merges, %d splits, C %.1f -> %.1f",
                  sum(m.kind == "merge" for m in round_moves),
                  sum(m.kind == "split" for m in round_moves), c_old, c_new)

@@ -16,6 +16,8 @@ at hand, so the factor is chosen from the data:
    (:func:`lampsam.backend.reassociate.refine`), then single landmarks are merged and
    split where that shortens the description length below
    (:func:`lampsam.backend.landmark_moves.refine_by_cost`, ``[reassociation] cost_moves``);
+   the chosen candidate (step 3) then gets a last pass of single-sighting moves and
+   merges with the poses free (:func:`final_pass`, ``[reassociation] final_pass``);
 3. the candidates' answers are graphs of the same factors under the same noise and
    differ only in the association, so they are compared by one cost, a description
    length of the data (:func:`association_cost`):
@@ -53,11 +55,12 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
-from lampsam.arrays import FloatArray
+from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.final_moves import readmit, refine_final
 from lampsam.backend.graph_log import graph_log_steps
 from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
-from lampsam.backend.landmark_moves import Move, refine_by_cost
+from lampsam.backend.landmark_moves import Move, refine_by_cost, solve_association
 from lampsam.backend.reassociate import (
     Pass,
     Sightings,
@@ -232,20 +235,102 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
             report(len(passes) + 1, Pass(len(np.unique(s.lid)), merged, 0, 0,
                                          float(graph.error(values))),
                    *read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist()), s)
+    return _answer(g, config, scale, s, passes, c1 - c0, time.process_time() - c1, graph,
+                   values, moves)
+
+
+def _answer(g: GraphLog, config: SlamConfig, scale: float, s: Sightings, passes: list[Pass],
+            online_cpu_s: float, batch_cpu_s: float, graph: gtsam.NonlinearFactorGraph,
+            values: gtsam.Values, moves: list[Move]) -> OfflineRun:
+    """The :class:`OfflineRun` of an association and its optimum."""
     poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist())
     co, cs, no, ns = group_chi2(graph, values)
     dropped = sum(len(x) for x in g.sightings) - len(s.k)
     cost = association_cost(co + cs, len(lms), dropped, config.association.new_threshold(2))
-    return OfflineRun(scale, poses, lms, s, passes, co, cs, no, ns, dropped, cost, c1 - c0,
-                      time.process_time() - c1, graph, values, moves)
+    return OfflineRun(scale, poses, lms, s, passes, co, cs, no, ns, dropped, cost,
+                      online_cpu_s, batch_cpu_s, graph, values, moves)
+
+
+def dropped_sightings(g: GraphLog, s: Sightings) -> tuple[IntArray, FloatArray, FloatArray]:
+    """``(keyframe (D,), z (D, 2), R (D, 2, 2))`` of the log's range-bearing sightings
+    that are not among the recorded ``s`` (matched per pose by ``[bearing, range]``)."""
+    ks: list[int] = []
+    zs: list[list[float]] = []
+    rs: list[FloatArray] = []
+    by_k: dict[int, list[FloatArray]] = {}
+    for k, z in zip(s.k.tolist(), s.z, strict=True):
+        by_k.setdefault(k, []).append(z)
+    for k, seen in enumerate(g.sightings):
+        rec = by_k.get(k, [])
+        for x in seen:
+            z = np.array([x.bearing, x.range])
+            if any(abs(float(np.angle(np.exp(1j * (z[0] - q[0]))))) < 1e-9
+                   and abs(z[1] - q[1]) < 1e-9 for q in rec):
+                continue
+            ks.append(k)
+            zs.append([float(np.arctan2(np.sin(z[0]), np.cos(z[0]))), float(z[1])])
+            rs.append(np.asarray(x.cov, float)[:2, :2])
+    return (np.array(ks, int), np.array(zs, float).reshape(-1, 2),
+            np.array(rs, float).reshape(-1, 2, 2))
+
+
+def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
+               report: PassReport | None = None) -> OfflineRun:
+    """:func:`lampsam.backend.final_moves.refine_final` on one candidate's answer (the
+    chosen one): with ``[reassociation] readmit_dropped`` the dropped sightings a
+    landmark explains first (:func:`lampsam.backend.final_moves.readmit`), then single
+    sightings and merges with the poses free; each kept only if ``C`` falls, so the
+    chosen candidate stays the least. ``report`` is called once
+    after it (as one more pass) if anything moved."""
+    c0 = time.process_time()
+    prior, odo = batch_graph_inputs(g, config)
+    s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
+    graph, values = run.graph, run.values
+    c_new = config.association.new_threshold(2)
+    n_back = 0
+    if config.reassociation.readmit_dropped:
+        dk, dz, dr = dropped_sightings(g, s)
+        back = readmit(run.poses, run.landmarks, s, dk, dz, dr, c_new)
+        n_back = int(np.count_nonzero(back >= 0))
+    if n_back:
+        t = back >= 0
+        s2 = Sightings(np.r_[s.k, dk[t]], np.r_[s.z, dz[t]], np.r_[s.r, dr[t]],
+                       np.r_[s.lid, back[t]])
+        g2, v2, _ = solve_association(prior, odo, s2, s2.lid, run.poses, run.landmarks, {},
+                                      c_new)
+        c2 = association_cost(2.0 * float(g2.error(v2)) - 2.0 * float(prior.error(v2)),
+                              len(run.landmarks), run.n_dropped - n_back, c_new)
+        log.info("no-ids final pass: %d dropped sightings taken back, C %.1f -> %.1f",
+                 n_back, run.cost, c2)
+        if c2 < run.cost:
+            s, graph, values = s2, g2, v2
+    graph, values, moves = refine_final(
+        prior, odo, s, graph, values, config.association.new_threshold(2),
+        config.reassociation.merge_radius, config.association.gate(2),
+        config.reassociation.final_rounds)
+    if not moves and len(s.k) == len(run.sightings.k):
+        return run
+    moves = [Move("readmit", (-1, -1), 0.0)] * (len(s.k) - len(run.sightings.k)) + moves
+    out = _answer(g, config, run.scale, s, run.passes, run.online_cpu_s,
+                  run.batch_cpu_s + time.process_time() - c0, graph, values,
+                  run.moves + moves)
+    if report is not None:
+        report(len(run.passes) + 2, Pass(len(out.landmarks),
+                                         sum(m.kind == "merge" for m in moves), 0,
+                                         sum(m.kind == "sighting" for m in moves),
+                                         float(graph.error(values))),
+               out.poses, out.landmarks, s)
+    return out
 
 
 def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | None = None,
                  report: Callable[[float], PassReport] | None = None
                  ) -> tuple[OfflineRun, list[OfflineRun]]:
     """Run every candidate scale (``scales``, else ``config.reassociation.scales``) and
-    return ``(the least-cost run, all runs in the given order)``; ``report(q)`` gives the
-    pass report of candidate ``q``."""
+    return ``(the least-cost run, all runs in the given order)``; with
+    ``[reassociation] final_pass`` the least-cost run gets :func:`final_pass` (it can
+    only lower its cost, so it stays the least; in ``runs`` it is replaced by its final
+    answer). ``report(q)`` gives the pass report of candidate ``q``."""
     cand = tuple(scales if scales is not None else config.reassociation.scales) or (1.0,)
     runs = []
     for q in cand:
@@ -254,7 +339,13 @@ def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | No
                  "cost %.1f, %d passes", q, len(r.landmarks), r.chi2_odometry, r.dof_odometry,
                  r.chi2_sightings, r.dof_sightings, r.cost, len(r.passes))
         runs.append(r)
-    return min(runs, key=lambda r: r.cost), runs
+    best = min(range(len(runs)), key=lambda i: runs[i].cost)
+    if config.reassociation.final_pass:
+        runs[best] = final_pass(g, config, runs[best],
+                                None if report is None else report(runs[best].scale))
+        log.info("no-ids final pass on scale %.3g: cost %.1f", runs[best].scale,
+                 runs[best].cost)
+    return runs[best], runs
 
 
 def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:

@@ -17,7 +17,9 @@ picks, CPU s of the EKF pass and of the batch passes. "dup" and "wrong" count tr
 ids never sighted together and under 1.5 m apart in the known-id map are one tree
 (:func:`twin_map`; Victoria Park has four such pairs). The last pass of a candidate is
 the description-length merges and splits (``[reassociation] cost_moves``) when they moved
-anything.
+anything; the chosen candidate's final pass (``[reassociation] final_pass``,
+:mod:`lampsam.backend.final_moves`) is one more line when it moved anything, and the
+chosen row of the summary is its answer.
 
 Logs: ``victoria`` (GTSAM's ``victoria_park.txt``), ``synthetic``
 (:mod:`lampsam.datasets.landmark_log_sim`, seed 0, 3,000 poses), ``mrclam`` (the shared
