@@ -28,6 +28,7 @@ Modules:
 * :mod:`~lampsam.backend.ekf_joint` -- Joint compatibility (JCBB) for the EKF's planar observations without ids (eqs. 19-20).
 * :mod:`~lampsam.backend.ekf_landmarks` -- Landmark book-keeping of the EKF state.
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
+* :mod:`~lampsam.backend.final_moves` -- The last pass of offline association without ids: single sightings, and merges with the
 * :mod:`~lampsam.backend.fixed_lag` -- Fixed-lag smoothing for the online iSAM2 backend (``[isam2] fixed_lag``, keyframes).
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
 * :mod:`~lampsam.backend.gate_bracket` -- A bracket of the exact gate distance from the pose and landmark marginals alone (issue 19).
