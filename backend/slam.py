@@ -333,6 +333,8 @@ def drive(backend: SlamBackend, steps: Iterable[tuple[float, FloatArray, Frame |
             t_step = t
             estimate = backend.step(t, wheel, frame)
             online.append(estimate)
+            if len(online) == 1:  # an observable state: a stop from here on keeps a step
+                log.info("%s: first step done (t=%.3f s)", backend.name, t)
             emit("slam.step", t=t, frame=frame, estimate=estimate, backend=backend)
     except KeyboardInterrupt as exc:  # SIGINT or SIGTERM (lampsam.interrupt), between steps
         status = "interrupted"

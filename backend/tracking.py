@@ -203,6 +203,8 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
         if item[0] != "steps":
             raise WorkerError(f"mapping worker failed: {item[1]}")
         now = time.perf_counter()
+        if anchor_j < 0:  # an observable state: a stop from here on keeps these steps
+            log.info("first estimates back from the mapping worker")
         for j, pose, kf, cpu in cast(list[tuple[int, tuple[float, float, float], bool, float]],
                                      item[1]):
             times.back[j] = now

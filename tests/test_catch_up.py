@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import signal
-import time
 from pathlib import Path
 
 import numpy as np
@@ -130,8 +129,8 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     out = tmp_path / "out"
     proc = start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
                          "--max-lag", "-1", "--config", str(cfg))
-    lines = wait_for_line(proc, "mapping worker ready")
-    time.sleep(0.2)
+    # the worker has finished steps (a signal before its first would leave 0 on a loaded machine)
+    lines = wait_for_line(proc, "first estimates back from the mapping worker")
     proc.send_signal(signal.SIGTERM)
     _, rest = proc.communicate(timeout=120)
     rest = "".join(lines) + rest

@@ -32,8 +32,8 @@ def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def run15(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """15 s of the lab world (226 images), seed 1: long enough that a signal 0.1 s into
-    the stepping lands mid-run on a fast machine (the smoothers read keyframes only)."""
+    """15 s of the lab world (226 images), seed 1: long enough that a signal sent when the
+    first step is done lands mid-run on a fast machine (the smoothers read keyframes only)."""
     out = tmp_path_factory.mktemp("signals15") / "run"
     simulate_world("lab", out, seed=1, duration=15.0, workers=1)
     return out
@@ -47,8 +47,7 @@ def test_signal_mid_slam_writes_finished_steps(run15: Path, tmp_path: Path,
     than the run's 226 frames, all finite), no traceback, no temporary files left."""
     out = tmp_path / "out"
     proc = start_lampsam(cli_env, "slam", str(run15), "--out", str(out), "--backend", "batch")
-    wait_for_line(proc, "stepping through the run")
-    time.sleep(0.1)
+    wait_for_line(proc, "first step done")  # a step finished: not 0 steps on a loaded machine
     proc.send_signal(sig)
     _, rest = proc.communicate(timeout=120)
     assert proc.returncode == EXIT_INTERRUPTED, rest
