@@ -71,7 +71,7 @@ from lampsam.backend.interface import (
 from lampsam.backend.isam2_update import Isam2Updates
 from lampsam.backend.joint_gating import JointGating
 from lampsam.backend.keyframes import STEP_FLOOR as STEP_FLOOR
-from lampsam.backend.keyframes import advance_odometry, keyframe_observations
+from lampsam.backend.keyframes import Advanced, advance_odometry, keyframe_observations
 from lampsam.backend.landmarks import LandmarkLifecycle
 from lampsam.backend.models import (
     Obs,
@@ -109,6 +109,8 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         self._distinct_handlers = list({id(h): h for h in self.handlers.values()}.values())
         #: keyframes made with ``step(update=False)`` not yet sent to iSAM2
         self.n_deferred = 0
+        #: the next step's odometry advanced by the caller (:meth:`give_odometry`)
+        self._given_odometry: Advanced | None = None
         #: lamps mapped since the last update: first-sight state and covariance (3,), (3, 3)
         self._first_sight: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._flush()
@@ -277,6 +279,17 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         self._first_sight = {}
 
     # ------------------------------------------------------------------ interface
+    def give_odometry(self, advanced: Advanced | None) -> None:
+        """The next :meth:`step`'s odometry since the last keyframe, already advanced by
+        the caller: :func:`~lampsam.backend.keyframes.advance_odometry` of the step's
+        samples from this backend's state, as
+        :class:`~lampsam.backend.keyframes.KeyframeMirror` computes it beside a backend in
+        another process (``--online decoupled``); the step then does not compose its
+        samples again. The same function of the same inputs: results bit for bit the
+        same. None (a step without samples): the step composes as usual.
+        """
+        self._given_odometry = advanced
+
     def step(self, t: float, odometry: FloatArray, frame: Frame | None,
              update: bool = True) -> StepEstimate:
         """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal.
@@ -292,10 +305,12 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
             raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
         self._last_t = t
         u = self.motion.check(t, odometry)
+        given, self._given_odometry = self._given_odometry, None
         if len(u):
-            self._delta, self._delta_cov, first_rel = advance_odometry(
-                self.motion, u, self._delta, self._delta_cov, not self._wheel_since_kf,
-                self.config.isam2.odometry_floor_var)
+            self._delta, self._delta_cov, first_rel = given if given is not None else (
+                advance_odometry(self.motion, u, self._delta, self._delta_cov,
+                                 not self._wheel_since_kf,
+                                 self.config.isam2.odometry_floor_var)[:3])
             if first_rel is not None:  # the first samples since the keyframe
                 self._first_rel = first_rel  # the odometry factor's, if no samples follow
             self._wheel_since_kf.append(u)

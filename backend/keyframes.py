@@ -37,6 +37,9 @@ STEP_FLOOR = 1e-14
 #: ``(delta, cov)`` of the first samples since a keyframe with the odometry factor's floor.
 FirstRelative = tuple[FloatArray, FloatArray]
 
+#: What :func:`advance_odometry` returns: ``(delta, cov, first_rel)``.
+Advanced = tuple[FloatArray, FloatArray, FirstRelative | None]
+
 
 def is_keyframe(k: int, delta: FloatArray, config: Isam2Config) -> bool:
     """Whether a frame with observations becomes keyframe ``k + 1``.
@@ -80,7 +83,7 @@ def keyframe_observations(frame: Frame | None, k: int, delta: FloatArray,
 
 def advance_odometry(motion: MotionModel, u: FloatArray, delta: FloatArray, cov: FloatArray,
                      first: bool, floor_var: float
-                     ) -> tuple[FloatArray, FloatArray, FirstRelative | None]:
+                     ) -> tuple[FloatArray, FloatArray, FirstRelative | None, FloatArray]:
     """The odometry since the last keyframe after one more step's samples.
 
     Args:
@@ -92,18 +95,21 @@ def advance_odometry(motion: MotionModel, u: FloatArray, delta: FloatArray, cov:
         floor_var: the odometry factor's variance floor (``Isam2Config.odometry_floor_var``).
 
     Returns:
-        ``(delta, cov, first_rel)``: ``first_rel`` is the samples' own ``(delta, cov)``
-        with ``floor_var`` when ``first`` (the odometry factor's, if no samples
-        follow before the next keyframe), else None. The covariance carries
+        ``(delta, cov, first_rel, d)``: ``first_rel`` is the samples' own
+        ``(delta, cov)`` with ``floor_var`` when ``first`` (the odometry factor's, if no
+        samples follow before the next keyframe), else None; ``d`` (3,) is the samples'
+        own composed motion (``motion.relative``'s mean, which the floor does not
+        change: the tracker's odometry chain). The covariance carries
         :data:`STEP_FLOOR` per step.
     """
     if not first:
         d, c = motion.relative(u, STEP_FLOOR)
         return (pose_array(gtsam.Pose2(*delta).compose(gtsam.Pose2(*d))),
-                compose_cov(d, cov, c), None)
+                compose_cov(d, cov, c), None, d)
     d, c_kf = motion.relative(u, floor_var)
     # composed with the identity (zero covariance) since the keyframe
-    return pose_array(gtsam.Pose2(*d)), c_kf + (STEP_FLOOR - floor_var) * np.eye(3), (d, c_kf)
+    return (pose_array(gtsam.Pose2(*d)), c_kf + (STEP_FLOOR - floor_var) * np.eye(3),
+            (d, c_kf), d)
 
 
 class KeyframeMirror:
@@ -130,6 +136,14 @@ class KeyframeMirror:
         self.cov = np.zeros((3, 3))
         self.since = False  # samples since the last keyframe
         self.n_read = 0
+        #: the last step's :func:`advance_odometry` result (None: the step had no
+        #: samples), the one the backend computes from the same state: a backend in
+        #: another process can take it instead of composing the samples again
+        #: (:meth:`lampsam.backend.graph.GraphSlam.give_odometry`)
+        self.advanced: Advanced | None = None
+        #: (3,) the last step's own composed motion (``advance_odometry``'s ``d``; None:
+        #: no samples), the increment of the tracker's odometry chain
+        self.step_motion: FloatArray | None = None
 
     def reads(self, u: FloatArray, frame: Frame | None) -> bool:
         """Whether the backend reads this step's frame (reading it here, if so).
@@ -138,10 +152,13 @@ class KeyframeMirror:
             u: (K, width) the step's checked samples (``motion.check``).
             frame: the step's frame, or None.
         """
+        self.advanced = self.step_motion = None
         if len(u):
-            self.delta, self.cov, _ = advance_odometry(
+            delta, cov, first_rel, self.step_motion = advance_odometry(
                 self.motion, u, self.delta, self.cov, not self.since,
                 self.config.isam2.odometry_floor_var)
+            self.advanced = (delta, cov, first_rel)
+            self.delta, self.cov = delta, cov
             self.since = True
         obs = keyframe_observations(frame, self.k, self.delta, self.config)
         if obs is None:

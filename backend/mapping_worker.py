@@ -1,8 +1,10 @@
 """The mapping worker of :mod:`lampsam.backend.tracking`: the backend stepped in its own process.
 
-The worker takes ``(i, t, samples, frame)`` steps from its inbox (a
+The worker takes ``(i, t, samples, frame, odometry)`` steps from its inbox (a
 ``multiprocessing`` queue fed by the tracking process, frames packed by
-:func:`~lampsam.backend.pipelined.pack_frame`), steps the backend on each
+:func:`~lampsam.backend.pipelined.pack_frame`; a graph backend's odometry since its
+last keyframe as the tracker's :class:`~lampsam.backend.keyframes.KeyframeMirror`
+composed it, :func:`pack_odometry`, so the worker does not compose it again), steps the backend on each
 (:func:`~lampsam.backend.slam.drive`, so the statuses and fallbacks of a run in one
 process hold) and writes its estimates back through a pipe, in its own thread:
 batched, but at once when the tracker is waiting for them (:func:`reply_due`) and at
@@ -27,10 +29,13 @@ from multiprocessing.context import ForkContext, SpawnContext
 from multiprocessing.synchronize import Event as EventLike
 from typing import cast
 
+import numpy as np
+
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph import GraphSlam
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
+from lampsam.backend.keyframes import Advanced
 from lampsam.backend.odometry import OdometryConstants
 from lampsam.backend.pipelined import PackedFrame, pack_frame, unpack_frame
 from lampsam.datasets.logrun import CameraModel
@@ -38,6 +43,12 @@ from lampsam.errors import LampsamError
 from lampsam.frontend.measurements import CeilingFrame
 
 log = logging.getLogger(__name__)
+
+#: :func:`pack_odometry`'s form: ``(delta (3,), cov (9,), first_rel or None)`` or None.
+PackedOdometry = tuple[tuple[float, ...], tuple[float, ...],
+                       tuple[tuple[float, ...], tuple[float, ...]] | None] | None
+#: An inbox item: ``(i, t, samples, packed frame, packed odometry)``.
+_Step = tuple[int, float, FloatArray, tuple[str, object], PackedOdometry]
 
 POLL_S = 0.5  # how often a waiting process checks that the other is alive
 STOP = "stop"  # the inbox's stop mark: no more steps
@@ -76,6 +87,26 @@ class WorkerClocks:
     idle_s: float = 0.0
     online_cpu_s: float = 0.0
     online_wall_s: float = 0.0
+
+
+def pack_odometry(advanced: Advanced | None) -> PackedOdometry:
+    """A step's advanced odometry (:attr:`~lampsam.backend.keyframes.KeyframeMirror.advanced`)
+    as plain floats for the queue (pickling three small arrays cost ~10x the floats)."""
+    if advanced is None:
+        return None
+    delta, cov, first = advanced
+    return (tuple(delta.tolist()), tuple(cov.ravel().tolist()),
+            None if first is None else (tuple(first[0].tolist()), tuple(first[1].ravel().tolist())))
+
+
+def unpack_odometry(packed: PackedOdometry) -> Advanced | None:
+    """The arrays :func:`pack_odometry` packed (float64 round-trips exactly)."""
+    if packed is None:
+        return None
+    delta, cov, first = packed
+    return (np.array(delta, float), np.array(cov, float).reshape(3, 3),
+            None if first is None else (np.array(first[0], float),
+                                        np.array(first[1], float).reshape(3, 3)))
 
 
 def pack_step_frame(frame: Frame | None) -> object:
@@ -117,7 +148,7 @@ class _Backlog:
     def append(self, item: object) -> None:
         self.items.append(item)
         if item != STOP:
-            step = cast(tuple[int, float, FloatArray, tuple[str, object]], item)
+            step = cast(_Step, item)
             self.newest = step[0]
             if step[3][1] is not None:
                 self.framed += 1
@@ -132,14 +163,14 @@ class _Backlog:
 
     def pop(self) -> object:
         item = self.items.popleft()
-        if item != STOP and cast(tuple[int, float, FloatArray, tuple[str, object]],
-                                  item)[3][1] is not None:
+        if item != STOP and cast(_Step, item)[3][1] is not None:
             self.framed -= 1
         return item
 
 
 def _inbox_steps(backlog: _Backlog, stop: EventLike, at: list[float], index: list[int],
-                 flush: Callable[[], None], clocks: WorkerClocks
+                 flush: Callable[[], None], clocks: WorkerClocks,
+                 give: Callable[[Advanced | None], None] | None = None
                  ) -> Iterator[tuple[float, FloatArray, Frame | None]]:
     """The worker's steps from its inbox until the stop mark. A set ``stop`` (the caller
     was interrupted) or a dead caller raises :class:`KeyboardInterrupt`, which
@@ -147,7 +178,9 @@ def _inbox_steps(backlog: _Backlog, stop: EventLike, at: list[float], index: lis
     step the inbox is drained into ``backlog`` (so a catching-up backend sees what
     waits), ``index[0]`` is set to the step's index and ``at[0]`` to the process CPU
     clock; ``flush`` (send the estimates made so far) is called whenever nothing
-    waits, before waiting for the caller, and at the stop mark. The CPU spent here (flushes apart) adds to
+    waits, before waiting for the caller, and at the stop mark; ``give`` (if any) is handed
+    the step's advanced odometry just before the step is yielded
+    (:meth:`~lampsam.backend.graph.GraphSlam.give_odometry`). The CPU spent here (flushes apart) adds to
     ``clocks.inbox_cpu_s``, the wall clock blocked on the empty inbox to
     ``clocks.idle_s``."""
     parent = mp.parent_process()
@@ -176,9 +209,11 @@ def _inbox_steps(backlog: _Backlog, stop: EventLike, at: list[float], index: lis
             flush()  # every step's estimate back before the final optimisation
             clocks.inbox_cpu_s += time.process_time() - c0
             return
-        i, t, samples, packed = cast(tuple[int, float, FloatArray, object], item)
+        i, t, samples, packed, odometry = cast(_Step, item)
         index[0] = i
         frame = unpack_step_frame(packed)
+        if give is not None:
+            give(unpack_odometry(odometry))
         at[0] = time.process_time()
         clocks.inbox_cpu_s += at[0] - c0
         yield t, samples, frame
@@ -283,7 +318,7 @@ def mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig
                     inbox: queue.Queue[object], outbox: Connection, stop: EventLike,
                     finish: bool, max_lag: int | None) -> None:
     """Worker process: ``("ready", 0)`` once the backend is built, then step it on each
-    ``(i, t, samples, frame)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
+    ``(i, t, samples, frame, odometry)`` and send back ``("steps", [(i, pose, keyframe, step CPU s),
     ...])``, batched: when the inbox is empty, at the stop mark and when
     :func:`reply_due`. After the stop mark (or ``stop`` set) ``("done", result or None,
     cpu_s, keyframes per update, clocks)``
@@ -312,6 +347,8 @@ def mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig
     at, index, replied = [0.0], [-1], [-1]
     pending: list[tuple[int, tuple[float, float, float], bool, float]] = []
     backlog = _Backlog(inbox)
+    # a graph backend takes the odometry the caller's KeyframeMirror already composed
+    give = be.give_odometry if isinstance(be, GraphSlam) else None
     catch_up: CatchUp | None = None
     if config.online.catch_up > 1:
         if isinstance(be, GraphSlam) and be.isam is not None and be.smoother is None:
@@ -339,7 +376,7 @@ def mapping_worker(backend: str, odometry: OdometryConstants, config: SlamConfig
                 clocks.reply_cpu_s += time.process_time() - r0
 
     def steps() -> Iterator[tuple[float, FloatArray, Frame | None]]:
-        yield from _inbox_steps(backlog, stop, at, index, flush, clocks)
+        yield from _inbox_steps(backlog, stop, at, index, flush, clocks, give)
         clocks.online_cpu_s = time.process_time() - c0  # the stop mark: online work done
         clocks.online_wall_s = time.perf_counter() - w0
 

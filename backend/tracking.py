@@ -50,6 +50,7 @@ from lampsam.backend.mapping_worker import (
     WorkerClocks,
     WorkerError,
     mapping_worker,
+    pack_odometry,
     pack_step_frame,
     receive,
     worker_context,
@@ -236,12 +237,14 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
             for i, (t, samples, frame) in enumerate(steps):
                 times.given.append(time.perf_counter())
                 u = motion.check(t, samples)
-                if len(u):
-                    d, _ = motion.relative(u, _FLOOR)
-                    o = o.compose(gtsam.Pose2(*d))
                 # the backend's frame: None where it will not read it (a lazy frame's
                 # image then never processed), as it decides (KeyframeMirror)
                 sent = frame if mirror is None or mirror.reads(u, frame) else None
+                if len(u):  # the step's motion: the mirror's, else composed here
+                    d = mirror.step_motion if mirror is not None else None
+                    if d is None:
+                        d, _ = motion.relative(u, _FLOOR)
+                    o = o.compose(gtsam.Pose2(*d))
                 chain.append(o)
                 times.t.append(t)
                 times.framed.append(frame is not None)
@@ -250,7 +253,8 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 times.backend_pose.append(np.full(3, np.nan))
                 times.step_cpu.append(float("nan"))
                 times.sent.append(time.perf_counter())
-                inbox.put((i, t, samples, pack_step_frame(sent)))
+                inbox.put((i, t, samples, pack_step_frame(sent),
+                           pack_odometry(mirror.advanced if mirror is not None else None)))
                 while True:  # every estimate already back
                     try:
                         take(receive(outbox, 0.0))

@@ -12,7 +12,6 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -107,37 +106,54 @@ def test_writer_interrupted_before_rename_keeps_old_file(
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(TMP_PREFIX)]
 
 
-_SLOW_WRITER = """
+#: Writes a 200,000-pose TUM file and stops half-way, its first 100,000 lines flushed to
+#: the temporary file: prints "mid-write" and waits on stdin (until killed), so the kill
+#: lands mid-write whatever the machine's speed or load.
+_STALLED_WRITER = """
 import sys
 import numpy as np
+import lampsam.datasets.tum as tum
 from lampsam.datasets.tables import Trajectory
-from lampsam.datasets.tum import write_tum
-n = 3_000_000
-t = np.arange(n) * 0.01
-write_tum(sys.argv[1], Trajectory(t=t, poses=np.zeros((n, 3))))
+
+class Stalling:
+    def __init__(self, fh):
+        self.fh, self.n = fh, 0
+    def __enter__(self):
+        return self
+    def __exit__(self, *exc):
+        self.fh.close()
+    def write(self, text):
+        self.n += 1
+        if self.n == 100_002:  # the header and 100,000 poses written
+            self.fh.flush()
+            print("mid-write", flush=True)
+            sys.stdin.readline()
+        return self.fh.write(text)
+
+tum.open = lambda *a, **k: Stalling(open(*a, **k))
+n = 200_000
+tum.write_tum(sys.argv[1], Trajectory(t=np.arange(n) * 0.01, poses=np.zeros((n, 3))))
 """
 
 
 def test_sigkill_mid_write_leaves_no_target(tmp_path: Path, cli_env: dict[str, str]) -> None:
+    """SIGKILL while a TUM file is half written: the target never appears, the half of
+    the data sits only under the temporary name."""
     target = tmp_path / "big.tum"
-    proc = subprocess.Popen([sys.executable, "-c", _SLOW_WRITER, str(target)], env=cli_env)
+    proc = subprocess.Popen([sys.executable, "-c", _STALLED_WRITER, str(target)], env=cli_env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + 120.0
-        tmp: list[Path] = []
-        while time.monotonic() < deadline and proc.poll() is None:
-            tmp = [p for p in tmp_path.iterdir() if p.name.startswith(TMP_PREFIX)]
-            if tmp and tmp[0].stat().st_size > 0:
-                break
-            time.sleep(0.02)
-        assert proc.poll() is None, "the writer finished before it could be killed"
-        assert tmp, "no temporary file appeared"
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "mid-write", "the writer ended before mid-write"
+        tmp = [p for p in tmp_path.iterdir() if p.name.startswith(TMP_PREFIX)]
+        assert len(tmp) == 1, "no temporary file while writing"
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert not target.exists()  # the half-written data sits only under the temporary name
-    assert tmp[0].stat().st_size < 3_000_000 * 40
+    assert len(tmp[0].read_text().splitlines()) == 100_001  # the header and 100,000 poses
 
 
 def test_json_lines_skip_a_line_cut_short(tmp_path: Path) -> None:

@@ -97,7 +97,7 @@ def test_inbox_flushes_at_the_stop_mark() -> None:
 
     inbox: queue.Queue[object] = queue.Queue()
     for i in range(3):
-        inbox.put((i, 0.1 * i, np.zeros((1, 2)), ("raw", None)))
+        inbox.put((i, 0.1 * i, np.zeros((1, 2)), ("raw", None), None))
     inbox.put(STOP)
     flushes: list[int] = []
     taken: list[int] = []
@@ -110,3 +110,48 @@ def test_inbox_flushes_at_the_stop_mark() -> None:
         taken.append(index[0])
     assert taken == [0, 1, 2] and flushes == [2]  # the flush at the stop mark
     assert clocks.inbox_cpu_s >= 0.0 and clocks.idle_s == 0.0
+
+
+def test_backend_takes_the_mirrors_odometry_bit_for_bit(lab_run: LoggedRun,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """A graph backend given each step's odometry as the tracker's KeyframeMirror advanced
+    it (packed for the queue and unpacked, as the worker gets it) composes none itself
+    and ends bit for bit where the backend composing its own samples ends: every step's
+    pose and covariance, the final trajectory and map. The mirror's step motion is bit for
+    bit the tracker's own composition (its odometry chain)."""
+    import lampsam.backend.graph as graph_module
+    from lampsam.backend.keyframes import KeyframeMirror
+    from lampsam.backend.mapping_worker import pack_odometry, unpack_odometry
+
+    frames = list(iter_run(lab_run))
+    steps = list(iter_steps(lab_run.odometry, frames))
+    start, cfg = start_pose_of(lab_run), SlamConfig()
+    ref = make_backend("isam2", lab_run.rig.odometry, cfg, start, lab_run.rig.camera)
+    ref_est = [ref.step(t, u, f) for t, u, f in steps]
+    ref_res = ref.finish()
+
+    be = make_backend("isam2", lab_run.rig.odometry, cfg, start, lab_run.rig.camera)
+    motion = motion_model(lab_run.rig.odometry)
+    mirror = KeyframeMirror(motion, cfg)
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the backend composed a step's odometry itself")
+
+    monkeypatch.setattr(graph_module, "advance_odometry", never)
+    given = 0
+    for (t, u, f), want in zip(steps, ref_est, strict=True):
+        checked = motion.check(t, u)
+        mirror.reads(checked, f)
+        given += mirror.advanced is not None
+        if len(checked):  # the tracker's chain increment: what it composed itself before
+            np.testing.assert_array_equal(mirror.step_motion, motion.relative(checked, 1e-14)[0])
+        be.give_odometry(unpack_odometry(pack_odometry(mirror.advanced)))
+        got = be.step(t, u, f)
+        np.testing.assert_array_equal(got.pose, want.pose)
+        np.testing.assert_array_equal(got.cov, want.cov)
+    res = be.finish()
+    assert given > 40
+    np.testing.assert_array_equal(res.poses, ref_res.poses)
+    np.testing.assert_array_equal(res.pose_covs, ref_res.pose_covs)
+    assert [lm.position.tolist() for lm in res.landmarks] == [
+        lm.position.tolist() for lm in ref_res.landmarks]

@@ -14,7 +14,15 @@ indices of the slow ones (clusters show revisits). ``--exact-gate`` turns the ga
 bracket off (``[isam2] bracket_gate = false``: every undecided lamp pair asks iSAM2, as
 before it). ``--no-prefetch`` asks one joint
 marginal per landmark instead of one per keyframe (:meth:`Gating._prefetch_joint` off),
-to tell the Bayes tree's cost from the batching's. Joint-marginal calls are also
+to tell the Bayes tree's cost from the batching's. Per update it also records what
+iSAM2 re-eliminated for: whether it relinearised, how many poses its new factors touch
+(a corner entering the graph brings sights from up to ``corner_pending_keyframes``
+keyframes back) and whether a landmark last in an update more than :data:`OLD_KF`
+keyframes before is observed again (a revisit); printed for the slowest 5 % against
+the faster half. ``--constrain-recent W`` passes GTSAM's ``constrainedKeys`` with the
+new factors' keys and the last ``W`` keyframes' poses in the last group (eliminated
+last, near the root), to test whether keeping recent poses at the top shortens the
+slow updates (docs/speed.md: it does not). Joint-marginal calls are also
 binned by their number of keys, and the landmarks of the calls over 20 ms are counted
 (a prefetched call names all its lamps, though its cost is its deepest one's: on the
 lab path, lamp 1, rejected at every revisit keyframe; docs/speed.md), and for slow and
@@ -37,6 +45,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import X
 
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
@@ -50,6 +59,8 @@ from lampsam.datasets.logrun import read_run
 SLOW_CALL_S = 0.02
 #: ... and one faster than this is counted as a cheap call (near the Bayes tree's root).
 FAST_CALL_S = 0.001
+#: A landmark observed again after this many keyframes out of the updates counts as a revisit.
+OLD_KF = 20
 
 
 class _TimedIsam:
@@ -66,14 +77,37 @@ class _TimedIsam:
         self.backend: Any = None
         self.slow_since: list[int] = []
         self.fast_since: list[int] = []
+        #: keyframe of each landmark key's last update; ``constrain_recent``: see the module doc
+        self.last_update: dict[int, int] = {}
+        self.constrain_recent: int | None = None
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._isam, name)
 
     def update(self, *args: Any) -> Any:
+        k = self.backend._k if self.backend is not None else 0
+        if self.constrain_recent is not None and len(args) >= 2:
+            groups = gtsam.KeyGroupMap()  # one group: GTSAM 4.3 failed with two ("not involved")
+            for key in args[0].keyVector():
+                groups.insert2(key, 1)
+            for j in range(max(0, k - self.constrain_recent), k + 1):
+                groups.insert2(X(j), 1)
+            params = gtsam.ISAM2UpdateParams()
+            params.constrainedKeys = groups
+            args = (args[0], args[1], params)
         c = time.process_time()
         result = self._isam.update(*args)
         self._rec["update"] += time.process_time() - c
+        poses, revisit = 0, False
+        for key in result.getObservedKeys():
+            if gtsam.Symbol(key).chr() == ord("x"):
+                poses += 1
+            else:
+                revisit |= k - self.last_update.get(key, k) > OLD_KF
+                self.last_update[key] = k
+        self._rec["poses touched"] += poses
+        self._rec["revisit"] += revisit
+        self._rec["relinearising"] += result.getVariablesRelinearized() > 0
         self._rec["relinearized"] += result.getVariablesRelinearized()
         self._rec["reeliminated"] += result.getVariablesReeliminated()
         if args:
@@ -136,6 +170,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--lab", required=True, help="a simulated run directory")
     ap.add_argument("--no-prefetch", action="store_true", help="one joint marginal per landmark")
+    ap.add_argument("--constrain-recent", type=int, default=None, metavar="W",
+                    help="constrain the new factors' keys and the last W poses last")
     ap.add_argument("--exact-gate", action="store_true",
                     help="[isam2] bracket_gate = false: every undecided lamp pair asks iSAM2")
     args = ap.parse_args()
@@ -149,7 +185,8 @@ def main() -> None:
     if args.exact_gate:
         cfg = dataclasses.replace(cfg, isam2=dataclasses.replace(cfg.isam2, bracket_gate=False))
     be = Isam2Slam(run.rig.odometry, cfg, start_pose_of(run), model, CeilingHandler(model))
-    parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors")
+    parts = ("update", "joint", "estimate", "relinearized", "reeliminated", "factors",
+             "poses touched", "revisit", "relinearising")
     # Python phases of a keyframe (inclusive: the screen contains the point reads,
     # association the exact gate's joint marginals)
     phases = ("screen", "associate", "observe", "new landmarks", "point reads", "pose marginal")
@@ -172,6 +209,7 @@ def main() -> None:
     slow_ids: Counter[int] = Counter()
     timed = _TimedIsam(be.isam, rec, joint_calls, slow_ids)
     timed.backend = be
+    timed.constrain_recent = args.constrain_recent
     be.isam = timed  # type: ignore[assignment]
     rows = []
     for t, wheel, frame in iter_steps(run.odometry, frames):
@@ -196,14 +234,18 @@ def main() -> None:
         print(f"{name} (n={len(s)}): mean CPU {s[:, 0].mean() * 1e3:.1f} ms = update "
               f"{s[:, 1].mean() * 1e3:.1f} + joint marginals {s[:, 2].mean() * 1e3:.1f} + first "
               f"estimate {s[:, 3].mean() * 1e3:.1f} + rest; relinearised {s[:, 4].mean():.0f}, "
-              f"re-eliminated {s[:, 5].mean():.0f}, new factors {s[:, 6].mean():.0f}")
-    print("slow keyframes:", r[total >= p95, 7].astype(int).tolist())
+              f"re-eliminated {s[:, 5].mean():.0f}, new factors {s[:, 6].mean():.0f}; poses "
+              f"touched by the new factors {s[:, 7].mean():.1f}, share revisiting a landmark "
+              f"unseen for > {OLD_KF} keyframes {s[:, 8].mean():.2f}, share relinearising "
+              f"{s[:, 9].mean():.2f}")
+    kcol = 1 + len(parts)
+    print("slow keyframes:", r[total >= p95, kcol].astype(int).tolist())
     print(f"keyframe CPU in all, s: total {total.sum():.2f} = " + ", ".join(
         f"{p} {r[:, 1 + i].sum():.2f}" for i, p in enumerate(parts[:3])) + "; Python phases "
-        "(inclusive): " + ", ".join(f"{p} {r[:, 8 + i].sum():.2f}" for i, p in enumerate(phases)))
+        "(inclusive): " + ", ".join(f"{p} {r[:, kcol + 1 + i].sum():.2f}" for i, p in enumerate(phases)))
     slow = total >= p95
     print("slowest 5 %, mean ms per phase: " + ", ".join(
-        f"{p} {r[slow, 8 + i].mean() * 1e3:.1f}" for i, p in enumerate(phases)))
+        f"{p} {r[slow, kcol + 1 + i].mean() * 1e3:.1f}" for i, p in enumerate(phases)))
     print(f"landmarks in joint-marginal calls over {SLOW_CALL_S * 1e3:.0f} ms (id: calls): "
           + ", ".join(f"{i}: {n}" for i, n in slow_ids.most_common(8)))
     for name, since in (("over", timed.slow_since), ("under", timed.fast_since)):
