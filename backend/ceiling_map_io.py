@@ -67,6 +67,9 @@ GAIN_COLUMNS = tuple(f"g_{r}_{c}" for r in ("x", "y", "z", "phi") for c in ("dx"
 _UPPER = [(i, j) for i in range(4) for j in range(i, 4)]
 _MAP_KEYS = {"format", "format_version", "frame", "units", "rig", "source", "counts", "files"}
 _FRAME_KEY = "frame_uncertainty"  # version 2, optional
+_CAL_KEY = "calibration"  # version 2, optional
+_CAL_FIELDS = ("landmarks_split", "failed", "inflated", "nees_mean", "nees_median", "chi2_per_row")
+_CAL_COUNTS = ("landmarks_split", "failed", "inflated")
 _CEILING_KINDS = (LandmarkKind.LAMP.value, LandmarkKind.CORNER.value)
 
 
@@ -118,12 +121,18 @@ class CeilingMap:
         frame: the map frame's uncertainty and every landmark's gain on it
             (:mod:`lampsam.backend.map_frame`), or None (a version-1 map, a merged
             map, or a backend without a factor graph).
+        calibration: per kind (``lamp``, ``corner``) the figures of the pass-split test
+            that inflated the saved covariances of inconsistent landmarks
+            (:mod:`lampsam.backend.map_calibration`: ``landmarks_split``, ``failed``,
+            ``inflated``, ``nees_mean``, ``nees_median``, ``chi2_per_row``), or None (no
+            test).
     """
 
     landmarks: list[MapLandmark]
     rig: Rig
     source: dict[str, Any] = field(default_factory=dict)
     frame: MapFrame | None = None
+    calibration: dict[str, dict[str, float | int]] | None = None
 
     def by_kind(self, kind: str) -> list[MapLandmark]:
         """Landmarks of one kind, in file order."""
@@ -213,6 +222,15 @@ def write_map(folder: str | Path, cmap: CeilingMap) -> Path:
                        "error = C_l g + r_l (columns g_*), r_l independent",
             "center": [float(v) for v in cmap.frame.center],
             "cov": [[float(v) for v in row] for row in cmap.frame.cov]}
+    if cmap.calibration is not None:
+        doc[_CAL_KEY] = {
+            "meaning": "pass-split test (lampsam.backend.map_calibration): NEES per dof of "
+                       "the difference between a landmark's estimates from alternate passes; "
+                       "'failed': landmarks above the test's threshold; 'inflated': those "
+                       "that had (nees - 1) times their sightings-only covariance added to "
+                       "their position covariance (0: the test only reported)",
+            **{kind: {k: (int(v) if k in _CAL_COUNTS else float(v))
+                      for k, v in figs.items()} for kind, figs in cmap.calibration.items()}}
     with atomic_path(folder / MAP_FILE) as tmp:
         tmp.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     return folder
@@ -296,6 +314,28 @@ def _read_frame(path: Path, doc: object, gains: dict[int, FloatArray]) -> MapFra
     return MapFrame(center, cov, gains)
 
 
+def _read_calibration(path: Path, doc: object) -> dict[str, dict[str, float | int]] | None:
+    """``calibration`` of ``map.yaml`` (per kind, the pass-split figures), or None."""
+    if doc is None:
+        return None
+    if not isinstance(doc, dict):
+        raise _fail(path, f"key {_CAL_KEY!r} must be a mapping")
+    out: dict[str, dict[str, float | int]] = {}
+    for kind, figs in doc.items():
+        if kind == "meaning":
+            continue
+        if kind not in _CEILING_KINDS:
+            raise _fail(path, f"key '{_CAL_KEY}.{kind}': not one of {', '.join(_CEILING_KINDS)}")
+        if not isinstance(figs, dict) or set(figs) != set(_CAL_FIELDS):
+            raise _fail(path, f"key '{_CAL_KEY}.{kind}' needs exactly {', '.join(_CAL_FIELDS)}")
+        try:
+            out[kind] = {k: (int(figs[k]) if k in _CAL_COUNTS else float(figs[k]))
+                         for k in _CAL_FIELDS}
+        except (TypeError, ValueError):
+            raise _fail(path, f"key '{_CAL_KEY}.{kind}': every field must be a number") from None
+    return out
+
+
 def _read_patches(path: Path, ids: set[int]) -> dict[int, np.ndarray]:
     if not path.is_file():
         raise _fail(path, "missing: a ceiling map needs its patches file (may hold 0 patches)")
@@ -337,7 +377,7 @@ def read_map(folder: str | Path) -> CeilingMap:
     missing = sorted(_MAP_KEYS - set(doc))
     if missing:
         raise _fail(meta_path, f"missing key {missing[0]!r}")
-    unknown = sorted(set(doc) - _MAP_KEYS - {_FRAME_KEY})
+    unknown = sorted(set(doc) - _MAP_KEYS - {_FRAME_KEY, _CAL_KEY})
     if unknown:
         raise _fail(meta_path, f"unknown key {unknown[0]!r}")
     if doc["format"] != MAP_FORMAT:
@@ -346,8 +386,9 @@ def read_map(folder: str | Path) -> CeilingMap:
     if version not in MAP_VERSIONS or isinstance(version, bool):
         raise _fail(meta_path, f"key 'format_version': {version!r} is not supported "
                                f"(this lampsam reads versions {', '.join(map(str, MAP_VERSIONS))})")
-    if version == 1 and _FRAME_KEY in doc:
-        raise _fail(meta_path, f"unknown key {_FRAME_KEY!r} (version 1)")
+    for key in (_FRAME_KEY, _CAL_KEY):
+        if version == 1 and key in doc:
+            raise _fail(meta_path, f"unknown key {key!r} (version 1)")
     files = doc["files"]
     if not isinstance(files, dict) or set(files) != {"landmarks", "patches"}:
         raise _fail(meta_path, "key 'files' must map 'landmarks' and 'patches' to file names")
@@ -364,7 +405,7 @@ def read_map(folder: str | Path) -> CeilingMap:
     landmarks = [MapLandmark(lm.id, lm.kind, lm.position, lm.phi, lm.cov, lm.n_obs,
                              patches.get(lm.id)) for lm in landmarks]
     source = doc["source"] if isinstance(doc["source"], dict) else {}
-    return CeilingMap(landmarks, rig, source, frame)
+    return CeilingMap(landmarks, rig, source, frame, _read_calibration(meta_path, doc.get(_CAL_KEY)))
 
 
 def corner_patches(backend: object) -> dict[int, np.ndarray]:

@@ -29,6 +29,7 @@ from lampsam.backend.ceiling_map_io import CeilingMap, corner_patches, map_from_
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
+from lampsam.backend.map_calibration import calibrate_map
 from lampsam.backend.map_frame import MapFrame, map_frame
 from lampsam.backend.map_smoother import MapSmoother, MapSmootherConfig
 from lampsam.backend.slam import (
@@ -230,8 +231,29 @@ def frame_of_result(result: SlamResult, cmap: CeilingMap) -> MapFrame | None:
         return None
 
 
+def calibrated(result: SlamResult, cmap: CeilingMap, inflate: bool = False) -> CeilingMap:
+    """The map with the pass-split test's figures (:mod:`lampsam.backend.map_calibration`)
+    on the smoother's final graph and, with ``inflate``, its inconsistent landmarks'
+    covariances inflated; the map unchanged for the EKF (no graph), without marginals, or
+    when the test cannot be made (logged)."""
+    if result.graph is None or not cmap.landmarks:
+        return cmap
+    if not all(np.all(np.isfinite(lm.cov)) for lm in cmap.landmarks):
+        return cmap
+    try:
+        out, figs = calibrate_map(cmap, result.graph.factors, result.graph.values, inflate=inflate)
+    except EstimationError as exc:
+        log.warning("map covariances not calibrated: %s", exc)
+        return cmap
+    for f in figs.values():
+        log.info("map pass-split test, %ss: %d of %d failed, %d inflated (NEES per dof "
+                 "mean %.2f, median %.2f)", f.kind, f.failed, f.landmarks_split, f.inflated,
+                 f.nees_mean, f.nees_median)
+    return out
+
+
 def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
-             backend: SlamBackend | None = None) -> CeilingMap:
+             backend: SlamBackend | None = None, calibrate: bool = False) -> CeilingMap:
     """Write a SLAM result's map (with the backend's corner patches) as a ceiling map.
 
     Args:
@@ -239,6 +261,10 @@ def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
         result: the finished SLAM result.
         run: the mapping run (its rig is stored with the map).
         backend: the finished backend (for corner patches), or None (no patches).
+        calibrate: inflate the covariances of landmarks that fail the pass-split test
+            (:func:`calibrated`); default False: the smoother's marginals as they are, the
+            test's figures recorded in ``map.yaml`` (inflating made localize-only less
+            accurate on lab: docs/ceiling-map.md).
 
     Returns:
         The map written.
@@ -252,6 +278,7 @@ def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
     cmap = map_from_estimates(result.landmarks, run.rig,
                               corner_patches(backend) if backend is not None else None, source)
     cmap.frame = frame_of_result(result, cmap)
+    cmap = calibrated(result, cmap, inflate=calibrate)
     write_map(folder, cmap)
     log.info("ceiling map written to %s: %d lamps, %d corners", folder,
              len(cmap.by_kind("lamp")), len(cmap.by_kind("corner")))

@@ -270,6 +270,9 @@ def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,
                  str(tmp_path / "slam"), "--save-map", str(mp)]) == 0
     cmap = read_map(mp)
     assert len(cmap.by_kind("lamp")) >= 1 and len(cmap.by_kind("corner")) >= 20
+    # the pass-split test's figures are recorded, the covariances not inflated
+    assert cmap.calibration is not None
+    assert {k: v["inflated"] for k, v in cmap.calibration.items()} == {"lamp": 0, "corner": 0}
     assert main(["slam", str(lab4), "--frames", "truth", "--map", str(mp), "--localize-only",
                  "--out", str(tmp_path / "loc")]) == 0
     assert "none added" in capsys.readouterr().out
