@@ -47,6 +47,7 @@ Modules:
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
 * :mod:`~lampsam.backend.localize_only` -- Localize-only tracking against a saved ceiling map: the map is used, never grown.
 * :mod:`~lampsam.backend.localize_run` -- Run localize-only tracking over a logged run, and save the map of a SLAM run.
+* :mod:`~lampsam.backend.map_calibration` -- How honest a batch map's landmark covariances are, measured on the mapping run itself.
 * :mod:`~lampsam.backend.map_frame` -- The map's frame uncertainty: the common part of a batch map's landmark errors.
 * :mod:`~lampsam.backend.map_merge` -- Merge ceiling maps of the same floor made on separate mapping drives.
 * :mod:`~lampsam.backend.map_smoother` -- Localize-only smoothing: the run's poses and the used map landmarks in one factor graph.

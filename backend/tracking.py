@@ -280,6 +280,7 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
                 if done:  # the worker ended early (its backend failed): nothing more to map
                     break
             inbox.put(STOP)
+            log.info("all %d steps sent to the mapping worker", len(chain))
         except KeyboardInterrupt:  # a stop signal between steps: the worker stops too
             times.interrupted = True
             stop.set()
@@ -308,6 +309,10 @@ def run_decoupled(steps: Iterable[tuple[float, FloatArray, Frame | None]], backe
             log.warning("mapping worker still running after 5 s: terminating it")
             worker.terminate()
             worker.join(timeout=1.0)
+        # steps the worker never read stay in the inbox's pipe; without this, this
+        # process's exit would wait forever for its feeder thread to write them to a
+        # pipe that nobody reads (a stop while the worker lagged far behind)
+        inbox.cancel_join_thread()  # type: ignore[attr-defined]
         outbox.close()
 
 

@@ -4,7 +4,10 @@ keyframes while steps wait (lampsam.backend.tracking.CatchUp, GraphSlam.step(upd
 from __future__ import annotations
 
 import json
+import os
 import signal
+import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -143,3 +146,46 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
     assert summary["online_keyframes_per_update_max"] <= 8
     assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
+
+
+def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
+                                                        cli_env: dict[str, str]) -> None:
+    """A stop while the mapping worker lags far behind the tracker (the inbox's pipe
+    full of steps it will never read; a heavily loaded machine) still ends the process:
+    exit 3 with the finished steps written, not a hang at exit waiting for the queue's
+    feeder thread. The lag is made by stopping the worker (SIGSTOP) until the tracker
+    has sent every step and 3 s more; without ``cancel_join_thread`` the process hung
+    at exit in ``Queue._finalize_join`` (py-spy) on each try. The sleep only makes the
+    hang likely: the test cannot fail on a correct build however slow the machine."""
+    run = tmp_path / "lab"
+    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
+    cfg = tmp_path / "cu.toml"
+    cfg.write_text("[online]\ncatch_up = 8\n")
+    out = tmp_path / "out"
+    proc = start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
+                         "--max-lag", "-1", "--config", str(cfg))
+    lines = wait_for_line(proc, "first estimates back from the mapping worker")
+    children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
+                              text=True, check=False).stdout.split()
+    assert children, "no mapping worker process found"
+    for pid in children:
+        os.kill(int(pid), signal.SIGSTOP)
+    try:
+        lines += wait_for_line(proc, "steps sent to the mapping worker")
+        time.sleep(3.0)  # the worker held a while longer: the hang reproduced 3 of 3 times
+        proc.send_signal(signal.SIGTERM)
+        lines += wait_for_line(proc, "SIGTERM received")
+    finally:
+        for pid in children:
+            os.kill(int(pid), signal.SIGCONT)
+    try:
+        _, rest = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("the process hung at exit after SIGTERM") from None
+    rest = "".join(lines) + rest
+    assert proc.returncode == EXIT_INTERRUPTED, rest
+    assert "Traceback" not in rest
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    assert 0 < summary["steps"] < 241
