@@ -53,8 +53,8 @@ from lampsam.safe_io import atomic_path
 #: ``format`` key of ``map.yaml``.
 MAP_FORMAT = "lampsam-ceiling-map"
 #: Version written (2: with the frame-uncertainty columns); the reader accepts 1 and 2.
-MAP_VERSION = 2
-MAP_VERSIONS = (1, 2)
+MAP_VERSION = 3
+MAP_VERSIONS = (1, 2, 3)
 MAP_FILE = "map.yaml"
 LANDMARKS_FILE = "landmarks.csv"
 PATCHES_FILE = "patches.npz"
@@ -67,7 +67,7 @@ GAIN_COLUMNS = tuple(f"g_{r}_{c}" for r in ("x", "y", "z", "phi") for c in ("dx"
 _UPPER = [(i, j) for i in range(4) for j in range(i, 4)]
 _MAP_KEYS = {"format", "format_version", "frame", "units", "rig", "source", "counts", "files"}
 _FRAME_KEY = "frame_uncertainty"  # version 2, optional
-_CAL_KEY = "calibration"  # version 2, optional
+_CAL_KEY = "calibration"  # version 3, optional
 _CAL_FIELDS = ("landmarks_split", "failed", "inflated", "nees_mean", "nees_median", "chi2_per_row")
 _CAL_COUNTS = ("landmarks_split", "failed", "inflated")
 _CEILING_KINDS = (LandmarkKind.LAMP.value, LandmarkKind.CORNER.value)
@@ -386,9 +386,9 @@ def read_map(folder: str | Path) -> CeilingMap:
     if version not in MAP_VERSIONS or isinstance(version, bool):
         raise _fail(meta_path, f"key 'format_version': {version!r} is not supported "
                                f"(this lampsam reads versions {', '.join(map(str, MAP_VERSIONS))})")
-    for key in (_FRAME_KEY, _CAL_KEY):
-        if version == 1 and key in doc:
-            raise _fail(meta_path, f"unknown key {key!r} (version 1)")
+    for key, since in ((_FRAME_KEY, 2), (_CAL_KEY, 3)):
+        if version < since and key in doc:
+            raise _fail(meta_path, f"unknown key {key!r} (version {version})")
     files = doc["files"]
     if not isinstance(files, dict) or set(files) != {"landmarks", "patches"}:
         raise _fail(meta_path, "key 'files' must map 'landmarks' and 'patches' to file names")

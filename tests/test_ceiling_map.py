@@ -109,9 +109,11 @@ def test_wrong_map_files_are_named(tmp_path: Path, rng: np.random.Generator) -> 
     _expect(tmp_path / "empty", "map.yaml", "missing")
     _expect(variant("fmt", {}, meta.replace("lampsam-ceiling-map", "other-map")),
             "map.yaml", "'format'")
-    _expect(variant("ver", {}, meta.replace("format_version: 2", "format_version: 9")),
+    _expect(variant("ver", {}, meta.replace("format_version: 3", "format_version: 9")),
             "map.yaml", "'format_version'", "9")
     _expect(variant("key", {}, meta.replace("units:", "unitz:")), "map.yaml", "units")
+    _expect(variant("cal2", {}, meta.replace("format_version: 3", "format_version: 2")
+                    + "calibration: {}\n"), "map.yaml", "'calibration'", "version 2")
     _expect(variant("cam", {}, meta.replace("  width: 320", "  widht: 320")), "map.yaml", "camera.width")
     csv_lines = (good / "landmarks.csv").read_text().splitlines()
     _expect(variant("hdr", {"landmarks.csv": "\n".join(["id,x"] + csv_lines[1:])}),
