@@ -118,6 +118,18 @@ def test_config_rejects_catch_up_below_one() -> None:
         SlamConfig.from_dict({"online": {"catch_up": 0}})
 
 
+
+def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str],
+                        out: Path) -> subprocess.Popen[str]:
+    """``lampsam slam`` on 16 s of ``lab`` (seed 1), decoupled, the worker catching up
+    8 keyframes per update and the tracker never waiting (``--max-lag -1``)."""
+    run = tmp_path / "lab"
+    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
+    cfg = tmp_path / "cu.toml"
+    cfg.write_text("[online]\ncatch_up = 8\n")
+    return start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
+                         "--max-lag", "-1", "--config", str(cfg))
+
 def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     """SIGTERM to ``lampsam slam --online decoupled`` while the worker catches up
     (``catch_up = 8``, the tracker never waiting): exit 3, no traceback, the steps the
@@ -125,13 +137,8 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     interrupted, every keyframe counted in one update. The signal may come after the
     tracker sent its last step (a fast machine): the worker still stops after the step
     it is on rather than working through its backlog."""
-    run = tmp_path / "lab"
-    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
-    cfg = tmp_path / "cu.toml"
-    cfg.write_text("[online]\ncatch_up = 8\n")
     out = tmp_path / "out"
-    proc = start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
-                         "--max-lag", "-1", "--config", str(cfg))
+    proc = _start_catch_up_run(tmp_path, cli_env, out)
     # the worker has finished steps (a signal before its first would leave 0 on a loaded machine)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     proc.send_signal(signal.SIGTERM)
@@ -157,13 +164,8 @@ def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
     has sent every step and 3 s more; without ``cancel_join_thread`` the process hung
     at exit in ``Queue._finalize_join`` (py-spy) on each try. The sleep only makes the
     hang likely: the test cannot fail on a correct build however slow the machine."""
-    run = tmp_path / "lab"
-    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
-    cfg = tmp_path / "cu.toml"
-    cfg.write_text("[online]\ncatch_up = 8\n")
     out = tmp_path / "out"
-    proc = start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
-                         "--max-lag", "-1", "--config", str(cfg))
+    proc = _start_catch_up_run(tmp_path, cli_env, out)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
                               text=True, check=False).stdout.split()

@@ -46,6 +46,18 @@ def _estimate(values: gtsam.Values, n: int, s: Sightings
     return poses, {i: np.asarray(values.atPoint2(L(i))) for i in np.unique(s.lid).tolist()}
 
 
+
+def _assert_one_landmark_per_tree(poses: np.ndarray, odo: list, s: Sightings,
+                                  true: np.ndarray, values: gtsam.Values) -> None:
+    """Each landmark holds exactly one tree's sightings and sits within 1 mm of that
+    tree's landmark in the true association's optimum."""
+    _, v_true = _optimum(poses, odo, Sightings(s.k, s.z, s.r, true))
+    for lid in np.unique(s.lid).tolist():
+        tree = np.unique(true[s.lid == lid])
+        assert len(tree) == 1
+        assert np.hypot(*(np.asarray(values.atPoint2(L(lid)))
+                          - np.asarray(v_true.atPoint2(L(int(tree[0])))))) < 1e-3
+
 def test_point_jacobian_matches_numerical_derivative() -> None:
     """``h_D_xy`` of :func:`point_residuals` against central differences of the
     prediction at 5 seeded points (tolerance 1e-6)."""
@@ -112,12 +124,7 @@ def test_two_trees_under_one_landmark_are_split() -> None:
     graph, values, moves = refine_by_cost(_prior(poses[0]), odo, s, graph, values, C_NEW, 10.0)
     assert any(m.kind == "split" and m.ids[0] == 2 for m in moves)
     assert len(np.unique(s.lid)) == 24
-    _, v_true = _optimum(poses, odo, Sightings(s.k, s.z, s.r, true))
-    for lid in np.unique(s.lid).tolist():
-        tree = np.unique(true[s.lid == lid])
-        assert len(tree) == 1
-        assert np.hypot(*(np.asarray(values.atPoint2(L(lid)))
-                          - np.asarray(v_true.atPoint2(L(int(tree[0])))))) < 1e-3
+    _assert_one_landmark_per_tree(poses, odo, s, true, values)
 
 
 def test_refine_by_cost_lowers_the_description_length_to_the_true_association() -> None:
@@ -242,12 +249,7 @@ def test_missed_revisit_is_merged_only_with_the_poses_free() -> None:
     graph, values, moves = refine_final(_prior(poses[0]), odo, s, graph, values, C_NEW,
                                         10.0, AssociationConfig().gate(2))
     assert len(np.unique(s.lid)) == 24
-    _, v_true = _optimum(poses, odo, Sightings(s.k, s.z, s.r, true))
-    for lid in np.unique(s.lid).tolist():
-        tree = np.unique(true[s.lid == lid])
-        assert len(tree) == 1
-        assert np.hypot(*(np.asarray(values.atPoint2(L(lid)))
-                          - np.asarray(v_true.atPoint2(L(int(tree[0])))))) < 1e-3
+    _assert_one_landmark_per_tree(poses, odo, s, true, values)
 
 
 def test_dropped_sightings_are_taken_back_only_where_that_pays() -> None:
