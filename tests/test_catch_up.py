@@ -9,6 +9,7 @@ import signal
 import subprocess
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -130,6 +131,24 @@ def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str],
     return start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
                          "--max-lag", "-1", "--config", str(cfg))
 
+
+def _interrupted_summary(proc: subprocess.Popen[str], lines: list[str],
+                         out: Path) -> dict[str, Any]:
+    """Wait (120 s at most: a hang at exit fails) for the stopped run; it exits 3 with no
+    traceback, status interrupted and some but not all of the 241 steps; its summary."""
+    try:
+        _, rest = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("the process hung at exit after SIGTERM") from None
+    rest = "".join(lines) + rest
+    assert proc.returncode == EXIT_INTERRUPTED, rest
+    assert "Traceback" not in rest
+    summary: dict[str, Any] = json.loads((out / "summary.json").read_text())  # JSON
+    assert summary["status"] == "interrupted"
+    assert 0 < summary["steps"] < 241
+    return summary
+
 def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     """SIGTERM to ``lampsam slam --online decoupled`` while the worker catches up
     (``catch_up = 8``, the tracker never waiting): exit 3, no traceback, the steps the
@@ -142,13 +161,7 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     # the worker has finished steps (a signal before its first would leave 0 on a loaded machine)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     proc.send_signal(signal.SIGTERM)
-    _, rest = proc.communicate(timeout=120)
-    rest = "".join(lines) + rest
-    assert proc.returncode == EXIT_INTERRUPTED, rest
-    assert "Traceback" not in rest
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 241
+    summary = _interrupted_summary(proc, lines, out)
     traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
     assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
     assert summary["online_keyframes_per_update_max"] <= 8
@@ -180,14 +193,4 @@ def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
     finally:
         for pid in children:
             os.kill(int(pid), signal.SIGCONT)
-    try:
-        _, rest = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise AssertionError("the process hung at exit after SIGTERM") from None
-    rest = "".join(lines) + rest
-    assert proc.returncode == EXIT_INTERRUPTED, rest
-    assert "Traceback" not in rest
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 241
+    _interrupted_summary(proc, lines, out)
