@@ -40,7 +40,7 @@ from lampsam.backend.landmark_moves import (
     sighted_points,
     solve_association,
 )
-from lampsam.backend.reassociate import Sightings, read_estimate
+from lampsam.backend.reassociate import Sightings, pair_diff_cov, read_estimate
 
 log = logging.getLogger(__name__)
 
@@ -209,32 +209,18 @@ def joint_merge_candidates(graph: gtsam.NonlinearFactorGraph, values: gtsam.Valu
         log.warning("joint merges: no marginals (%s)", exc)
         return []
 
-    def block_d2(block: list[tuple[int, int]]) -> float:
-        keys = [L(x) for pair in block for x in pair]
-        cov = marg.jointMarginalCovariance(keys).fullMatrix()
-        m = len(block)
-        a = np.zeros((2 * m, 4 * m))
-        for n in range(m):
-            a[2 * n:2 * n + 2, 4 * n:4 * n + 2] = np.eye(2)
-            a[2 * n:2 * n + 2, 4 * n + 2:4 * n + 4] = -np.eye(2)
-        d = np.concatenate([xy[p] - xy[q] for p, q in block])
-        c = a @ cov @ a.T
-        try:
-            return float(d @ np.linalg.solve(0.5 * (c + c.T), d))
-        except np.linalg.LinAlgError:
-            return float("inf")
-
-    scored = []
+    out: list[tuple[float, list[tuple[int, int]]]] = []
     for a, b in pairs:
-        older = (min(kset[a]), a) <= (min(kset[b]), b)
-        pair = (a, b) if older else (b, a)
-        d2 = block_d2([pair])
+        pair = (a, b) if (min(kset[a]), a) <= (min(kset[b]), b) else (b, a)
+        c = pair_diff_cov(marg, *pair)
+        d = xy[pair[0]] - xy[pair[1]]
+        try:
+            d2 = float(d @ np.linalg.solve(0.5 * (c + c.T), d))
+        except np.linalg.LinAlgError:
+            continue
         if d2 < new_cost:
-            scored.append((d2, pair))
-    scored.sort()
-    out: list[tuple[float, list[tuple[int, int]]]] = [
-        (d2 - new_cost, [pair]) for d2, pair in scored if d2 < new_cost]
-    return sorted(out, key=lambda x: x[0])
+            out.append((d2 - new_cost, [pair]))
+    return sorted(out)
 
 
 def refine_final(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],

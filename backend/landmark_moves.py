@@ -280,15 +280,15 @@ def cost_moves(poses: FloatArray, k: IntArray, z: FloatArray, r: FloatArray, lid
 
 
 def description_cost(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, lid: IntArray,
-          new_cost: float) -> float:
+                     new_cost: float) -> float:
     """``2 E + new_cost n_landmarks`` of an association at ``values``."""
     return 2.0 * float(graph.error(values)) + new_cost * len(np.unique(lid))
 
 
 def solve_association(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
-           s: Sightings, new: IntArray, poses: FloatArray, lms: dict[int, FloatArray],
-           moved: dict[int, FloatArray], new_cost: float
-           ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, float]:
+                      s: Sightings, new: IntArray, poses: FloatArray, lms: dict[int, FloatArray],
+                      moved: dict[int, FloatArray], new_cost: float
+                      ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, float]:
     """The graph of the association ``new``, its LM optimum from ``poses`` and the
     landmarks (``moved`` first, else ``lms``), and its ``2 E + new_cost n``."""
     g_new = build_graph(prior, odometry, Sightings(s.k, s.z, s.r, new))

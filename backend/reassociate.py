@@ -179,6 +179,14 @@ def revisit_merges(lms: dict[int, FloatArray], s: Sightings, cfg: ReassociationC
     return out
 
 
+def pair_diff_cov(marg: gtsam.Marginals, a: int, b: int) -> FloatArray:
+    """(2, 2) covariance of ``l_a - l_b`` from the joint marginal of the two planar
+    landmarks ``L(a)``, ``L(b)``: ``S_aa + S_bb - S_ab - S_ba``."""
+    j = marg.jointMarginalCovariance([L(a), L(b)]).fullMatrix()
+    out: FloatArray = j[:2, :2] + j[2:, 2:] - j[:2, 2:] - j[2:, :2]
+    return out
+
+
 def duplicate_merges(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                      lms: dict[int, FloatArray], s: Sightings, gate: float, ambiguity: float,
                      radius: float) -> dict[int, int]:
@@ -210,8 +218,7 @@ def duplicate_merges(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     def diff_cov(ia: IntArray, ib: IntArray) -> FloatArray:
         out = np.empty((len(ia), 2, 2))
         for n, (a, b) in enumerate(zip(ia.tolist(), ib.tolist(), strict=True)):
-            j = marg.jointMarginalCovariance([L(int(ids[a])), L(int(ids[b]))]).fullMatrix()
-            out[n] = j[:2, :2] + j[2:, 2:] - j[:2, 2:] - j[2:, :2]
+            out[n] = pair_diff_cov(marg, int(ids[a]), int(ids[b]))
         return out
 
     pairs = merge_pairs(ids, xy, created, diff_cov, covis.together, gate, ambiguity, radius)

@@ -46,7 +46,7 @@ from lampsam.backend.constellation import (
 from lampsam.backend.handlers import GraphLandmark
 from lampsam.backend.held_sightings import HeldSightings
 from lampsam.backend.interface import LandmarkKind
-from lampsam.backend.models import Obs
+from lampsam.backend.models import Obs, init_point2
 from lampsam.backend.pose_cov import tangent_to_coords_cov
 
 log = logging.getLogger(__name__)
@@ -142,10 +142,10 @@ class RevisitMerge(HeldSightings):
         held sightings as ambiguous (``dropped``; :meth:`_hold` keeps them for the scan).
         """
         cfg = self.config.association
-        lo = k - RECENT_KEYFRAMES
-        held = [(kk, o) for kk, o in self._held if kk > lo]  # (this keyframe's: _hold)
         if not n_new and not dropped:
             return 0
+        lo = k - RECENT_KEYFRAMES
+        held = [(kk, o) for kk, o in self._held if kk > lo]  # (this keyframe's: _hold)
         pose = self.current_pose()
         # the local scan: each landmark sighted in the window at its sightings' mean,
         # every sighting placed from its keyframe's current estimate
@@ -156,11 +156,8 @@ class RevisitMerge(HeldSightings):
                 break  # (held sightings placed later are at most a window out of order)
             if kk <= lo or lid not in self._landmarks:
                 continue
-            p = self._pose_of(int(kk))
-            b, r = float(z[0]), float(z[1])
-            pts.setdefault(int(lid), []).append(
-                p[:2] + r * np.array([math.cos(p[2] + b), math.sin(p[2] + b)]))
-            max_range = max(max_range, r)
+            pts.setdefault(int(lid), []).append(init_point2(self._pose_of(int(kk)), z)[0])
+            max_range = max(max_range, float(z[1]))
         recent = [self._landmarks[lid] for lid in pts]
         if len(recent) + len(held) < cfg.revisit_min_inliers:
             return 0  # (no marginal asked for: a ceiling run has no range-bearing scan)
@@ -168,10 +165,8 @@ class RevisitMerge(HeldSightings):
         clusters: list[list[tuple[int, Obs, FloatArray]]] = []
         sums = np.zeros((len(held), 2))  # running sum of each cluster's points
         for kk, o in held:
-            p = self._pose_of(kk)
-            b, r = float(o.z[0]), float(o.z[1])
-            pt = p[:2] + r * np.array([math.cos(p[2] + b), math.sin(p[2] + b)])
-            max_range = max(max_range, r)
+            pt = init_point2(self._pose_of(kk), o.z)[0]
+            max_range = max(max_range, float(o.z[1]))
             n_cl = len(clusters)
             if n_cl:
                 means = sums[:n_cl] / np.array([len(cl) for cl in clusters])[:, None]
