@@ -205,6 +205,22 @@ def pass_means(run_of: np.ndarray, ids: np.ndarray, frames: np.ndarray, e: Float
     return means, n, label
 
 
+def _pooled(runs: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """One arm's sightings of every run, concatenated per field."""
+    return {k: np.concatenate([r[k] for r in runs]) for k in runs[0]}
+
+
+def _tilt_deg(theta: np.ndarray) -> np.ndarray:
+    """Angle (deg, 0-45) of each true heading ``theta`` (rad) from the nearest axis."""
+    return np.degrees(np.abs((theta + np.pi / 4) % (np.pi / 2) - np.pi / 4))
+
+
+def _claimed_px(s: dict[str, np.ndarray], sel: np.ndarray | slice = slice(None)) -> float:
+    """The sightings' claimed centroid sigma per axis, px (RMS over ``sel``)."""
+    return float(np.sqrt(np.mean(s["cov_m"][sel, 0, 0] + s["cov_m"][sel, 1, 1]) / 2)
+                 * s["focal"][0])
+
+
 def sighting_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
     """Print the sightings' bias, RMS, per-lamp means and claimed sigma per arm."""
     print("\nlamp sightings against truth (all runs):")
@@ -213,7 +229,7 @@ def sighting_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
           "| claimed sigma px | NSE (2 ideal) |")
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for arm, runs in all_s.items():
-        s = {k: np.concatenate([r[k] for r in runs]) for k in runs[0]}
+        s = _pooled(runs)
         run_of = np.concatenate([np.full(len(r["id"]), i) for i, r in enumerate(runs)])
         bias = s["e_px"].mean(axis=0)
         rms_px = float(np.sqrt(np.mean(np.sum(s["e_px"] ** 2, 1) / 2)))
@@ -224,8 +240,7 @@ def sighting_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
         pm, pn, _ = pass_means(run_of, s["id"], s["frame"], s["e_px"])
         pass_rms = float(np.sqrt(np.mean(np.sum(pm**2, 1) / 2)))
         pass_share = float(np.sum(pn * np.sum(pm**2, 1)) / np.sum(s["e_px"] ** 2))
-        claimed = float(np.sqrt(np.mean(s["cov_m"][:, 0, 0] + s["cov_m"][:, 1, 1]) / 2)
-                        * s["focal"][0])
+        claimed = _claimed_px(s)
         nse = np.einsum("ni,nij,nj->n", s["e_m"], np.linalg.inv(s["cov_m"]), s["e_m"])
         print(f"| {arm} | {len(s['id'])} | {bias[0]:+.3f}, {bias[1]:+.3f} | {rms_px:.3f} | "
               f"{rms_mm:.2f} | {lamp_rms:.2f} | {share:.0%} | {len(n)} | {pass_rms:.3f} | "
@@ -245,22 +260,21 @@ def tilt_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
     arms = list(all_s)
     print("| type | tilt | sightings | " + " | ".join(arms) + " |")
     print("|---|---|---:|" + "---|" * len(arms))
-    cat = {a: {k: np.concatenate([r[k] for r in runs]) for k in runs[0]} for a, runs in all_s.items()}
+    cat = {a: _pooled(runs) for a, runs in all_s.items()}
     for typ in sorted(set(cat[arms[0]]["type"].tolist())):
         for lo, hi in zip(TILT_BINS_DEG[:-1], TILT_BINS_DEG[1:], strict=True):
             cells = []
             n = 0
             for a in arms:
                 s = cat[a]
-                t = np.degrees(np.abs((s["theta"] + np.pi / 4) % (np.pi / 2) - np.pi / 4))
+                t = _tilt_deg(s["theta"])
                 sel = (s["type"] == typ) & (t >= lo) & (t < hi)
                 n = int(sel.sum())
                 if not n:
                     cells.append("-")
                     continue
                 rms = np.sqrt(np.mean(s["e_px"][sel] ** 2))
-                claim = np.sqrt(np.mean(s["cov_m"][sel, 0, 0] + s["cov_m"][sel, 1, 1]) / 2)
-                cells.append(f"{rms:.3f} / {claim * s['focal'][0]:.3f}")
+                cells.append(f"{rms:.3f} / {_claimed_px(s, sel):.3f}")
             print(f"| {typ} | {lo:g}-{hi:g} | {n} | " + " | ".join(cells) + " |")
 
 
@@ -274,18 +288,17 @@ def tilt_figure(path: Path, all_s: dict[str, list[dict[str, np.ndarray]]]) -> No
     edges = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 45.0])
     mids = np.sqrt(np.maximum(edges[:-1], 0.1) * edges[1:])
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), sharey=True)
-    cat = {a: {k: np.concatenate([r[k] for r in runs]) for k in runs[0]} for a, runs in all_s.items()}
+    cat = {a: _pooled(runs) for a, runs in all_s.items()}
     for ax, typ in zip(axes, ("lamp_rect", "lamp_square", "lamp_round"), strict=True):
         drawn: list[FloatArray] = []
         for k, (arm, s) in enumerate(cat.items()):
-            t = np.degrees(np.abs((s["theta"] + np.pi / 4) % (np.pi / 2) - np.pi / 4))
+            t = _tilt_deg(s["theta"])
             rms, claim = np.full(mids.size, np.nan), np.full(mids.size, np.nan)
             for i in range(mids.size):
                 sel = (s["type"] == typ) & (t >= edges[i]) & (t < edges[i + 1])
                 if sel.sum() >= 20:
                     rms[i] = np.sqrt(np.mean(s["e_px"][sel] ** 2))
-                    claim[i] = np.sqrt(np.mean(s["cov_m"][sel, 0, 0] + s["cov_m"][sel, 1, 1]) / 2
-                                       ) * s["focal"][0]
+                    claim[i] = _claimed_px(s, sel)
             color = f"C{k}"
             if not any(np.allclose(rms, r, equal_nan=True) for r in drawn):  # same sightings
                 ax.semilogx(mids, rms, "o-", color=color, label=f"{arm}: RMS error")
