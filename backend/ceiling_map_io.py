@@ -52,7 +52,8 @@ from lampsam.safe_io import atomic_path
 
 #: ``format`` key of ``map.yaml``.
 MAP_FORMAT = "lampsam-ceiling-map"
-#: Version written (2: with the frame-uncertainty columns); the reader accepts 1 and 2.
+#: Version written (2: the frame-uncertainty columns; 3: the optional ``calibration`` key);
+#: the reader accepts 1, 2 and 3.
 MAP_VERSION = 3
 MAP_VERSIONS = (1, 2, 3)
 MAP_FILE = "map.yaml"
@@ -122,9 +123,9 @@ class CeilingMap:
             (:mod:`lampsam.backend.map_frame`), or None (a version-1 map, a merged
             map, or a backend without a factor graph).
         calibration: per kind (``lamp``, ``corner``) the figures of the pass-split test
-            that inflated the saved covariances of inconsistent landmarks
-            (:mod:`lampsam.backend.map_calibration`: ``landmarks_split``, ``failed``,
-            ``inflated``, ``nees_mean``, ``nees_median``, ``chi2_per_row``), or None (no
+            of the saved covariances (:mod:`lampsam.backend.map_calibration`:
+            ``landmarks_split``, ``failed``, ``inflated`` (0 when the test only reported,
+            the default), ``nees_mean``, ``nees_median``, ``chi2_per_row``), or None (no
             test).
     """
 
