@@ -71,6 +71,9 @@ class Start:
 #: measured by hand, looser than the run's known start (:class:`LocalizeConfig`'s 1 mm)
 TYPED_START_SIGMA = (0.02, 0.02, 0.01)
 
+#: ``source.map_check`` of a map saved without the pass-split test (``save_map(check=False)``)
+MAP_CHECK_NOT_RUN = "not run (lampsam slam --no-map-check): no calibration figures"
+
 
 def parse_start(text: str) -> Start:
     """``X,Y,THETA`` (m, m, rad) as a :class:`Start` at the run's first step, with the
@@ -253,7 +256,8 @@ def calibrated(result: SlamResult, cmap: CeilingMap, inflate: bool = False) -> C
 
 
 def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
-             backend: SlamBackend | None = None, calibrate: bool = False) -> CeilingMap:
+             backend: SlamBackend | None = None, calibrate: bool = False,
+             check: bool = True) -> CeilingMap:
     """Write a SLAM result's map (with the backend's corner patches) as a ceiling map.
 
     Args:
@@ -265,20 +269,32 @@ def save_map(folder: str | Path, result: SlamResult, run: LoggedRun,
             (:func:`calibrated`); default False: the smoother's marginals as they are, the
             test's figures recorded in ``map.yaml`` (inflating made localize-only less
             accurate on lab: docs/ceiling-map.md).
+        check: run the pass-split test at all (default True, its figures under
+            ``calibration`` in ``map.yaml``); False (``lampsam slam --no-map-check``) skips
+            it, writes no ``calibration`` and records ``map_check: not run`` under
+            ``source`` (a free mapping every map reader accepts).
 
     Returns:
         The map written.
+
+    Raises:
+        ValueError: ``calibrate`` without ``check`` (inflating needs the test).
     """
+    if calibrate and not check:
+        raise ValueError("save_map: calibrate=True needs check=True (inflation uses the test)")
     s = summary(result, run.groundtruth)
     source = {"run": str(run.path), "backend": result.backend, "status": result.status,
               "steps": int(len(result.times)),
               "landmarks_seen_once_not_saved": len(result.provisional)}
     if "error" in s:
         source["position_rms_m"] = float(s["error"]["position_rms_m"])
+    if not check:
+        source["map_check"] = MAP_CHECK_NOT_RUN
     cmap = map_from_estimates(result.landmarks, run.rig,
                               corner_patches(backend) if backend is not None else None, source)
     cmap.frame = frame_of_result(result, cmap)
-    cmap = calibrated(result, cmap, inflate=calibrate)
+    if check:
+        cmap = calibrated(result, cmap, inflate=calibrate)
     write_map(folder, cmap)
     log.info("ceiling map written to %s: %d lamps, %d corners", folder,
              len(cmap.by_kind("lamp")), len(cmap.by_kind("corner")))
