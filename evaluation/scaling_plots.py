@@ -3,7 +3,7 @@
 The time of one backend update is modelled as ``t = c * n**a`` with ``n`` the number
 of landmarks in the state. :func:`fit_power_law` fits ``(a, c)`` by least squares on
 ``log t = a log n + log c``; :func:`plot_scaling` draws finished measurements and
-their fits on a given axis. The measurements themselves come from
+their fits on a given axis, :func:`save_scaling_figure` saves that figure as a PNG. The measurements themselves come from
 ``scripts/bench/bench_scaling.py`` (this module never estimates or times anything).
 
 Expected exponents: the EKF's update (paper 1, eq. 23, ``P <- P - K (P H^T)^T``)
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -22,6 +23,7 @@ from numpy.typing import ArrayLike
 
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError
+from lampsam.safe_io import atomic_path
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -155,3 +157,32 @@ def plot_scaling(ax: Axes, series: list[ScalingSeries]) -> list[Any]:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     return artists
+
+
+def save_scaling_figure(path: str | Path, series: list[ScalingSeries], clock: str) -> Path:
+    """The log-log figure of :func:`plot_scaling`, saved as a PNG.
+
+    Args:
+        path: output file.
+        series: finished results, one per backend.
+        clock: ``"cpu"`` (process CPU time) or ``"wall"``: which time the series hold,
+            named on the y axis.
+
+    Returns:
+        The written path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.0, 5.0))
+    plot_scaling(ax, series)
+    what = "CPU (process) time" if clock == "cpu" else "wall-clock time"
+    ax.set_ylabel(f"{what} per update [ms]")
+    fig.tight_layout()
+    out = Path(path)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    return out

@@ -63,6 +63,7 @@ from lampsam.datasets.render_ceiling import CeilingRenderer, camera_center
 from lampsam.datasets.simulator import simulate_trajectory
 from lampsam.datasets.world import Lamp, World, load_world
 from lampsam.datasets.world_landmarks import world_landmarks
+from lampsam.evaluation.lamp_plots import PhasePoints, save_lamp_bias_figure
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.lamps import detect_lamps
 
@@ -276,39 +277,17 @@ CS_LAB = (255.0 - 175.0) / (320.0 - 175.0)
 
 def figure(results: dict[str, dict], path: Path) -> None:
     """Lamp error RMS per variant and setting, and the across error of aligned rect lamps
-    against the clipped-edge model."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
+    against the clipped-edge model (:func:`lampsam.evaluation.lamp_plots.save_lamp_bias_figure`)."""
     variants = list(dict.fromkeys(k.split("/")[0] for k in results))
     configs = list(dict.fromkeys(k.split("/")[1] for k in results))
-    width = 0.8 / max(len(configs), 1)
-    for j, c in enumerate(configs):
-        vals = [results.get(f"{v}/{c}", {}).get("rms", np.nan) for v in variants]
-        ax1.bar(np.arange(len(variants)) + (j - (len(configs) - 1) / 2) * width, vals, width,
-                label=f"weights: {c}")  # fmt: skip
-    ax1.set_xticks(np.arange(len(variants)), variants, rotation=20)
-    ax1.set_ylabel("lamp centre error RMS, px")
-    ax1.set_title("lamp observation error on the simulated lab, by cause")
-    ax1.legend(fontsize=8)
-    for key, style in ((f"{variants[0]}/read", "o"), (f"{variants[0]}/model", "x")):
+    rms = np.array([[results.get(f"{v}/{c}", {}).get("rms", np.nan) for v in variants]
+                    for c in configs], dtype=float).reshape(len(configs), len(variants))
+    points = []
+    for key, marker in ((f"{variants[0]}/read", "o"), (f"{variants[0]}/model", "x")):
         res = results.get(key)
         if res and len(res["meas"]):
-            ax2.plot(res["pred"], res["meas"], style, ms=4, alpha=0.6, label=key)
-    lim = 0.3
-    ax2.plot([-lim, lim], [-lim, lim], "k-", lw=0.5)
-    ax2.set_xlim(-lim, lim)
-    ax2.set_ylim(-lim, lim)
-    ax2.set_aspect("equal")
-    ax2.set_xlabel("clipped-edge model, weights as read: (e(phi_r) - e(phi_l)) / 2, px")
-    ax2.set_ylabel("measured across-axis error, px")
-    ax2.set_title("rect lamps with edges along image columns")
-    ax2.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+            points.append(PhasePoints(key, marker, res["pred"], res["meas"]))
+    save_lamp_bias_figure(path, variants, configs, rms, points)
     print(f"figure: {path}")
 
 

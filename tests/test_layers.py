@@ -7,6 +7,10 @@ top-level modules (``errors``, ``angles``, ``safe_io``, ...) import no stage; no
 inside functions, and under ``TYPE_CHECKING``; so do the absolute module names of the
 subpackages' lazy-export tables (``lazy_exports``). The checker itself is tested on a
 planted reverse import in a temporary tree.
+
+Only ``evaluation`` plots: no other module of the package, and no script, imports
+matplotlib (a script computes its results and hands them to a plot function of
+``lampsam.evaluation``); tests may.
 """
 
 from __future__ import annotations
@@ -88,6 +92,34 @@ def layer_violations(root: Path) -> list[str]:
             if why and (rel, line) not in found:
                 found[rel, line] = f"{rel}:{line}: {me} -> {target} ({why})"
     return [found[key] for key in sorted(found)]
+
+
+def plotting_outside_evaluation(root: Path) -> list[str]:
+    """``file:line`` of every matplotlib import outside ``evaluation/`` (scripts included,
+    tests not)."""
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root).parts
+        if {"tests", ".venv", "__pycache__", "out"} & set(parts) or parts[0] == "evaluation":
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n.split(".")[0] == "matplotlib" for n in names):
+                found.append(f"{path.relative_to(root)}:{node.lineno}")
+    return found
+
+
+def test_only_evaluation_plots(tmp_path: Path) -> None:
+    assert plotting_outside_evaluation(PACKAGE_ROOT) == []
+    root = _plant(tmp_path, {
+        "evaluation/plots.py": "import matplotlib.pyplot as plt\n",
+        "tests/test_plots.py": "import matplotlib\n",
+        "scripts/bench/b.py": "def f():\n    from matplotlib import pyplot\n",
+        "backend/x.py": "import numpy, matplotlib\n",
+    })
+    assert plotting_outside_evaluation(root) == ["backend/x.py:1", "scripts/bench/b.py:2"]
 
 
 def test_package_respects_the_data_flow() -> None:

@@ -17,6 +17,7 @@ from lampsam.evaluation.scaling_plots import (
     fit_power_law,
     fit_series,
     plot_scaling,
+    save_scaling_figure,
 )
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "bench" / "bench_scaling.py"
@@ -94,6 +95,26 @@ def test_plot_draws_data_and_fits() -> None:
     ekf_median = artists[0]
     np.testing.assert_allclose(ekf_median.get_ydata(), 1e-4 * n**2)  # drawn in ms
     plt.close(fig)
+
+
+def test_saved_figure_names_the_clock(tmp_path: Path) -> None:
+    """The PNG has the figure's size (7 x 5 in at 120 dpi) and the y axis names the clock."""
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.image as mpimg
+    import matplotlib.pyplot as plt
+
+    n = np.array([40.0, 80.0, 160.0])
+    series = [fit_series("ekf", n, 1e-7 * n**2, 2e-7 * n**2)]
+    labels = []
+    real_close = plt.close
+    with pytest.MonkeyPatch.context() as mp:  # read the axis before the figure is closed
+        mp.setattr(plt, "close", lambda fig: (labels.append(fig.axes[0].get_ylabel()),
+                                              real_close(fig)))
+        for clock in ("cpu", "wall"):
+            out = save_scaling_figure(tmp_path / f"{clock}.png", series, clock)
+            assert mpimg.imread(out).shape[:2] == (600, 840)
+    assert labels == ["CPU (process) time per update [ms]", "wall-clock time per update [ms]"]
 
 
 def _load_script() -> object:

@@ -54,6 +54,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.evaluation import metrics as M
+from lampsam.evaluation.lamp_plots import TILT_PANEL_TYPES, TiltCurve, save_tilt_figure
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.measurements import CeilingFrame
 from lampsam.frontend.pipeline import FrontendConfig, iter_run
@@ -278,20 +279,27 @@ def tilt_table(all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
             print(f"| {typ} | {lo:g}-{hi:g} | {n} | " + " | ".join(cells) + " |")
 
 
-def tilt_figure(path: Path, all_s: dict[str, list[dict[str, np.ndarray]]]) -> None:
-    """RMS error and claimed sigma (px per axis) against the heading's tilt from the grid."""
-    import matplotlib
+TILT_EDGES_DEG = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 45.0])
+"""The figure's tilt bins, deg (finer than :data:`TILT_BINS_DEG`); a bin needs 20 sightings."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    edges = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 45.0])
+def tilt_curves(all_s: dict[str, list[dict[str, np.ndarray]]]
+                ) -> tuple[FloatArray, dict[str, list[TiltCurve]]]:
+    """RMS error and claimed sigma (px per axis) per fine tilt bin, lamp type and arm.
+
+    Returns:
+        The bins' geometric centres (deg) and per lamp type of ``TILT_PANEL_TYPES`` one
+        curve per arm (an arm's error curve equal to an earlier arm's, i.e. the same
+        sightings, is given as None: drawn once).
+    """
+    edges = TILT_EDGES_DEG
     mids = np.sqrt(np.maximum(edges[:-1], 0.1) * edges[1:])
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6), sharey=True)
     cat = {a: _pooled(runs) for a, runs in all_s.items()}
-    for ax, typ in zip(axes, ("lamp_rect", "lamp_square", "lamp_round"), strict=True):
+    panels: dict[str, list[TiltCurve]] = {}
+    for typ in TILT_PANEL_TYPES:
         drawn: list[FloatArray] = []
-        for k, (arm, s) in enumerate(cat.items()):
+        curves = []
+        for arm, s in cat.items():
             t = _tilt_deg(s["theta"])
             rms, claim = np.full(mids.size, np.nan), np.full(mids.size, np.nan)
             for i in range(mids.size):
@@ -299,18 +307,12 @@ def tilt_figure(path: Path, all_s: dict[str, list[dict[str, np.ndarray]]]) -> No
                 if sel.sum() >= 20:
                     rms[i] = np.sqrt(np.mean(s["e_px"][sel] ** 2))
                     claim[i] = _claimed_px(s, sel)
-            color = f"C{k}"
-            if not any(np.allclose(rms, r, equal_nan=True) for r in drawn):  # same sightings
-                ax.semilogx(mids, rms, "o-", color=color, label=f"{arm}: RMS error")
+            new = not any(np.allclose(rms, r, equal_nan=True) for r in drawn)
+            if new:
                 drawn.append(rms)
-            ax.semilogx(mids, claim, "--", color=color, label=f"{arm}: claimed sigma")
-        ax.set_title(typ.replace("lamp_", "") + " lamps")
-        ax.set_xlabel("heading's tilt from the pixel grid, deg")
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].set_ylabel("centroid error per axis, px")
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+            curves.append(TiltCurve(arm, rms if new else None, claim))
+        panels[typ] = curves
+    return mids, panels
 
 
 def write_csv(path: Path, all_s: dict[str, list[dict[str, np.ndarray]]], names: list[str]) -> None:
@@ -425,7 +427,7 @@ def main() -> None:
     if args.csv is not None:
         write_csv(args.csv, all_s, names)
     if args.figure is not None:
-        tilt_figure(args.figure, all_s)
+        save_tilt_figure(args.figure, *tilt_curves(all_s))
     print(f"\nload average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} now, "
           f"on {os.cpu_count()} cores")
 

@@ -85,10 +85,10 @@ from lampsam.datasets.logrun import (
     Trajectory,
 )
 from lampsam.errors import LampsamError
-from lampsam.evaluation.scaling_plots import ScalingSeries, fit_series, plot_scaling
+from lampsam.evaluation.scaling_plots import ScalingSeries, fit_series, save_scaling_figure
 from lampsam.factors.geometry import wrap_angle
 from lampsam.factors.motion import diff_drive_step
-from lampsam.safe_io import atomic_path, write_text_atomic
+from lampsam.safe_io import write_text_atomic
 
 log = logging.getLogger("bench_scaling")
 
@@ -518,23 +518,6 @@ def target_lines(rows: list[dict[str, Any]], series: list[ScalingSeries], clock:
     return out
 
 
-def save_figure(series: list[ScalingSeries], path: Path, clock: str) -> None:
-    """The log-log figure of :func:`plot_scaling`, saved as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.0, 5.0))
-    plot_scaling(ax, series)
-    what = "CPU (process) time" if clock == "cpu" else "wall-clock time"
-    ax.set_ylabel(f"{what} per update [ms]")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, run the sweep, print the table and exponents, save JSON + PNG."""
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -619,7 +602,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     write_text_atomic(out / "scaling.json", json.dumps(doc, indent=2))
     if series:
-        save_figure(series, out / "scaling.png", args.clock)
+        save_scaling_figure(out / "scaling.png", series, args.clock)
     print(f"\nwrote {out / 'scaling.json'} and {out / 'scaling.png'} ({elapsed:.0f} s; "
           f"load average {load0[0]:.1f} -> {load1[0]:.1f} on "
           f"{os.cpu_count()} cores: timings are inflated by other processes)")
