@@ -194,6 +194,14 @@ def _fit(S: FloatArray, K: FloatArray, planar: bool) -> tuple[FloatArray, FloatA
     return R[0], t[0]
 
 
+def _align_all(S: FloatArray, K: FloatArray, planar: bool) -> Alignment:
+    """:func:`align` (``planar`` False, 3 pairs or more) or :func:`align_planar` (True, 2)."""
+    S, K = _check_pairs(S, K, 2 if planar else 3)
+    R, t = _fit(S, K, planar)
+    r = residual_norms(S, K, R, t)
+    return Alignment(R, t, float(np.sqrt(np.mean(r**2))), np.ones(len(S), dtype=bool))
+
+
 def align(S: FloatArray, K: FloatArray) -> Alignment:
     """Least-squares rigid alignment of all correspondences (eqs. 1-6, no RANSAC).
 
@@ -207,10 +215,7 @@ def align(S: FloatArray, K: FloatArray) -> Alignment:
     Raises:
         AlignmentError: fewer than 3 pairs, shape mismatch or non-finite input.
     """
-    S, K = _check_pairs(S, K, 3)
-    R, t = _fit(S, K, planar=False)
-    r = residual_norms(S, K, R, t)
-    return Alignment(R, t, float(np.sqrt(np.mean(r**2))), np.ones(len(S), dtype=bool))
+    return _align_all(S, K, planar=False)
 
 
 def align_planar(S: FloatArray, K: FloatArray) -> Alignment:
@@ -226,10 +231,7 @@ def align_planar(S: FloatArray, K: FloatArray) -> Alignment:
     Raises:
         AlignmentError: fewer than 2 pairs, shape mismatch or non-finite input.
     """
-    S, K = _check_pairs(S, K, 2)
-    R, t = _fit(S, K, planar=True)
-    r = residual_norms(S, K, R, t)
-    return Alignment(R, t, float(np.sqrt(np.mean(r**2))), np.ones(len(S), dtype=bool))
+    return _align_all(S, K, planar=True)
 
 
 def ransac_iterations(inlier_ratio: float, sample_size: int, confidence: float) -> int:
