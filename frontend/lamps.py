@@ -52,12 +52,11 @@ import numpy as np
 from lampsam.arrays import BoolArray, ImageU8
 from lampsam.frontend.blob_moments import (
     BlobMoments,
-    gather_reach,
     measure_labels,
     measure_region,
-    reaches_may_overlap,
     shape_checks,
 )
+from lampsam.frontend.blob_reach import gather_reach, reaches_may_overlap
 from lampsam.frontend.ceiling_coords import (
     PixelToCeiling,
     ceiling_jacobians,

@@ -18,7 +18,7 @@ import pytest
 import lampsam.frontend.lamps as lamps_module
 from lampsam.datasets.logrun import CameraModel
 from lampsam.evaluation.frontend_synthetic import synthetic_sequence
-from lampsam.frontend.blob_moments import gather_reach, reaches_may_overlap
+from lampsam.frontend.blob_reach import gather_reach, reaches_may_overlap
 from lampsam.frontend.dilation import dilate_disk
 from lampsam.frontend.lamp_config import LampDetectorConfig
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation

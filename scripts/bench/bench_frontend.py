@@ -33,7 +33,7 @@ image of a logged run, as the estimators get it (``images.load`` then
 the PNG decode and for the frontend, their medians / p95 / max, the frontend's
 x real time (the run's duration over the CPU time) and its share of the data's
 frame interval; and the same frontend with the exact shortcuts turned off (the
-full path, :func:`lampsam.frontend.blob_moments.reaches_may_overlap` always True),
+full path, :func:`lampsam.frontend.blob_reach.reaches_may_overlap` always True),
 frame by frame on the same images in the same pass, as a ratio; and the PNG
 decode of each file's bytes in memory against the same image stored at PNG level
 0 unfiltered (what ``lampsam simulate`` writes since this option), as a ratio.
