@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.safe_io import atomic_path
+from lampsam.evaluation.outputs import save_figure
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -103,11 +103,7 @@ def save_tilt_figure(path: str | Path, tilt_deg: FloatArray,
     axes[0].set_ylabel("centroid error per axis, px")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, dpi=110)
 
 
 @dataclass(frozen=True)
@@ -200,8 +196,4 @@ def save_lamp_bias_figure(path: str | Path, variants: Sequence[str], settings: S
     plot_error_by_cause(ax1, variants, settings, rms_px)
     plot_phase_model(ax2, points)
     fig.tight_layout()
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, dpi=110)

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 
 from lampsam.arrays import FloatArray
 from lampsam.errors import LampsamError
-from lampsam.safe_io import atomic_path
+from lampsam.evaluation.outputs import save_figure
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -181,8 +181,4 @@ def save_scaling_figure(path: str | Path, series: list[ScalingSeries], clock: st
     what = "CPU (process) time" if clock == "cpu" else "wall-clock time"
     ax.set_ylabel(f"{what} per update [ms]")
     fig.tight_layout()
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, dpi=120)
