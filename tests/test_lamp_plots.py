@@ -93,3 +93,38 @@ def test_saved_figures_have_their_size(tmp_path: Path) -> None:
                                  np.array([[0.1, 0.2]]), pts)
     assert mpimg.imread(bias).shape[:2] == (528, 1320)  # 4.8 x 12 in at 110 dpi
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bias.png", "tilt.png"]  # no temp left
+
+
+def test_bench_tilt_curves_bin_the_sightings() -> None:
+    """scripts/bench/bench_lamp_model.tilt_curves: per bin the RMS of the sightings in it
+    (>= 20 of them, else NaN) and their claimed sigma; an arm with the same sightings as an
+    earlier one has no error curve of its own."""
+    import importlib.util
+    import sys
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "bench" / "bench_lamp_model.py"
+    spec = importlib.util.spec_from_file_location("bench_lamp_model", path)
+    assert spec is not None and spec.loader is not None
+    bl = importlib.util.module_from_spec(spec)
+    sys.modules["bench_lamp_model"] = bl
+    spec.loader.exec_module(bl)
+
+    rng = np.random.default_rng(4)
+    n = 60  # 40 rect lamps at 0.1 deg tilt, 20 at 30 deg; none of the other types
+    theta = np.radians(np.r_[np.full(40, 0.1), np.full(20, 30.0)]) + rng.integers(0, 4, n) * np.pi / 2
+    e_px = rng.normal(0.0, 0.05, (n, 2))
+    cov = np.tile(np.diag([4e-6, 4e-6]), (n, 1, 1))
+    s = {"theta": theta, "type": np.array(["lamp_rect"] * n), "e_px": e_px, "cov_m": cov,
+         "focal": np.full(n, 25.0)}
+    t2 = dict(s, e_px=2 * e_px)
+    mids, panels = bl.tilt_curves({"on": [s], "same": [s], "double": [t2]})
+    assert len(mids) == len(bl.TILT_EDGES_DEG) - 1
+    on, same, double = panels["lamp_rect"]
+    assert on.rms_px is not None and same.rms_px is None and double.rms_px is not None
+    lo, hi = 0, int(np.flatnonzero(bl.TILT_EDGES_DEG[1:] > 30.0)[0])  # the bins of 0.1 and 30 deg
+    assert on.rms_px[lo] == pytest.approx(np.sqrt(np.mean(e_px[:40] ** 2)))
+    assert on.rms_px[hi] == pytest.approx(np.sqrt(np.mean(e_px[40:] ** 2)))
+    np.testing.assert_allclose(double.rms_px, 2 * on.rms_px)
+    assert np.isnan(np.delete(on.rms_px, [lo, hi])).all()  # empty bins
+    assert on.claimed_px[lo] == pytest.approx(0.002 * 25.0)  # sqrt(4e-6) x focal
+    assert all(np.isnan(c.rms_px).all() for c in panels["lamp_round"] if c.rms_px is not None)
