@@ -21,13 +21,14 @@ Modules:
 * :mod:`~lampsam.evaluation.frontend_eval` -- The ceiling frontend measured against truth.
 * :mod:`~lampsam.evaluation.frontend_synthetic` -- A small independent renderer of ceiling images with truth, for the frontend's tests.
 * :mod:`~lampsam.evaluation.gallery` -- Overlay gallery of the ceiling frontend on real photos (``lampsam gallery``).
+* :mod:`~lampsam.evaluation.lamp_plots` -- Figures of the lamp measurement studies: centroid error by grid tilt and by cause.
 * :mod:`~lampsam.evaluation.laser_trials` -- Laser global-localization trials on a CARMEN log, scored against its corrected poses.
 * :mod:`~lampsam.evaluation.live` -- Live view of a run in Rerun (``--rerun [FILE.rrd | ADDRESS]`` on ``slam``, ``localize``, ``stereo``).
 * :mod:`~lampsam.evaluation.map_alignment` -- Errors in a map's own frame: the map-to-world rigid transform, fitted on landmarks.
 * :mod:`~lampsam.evaluation.map_plots` -- Drawing the environment map: grid, spatial features and ceiling features in one figure.
 * :mod:`~lampsam.evaluation.map_truth` -- The true floor plan of a simulated run, for the grid map's quality checks.
 * :mod:`~lampsam.evaluation.metrics` -- Accuracy and consistency metrics for planar trajectories and landmark maps.
-* :mod:`~lampsam.evaluation.outputs` -- Output directories of the evaluation jobs: created up front, failures named.
+* :mod:`~lampsam.evaluation.outputs` -- Outputs of the evaluation jobs: directories created up front, figures written atomically.
 * :mod:`~lampsam.evaluation.photo_augment` -- Photo robustness: the labelled photos under known transforms, scored per transform family.
 * :mod:`~lampsam.evaluation.photo_eval` -- The lamp detector measured against hand labels of real photos (``lampsam frontend-eval --photos``).
 * :mod:`~lampsam.evaluation.photo_labels` -- Hand labels of real ceiling photos: the file format, its reader, and the labelling tool.

@@ -12,6 +12,7 @@ Entry points (loaded on first use)::
 Modules:
 
 * :mod:`~lampsam.frontend.blob_moments` -- Coverage-weighted moments of lamp blobs, with their uncertainty (paper 1, eqs. 2-7).
+* :mod:`~lampsam.frontend.blob_reach` -- The pixels within reach of the labelled lamp blobs of a box, gathered in one pass.
 * :mod:`~lampsam.frontend.ceiling_coords` -- Pixel measurements of lamps -> normalised ceiling coordinates (docs/conventions.md).
 * :mod:`~lampsam.frontend.ceiling_grid` -- Blob moments taken on the ceiling: a per-pixel table of ``m`` for lenses that bend lamps (fisheye).
 * :mod:`~lampsam.frontend.corners` -- FAST corners on the ceiling and normalised cross-correlation (NCC) matching.
