@@ -75,6 +75,13 @@ from lampsam.backend.interface import (
     StepHistory,
 )
 from lampsam.backend.map_frame import MapFrame, shift_only
+from lampsam.backend.map_release import (
+    Released,
+    chi2_quantile_2dof,
+    pick_release,
+    release_cov,
+    release_statistic,
+)
 from lampsam.backend.models import Obs, observations_from_frame
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
@@ -155,6 +162,23 @@ class LocalizeConfig:
             A known start pose does not observe the map's turn (its posterior sigma stays
             at its prior's), and the run's own sightings pull it: estimated, it came out
             13 mdeg from the truth on map 1 and 17 on map 3 of lab (docs/ceiling-map.md).
+        release: release map landmarks that the run's sightings contradict
+            (:mod:`lampsam.backend.map_release`: a chi-square test of each used landmark's
+            correction against its map prior, the failing one's prior widened by
+            :attr:`release_sigma`, reported in ``summary.json``); ``map_mode`` ``"priors"``
+            only (the landmarks must be states; no effect in ``"fixed"`` / ``"consider"``).
+            Default False (measured on lab: docs/ceiling-map.md).
+        release_prob: the test's level: a landmark is released when its statistic (2
+            dof, horizontal) exceeds this chi-square quantile (default 0.999: 13.8).
+        release_min_sightings: a landmark is tested only after this many of the run's
+            sightings (default 20).
+        release_max_fraction: a release is allowed only while the failing landmarks of
+            its kind are at most this fraction of the tested ones (and 3 or more are
+            tested): when most of the map disagrees, the pose is what is wrong (default
+            0.34).
+        release_sigma: standard deviation added to a released landmark's ``x, y, z``, m
+            (default 0.05: a released landmark is placed by the run's sightings alone).
+        release_kinds: the kinds tested (default ``("lamp", "corner")``).
     """
 
     sigma_start_xy: float = field(default=1e-3, metadata=limits(gt=0.0))
@@ -171,6 +195,12 @@ class LocalizeConfig:
     map_mode: MapMode = "priors"
     frame_offset: bool = True
     frame_turn: bool = False
+    release: bool = False
+    release_prob: float = field(default=0.999, metadata=limits(gt=0.0, lt=1.0))
+    release_min_sightings: int = field(default=20, metadata=limits(ge=1))
+    release_max_fraction: float = field(default=0.34, metadata=limits(ge=0.0, le=1.0))
+    release_sigma: float = field(default=0.05, metadata=limits(gt=0.0))
+    release_kinds: tuple[str, ...] = ("lamp", "corner")
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -180,6 +210,13 @@ class LocalizeConfig:
 
 
 MapMode = Literal["fixed", "priors", "consider"]
+
+#: a map lamp counts as in view when predicted within this fraction of the image's radius
+UNSEEN_RADIUS = 0.8
+#: frames in view before a map lamp never matched is reported (:meth:`MapLocalizer.unseen_report`)
+UNSEEN_MIN_FRAMES = 30
+#: matched in fewer than this fraction of its frames in view: reported as unseen
+UNSEEN_MAX_RATIO = 0.1
 MAP_MODES: tuple[str, ...] = ("fixed", "priors", "consider")
 
 
@@ -311,6 +348,21 @@ class MapLocalizer(SlamBackend):
                 for j in range(len(arr.ids)):
                     o = o0 + 3 * j
                     self._pj[o:o + 3, o:o + 3] = arr.cov_p[j]
+        # the release test (map_release): the map's priors as loaded, today's sightings
+        self._prior_pts = {k: a.points.copy() for k, a in self._kinds.items()}
+        self._prior_cov = {k: a.cov_p.copy() for k, a in self._kinds.items()}
+        self._seen = {k: np.zeros(len(a.ids), int) for k, a in self._kinds.items()}
+        self._released = {k: np.zeros(len(a.ids), bool) for k, a in self._kinds.items()}
+        self._release_thr = chi2_quantile_2dof(self.loc.release_prob)
+        self._t = 0.0
+        #: the landmarks released so far (:mod:`lampsam.backend.map_release`)
+        self.releases: list[Released] = []
+        #: frames in which some landmarks failed the test but too many for a release
+        self.release_blocked = 0
+        # frames with each landmark predicted well inside the view (unseen_report)
+        self._in_view = {k: np.zeros(len(a.ids), int) for k, a in self._kinds.items()}
+        #: lamp sightings of no map lamp (a lamp missing from the map, or moved out of its gate)
+        self.lamps_unmatched = 0
         self._gate2 = config.association.gate(2)
         self._gate1 = config.association.gate(1)
         self._last_t = -math.inf
@@ -333,8 +385,12 @@ class MapLocalizer(SlamBackend):
             arr.points + arr.gains[:, :3] @ self._g)
         m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, points)
         keep = np.flatnonzero(vis)
+        inner = vis & (np.hypot(m[:, 0], m[:, 1]) < UNSEEN_RADIUS * self.ceiling.max_radius)
+        self._in_view[kind][inner] += 1
         if len(keep) == 0:
             self.n_ignored += len(idx)
+            if kind == LandmarkKind.LAMP.value:
+                self.lamps_unmatched += len(idx)
             return None
         h_x = m_d_pose[keep] @ tangent_D_coords(float(pose[2]))
         h_l = m_d_pt[keep]
@@ -355,6 +411,8 @@ class MapLocalizer(SlamBackend):
                                     >= self.config.association.ncc_min)
         count = inside.sum(axis=1)
         self.n_ignored += int(np.sum(count == 0))
+        if kind == LandmarkKind.LAMP.value:
+            self.lamps_unmatched += int(np.sum(count == 0))
         if self.loc.unique:
             self.n_ambiguous += int(np.sum(count > 1))
             rows = np.flatnonzero(count == 1)
@@ -393,7 +451,7 @@ class MapLocalizer(SlamBackend):
         rows: list[tuple[float, float, int]] = []
         for i, j in zip(mt.obs, mt.lm, strict=True):
             o = obs[int(i)]
-            if not o.has_axis or math.isnan(arr.phi[j]):
+            if not o.has_axis or math.isnan(arr.phi[j]) or self._released[LandmarkKind.LAMP.value][j]:
                 continue
             phi = arr.phi[j] if self._g is None or arr.gains is None else (
                 arr.phi[j] + float(arr.gains[j, 3] @ self._g))
@@ -415,6 +473,7 @@ class MapLocalizer(SlamBackend):
             mt = self._match(obs, kind, arr)
             if mt is None:
                 continue
+            self._seen[kind][mt.lm] += 1
             w = _inv2(mt.r_tot)  # (K, 2, 2)
             hw = np.transpose(mt.h_x, (0, 2, 1)) @ w  # (K, 3, 2)
             info += np.einsum("kij,kjl->il", hw, mt.h_x)
@@ -465,6 +524,7 @@ class MapLocalizer(SlamBackend):
             mt = self._match(obs, kind, arr)
             if mt is None:
                 continue
+            self._seen[kind][mt.lm] += 1
             for k in range(len(mt.obs)):
                 h = np.zeros((2, n))
                 h[:, :mt.h_x.shape[2]] = mt.h_x[k]
@@ -523,7 +583,72 @@ class MapLocalizer(SlamBackend):
             arr.points = arr.points + dx[o:o + 3 * k].reshape(k, 3)
             idx = o + 3 * np.arange(k)[:, None] + np.arange(3)[None, :]
             arr.cov_p = self._pj[idx[:, :, None], idx[:, None, :]]
+        if self.loc.release and self.loc.map_mode == "priors":
+            self._check_release()
         return sum(1 for h in rows_h if h.shape[0] == 2)
+
+    # ------------------------------------------------------------------ release
+    def _check_release(self) -> None:
+        """Test the used landmarks against their map priors; release at most one per kind
+        (:mod:`lampsam.backend.map_release`)."""
+        assert self._pj is not None
+        for kind, arr in self._kinds.items():
+            if kind not in self.loc.release_kinds:
+                continue
+            tested = (self._seen[kind] >= self.loc.release_min_sightings) & ~self._released[kind]
+            if not tested.any():
+                continue
+            stat = np.zeros(len(arr.ids))
+            sel = np.flatnonzero(tested)
+            stat[sel] = release_statistic(arr.points[sel, :2] - self._prior_pts[kind][sel, :2],
+                                          self._prior_cov[kind][sel, :2, :2],
+                                          arr.cov_p[sel, :2, :2])
+            j, _, blocked = pick_release(stat, tested, self._release_thr,
+                                         self.loc.release_max_fraction)
+            if blocked:
+                self.release_blocked += 1
+            if j is None:
+                continue
+            o = self._offsets[kind] + 3 * j
+            self._pj[o:o + 3, o:o + 3] += release_cov(self.loc.release_sigma)
+            arr.cov_p[j] = self._pj[o:o + 3, o:o + 3]
+            self._released[kind][j] = True
+            self.releases.append(Released(arr.ids[j], kind, self._t, float(stat[j]),
+                                          int(self._seen[kind][j])))
+            log.info("t=%.2f s: map %s %d released (chi2 %.1f > %.1f after %d sightings)",
+                     self._t, kind, arr.ids[j], stat[j], self._release_thr, self._seen[kind][j])
+
+    def release_report(self) -> list[dict[str, object]]:
+        """The released landmarks for ``summary.json``: id, kind, time (s), statistic,
+        sightings up to the release, and ``offset_m``: the run's final estimate minus the
+        map's value, ``(x, y, z)`` m in the map's frame (the frame offset ``g`` not
+        included)."""
+        out: list[dict[str, object]] = []
+        for r in self.releases:
+            arr = self._kinds[r.kind]
+            j = arr.ids.index(r.id)
+            off = arr.points[j] - self._prior_pts[r.kind][j]
+            out.append({"id": r.id, "kind": r.kind, "t_s": r.t, "chi2": r.chi2,
+                        "sightings_at_release": r.sightings,
+                        "sightings": int(self._seen[r.kind][j]),
+                        "offset_m": [float(v) for v in off]})
+        return out
+
+    def unseen_report(self) -> list[dict[str, object]]:
+        """Map lamps the run should have seen but did not: predicted inside
+        :data:`UNSEEN_RADIUS` of the view in at least :data:`UNSEEN_MIN_FRAMES` frames and
+        matched in under :data:`UNSEEN_MAX_RATIO` of them (a lamp removed, or moved out of
+        its gate; a spurious map lamp): id, frames in view, frames matched."""
+        kind = LandmarkKind.LAMP.value
+        arr, view, seen = self._kinds[kind], self._in_view[kind], self._seen[kind]
+        return [{"id": arr.ids[j], "kind": kind, "frames_in_view": int(view[j]),
+                 "frames_matched": int(seen[j])}
+                for j in range(len(arr.ids))
+                if view[j] >= UNSEEN_MIN_FRAMES and seen[j] < UNSEEN_MAX_RATIO * view[j]]
+
+    def released_ids(self) -> set[int]:
+        """Ids of the released map landmarks."""
+        return {r.id for r in self.releases}
 
     # ------------------------------------------------------------------ interface
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
@@ -532,6 +657,7 @@ class MapLocalizer(SlamBackend):
         if t < self._last_t:
             raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
         self._last_t = t
+        self._t = t
         u = self.motion.check(t, wheel)
         if len(u):
             pose, f, q = self.motion.ekf_predict(self.x, u)
@@ -563,6 +689,11 @@ class MapLocalizer(SlamBackend):
                    "observations_ignored": float(self.n_ignored),
                    "observations_ambiguous": float(self.n_ambiguous),
                    "map_landmarks": float(len(self.cmap.landmarks)),
+                   "lamp_sightings_unmatched": float(self.lamps_unmatched),
+                   "map_lamps_unseen": float(len(self.unseen_report())),
+                   **({} if not (self.loc.release and self._offsets) else {
+                       "map_landmarks_released": float(len(self.releases)),
+                       "release_blocked_frames": float(self.release_blocked)}),
                    **({} if self._g is None else {
                        "map_frame_dx_m": float(self._g[0]), "map_frame_dy_m": float(self._g[1]),
                        "map_frame_dtheta_rad": float(self._g[2])})},
