@@ -343,7 +343,7 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--release", default=None, action=argparse.BooleanOptionalAction,
                    help="with --localize-only and the map as priors (or smooth): release map "
                         "landmarks that the run's sightings contradict (a chi-square test "
-                        "against the rest of the map; summary.json lists them; default off: "
+                        "against the rest of the map; summary.json lists them; default on: "
                         "LocalizeConfig.release, docs/ceiling-map.md)")
     p.add_argument("--localize-only", action="store_true",
                    help="track the run against --map without adding landmarks (--map-mode)")

@@ -165,10 +165,11 @@ def cached_frames(run: LoggedRun, source: str, cache: Path | None) -> list[Any]:
     return frames
 
 
-#: ``-release`` options in a mode name (``-lamps``: lamps only): ``-p=0.99`` (release_prob), ``-n=10``
+#: ``-release`` options in a mode name (``-lamps``: lamps only, ``-allkinds``: lamps and
+#: corners): ``-p=0.99`` (release_prob), ``-k=8`` (release_evidence_scale), ``-n=10``
 #: (release_min_sightings), ``-f=0.5`` (release_max_fraction), ``-s=0.05`` (release_sigma)
 RELEASE_KEYS = {"p": "release_prob", "n": "release_min_sightings", "f": "release_max_fraction",
-                "s": "release_sigma"}
+                "s": "release_sigma", "k": "release_evidence_scale"}
 
 
 def release_lines(filt: MapLocalizer, cmap: CeilingMap, fit: MapAlignment | None,
@@ -217,6 +218,8 @@ def localize_config(method: str) -> LocalizeConfig:
         key, _, val = p.partition("=")
         if p == "lamps":
             extra["release_kinds"] = ("lamp",)
+        elif p == "allkinds":
+            extra["release_kinds"] = ("lamp", "corner")
         if val and key in RELEASE_KEYS:
             extra[RELEASE_KEYS[key]] = int(val) if key == "n" else float(val)
     return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts,  # type: ignore[arg-type]
