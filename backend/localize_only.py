@@ -373,8 +373,8 @@ class MapLocalizer(SlamBackend):
             arr.points + arr.gains[:, :3] @ self._g)
         m, m_d_pose, m_d_pt, vis = self.ceiling.project_many(pose, points)
         keep = np.flatnonzero(vis)
-        self.tracker.in_view(kind, vis & (np.hypot(m[:, 0], m[:, 1])
-                                          < UNSEEN_RADIUS * self.ceiling.max_radius))
+        self.tracker.in_view(kind, np.asarray(vis, bool) & (np.hypot(m[:, 0], m[:, 1])
+                                                             < UNSEEN_RADIUS * self.ceiling.max_radius))
         if len(keep) == 0:
             self.n_ignored += len(idx)
             self.tracker.unmatched(kind, len(idx))

@@ -352,6 +352,7 @@ class MapSmoother(SlamBackend):
         add[:3, :3] = release_cov(self.filter.loc.release_sigma)
         for lid in sorted(released):
             index, lm, with_axis = self._ties[lid]
+            factor: gtsam.NonlinearFactor
             if self.frame is not None and lid in self.frame.gains:
                 factor = map_tie_factor(lm, self.frame.gains[lid],
                                         self.frame.conditional(lid, lm.cov) + add, with_axis,
