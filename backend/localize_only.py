@@ -161,14 +161,14 @@ class LocalizeConfig:
             correction against its map prior, the failing one's prior widened by
             :attr:`release_sigma`, reported in ``summary.json``); ``map_mode`` ``"priors"``
             only (the landmarks must be states; no effect in ``"fixed"`` / ``"consider"``).
-            Default True (on lab maps 2 and 3 x lab_day2 days 2 and 3, which have no
-            changed lamp, it releases 0-1 lamps per run and changes the filter's position
-            RMS from 2.24 to 2.23 mm, the smoother's from 1.53 to 1.58 mm; a map lamp
-            moved within its gate is released: docs/ceiling-map.md).
+            Default True: on four lab maps x three lab_day2 runs, none with a changed
+            lamp, it releases nothing; on map 2 with one lamp moved 2 cm it releases that
+            lamp after 5 sightings (docs/ceiling-map.md).
         release_prob: the test's level: a landmark is released when its statistic (2
             dof, horizontal) exceeds this chi-square quantile (default 0.999: 13.8).
         release_min_sightings: a landmark is tested only after this many of the run's
-            sightings (default 20).
+            sightings (default 5: a moved lamp pulls the filter from its first sighting;
+            20 let a 2 cm move on lab drag the filter and another lamp be released first).
         release_max_fraction: a release is allowed only while the failing and released
             landmarks of its kind are at most this fraction of the tested and released ones
             (and 3 or more): when most of the map disagrees, the pose is what is wrong
@@ -202,7 +202,7 @@ class LocalizeConfig:
     frame_turn: bool = False
     release: bool = True
     release_prob: float = field(default=0.999, metadata=limits(gt=0.0, lt=1.0))
-    release_min_sightings: int = field(default=20, metadata=limits(ge=1))
+    release_min_sightings: int = field(default=5, metadata=limits(ge=1))
     release_max_fraction: float = field(default=0.34, metadata=limits(ge=0.0, le=1.0))
     release_sigma: float = field(default=0.05, metadata=limits(gt=0.0))
     release_kinds: tuple[str, ...] = ("lamp",)
