@@ -44,6 +44,10 @@ With a version-2 map and :attr:`LocalizeConfig.frame_offset`, the map frame's of
 pose with the map's ``S`` as its prior: landmark ``l`` is at ``p_l + C_l g`` with its
 conditional covariance ``D_l``, and ``d h / d g = H_l C_l``.
 
+With the map as priors, a used lamp that the run's sightings contradict (a chi-square test of
+its correction against its map prior) is released: its prior is widened and it is reported
+(:mod:`lampsam.backend.map_release`, :attr:`LocalizeConfig.release`).
+
 Corner patches are stored in the map but used for association only when
 :attr:`LocalizeConfig.corner_ncc` is set: the frontend's patches are not rotation
 invariant, so a corner seen on another day at another heading would fail the NCC.

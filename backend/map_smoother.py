@@ -34,6 +34,8 @@ Factors:
   ``G`` are vector spaces and ``A``'s angle chart is additive). Without a frame model,
   an independent prior ``N(m, Sigma_ll)`` per used landmark (its marginal), the
   ``phi`` prior on ``A``'s angle. The map is the prior; the run is the likelihood.
+  The ties (or priors) of the landmarks the filter released
+  (:mod:`lampsam.backend.map_release`) are widened by ``release_sigma^2`` before the solve.
 
 The frame model is sparse (``3 + 3 L`` variables tied through one 3-vector), so the
 map's common error costs three variables, not a dense ``3 L x 3 L`` prior. Its value is

@@ -5,7 +5,14 @@ Usage::
     lampsam simulate lab --out LAB1 --seed 1
     lampsam slam LAB1 --backend batch --out SLAM1 --save-map MAP
     lampsam simulate lab_day2 --out DAY2 --seed 2
-    python scripts/bench/bench_localize_only.py --map MAP DAY2 [DAY3 ...] [--repeats 3]
+    python scripts/bench/bench_localize_only.py --map MAP DAY2 [DAY3 ...] [--repeats 3] [--cache DIR]
+
+``--cache DIR`` keeps each run's frames (a pickle per run and frame source) so that later
+benches skip the frontend. Modes with ``-release`` / ``-norelease`` turn the release of
+contradicted map lamps on / off (:data:`RELEASE_KEYS` for its options); the released
+landmarks of each run are printed after the tables, with how far the map's value is from the
+truth. With several runs or maps a last table lists each method's final RMS per run and how
+many runs are at or under the reference.
 
 ``--map`` may be given more than once: the maps of separate drives, merged by
 :func:`lampsam.backend.map_merge.merge_maps`, or with ``--each-map`` each tracked on
