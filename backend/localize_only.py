@@ -217,6 +217,9 @@ class LocalizeConfig:
         check_limits(self)
         if self.map_mode not in MAP_MODES:
             raise ValueError(f"map_mode {self.map_mode!r}: expected one of {', '.join(MAP_MODES)}")
+        bad = [k for k in self.release_kinds if k not in ("lamp", "corner")]
+        if bad:
+            raise ValueError(f"release_kinds {bad!r}: expected 'lamp' and/or 'corner'")
 
 
 MapMode = Literal["fixed", "priors", "consider"]

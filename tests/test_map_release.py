@@ -85,6 +85,10 @@ def test_majority_guard() -> None:
     few = np.zeros(6, bool)
     few[[1, 2]] = True
     assert MIN_TESTED == 3 and pick_release(stat, few, thr, 1.0) == (None, 1, True)
+    with pytest.raises(ValueError, match="release_kinds"):
+        LocalizeConfig(release_kinds=("lamps",))
+    with pytest.raises(ValueError, match="release_prob"):
+        LocalizeConfig(release_prob=1.0)
     # those released before count: 1 failing + 1 released of 6 is a third, 2 + 1 is not
     one = np.array([True, True, True, True, True, False])
     assert pick_release(np.array([1.0, 30.0, 2.0, 3.0, 0.5, 0.0]), one, thr, 0.34, 1) == (1, 1, False)
