@@ -200,9 +200,16 @@ def run_localize_only(run: LoggedRun, cmap: CeilingMap, out: str | Path | None =
     result.extra["total_cpu_s"] = time.process_time() - c0
     if out is not None:
         write_results(Path(out), result, run)
+        filt = backend.filter if isinstance(backend, MapSmoother) else backend
+        assert isinstance(filt, MapLocalizer)
         _add_to_summary(Path(out), {"localize_only": {
             "start": start.source, "start_pose": [float(v) for v in start.pose],
-            "start_time_s": start.t, "map_source": cmap.source}})
+            "start_time_s": start.t, "map_source": cmap.source,
+            "release": filt.loc.release and filt.loc.map_mode == "priors",
+            "released_landmarks": filt.release_report(),
+            "release_blocked_frames": filt.release_blocked,
+            "unseen_lamps": filt.unseen_report(),
+            "lamp_sightings_unmatched": filt.lamps_unmatched}})
     if result.status.startswith("failed"):
         raise EstimationError(f"localize-only on {run.path}: {result.status}")
     return result

@@ -34,6 +34,8 @@ Factors:
   ``G`` are vector spaces and ``A``'s angle chart is additive). Without a frame model,
   an independent prior ``N(m, Sigma_ll)`` per used landmark (its marginal), the
   ``phi`` prior on ``A``'s angle. The map is the prior; the run is the likelihood.
+  The ties (or priors) of the landmarks the filter released
+  (:mod:`lampsam.backend.map_release`) are widened by ``release_sigma^2`` before the solve.
 
 The frame model is sparse (``3 + 3 L`` variables tied through one 3-vector), so the
 map's common error costs three variables, not a dense ``3 L x 3 L`` prior. Its value is
@@ -66,6 +68,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
 from lampsam.backend.map_frame import D_FLOOR, shift_only
+from lampsam.backend.map_release import release_cov
 from lampsam.backend.models import Obs
 from lampsam.backend.odometry import OdometryConstants, motion_model
 from lampsam.config_loader import check_limits, limits
@@ -193,6 +196,8 @@ class MapSmoother(SlamBackend):
             params.relinearizeSkip = 1
             self._isam = gtsam.ISAM2(params)
         self._landmarks: set[int] = set()
+        #: landmark id -> (graph index of its map tie or prior, the landmark, axis row in it)
+        self._ties: dict[int, tuple[int, MapLandmark, bool]] = {}
         self._axes: set[int] = set()
         self._online: list[FloatArray] = []
         self._k = 0
@@ -224,9 +229,8 @@ class MapSmoother(SlamBackend):
             self._landmarks.add(lm.id)
             self._add_value(L(lm.id), np.asarray(lm.position, float))
             if self.frame is None or lm.id not in self.frame.gains:
-                cov = np.asarray(lm.cov, float)[:3, :3] + D_FLOOR * np.eye(3)
-                self._add_factor(gtsam.PriorFactorPoint3(L(lm.id), np.asarray(lm.position, float),
-                                                         noise_model(cov)))
+                self._ties[lm.id] = (self.graph.size(), lm, False)
+                self._add_factor(_point_prior(lm, np.zeros((3, 3))))
         if not with_axis or lm.id in self._axes or lm.phi is None:
             return
         self._axes.add(lm.id)
@@ -243,6 +247,7 @@ class MapSmoother(SlamBackend):
     def _tie(self, lm: MapLandmark, with_axis: bool) -> None:
         """The frame model's factor of ``lm`` (:func:`map_tie_factor`), at its first use."""
         assert self.frame is not None
+        self._ties[lm.id] = (self.graph.size(), lm, with_axis)
         self._add_factor(map_tie_factor(lm, self.frame.gains[lm.id],
                                         self.frame.conditional(lm.id, lm.cov), with_axis,
                                         self.frame.center))
@@ -332,10 +337,37 @@ class MapSmoother(SlamBackend):
             raise EstimationError(f"localize-only smoother: {exc}") from None
         return values
 
+    def _apply_releases(self) -> None:
+        """Widen the map ties of the landmarks the filter released
+        (:attr:`lampsam.backend.localize_only.LocalizeConfig.release`): their ``x, y, z``
+        rows get :func:`lampsam.backend.map_release.release_cov` added, as in the filter,
+        for the whole run (the hindsight solve does not know when a lamp moved). Only
+        for the Levenberg-Marquardt solve (the iSAM2 engine already holds the factors)."""
+        released = self.filter.released_ids() & set(self._ties)
+        if not released:
+            return
+        if self._isam is not None:
+            log.warning("%d released map landmarks are not released in the iSAM2 smoother",
+                        len(released))
+            return
+        add = np.zeros((4, 4))
+        add[:3, :3] = release_cov(self.filter.loc.release_sigma)
+        for lid in sorted(released):
+            index, lm, with_axis = self._ties[lid]
+            factor: gtsam.NonlinearFactor
+            if self.frame is not None and lid in self.frame.gains:
+                factor = map_tie_factor(lm, self.frame.gains[lid],
+                                        self.frame.conditional(lid, lm.cov) + add, with_axis,
+                                        self.frame.center)
+            else:
+                factor = _point_prior(lm, add[:3, :3])
+            self.graph.replace(index, factor)
+
     def finish(self, status: str = "ok") -> SlamResult:
         """The smoothed poses (one per step); covariances and ``extra`` counts are the
         filter's, plus the frame estimate ``map_frame_*`` (m, rad) with its sigmas."""
         res = self.filter.finish(status)
+        self._apply_releases()
         values = self.solve()
         poses = np.array([pose_array(values.atPose2(X(k + 1))) for k in range(self._k)]).reshape(-1, 3)
         res.poses = poses
@@ -355,6 +387,12 @@ class MapSmoother(SlamBackend):
                 log.warning("map frame covariance unavailable: %s", exc)
         self.online_poses = np.asarray(self._online, float).reshape(-1, 3)
         return res
+
+
+def _point_prior(lm: MapLandmark, extra: FloatArray) -> gtsam.PriorFactorPoint3:
+    """A map landmark's independent position prior ``N(m, Sigma_ll + extra)`` (m, m^2)."""
+    cov = np.asarray(lm.cov, float)[:3, :3] + np.asarray(extra, float) + D_FLOOR * np.eye(3)
+    return gtsam.PriorFactorPoint3(L(lm.id), np.asarray(lm.position, float), noise_model(cov))
 
 
 def frame_to_rigid(g: FloatArray, center: FloatArray) -> FloatArray:

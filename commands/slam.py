@@ -153,6 +153,8 @@ def _check_map_flags(args: argparse.Namespace) -> None:
         raise LampsamError("--map-priors / --map-mode apply only with --localize-only")
     if args.map_priors and args.map_mode not in (None, "priors"):
         raise LampsamError(f"--map-priors contradicts --map-mode {args.map_mode}")
+    if args.release is not None and not args.localize_only:
+        raise LampsamError("--release / --no-release apply only with --localize-only")
     if (args.start or args.start_from) and not args.localize_only:
         raise LampsamError("--start / --start-from apply only with --localize-only")
     if args.start and args.start_from:
@@ -186,7 +188,9 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     smooth = args.map_mode == "smooth"
     result = run_localize_only(run, cmap, out, config, frames=args.frames, start=start,
                                loc=LocalizeConfig(map_mode="priors" if smooth
-                                                  else args.map_mode or "priors"),
+                                                  else args.map_mode or "priors",
+                                                  **({} if args.release is None
+                                                     else {"release": args.release})),
                                smooth=MapSmootherConfig() if smooth else None)
     s = _plot_and_summarize(out, result, run)
     print(f"localize-only: {s['steps']} steps, {int(result.extra['observations_used'])} "
@@ -344,6 +348,11 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                         "filter, then a smoother over the whole run with the map's frame "
                         "model; trajectory.tum then holds the smoothed poses "
                         "(docs/ceiling-map.md)")
+    p.add_argument("--release", default=None, action=argparse.BooleanOptionalAction,
+                   help="with --localize-only and the map as priors (or smooth): release map "
+                        "landmarks that the run's sightings contradict (a chi-square test "
+                        "against the rest of the map; summary.json lists them; default on: "
+                        "LocalizeConfig.release, docs/ceiling-map.md)")
     p.add_argument("--localize-only", action="store_true",
                    help="track the run against --map without adding landmarks (--map-mode)")
     p.add_argument("--start", default=None, metavar="X,Y,THETA",

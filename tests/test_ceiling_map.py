@@ -281,6 +281,10 @@ def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,
     s = json.loads((tmp_path / "loc" / "summary.json").read_text())
     assert s["backend"] == "localize" and s["error"]["position_rms_m"] < 0.03
     assert s["landmarks"] == len(cmap.landmarks)
+    # the release test is on by default and, on the map of the same run, releases nothing
+    lo = s["localize_only"]
+    assert lo["release"] is True and lo["released_landmarks"] == []
+    assert lo["unseen_lamps"] == [] and isinstance(lo["lamp_sightings_unmatched"], int)
     ids = np.loadtxt(tmp_path / "loc" / "landmarks.csv", delimiter=",", skiprows=1, usecols=0)
     assert sorted(ids.astype(int).tolist()) == sorted(lm.id for lm in cmap.landmarks)
     # the same map given twice merges into one (every landmark fused) and, with
@@ -291,6 +295,11 @@ def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,
     assert f"{len(cmap.landmarks)} landmarks fused, 0 added" in out
     s2 = json.loads((tmp_path / "loc2" / "summary.json").read_text())
     assert s2["error"]["position_rms_m"] < 0.03 and s2["landmarks"] == len(cmap.landmarks)
+    # --no-release turns the test off
+    assert main(["slam", str(lab4), "--frames", "truth", "--map", str(mp), "--localize-only",
+                 "--no-release", "--out", str(tmp_path / "loc4")]) == 0
+    s4 = json.loads((tmp_path / "loc4" / "summary.json").read_text())
+    assert s4["localize_only"]["release"] is False
     # --map-mode smooth: the smoothed poses, and the map frame's estimate in the summary
     assert main(["slam", str(lab4), "--frames", "truth", "--map", str(mp), "--localize-only",
                  "--map-mode", "smooth", "--out", str(tmp_path / "loc3")]) == 0
@@ -309,6 +318,8 @@ def test_cli_map_flags_and_bad_map(lab4: Path, tmp_path: Path,
     assert "--localize-only" in capsys.readouterr().err
     assert main(["slam", str(lab4), "--map-priors", "--out", out, "--force"]) == 2
     assert "--map-priors" in capsys.readouterr().err
+    assert main(["slam", str(lab4), "--no-release", "--out", out, "--force"]) == 2
+    assert "--release" in capsys.readouterr().err
     (tmp_path / "badmap").mkdir()
     (tmp_path / "badmap" / "map.yaml").write_text("format: lampsam-ceiling-map\n")
     assert main(["slam", str(lab4), "--map", str(tmp_path / "badmap"), "--localize-only",

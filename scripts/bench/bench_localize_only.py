@@ -5,7 +5,14 @@ Usage::
     lampsam simulate lab --out LAB1 --seed 1
     lampsam slam LAB1 --backend batch --out SLAM1 --save-map MAP
     lampsam simulate lab_day2 --out DAY2 --seed 2
-    python scripts/bench/bench_localize_only.py --map MAP DAY2 [DAY3 ...] [--repeats 3]
+    python scripts/bench/bench_localize_only.py --map MAP DAY2 [DAY3 ...] [--repeats 3] [--cache DIR]
+
+``--cache DIR`` keeps each run's frames (a pickle per run and frame source) so that later
+benches skip the frontend. Modes with ``-release`` / ``-norelease`` turn the release of
+contradicted map lamps on / off (:data:`RELEASE_KEYS` for its options); the released
+landmarks of each run are printed after the tables, with how far the map's value is from the
+truth. With several runs or maps a last table lists each method's final RMS per run and how
+many runs are at or under the reference.
 
 ``--map`` may be given more than once: the maps of separate drives, merged by
 :func:`lampsam.backend.map_merge.merge_maps`, or with ``--each-map`` each tracked on
@@ -44,7 +51,9 @@ import dataclasses
 import logging
 import math
 import os
+import pickle
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -66,7 +75,12 @@ from lampsam.backend.slam import (
     start_pose_of,
 )
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.evaluation.map_alignment import MapAlignment, map_to_truth, transform_poses
+from lampsam.evaluation.map_alignment import (
+    MapAlignment,
+    map_to_truth,
+    transform_points,
+    transform_poses,
+)
 
 
 def fit_frame(xy: FloatArray, kinds: list[str], run: LoggedRun) -> MapAlignment | None:
@@ -135,20 +149,88 @@ def timed_run(backend: SlamBackend, run: LoggedRun, frames: list[Any],
             "status_ok": float(result.status == "ok")}
 
 
+def cached_frames(run: LoggedRun, source: str, cache: Path | None) -> list[Any]:
+    """The run's frames (:func:`make_frames`), from ``cache`` (a folder of pickles, keyed by
+    the run's resolved path and the frame source) when made there before."""
+    if cache is None:
+        made, _ = make_frames(run, source)
+        return list(made)
+    path = cache / f"{run.path.resolve().name}-{source}.pkl"
+    key = (str(run.path.resolve()), source)
+    if path.exists():
+        with path.open("rb") as fh:
+            doc = pickle.load(fh)
+        if doc.get("key") == key:
+            return list(doc["frames"])
+    made, _ = make_frames(run, source)
+    frames = list(made)
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("wb") as fh:
+        pickle.dump({"key": key, "frames": frames}, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    tmp.replace(path)
+    return frames
+
+
+#: ``-release`` options in a mode name (``-lamps``: lamps only, ``-allkinds``: lamps and
+#: corners): ``-p=0.99`` (release_prob), ``-k=8`` (release_evidence_scale), ``-n=10``
+#: (release_min_sightings), ``-f=0.5`` (release_max_fraction), ``-s=0.05`` (release_sigma)
+RELEASE_KEYS = {"p": "release_prob", "n": "release_min_sightings", "f": "release_max_fraction",
+                "s": "release_sigma", "k": "release_evidence_scale"}
+
+
+def release_lines(filt: MapLocalizer, cmap: CeilingMap, fit: MapAlignment | None,
+                  run: LoggedRun) -> list[str]:
+    """One line per released landmark: id, time, statistic, the run's offset and (with the
+    map's truth fit) how far the map's value is from the nearest true landmark of its kind
+    after the fit, mm."""
+    out = []
+    for r in filt.release_report():
+        off = 1e3 * np.asarray(r["offset_m"], float)
+        truth_off = ""
+        if fit is not None and run.landmarks is not None:
+            lm = next(x for x in cmap.landmarks if x.id == r["id"])
+            p = transform_points(fit.truth_T_map, np.asarray(lm.position[:2], float).reshape(1, 2))
+            kinds = np.asarray(list(run.landmarks.types))
+            d = run.landmarks.xyz[kinds == lm.kind, :2] - p
+            if len(d):
+                k = int(np.argmin(np.hypot(d[:, 0], d[:, 1])))
+                truth_off = f"; map value off the truth by {1e3 * d[k, 0]:.2f}, {1e3 * d[k, 1]:.2f} mm"
+        out.append(f"{r['kind']} {r['id']} at t={r['t_s']:.1f} s, chi2 {r['chi2']:.1f} after "
+                   f"{r['sightings_at_release']} sightings ({r['sightings']} in all): offset "
+                   f"{off[0]:.2f}, {off[1]:.2f} mm{truth_off}")
+    return out
+
+
 def localize_config(method: str) -> LocalizeConfig:
-    """``localize[-priors|-consider][-nooffset][-loose][-smooth[-turn|-noframe]]`` as the
+    """``localize[-priors|-consider][-nooffset][-loose][-release[-p=P][-n=N][-f=F][-s=S]]
+    [-smooth[-turn|-noframe]]`` as the
     filter's settings: the defaults of :class:`LocalizeConfig` (the map frame's offset state
     with a version-2 map, the known start held at 1 mm / 1 mrad as SLAM holds it) with
     ``-nooffset`` without the frame state (``frame_offset`` off), ``-gturn`` with its turn
     estimated too (``frame_turn``), and ``-loose`` with the start at 2 cm / 0.01 rad (the
     settings before the eleventh session); ``-frame`` and ``-tight`` are the defaults now
     (accepted, no effect); ``-smooth`` (:func:`smoother_config`) adds the smoother over the
-    filter's poses."""
+    filter's poses; ``-release`` (``-norelease``) turns the release of contradicted map
+    landmarks on (off), with its options as :data:`RELEASE_KEYS`."""
     parts = method.split("-")[1:]
     mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
-    loose = {"sigma_start_xy": 0.02, "sigma_start_theta": 0.01} if "loose" in parts else {}
+    extra: dict[str, Any] = ({"sigma_start_xy": 0.02, "sigma_start_theta": 0.01}
+                             if "loose" in parts else {})
+    if "release" in parts:
+        extra["release"] = True
+    elif "norelease" in parts:
+        extra["release"] = False
+    for p in parts:
+        key, _, val = p.partition("=")
+        if p == "lamps":
+            extra["release_kinds"] = ("lamp",)
+        elif p == "allkinds":
+            extra["release_kinds"] = ("lamp", "corner")
+        if val and key in RELEASE_KEYS:
+            extra[RELEASE_KEYS[key]] = int(val) if key == "n" else float(val)
     return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts,  # type: ignore[arg-type]
-                          frame_turn="gturn" in parts, **loose)
+                          frame_turn="gturn" in parts, **extra)
 
 
 def truth_frame_offset(truth_T_map: FloatArray, frame: MapFrame | None) -> FloatArray:
@@ -203,6 +285,8 @@ def main() -> None:
     ap.add_argument("--backends", default="isam2,batch,ekf", help="SLAM from scratch backends")
     ap.add_argument("--reference", default="isam2", help="method the ratios divide by")
     ap.add_argument("--repeats", type=int, default=3, help="runs per method (timing median)")
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="folder for the runs' frames (made once, read back in later runs)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     maps = load_maps(args.map, args.each_map)
@@ -227,10 +311,11 @@ def main() -> None:
             methods.append((prefix + name, cmap, name))
     methods += [(b, None, b) for b in args.backends.split(",") if b]
     rows: dict[str, list[dict[str, float]]] = {m: [] for m, _, _ in methods}
+    refs: list[float] = []
+    released: dict[tuple[str, str], list[str]] = {}
     for run_dir in args.runs:
         run = read_run(run_dir)
-        made, _ = make_frames(run, args.frames)
-        frames = list(made)
+        frames = cached_frames(run, args.frames, args.cache)
         start = start_pose_of(run)
         fits = {label: map_frame_fit(cmap, run) for label, cmap in maps}
         figures: dict[str, dict[str, float]] = {}
@@ -252,9 +337,13 @@ def main() -> None:
                     be = make_backend(kind, run.rig.odometry, config, start, run.rig.camera)
                 reps.append(timed_run(be, run, frames, fit))
             fig = {k: float(np.median([r[k] for r in reps])) for k in reps[0]}
+            filt = be.filter if isinstance(be, MapSmoother) else be
+            if isinstance(filt, MapLocalizer) and filt.loc.release and on_map is not None:
+                released[(run_dir, m)] = release_lines(filt, on_map, fit, run)
             figures[m] = fig
             rows[m].append(fig)
         ref = figures.get(args.reference)
+        refs.append(ref["pos_rms_mm"] if ref else float("nan"))
         print(f"\n{run_dir} ({len(frames)} frames)")
         for label, fit in fits.items():
             if fit is not None:
@@ -284,6 +373,21 @@ def main() -> None:
                   f"| {f['online_rms_map_frame_mm']:.2f} | {f['pos_max_mm']:.1f} "
                   f"| {f['head_rms_deg']:.3f} | {f['frame_median_ms']:.2f} | {r1:.3f} "
                   f"| {f['per_frame_ms']:.2f} | {r2:.3f} |")
+    for (run_dir, m), lines in released.items():
+        print(f"{run_dir} {m}: released {len(lines)}" + "".join(f"\n    {ln}" for ln in lines))
+    if len(args.runs) > 1 or len(maps) > 1:
+        print(f"\nfinal position RMS mm per run, at or under {args.reference} (final) counted; "
+              f"{args.reference}: " + " / ".join(f"{r:.2f}" for r in refs)
+              + f" (mean {np.mean(refs):.2f})")
+        for m, fs in rows.items():
+            vals = [f["pos_rms_mm"] for f in fs]
+            n_ok = sum(v <= r for v, r in zip(vals, refs, strict=True))
+            print(f"| {m} | " + " / ".join(f"{v:.2f}" for v in vals)
+                  + f" | mean {np.mean(vals):.2f} | {n_ok} of {len(vals)} | CPU/frame mean "
+                  f"{np.mean([f['per_frame_ms'] for f in fs]):.2f} ms, x ref "
+                  + " / ".join(f"{f['per_frame_ms'] / ff['per_frame_ms']:.2f}"
+                               for f, ff in zip(fs, rows.get(args.reference, fs), strict=True))
+                  + " |")
     if len(args.runs) > 1:
         for key, what in (("", "final"), ("online_", "online")):
             print(f"\n{what} position RMS mm, world frame / map frame, per run ("
