@@ -50,6 +50,7 @@ Modules:
 * :mod:`~lampsam.backend.map_calibration` -- How honest a batch map's landmark covariances are, measured on the mapping run itself.
 * :mod:`~lampsam.backend.map_frame` -- The map's frame uncertainty: the common part of a batch map's landmark errors.
 * :mod:`~lampsam.backend.map_merge` -- Merge ceiling maps of the same floor made on separate mapping drives.
+* :mod:`~lampsam.backend.map_release` -- Releasing map landmarks that today's sightings contradict (lifelong localize-only).
 * :mod:`~lampsam.backend.map_smoother` -- Localize-only smoothing: the run's poses and the used map landmarks in one factor graph.
 * :mod:`~lampsam.backend.mapping_worker` -- The mapping worker of :mod:`lampsam.backend.tracking`: the backend stepped in its own process.
 * :mod:`~lampsam.backend.models` -- Observation models as the backends see them: one record type, one predict/init API.
