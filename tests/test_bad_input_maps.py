@@ -1,0 +1,87 @@
+"""Bad input to the environment-map folder (``show-map``, ``localize --map``) and the photo
+label file (``frontend-eval --labels``).
+
+Before: a binary ``manifest.yaml`` or ``map.yaml`` and a binary label file raised
+UnicodeDecodeError (exit 1, "internal error"), a ``format_version`` that is not an integer
+raised ValueError from ``int()``, a NaN resolution was refused without naming the file, and
+a YAML error in ``map.yaml`` came out on several lines. Each is now one error line naming
+the file (exit 2).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lampsam.cli import main
+from lampsam.localization.grid import LogOddsConfig, OccupancyGrid
+from lampsam.localization.map_store import load_env_map, save_layers, write_manifest
+
+
+@pytest.fixture()
+def env_map(tmp_path: Path) -> Path:
+    """A 2 m x 1 m grid map saved as lampsam writes it (no spatial or ceiling layer)."""
+    log_odds = np.zeros((20, 40))
+    log_odds[0, :] = 5.0
+    grid = OccupancyGrid(log_odds, 0.05, np.array([-1.0, -0.5, 0.0]))
+    out = tmp_path / "MAP"
+    layers = save_layers(out, grid, LogOddsConfig(), {"sensor": "test"})
+    write_manifest(out, {"kind": "test"}, layers, {}, {}, {})
+    return out
+
+
+def test_clean_map_reads(env_map: Path) -> None:
+    back = load_env_map(env_map)
+    assert back.grid.resolution == pytest.approx(0.05)
+    np.testing.assert_allclose(back.grid.origin, [-1.0, -0.5, 0.0], atol=1e-12)
+
+
+def _binary(p: Path) -> None:
+    p.write_bytes(np.random.default_rng(5).bytes(1200))
+
+
+def _sub(pattern: str, repl: str):  # type: ignore[no-untyped-def]
+    def edit(p: Path) -> None:
+        text = p.read_text()
+        new = re.sub(pattern, repl, text, count=1, flags=re.MULTILINE)
+        assert new != text, (pattern, text)
+        p.write_text(new)
+    return edit
+
+
+@pytest.mark.parametrize(("name", "corrupt", "match"), [
+    ("manifest.yaml", _binary, r"manifest.yaml:\d+: not UTF-8 text"),
+    ("manifest.yaml", _sub(r"^format_version: \d+", "format_version: two"),
+     r"manifest.yaml: format_version must be an integer, got 'two'"),
+    ("manifest.yaml", _sub(r"^format_version: \d+", "format_version: .nan"),
+     r"manifest.yaml: format_version must be an integer, got nan"),
+    ("map.yaml", _binary, r"map.yaml:\d+: not UTF-8 text"),
+    ("map.yaml", _sub(r"^resolution: .*", "resolution: .nan"),
+     r"map.yaml: resolution must be a positive number, got nan"),
+    ("map.yaml", _sub(r"^resolution: .*", "resolution: [0.05"), r"map.yaml:\d+: invalid YAML"),
+], ids=["manifest-binary", "manifest-version-word", "manifest-version-nan", "grid-binary",
+        "grid-nan-resolution", "grid-yaml-error"])
+def test_corrupt_map_is_one_error_line(env_map: Path, tmp_path: Path, name: str, corrupt,  # type: ignore[no-untyped-def]
+                                       match: str, capsys: pytest.CaptureFixture[str]) -> None:
+    corrupt(env_map / name)
+    assert main(["show-map", str(env_map), "--out", str(tmp_path / "m.png")]) == 2
+    err = capsys.readouterr().err
+    assert "internal error" not in err and "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and re.search(match, lines[0]), err
+    assert not (tmp_path / "m.png").exists()
+
+
+def test_binary_label_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    labels = tmp_path / "labels.json"
+    _binary(labels)
+    assert main(["frontend-eval", "--photos", str(photos), "--labels", str(labels),
+                 "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "internal error" not in err
+    assert f"{labels}: not UTF-8 text" in err
