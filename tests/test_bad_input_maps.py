@@ -85,3 +85,40 @@ def test_binary_label_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixtur
     err = capsys.readouterr().err
     assert "internal error" not in err
     assert f"{labels}: not UTF-8 text" in err
+
+
+@pytest.mark.parametrize("way", ["empty", "cut_short"])
+def test_corrupt_distance_field_is_recomputed(env_map: Path, way: str,
+                                              caplog: pytest.LogCaptureFixture) -> None:
+    """A precomputed lookup that cannot be read is rebuilt with a warning (its documented
+    fallback), not an EOFError / BadZipFile from inside NumPy."""
+    from lampsam.localization.map_tables import (
+        DISTANCE_FIELD_FILE,
+        load_distance_field,
+        save_distance_field,
+    )
+
+    grid = load_env_map(env_map).grid
+    path = save_distance_field(env_map, grid, np.ones((grid.height, grid.width)))
+    assert path.name == DISTANCE_FIELD_FILE
+    assert load_distance_field(env_map, grid) is not None
+    data = path.read_bytes()
+    path.write_bytes(b"" if way == "empty" else data[: len(data) // 2])
+    assert load_distance_field(env_map, grid) is None
+    assert "unreadable" in caplog.text and DISTANCE_FIELD_FILE in caplog.text
+
+
+@pytest.mark.parametrize("way", ["empty", "cut_short", "text"])
+def test_corrupt_spatial_map_is_named(tmp_path: Path, way: str) -> None:
+    from lampsam.localization.spatial_map import SpatialFeatureMap, SpatialMapError
+
+    rng = np.random.default_rng(3)
+    smap = SpatialFeatureMap(rng.normal(size=(4, 3)), rng.normal(size=(4, 128)).astype(np.float32),
+                             np.ones(4), np.zeros(4), np.ones(4, dtype=np.int64))
+    path = smap.save(tmp_path / "spatial_features.npz")
+    assert len(SpatialFeatureMap.load(path)) == 4
+    data = path.read_bytes()
+    path.write_bytes({"empty": b"", "cut_short": data[: len(data) // 2],
+                      "text": b"xyz: not an archive\n"}[way])
+    with pytest.raises(SpatialMapError, match=r"spatial_features.npz: unreadable, not a NumPy"):
+        SpatialFeatureMap.load(path)
