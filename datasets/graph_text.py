@@ -126,6 +126,42 @@ def _cartesian_to_br(dx: float, dy: float, cov_xy: FloatArray) -> tuple[float, f
     return b, r, j @ cov_xy @ j.T
 
 
+#: The fields after each record's tag, for messages.
+_LAYOUTS = {
+    "ODOMETRY": "i j dx dy dtheta c11 c12 c13 c22 c23 c33",
+    "EDGE2": "i j dx dy dtheta c11 c12 c13 c22 c23 c33",
+    "EDGE_SE2": "i j dx dy dtheta I11 I12 I13 I22 I23 I33",
+    "LANDMARK": "i l dx dy v11 v12 v22",
+    "LANDMARK2": "i l dx dy I11 I12 I22",
+    "EDGE_SE2_XY": "i l dx dy I11 I12 I22",
+    "BR": "i l bearing range sigma_bearing sigma_range",
+    "VERTEX2": "i x y theta",
+    "VERTEX_SE2": "i x y theta",
+    "VERTEX": "i x y theta",
+    "VERTEX_XY": "l x y",
+}
+
+
+def _unknown_record(tag: str, known: list[str]) -> str:
+    """The message for a line whose first word is no record tag (long words cut to 40 chars)."""
+    shown = repr(tag if len(tag) <= 40 else tag[:40] + "...")
+    if "," in tag:
+        return (f"the line {shown} holds commas: a CSV table, not an iSAM / g2o graph file "
+                "(space-separated records: ODOMETRY, EDGE_SE2, LANDMARK, ...)")
+    if tag.startswith("<"):
+        return f"the file starts like XML ({shown}), not an iSAM / g2o graph file"
+    return f"unknown record {shown} (known: {', '.join(known)})"
+
+
+def _is_int(text: str) -> bool:
+    """True when ``text`` parses as an integer."""
+    try:
+        int(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _is_number(text: str) -> bool:
     """True when ``text`` parses as a float."""
     try:
@@ -167,13 +203,17 @@ def read_graph_text(path: str | Path) -> GraphLog:
                 raise DatasetError(f"the line starts with a number ({tag!r}), not a record tag: not an "
                                    "iSAM / g2o graph file (a plain table of numbers?)", path, line_no)
             if tag not in counts:
-                raise DatasetError(f"unknown record {tag!r} (known: {', '.join(sorted(counts))})",
-                                   path, line_no)
+                raise DatasetError(_unknown_record(tag, sorted(counts)), path, line_no)
             if len(parts) - 1 != counts[tag]:
-                raise DatasetError(f"{tag} needs {counts[tag]} fields, got {len(parts) - 1}",
-                                   path, line_no)
+                raise DatasetError(f"{tag} needs {counts[tag]} fields, got {len(parts) - 1} "
+                                   f"(layout: {tag} {_LAYOUTS[tag]})", path, line_no)
+            n_ids = 2 if counts[tag] >= 6 else 1
+            bad_id = next((x for x in parts[1 : 1 + n_ids] if not _is_int(x)), None)
+            if bad_id is not None:
+                raise DatasetError(f"{tag}: ids must be integers, got {bad_id!r} (symbol ids such "
+                                   "as PyFG's 'L0' / 'A1' are not read)", path, line_no)
             try:
-                ids = [int(parts[1])] + ([int(parts[2])] if counts[tag] >= 6 else [])
+                ids = [int(x) for x in parts[1 : 1 + n_ids]]
                 nums = [float(x) for x in parts[1 + len(ids):]]
             except ValueError as exc:
                 raise DatasetError(f"{tag}: not a number ({exc})", path, line_no) from None
