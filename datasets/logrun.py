@@ -195,6 +195,10 @@ def read_run(path: str | Path) -> LoggedRun:
                            f"{_foreign_hint(path)}", path)
     rig = Rig.from_yaml(path / RIG_FILE)
     odometry: OdometryLog | Pose2OdometryLog
+    if not any((path / f).exists() for f in (ODOMETRY_FILE, ODOMETRY_POSE2_FILE, ODOMETRY_POSES_FILE)):
+        raise DatasetError(f"{ODOMETRY_FILE}: file not found (a run needs its odometry: "
+                           f"{ODOMETRY_FILE} of wheel travel, or {ODOMETRY_POSE2_FILE} / "
+                           f"{ODOMETRY_POSES_FILE}; docs/log-format.md)", path / ODOMETRY_FILE)
     if (path / ODOMETRY_FILE).exists() or not (
             (path / ODOMETRY_POSE2_FILE).exists() or (path / ODOMETRY_POSES_FILE).exists()):
         odometry = read_odometry(path / ODOMETRY_FILE)
