@@ -75,6 +75,12 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     if args.save_map:
         from lampsam.safe_io import check_output_dir
 
+        if run.images is None or args.frames == "rangebearing" or (
+                args.frames == "auto" and run.range_bearing is not None):
+            raise LampsamError(f"--save-map writes a ceiling map (lamps, corners) from the "
+                               f"run's images; {args.run} is used through its range-bearing "
+                               "measurements, so the map would be empty (the landmarks are in "
+                               "OUT/landmarks.csv)")
         check_output_dir(args.save_map, force=args.force, what="--save-map")
     from lampsam.backend.localize_run import BackendCapture
     from lampsam.evaluation.live import live_view, rerun_target
