@@ -39,3 +39,23 @@ def test_ros2_folder_with_binary_metadata(tmp_path: Path, capsys: pytest.Capture
     (folder / "bag2.db3").write_bytes(b"")
     err = _import(folder, tmp_path / "RUN", capsys)
     assert f"{folder}: cannot read bag:" in err and "UnicodeDecodeError" in err
+
+
+def test_export_warns_what_the_bag_leaves_out(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                              caplog: pytest.LogCaptureFixture) -> None:
+    """A run's range-bearing measurements (and kinect/ frames) have no message in export-bag;
+    the bag used to be written without a word about them."""
+    from lampsam.datasets.logrun import write_run
+    from lampsam.datasets.rig import Rig
+    from lampsam.datasets.tables import OdometryLog, RangeBearingLog
+
+    n = 10
+    odo = OdometryLog(t=np.arange(n) * 0.1, d_left=np.full(n, 0.01), d_right=np.full(n, 0.01))
+    rb = RangeBearingLog(t=np.arange(n) * 0.1, landmark_id=np.full(n, 2), range=np.full(n, 2.0),
+                         bearing=np.zeros(n))
+    run = tmp_path / "run"
+    write_run(run, Rig(), odo, range_bearing=rb)
+    assert main(["export-bag", str(run), "--out", str(tmp_path / "r.bag"), "--ros1"]) == 0
+    assert (tmp_path / "r.bag").is_file()
+    assert "rangebearing.csv: the range-bearing measurements are not in the bag" in caplog.text
+    assert "kinect" not in caplog.text
