@@ -318,7 +318,9 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                         "offline pipeline of backend/noids_offline.py)")
     p.add_argument("--truth", default=None,
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
-    p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--mrclam", action="store_true",
+                   help="RUN is an MRCLAM folder: the resampled ds0_RS_ copy, or MRCLAM_DatasetN "
+                        "as distributed (Robot1_Odometry.dat ...: robot 1)")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
                    help="also write the final graph as g2o: poses, landmarks and every factor "
                         "(custom LAMPSAM_* lines for the ceiling model; backend/g2o_export.py)")

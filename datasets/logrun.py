@@ -158,6 +158,7 @@ class LoggedRun:
 #: Folders of other datasets that are not logged runs: (a file they hold, what to do).
 _FOREIGN = (
     ("ds0_RS_Control.dat", "a MRCLAM folder: `lampsam slam DIR --mrclam` reads it"),
+    ("Robot1_Odometry.dat", "a MRCLAM dataset folder: `lampsam slam DIR --mrclam` reads robot 1"),
     ("calib.txt", "a KITTI stereo sequence: `lampsam stereo-experiment` reads it (LAMPSAM_DATA)"),
     ("pose.txt", "an RGB-D (slambook2) folder: `lampsam build-map` reads it"),
     ("rgb.txt", "a TUM RGB-D folder: `lampsam build-map` reads it"),
