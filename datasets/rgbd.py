@@ -256,7 +256,11 @@ def read_tum_rgbd(
         raise DatasetError("RGB-D directory not found", root)
     if camera is None:
         if not (root / "kinect.yaml").is_file():
-            raise DatasetError("no kinect.yaml: pass the camera explicitly", root)
+            raise DatasetError(
+                "no kinect.yaml: a TUM RGB-D folder needs its camera in kinect.yaml beside rgb.txt "
+                "(width, height, fx, fy, cx, cy in px; depth_scale, 5000 for TUM; body_t_camera "
+                "[x, y, z] m and body_R_camera 3x3 on the robot; optional min_depth, max_depth m: "
+                "docs/log-format.md), or pass the camera from Python", root)
         camera = camera_from_yaml(root / "kinect.yaml")
     t_rgb, f_rgb = _read_list(root / "rgb.txt")
     t_depth, f_depth = _read_list(root / "depth.txt")

@@ -97,3 +97,12 @@ def test_groundtruth_directory_is_named(kinect_dir: Path) -> None:
     (kinect_dir / "groundtruth.txt").mkdir()
     with pytest.raises(DatasetError, match=r"groundtruth.txt: is a directory"):
         read_tum_rgbd(kinect_dir)
+
+
+def test_missing_kinect_yaml_lists_the_keys(kinect_dir: Path) -> None:
+    """A TUM RGB-D sequence from elsewhere has no kinect.yaml; the CLI cannot pass a camera,
+    so the message says what to write (it said "pass the camera explicitly")."""
+    (kinect_dir / "kinect.yaml").unlink()
+    with pytest.raises(DatasetError, match=r"no kinect.yaml: .*width, height, fx, fy, cx, cy.*"
+                       r"depth_scale.*body_t_camera.*body_R_camera"):
+        read_tum_rgbd(kinect_dir)
