@@ -191,12 +191,9 @@ def read_labels(path: str | Path) -> dict[str, PhotoLabels]:
     """
     path = Path(path)
     try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
+        raw = json.loads(path.read_text())
     except OSError as exc:
         raise LampsamError(f"{path}: cannot read the label file ({exc.strerror})") from exc
-    except UnicodeDecodeError as exc:
-        raise LampsamError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
-                           f"{exc.start}: a binary file?)") from exc
     except json.JSONDecodeError as exc:
         raise LampsamError(f"{path}:{exc.lineno}: not JSON ({exc.msg})") from exc
     fmt = _need(raw, "format", str(path))

@@ -1,7 +1,6 @@
-"""Bad input to the environment-map folder (``show-map``, ``localize --map``) and the photo
-label file (``frontend-eval --labels``).
+"""Bad input to the environment-map folder (``show-map``, ``localize --map``).
 
-Before: a binary ``manifest.yaml`` or ``map.yaml`` and a binary label file raised
+Before: a binary ``manifest.yaml`` or ``map.yaml`` raised
 UnicodeDecodeError (exit 1, "internal error"), a ``format_version`` that is not an integer
 raised ValueError from ``int()``, a NaN resolution was refused without naming the file, and
 a YAML error in ``map.yaml`` came out on several lines. Each is now one error line naming
@@ -73,18 +72,6 @@ def test_corrupt_map_is_one_error_line(env_map: Path, tmp_path: Path, name: str,
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and re.search(match, lines[0]), err
     assert not (tmp_path / "m.png").exists()
-
-
-def test_binary_label_file_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    photos = tmp_path / "photos"
-    photos.mkdir()
-    labels = tmp_path / "labels.json"
-    _binary(labels)
-    assert main(["frontend-eval", "--photos", str(photos), "--labels", str(labels),
-                 "--out", str(tmp_path / "o")]) == 2
-    err = capsys.readouterr().err
-    assert "internal error" not in err
-    assert f"{labels}: not UTF-8 text" in err
 
 
 @pytest.mark.parametrize("way", ["empty", "cut_short"])
