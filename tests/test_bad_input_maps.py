@@ -109,3 +109,23 @@ def test_corrupt_spatial_map_is_named(tmp_path: Path, way: str) -> None:
                       "text": b"xyz: not an archive\n"}[way])
     with pytest.raises(SpatialMapError, match=r"spatial_features.npz: unreadable, not a NumPy"):
         SpatialFeatureMap.load(path)
+
+
+def test_laser_log_on_a_map_of_another_sensor_warns(env_map: Path, tmp_path: Path,
+                                                    caplog: pytest.LogCaptureFixture,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A CARMEN log localized on a map whose grid came from another sensor used to fail its
+    trials without a word on why; the sensor of the map is now named before computing."""
+    lines = []
+    for k in range(5):
+        ranges = " ".join(f"{0.8 + 0.01 * ((b + k) % 7):.3f}" for b in range(180))
+        t = 10.0 + 0.5 * k
+        lines.append(f"FLASER 180 {ranges} {0.01 * k} 0.0 0.0 {0.01 * k} 0.0 0.0 {t} host {t}")
+    log_path = tmp_path / "tiny.log"
+    log_path.write_text("\n".join(lines) + "\n")
+    rc = main(["localize", str(log_path), "--map", str(env_map), "--trials", "1",
+               "--out", str(tmp_path / "L")])
+    err = capsys.readouterr().err
+    assert rc in (0, 1, 2) and "internal error" not in err
+    assert f"{env_map} was built from test" in caplog.text
+    assert "localizing a laser log on it" in caplog.text
