@@ -6,7 +6,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lampsam.commands._args import add_force, nonneg, output_dir, positive
+from lampsam.commands._args import add_force, log, nonneg, output_dir, positive
+
+#: Parts of a run that export-bag has no message for: (file or folder, what it holds).
+_NOT_EXPORTED = (("kinect", "the forward RGB-D frames"),
+                 ("rangebearing.csv", "the range-bearing measurements"))
 
 
 # --------------------------------------------------------------------------- ROS bags
@@ -67,6 +71,11 @@ def _cmd_export_bag(args: argparse.Namespace) -> int:
                          force=args.force)  # fmt: skip
     for topic, n in summary.counts.items():
         print(f"{topic}: {n} messages")
+    for name, what in _NOT_EXPORTED:
+        if (Path(args.run) / name).exists():
+            log.warning("%s: %s are not in the bag (export-bag writes odometry, ceiling images, "
+                        "camera info, tf, ground truth and the rig; docs/log-format.md)",
+                        Path(args.run) / name, what)
     print(f"bag written to {summary.path}")
     return 0
 

@@ -13,6 +13,7 @@ from lampsam.commands._args import (
     add_force,
     add_rerun_option,
     config_path,
+    log,
     nonneg_int,
     output_dir,
     output_file,
@@ -154,6 +155,31 @@ def add_show_map(sub: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------- localize
+def _warn_map_sensor(map_dir: Path, laser_log: bool) -> None:
+    """Warn when ``map_dir`` was built from another sensor than the one localized.
+
+    A laser log localized on a map from RGB-D depth (or a Kinect run on a laser map) runs,
+    and fails on maps of different places the same way; this says why it may fail.
+    """
+    from lampsam.localization.map_store import MANIFEST_FILE
+
+    manifest = map_dir / MANIFEST_FILE
+    if not manifest.is_file():
+        return  # load_env_map names a missing or bad manifest
+    try:
+        from lampsam.datasets.textio import read_yaml
+
+        doc = read_yaml(manifest)
+        sensor = str(doc["layers"]["grid"]["sensor"])
+        source = doc.get("source", {}).get("path", "?")
+    except (LampsamError, KeyError, TypeError, AttributeError):
+        return
+    if laser_log != (sensor == "planar laser"):
+        log.warning("%s was built from %s (%s); localizing %s on it matches scans of one sensor "
+                    "against the other's grid", map_dir, sensor, source,
+                    "a laser log" if laser_log else "a run's Kinect scans")
+
+
 def _localize_laser_log(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -167,6 +193,7 @@ def _localize_laser_log(args: argparse.Namespace) -> int:
         raise LampsamError(f"{args.run}: CARMEN log not found")
     if not Path(args.map).is_dir():
         raise LampsamError(f"{args.map}: map directory not found")
+    _warn_map_sensor(Path(args.map), laser_log=True)
     out = output_dir(args)
     cfg = dataclasses.replace(LaserTrialsConfig(), trials=args.trials, updates=args.updates,
                               seed=args.seed, scans=args.scans)
@@ -195,6 +222,7 @@ def _cmd_localize(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, mode=Mode(args.mode))
     if not Path(args.run).is_dir():
         raise LampsamError(f"{args.run}: run directory not found")
+    _warn_map_sensor(Path(args.map), laser_log=False)
     from lampsam.evaluation.live import live_view, rerun_target
 
     out = output_dir(args)

@@ -75,6 +75,12 @@ def _cmd_slam(args: argparse.Namespace) -> int:
     if args.save_map:
         from lampsam.safe_io import check_output_dir
 
+        if run.images is None or args.frames == "rangebearing" or (
+                args.frames == "auto" and run.range_bearing is not None):
+            raise LampsamError(f"--save-map writes a ceiling map (lamps, corners) from the "
+                               f"run's images; {args.run} is used through its range-bearing "
+                               "measurements, so the map would be empty (the landmarks are in "
+                               "OUT/landmarks.csv)")
         check_output_dir(args.save_map, force=args.force, what="--save-map")
     from lampsam.backend.localize_run import BackendCapture
     from lampsam.evaluation.live import live_view, rerun_target
@@ -319,7 +325,9 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                         "offline pipeline of backend/noids_offline.py)")
     p.add_argument("--truth", default=None,
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
-    p.add_argument("--mrclam", action="store_true", help="RUN is the MRCLAM ds0 folder")
+    p.add_argument("--mrclam", action="store_true",
+                   help="RUN is an MRCLAM folder: the resampled ds0_RS_ copy, or MRCLAM_DatasetN "
+                        "as distributed (Robot1_Odometry.dat ...: robot 1)")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
                    help="also write the final graph as g2o: poses, landmarks and every factor "
                         "(custom LAMPSAM_* lines for the ceiling model; backend/g2o_export.py)")

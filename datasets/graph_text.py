@@ -18,6 +18,12 @@ the odometry between consecutive poses and landmark sightings from poses:
   Cartesian sighting with information, turned into ``[bearing, range]`` with its
   covariance propagated to first order.
 
+Text after ``#`` is a comment. ``FIX id`` (g2o's gauge) is read and left out: lampsam holds
+the first pose with its prior (a warning names any other fixed id). A file written by
+``lampsam slam ... --g2o`` reads back: its ``LAMPSAM_*`` lines (the ceiling model) are
+counted and left out, and as it writes each sighting twice (``EDGE_SE2_XY`` for g2o, ``BR``
+for GTSAM), a file holding both reads the ``BR`` lines only (warned).
+
 Each pose becomes one step, at time ``t = k`` s for the ``k``-th pose (the formats
 carry no times). An edge between poses that are not consecutive (a loop closure of
 a pose graph) has no place in a landmark-SLAM step stream: it is counted and left
@@ -126,6 +132,42 @@ def _cartesian_to_br(dx: float, dy: float, cov_xy: FloatArray) -> tuple[float, f
     return b, r, j @ cov_xy @ j.T
 
 
+#: The fields after each record's tag, for messages.
+_LAYOUTS = {
+    "ODOMETRY": "i j dx dy dtheta c11 c12 c13 c22 c23 c33",
+    "EDGE2": "i j dx dy dtheta c11 c12 c13 c22 c23 c33",
+    "EDGE_SE2": "i j dx dy dtheta I11 I12 I13 I22 I23 I33",
+    "LANDMARK": "i l dx dy v11 v12 v22",
+    "LANDMARK2": "i l dx dy I11 I12 I22",
+    "EDGE_SE2_XY": "i l dx dy I11 I12 I22",
+    "BR": "i l bearing range sigma_bearing sigma_range",
+    "VERTEX2": "i x y theta",
+    "VERTEX_SE2": "i x y theta",
+    "VERTEX": "i x y theta",
+    "VERTEX_XY": "l x y",
+}
+
+
+def _unknown_record(tag: str, known: list[str]) -> str:
+    """The message for a line whose first word is no record tag (long words cut to 40 chars)."""
+    shown = repr(tag if len(tag) <= 40 else tag[:40] + "...")
+    if "," in tag:
+        return (f"the line {shown} holds commas: a CSV table, not an iSAM / g2o graph file "
+                "(space-separated records: ODOMETRY, EDGE_SE2, LANDMARK, ...)")
+    if tag.startswith("<"):
+        return f"the file starts like XML ({shown}), not an iSAM / g2o graph file"
+    return f"unknown record {shown} (known: {', '.join(known)})"
+
+
+def _is_int(text: str) -> bool:
+    """True when ``text`` parses as an integer."""
+    try:
+        int(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _is_number(text: str) -> bool:
     """True when ``text`` parses as a float."""
     try:
@@ -148,7 +190,10 @@ def read_graph_text(path: str | Path) -> GraphLog:
     index: dict[int, int] = {}
     deltas: list[FloatArray] = [np.zeros(3)]
     covs: list[FloatArray] = [np.zeros((3, 3))]
-    pending: list[tuple[int, Sighting, int]] = []  # (pose id, sighting, line)
+    pending: list[tuple[int, Sighting, int, str]] = []  # (pose id, sighting, line, tag)
+    tags_seen: set[str] = set()
+    fixed: list[str] = []
+    n_lampsam = 0
     vertices: dict[int, FloatArray] = {}
     skipped = 0
     counts = {"ODOMETRY": 11, "EDGE2": 11, "EDGE_SE2": 11, "LANDMARK": 7, "LANDMARK2": 7,
@@ -156,10 +201,16 @@ def read_graph_text(path: str | Path) -> GraphLog:
               "VERTEX": 4}
     with open_text(path) as fh:
         for line_no, raw in enumerate(fh, start=1):
-            parts = raw.split()
-            if not parts or parts[0].startswith("#"):
+            parts = raw.split("#", 1)[0].split()  # a trailing "# l6" (lampsam's --g2o) too
+            if not parts:
                 continue
             tag = parts[0]
+            if tag == "FIX":  # g2o's gauge; lampsam holds the first pose (one id per field)
+                fixed.extend(parts[1:])
+                continue
+            if tag.startswith("LAMPSAM_"):  # lampsam's ceiling-model lines (its --g2o)
+                n_lampsam += 1
+                continue
             if tag in _TAGS_3D:
                 raise DatasetError(f"3-D record {tag!r}: lampsam reads planar (2-D) graphs only "
                                    "(VERTEX_SE2 / EDGE_SE2 / ODOMETRY / LANDMARK ...)", path, line_no)
@@ -167,13 +218,17 @@ def read_graph_text(path: str | Path) -> GraphLog:
                 raise DatasetError(f"the line starts with a number ({tag!r}), not a record tag: not an "
                                    "iSAM / g2o graph file (a plain table of numbers?)", path, line_no)
             if tag not in counts:
-                raise DatasetError(f"unknown record {tag!r} (known: {', '.join(sorted(counts))})",
-                                   path, line_no)
+                raise DatasetError(_unknown_record(tag, sorted(counts)), path, line_no)
             if len(parts) - 1 != counts[tag]:
-                raise DatasetError(f"{tag} needs {counts[tag]} fields, got {len(parts) - 1}",
-                                   path, line_no)
+                raise DatasetError(f"{tag} needs {counts[tag]} fields, got {len(parts) - 1} "
+                                   f"(layout: {tag} {_LAYOUTS[tag]})", path, line_no)
+            n_ids = 2 if counts[tag] >= 6 else 1
+            bad_id = next((x for x in parts[1 : 1 + n_ids] if not _is_int(x)), None)
+            if bad_id is not None:
+                raise DatasetError(f"{tag}: ids must be integers, got {bad_id!r} (symbol ids such "
+                                   "as PyFG's 'L0' / 'A1' are not read)", path, line_no)
             try:
-                ids = [int(parts[1])] + ([int(parts[2])] if counts[tag] >= 6 else [])
+                ids = [int(x) for x in parts[1 : 1 + n_ids]]
                 nums = [float(x) for x in parts[1 + len(ids):]]
             except ValueError as exc:
                 raise DatasetError(f"{tag}: not a number ({exc})", path, line_no) from None
@@ -239,11 +294,24 @@ def read_graph_text(path: str | Path) -> GraphLog:
                 s = Sighting(lid, b, r, cov)
             if s.range <= 0 or not np.all(np.linalg.eigvalsh(s.cov) > 0):
                 raise DatasetError(f"{tag}: range must be > 0 and sigmas > 0", path, line_no)
-            pending.append((i, s, line_no))
+            pending.append((i, s, line_no, tag))
+            tags_seen.add(tag)
     if not pose_ids:
         raise DatasetError("no odometry records (ODOMETRY / EDGE2 / EDGE_SE2)", path)
+    if "BR" in tags_seen and "EDGE_SE2_XY" in tags_seen:
+        # lampsam's --g2o writes each sighting twice: EDGE_SE2_XY for g2o, BR for GTSAM
+        n_xy = sum(1 for _, _, _, t in pending if t == "EDGE_SE2_XY")
+        pending = [q for q in pending if q[3] != "EDGE_SE2_XY"]
+        log.warning("%s: both BR and EDGE_SE2_XY sightings (as lampsam's --g2o writes each "
+                    "sighting): the %d EDGE_SE2_XY lines are left out, the BR lines read", path, n_xy)
+    if n_lampsam:
+        log.warning("%s: %d LAMPSAM_* lines (lampsam's ceiling-model factors) left out: a planar "
+                    "log reads the standard records", path, n_lampsam)
+    if any(f != str(pose_ids[0]) for f in fixed):
+        log.warning("%s: FIX %s left out: lampsam holds the first pose (%d) with its prior",
+                    path, " ".join(fixed), pose_ids[0])
     sightings: list[list[Sighting]] = [[] for _ in pose_ids]
-    for i, s, line_no in pending:
+    for i, s, line_no, _ in pending:
         if i not in index:
             raise DatasetError(f"sighting from pose {i}, which no odometry reaches", path, line_no)
         sightings[index[i]].append(s)
@@ -266,7 +334,7 @@ def read_vertices(path: str | Path) -> dict[int, FloatArray]:
     out: dict[int, FloatArray] = {}
     with open_text(path) as fh:
         for line_no, raw in enumerate(fh, start=1):
-            parts = raw.split()
+            parts = raw.split("#", 1)[0].split()
             if not parts or parts[0] not in ("VERTEX2", "VERTEX_SE2", "VERTEX"):
                 continue
             if len(parts) != 5:

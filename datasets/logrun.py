@@ -158,6 +158,7 @@ class LoggedRun:
 #: Folders of other datasets that are not logged runs: (a file they hold, what to do).
 _FOREIGN = (
     ("ds0_RS_Control.dat", "a MRCLAM folder: `lampsam slam DIR --mrclam` reads it"),
+    ("Robot1_Odometry.dat", "a MRCLAM dataset folder: `lampsam slam DIR --mrclam` reads robot 1"),
     ("calib.txt", "a KITTI stereo sequence: `lampsam stereo-experiment` reads it (LAMPSAM_DATA)"),
     ("pose.txt", "an RGB-D (slambook2) folder: `lampsam build-map` reads it"),
     ("rgb.txt", "a TUM RGB-D folder: `lampsam build-map` reads it"),
@@ -195,6 +196,10 @@ def read_run(path: str | Path) -> LoggedRun:
                            f"{_foreign_hint(path)}", path)
     rig = Rig.from_yaml(path / RIG_FILE)
     odometry: OdometryLog | Pose2OdometryLog
+    if not any((path / f).exists() for f in (ODOMETRY_FILE, ODOMETRY_POSE2_FILE, ODOMETRY_POSES_FILE)):
+        raise DatasetError(f"{ODOMETRY_FILE}: file not found (a run needs its odometry: "
+                           f"{ODOMETRY_FILE} of wheel travel, or {ODOMETRY_POSE2_FILE} / "
+                           f"{ODOMETRY_POSES_FILE}; docs/log-format.md)", path / ODOMETRY_FILE)
     if (path / ODOMETRY_FILE).exists() or not (
             (path / ODOMETRY_POSE2_FILE).exists() or (path / ODOMETRY_POSES_FILE).exists()):
         odometry = read_odometry(path / ODOMETRY_FILE)

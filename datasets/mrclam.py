@@ -1,4 +1,5 @@
-"""Adapter for the UTIAS MRCLAM dataset (one robot, ``ds0_RS_*`` resampled at 50 Hz).
+"""Adapter for the UTIAS MRCLAM dataset (one robot, ``ds0_RS_*`` resampled at 50 Hz, or the
+dataset as distributed: ``MRCLAM_DatasetN/Robot1_Odometry.dat`` ..., robot 1; :func:`mrclam_files`).
 
 Files (whitespace separated, one record a line; Leung et al., IJRR 2011):
 
@@ -46,6 +47,8 @@ log = logging.getLogger(__name__)
 NOMINAL_WHEEL_BASE = 0.26
 #: Robots' own ids in Barcodes.dat (their barcodes must not be used as landmarks).
 ROBOT_IDS = (1, 2, 3, 4, 5)
+#: The robot read from a folder in the dataset's own layout (``Robot1_Odometry.dat`` ...).
+ORIGINAL_ROBOT = 1
 
 
 @dataclass(frozen=True)
@@ -115,11 +118,40 @@ def _read_table(path: Path, ncols: int, monotonic_col: int | None = 0) -> FloatA
     return np.asarray(rows, dtype=float)
 
 
+def mrclam_files(root: Path, prefix: str = "ds0_RS_", robot: int = ORIGINAL_ROBOT) -> dict[str, Path]:
+    """The five tables of one robot in an MRCLAM folder, in either layout.
+
+    ``<prefix>Control.dat`` ... (the resampled ``ds0_RS_`` copy) when present, else the
+    dataset's own layout (``MRCLAM_Dataset1`` ... ``9`` as distributed: ``Robot<i>_Odometry.dat``,
+    ``Robot<i>_Measurement.dat``, ``Robot<i>_Groundtruth.dat``, ``Landmark_Groundtruth.dat``,
+    ``Barcodes.dat``; same columns, ``#`` header lines, Unix times), robot ``robot``.
+
+    Raises:
+        DatasetError: neither layout's odometry file is in ``root`` (both named).
+    """
+    if (root / f"{prefix}Control.dat").exists():
+        return {"control": root / f"{prefix}Control.dat",
+                "measurement": root / f"{prefix}Measurement.dat",
+                "groundtruth": root / f"{prefix}Groundtruth.dat",
+                "landmarks": root / f"{prefix}Landmark_Groundtruth.dat",
+                "barcodes": root / f"{prefix}Barcodes.dat"}
+    if (root / f"Robot{robot}_Odometry.dat").exists():
+        log.info("%s: MRCLAM dataset layout, robot %d", root, robot)
+        return {"control": root / f"Robot{robot}_Odometry.dat",
+                "measurement": root / f"Robot{robot}_Measurement.dat",
+                "groundtruth": root / f"Robot{robot}_Groundtruth.dat",
+                "landmarks": root / "Landmark_Groundtruth.dat",
+                "barcodes": root / "Barcodes.dat"}
+    what = "folder not found" if not root.exists() else "not an MRCLAM folder"
+    raise DatasetError(f"{what}: no {prefix}Control.dat (the resampled copy) and no "
+                       f"Robot{robot}_Odometry.dat (MRCLAM_DatasetN as distributed)", root)
+
+
 def read_mrclam(root: Path, prefix: str = "ds0_RS_") -> MrclamData:
     """Read one MRCLAM robot folder.
 
     Args:
-        root: folder holding ``<prefix>Control.dat`` etc.
+        root: folder holding ``<prefix>Control.dat`` etc., or ``Robot1_Odometry.dat`` etc.
         prefix: file prefix (default the 50 Hz resampled ``ds0_RS_``).
 
     Returns:
@@ -129,11 +161,12 @@ def read_mrclam(root: Path, prefix: str = "ds0_RS_") -> MrclamData:
         DatasetError: a missing file, a malformed line, NaN, time going backwards.
     """
     root = Path(root)
-    control = _read_table(root / f"{prefix}Control.dat", 3)
-    meas = _read_table(root / f"{prefix}Measurement.dat", 4)
-    gt = _read_table(root / f"{prefix}Groundtruth.dat", 4)
-    lms = _read_table(root / f"{prefix}Landmark_Groundtruth.dat", 5, monotonic_col=None)
-    codes = _read_table(root / f"{prefix}Barcodes.dat", 2, monotonic_col=None)
+    files = mrclam_files(root, prefix)
+    control = _read_table(files["control"], 3)
+    meas = _read_table(files["measurement"], 4)
+    gt = _read_table(files["groundtruth"], 4)
+    lms = _read_table(files["landmarks"], 5, monotonic_col=None)
+    codes = _read_table(files["barcodes"], 2, monotonic_col=None)
 
     barcode_to_id = {int(round(b)): int(round(i)) for i, b in codes}
     landmark_ids = np.round(lms[:, 0]).astype(np.int64)

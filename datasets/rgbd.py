@@ -26,13 +26,13 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
-from lampsam.datasets.textio import read_text
+from lampsam.datasets.textio import read_text, read_yaml
 from lampsam.datasets.tum import pose_from_tum_fields, read_tum_3d
 from lampsam.errors import DatasetError
 
@@ -172,34 +172,63 @@ def _read_list(path: Path) -> tuple[list[float], list[Path]]:
     return times, files
 
 
+def _camera_number(meta: dict[str, Any], key: str, path: Path, default: float | None = None,
+                   integer: bool = False) -> float:
+    """``meta[key]`` as a finite number (an integer with ``integer``), or DatasetError naming it."""
+    if key not in meta:
+        if default is None:
+            raise DatasetError(f"camera key {key} is missing", path)
+        return default
+    value = meta[key]
+    ok = isinstance(value, int) if integer else isinstance(value, (int, float))
+    if isinstance(value, bool) or not ok or not math.isfinite(value):
+        raise DatasetError(f"camera key {key}: must be {'an integer' if integer else 'a finite number'}"
+                           f", got {value!r}", path)
+    return value
+
+
+def _camera_array(meta: dict[str, Any], key: str, shape: tuple[int, ...], path: Path) -> FloatArray:
+    """``meta[key]`` as a finite float array of ``shape``, or DatasetError naming it."""
+    if key not in meta:
+        raise DatasetError(f"camera key {key} is missing", path)
+    try:
+        value = np.asarray(meta[key], dtype=float)
+    except (TypeError, ValueError):
+        value = np.zeros(0)
+    if value.shape != shape or not np.all(np.isfinite(value)):
+        raise DatasetError(f"camera key {key}: must be {'x'.join(map(str, shape))} finite numbers, "
+                           f"got {meta[key]!r}", path)
+    return value
+
+
 def camera_from_yaml(path: Path) -> RgbdCamera:
     """The camera of a lampsam ``kinect.yaml`` (written by ``kinect_sim``).
 
+    Keys other than the camera's (provenance, the simulator's settings) are ignored.
+
     Raises:
-        DatasetError: missing file or key.
+        DatasetError: unreadable or invalid YAML (file and line), a missing key, or a
+            value of the wrong type or shape (the key named).
     """
-    try:
-        meta = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as exc:
-        raise DatasetError(f"cannot read camera file: {exc}", path) from exc
-    try:
-        T = np.eye(4)
-        T[:3, :3] = np.asarray(meta["body_R_camera"], float)
-        T[:3, 3] = np.asarray(meta["body_t_camera"], float)
-        return RgbdCamera(
-            width=int(meta["width"]),
-            height=int(meta["height"]),
-            fx=float(meta["fx"]),
-            fy=float(meta["fy"]),
-            cx=float(meta["cx"]),
-            cy=float(meta["cy"]),
-            depth_scale=float(meta["depth_scale"]),
-            min_depth=float(meta.get("min_depth", 0.3)),
-            max_depth=float(meta.get("max_depth", 6.0)),
-            body_T_camera=T,
-        )
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DatasetError(f"bad or missing camera key: {exc}", path) from exc
+    meta = read_yaml(path)
+    if not isinstance(meta, dict):
+        raise DatasetError("expected a mapping of camera keys (width, height, fx, ...), got "
+                           + ("an empty file" if meta is None else type(meta).__name__), path)
+    T = np.eye(4)
+    T[:3, :3] = _camera_array(meta, "body_R_camera", (3, 3), path)
+    T[:3, 3] = _camera_array(meta, "body_t_camera", (3,), path)
+    return RgbdCamera(
+        width=int(_camera_number(meta, "width", path, integer=True)),
+        height=int(_camera_number(meta, "height", path, integer=True)),
+        fx=float(_camera_number(meta, "fx", path)),
+        fy=float(_camera_number(meta, "fy", path)),
+        cx=float(_camera_number(meta, "cx", path)),
+        cy=float(_camera_number(meta, "cy", path)),
+        depth_scale=float(_camera_number(meta, "depth_scale", path)),
+        min_depth=float(_camera_number(meta, "min_depth", path, default=0.3)),
+        max_depth=float(_camera_number(meta, "max_depth", path, default=6.0)),
+        body_T_camera=T,
+    )
 
 
 def read_tum_rgbd(
@@ -227,7 +256,11 @@ def read_tum_rgbd(
         raise DatasetError("RGB-D directory not found", root)
     if camera is None:
         if not (root / "kinect.yaml").is_file():
-            raise DatasetError("no kinect.yaml: pass the camera explicitly", root)
+            raise DatasetError(
+                "no kinect.yaml: a TUM RGB-D folder needs its camera in kinect.yaml beside rgb.txt "
+                "(width, height, fx, fy, cx, cy in px; depth_scale, 5000 for TUM; body_t_camera "
+                "[x, y, z] m and body_R_camera 3x3 on the robot; optional min_depth, max_depth m: "
+                "docs/log-format.md), or pass the camera from Python", root)
         camera = camera_from_yaml(root / "kinect.yaml")
     t_rgb, f_rgb = _read_list(root / "rgb.txt")
     t_depth, f_depth = _read_list(root / "depth.txt")
@@ -253,7 +286,7 @@ def read_tum_rgbd(
         raise DatasetError("no colour/depth pairs", root)
     poses = None
     gt = root / "groundtruth.txt"
-    if gt.is_file():
+    if gt.exists():  # optional; a directory of that name is an error (read_tum_3d)
         t_gt, T_gt = read_tum_3d(gt)
         idx = np.searchsorted(t_gt, keep_t)
         idx = np.clip(idx, 0, len(t_gt) - 1)

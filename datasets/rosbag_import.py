@@ -299,6 +299,11 @@ def import_bag(bag: str | Path, out: str | Path, options: ImportOptions | None =
         reader.open()
     except (AnyReaderError, FileNotFoundError) as exc:
         raise DatasetError(f"cannot read bag: {exc}", bag) from exc
+    except (UnicodeDecodeError, TypeError, ValueError, KeyError) as exc:
+        # rosbags reading foreign bytes: a binary file named .bag, a ROS2 metadata.yaml that
+        # is not text or has a string where a number belongs (its own errors are above)
+        raise DatasetError(f"cannot read bag: not a ROS1 bag or ROS2 bag folder this can read "
+                           f"({type(exc).__name__}: {exc})", bag) from exc
     try:
         topics = {c.topic: c.msgtype for c in reader.connections}
         first: dict[str, Any] = {}

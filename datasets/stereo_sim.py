@@ -32,13 +32,16 @@ import logging
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
 
 from lampsam.arrays import BoolArray, FloatArray
+from lampsam.config_loader import ConfigError, from_mapping
 from lampsam.datasets.stereo_types import StereoNoise, StereoRig, StereoRun
 from lampsam.datasets.tables import Trajectory
+from lampsam.datasets.textio import parse_float, read_csv, read_yaml
 from lampsam.datasets.tum import read_tum, write_tum
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path, write_text_atomic
@@ -277,33 +280,48 @@ def simulate_stereo_run(
 
 
 def _read_csv(path: Path, header: list[str]) -> FloatArray:
-    """Numeric CSV with an exact header -> (N, len(header)); errors name file and line."""
-    if not path.is_file():
-        raise DatasetError("file not found", path)
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows or [h.strip() for h in rows[0]] != header:
-        raise DatasetError(f"expected header {','.join(header)}", path, 1)
-    data = []
-    for i, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        if len(row) != len(header):
-            raise DatasetError(f"expected {len(header)} fields, got {len(row)}", path, i)
-        try:
-            vals = [float(c) for c in row]
-        except ValueError as exc:
-            raise DatasetError(f"not a number: {exc}", path, i) from exc
-        if not all(math.isfinite(c) for c in vals):
-            raise DatasetError("non-finite value", path, i)
-        data.append(vals)
-    if not data:
-        raise DatasetError("no data rows", path)
-    out = np.array(data)
-    if np.any(np.diff(out[:, 0]) <= 0):
-        line = int(np.argmax(np.diff(out[:, 0]) <= 0)) + 3
-        raise DatasetError("time does not increase", path, line)
+    """Numeric CSV with an exact header -> (N, len(header)); errors name file and line.
+
+    Read with :func:`lampsam.datasets.textio.read_csv`: a binary or gzip file, a
+    directory, a BOM and blank / ``#`` lines are handled as in every other reader, and
+    the line named for a time that does not increase is the file's own line.
+    """
+    rows, lines = read_csv(path, header, [parse_float] * len(header))
+    out = np.array(rows, dtype=float)
+    bad = np.flatnonzero(np.diff(out[:, 0]) <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise DatasetError(f"time does not increase ({out[k, 0]:g} after {out[k - 1, 0]:g})",
+                           path, lines[k])
     return out
+
+
+def _run_description(meta_path: Path) -> tuple[dict[str, Any], StereoRig, StereoNoise, FloatArray]:
+    """``stereo_run.yaml``: the mapping, the rig, the noise and the (2, 2) target points.
+
+    ``rig`` and ``noise`` are read strictly (:func:`lampsam.config_loader.from_mapping`):
+    a missing table, an unknown key or a wrong type is an error naming the key.
+    """
+    meta = read_yaml(meta_path)
+    if not isinstance(meta, dict):
+        raise DatasetError("bad run description: expected a mapping with rig, noise and "
+                           f"target_t_points, got {'an empty file' if meta is None else type(meta).__name__}",
+                           meta_path)
+    for key in ("rig", "noise", "target_t_points"):
+        if key not in meta:
+            raise DatasetError(f"bad run description: {key} is missing", meta_path)
+    try:
+        rig = from_mapping(StereoRig, meta["rig"], source=meta_path, key="rig")
+        noise = from_mapping(StereoNoise, meta["noise"], source=meta_path, key="noise")
+    except ConfigError as exc:
+        raise DatasetError(f"bad run description: {exc.key}: {exc.problem}", meta_path) from None
+    try:
+        points = np.asarray(meta["target_t_points"], dtype=float)
+    except (TypeError, ValueError):
+        points = np.zeros(0)
+    if points.shape != (2, 2) or not np.all(np.isfinite(points)):
+        raise DatasetError("target_t_points must be 2 finite (x, y) pairs", meta_path)
+    return meta, rig, noise, points
 
 
 def read_stereo_run(path: Path) -> StereoRun:
@@ -317,28 +335,29 @@ def read_stereo_run(path: Path) -> StereoRun:
     meta_path = path / RUN_YAML
     if not meta_path.is_file():
         raise DatasetError(f"not a stereo run directory (no {RUN_YAML})", meta_path)
-    try:
-        with open(meta_path) as fh:
-            meta = yaml.safe_load(fh)
-        rig = StereoRig(**meta["rig"])
-        noise = StereoNoise(**meta["noise"])
-        points = np.asarray(meta["target_t_points"], dtype=float)
-    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
-        raise DatasetError(f"bad run description: {exc}", meta_path) from exc
-    if points.shape != (2, 2) or not np.all(np.isfinite(points)):
-        raise DatasetError("target_t_points must be 2 finite (x, y) pairs", meta_path)
+    meta, rig, noise, points = _run_description(meta_path)
     odo = _read_csv(path / ODOMETRY_CSV, ["t", "v", "omega"])
     meas = _read_csv(path / MEASUREMENTS_CSV, ["t", "seen", "xl1", "xr1", "xl2", "xr2"])
     if len(odo) != len(meas) or not np.allclose(odo[:, 0], meas[:, 0], atol=1e-6):
-        raise DatasetError("odometry and measurement times differ", path / MEASUREMENTS_CSV)
+        raise DatasetError(f"odometry and measurement times differ ({ODOMETRY_CSV}: {len(odo)} "
+                           f"rows, {MEASUREMENTS_CSV}: {len(meas)}; every frame needs one row "
+                           "in each, at the same time)", path / MEASUREMENTS_CSV)
     truth = None
     gt_path = path / GROUNDTRUTH_TUM
-    if gt_path.is_file():
+    if gt_path.exists():  # optional; a directory of that name is an error (read_tum)
         gt = read_tum(gt_path)
         if len(gt) != len(odo) or not np.allclose(gt.t, odo[:, 0], atol=1e-6):
             raise DatasetError("ground-truth times differ from the frames", gt_path)
         truth = gt.poses
     return StereoRun(
         path, rig, noise, points, odo[:, 0], odo[:, 1], odo[:, 2], meas[:, 2:6],
-        meas[:, 1] > 0.5, truth, str(meta.get("scenario", "")), int(meta.get("seed", -1)),
+        meas[:, 1] > 0.5, truth, str(meta.get("scenario", "")), _seed(meta, meta_path),
     )
+
+
+def _seed(meta: dict[str, Any], meta_path: Path) -> int:
+    """The run's ``seed`` (provenance; -1 when absent), or DatasetError when not an integer."""
+    seed = meta.get("seed", -1)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise DatasetError(f"bad run description: seed: must be an integer, got {seed!r}", meta_path)
+    return seed

@@ -28,6 +28,7 @@ import numpy as np
 import yaml
 
 from lampsam.arrays import BoolArray, FloatArray, IntArray
+from lampsam.datasets.textio import read_yaml
 from lampsam.errors import InputError
 from lampsam.safe_io import atomic_path, write_text_atomic
 
@@ -451,11 +452,7 @@ def load_map_server(yaml_path: str | Path,
     yaml_path = Path(yaml_path)
     if not yaml_path.is_file():
         raise GridMapError("map YAML not found", path=yaml_path)
-    try:
-        with open(yaml_path, encoding="utf-8") as fh:
-            meta = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        raise GridMapError(f"invalid YAML: {exc}", path=yaml_path) from exc
+    meta = read_yaml(yaml_path)  # DatasetError naming file and line: binary, invalid YAML
     if not isinstance(meta, dict):
         raise GridMapError("map YAML is not a mapping", path=yaml_path)
     for key in ("image", "resolution", "origin"):
@@ -469,8 +466,11 @@ def load_map_server(yaml_path: str | Path,
         free_t = float(meta.get("free_thresh", config.free_thresh))
     except (TypeError, ValueError) as exc:
         raise GridMapError(f"bad value: {exc}", path=yaml_path) from exc
-    if origin.shape != (3,):
+    if origin.shape != (3,) or not np.all(np.isfinite(origin)):
         raise GridMapError(f"origin must be [x, y, yaw], got {meta['origin']}", path=yaml_path)
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise GridMapError(f"resolution must be a positive number, got {meta['resolution']}",
+                           path=yaml_path)
     mode = str(meta.get("mode", "trinary"))
     if mode not in ("trinary", "scale", "raw"):
         raise GridMapError(f"unknown mode {mode!r}", path=yaml_path)

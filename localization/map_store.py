@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lampsam.datasets.textio import read_yaml
 from lampsam.errors import LocalizationError
 from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
 from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, save_map_server
@@ -209,10 +210,13 @@ def load_env_map(path: str | Path) -> EnvironmentMap:
     mf = path / MANIFEST_FILE
     if not mf.is_file():
         raise EnvMapError(f"{mf}: manifest not found (not a lampsam map directory)")
-    manifest = yaml.safe_load(mf.read_text(encoding="utf-8"))
+    manifest = read_yaml(mf)  # DatasetError naming the file for binary / invalid YAML
     if not isinstance(manifest, dict) or manifest.get("format") != ENVMAP_FORMAT:
         raise EnvMapError(f"{mf}: not a {ENVMAP_FORMAT} manifest")
-    if int(manifest.get("format_version", 0)) > ENVMAP_VERSION:
+    version = manifest.get("format_version", 0)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise EnvMapError(f"{mf}: format_version must be an integer, got {version!r}")
+    if version > ENVMAP_VERSION:
         raise EnvMapError(
             f"{mf}: format_version {manifest['format_version']} is newer than "
             f"this lampsam's ({ENVMAP_VERSION})"

@@ -45,6 +45,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -142,7 +143,7 @@ def _open_checked(path: Path, grid: OccupancyGrid) -> dict[str, Any] | None:
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # empty / cut short / not a zip
         log.warning("%s: unreadable (%s), the lookup will be computed", path, exc)
         return None
     if int(data.get("format_version", -1)) != TABLES_VERSION:

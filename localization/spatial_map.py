@@ -20,6 +20,7 @@ On disk: ``spatial_features.npz`` with arrays ``xyz`` (N, 3) float64 world m,
 from __future__ import annotations
 
 import logging
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,8 +107,8 @@ class SpatialFeatureMap:
         path = Path(path)
         if not path.is_file():
             raise SpatialMapError(f"{path}: spatial feature map not found")
-        with np.load(path) as data:
-            try:
+        try:
+            with np.load(path, allow_pickle=False) as data:
                 out = cls(
                     np.asarray(data["xyz"], float),
                     np.asarray(data["descriptors"], np.float32),
@@ -115,8 +116,11 @@ class SpatialFeatureMap:
                     np.asarray(data["angle_deg"], float),
                     np.asarray(data["n_obs"], np.int64),
                 )
-            except KeyError as exc:
-                raise SpatialMapError(f"{path}: missing array {exc}") from exc
+        except KeyError as exc:
+            raise SpatialMapError(f"{path}: missing array {exc}") from exc
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise SpatialMapError(f"{path}: unreadable, not a NumPy .npz archive (empty, cut "
+                                  f"short or another file: {type(exc).__name__})") from exc
         n = len(out.xyz)
         if any(len(a) != n for a in (out.descriptors, out.size_px, out.angle_deg, out.n_obs)):
             raise SpatialMapError(f"{path}: arrays of different lengths")
