@@ -31,7 +31,7 @@ Modules:
 * :mod:`~lampsam.datasets.logrun` -- The logged-run directory: what it holds, and reading or writing it whole (``docs/log-format.md``).
 * :mod:`~lampsam.datasets.motion` -- True motion of a differential-drive robot along waypoints, and wheel-slip noise.
 * :mod:`~lampsam.datasets.mounting` -- Camera mounting: a tilted or offset ceiling camera from roll, pitch and yaw.
-* :mod:`~lampsam.datasets.mrclam` -- Adapter for the UTIAS MRCLAM dataset (one robot, ``ds0_RS_*`` resampled at 50 Hz, or the
+* :mod:`~lampsam.datasets.mrclam` -- Adapter for the UTIAS MRCLAM dataset (one robot, ``ds0_RS_*`` resampled at 50 Hz, or the dataset as distributed: ``MRCLAM_DatasetN/Robot1_Odometry.dat`` ..., robot 1; :func:`mrclam_files`).
 * :mod:`~lampsam.datasets.odometry` -- Odometry as relative ``Pose2`` increments in the logged-run format (beside wheel travel).
 * :mod:`~lampsam.datasets.openings` -- Daylight openings of a simulated ceiling: skylights and windows.
 * :mod:`~lampsam.datasets.paths` -- Where the shared real-data folder is.
