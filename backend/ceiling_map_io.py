@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import csv
 import math
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,7 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.interface import LandmarkEstimate, LandmarkKind
 from lampsam.backend.map_frame import MapFrame
 from lampsam.datasets.rig import Rig
+from lampsam.datasets.textio import read_text
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -253,8 +255,7 @@ def _read_landmarks(path: Path, version: int) -> tuple[list[MapLandmark], dict[i
     """The landmarks and (version 2) the gains of the rows that have them."""
     if not path.is_file():
         raise _fail(path, "missing: a ceiling map needs its landmarks file")
-    with open(path, newline="", encoding="utf-8") as fh:
-        rows = list(csv.reader(fh))
+    rows = list(csv.reader(read_text(path).splitlines()))
     columns = COLUMNS if version == 1 else COLUMNS + GAIN_COLUMNS
     if not rows or tuple(rows[0]) != columns:
         got = ",".join(rows[0]) if rows else "(empty file)"
@@ -346,8 +347,8 @@ def _read_patches(path: Path, ids: set[int]) -> dict[int, np.ndarray]:
                 raise _fail(path, f"needs arrays 'ids' and 'patches'; has {', '.join(z.files)}")
             pid = np.asarray(z["ids"])
             pat = np.asarray(z["patches"])
-    except (OSError, ValueError) as exc:
-        raise _fail(path, f"not a readable .npz: {exc}") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise _fail(path, f"not a readable .npz: {exc or type(exc).__name__}") from None
     if pid.ndim != 1 or pat.ndim != 3 or len(pid) != len(pat) or pat.shape[1] != pat.shape[2]:
         raise _fail(path, f"'ids' must be (K,) and 'patches' (K, P, P); got {pid.shape} and {pat.shape}")
     unknown = [int(i) for i in pid if int(i) not in ids]
@@ -370,7 +371,7 @@ def read_map(folder: str | Path) -> CeilingMap:
     if not meta_path.is_file():
         raise _fail(meta_path, "missing: not a ceiling map (written by `lampsam slam --save-map`)")
     try:
-        doc = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
+        doc = yaml.safe_load(read_text(meta_path))
     except yaml.YAMLError as exc:
         raise _fail(meta_path, f"invalid YAML: {exc}") from None
     if not isinstance(doc, dict):

@@ -191,7 +191,10 @@ def read_labels(path: str | Path) -> dict[str, PhotoLabels]:
     """
     path = Path(path)
     try:
-        raw = json.loads(path.read_text())
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise LampsamError(f"{path}: not a text file: byte {exc.start} is not UTF-8 "
+                           "(a label file is JSON)") from None
     except OSError as exc:
         raise LampsamError(f"{path}: cannot read the label file ({exc.strerror})") from exc
     except json.JSONDecodeError as exc:

@@ -326,3 +326,25 @@ def test_cli_map_flags_and_bad_map(lab4: Path, tmp_path: Path,
                  "--out", out, "--force"]) == 2
     err = capsys.readouterr().err
     assert "map.yaml" in err and "missing key" in err and "Traceback" not in err
+
+
+def test_binary_or_cut_short_map_files_are_named(tmp_path: Path, rng: np.random.Generator) -> None:
+    """A binary map.yaml / landmarks.csv and an empty or cut-short patches.npz name their file
+    (were UnicodeDecodeError, EOFError and BadZipFile: 'internal error')."""
+    good = write_map(tmp_path / "good", _random_map(rng))
+    binary = bytes(range(128, 256)) * 4
+
+    def variant(name: str, f: str, data: bytes) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        for g in ("map.yaml", "landmarks.csv", "patches.npz"):
+            (folder / g).write_bytes((good / g).read_bytes())
+        (folder / f).write_bytes(data)
+        return folder
+
+    _expect(variant("bin_yaml", "map.yaml", binary), "map.yaml", "UTF-8")
+    _expect(variant("bin_csv", "landmarks.csv", binary), "landmarks.csv", "UTF-8")
+    _expect(variant("empty_npz", "patches.npz", b""), "patches.npz", "not a readable .npz")
+    cut = (good / "patches.npz").read_bytes()
+    _expect(variant("cut_npz", "patches.npz", cut[: len(cut) // 2]), "patches.npz",
+            "not a readable .npz")

@@ -64,6 +64,9 @@ def test_bad_label_file_names_the_key(tmp_path: Path) -> None:
     bad.write_text("{not json")
     with pytest.raises(LampsamError, match="bad.json:1: not JSON"):
         read_labels(bad)
+    bad.write_bytes(bytes(range(128, 256)))  # a binary file: was UnicodeDecodeError
+    with pytest.raises(LampsamError, match="bad.json: not a text file"):
+        read_labels(bad)
 
 
 def test_decisions_and_merge() -> None:
