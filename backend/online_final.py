@@ -53,13 +53,27 @@ def online_association(backend: SlamBackend, result: SlamResult) -> Sightings:
         result: its result (``keyframes``: (N,) True at the steps that made one).
 
     Returns:
-        The sightings with ``k`` the log pose (step) index and ``lid`` the run's landmark.
+        The sightings with ``k`` the log pose (step) index and ``lid`` the run's landmark
+        (a copy the revisit check tied to an older landmark: the older one).
     """
     records = list(getattr(backend, "planar_sightings", []))
     s = sightings_from(records)
     if backend.name != "ekf" and len(s.k):
         step_of = np.r_[0, np.flatnonzero(result.keyframes)]
         s.k = step_of[s.k]
+    # the revisit check's merges are stiff ties between two landmarks in the online graph
+    # (``revisit_ties``: keyframe, copy, old); the batch graph has no tie factor, so the
+    # copy's sightings go to the old landmark (chains followed)
+    to = {int(c): int(o) for _, c, o in getattr(backend, "revisit_ties", [])}
+    if to:
+        def root(i: int) -> int:
+            seen = {i}
+            while i in to and to[i] not in seen:
+                i = to[i]
+                seen.add(i)
+            return i
+
+        s.lid = np.array([root(i) for i in s.lid.tolist()], int)
     return s
 
 

@@ -290,7 +290,7 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                 f"{int(s['reassociation_passes'])} batch re-association passes")
     if final and online is not None:
         msg += (f"; final solve of the online {args.backend} run's association at the stated "
-                f"noise ({int(s['reassociation_passes'])} passes, "
+                f"noise ({int(s['reassociation_passes'])} re-association passes, "
                 f"{int(s['noids_merges'])} merges, {int(s['noids_splits'])} splits, "
                 f"{int(s['noids_sighting_moves'])} sighting moves; online: "
                 f"{len(online.landmarks)} landmarks, poses in online.tum)")

@@ -151,3 +151,23 @@ def test_online_final_options_are_checked() -> None:
     with pytest.raises(Exception, match="online_final_cov_scale"):
         SlamConfig.from_dict({"reassociation": {"online_final_cov_scale": 0.0}})
     assert ReassociationConfig().online_final and ReassociationConfig().online_final_passes == 20
+
+
+def test_online_association_maps_keyframes_to_poses_and_follows_revisit_ties() -> None:
+    """A graph backend records sightings by keyframe (0 the start pose; keyframe j >= 1 is
+    the j-th step that made one) and its revisit check's merges as ties (copy -> old,
+    possibly chained): the association has log poses and the old landmark's id."""
+
+    class _Graph:
+        name = "isam2"
+        planar_sightings = [(1, np.array([0.1, 5.0]), np.eye(2), 7),
+                            (2, np.array([0.2, 4.0]), np.eye(2), 8),
+                            (3, np.array([0.3, 3.0]), np.eye(2), 9)]
+        revisit_ties = [(3, 9, 8), (3, 8, 7)]
+
+    res = SlamResult(backend="isam2", times=np.arange(6.0), poses=np.zeros((6, 3)),
+                     pose_covs=np.zeros((6, 3, 3)), landmarks=[], step_times_s=np.zeros(6),
+                     keyframes=np.array([False, True, False, True, True, False]))
+    s = online_association(_Graph(), res)  # type: ignore[arg-type]
+    assert s.k.tolist() == [1, 3, 4] and s.lid.tolist() == [7, 7, 7]
+    assert s.z.shape == (3, 2) and s.r.shape == (3, 2, 2)
