@@ -59,7 +59,7 @@ from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.final_moves import readmit, refine_final
 from lampsam.backend.graph_log import graph_log_steps
-from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
+from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, LandmarkKind, SlamResult
 from lampsam.backend.landmark_moves import Move, refine_by_cost, solve_association
 from lampsam.backend.reassociate import (
     Pass,
@@ -383,7 +383,8 @@ def result_of(g: GraphLog, config: SlamConfig, best: OfflineRun, extra: dict[str
     fewer than ``association.min_observations`` sightings are ``provisional``. ``extra``
     holds the answer's factor (``noids_scale``), its passes, the group chi-squares per
     dof, the description length (``noids_cost``), the merges and splits, the dropped
-    sightings and the CPU time since ``c0`` (wall since ``t0``), then ``extra``.
+    sightings and the CPU time since ``c0`` (wall since ``t0``), then ``extra``; ``graph``
+    is the answer's factor graph at its optimum (``lampsam slam --g2o``).
     """
     try:
         marg: gtsam.Marginals | None = gtsam.Marginals(best.graph, best.values)
@@ -416,4 +417,5 @@ def result_of(g: GraphLog, config: SlamConfig, best: OfflineRun, extra: dict[str
         keyframes=seen, extra=extra,
         provisional=[] if config.association.prune_once_seen else once,
         n_pruned=len(once) if config.association.prune_once_seen else 0,
-        pruned={"seen_too_few": len(once)} if config.association.prune_once_seen else {})
+        pruned={"seen_too_few": len(once)} if config.association.prune_once_seen else {},
+        graph=GraphSnapshot(best.graph, best.values, None))
