@@ -132,7 +132,9 @@ def main() -> None:
             c1 = time.process_time()
             run = final_solve(g, config, online, s)
             c_fin = time.process_time() - c1
-            mapped, dup, wrong = scale.score(run.sightings, fid)
+            fid_run = fid if len(run.sightings.k) == len(s0.k) else scale.tree_ids(
+                g, run.sightings, twins)  # readmit_dropped took some back
+            mapped, dup, wrong = scale.score(run.sightings, fid_run)
             moves = Counter(m.kind for m in run.moves)
             print(f"| {name} | {b} + final solve ({len(run.passes)} passes, "
                   f"{dict(moves)}) | **{_rms(run.poses, lm):.3f}** | {mapped} / {n_trees2} | "
