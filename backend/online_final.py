@@ -133,8 +133,9 @@ def run_online_final(g: GraphLog, backend: str, config: SlamConfig
         :func:`lampsam.backend.noids_offline.result_of`'s keys, ``online_final`` 1,
         ``online_cpu_s``, ``online_final_cpu_s``, ``online_landmarks``, and the online
         run's own keys such as ``n_held``), and the online run's result. When the online
-        run did not finish (status not ok) or recorded no sighting, ``final`` is
-        ``online`` with ``online_final`` 0.
+        run did not finish (status not ok) or recorded no sighting, or the final solve
+        failed (GTSAM threw) or was interrupted (it is logged), ``final`` is ``online``
+        with ``online_final`` 0.
     """
     t0, c0 = time.perf_counter(), time.process_time()
     online, be = run_graph_log_backend(g, backend, config, known_ids=False)
@@ -143,7 +144,13 @@ def run_online_final(g: GraphLog, backend: str, config: SlamConfig
         online.extra["online_final"] = 0.0
         return online, online
     c1 = time.process_time()
-    best = final_solve(g, config, online, s)
+    try:
+        best = final_solve(g, config, online, s)
+    except (RuntimeError, KeyboardInterrupt) as exc:  # GTSAM's LM, or SIGINT / SIGTERM
+        log.error("final solve stopped (%s: %s): the online answer is written",
+                  type(exc).__name__, str(exc).strip()[:120] or "interrupted")
+        online.extra["online_final"] = 0.0
+        return online, online
     cfg = final_config(config)
     extra = {k: v for k, v in online.extra.items() if k not in ("total_time_s", "total_cpu_s")}
     extra.update({"online_final": 1.0, "online_cpu_s": c1 - c0,

@@ -295,7 +295,7 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                 f"{int(s['noids_sighting_moves'])} sighting moves; online: "
                 f"{len(online.landmarks)} landmarks, poses in online.tum)")
     elif not known and not offline and config.reassociation.online_final:
-        msg += "; no final solve (the online run did not finish or mapped nothing)"
+        msg += "; no final solve (the online run did not finish or mapped nothing, or it failed)"
     if result.extra.get("n_held"):
         msg += (f"; {int(result.extra['n_held'])} sightings held as ambiguous, "
                 f"{int(result.extra['n_held_unused'])} of them never used")

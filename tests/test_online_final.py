@@ -172,3 +172,19 @@ def test_online_association_maps_keyframes_to_poses_and_follows_revisit_ties() -
     s = online_association(_Graph(), res)  # type: ignore[arg-type]
     assert s.k.tolist() == [1, 3, 4] and s.lid.tolist() == [7, 7, 7]
     assert s.z.shape == (3, 2) and s.r.shape == (3, 2, 2)
+
+
+def test_a_failed_final_solve_keeps_the_online_answer(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """GTSAM throwing in the final solve (or SIGINT during it) leaves the finished online
+    run as the answer, marked ``online_final`` 0, instead of losing it."""
+    import lampsam.backend.online_final as of
+
+    def boom(*_: object, **__: object) -> None:
+        raise RuntimeError("Indeterminant linear system")
+
+    monkeypatch.setattr(of, "final_solve", boom)
+    g = read_graph_text(write_landmark_log(tmp_path / "log.txt", dataclasses.replace(
+        SPEC, n_poses=60), np.random.default_rng(3))[0])
+    final, online = of.run_online_final(g, "isam2", SlamConfig())
+    assert final is online and online.status == "ok" and online.extra["online_final"] == 0.0

@@ -82,6 +82,9 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--label", default="", help="a name for the setting, printed in each row")
     ap.add_argument("--out", default="/tmp/bench_online_final")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="also the known-id batch on the sightings the online run recorded "
+                         "(what the held and dropped sightings cost, apart from the association)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
     bench = _module("bench_landmark_logs")
@@ -140,6 +143,14 @@ def main() -> None:
                   f"{dict(moves)}) | **{_rms(run.poses, lm):.3f}** | {mapped} / {n_trees2} | "
                   f"{dup} | {wrong} / {len(run.sightings.k)} | {run.cost:.1f} | | "
                   f"+{c_fin:.1f} |", flush=True)
+            if args.diagnose:
+                rec = {(int(k), round(float(z[1]), 9)) for k, z in zip(s0.k, s0.z, strict=True)}
+                kept = [[x for x in ss if (kk, round(x.range, 9)) in rec]
+                        for kk, ss in enumerate(g.sightings)]
+                kr = run_graph_log(dataclasses.replace(g, sightings=kept), "batch", SlamConfig())
+                print(f"| {name} | known ids, the {len(s0.k)} recorded sightings only | "
+                      f"{_rms(kr.poses, lm):.3f} | {len(kr.landmarks)} / {n_trees2} | | | | | |",
+                      flush=True)
             cfg_known = dataclasses.replace(SlamConfig(), pose2_odometry=config.pose2_odometry)
             if cfg_known.pose2_odometry.cov_scale != 1.0:
                 kn = run_graph_log(g, b, cfg_known)
