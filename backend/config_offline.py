@@ -94,9 +94,6 @@ class ReassociationConfig:
             Victoria Park it took back 134 of 138 and lowered ``C``, but the RMS from
             the known-id batch rose 0.372 -> 0.431 m and 14 went to a neighbour's
             landmark (docs/noids-offline.md).
-        readmit_unique: with ``readmit_dropped``, a sighting is taken back only when
-            one landmark explains it inside the gate and no other within ``c_new``
-            (default False).
         scales: candidate odometry variance factors of the online no-ids pass that
             precedes the offline re-association of a graph log
             (:mod:`lampsam.backend.noids_offline`): each is run, and the association with
@@ -133,7 +130,6 @@ class ReassociationConfig:
     final_pass: bool = True
     final_rounds: int = field(default=30, metadata=limits(ge=1))
     readmit_dropped: bool = False
-    readmit_unique: bool = False
     scales: tuple[float, ...] = (0.0625, 0.25, 1.0, 4.0, 16.0, 64.0)
     online_final: bool = True
     online_final_cov_scale: float = field(default=1.0, metadata=limits(gt=0.0))

@@ -289,8 +289,7 @@ def refine_final(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, 
 
 
 def readmit(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, dk: IntArray,
-            dz: FloatArray, dr: FloatArray, new_cost: float, gate: float | None = None
-            ) -> IntArray:
+            dz: FloatArray, dr: FloatArray, new_cost: float) -> IntArray:
     """Landmarks for sightings the online pass left out, where taking one back pays.
 
     The online pass drops a sighting that falls between its gate and the new-landmark
@@ -307,9 +306,6 @@ def readmit(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, dk: Int
         dk: (D,) keyframe of each dropped sighting; dz: (D, 2) ``[bearing, range]``;
             dr: (D, 2, 2) their noise.
         new_cost: ``c_new``.
-        gate: None, or the unique rule: a sighting is taken back only when its nearest
-            landmark is inside this squared distance and no other landmark is within
-            ``c_new`` of it (``[reassociation] readmit_unique``).
 
     Returns:
         (D,) landmark id of each dropped sighting, -1 where it stays dropped.
@@ -326,12 +322,10 @@ def readmit(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings, dk: Int
     pairs: list[tuple[float, int, int]] = []
     for j in range(len(dk)):
         near = tree.query_ball_point(pts[j], 10.0)
-        cand = sorted((float(point_chi2(poses[dk[j]][None], dz[j][None], w[j][None],
-                                        xy[m])[0]), int(ids[m])) for m in near)
-        cand = [(d2, b) for d2, b in cand if d2 < new_cost]
-        if gate is not None:  # unique: one landmark inside the gate, no rival within c_new
-            cand = cand[:1] if len(cand) == 1 and cand[0][0] < gate else []
-        pairs.extend((d2, j, b) for d2, b in cand)
+        for m in near:
+            d2 = float(point_chi2(poses[dk[j]][None], dz[j][None], w[j][None], xy[m])[0])
+            if d2 < new_cost:
+                pairs.append((d2, j, int(ids[m])))
     for _, j, b in sorted(pairs):
         if out[j] < 0 and (int(dk[j]), b) not in taken:
             out[j] = b

@@ -308,9 +308,7 @@ def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
     n_back = 0
     if config.reassociation.readmit_dropped:
         dk, dz, dr = dropped_sightings(g, s)
-        back = readmit(run.poses, run.landmarks, s, dk, dz, dr, c_new,
-                       config.association.gate(2) if config.reassociation.readmit_unique
-                       else None)
+        back = readmit(run.poses, run.landmarks, s, dk, dz, dr, c_new)
         n_back = int(np.count_nonzero(back >= 0))
     if n_back:
         t = back >= 0

@@ -188,26 +188,3 @@ def test_a_failed_final_solve_keeps_the_online_answer(
         SPEC, n_poses=60), np.random.default_rng(3))[0])
     final, online = of.run_online_final(g, "isam2", SlamConfig())
     assert final is online and online.status == "ok" and online.extra["online_final"] == 0.0
-
-
-def test_readmit_unique_takes_back_only_unambiguous_sightings() -> None:
-    """``readmit`` with the unique rule (``[reassociation] readmit_unique``), on the two
-    trees 0.25 m apart of ``test_landmark_moves`` (seed 21): a dropped sighting of tree 1
-    that both landmarks explain under ``c_new`` stays dropped (the plain rule gives it to
-    landmark 1); with landmark 0 absent it is taken back; one 3 m off every landmark stays
-    dropped either way."""
-    from lampsam.backend.config import AssociationConfig
-    from lampsam.backend.final_moves import readmit
-    from tests.test_landmark_moves import C_NEW, _fitted, _two_trees
-
-    poses, _, s = _two_trees(np.random.default_rng(21))
-    lms = _fitted(poses, s)
-    keep = np.arange(len(s.k)) != 15
-    rec = Sightings(s.k[keep], s.z[keep], s.r[keep], s.lid[keep])
-    dk = np.array([15, 3])
-    dz = np.array([s.z[15], s.z[3] + np.array([0.0, 3.0])])
-    gate = AssociationConfig().gate(2)
-    assert readmit(poses, lms, rec, dk, dz, s.r[:2], C_NEW).tolist() == [1, -1]
-    assert readmit(poses, lms, rec, dk, dz, s.r[:2], C_NEW, gate).tolist() == [-1, -1]
-    alone = {1: lms[1]}
-    assert readmit(poses, alone, rec, dk, dz, s.r[:2], C_NEW, gate).tolist() == [1, -1]
