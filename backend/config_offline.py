@@ -113,6 +113,9 @@ class ReassociationConfig:
             ``[pose2_odometry] cov_scale`` does not apply to it).
         online_final_passes: re-association passes of the final solve at most (default
             20, as the offline bench; they stop when the association stops changing).
+        online_final_singletons: the final solve starts with every sighting the online
+            run held and never used, or dropped, as a landmark of its own, for the
+            description-length merges to place (default False).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -134,6 +137,7 @@ class ReassociationConfig:
     online_final: bool = True
     online_final_cov_scale: float = field(default=1.0, metadata=limits(gt=0.0))
     online_final_passes: int = field(default=20, metadata=limits(ge=1))
+    online_final_singletons: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

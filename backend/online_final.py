@@ -37,7 +37,13 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.interface import SlamBackend, SlamResult
-from lampsam.backend.noids_offline import OfflineRun, final_pass, result_of, solve_candidate
+from lampsam.backend.noids_offline import (
+    OfflineRun,
+    dropped_sightings,
+    final_pass,
+    result_of,
+    solve_candidate,
+)
 from lampsam.backend.reassociate import Sightings, first_sight_positions, sightings_from
 from lampsam.datasets.graph_text import GraphLog
 
@@ -88,6 +94,19 @@ def online_landmarks(result: SlamResult, s: Sightings) -> dict[int, FloatArray]:
     return lms
 
 
+def with_singletons(g: GraphLog, s: Sightings) -> Sightings:
+    """``s`` plus every sighting of the log it lacks (held and never used, or dropped),
+    each as a landmark of its own (ids above every id of ``s``): under the description
+    length a singleton costs what a dropped sighting does (``c_new``), and the
+    description-length merges then decide where it belongs."""
+    dk, dz, dr = dropped_sightings(g, s)
+    if not len(dk):
+        return s
+    start = int(s.lid.max()) + 1 if len(s.lid) else 0
+    return Sightings(np.r_[s.k, dk], np.r_[s.z, dz], np.r_[s.r, dr],
+                     np.r_[s.lid, start + np.arange(len(dk))])
+
+
 def final_config(config: SlamConfig) -> SlamConfig:
     """The final solve's config: odometry covariance as stated times
     ``online_final_cov_scale``, ``online_final_passes`` re-association passes."""
@@ -114,6 +133,8 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
     """
     cfg = final_config(config)
     q = config.pose2_odometry.cov_scale / cfg.pose2_odometry.cov_scale
+    if cfg.reassociation.online_final_singletons:
+        s = with_singletons(g, s)
     run = solve_candidate(g, cfg, q, online.poses, online_landmarks(online, s), s,
                           float(online.extra.get("total_cpu_s", float("nan"))))
     log.info("final solve of the online association: %d passes, %d moves, C %.1f",

@@ -188,3 +188,20 @@ def test_a_failed_final_solve_keeps_the_online_answer(
         SPEC, n_poses=60), np.random.default_rng(3))[0])
     final, online = of.run_online_final(g, "isam2", SlamConfig())
     assert final is online and online.status == "ok" and online.extra["online_final"] == 0.0
+
+
+def test_singletons_add_every_sighting_the_online_run_left_out(
+        online_run: tuple[GraphLog, SlamResult, Sightings]) -> None:
+    """``online_final_singletons``: the sightings the online run did not record (2 of
+    2,228 here) join the association, each as a landmark of its own with a new id; the
+    recorded ones keep theirs."""
+    from lampsam.backend.online_final import with_singletons
+
+    g, _, s0 = online_run
+    s = with_singletons(g, s0)
+    n_all = sum(len(ss) for ss in g.sightings)
+    extra = len(s.k) - len(s0.k)
+    assert len(s.k) == n_all and extra > 0
+    assert np.array_equal(s.lid[: len(s0.k)], s0.lid)
+    new = s.lid[len(s0.k):]
+    assert len(set(new.tolist())) == extra and new.min() > s0.lid.max()
