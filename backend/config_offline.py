@@ -101,6 +101,21 @@ class ReassociationConfig:
             x1/4-x8; the factors below 1 for logs that overstate their odometry noise,
             as GTSAM's victoriaPark_reduced_1k and cityTrees_reduced_1k do ~20x in
             sigma: docs/noids-offline.md).
+        online_final: a graph text log run online without ids (``lampsam slam LOG
+            --no-ids --backend isam2``, or ``ekf`` / ``batch`` with ``passes = 0``) ends
+            with a final solve: the online run's association re-solved in batch at the
+            log's stated noise (:mod:`lampsam.backend.online_final`: the re-association
+            passes, the cost moves and the final pass as above); ``trajectory.tum`` /
+            ``landmarks.csv`` are then its answer and ``online.tum`` the online poses
+            (default True: docs/noids-offline.md, "online runs: the final solve").
+        online_final_cov_scale: the final solve's odometry covariance factor on the
+            log's stated covariance (default 1: as stated; the online pass's
+            ``[pose2_odometry] cov_scale`` does not apply to it).
+        online_final_passes: re-association passes of the final solve at most (default
+            20, as the offline bench; they stop when the association stops changing).
+        online_final_singletons: the final solve starts with every sighting the online
+            run held and never used, or dropped, as a landmark of its own, for the
+            description-length merges to place (default False).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -119,6 +134,10 @@ class ReassociationConfig:
     final_rounds: int = field(default=30, metadata=limits(ge=1))
     readmit_dropped: bool = False
     scales: tuple[float, ...] = (0.0625, 0.25, 1.0, 4.0, 16.0, 64.0)
+    online_final: bool = True
+    online_final_cov_scale: float = field(default=1.0, metadata=limits(gt=0.0))
+    online_final_passes: int = field(default=20, metadata=limits(ge=1))
+    online_final_singletons: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

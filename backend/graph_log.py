@@ -15,7 +15,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.dense_log import run_known_ids
-from lampsam.backend.interface import Frame, SlamResult
+from lampsam.backend.interface import Frame, SlamBackend, SlamResult
 from lampsam.backend.odometry import Pose2Motion
 from lampsam.backend.slam import drive, make_backend
 from lampsam.datasets.graph_text import GraphLog
@@ -50,7 +50,8 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
                   known_ids: bool = True, odometry_model: Pose2OdometryModel | None = None,
                   start_pose: FloatArray | None = None, pose_covariances: bool = False,
                   fast: bool = True) -> SlamResult:
-    """Run one backend over a graph text log, one step per pose.
+    """Run one backend over a graph text log, one step per pose
+    (:func:`run_graph_log_backend` without the backend).
 
     Args:
         graph_log: the log.
@@ -77,6 +78,18 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
         The result; ``extra`` has ``total_time_s`` (wall) and ``total_cpu_s`` (process
         CPU time, comparable on a shared machine).
     """
+    return run_graph_log_backend(graph_log, backend, config, known_ids, odometry_model,
+                                 start_pose, pose_covariances, fast)[0]
+
+
+def run_graph_log_backend(graph_log: GraphLog, backend: str = "isam2",
+                          config: SlamConfig | None = None, known_ids: bool = True,
+                          odometry_model: Pose2OdometryModel | None = None,
+                          start_pose: FloatArray | None = None, pose_covariances: bool = False,
+                          fast: bool = True) -> tuple[SlamResult, SlamBackend | None]:
+    """:func:`run_graph_log` (same arguments) and the backend object that ran it (None on
+    the known-id fast path), e.g. for its association
+    (:func:`lampsam.backend.online_final.online_association`)."""
     import dataclasses
 
     config = config or SlamConfig()
@@ -91,6 +104,7 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
     quick = None
     if fast and known_ids and not pose_covariances and not listening():
         quick = run_known_ids(graph_log, backend, config, Pose2Motion(model), start)
+    be: SlamBackend | None = None
     if quick is not None:
         result = quick
     else:
@@ -98,4 +112,4 @@ def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfi
         result = drive(be, graph_log_steps(graph_log, known_ids))
     result.extra["total_time_s"] = time.perf_counter() - t0
     result.extra["total_cpu_s"] = time.process_time() - c0
-    return result
+    return result, be

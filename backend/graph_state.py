@@ -160,6 +160,13 @@ class GraphState(SlamBackend):
         self._fl_gone: set[int] = set()  # keys it marginalised
         self._fl_last = gtsam.Values()  # the window's estimate after the last update
 
+    @property
+    def planar_sightings(self) -> list[tuple[int, FloatArray, FloatArray, int]]:
+        """Range-bearing sightings associated without ids, ``(keyframe, z, R, landmark
+        id)`` (a copy; keyframe 0 is the start pose), as the EKF's ``planar_sightings``
+        (by step there)."""
+        return list(self._planar_sightings)
+
     # ------------------------------------------------------------------ graph building
     def _add_value(self, key: int, value: GraphValue) -> None:
         self._new_values.insert(key, value)

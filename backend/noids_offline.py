@@ -59,7 +59,7 @@ from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.final_moves import readmit, refine_final
 from lampsam.backend.graph_log import graph_log_steps
-from lampsam.backend.interface import LandmarkEstimate, LandmarkKind, SlamResult
+from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, LandmarkKind, SlamResult
 from lampsam.backend.landmark_moves import Move, refine_by_cost, solve_association
 from lampsam.backend.reassociate import (
     Pass,
@@ -208,12 +208,30 @@ PassReport = Callable[[int, Pass, FloatArray, dict[int, FloatArray], Sightings],
 
 def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
                   report: PassReport | None = None) -> OfflineRun:
-    """One candidate: the online pass at ``scale``, then the batch re-association with the
-    stated noise (``config.reassociation``; at least one pass) and the description-length
-    moves. ``report`` is called with the online pass's answer as pass 0, then after each
-    accepted pass, then once after the moves (if any) as one more pass."""
+    """One candidate: the online pass at ``scale``, then :func:`solve_candidate` (the batch
+    re-association with the stated noise and the description-length moves)."""
     c0 = time.process_time()
     poses0, lms0, s = online_pass(g, config, scale)
+    return solve_candidate(g, config, scale, poses0, lms0, s, time.process_time() - c0, report)
+
+
+def solve_candidate(g: GraphLog, config: SlamConfig, scale: float, poses0: FloatArray,
+                    lms0: dict[int, FloatArray], s: Sightings, online_cpu_s: float,
+                    report: PassReport | None = None) -> OfflineRun:
+    """The batch re-association of one online association with the stated noise
+    (``config.reassociation``; at least one pass) and the description-length moves.
+
+    Args:
+        g: the log; config: the batch's config (its odometry covariance is the one of
+            :func:`batch_graph_inputs`).
+        scale: the online pass's odometry variance factor (recorded in the answer).
+        poses0: (N, 3) the online pass's pose at every log pose; lms0: landmark id ->
+            (2,) its position (every landmark of ``s``); s: the online association
+            (``s.k`` the log pose of each sighting; ``s.lid`` is updated in place).
+        online_cpu_s: the online pass's CPU time, s (recorded).
+        report: called with the online answer as pass 0, then after each accepted pass,
+            then once after the moves (if any) as one more pass.
+    """
     c1 = time.process_time()
     prior, odo = batch_graph_inputs(g, config)
     rc = config.reassociation
@@ -235,7 +253,7 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
             report(len(passes) + 1, Pass(len(np.unique(s.lid)), merged, 0, 0,
                                          float(graph.error(values))),
                    *read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist()), s)
-    return _answer(g, config, scale, s, passes, c1 - c0, time.process_time() - c1, graph,
+    return _answer(g, config, scale, s, passes, online_cpu_s, time.process_time() - c1, graph,
                    values, moves)
 
 
@@ -350,19 +368,28 @@ def select_scale(g: GraphLog, config: SlamConfig, scales: tuple[float, ...] | No
 
 def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:
     """``lampsam slam LOG --no-ids --backend {ekf,batch}`` with ``[reassociation] passes``
-    > 0: :func:`select_scale`, then the chosen run as a result.
+    > 0: :func:`select_scale`, then the chosen run as a result (:func:`result_of`, whose
+    ``extra`` also holds every candidate's cost, ``noids_cost_q<q>``)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    best, runs = select_scale(g, config)
+    return result_of(g, config, best, {f"noids_cost_q{r.scale:g}": r.cost for r in runs}, t0, c0)
+
+
+def result_of(g: GraphLog, config: SlamConfig, best: OfflineRun, extra: dict[str, float],
+              t0: float, c0: float) -> SlamResult:
+    """A batch answer as a :class:`SlamResult`.
 
     The landmarks' covariances are their marginals on the final graph; landmarks with
     fewer than ``association.min_observations`` sightings are ``provisional``. ``extra``
-    holds the chosen factor (``noids_scale``), its passes, every candidate's cost
-    (``noids_cost_q<q>``), the group chi-squares per dof and the CPU time.
+    holds the answer's factor (``noids_scale``), its passes, the group chi-squares per
+    dof, the description length (``noids_cost``), the merges and splits, the dropped
+    sightings and the CPU time since ``c0`` (wall since ``t0``), then ``extra``; ``graph``
+    is the answer's factor graph at its optimum (``lampsam slam --g2o``).
     """
-    t0, c0 = time.perf_counter(), time.process_time()
-    best, runs = select_scale(g, config)
     try:
         marg: gtsam.Marginals | None = gtsam.Marginals(best.graph, best.values)
     except RuntimeError as exc:
-        log.warning("no-ids offline: no marginals (%s): landmark covariances NaN", exc)
+        log.warning("no-ids batch: no marginals (%s): landmark covariances NaN", exc)
         marg = None
     ids, counts = np.unique(best.sightings.lid, return_counts=True)
     lm_all = [LandmarkEstimate(
@@ -378,11 +405,11 @@ def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:
     extra = {"noids_scale": best.scale, "reassociation_passes": float(len(best.passes)),
              "chi2_per_dof_odometry": best.chi2_odometry / max(best.dof_odometry, 1),
              "chi2_per_dof_sightings": best.chi2_sightings / max(best.dof_sightings, 1),
-             "sightings_dropped": float(best.n_dropped),
+             "sightings_dropped": float(best.n_dropped), "noids_cost": best.cost,
              "noids_merges": float(sum(m.kind == "merge" for m in best.moves)),
              "noids_splits": float(sum(m.kind == "split" for m in best.moves)),
-             **{f"noids_cost_q{r.scale:g}": r.cost for r in runs},
-             "total_time_s": wall, "total_cpu_s": time.process_time() - c0}
+             "noids_sighting_moves": float(sum(m.kind == "sighting" for m in best.moves)),
+             **extra, "total_time_s": wall, "total_cpu_s": time.process_time() - c0}
     return SlamResult(
         backend="batch", times=g.odometry.t.copy(), poses=best.poses,
         pose_covs=np.full((n, 3, 3), np.nan),
@@ -390,4 +417,5 @@ def run_offline(g: GraphLog, config: SlamConfig) -> SlamResult:
         keyframes=seen, extra=extra,
         provisional=[] if config.association.prune_once_seen else once,
         n_pruned=len(once) if config.association.prune_once_seen else 0,
-        pruned={"seen_too_few": len(once)} if config.association.prune_once_seen else {})
+        pruned={"seen_too_few": len(once)} if config.association.prune_once_seen else {},
+        graph=GraphSnapshot(best.graph, best.values, None))

@@ -1,0 +1,163 @@
+"""Online runs without ids on graph logs: the online answer against its final solve.
+
+Usage::
+
+    python scripts/bench/bench_online_final.py [--logs vp1k,city,synthetic,mrclam,victoria]
+        [--backends isam2,ekf] [--set SECTION.KEY=VALUE ...] [--label NAME]
+
+For each log: GTSAM's LM on the file's graph with its ids (the reference, as
+``bench_landmark_logs.py``: GTSAM's iSAM2 one update per pose, then LM), lampsam's
+known-id batch (its RMS from LM: the "known-id figure" of issue 15), then for each
+backend the online run without ids (:func:`lampsam.backend.graph_log.run_graph_log_backend`,
+config with the ``--set`` overrides) and the final solve of its association at the
+log's stated noise (:func:`lampsam.backend.online_final.final_solve`). Printed per run:
+position RMS from GTSAM's LM, landmarks with 2+ sightings against the trees sighted 2+
+times (file ids, twins as one: ``bench_noids_scale.twin_map``), duplicated trees, wrong
+sightings (``bench_noids_scale.score``), the description length ``C`` (final solve),
+failures (iSAM2 recoveries that dropped measurements) and process CPU s of each stage.
+The file ids are read only to score. CPU figures are process time on a shared machine.
+
+Logs: those of ``bench_noids_scale.load_log`` (``victoria``, ``synthetic``, ``mrclam``,
+``city``, ``vp1k``) and ``synth2``: a second synthetic log, never used before this bench
+(:mod:`lampsam.datasets.landmark_log_sim`, seed 1, 3,000 poses, 800 trees in 200 m,
+odometry noise twice the default in sigma).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import logging
+import os
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from types import ModuleType
+
+import gtsam
+import numpy as np
+
+from lampsam.backend.config import SlamConfig
+from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
+from lampsam.backend.online_final import final_solve, online_association
+from lampsam.backend.reassociate import Sightings
+from lampsam.datasets.graph_text import GraphLog, read_graph_text
+from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+
+_HERE = Path(__file__).resolve().parent
+
+
+def _module(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, _HERE / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def load_log(scale: ModuleType, name: str, out: Path) -> GraphLog:
+    """A log by name (module doc)."""
+    if name == "synth2":
+        out.mkdir(parents=True, exist_ok=True)
+        spec = LandmarkLogSpec(n_landmarks=800, sigma_fwd=0.02, sigma_side=0.06,
+                               sigma_theta=0.008)
+        p, _ = write_landmark_log(out / "synth2.txt", spec, np.random.default_rng(1))
+        return read_graph_text(p)
+    g: GraphLog = scale.load_log(name, out)
+    return g
+
+
+def _rms(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+
+
+def main() -> None:
+    """Parse arguments, run every log and backend, print one table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--logs", default="vp1k,city,synthetic,mrclam")
+    ap.add_argument("--backends", default="isam2")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
+    ap.add_argument("--label", default="", help="a name for the setting, printed in each row")
+    ap.add_argument("--out", default="/tmp/bench_online_final")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="also the known-id batch on the sightings the online run recorded "
+                         "(what the held and dropped sightings cost, apart from the association)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+    bench = _module("bench_landmark_logs")
+    scale = _module("bench_noids_scale")
+    config = bench.with_overrides(SlamConfig(), args.set)
+    label = args.label or (" ".join(args.set) if args.set else "defaults")
+    print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
+    print(f"setting: {label}")
+    print("| log | run | RMS vs LM [m] | landmarks 2+ / trees 2+ | dup | wrong / sightings | C "
+          "| failures | CPU [s] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in args.logs.split(","):
+        g = load_log(scale, name, Path(args.out))
+        n = len(g.pose_ids)
+        graph = bench.gtsam_graph(g, SlamConfig())
+        est = bench.gtsam_isam2(g, SlamConfig())[0]
+        lm = bench.poses_of(gtsam.LevenbergMarquardtOptimizer(
+            graph, est, gtsam.LevenbergMarquardtParams()).optimize(), n)
+        c0 = time.process_time()
+        known = run_graph_log(g, "batch", SlamConfig())
+        c_known = time.process_time() - c0
+        twins = scale.twin_map(g, {int(x.id): np.asarray(x.position[:2], float)
+                                   for x in list(known.landmarks) + list(known.provisional)})
+        trees = Counter(twins.get(x.landmark, x.landmark) for ss in g.sightings for x in ss)
+        n_trees2 = sum(1 for v in trees.values() if v >= 2)
+        n_sight = sum(len(ss) for ss in g.sightings)
+        print(f"| {name} | known-id batch (file noise) | {_rms(known.poses, lm):.3f} | "
+              f"{len(known.landmarks)} / {n_trees2} | | | | | {c_known:.1f} |", flush=True)
+        for b in args.backends.split(","):
+            c0 = time.process_time()
+            online, be = run_graph_log_backend(g, b, config, known_ids=False)
+            c_on = time.process_time() - c0
+            fails = int(online.extra.get("n_recoveries", 0))
+            assert be is not None
+            s = online_association(be, online)
+            s0 = Sightings(s.k.copy(), s.z, s.r, s.lid.copy())
+            fid = scale.tree_ids(g, s0, twins)
+            mapped, dup, wrong = scale.score(s0, fid)
+            ties = len(getattr(be, "revisit_ties", []))
+            print(f"| {name} | {b} online ({label}; {ties} revisit ties, "
+                  f"{int(online.extra.get('n_held_unused', 0))} held unused) | "
+                  f"{_rms(online.poses, lm):.3f} | "
+                  f"{mapped} / {n_trees2} | {dup} | {wrong} / {len(s.k)} of {n_sight} | | "
+                  f"{fails} | {c_on:.1f} |", flush=True)
+            if online.status != "ok":
+                print(f"| {name} | {b}: {online.status[:60]} | | | | | | | |")
+                continue
+            c1 = time.process_time()
+            run = final_solve(g, config, online, s)
+            c_fin = time.process_time() - c1
+            fid_run = fid if len(run.sightings.k) == len(s0.k) else scale.tree_ids(
+                g, run.sightings, twins)  # readmit_dropped took some back
+            mapped, dup, wrong = scale.score(run.sightings, fid_run)
+            moves = Counter(m.kind for m in run.moves)
+            print(f"| {name} | {b} + final solve ({len(run.passes)} passes, "
+                  f"{dict(moves)}) | **{_rms(run.poses, lm):.3f}** | {mapped} / {n_trees2} | "
+                  f"{dup} | {wrong} / {len(run.sightings.k)} | {run.cost:.1f} | | "
+                  f"+{c_fin:.1f} |", flush=True)
+            if args.diagnose:
+                rec = {(int(k), round(float(z[1]), 9)) for k, z in zip(s0.k, s0.z, strict=True)}
+                kept = [[x for x in ss if (kk, round(x.range, 9)) in rec]
+                        for kk, ss in enumerate(g.sightings)]
+                kr = run_graph_log(dataclasses.replace(g, sightings=kept), "batch", SlamConfig())
+                print(f"| {name} | known ids, the {len(s0.k)} recorded sightings only | "
+                      f"{_rms(kr.poses, lm):.3f} | {len(kr.landmarks)} / {n_trees2} | | | | | |",
+                      flush=True)
+            cfg_known = dataclasses.replace(SlamConfig(), pose2_odometry=config.pose2_odometry)
+            if cfg_known.pose2_odometry.cov_scale != 1.0:
+                kn = run_graph_log(g, b, cfg_known)
+                print(f"| {name} | {b} known ids, cov_scale "
+                      f"{cfg_known.pose2_odometry.cov_scale:g} | {_rms(kn.poses, lm):.3f} | "
+                      f"{len(kn.landmarks)} / {n_trees2} | | | | | |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
