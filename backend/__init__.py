@@ -57,6 +57,7 @@ Modules:
 * :mod:`~lampsam.backend.noids_offline` -- Offline SLAM without ids on a graph log: online EKF pass, batch re-association, scale choice.
 * :mod:`~lampsam.backend.odometry` -- Odometry as the backends see it: a motion model over a step's odometry samples.
 * :mod:`~lampsam.backend.odometry_scale` -- Online odometry noise scale by covariance matching on landmark innovations.
+* :mod:`~lampsam.backend.online_final` -- The final solve of an online run without ids on a graph log: its association re-solved in batch at the log's stated noise (issue 15).
 * :mod:`~lampsam.backend.online_run` -- ``lampsam slam RUN --online decoupled``: a whole SLAM run with tracking decoupled from mapping.
 * :mod:`~lampsam.backend.pipelined` -- Frontend and estimator overlapped: ceiling frames made ahead in a worker.
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
