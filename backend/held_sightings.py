@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
@@ -67,6 +68,10 @@ class HeldSightings(Gating):
             sightings that started a landmark (``held_new``: every candidate beyond
             the new-landmark threshold at a re-gate).
     """
+
+    if TYPE_CHECKING:  # (LandmarkLifecycle, the other mixin of GraphSlam)
+        def _start_landmark(self, pose: FloatArray, pose_cov: FloatArray, k: int, obs: Obs,
+                            lid: int | None) -> int: ...
 
     n_held = 0
     n_held_given_back = 0
