@@ -6,17 +6,21 @@ least ``planar_unique_ratio`` of the best's, eq. 19-20) is neither matched nor
 mapped: nearest neighbour would give a tree to its neighbour, and the pose would
 follow the wrong match (docs/failures.md, the long revisit). Such a sighting is
 *held* with its candidates (every landmark screened within the new-landmark
-threshold). Later keyframes tighten the pose of its keyframe and the landmarks (the
-next sightings of the same trees, a loop closure), so at ages
+threshold; at each re-gate also the landmarks started near it since, which may be
+the tree it saw: :meth:`HeldSightings._started_since`). Later keyframes tighten the
+pose of its keyframe and the landmarks (the next sightings of the same trees, a loop
+closure), so at ages
 :data:`GIVE_BACK_AGES` keyframes :meth:`HeldSightings._give_back` re-gates it:
 eq. 19 at the held keyframe ``X(kk)`` with the joint marginal of ``X(kk)`` and the
 candidates at iSAM2's current linearisation (one ``jointMarginalCovariance`` query)
 and the candidates' current estimates. When the best is inside the gate and no
 rival is material any more, the sighting (inside the tighter :data:`GIVE_BACK_PROB` gate) becomes a factor of that landmark. A
 sighting not given back within :data:`HOLD_KEYFRAMES` keyframes stays out of the
-graph (counted: ``n_held - n_held_given_back - n_revisit_resolved`` in the result's
-``extra``); the revisit check (:mod:`lampsam.backend.revisit_merge`) may also
-resolve it by constellation.
+graph (counted: ``n_held - n_held_given_back - n_held_new - n_revisit_resolved`` in
+the result's ``extra``); the revisit check (:mod:`lampsam.backend.revisit_merge`) may also
+resolve it by constellation. With ``association.held_new`` (off by default) a held
+sighting beyond the new-landmark threshold of every candidate at a re-gate starts a
+landmark at its keyframe.
 
 Frames: world, m and rad; ``[bearing, range]`` observations.
 """
