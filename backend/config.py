@@ -143,12 +143,6 @@ class AssociationConfig:
             (:func:`lampsam.backend.planar_gate.rival_ratio`); 0: any rival holds it.
             Held sightings are re-gated later and given back once unambiguous
             (:mod:`lampsam.backend.held_sightings`).
-        held_new: with ``planar_unique``, a held sighting whose re-gate finds every
-            candidate (those screened when it was held and the landmarks started
-            near it since) beyond the new-landmark threshold starts a landmark at its
-            keyframe: the rule a fresh sighting follows. Default False
-            (docs/failures.md, the vp1k trace: on MRCLAM one outlier sighting of a
-            mapped tree started a second landmark, 0.0040 -> 0.0187 m).
         planar_relative_gate: without ids, gate range-bearing observations of
             landmarks seen in the last 30 keyframes relative to their last sighting
             (odometry covariance since then; final, no joint marginal) instead of
@@ -217,7 +211,6 @@ class AssociationConfig:
     planar_unique: bool = False
     planar_unique_prob: float = field(default=0.0, metadata=limits(ge=0.0, lt=1.0))
     planar_unique_ratio: float = field(default=0.0, metadata=limits(ge=0.0, le=1.0))
-    held_new: bool = False
     planar_relative_gate: bool = False
     planar_noise_adapt: bool = False
     planar_noise_floor: float = field(default=0.05, metadata=limits(gt=0.0, le=1.0))

@@ -440,10 +440,9 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_revisit_moved": float(self.n_revisit_moved),
                    "n_held": float(self.n_held),
                    "n_held_given_back": float(self.n_held_given_back),
-                   "n_held_new": float(self.n_held_new),
                    # held sightings (planar_unique) that never became a factor
                    "n_held_unused": float(self.n_held - self.n_held_given_back
-                                          - self.n_held_new - self.n_revisit_resolved),
+                                          - self.n_revisit_resolved),
                    "n_qr_rebuilds": float(self.n_refactorized),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),

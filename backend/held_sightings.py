@@ -16,11 +16,9 @@ candidates at iSAM2's current linearisation (one ``jointMarginalCovariance`` que
 and the candidates' current estimates. When the best is inside the gate and no
 rival is material any more, the sighting (inside the tighter :data:`GIVE_BACK_PROB` gate) becomes a factor of that landmark. A
 sighting not given back within :data:`HOLD_KEYFRAMES` keyframes stays out of the
-graph (counted: ``n_held - n_held_given_back - n_held_new - n_revisit_resolved`` in
-the result's ``extra``); the revisit check (:mod:`lampsam.backend.revisit_merge`) may also
-resolve it by constellation. With ``association.held_new`` (off by default) a held
-sighting beyond the new-landmark threshold of every candidate at a re-gate starts a
-landmark at its keyframe.
+graph (counted: ``n_held - n_held_given_back - n_revisit_resolved`` in the
+result's ``extra``); the revisit check (:mod:`lampsam.backend.revisit_merge`) may also
+resolve it by constellation.
 
 Frames: world, m and rad; ``[bearing, range]`` observations.
 """
@@ -29,14 +27,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 from scipy.special import chdtri
 
-from lampsam.arrays import FloatArray
 from lampsam.backend.association import mahalanobis2
 from lampsam.backend.gating import Gating
 from lampsam.backend.models import Obs, init_point2, predict, residual
@@ -53,11 +48,6 @@ HOLD_KEYFRAMES = 40
 #: trees' (8 of 9), those at d2 <= 3.6 their own (52 of 52): a held sighting in
 #: the outer gate is most often a tree not yet mapped.
 GIVE_BACK_PROB = 0.9
-#: Within one re-gate pass, a held sighting placed (from its keyframe's estimate)
-#: closer than this (m) to a landmark another held sighting started in that pass
-#: waits for its next re-gate instead of starting a second one (one tree seen from
-#: several keyframes).
-NEW_SPREAD_M = 3.0
 #: A landmark started after a sighting was held, closer than this (m) to the sighting
 #: placed from its keyframe's estimate, joins its candidates at the re-gate.
 SINCE_RADIUS_M = 10.0
@@ -68,18 +58,11 @@ class HeldSightings(Gating):
 
     Attributes:
         n_held: sightings held so far; n_held_given_back: of them given back to a
-            landmark by :meth:`_give_back`; n_held_new: held
-            sightings that started a landmark (``held_new``: every candidate beyond
-            the new-landmark threshold at a re-gate).
+            landmark by :meth:`_give_back`.
     """
-
-    if TYPE_CHECKING:  # (LandmarkLifecycle, the other mixin of GraphSlam)
-        def _start_landmark(self, pose: FloatArray, pose_cov: FloatArray, k: int, obs: Obs,
-                            lid: int | None) -> int: ...
 
     n_held = 0
     n_held_given_back = 0
-    n_held_new = 0
 
     @property
     def _held(self) -> list[tuple[int, Obs]]:
@@ -113,14 +96,7 @@ class HeldSightings(Gating):
             return 0
         cfg = self.config.association
         gate, unique_t = float(chdtri(2, 1.0 - GIVE_BACK_PROB)), cfg.unique_threshold(2)
-        new_t = cfg.new_threshold(2)
         given: set[int] = set()
-        started: list[FloatArray] = []  # world positions of the landmarks started here
-        fresh: list[int] = []  # their ids
-        # landmarks not yet in iSAM2 (started this keyframe): a held sighting with one
-        # among its candidates cannot be re-gated against it yet, so starts nothing
-        unsure = {int(sym.index()) for sym in map(gtsam.Symbol, self._new_values.keys())
-                  if sym.chr() == ord("l")}
         trace = getattr(self, "_trace_revisit", False)  # (trace_noids_online.py --held)
         for kk, o in self._held:
             if k - kk not in GIVE_BACK_AGES or kk > self._k_isam:
@@ -135,16 +111,6 @@ class HeldSightings(Gating):
                     self._trace_held(k, kk, o, "no candidate" if not lids else "no marginal", [])
                 continue
             best = min(scored)
-            if cfg.held_new and best[0] >= new_t and not unsure & set(lids):
-                # every candidate beyond the new-landmark threshold: not ambiguous any
-                # more, a tree not mapped yet (the rule a fresh sighting follows)
-                lid = self._start_held(kk, o, started)
-                if trace:
-                    self._trace_held(k, kk, o, "new" if lid is not None else "new (waits)", scored)
-                if lid is not None:
-                    given.add(id(o))
-                    fresh.append(lid)
-                continue
             near = [(d2, ld) for d2, ld, lid in scored if d2 < unique_t
                     and (lid == best[2] or not self._same_place(best[2], lid))]
             if best[0] >= gate or rival_material(near, cfg):
@@ -165,8 +131,7 @@ class HeldSightings(Gating):
         if given:
             self.__dict__["_held_sightings"] = [(kk, o) for kk, o in self._held
                                                 if id(o) not in given]
-            self.n_held_given_back += len(given) - len(fresh)
-            self.n_held_new += len(fresh)
+            self.n_held_given_back += len(given)
         return len(given)
 
     def _started_since(self, kk: int, o: Obs) -> list[int]:
@@ -178,23 +143,6 @@ class HeldSightings(Gating):
         return [lm.id for lm in self._landmarks.values()
                 if lm.first_kf >= kk and lm.kind == "point2"
                 and float(np.hypot(*(lm.state[:2] - xy))) < SINCE_RADIUS_M]
-
-    def _start_held(self, kk: int, o: Obs, started: list[FloatArray]) -> int | None:
-        """Start a landmark from held sighting ``o`` of keyframe ``kk`` (at that
-        keyframe's estimate and marginal); None when it stands within
-        :data:`NEW_SPREAD_M` of one started in this pass (``started``, appended to)."""
-        pose = self._pose_of(kk)
-        xy = init_point2(pose, o.z)[0]
-        if any(float(np.hypot(*(xy - p))) < NEW_SPREAD_M for p in started):
-            return None
-        try:
-            cov = np.asarray(self.isam.marginalCovariance(X(kk)))  # type: ignore[union-attr]
-        except (RuntimeError, IndexError):
-            return None
-        if not self._start_landmark(pose, cov, kk, o, None):
-            return None
-        started.append(xy)
-        return self._next_id - 1  # (the id _start_landmark took)
 
     def _trace_held(self, k: int, kk: int, o: Obs, why: str,
                     scored: list[tuple[float, float, int]]) -> None:

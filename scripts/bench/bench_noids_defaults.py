@@ -9,11 +9,11 @@ For each log (``bench_noids_scale.load_log`` names; ``victoria3500`` = Victoria 
 first 3,500 poses, ``vp1k16`` = vp1k with ``cov_scale`` 16; every ``victoria*`` run uses
 ``[pose2_odometry] cov_scale = 16`` as docs/failures.md does) and each variant
 (``defaults``; ``unique`` = ``[association] planar_unique``; ``check`` =
-``revisit_check``; ``both``; ``both_new`` = both with ``held_new``), one
+``revisit_check``; ``both``), one
 online iSAM2 run without ids. Printed per run: position RMS from lampsam's known-id
 iSAM2 on the same log (fast path) and, for the synthetic logs, from the truth; the
 landmarks kept (2+ sightings) against the file ids sighted twice or more; held
-sightings (held / given back / by the check / started a landmark / never used); "diverged"
+sightings (held / given back / by the check / never used); "diverged"
 (RMS from the known-id run above :data:`DIVERGED_M`, or a failed run); process CPU
 seconds (*loaded* machine: compare within one invocation only).
 """
@@ -45,7 +45,6 @@ VARIANTS = {
     "unique": {"planar_unique": True},
     "check": {"revisit_check": True},
     "both": {"planar_unique": True, "revisit_check": True},
-    "both_new": {"planar_unique": True, "revisit_check": True, "held_new": True},
 }
 
 
@@ -93,7 +92,7 @@ def main() -> None:
     out = Path(args.out)
     print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     print("| log | variant | RMS vs known id [m] | RMS vs truth [m] | landmarks 2+ / ids 2+ | "
-          "held / given back / check / new / unused | diverged | CPU [s] |")
+          "held / given back / check / unused | diverged | CPU [s] |")
     print("|---|---|---|---|---|---|---|---|", flush=True)
     for name in args.logs.split(","):
         g, cov, truth = load(name, out, scale_mod, bench)
@@ -120,7 +119,7 @@ def main() -> None:
             d = rms(r.poses, ref)
             dt = f"{rms(r.poses, truth):.3f}" if truth is not None else ""
             held = (f"{e.get('n_held', 0):.0f} / {e.get('n_held_given_back', 0):.0f} / "
-                    f"{e.get('n_revisit_resolved', 0):.0f} / {e.get('n_held_new', 0):.0f} / "
+                    f"{e.get('n_revisit_resolved', 0):.0f} / "
                     f"{e.get('n_held_unused', 0):.0f}")
             div = "yes" if (not math.isfinite(d) or d > DIVERGED_M or r.status != "ok") else ""
             print(f"| {name} | {var} | {d:.4f} | {dt} | {len(r.landmarks)} / {seen2} | {held} | "

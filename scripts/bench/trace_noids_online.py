@@ -329,8 +329,7 @@ def held_report(be: Any, decisions: list[Decision], owner: dict[int, int],
         t = tries.get(id(o), [])
         if id(o.z) in into:
             lid = into[id(o.z)]
-            how = ("given back" if any(w == "given" for _, w, _ in t) else "started a landmark"
-                   if any(w == "new" for _, w, _ in t) else "resolved by check")
+            how = "given back" if any(w == "given" for _, w, _ in t) else "resolved by check"
             fate = f"{how}, {'right' if owner.get(lid) == fid else 'wrong'}"
         else:
             reasons = sorted({w for _, w, _ in t}) or ["never re-gated"]
