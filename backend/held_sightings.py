@@ -135,13 +135,14 @@ class HeldSightings(Gating):
         return len(given)
 
     def _started_since(self, kk: int, o: Obs) -> list[int]:
-        """Range-bearing landmarks started at or after keyframe ``kk`` within
+        """Range-bearing landmarks started after keyframe ``kk`` within
         :data:`SINCE_RADIUS_M` of held sighting ``o`` placed from ``kk``'s estimate: the
         tree it saw may have been mapped since it was held (its candidates are the
-        landmarks screened then)."""
+        landmarks screened then; one started at ``kk`` itself is another sighting's of
+        that keyframe)."""
         xy = init_point2(self._pose_of(kk), o.z)[0]
         return [lm.id for lm in self._landmarks.values()
-                if lm.first_kf >= kk and lm.kind == "point2"
+                if lm.first_kf > kk and lm.kind == "point2"
                 and float(np.hypot(*(lm.state[:2] - xy))) < SINCE_RADIUS_M]
 
     def _trace_held(self, k: int, kk: int, o: Obs, why: str,
