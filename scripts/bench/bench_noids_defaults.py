@@ -9,8 +9,7 @@ For each log (``bench_noids_scale.load_log`` names; ``victoria3500`` = Victoria 
 first 3,500 poses, ``vp1k16`` = vp1k with ``cov_scale`` 16; every ``victoria*`` run uses
 ``[pose2_odometry] cov_scale = 16`` as docs/failures.md does) and each variant
 (``defaults``; ``unique`` = ``[association] planar_unique``; ``check`` =
-``revisit_check``; ``both``), one
-online iSAM2 run without ids. Printed per run: position RMS from lampsam's known-id
+``revisit_check``; ``both``), one online iSAM2 run without ids. Printed per run: position RMS from lampsam's known-id
 iSAM2 on the same log (fast path) and, for the synthetic logs, from the truth; the
 landmarks kept (2+ sightings) against the file ids sighted twice or more; held
 sightings (held / given back / by the check / never used); "diverged"
