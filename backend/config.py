@@ -133,7 +133,8 @@ class AssociationConfig:
             re-gated at later keyframes, given back once unambiguous
             (:mod:`lampsam.backend.held_sightings`; the result's ``extra`` counts
             ``n_held`` and ``n_held_given_back``). Default False (docs/failures.md:
-            worse on Victoria Park's first 3,500 poses, 0.56 against 0.44 m).
+            worse on Victoria Park's first 3,500 poses, 0.58 against 0.44 m, and
+            alone it diverges the held-out loop log, 9.4 against 0.20 m).
         planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
             quantile of this probability (0, default: the new-landmark threshold,
             ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).
@@ -176,7 +177,8 @@ class AssociationConfig:
             the last 40 keyframes) to the landmarks made before it near the
             prediction by one unambiguous rigid motion
             (:mod:`lampsam.backend.revisit_merge`) and merge each matched copy with
-            its old landmark (default False).
+            its old landmark (default False: alone it diverges the held-out loop
+            log, 12.2 against 0.20 m; docs/failures.md).
         revisit_tol, revisit_min_inliers: its inlier distance in m (default 0.75)
             and inliers needed (default 4).
         revisit_tie_sigma: the merge's tie (``BetweenFactorPoint2``) sigma per

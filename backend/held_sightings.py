@@ -6,16 +6,18 @@ least ``planar_unique_ratio`` of the best's, eq. 19-20) is neither matched nor
 mapped: nearest neighbour would give a tree to its neighbour, and the pose would
 follow the wrong match (docs/failures.md, the long revisit). Such a sighting is
 *held* with its candidates (every landmark screened within the new-landmark
-threshold). Later keyframes tighten the pose of its keyframe and the landmarks (the
-next sightings of the same trees, a loop closure), so at ages
+threshold; at each re-gate also the landmarks started near it since, which may be
+the tree it saw: :meth:`HeldSightings._started_since`). Later keyframes tighten the
+pose of its keyframe and the landmarks (the next sightings of the same trees, a loop
+closure), so at ages
 :data:`GIVE_BACK_AGES` keyframes :meth:`HeldSightings._give_back` re-gates it:
 eq. 19 at the held keyframe ``X(kk)`` with the joint marginal of ``X(kk)`` and the
 candidates at iSAM2's current linearisation (one ``jointMarginalCovariance`` query)
 and the candidates' current estimates. When the best is inside the gate and no
 rival is material any more, the sighting (inside the tighter :data:`GIVE_BACK_PROB` gate) becomes a factor of that landmark. A
 sighting not given back within :data:`HOLD_KEYFRAMES` keyframes stays out of the
-graph (counted: ``n_held - n_held_given_back - n_revisit_resolved`` in the result's
-``extra``); the revisit check (:mod:`lampsam.backend.revisit_merge`) may also
+graph (counted: ``n_held - n_held_given_back - n_revisit_resolved`` in the
+result's ``extra``); the revisit check (:mod:`lampsam.backend.revisit_merge`) may also
 resolve it by constellation.
 
 Frames: world, m and rad; ``[bearing, range]`` observations.
@@ -32,7 +34,7 @@ from scipy.special import chdtri
 
 from lampsam.backend.association import mahalanobis2
 from lampsam.backend.gating import Gating
-from lampsam.backend.models import Obs, predict, residual
+from lampsam.backend.models import Obs, init_point2, predict, residual
 from lampsam.backend.planar_gate import rival_material
 from lampsam.backend.pose_cov import eq19_covariance
 
@@ -46,6 +48,9 @@ HOLD_KEYFRAMES = 40
 #: trees' (8 of 9), those at d2 <= 3.6 their own (52 of 52): a held sighting in
 #: the outer gate is most often a tree not yet mapped.
 GIVE_BACK_PROB = 0.9
+#: A landmark started after a sighting was held, closer than this (m) to the sighting
+#: placed from its keyframe's estimate, joins its candidates at the re-gate.
+SINCE_RADIUS_M = 10.0
 
 
 class HeldSightings(Gating):
@@ -80,6 +85,8 @@ class HeldSightings(Gating):
         cands.update((id(o), c) for o, c in dropped)
         self.__dict__["_held_candidates"] = cands
         self.n_held += len(dropped)
+        if getattr(self, "_trace_revisit", False):  # (trace_noids_online.py --held)
+            self.__dict__.setdefault("_hold_log", []).extend((k, o, c) for o, c in dropped)
 
     def _give_back(self, k: int) -> int:
         """Re-gate the held sightings whose age is in :data:`GIVE_BACK_AGES`; each one now
@@ -90,20 +97,28 @@ class HeldSightings(Gating):
         cfg = self.config.association
         gate, unique_t = float(chdtri(2, 1.0 - GIVE_BACK_PROB)), cfg.unique_threshold(2)
         given: set[int] = set()
+        trace = getattr(self, "_trace_revisit", False)  # (trace_noids_online.py --held)
         for kk, o in self._held:
             if k - kk not in GIVE_BACK_AGES or kk > self._k_isam:
                 continue
-            lids = [lid for lid in self._held_cands.get(id(o), ())
+            lids = [lid for lid in (*self._held_cands.get(id(o), ()), *self._started_since(kk, o))
                     if lid in self._landmarks and self._landmarks[lid].in_graph
                     and self._landmarks[lid].kind == "point2"]
+            lids = list(dict.fromkeys(lids))
             scored = self._regate(kk, o, lids)
             if not scored:
+                if trace:
+                    self._trace_held(k, kk, o, "no candidate" if not lids else "no marginal", [])
                 continue
             best = min(scored)
             near = [(d2, ld) for d2, ld, lid in scored if d2 < unique_t
                     and (lid == best[2] or not self._same_place(best[2], lid))]
             if best[0] >= gate or rival_material(near, cfg):
+                if trace:
+                    self._trace_held(k, kk, o, "outside" if best[0] >= gate else "rival", scored)
                 continue
+            if trace:
+                self._trace_held(k, kk, o, "given", scored)
             lm = self._landmarks[best[2]]
             if getattr(self, "_trace_revisit", False):  # (trace_noids_online.py)
                 self.__dict__.setdefault("_give_back_log", []).append(
@@ -118,6 +133,23 @@ class HeldSightings(Gating):
                                                 if id(o) not in given]
             self.n_held_given_back += len(given)
         return len(given)
+
+    def _started_since(self, kk: int, o: Obs) -> list[int]:
+        """Range-bearing landmarks started after keyframe ``kk`` within
+        :data:`SINCE_RADIUS_M` of held sighting ``o`` placed from ``kk``'s estimate: the
+        tree it saw may have been mapped since it was held (its candidates are the
+        landmarks screened then; one started at ``kk`` itself is another sighting's of
+        that keyframe)."""
+        xy = init_point2(self._pose_of(kk), o.z)[0]
+        return [lm.id for lm in self._landmarks.values()
+                if lm.first_kf > kk and lm.kind == "point2"
+                and float(np.hypot(*(lm.state[:2] - xy))) < SINCE_RADIUS_M]
+
+    def _trace_held(self, k: int, kk: int, o: Obs, why: str,
+                    scored: list[tuple[float, float, int]]) -> None:
+        """Record one give-back attempt ``(k, kk, id(obs), why, sorted d2s)`` (tracing only)."""
+        self.__dict__.setdefault("_held_log", []).append(
+            (k, kk, id(o), why, sorted((d2, lid) for d2, _, lid in scored)))
 
     def _same_place(self, a: int, b: int) -> bool:
         """Whether planar landmarks ``a`` and ``b`` stand closer than ``revisit_tol``

@@ -25,7 +25,8 @@ Logs: ``victoria`` (GTSAM's ``victoria_park.txt``), ``synthetic``
 (:mod:`lampsam.datasets.landmark_log_sim`, seed 0, 3,000 poses), ``mrclam`` (the shared
 MRCLAM ds0 robot 1, 300 s, as ``bench_landmark_logs.py`` builds it), ``city`` (GTSAM's
 ``cityTrees_reduced_1k.g2o``, 1,000 poses, 66 trees), ``vp1k`` (GTSAM's
-``victoriaPark_reduced_1k.g2o``, 1,000 poses: held out, nothing was tuned on it). The file ids are read only to
+``victoriaPark_reduced_1k.g2o``, 1,000 poses: held out, nothing was tuned on it), ``grid``,
+``loop``, ``odo2x`` (:mod:`lampsam.datasets.landmark_log_heldout`: held out). The file ids are read only to
 score the association. CPU figures are process time (the machine may be shared).
 """
 
@@ -48,6 +49,7 @@ from lampsam.backend.graph_log import run_graph_log
 from lampsam.backend.noids_offline import PassReport, select_scale
 from lampsam.backend.reassociate import Pass, Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text
+from lampsam.datasets.landmark_log_heldout import HELD_OUT, write_held_out
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 
 _HERE = Path(__file__).resolve().parent
@@ -76,6 +78,10 @@ def load_log(name: str, out: Path) -> GraphLog:
         out.mkdir(parents=True, exist_ok=True)
         p, _ = write_landmark_log(out / "synthetic.txt", LandmarkLogSpec(), np.random.default_rng(0))
         return read_graph_text(p)
+    if name in HELD_OUT:  # held out (datasets/landmark_log_heldout.py): never tuned on
+        out.mkdir(parents=True, exist_ok=True)
+        p, _ = write_held_out(out / f"heldout_{name}.txt", name)
+        return read_graph_text(p)
     if name == "mrclam":
         from lampsam.datasets.mrclam import mrclam_run
         from lampsam.datasets.paths import shared_dataset
@@ -85,7 +91,8 @@ def load_log(name: str, out: Path) -> GraphLog:
             raise SystemExit("mrclam: shared dataset mrclam_ds0 not found")
         g, _ = _bench_module().graph_log_from_run(mrclam_run(root, duration=300.0), SlamConfig())
         return g
-    raise SystemExit(f"unknown log {name!r} (victoria, synthetic, mrclam, city, vp1k)")
+    raise SystemExit(f"unknown log {name!r} (victoria, synthetic, mrclam, city, vp1k, "
+                     f"{', '.join(HELD_OUT)})")
 
 
 def file_ids(g: GraphLog, s: Sightings) -> np.ndarray:

@@ -91,6 +91,7 @@ class Decision:
     cands: dict[int, float] = field(default_factory=dict)  # lid -> exact d2
     sigma_xy: float = math.nan  # the online pose marginal's largest position sigma, m
     xy: tuple[float, float] = (math.nan, math.nan)  # the online pose estimate then, m
+    obs_id: int = 0  # id() of the observation (unique within its keyframe)
 
 
 def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
@@ -133,7 +134,7 @@ def trace_run(g: GraphLog, config: SlamConfig, backend: str = "isam2"
                     d2 = math.inf if pred is None else _m2(pred)
                 d[lid] = float(d2)
             decisions.append(Decision(n, be._k, file_s[j].landmark, a.status, a.landmark_id, d, sig,
-                                      (float(here[0]), float(here[1]))))
+                                      (float(here[0]), float(here[1])), id(o)))
         return real_learn(scale, obs, out, screened)
 
     graph_mod.associate, graph_mod.learn_scale = assoc, learn
@@ -156,10 +157,11 @@ def _m2(pred: tuple[np.ndarray, np.ndarray]) -> float:
 def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], ref: np.ndarray,
           poses: np.ndarray, gate: float, new_t: float, n_causes: int,
           ref_xy: dict[int, np.ndarray], detail: tuple[int, int] = (0, 0),
-          detail_csv: Path | None = None) -> None:
+          detail_csv: Path | None = None) -> tuple[dict[int, int], dict[int, int]]:
     """Print the per-window table and the wrong-match causes; with ``detail``
     ``(first, last)`` steps, a per-keyframe record of that range (``detail_csv``) and
-    its summary per 100 steps, and why each revisit check there tied or not."""
+    its summary per 100 steps, and why each revisit check there tied or not. Returns
+    ``(owner, first_kf)``: each landmark's final majority file id and first keyframe."""
     # landmark id of each taken sighting (new ones: from the backend's sighting record)
     # (k, z, R, lid) per taken sighting; a keyframe's new landmarks come first, in order
     new_ids: dict[int, list[int]] = defaultdict(list)
@@ -298,6 +300,51 @@ def score(g: GraphLog, decisions: list[Decision], be: Any, windows: list[int], r
           f"{sorted({kf for kf, _, _ in ties})}")
     print("wrong-match causes:", dict(sorted(causes.items())))
     print("dup causes:", dict(dup_causes))
+    return owner, first_kf
+
+
+def held_report(be: Any, decisions: list[Decision], owner: dict[int, int],
+                first_kf: dict[int, int], gate: float, n_show: int = 0) -> Counter[str]:
+    """Every held sighting's fate (``--held``): given back by the re-gate, resolved by
+    the revisit check, or never used; for the unused, why every re-gate failed
+    (``rival``: another landmark still within the threshold; ``outside``: the best
+    beyond the give-back gate; ``no candidate``: none of its candidates in the graph)
+    and whether its tree owned a landmark when it was held (else it could only have
+    started one). Prints a summary; returns the fate counts."""
+    fid_of = {(d.kf, d.obs_id): d for d in decisions if d.status == "dropped"}
+    tries: dict[int, list[tuple[int, str, list[tuple[float, int]]]]] = defaultdict(list)
+    for k, kk, oid, why, sc in getattr(be, "_held_log", []):
+        tries[oid].append((k - kk, why, sc))
+    into = {id(z): int(lid) for _, z, _, lid in be._planar_sightings}
+    fates: Counter[str] = Counter()
+    shown = 0
+    for k, o, _ in getattr(be, "_hold_log", []):
+        d = fid_of.get((k, id(o)))
+        fid = d.fid if d is not None else -1
+        tree_lids = [lid for lid, f in owner.items() if f == fid and first_kf.get(lid, 1 << 30) <= k]
+        mapped = "tree mapped" if tree_lids else "tree unmapped"
+        ds = sorted((v, lid) for lid, v in (d.cands if d is not None else {}).items())
+        held_why = ("rival" if len(ds) > 1 and ds[0][0] < gate else "between gate and threshold"
+                    if ds and ds[0][0] >= gate else "other")
+        t = tries.get(id(o), [])
+        if id(o.z) in into:
+            lid = into[id(o.z)]
+            how = "given back" if any(w == "given" for _, w, _ in t) else "resolved by check"
+            fate = f"{how}, {'right' if owner.get(lid) == fid else 'wrong'}"
+        else:
+            reasons = sorted({w for _, w, _ in t}) or ["never re-gated"]
+            fate = f"unused ({'/'.join(reasons)})"
+        fates[f"{fate}; {mapped}; held as {held_why}"] += 1
+        if fate.startswith("unused") and shown < n_show:
+            shown += 1
+            print(f"  held kf {k} tree {fid} ({mapped} {tree_lids}): at hold "
+                  f"{[(round(v, 1), lid, owner.get(lid)) for v, lid in ds[:3]]}; re-gates "
+                  + "; ".join(f"age {a} {w} {[(round(v, 1), lid) for v, lid in sc[:2]]}"
+                              for a, w, sc in t))
+    print(f"held sightings: {sum(fates.values())}")
+    for key, n in sorted(fates.items(), key=lambda kv: -kv[1]):
+        print(f"  {n:5d}  {key}")
+    return fates
 
 
 def _detail_report(per_kf: dict[int, Counter[str]],
@@ -390,6 +437,8 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--causes", type=int, default=15)
     ap.add_argument("--out", default="/tmp/trace_noids_online")
+    ap.add_argument("--held", type=int, default=-1, metavar="N",
+                    help="print every held sighting's fate (and the first N unused in full)")
     ap.add_argument("--detail", default="", metavar="FIRST,LAST",
                     help="steps to record per keyframe (and trace the revisit check in)")
     args = ap.parse_args()
@@ -418,9 +467,12 @@ def main() -> None:
               f"held {result.extra.get('n_held')}, given back {result.extra.get('n_held_given_back')}, "
               f"never used {result.extra.get('n_held_unused')}")
         detail = tuple(int(x) for x in args.detail.split(",")) if args.detail else (0, 0)
-        score(g, decisions, be, windows, ref, result.poses, config.association.gate(2),
-              config.association.new_threshold(2), args.causes, ref_xy, detail,  # type: ignore[arg-type]
-              Path(args.out) / f"{name}_keyframes.csv")
+        owner, first_kf = score(
+            g, decisions, be, windows, ref, result.poses, config.association.gate(2),
+            config.association.new_threshold(2), args.causes, ref_xy, detail,  # type: ignore[arg-type]
+            Path(args.out) / f"{name}_keyframes.csv")
+        if args.held >= 0:
+            held_report(be, decisions, owner, first_kf, config.association.gate(2), args.held)
 
 
 if __name__ == "__main__":
