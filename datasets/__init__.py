@@ -26,6 +26,7 @@ Modules:
 * :mod:`~lampsam.datasets.graph_text` -- Readers for the planar SLAM text formats that ``gtsam.load2D`` reads (iSAM and g2o).
 * :mod:`~lampsam.datasets.kinect_sim` -- A forward-facing Kinect-like RGB-D sensor rendered from a :mod:`scene3d` world.
 * :mod:`~lampsam.datasets.kitti` -- KITTI odometry stereo sequence reader (rectified grey pairs, calib.txt, poses.txt).
+* :mod:`~lampsam.datasets.landmark_log_heldout` -- Held-out synthetic landmark logs: layouts and noise unlike the tuning logs, with truth.
 * :mod:`~lampsam.datasets.landmark_log_sim` -- Synthetic planar landmark-SLAM logs in the iSAM text format, with ground truth.
 * :mod:`~lampsam.datasets.localization_run` -- A simulated run for global localization: start at an unknown pose, turn, drive on, repeat.
 * :mod:`~lampsam.datasets.logrun` -- The logged-run directory: what it holds, and reading or writing it whole (``docs/log-format.md``).
