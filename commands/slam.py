@@ -173,14 +173,16 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     from lampsam.backend.ceiling_map_io import read_map
     from lampsam.backend.localize_only import LocalizeConfig
     from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
-    from lampsam.backend.map_merge import merge_maps
+    from lampsam.backend.map_merge import merge_all
     from lampsam.backend.map_smoother import MapSmootherConfig
 
-    cmap = read_map(args.map[0])  # a bad map: an error before any computing
-    for more in args.map[1:]:
-        cmap, counts = merge_maps(cmap, read_map(more))
-        print(f"merged {more}: {counts['fused']} landmarks fused, {counts['only_b']} added, "
-              f"{counts['only_a']} kept alone")
+    maps = [read_map(p) for p in args.map]  # a bad map: an error before any computing
+    cmap = maps[0]
+    if len(maps) > 1:
+        cmap, counts = merge_all(maps)
+        print(f"merged {len(maps)} maps jointly: {counts['fused']} landmarks fused, "
+              f"{counts['alone']} in one map only; scale per map (ppm): "
+              + ", ".join(f"{1e6 * s[3]:+.0f}" for s in counts["similarity"]))
     start = (parse_start(args.start) if args.start
              else start_from_result(args.start_from) if args.start_from else None)
     if features:

@@ -65,7 +65,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import SlamBackend
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
 from lampsam.backend.map_frame import MapFrame
-from lampsam.backend.map_merge import merge_maps
+from lampsam.backend.map_merge import merge_all, merge_maps
 from lampsam.backend.map_smoother import MapSmoother, MapSmootherConfig
 from lampsam.backend.slam import (
     errors_vs_truth,
@@ -255,15 +255,36 @@ def smoother_config(method: str) -> MapSmootherConfig | None:
     return MapSmootherConfig(frame="noframe" not in parts, frame_turn="turn" in parts)
 
 
-def load_maps(paths: list[str], each: bool) -> list[tuple[str, CeilingMap]]:
-    """``(label, map)`` per map with ``each``, else one map merged from all."""
+def merged(paths: list[str], how: str) -> CeilingMap:
+    """The maps at ``paths`` merged: ``joint`` (:func:`merge_all`, the default) or ``seq``
+    (:func:`merge_maps` one after the other, the merge before the fourteenth session)."""
+    if how == "seq":
+        cmap = read_map(paths[0])
+        for more in paths[1:]:
+            cmap, counts = merge_maps(cmap, read_map(more))
+            print(f"merged {more}: {counts}")
+        return cmap
+    cmap, jc = merge_all([read_map(p) for p in paths])
+    print(f"merged {'+'.join(paths)} jointly: {jc['fused']} fused, {jc['alone']} alone; "
+          "similarity (dx mm, dy mm, dtheta mdeg, ds ppm) per map: "
+          + "; ".join(f"{1e3 * s[0]:.2f}, {1e3 * s[1]:.2f}, {1e3 * s[2]:.1f}, {1e6 * s[3]:.0f}"
+                      for s in jc["similarity"]))
+    return cmap
+
+
+def load_maps(paths: list[str], each: bool, how: str = "joint") -> list[tuple[str, CeilingMap]]:
+    """``(label, map)`` per map with ``each`` (a path ``A+B+...`` is those maps merged),
+    else one map merged from all; ``how``: :func:`merged`."""
+    def label(ps: list[str]) -> str:
+        return "+".join(os.path.basename(os.path.normpath(p)) for p in ps) + (
+            "" if len(ps) == 1 or how == "joint" else f" ({how})")
     if each:
-        return [(os.path.basename(os.path.normpath(p)), read_map(p)) for p in paths]
-    cmap = read_map(paths[0])
-    for more in paths[1:]:
-        cmap, counts = merge_maps(cmap, read_map(more))
-        print(f"merged {more}: {counts}")
-    return [("+".join(os.path.basename(os.path.normpath(p)) for p in paths), cmap)]
+        out = []
+        for p in paths:
+            ps = p.split("+")
+            out.append((label(ps), read_map(ps[0]) if len(ps) == 1 else merged(ps, how)))
+        return out
+    return [(label(paths), read_map(paths[0]) if len(paths) == 1 else merged(paths, how))]
 
 
 def main() -> None:
@@ -272,7 +293,11 @@ def main() -> None:
     ap.add_argument("--map", required=True, action="append",
                     help="ceiling map folder (slam --save-map); repeat to merge maps")
     ap.add_argument("--each-map", action="store_true",
-                    help="track every --map on its own instead of merging them")
+                    help="track every --map on its own instead of merging them (a --map "
+                         "A+B+... is then those maps merged)")
+    ap.add_argument("--merge", default="joint", choices=("joint", "seq"),
+                    help="how maps are merged: joint (merge_all, default) or seq (merge_maps "
+                         "one after the other)")
     ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth,priors-smooth-turn",
                     help="localize-only variants: fixed, priors, consider (the defaults: the "
                          "map frame's offset state with a version-2 map, the known start at 1 mm "
@@ -289,7 +314,7 @@ def main() -> None:
                     help="folder for the runs' frames (made once, read back in later runs)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    maps = load_maps(args.map, args.each_map)
+    maps = load_maps(args.map, args.each_map, args.merge)
     config = SlamConfig()
     config = dataclasses.replace(config, isam2=dataclasses.replace(config.isam2,
                                                                    final_covariances=False))
