@@ -18,6 +18,16 @@ without a partner is kept as it is. This is what one batch over both drives give
 the drives share nothing but the landmarks, except that each map's landmark
 marginals are used and their correlations within one map (the drift a drive applies to
 all its landmarks) are dropped: the fused covariances are somewhat optimistic.
+
+:func:`merge_all` (what ``lampsam slam RUN --map A --map B ... --localize-only`` uses) merges
+any number of maps jointly and models what the pairwise merge drops: each drive's map is off
+the truth by a small **similarity** (shift, turn and the drive's odometry **scale**, which
+moves ``x, y`` and the lamp's height above the camera together: the ceiling camera cannot
+tell them apart), fitted for all maps at once with the common landmark positions; the
+landmarks are fused with their covariances given their map's frame (``D_l``), and the merged
+map gets a frame model (:class:`lampsam.backend.map_frame.MapFrame`) for the error its fitted
+similarities leave. It does not depend on the maps' order. docs/ceiling-map.md, "Maps from
+several drives".
 """
 
 from __future__ import annotations
@@ -183,6 +193,11 @@ class JointMergeConfig:
         rounds: pair, fit, and pair again on the maps moved by the fit, this many times
             (default 2: drives whose errors differ by more than the pairing gate pair on
             the second round).
+        common_scale_in_cov: keep the merged map's common scale error (the drives' mean
+            scale, ``sigma_scale / sqrt(N)`` a priori, the same error for every landmark)
+            in the landmarks' covariances as independent noise (default False: left out,
+            as a single map's covariances leave out its drive's scale error; the frame
+            model has no scale to carry it).
     """
 
     pairing: MergeConfig = field(default_factory=MergeConfig)
@@ -191,6 +206,7 @@ class JointMergeConfig:
     sigma_scale: float = field(default=0.001, metadata=limits(gt=0.0))
     scale: bool = True
     rounds: int = field(default=2, metadata=limits(ge=1))
+    common_scale_in_cov: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
@@ -403,6 +419,7 @@ def merge_all(maps: list[CeilingMap], config: JointMergeConfig | None = None
     s_full = omega @ a_cov @ omega.T
     s_g = s_full[:3, :3]
     s_g_inv = np.linalg.inv(s_g)
+    s_full_inv = np.linalg.inv(s_full)
     fused: list[tuple[str, FloatArray, float | None, FloatArray, int, np.ndarray | None,
                       FloatArray]] = []
     for grp in groups:
@@ -438,9 +455,13 @@ def merge_all(maps: list[CeilingMap], config: JointMergeConfig | None = None
         cov[:3, :3] = c_pos
         cov[3, 3] = var_phi
         cov += om @ a_cov @ om.T
+        cross = om @ a_cov @ omega.T  # (4, 4): Cov(landmark error, common similarity error)
+        if not cfg.common_scale_in_cov:  # drop the share of the common scale (see config)
+            cov -= (cross @ s_full_inv @ cross.T
+                    - cross[:, :3] @ s_g_inv @ cross[:, :3].T)
         if phi is None:
             cov[3, :] = cov[:, 3] = 0.0
-        gain = (om @ a_cov @ omega.T)[:, :3] @ s_g_inv  # (4, 3) regression on g
+        gain = cross[:, :3] @ s_g_inv  # (4, 3) regression on g
         best = max(grp, key=lambda t: (t[2].n_obs, -t[0]))[2]
         patch = best.patch if best.patch is not None else next(
             (lm.patch for _, _, lm in grp if lm.patch is not None), None)

@@ -339,7 +339,7 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default=None, metavar="MAP", action="append",
                    help="with --localize-only: the ceiling map folder to track against; given "
                         "twice or more, the maps of separate mapping drives are merged "
-                        "(backend/map_merge.py)")
+                        "jointly, a shift, turn and scale per drive fitted (backend/map_merge.py)")
     p.add_argument("--map-priors", action="store_true",
                    help="with --localize-only: the map's landmarks are priors updated during "
                         "the run (joint EKF over pose and map landmarks; the default, same as "
