@@ -15,8 +15,10 @@ truth. With several runs or maps a last table lists each method's final RMS per 
 many runs are at or under the reference.
 
 ``--map`` may be given more than once: the maps of separate drives, merged by
-:func:`lampsam.backend.map_merge.merge_maps`, or with ``--each-map`` each tracked on
-its own (SLAM from scratch then runs once per run, not once per map). For every run the frames are made once
+:func:`lampsam.backend.map_merge.merge_all` (``--merge seq``: one after the other by
+:func:`lampsam.backend.map_merge.merge_maps`, the merge before the fourteenth session), or
+with ``--each-map`` each tracked on its own, where a ``--map A+B+...`` is those maps merged
+(SLAM from scratch then runs once per run, not once per map). For every run the frames are made once
 (the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
 (:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
 ``localize-consider``: ``LocalizeConfig.map_mode``; every mode with the map frame's offset
