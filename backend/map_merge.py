@@ -337,18 +337,17 @@ def fit_similarities(maps: list[CeilingMap], groups: list[list[tuple[int, int, M
         # one Jacobian per group (at its mean): with each landmark's own, the maps' mm
         # differences would leak the (unobservable) common scale out of its prior
         jc = similarity_jacobian(np.mean([p for _, _, p in rows], axis=0), center, z_cam)
-        rows = [(k, w, jc, p) for k, w, p in rows]
-        wc_inv = np.linalg.inv(sum(w for _, w, _, _ in rows))
-        wp = sum(w @ p for _, w, _, p in rows)
-        for k, wk, jk, pk in rows:
+        wc_inv = np.linalg.inv(sum(w for _, w, _ in rows))
+        wp = sum(w @ p for _, w, p in rows)
+        for k, wk, pk in rows:
             sk = slice(4 * k, 4 * k + 4)
-            h[sk, sk] += jk.T @ wk @ jk
-            g[sk] += jk.T @ wk @ pk - jk.T @ wk @ wc_inv @ wp
-            for m, wm, jm, _ in rows:
+            h[sk, sk] += jc.T @ wk @ jc
+            g[sk] += jc.T @ wk @ pk - jc.T @ wk @ wc_inv @ wp
+            for m, wm, _ in rows:
                 sm = slice(4 * m, 4 * m + 4)
-                h[sk, sm] -= jk.T @ wk @ wc_inv @ wm @ jm
-    cov = np.linalg.inv(0.5 * (h + h.T))
-    a = cov @ g
+                h[sk, sm] -= jc.T @ wk @ wc_inv @ wm @ jc
+    cov = np.asarray(np.linalg.inv(0.5 * (h + h.T)), float)
+    a = np.asarray(cov @ g, float)
     return a.reshape(n, 4), cov
 
 
