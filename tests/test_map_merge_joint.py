@@ -189,3 +189,33 @@ def test_joint_merge_refuses_other_cameras_and_no_maps(rng: np.random.Generator)
         merge_all([])
     with pytest.raises(ValueError, match="sigma_scale"):
         JointMergeConfig(sigma_scale=0.0)
+
+
+def test_joint_merge_uses_the_maps_frame_models(rng: np.random.Generator) -> None:
+    """Version-2 style maps (a frame model: shift 2 mm, turn 0.5 mrad about the ceiling's
+    center; marginals = the frame's share + (0.3 mm)^2 I): the fit weights by ``D_l`` and
+    takes ``S_k`` as the drive's prior; two drives with opposite errors merge to under 0.5 of
+    either map's error RMS, with the fitted scales within 30 ppm."""
+    from lampsam.backend.map_frame import rigid_jacobian
+
+    rig = Rig()
+    truth, kinds = _truth(rng)
+    s = np.diag([0.002**2, 0.002**2, 0.0005**2])
+    drive = np.array([0.0015, -0.001, 3e-4, 5e-4])
+    maps = []
+    for a in (drive, -drive):
+        pos = _similar(truth, a) + rng.normal(0.0, SIGMA, truth.shape)
+        lms, gains = [], {}
+        for i, p in enumerate(pos):
+            c = rigid_jacobian(p, CENTER, False)
+            cov = c @ s @ c.T
+            cov[:3, :3] += SIGMA**2 * np.eye(3)
+            lms.append(MapLandmark(i, kinds[i], p, None, cov, 20))
+            gains[i] = c
+        maps.append(CeilingMap(lms, rig, {"run": "synthetic"},
+                               frame=MapFrame(CENTER.copy(), s, gains)))
+    merged, counts = merge_all(maps)
+    fit = np.array(counts["similarity"])
+    assert np.allclose(fit[:, 3], [drive[3], -drive[3]], atol=3e-5)
+    e = _rms(_errors(merged, truth))
+    assert all(e < 0.5 * _rms(_errors(m, truth)) for m in maps)
