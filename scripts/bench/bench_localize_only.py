@@ -206,14 +206,15 @@ def release_lines(filt: MapLocalizer, cmap: CeilingMap, fit: MapAlignment | None
 
 def localize_config(method: str) -> LocalizeConfig:
     """``localize[-priors|-consider][-nooffset][-loose][-release[-p=P][-n=N][-f=F][-s=S]]
-    [-smooth[-turn|-noframe]]`` as the
+    [-mc=N][-smooth[-turn|-noframe]]`` as the
     filter's settings: the defaults of :class:`LocalizeConfig` (the map frame's offset state
     with a version-2 map, the known start held at 1 mm / 1 mrad as SLAM holds it) with
     ``-nooffset`` without the frame state (``frame_offset`` off), ``-gturn`` with its turn
     estimated too (``frame_turn``), and ``-loose`` with the start at 2 cm / 0.01 rad (the
     settings before the eleventh session); ``-frame`` and ``-tight`` are the defaults now
     (accepted, no effect); ``-smooth`` (:func:`smoother_config`) adds the smoother over the
-    filter's poses; ``-release`` (``-norelease``) turns the release of contradicted map
+    filter's poses; ``-mc=N`` keeps at most N corner observations per frame
+    (``max_corners``); ``-release`` (``-norelease``) turns the release of contradicted map
     landmarks on (off), with its options as :data:`RELEASE_KEYS`."""
     parts = method.split("-")[1:]
     mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
@@ -229,6 +230,8 @@ def localize_config(method: str) -> LocalizeConfig:
             extra["release_kinds"] = ("lamp",)
         elif p == "allkinds":
             extra["release_kinds"] = ("lamp", "corner")
+        if val and key == "mc":  # -mc=N: at most N corner observations per frame
+            extra["max_corners"] = int(val)
         if val and key in RELEASE_KEYS:
             extra[RELEASE_KEYS[key]] = int(val) if key == "n" else float(val)
     return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts,  # type: ignore[arg-type]
