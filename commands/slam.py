@@ -179,14 +179,16 @@ def _slam_localize_only(args: argparse.Namespace, config: SlamConfig, features: 
     from lampsam.backend.ceiling_map_io import read_map
     from lampsam.backend.localize_only import LocalizeConfig
     from lampsam.backend.localize_run import parse_start, run_localize_only, start_from_result
-    from lampsam.backend.map_merge import merge_maps
+    from lampsam.backend.map_merge import merge_all
     from lampsam.backend.map_smoother import MapSmootherConfig
 
-    cmap = read_map(args.map[0])  # a bad map: an error before any computing
-    for more in args.map[1:]:
-        cmap, counts = merge_maps(cmap, read_map(more))
-        print(f"merged {more}: {counts['fused']} landmarks fused, {counts['only_b']} added, "
-              f"{counts['only_a']} kept alone")
+    maps = [read_map(p) for p in args.map]  # a bad map: an error before any computing
+    cmap = maps[0]
+    if len(maps) > 1:
+        cmap, counts = merge_all(maps)
+        print(f"merged {len(maps)} maps jointly: {counts['fused']} landmarks fused, "
+              f"{counts['alone']} in one map only; scale per map (ppm): "
+              + ", ".join(f"{1e6 * s[3]:+.0f}" for s in counts["similarity"]))
     start = (parse_start(args.start) if args.start
              else start_from_result(args.start_from) if args.start_from else None)
     if features:
@@ -370,7 +372,7 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default=None, metavar="MAP", action="append",
                    help="with --localize-only: the ceiling map folder to track against; given "
                         "twice or more, the maps of separate mapping drives are merged "
-                        "(backend/map_merge.py)")
+                        "jointly, a shift, turn and scale per drive fitted (backend/map_merge.py)")
     p.add_argument("--map-priors", action="store_true",
                    help="with --localize-only: the map's landmarks are priors updated during "
                         "the run (joint EKF over pose and map landmarks; the default, same as "

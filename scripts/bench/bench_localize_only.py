@@ -15,8 +15,10 @@ truth. With several runs or maps a last table lists each method's final RMS per 
 many runs are at or under the reference.
 
 ``--map`` may be given more than once: the maps of separate drives, merged by
-:func:`lampsam.backend.map_merge.merge_maps`, or with ``--each-map`` each tracked on
-its own (SLAM from scratch then runs once per run, not once per map). For every run the frames are made once
+:func:`lampsam.backend.map_merge.merge_all` (``--merge seq``: one after the other by
+:func:`lampsam.backend.map_merge.merge_maps`, the merge before the fourteenth session), or
+with ``--each-map`` each tracked on its own, where a ``--map A+B+...`` is those maps merged
+(SLAM from scratch then runs once per run, not once per map). For every run the frames are made once
 (the frontend on the images, or ``--frames truth``) and fed to: localize-only on MAP
 (:class:`MapLocalizer`, ``localize``: the map fixed; ``localize-priors`` and
 ``localize-consider``: ``LocalizeConfig.map_mode``; every mode with the map frame's offset
@@ -65,7 +67,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.interface import SlamBackend
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
 from lampsam.backend.map_frame import MapFrame
-from lampsam.backend.map_merge import merge_maps
+from lampsam.backend.map_merge import merge_all, merge_maps
 from lampsam.backend.map_smoother import MapSmoother, MapSmootherConfig
 from lampsam.backend.slam import (
     errors_vs_truth,
@@ -204,14 +206,15 @@ def release_lines(filt: MapLocalizer, cmap: CeilingMap, fit: MapAlignment | None
 
 def localize_config(method: str) -> LocalizeConfig:
     """``localize[-priors|-consider][-nooffset][-loose][-release[-p=P][-n=N][-f=F][-s=S]]
-    [-smooth[-turn|-noframe]]`` as the
+    [-mc=N][-smooth[-turn|-noframe]]`` as the
     filter's settings: the defaults of :class:`LocalizeConfig` (the map frame's offset state
     with a version-2 map, the known start held at 1 mm / 1 mrad as SLAM holds it) with
     ``-nooffset`` without the frame state (``frame_offset`` off), ``-gturn`` with its turn
     estimated too (``frame_turn``), and ``-loose`` with the start at 2 cm / 0.01 rad (the
     settings before the eleventh session); ``-frame`` and ``-tight`` are the defaults now
     (accepted, no effect); ``-smooth`` (:func:`smoother_config`) adds the smoother over the
-    filter's poses; ``-release`` (``-norelease``) turns the release of contradicted map
+    filter's poses; ``-mc=N`` keeps at most N corner observations per frame
+    (``max_corners``); ``-release`` (``-norelease``) turns the release of contradicted map
     landmarks on (off), with its options as :data:`RELEASE_KEYS`."""
     parts = method.split("-")[1:]
     mode = next((p for p in parts if p in ("priors", "consider")), "fixed")
@@ -227,6 +230,8 @@ def localize_config(method: str) -> LocalizeConfig:
             extra["release_kinds"] = ("lamp",)
         elif p == "allkinds":
             extra["release_kinds"] = ("lamp", "corner")
+        if val and key == "mc":  # -mc=N: at most N corner observations per frame
+            extra["max_corners"] = int(val)
         if val and key in RELEASE_KEYS:
             extra[RELEASE_KEYS[key]] = int(val) if key == "n" else float(val)
     return LocalizeConfig(map_mode=mode, frame_offset="nooffset" not in parts,  # type: ignore[arg-type]
@@ -255,15 +260,36 @@ def smoother_config(method: str) -> MapSmootherConfig | None:
     return MapSmootherConfig(frame="noframe" not in parts, frame_turn="turn" in parts)
 
 
-def load_maps(paths: list[str], each: bool) -> list[tuple[str, CeilingMap]]:
-    """``(label, map)`` per map with ``each``, else one map merged from all."""
+def merged(paths: list[str], how: str) -> CeilingMap:
+    """The maps at ``paths`` merged: ``joint`` (:func:`merge_all`, the default) or ``seq``
+    (:func:`merge_maps` one after the other, the merge before the fourteenth session)."""
+    if how == "seq":
+        cmap = read_map(paths[0])
+        for more in paths[1:]:
+            cmap, counts = merge_maps(cmap, read_map(more))
+            print(f"merged {more}: {counts}")
+        return cmap
+    cmap, jc = merge_all([read_map(p) for p in paths])
+    print(f"merged {'+'.join(paths)} jointly: {jc['fused']} fused, {jc['alone']} alone; "
+          "similarity (dx mm, dy mm, dtheta mdeg, ds ppm) per map: "
+          + "; ".join(f"{1e3 * s[0]:.2f}, {1e3 * s[1]:.2f}, {1e3 * s[2]:.1f}, {1e6 * s[3]:.0f}"
+                      for s in jc["similarity"]))
+    return cmap
+
+
+def load_maps(paths: list[str], each: bool, how: str = "joint") -> list[tuple[str, CeilingMap]]:
+    """``(label, map)`` per map with ``each`` (a path ``A+B+...`` is those maps merged),
+    else one map merged from all; ``how``: :func:`merged`."""
+    def label(ps: list[str]) -> str:
+        return "+".join(os.path.basename(os.path.normpath(p)) for p in ps) + (
+            "" if len(ps) == 1 or how == "joint" else f" ({how})")
     if each:
-        return [(os.path.basename(os.path.normpath(p)), read_map(p)) for p in paths]
-    cmap = read_map(paths[0])
-    for more in paths[1:]:
-        cmap, counts = merge_maps(cmap, read_map(more))
-        print(f"merged {more}: {counts}")
-    return [("+".join(os.path.basename(os.path.normpath(p)) for p in paths), cmap)]
+        out = []
+        for p in paths:
+            ps = p.split("+")
+            out.append((label(ps), read_map(ps[0]) if len(ps) == 1 else merged(ps, how)))
+        return out
+    return [(label(paths), read_map(paths[0]) if len(paths) == 1 else merged(paths, how))]
 
 
 def main() -> None:
@@ -272,7 +298,11 @@ def main() -> None:
     ap.add_argument("--map", required=True, action="append",
                     help="ceiling map folder (slam --save-map); repeat to merge maps")
     ap.add_argument("--each-map", action="store_true",
-                    help="track every --map on its own instead of merging them")
+                    help="track every --map on its own instead of merging them (a --map "
+                         "A+B+... is then those maps merged)")
+    ap.add_argument("--merge", default="joint", choices=("joint", "seq"),
+                    help="how maps are merged: joint (merge_all, default) or seq (merge_maps "
+                         "one after the other)")
     ap.add_argument("--modes", default="fixed,priors,consider,priors-smooth,priors-smooth-turn",
                     help="localize-only variants: fixed, priors, consider (the defaults: the "
                          "map frame's offset state with a version-2 map, the known start at 1 mm "
@@ -289,7 +319,7 @@ def main() -> None:
                     help="folder for the runs' frames (made once, read back in later runs)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    maps = load_maps(args.map, args.each_map)
+    maps = load_maps(args.map, args.each_map, args.merge)
     config = SlamConfig()
     config = dataclasses.replace(config, isam2=dataclasses.replace(config.isam2,
                                                                    final_covariances=False))
