@@ -45,6 +45,7 @@ Modules:
 * :mod:`~lampsam.backend.landmark_merge` -- Merging duplicate planar landmarks after the fact (association without ids).
 * :mod:`~lampsam.backend.landmark_moves` -- Merge and split landmarks by description length (offline association without ids).
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.
+* :mod:`~lampsam.backend.localize_config` -- Configuration of localize-only tracking on a saved ceiling map (:class:`LocalizeConfig`).
 * :mod:`~lampsam.backend.localize_only` -- Localize-only tracking against a saved ceiling map: the map is used, never grown.
 * :mod:`~lampsam.backend.localize_run` -- Run localize-only tracking over a logged run, and save the map of a SLAM run.
 * :mod:`~lampsam.backend.map_calibration` -- How honest a batch map's landmark covariances are, measured on the mapping run itself.

@@ -3,7 +3,7 @@
 A saved map's landmark can be wrong today: the lamp was moved or replaced, or it was
 mapped from poses that were off the same way on every pass (no test on the mapping
 drive alone can see that). In localize-only with the map as priors
-(:attr:`lampsam.backend.localize_only.LocalizeConfig.map_mode` ``"priors"``), each used
+(:attr:`lampsam.backend.localize_config.LocalizeConfig.map_mode` ``"priors"``), each used
 map landmark ``l`` is a state with the map's prior ``N(m_l, D_l)`` (``D_l`` its
 conditional covariance given the map frame's offset, or its marginal without a frame
 model). After the run's updates its estimate is ``p_l`` with covariance ``P_l``; the
@@ -46,7 +46,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 
 if TYPE_CHECKING:
-    from lampsam.backend.localize_only import LocalizeConfig
+    from lampsam.backend.localize_config import LocalizeConfig
 
 log = logging.getLogger(__name__)
 
