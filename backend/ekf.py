@@ -51,10 +51,10 @@ from lampsam.backend.ekf_joint import joint_point2
 from lampsam.backend.ekf_landmarks import (
     PRUNE_BATCH,
     Slot,
-    conditional_sigma,
     free_id,
     grown_state,
     max_sigma_2x2,
+    note_relative_sigma,
     prune_round,
     remove_landmarks,
 )
@@ -466,24 +466,6 @@ class EkfSlam(SlamBackend):
         if pruned:
             self.n_pruned += len(lids)
 
-    def _note_relative_sigma(self, pairs: list[tuple[Slot, Obs]]) -> None:
-        """Record, for the landmarks without a known id sighted (or started) this
-        step, their horizontal sigma conditional on the current pose
-        (:func:`~lampsam.backend.ekf_landmarks.conditional_sigma`, the 5x5 block of
-        pose and landmark): what the pruning judges them by
-        (``association.prune_relative``). Later updates can only shrink it."""
-        if not self.config.association.prune_relative:
-            return
-        p_pose = None
-        for sl, o in pairs:
-            if o.landmark_id is not None or sl.id not in self._slots:
-                continue
-            if p_pose is None:
-                p_pose = self._cov.block(0, 3, 0, 3)
-            a = sl.offset
-            sl.sigma_rel = conditional_sigma(p_pose, self._cov.block(a, a + 2, 0, 3),
-                                             self._cov.block(a, a + 2, a, a + 2))
-
     def _prune(self) -> None:
         """Remove landmarks seen once long ago, or still uncertain after a while.
 
@@ -557,7 +539,8 @@ class EkfSlam(SlamBackend):
                     n_new += lid is not None
                     if lid is not None:
                         pairs.append((self._slots[lid], obs[a.obs_index]))
-                self._note_relative_sigma(pairs)
+                if self.config.association.prune_relative:  # what the pruning judges
+                    note_relative_sigma(self._cov, pairs, self._slots)
                 if self.config.association.planar_merge_every:
                     self.covis.add_frame(s.id for s, _ in pairs)
                 self.planar_sightings.extend((self._step, o.z, o.R, sl.id) for sl, o in pairs

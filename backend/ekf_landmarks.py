@@ -74,6 +74,32 @@ def conditional_sigma(p_pose: FloatArray, p_lp: FloatArray, p_ll: FloatArray) ->
     return max_sigma_2x2(cond)
 
 
+def note_relative_sigma(cov: LowerCovariance, pairs: list[tuple[Slot, Any]],
+                        slots: dict[int, Slot]) -> None:
+    """Record ``Slot.sigma_rel`` of the landmarks without a known id sighted (or
+    started) this step: their horizontal sigma conditional on the current pose
+    (:func:`conditional_sigma` on the 5x5 block of pose and landmark in ``cov``).
+
+    Args:
+        cov: the EKF's covariance, the pose ``(x, y, theta)`` in rows 0-2.
+        pairs: (slot, observation) pairs of the step; observations with a
+            ``landmark_id`` (known ids) are skipped: they keep the absolute rule.
+        slots: the current slots (pairs whose landmark has gone are skipped).
+
+    The pose of that sighting leaves the state at the next step, but later updates
+    can only shrink the landmark's uncertainty given it: the value is an upper bound.
+    """
+    p_pose = None
+    for sl, o in pairs:
+        if o.landmark_id is not None or sl.id not in slots:
+            continue
+        if p_pose is None:
+            p_pose = cov.block(0, 3, 0, 3)
+        a = sl.offset
+        sl.sigma_rel = conditional_sigma(p_pose, cov.block(a, a + 2, 0, 3),
+                                         cov.block(a, a + 2, a, a + 2))
+
+
 def prune_reason(s: Slot, step: int, cfg: AssociationConfig,
                  position_cov: Callable[[Slot], FloatArray]) -> str:
     """Why landmark ``s`` should go at ``step``, or "" to keep it.
