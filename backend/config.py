@@ -90,6 +90,14 @@ class AssociationConfig:
             position sigma above ``prune_sigma``, is removed (default 30).
         prune_sigma: largest acceptable horizontal position sigma of a settled
             landmark, m (default 1.0).
+        prune_relative: the EKF judges a landmark without a known id by its own
+            uncertainty: the horizontal sigma of its position conditional on the
+            pose that last saw it (from the joint covariance of pose and landmark
+            at that sighting), not its absolute sigma, which also holds the robot's
+            uncertainty (default True; False: the absolute sigma, the rule before
+            issue #15). On a log stating odometry noise far too large the robot's
+            sigma grows to metres and the absolute rule pruned most landmarks
+            (docs/ekf-lamps.md). Landmarks with a known id keep the absolute rule.
         lamp_min_separation: the smoothers start no new lamp where a mapped lamp
             is predicted within this distance in normalised ceiling coordinates
             (default 0.1, about 25 cm on a 2.5 m ceiling; lamps do not overlap), see
@@ -205,6 +213,7 @@ class AssociationConfig:
     prune_once_seen: bool = False
     prune_after_steps: int = field(default=30, metadata=limits(ge=0))
     prune_sigma: float = field(default=1.0, metadata=limits(gt=0.0))
+    prune_relative: bool = True
     lamp_min_separation: float = field(default=0.1, metadata=limits(ge=0.0))
     max_corner_updates: int | None = field(default=10, metadata=limits(ge=0))
     gate_noise_scale: float = field(default=1.0, metadata=limits(gt=0.0, le=1.0))

@@ -54,6 +54,7 @@ from lampsam.backend.ekf_landmarks import (
     free_id,
     grown_state,
     max_sigma_2x2,
+    note_relative_sigma,
     prune_round,
     remove_landmarks,
 )
@@ -538,6 +539,8 @@ class EkfSlam(SlamBackend):
                     n_new += lid is not None
                     if lid is not None:
                         pairs.append((self._slots[lid], obs[a.obs_index]))
+                if self.config.association.prune_relative:  # what the pruning judges
+                    note_relative_sigma(self._cov, pairs, self._slots)
                 if self.config.association.planar_merge_every:
                     self.covis.add_frame(s.id for s, _ in pairs)
                 self.planar_sightings.extend((self._step, o.z, o.R, sl.id) for sl, o in pairs

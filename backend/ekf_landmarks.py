@@ -42,6 +42,8 @@ class Slot:
     patch: Any = None
     sigma_meas: float = 0.0  # largest horizontal sigma one sighting gives (planar points), m
     first: FloatArray | None = None  # state at initialisation (first-estimates Jacobians)
+    # horizontal sigma conditional on the pose of the last sighting, m (NaN: not tracked)
+    sigma_rel: float = math.nan
 
 
 def max_sigma_2x2(cov: FloatArray) -> float:
@@ -51,22 +53,74 @@ def max_sigma_2x2(cov: FloatArray) -> float:
     return math.sqrt(max(lam, 0.0))
 
 
+def conditional_sigma(p_pose: FloatArray, p_lp: FloatArray, p_ll: FloatArray) -> float:
+    """Largest horizontal sigma of a landmark given the robot's pose, m.
+
+    Args:
+        p_pose: (3, 3) covariance of the pose ``(x, y, theta)`` (m, rad).
+        p_lp: (2, 3) cross-covariance of the landmark's ``(x, y)`` (world frame, m)
+            and the pose.
+        p_ll: (2, 2) covariance of the landmark's ``(x, y)``, m^2.
+
+    Returns:
+        The largest standard deviation of ``p_ll - p_lp p_pose^-1 p_lp^T`` (the Schur
+        complement: the landmark's uncertainty were the pose known), m; the
+        absolute sigma if ``p_pose`` is singular.
+    """
+    try:
+        cond = p_ll - p_lp @ np.linalg.solve(p_pose, p_lp.T)
+    except np.linalg.LinAlgError:
+        cond = p_ll
+    return max_sigma_2x2(cond)
+
+
+def note_relative_sigma(cov: LowerCovariance, pairs: list[tuple[Slot, Any]],
+                        slots: dict[int, Slot]) -> None:
+    """Record ``Slot.sigma_rel`` of the landmarks without a known id sighted (or
+    started) this step: their horizontal sigma conditional on the current pose
+    (:func:`conditional_sigma` on the 5x5 block of pose and landmark in ``cov``).
+
+    Args:
+        cov: the EKF's covariance, the pose ``(x, y, theta)`` in rows 0-2.
+        pairs: (slot, observation) pairs of the step; observations with a
+            ``landmark_id`` (known ids) are skipped: they keep the absolute rule.
+        slots: the current slots (pairs whose landmark has gone are skipped).
+
+    The pose of that sighting leaves the state at the next step, but later updates
+    can only shrink the landmark's uncertainty given it: the value is an upper bound.
+    """
+    p_pose = None
+    for sl, o in pairs:
+        if o.landmark_id is not None or sl.id not in slots:
+            continue
+        if p_pose is None:
+            p_pose = cov.block(0, 3, 0, 3)
+        a = sl.offset
+        sl.sigma_rel = conditional_sigma(p_pose, cov.block(a, a + 2, 0, 3),
+                                         cov.block(a, a + 2, a, a + 2))
+
+
 def prune_reason(s: Slot, step: int, cfg: AssociationConfig,
                  position_cov: Callable[[Slot], FloatArray]) -> str:
     """Why landmark ``s`` should go at ``step``, or "" to keep it.
 
     ``"seen_too_few"``: fewer than ``min_observations`` sightings and idle for more
     than ``prune_after_steps``; ``"uncertain"``: older and idle for more than
-    ``prune_after_steps`` with a horizontal sigma (of ``position_cov(s)``, the (2, 2)
-    block of ``P``) above ``prune_sigma`` and above :data:`PRUNE_MEAS_SIGMAS` times the
-    sigma of one sighting.
+    ``prune_after_steps`` with a horizontal sigma above ``prune_sigma`` and above
+    :data:`PRUNE_MEAS_SIGMAS` times the sigma of one sighting. The sigma is the
+    landmark's own, conditional on the pose of its last sighting (``s.sigma_rel``),
+    when ``cfg.prune_relative`` and it is tracked; else the absolute one (of
+    ``position_cov(s)``, the (2, 2) block of ``P``), which also holds the robot's
+    uncertainty.
     """
     idle = step - s.last_seen
     if s.n_obs < cfg.min_observations and idle > cfg.prune_after_steps:
         return "seen_too_few"
     if step - s.created > cfg.prune_after_steps and idle > cfg.prune_after_steps:
         limit = max(cfg.prune_sigma, PRUNE_MEAS_SIGMAS * s.sigma_meas)
-        return "uncertain" if max_sigma_2x2(position_cov(s)) > limit else ""
+        rel = cfg.prune_relative and not math.isnan(s.sigma_rel)
+        sigma = s.sigma_rel if rel else max_sigma_2x2(position_cov(s))
+        return "uncertain" if sigma > limit else ""
     return ""
 
 
