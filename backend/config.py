@@ -142,7 +142,12 @@ class AssociationConfig:
             (:mod:`lampsam.backend.held_sightings`; the result's ``extra`` counts
             ``n_held`` and ``n_held_given_back``). Default False (docs/failures.md:
             worse on Victoria Park's first 3,500 poses, 0.58 against 0.44 m, and
-            alone it diverges the held-out loop log, 9.4 against 0.20 m).
+            alone it diverges the held-out loop log, 9.4 against 0.20 m). Still off
+            with the final solve (docs/noids-offline.md, "Which online settings
+            should be the defaults"): with ``revisit_check`` the final answer is
+            worse on the held-out loop (0.22 against 0.20 m) and, with ``cov_scale``
+            16 as Victoria Park needs, the loop's run fails; for a log like Victoria
+            Park set both and ``[pose2_odometry] cov_scale = 16``.
         planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
             quantile of this probability (0, default: the new-landmark threshold,
             ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).
@@ -186,7 +191,8 @@ class AssociationConfig:
             prediction by one unambiguous rigid motion
             (:mod:`lampsam.backend.revisit_merge`) and merge each matched copy with
             its old landmark (default False: alone it diverges the held-out loop
-            log, 12.2 against 0.20 m; docs/failures.md).
+            log, 12.2 against 0.20 m; docs/failures.md; with ``planar_unique``, still
+            off after the final solve: ``planar_unique`` above).
         revisit_tol, revisit_min_inliers: its inlier distance in m (default 0.75)
             and inliers needed (default 4).
         revisit_tie_sigma: the merge's tie (``BetweenFactorPoint2``) sigma per

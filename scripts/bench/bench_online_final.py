@@ -4,6 +4,7 @@ Usage::
 
     python scripts/bench/bench_online_final.py [--logs vp1k,city,synthetic,mrclam,victoria]
         [--backends isam2,ekf] [--set SECTION.KEY=VALUE ...] [--label NAME]
+        [--variants defaults,both,both16]
 
 For each log: GTSAM's LM on the file's graph with its ids (the reference, as
 ``bench_landmark_logs.py``: GTSAM's iSAM2 one update per pose, then LM), lampsam's
@@ -18,9 +19,20 @@ failures (iSAM2 recoveries that dropped measurements) and process CPU s of each 
 The file ids are read only to score. CPU figures are process time on a shared machine.
 
 Logs: those of ``bench_noids_scale.load_log`` (``victoria``, ``synthetic``, ``mrclam``,
-``city``, ``vp1k``) and ``synth2``: a second synthetic log, never used before this bench
+``city``, ``vp1k`` and the held-out ``grid``, ``loop``, ``odo2x`` of
+:mod:`lampsam.datasets.landmark_log_heldout`, written by its ``write_held_out``) and
+``synth2``: a second synthetic log, never used before this bench
 (:mod:`lampsam.datasets.landmark_log_sim`, seed 1, 3,000 poses, 800 trees in 200 m,
-odometry noise twice the default in sigma).
+odometry noise twice the default in sigma). The simulated logs (``synthetic``,
+``synth2`` and the held-out three) also print the RMS from their truth in the run's
+label.
+
+``--variants`` runs several settings of :data:`VARIANTS` in one invocation (the
+reference runs once per log; each variant's overrides are applied after ``--set``):
+``defaults``; ``both`` = ``[association] planar_unique`` and ``revisit_check`` on;
+``both16`` = ``both`` and ``[pose2_odometry] cov_scale = 16``. The last column says
+"yes" when the final solve (or, if it did not run, the online answer) is more than
+:data:`DIVERGED_M` from GTSAM's LM.
 """
 
 from __future__ import annotations
@@ -43,10 +55,19 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
 from lampsam.backend.online_final import final_solve, online_association
 from lampsam.backend.reassociate import Sightings
-from lampsam.datasets.graph_text import GraphLog, read_graph_text
+from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 
 _HERE = Path(__file__).resolve().parent
+#: A run whose RMS from GTSAM's LM exceeds this (m) counts as diverged.
+DIVERGED_M = 5.0
+#: Named settings for ``--variants`` (``SECTION.KEY=VALUE`` overrides).
+VARIANTS: dict[str, list[str]] = {
+    "defaults": [],
+    "both": ["association.planar_unique=true", "association.revisit_check=true"],
+    "both16": ["association.planar_unique=true", "association.revisit_check=true",
+               "pose2_odometry.cov_scale=16"],
+}
 
 
 def _module(name: str) -> ModuleType:
@@ -74,6 +95,20 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
 
 
+def load_truth(g: GraphLog, name: str, out: Path) -> np.ndarray | None:
+    """(n, 3) true poses of a simulated log (written beside it), else None."""
+    stem = {"synthetic": "synthetic", "synth2": "synth2"}.get(name, f"heldout_{name}")
+    tpath = out / f"{stem}_truth.txt"
+    if name not in ("synthetic", "synth2", "grid", "loop", "odo2x") or not tpath.exists():
+        return None
+    v = read_vertices(tpath)
+    return np.array([v[i] for i in g.pose_ids])
+
+
+def _vs_truth(poses: np.ndarray, truth: np.ndarray | None) -> str:
+    return "" if truth is None else f"; {_rms(poses, truth):.3f} from truth"
+
+
 def main() -> None:
     """Parse arguments, run every log and backend, print one table."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -82,6 +117,9 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--label", default="", help="a name for the setting, printed in each row")
     ap.add_argument("--out", default="/tmp/bench_online_final")
+    ap.add_argument("--variants", default="",
+                    help=f"comma-separated named settings ({', '.join(VARIANTS)}), each run "
+                         "after the --set overrides; empty: --set alone")
     ap.add_argument("--diagnose", action="store_true",
                     help="also the known-id batch on the sightings the online run recorded "
                          "(what the held and dropped sightings cost, apart from the association)")
@@ -89,15 +127,19 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     bench = _module("bench_landmark_logs")
     scale = _module("bench_noids_scale")
-    config = bench.with_overrides(SlamConfig(), args.set)
-    label = args.label or (" ".join(args.set) if args.set else "defaults")
+    base_label = args.label or (" ".join(args.set) if args.set else "defaults")
+    variants = args.variants.split(",") if args.variants else [""]
+    for v in variants:
+        if v and v not in VARIANTS:
+            raise SystemExit(f"--variants: unknown {v!r} (known: {', '.join(VARIANTS)})")
     print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
-    print(f"setting: {label}")
+    print(f"setting: {base_label}; variants: {args.variants or '-'}")
     print("| log | run | RMS vs LM [m] | landmarks 2+ / trees 2+ | dup | wrong / sightings | C "
-          "| failures | CPU [s] |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| failures | CPU [s] | diverged |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs.split(","):
         g = load_log(scale, name, Path(args.out))
+        truth = load_truth(g, name, Path(args.out))
         n = len(g.pose_ids)
         graph = bench.gtsam_graph(g, SlamConfig())
         est = bench.gtsam_isam2(g, SlamConfig())[0]
@@ -111,52 +153,73 @@ def main() -> None:
         trees = Counter(twins.get(x.landmark, x.landmark) for ss in g.sightings for x in ss)
         n_trees2 = sum(1 for v in trees.values() if v >= 2)
         n_sight = sum(len(ss) for ss in g.sightings)
-        print(f"| {name} | known-id batch (file noise) | {_rms(known.poses, lm):.3f} | "
-              f"{len(known.landmarks)} / {n_trees2} | | | | | {c_known:.1f} |", flush=True)
-        for b in args.backends.split(","):
-            c0 = time.process_time()
-            online, be = run_graph_log_backend(g, b, config, known_ids=False)
-            c_on = time.process_time() - c0
-            fails = int(online.extra.get("n_recoveries", 0))
-            assert be is not None
-            s = online_association(be, online)
-            s0 = Sightings(s.k.copy(), s.z, s.r, s.lid.copy())
-            fid = scale.tree_ids(g, s0, twins)
-            mapped, dup, wrong = scale.score(s0, fid)
-            ties = len(getattr(be, "revisit_ties", []))
-            print(f"| {name} | {b} online ({label}; {ties} revisit ties, "
-                  f"{int(online.extra.get('n_held_unused', 0))} held unused) | "
-                  f"{_rms(online.poses, lm):.3f} | "
-                  f"{mapped} / {n_trees2} | {dup} | {wrong} / {len(s.k)} of {n_sight} | | "
-                  f"{fails} | {c_on:.1f} |", flush=True)
-            if online.status != "ok":
-                print(f"| {name} | {b}: {online.status[:60]} | | | | | | | |")
-                continue
-            c1 = time.process_time()
-            run = final_solve(g, config, online, s)
-            c_fin = time.process_time() - c1
-            fid_run = fid if len(run.sightings.k) == len(s0.k) else scale.tree_ids(
-                g, run.sightings, twins)  # readmit_dropped took some back
-            mapped, dup, wrong = scale.score(run.sightings, fid_run)
-            moves = Counter(m.kind for m in run.moves)
-            print(f"| {name} | {b} + final solve ({len(run.passes)} passes, "
-                  f"{dict(moves)}) | **{_rms(run.poses, lm):.3f}** | {mapped} / {n_trees2} | "
-                  f"{dup} | {wrong} / {len(run.sightings.k)} | {run.cost:.1f} | | "
-                  f"+{c_fin:.1f} |", flush=True)
-            if args.diagnose:
-                rec = {(int(k), round(float(z[1]), 9)) for k, z in zip(s0.k, s0.z, strict=True)}
-                kept = [[x for x in ss if (kk, round(x.range, 9)) in rec]
-                        for kk, ss in enumerate(g.sightings)]
-                kr = run_graph_log(dataclasses.replace(g, sightings=kept), "batch", SlamConfig())
-                print(f"| {name} | known ids, the {len(s0.k)} recorded sightings only | "
-                      f"{_rms(kr.poses, lm):.3f} | {len(kr.landmarks)} / {n_trees2} | | | | | |",
-                      flush=True)
-            cfg_known = dataclasses.replace(SlamConfig(), pose2_odometry=config.pose2_odometry)
-            if cfg_known.pose2_odometry.cov_scale != 1.0:
-                kn = run_graph_log(g, b, cfg_known)
-                print(f"| {name} | {b} known ids, cov_scale "
-                      f"{cfg_known.pose2_odometry.cov_scale:g} | {_rms(kn.poses, lm):.3f} | "
-                      f"{len(kn.landmarks)} / {n_trees2} | | | | | |", flush=True)
+        print(f"| {name} | known-id batch (file noise{_vs_truth(known.poses, truth)}) | "
+              f"{_rms(known.poses, lm):.3f} | "
+              f"{len(known.landmarks)} / {n_trees2} | | | | | {c_known:.1f} | |", flush=True)
+        for v in variants:
+            config = bench.with_overrides(SlamConfig(), args.set + VARIANTS.get(v, []))
+            label = f"{v}: {base_label}" if v and args.set else (v or base_label)
+            run_variant(g, name, config, label, args, bench, scale, lm, truth, twins, n_trees2,
+                        n_sight)
+
+
+def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
+                args: argparse.Namespace, bench: ModuleType, scale: ModuleType,
+                lm: np.ndarray, truth: np.ndarray | None, twins: dict[int, int],
+                n_trees2: int, n_sight: int) -> None:
+    """One setting on one log: the online run and its final solve per backend, printed."""
+    for b in args.backends.split(","):
+        c0 = time.process_time()
+        online, be = run_graph_log_backend(g, b, config, known_ids=False)
+        c_on = time.process_time() - c0
+        fails = int(online.extra.get("n_recoveries", 0))
+        assert be is not None
+        if online.status != "ok":  # a run stopped mid-log: no final solve (the CLI's rule)
+            n_ok = min(len(online.poses), len(lm))
+            r_on = _rms(online.poses[:n_ok], lm[:n_ok]) if n_ok else float("nan")
+            print(f"| {name} | {b} online ({label}): {online.status[:80]} | {r_on:.3f} "
+                  f"(its {n_ok} poses) | {len(online.landmarks)} / {n_trees2} | | | | "
+                  f"{fails} | {c_on:.1f} | yes (failed) |", flush=True)
+            continue
+        s = online_association(be, online)
+        s0 = Sightings(s.k.copy(), s.z, s.r, s.lid.copy())
+        fid = scale.tree_ids(g, s0, twins)
+        mapped, dup, wrong = scale.score(s0, fid)
+        ties = len(getattr(be, "revisit_ties", []))
+        r_on = _rms(online.poses, lm)
+        print(f"| {name} | {b} online ({label}; {ties} revisit ties, "
+              f"{int(online.extra.get('n_held_unused', 0))} held unused"
+              f"{_vs_truth(online.poses, truth)}) | {r_on:.3f} | "
+              f"{mapped} / {n_trees2} | {dup} | {wrong} / {len(s.k)} of {n_sight} | | "
+              f"{fails} | {c_on:.1f} | |", flush=True)
+        c1 = time.process_time()
+        run = final_solve(g, config, online, s)
+        c_fin = time.process_time() - c1
+        fid_run = fid if len(run.sightings.k) == len(s0.k) else scale.tree_ids(
+            g, run.sightings, twins)  # readmit_dropped took some back
+        mapped, dup, wrong = scale.score(run.sightings, fid_run)
+        moves = Counter(m.kind for m in run.moves)
+        r_fin = _rms(run.poses, lm)
+        div = "yes" if not (np.isfinite(r_fin) and r_fin <= DIVERGED_M) else ""
+        print(f"| {name} | {b} + final solve ({label}; {len(run.passes)} passes, "
+              f"{dict(moves)}{_vs_truth(run.poses, truth)}) | **{r_fin:.3f}** | "
+              f"{mapped} / {n_trees2} | "
+              f"{dup} | {wrong} / {len(run.sightings.k)} | {run.cost:.1f} | | "
+              f"+{c_fin:.1f} | {div} |", flush=True)
+        if args.diagnose:
+            rec = {(int(k), round(float(z[1]), 9)) for k, z in zip(s0.k, s0.z, strict=True)}
+            kept = [[x for x in ss if (kk, round(x.range, 9)) in rec]
+                    for kk, ss in enumerate(g.sightings)]
+            kr = run_graph_log(dataclasses.replace(g, sightings=kept), "batch", SlamConfig())
+            print(f"| {name} | known ids, the {len(s0.k)} recorded sightings only | "
+                  f"{_rms(kr.poses, lm):.3f} | {len(kr.landmarks)} / {n_trees2} | | | | | | |",
+                  flush=True)
+        cfg_known = dataclasses.replace(SlamConfig(), pose2_odometry=config.pose2_odometry)
+        if cfg_known.pose2_odometry.cov_scale != 1.0:
+            kn = run_graph_log(g, b, cfg_known)
+            print(f"| {name} | {b} known ids, cov_scale "
+                  f"{cfg_known.pose2_odometry.cov_scale:g} | {_rms(kn.poses, lm):.3f} | "
+                  f"{len(kn.landmarks)} / {n_trees2} | | | | | | |", flush=True)
 
 
 if __name__ == "__main__":
