@@ -160,8 +160,13 @@ def run_online_final(g: GraphLog, backend: str, config: SlamConfig
     """
     t0, c0 = time.perf_counter(), time.process_time()
     online, be = run_graph_log_backend(g, backend, config, known_ids=False)
-    s = online_association(be, online) if be is not None else sightings_from([])
-    if online.status != "ok" or not len(s.k):
+    # a stopped or failed run's last keyframe may hold sightings past the steps it kept:
+    # its status is checked before its association is read
+    if online.status != "ok" or be is None:
+        online.extra["online_final"] = 0.0
+        return online, online
+    s = online_association(be, online)
+    if not len(s.k):
         online.extra["online_final"] = 0.0
         return online, online
     c1 = time.process_time()

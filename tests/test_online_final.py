@@ -205,3 +205,27 @@ def test_singletons_add_every_sighting_the_online_run_left_out(
     assert np.array_equal(s.lid[: len(s0.k)], s0.lid)
     new = s.lid[len(s0.k):]
     assert len(set(new.tolist())) == extra and new.min() > s0.lid.max()
+
+
+def test_an_online_run_that_stopped_mid_log_is_written_as_it_is(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An online run that failed or was stopped mid-log (status not ok; its last keyframe's
+    sightings point past the keyframes it kept) is the answer as it is, ``online_final`` 0:
+    was an IndexError in reading its association (found on the held-out loop log)."""
+    import lampsam.backend.online_final as of
+
+    real = of.run_graph_log_backend
+
+    def stopped(*args: object, **kwargs: object):  # type: ignore[no-untyped-def]
+        result, be = real(*args, **kwargs)  # type: ignore[arg-type]
+        keep = np.flatnonzero(result.keyframes)[-5]  # the last few keyframes lost
+        kf = result.keyframes.copy()
+        kf[keep:] = False
+        return dataclasses.replace(result, status="failed", keyframes=kf), be
+
+    monkeypatch.setattr(of, "run_graph_log_backend", stopped)
+    g = read_graph_text(write_landmark_log(tmp_path / "log.txt", dataclasses.replace(
+        SPEC, n_poses=60), np.random.default_rng(3))[0])
+    final, online = of.run_online_final(g, "isam2", SlamConfig())
+    assert final is online and online.status == "failed"
+    assert online.extra["online_final"] == 0.0
