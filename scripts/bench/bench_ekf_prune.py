@@ -20,38 +20,26 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import logging
 import statistics
-import sys
 import time
 from collections import Counter
 from pathlib import Path
 
 import gtsam
 import numpy as np
+from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log
 from lampsam.datasets.graph_text import GraphLog, read_graph_text
-
-_HERE = Path(__file__).resolve().parent
-
-
-def _module(name: str):  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location(name, _HERE / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def load(name: str, out: Path) -> GraphLog:
     """A named log (module doc)."""
     if name == "example":
         return read_graph_text(Path(gtsam.findExampleDataFile("example.graph")))
-    return _module("bench_noids_scale").load_log(name, out)  # type: ignore[no-any-return]
+    return sibling("bench_noids_scale").load_log(name, out)  # type: ignore[no-any-return]
 
 
 def main() -> None:
@@ -63,7 +51,7 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    base = _module("bench_landmark_logs").with_overrides(SlamConfig(), args.set)
+    base = sibling("bench_landmark_logs").with_overrides(SlamConfig(), args.set)
     print("| log | rule | mapped / true | pruned | RMS vs known-id batch [m] | CPU s (median) | ratio |")
     print("|---|---|---|---|---|---|---|")
     for name in args.logs.split(","):

@@ -21,22 +21,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import logging
 import math
 import os
-import sys
 import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log
 from lampsam.datasets.graph_text import GraphLog, read_vertices
 
-_HERE = Path(__file__).resolve().parent
 #: A run whose position RMS from the known-id run exceeds this (m) counts as diverged.
 DIVERGED_M = 5.0
 VARIANTS = {
@@ -46,14 +44,6 @@ VARIANTS = {
     "both": {"planar_unique": True, "revisit_check": True},
 }
 
-
-def _sibling(name: str):  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location(name, _HERE / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def load(name: str, out: Path, scale_mod, bench) -> tuple[GraphLog, float, np.ndarray | None]:  # type: ignore[no-untyped-def]
@@ -86,8 +76,8 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/bench_noids_defaults")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    bench = _sibling("bench_landmark_logs")
-    scale_mod = _sibling("bench_noids_scale")
+    bench = sibling("bench_landmark_logs")
+    scale_mod = sibling("bench_noids_scale")
     out = Path(args.out)
     print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     print("| log | variant | RMS vs known id [m] | RMS vs truth [m] | landmarks 2+ / ids 2+ | "

@@ -39,10 +39,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import logging
 import os
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -50,6 +48,7 @@ from types import ModuleType
 
 import gtsam
 import numpy as np
+from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
@@ -58,7 +57,6 @@ from lampsam.backend.reassociate import Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 
-_HERE = Path(__file__).resolve().parent
 #: A run whose RMS from GTSAM's LM exceeds this (m) counts as diverged.
 DIVERGED_M = 5.0
 #: Named settings for ``--variants`` (``SECTION.KEY=VALUE`` overrides).
@@ -69,14 +67,6 @@ VARIANTS: dict[str, list[str]] = {
                "pose2_odometry.cov_scale=16"],
 }
 
-
-def _module(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(name, _HERE / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def load_log(scale: ModuleType, name: str, out: Path) -> GraphLog:
@@ -125,8 +115,8 @@ def main() -> None:
                          "(what the held and dropped sightings cost, apart from the association)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    bench = _module("bench_landmark_logs")
-    scale = _module("bench_noids_scale")
+    bench = sibling("bench_landmark_logs")
+    scale = sibling("bench_noids_scale")
     base_label = args.label or (" ".join(args.set) if args.set else "defaults")
     variants = args.variants.split(",") if args.variants else [""]
     for v in variants:

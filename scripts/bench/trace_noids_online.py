@@ -46,11 +46,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import logging
 import math
 import os
-import sys
 import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
@@ -58,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 import lampsam.backend.graph as graph_mod
 from lampsam.backend.config import SlamConfig
@@ -65,18 +64,9 @@ from lampsam.backend.graph_log import graph_log_steps, run_graph_log
 from lampsam.backend.slam import drive, make_backend
 from lampsam.datasets.graph_text import GraphLog
 
-_HERE = Path(__file__).resolve().parent
 #: Two file ids whose known-id landmarks are closer than this (m) are one place ("twins").
 TWIN_M = 1.5
 
-
-def _sibling(name: str):  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location(name, _HERE / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @dataclass
@@ -443,8 +433,8 @@ def main() -> None:
                     help="steps to record per keyframe (and trace the revisit check in)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    bench = _sibling("bench_landmark_logs")
-    scale = _sibling("bench_noids_scale")
+    bench = sibling("bench_landmark_logs")
+    scale = sibling("bench_noids_scale")
     config = bench.with_overrides(SlamConfig(), args.set)
     print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     for name in args.logs.split(","):
