@@ -117,9 +117,28 @@ def load_photo(path: str | Path, size: tuple[int, int] | None) -> ImageU8:
     read = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if read is None:
         raise LampsamError(f"{path}: cannot read the image (missing or not an image)")
+    if jpeg_cut_short(Path(path)):
+        log.warning("%s: the JPEG is cut short (no end-of-image marker): its lower part is "
+                    "decoded grey and its lamps there are missed", path)
     if size is not None:
         read = cv2.resize(read, size, interpolation=cv2.INTER_AREA)
     return np.asarray(read, dtype=np.uint8)
+
+
+def jpeg_cut_short(path: Path) -> bool:
+    """True when ``path`` is a JPEG (starts with SOI ``FF D8``) whose last bytes, trailing
+    zeros and whitespace aside, are not the EOI marker ``FF D9``: a truncated file, which
+    OpenCV decodes with the missing rows grey and only a message on stderr."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(2)
+            fh.seek(0, 2)
+            size = fh.tell()
+            fh.seek(max(size - 64, 0))
+            tail = fh.read()
+    except OSError:
+        return False
+    return head == b"\xff\xd8" and not tail.rstrip(b"\x00 \r\n\t").endswith(b"\xff\xd9")
 
 
 def photo_camera(width: int, height: int) -> CameraModel:

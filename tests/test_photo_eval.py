@@ -235,3 +235,25 @@ def test_label_fitting_key_is_checked(tmp_path: Path) -> None:
         read_labels(bad)
     fits = [r.fitting for r in read_labels(LABELS)["560_db_photo.jpg"].regions if r.kind == "lamp"]
     assert fits.count(1) == 2  # the two-module fitting of 560, labelled as modules
+
+
+def test_a_jpeg_cut_short_is_decoded_with_a_warning(tmp_path: Path,
+                                                     caplog: pytest.LogCaptureFixture) -> None:
+    """A truncated JPEG decodes with its lower rows grey (OpenCV only writes to stderr): the
+    photo loader says so; an intact JPEG gives no warning."""
+    from lampsam.evaluation.gallery import jpeg_cut_short, load_photo
+
+    rng = np.random.default_rng(7)
+    img = np.clip(rng.normal(128, 40, (120, 160)), 0, 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    whole, cut = tmp_path / "whole.jpg", tmp_path / "cut.jpg"
+    whole.write_bytes(buf.tobytes())
+    cut.write_bytes(buf.tobytes()[: len(buf) // 2])
+    assert not jpeg_cut_short(whole) and jpeg_cut_short(cut)
+    with caplog.at_level("WARNING"):
+        assert load_photo(whole, None).shape == (120, 160)
+        assert not caplog.records
+        assert load_photo(cut, None).shape == (120, 160)
+    assert any("cut short" in r.getMessage() and "cut.jpg" in r.getMessage()
+               for r in caplog.records)
