@@ -27,7 +27,7 @@ from lampsam.factors.ceiling import HeightPrior
 
 
 @functools.lru_cache(maxsize=64)
-def _chi2_quantile(prob: float, dof: int) -> float:
+def chi2_quantile(prob: float, dof: int) -> float:
     """The ``prob`` quantile of the chi-square distribution with ``dof`` degrees of freedom."""
     return float(chdtri(dof, 1.0 - prob))
 
@@ -257,18 +257,18 @@ class AssociationConfig:
 
     def gate(self, dof: int) -> float:
         """Mahalanobis gate ``d`` of paper eq. 20 for a ``dof``-dimensional innovation."""
-        return _chi2_quantile(self.gate_prob, dof)
+        return chi2_quantile(self.gate_prob, dof)
 
     def unique_threshold(self, dof: int) -> float:
         """Squared distance inside which a second landmark makes a sighting ambiguous
         (``planar_unique``)."""
         if self.planar_unique_prob > 0.0:
-            return _chi2_quantile(self.planar_unique_prob, dof)
+            return chi2_quantile(self.planar_unique_prob, dof)
         return self.new_threshold(dof)
 
     def new_threshold(self, dof: int) -> float:
         """Squared Mahalanobis distance beyond which an observation starts a new landmark."""
-        return _chi2_quantile(max(self.new_prob, self.gate_prob), dof)
+        return chi2_quantile(max(self.new_prob, self.gate_prob), dof)
 
 
 @dataclass(frozen=True)

@@ -30,9 +30,9 @@ from collections.abc import Mapping
 
 import numpy as np
 from gtsam.symbol_shorthand import L, X
-from scipy.special import chdtri
 
 from lampsam.backend.association import mahalanobis2
+from lampsam.backend.config import chi2_quantile
 from lampsam.backend.gating import Gating
 from lampsam.backend.models import Obs, init_point2, predict, residual
 from lampsam.backend.planar_gate import rival_material
@@ -95,7 +95,7 @@ class HeldSightings(Gating):
         if self.isam is None:
             return 0
         cfg = self.config.association
-        gate, unique_t = float(chdtri(2, 1.0 - GIVE_BACK_PROB)), cfg.unique_threshold(2)
+        gate, unique_t = chi2_quantile(GIVE_BACK_PROB, 2), cfg.unique_threshold(2)
         given: set[int] = set()
         trace = getattr(self, "_trace_revisit", False)  # (trace_noids_online.py --held)
         for kk, o in self._held:

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.config import chi2_quantile
 
 if TYPE_CHECKING:
     from lampsam.backend.localize_config import LocalizeConfig
@@ -143,11 +144,6 @@ def pick_release(stat: FloatArray, tested: np.ndarray, threshold: float,
     return int(np.argmax(np.where(fail, stat, -np.inf))), n_fail, False
 
 
-def chi2_quantile_2dof(prob: float) -> float:
-    """The chi-square quantile with 2 dof: ``-2 ln(1 - prob)`` (0.99: 9.21, 0.999: 13.82)."""
-    return -2.0 * float(np.log1p(-float(prob)))
-
-
 def release_cov(sigma: float) -> FloatArray:
     """(3, 3) covariance added to a released landmark's ``x, y, z``, m^2."""
     return float(sigma) ** 2 * np.eye(3)
@@ -176,7 +172,7 @@ class ReleaseTracker:
         #: frames with the landmark predicted inside :data:`UNSEEN_RADIUS` of the view
         self.view = {k: np.zeros(len(v[0]), int) for k, v in kinds.items()}
         self.released = {k: np.zeros(len(v[0]), bool) for k, v in kinds.items()}
-        self.threshold = chi2_quantile_2dof(loc.release_prob)
+        self.threshold = chi2_quantile(loc.release_prob, 2)
         self.releases: list[Released] = []
         self.blocked = 0
         self.lamps_unmatched = 0
@@ -258,4 +254,4 @@ class ReleaseTracker:
                 if view[j] >= UNSEEN_MIN_FRAMES and seen[j] < UNSEEN_MAX_RATIO * view[j]]
 
 
-__all__ = ["ReleaseTracker", "UNSEEN_MAX_RATIO", "UNSEEN_MIN_FRAMES", "UNSEEN_RADIUS", "MIN_TESTED", "VAR_FLOOR", "Released", "chi2_quantile_2dof", "pick_release", "release_cov", "release_statistic"]
+__all__ = ["ReleaseTracker", "UNSEEN_MAX_RATIO", "UNSEEN_MIN_FRAMES", "UNSEEN_RADIUS", "MIN_TESTED", "VAR_FLOOR", "Released", "pick_release", "release_cov", "release_statistic"]

@@ -71,6 +71,7 @@ from lampsam.backend.reassociate import (
 )
 from lampsam.backend.slam import drive, make_backend
 from lampsam.datasets.graph_text import GraphLog
+from lampsam.factors.geometry import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -282,7 +283,7 @@ def dropped_sightings(g: GraphLog, s: Sightings) -> tuple[IntArray, FloatArray, 
         rec = by_k.get(k, [])
         for x in seen:
             z = np.array([x.bearing, x.range])
-            if any(abs(float(np.angle(np.exp(1j * (z[0] - q[0]))))) < 1e-9
+            if any(abs(wrap_angle(float(z[0] - q[0]))) < 1e-9
                    and abs(z[1] - q[1]) < 1e-9 for q in rec):
                 continue
             ks.append(k)
@@ -323,7 +324,7 @@ def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
         if c2 < run.cost:
             s, graph, values = s2, g2, v2
     graph, values, moves = refine_final(
-        prior, odo, s, graph, values, config.association.new_threshold(2),
+        prior, odo, s, graph, values, c_new,
         config.reassociation.merge_radius, config.association.gate(2),
         config.reassociation.final_rounds)
     if not moves and len(s.k) == len(run.sightings.k):

@@ -14,11 +14,10 @@ import pytest
 
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_map_io import CeilingMap, MapLandmark
-from lampsam.backend.config import SlamConfig
+from lampsam.backend.config import SlamConfig, chi2_quantile
 from lampsam.backend.localize_only import LocalizeConfig, MapLocalizer
 from lampsam.backend.map_release import (
     MIN_TESTED,
-    chi2_quantile_2dof,
     pick_release,
     release_statistic,
 )
@@ -58,8 +57,8 @@ def test_statistic_is_chi_square_when_the_map_is_right(rng: np.random.Generator)
     delta = np.einsum("nij,nj->ni", np.linalg.cholesky(c), rng.normal(size=(n, 2)))
     stat = release_statistic(delta, prior, post)
     assert abs(float(np.mean(stat)) - 2.0) < 0.1
-    assert float(np.mean(stat > chi2_quantile_2dof(0.999))) < 0.003
-    assert chi2_quantile_2dof(0.99) == pytest.approx(9.2103, abs=1e-4)
+    assert float(np.mean(stat > chi2_quantile(0.999, 2))) < 0.003
+    assert chi2_quantile(0.99, 2) == pytest.approx(9.2103, abs=1e-4)
     # with the run's evidence k times over-confident: drawn from K (D + k E) K^T
     k = 8.0
     d_inv = np.linalg.inv(prior)
