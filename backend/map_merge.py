@@ -388,9 +388,9 @@ def merge_all(maps: list[CeilingMap], config: JointMergeConfig | None = None
     depend on the order of ``maps`` (but for its ``source`` list).
 
     Returns:
-        The merged map and counts: ``maps``, ``fused`` (groups of two or more), ``alone``,
-        ``split`` (landmarks of groups dropped for holding two of one map), and
-        ``similarity``: per map ``[dx m, dy m, dtheta rad, ds]``.
+        The merged map and counts: ``maps``, ``fused`` (groups of two or more), ``alone``
+        (landmarks in one map only, including those of a group split for holding two of
+        one map), and ``similarity``: per map ``[dx m, dy m, dtheta rad, ds]``.
 
     Raises:
         InputError: no maps, or maps made with different cameras.
@@ -481,6 +481,6 @@ def merge_all(maps: list[CeilingMap], config: JointMergeConfig | None = None
         "similarity": [[float(v) for v in row] for row in a]}
     source: dict[str, Any] = {"merged": [dict(m.source) for m in maps],
                               "merge": "joint similarity (backend/map_merge.py merge_all)",
-                              **{k: v for k, v in counts.items()}}
+                              **counts}
     frame = MapFrame(center, 0.5 * (s_g + s_g.T), gains)
     return CeilingMap(out, maps[0].rig, source, frame=frame), counts
