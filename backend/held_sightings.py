@@ -120,7 +120,7 @@ class HeldSightings(Gating):
             if trace:
                 self._trace_held(k, kk, o, "given", scored)
             lm = self._landmarks[best[2]]
-            if getattr(self, "_trace_revisit", False):  # (trace_noids_online.py)
+            if trace:  # (trace_noids_online.py)
                 self.__dict__.setdefault("_give_back_log", []).append(
                     (k, kk, lm.id, best[0], sorted(scored)[1][0] if len(scored) > 1 else math.inf))
             self._add_planar_sighting(lm, kk, o)

@@ -258,26 +258,26 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                            poses=np.array([verts[i] for i in glog.pose_ids]))
     known = not args.gate_only
     offline = not known and args.backend in ("ekf", "batch") and config.reassociation.passes > 0
-    final = (not known and not offline and config.reassociation.online_final
-             and glog.n_landmarks > 0)
-    online = None
+    try_final = (not known and not offline and config.reassociation.online_final
+                 and glog.n_landmarks > 0)
+    online = None  # the online run, when a final solve of its association is the result
     if offline:  # the EKF's no-ids pass at each [reassociation] scales, re-associated in batch
         from lampsam.backend.noids_offline import run_offline
 
         result = run_offline(glog, config)
-    elif final:  # the online run's association re-solved in batch at the stated noise
+    elif try_final:  # the online run's association re-solved in batch at the stated noise
         from lampsam.backend.online_final import run_online_final
 
-        result, online = run_online_final(glog, args.backend, config)
-        final = result is not online
+        result, ran = run_online_final(glog, args.backend, config)
+        online = None if ran is result else ran
     else:
         result = run_graph_log(glog, args.backend, config, known_ids=known)
     write_trajectory(out / "trajectory.tum", result)
     write_landmarks(out / "landmarks.csv", result)
-    if final and online is not None:
+    if online is not None:
         write_trajectory(out / "online.tum", online)
     s = summary(result, truth)
-    if final and online is not None:
+    if online is not None:
         s["trajectory"] = {
             "trajectory.tum": "the final solve: the online run's association re-solved in "
                               "batch at the log's stated noise ([reassociation] online_final)",
@@ -303,7 +303,7 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         msg += (f"; no ids offline: EKF pass with odometry variance x{s['noids_scale']:g} (chosen "
                 f"of {', '.join(f'{q:g}' for q in config.reassociation.scales)}), "
                 f"{int(s['reassociation_passes'])} batch re-association passes")
-    if final and online is not None:
+    if online is not None:
         msg += (f"; final solve of the online {args.backend} run's association at the stated "
                 f"noise ({int(s['reassociation_passes'])} re-association passes, "
                 f"{int(s['noids_merges'])} merges, {int(s['noids_splits'])} splits, "
