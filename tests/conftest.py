@@ -1,5 +1,6 @@
-"""Shared fixtures: seeded generators, the shared real-data folder, and the environment
-for running this checkout's ``lampsam`` in a subprocess."""
+"""Shared fixtures: seeded generators, the shared real-data folder, simulated runs made
+once per session, and the environment for running this checkout's ``lampsam`` in a
+subprocess."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,49 @@ def require_shared(name: str) -> Path:
     if path is None:
         pytest.skip(f"shared dataset {name!r} not found (set LAMPSAM_DATA or place ../shared/data)")
     return path
+
+
+SimRun = Callable[..., Path]
+"""``sim_run(world="lab", *, seed, duration)``: the folder of a simulated run (see
+:func:`sim_run`)."""
+
+
+def _fingerprint(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file and folder below ``folder``: relative path -> (size, mtime in ns)."""
+    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in folder.rglob("*")}
+
+
+@pytest.fixture(scope="session")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimRun]:
+    """Factory of simulated runs (``lampsam.simulate_world``, in-process), each made once
+    per test session (once per xdist worker) and shared by every test that asks for the
+    same ``(world, seed, duration)``.
+
+    The runs are read-only: a test that writes into one (an output file, a corrupted
+    copy) must copy it first. Checked when the session ends: any file added, removed or
+    rewritten below a shared run fails the last test's teardown, naming the run.
+
+    Returns:
+        ``make(world="lab", *, seed, duration) -> Path`` (``duration`` in seconds of
+        the world's path; the run's folder, holding ``rig.yaml``, ``images/`` ...).
+    """
+    from lampsam.datasets.simulator import simulate_world
+
+    made: dict[tuple[str, int, float], tuple[Path, dict[str, tuple[int, int]]]] = {}
+
+    def make(world: str = "lab", *, seed: int, duration: float) -> Path:
+        key = (world, seed, float(duration))
+        if key not in made:
+            name = f"sim_{world}_seed{seed}_{duration:g}s".replace(".", "_")
+            out = simulate_world(world, tmp_path_factory.mktemp(name) / "run", seed=seed,
+                                 duration=duration, workers=1)
+            made[key] = (out, _fingerprint(out))
+        return made[key][0]
+
+    yield make
+    changed = [str(out) for out, before in made.values() if _fingerprint(out) != before]
+    assert not changed, f"a test wrote into a shared simulated run (read-only): {changed}"
 
 
 #: the folder that holds this checkout's ``lampsam/`` (a development checkout is importable

@@ -22,20 +22,17 @@ from lampsam.backend.slam import drive, iter_steps, make_backend, start_pose_of
 from lampsam.backend.tracking import run_decoupled
 from lampsam.config_loader import ConfigError
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.datasets.simulator import simulate_world
 from lampsam.frontend.pipeline import iter_run
 from lampsam.interrupt import EXIT_INTERRUPTED
-from tests.conftest import start_lampsam, wait_for_line
+from tests.conftest import SimRun, start_lampsam, wait_for_line
 
 Steps = list[tuple[float, np.ndarray, Frame | None]]
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+def lab_run(sim_run: SimRun) -> LoggedRun:
     """4 s of the simulated lab (61 frames, 31 keyframes), seed 2."""
-    out = tmp_path_factory.mktemp("catchup") / "lab"
-    simulate_world("lab", out, seed=2, duration=4.0, workers=1)
-    return read_run(out)
+    return read_run(sim_run(seed=2, duration=4.0))
 
 
 @pytest.fixture(scope="module")
@@ -120,12 +117,11 @@ def test_config_rejects_catch_up_below_one() -> None:
 
 
 
-def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str],
-                        out: Path) -> subprocess.Popen[str]:
+def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str], out: Path,
+                        sim_run: SimRun) -> subprocess.Popen[str]:
     """``lampsam slam`` on 16 s of ``lab`` (seed 1), decoupled, the worker catching up
     8 keyframes per update and the tracker never waiting (``--max-lag -1``)."""
-    run = tmp_path / "lab"
-    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
+    run = sim_run(seed=1, duration=16.0)
     cfg = tmp_path / "cu.toml"
     cfg.write_text("[online]\ncatch_up = 8\n")
     return start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
@@ -149,7 +145,7 @@ def _interrupted_summary(proc: subprocess.Popen[str], lines: list[str],
     assert 0 < summary["steps"] < 241
     return summary
 
-def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
+def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str], sim_run: SimRun) -> None:
     """SIGTERM to ``lampsam slam --online decoupled`` while the worker catches up
     (``catch_up = 8``, the tracker never waiting): exit 3, no traceback, the steps the
     worker finished written (deferred keyframes updated first), finite, status
@@ -157,7 +153,7 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     tracker sent its last step (a fast machine): the worker still stops after the step
     it is on rather than working through its backlog."""
     out = tmp_path / "out"
-    proc = _start_catch_up_run(tmp_path, cli_env, out)
+    proc = _start_catch_up_run(tmp_path, cli_env, out, sim_run)
     # the worker has finished steps (a signal before its first would leave 0 on a loaded machine)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     proc.send_signal(signal.SIGTERM)
@@ -168,8 +164,8 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
 
 
-def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
-                                                        cli_env: dict[str, str]) -> None:
+def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path, cli_env: dict[str, str],
+                                                        sim_run: SimRun) -> None:
     """A stop while the mapping worker lags far behind the tracker (the inbox's pipe
     full of steps it will never read; a heavily loaded machine) still ends the process:
     exit 3 with the finished steps written, not a hang at exit waiting for the queue's
@@ -178,7 +174,7 @@ def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
     at exit in ``Queue._finalize_join`` (py-spy) on each try. The sleep only makes the
     hang likely: the test cannot fail on a correct build however slow the machine."""
     out = tmp_path / "out"
-    proc = _start_catch_up_run(tmp_path, cli_env, out)
+    proc = _start_catch_up_run(tmp_path, cli_env, out, sim_run)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
                               text=True, check=False).stdout.split()

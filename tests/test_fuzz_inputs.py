@@ -20,19 +20,18 @@ import pytest
 import yaml
 
 from lampsam.cli import main
-from lampsam.datasets.simulator import simulate_world
 from lampsam.datasets.world import WORLDS_DIR
+from tests.conftest import SimRun
 
 RUN_FILES = ["rig.yaml", "odometry.csv", "groundtruth.tum", "landmarks.csv", "meta.yaml",
              "images.csv", "images/000003.png", "truth/projections.csv"]
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """1.2 s of the lab world (19 images), seed 3, rendered in-process."""
-    out = tmp_path_factory.mktemp("fuzz") / "run"
-    simulate_world("lab", out, seed=3, duration=1.2, workers=1)
-    return out
+def tiny_run(sim_run: SimRun) -> Path:
+    """1.2 s of the lab world (19 images), seed 3, rendered in-process (read-only: the
+    corruptions are made on a copy)."""
+    return sim_run(seed=3, duration=1.2)
 
 
 # --------------------------------------------------------------------------- corruptions

@@ -17,26 +17,21 @@ import pytest
 
 from lampsam.backend.interface import SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.slam import drive
-from lampsam.datasets.simulator import simulate_world
 from lampsam.interrupt import EXIT_INTERRUPTED, clear_stop, interruptible, request_stop
-from tests.conftest import start_lampsam, wait_for_line
+from tests.conftest import SimRun, start_lampsam, wait_for_line
 
 
 @pytest.fixture(scope="module")
-def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def run6(sim_run: SimRun) -> Path:
     """6 s of the lab world (91 images), seed 1."""
-    out = tmp_path_factory.mktemp("signals") / "run"
-    simulate_world("lab", out, seed=1, duration=6.0, workers=1)
-    return out
+    return sim_run(seed=1, duration=6.0)
 
 
 @pytest.fixture(scope="module")
-def run15(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def run15(sim_run: SimRun) -> Path:
     """15 s of the lab world (226 images), seed 1: long enough that a signal sent when the
     first step is done lands mid-run on a fast machine (the smoothers read keyframes only)."""
-    out = tmp_path_factory.mktemp("signals15") / "run"
-    simulate_world("lab", out, seed=1, duration=15.0, workers=1)
-    return out
+    return sim_run(seed=1, duration=15.0)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
