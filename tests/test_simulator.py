@@ -215,7 +215,7 @@ def test_world_loader_errors_and_extra_sections(tmp_path: Path) -> None:
         world_from_dict(doc)
     doc = _world([])
     doc["ceiling"]["surfaces"][0]["colour"] = 3
-    with pytest.raises(DatasetError, match="unknown keys"):
+    with pytest.raises(DatasetError, match=r"ceiling\.surfaces\[0\]\.colour: unknown key"):
         world_from_dict(doc)
     with pytest.raises(DatasetError, match="built-in"):
         load_world("no_such_world")
