@@ -155,7 +155,8 @@ def array(data: Mapping[str, Any], key: str, shape: tuple[int, ...], where: str,
 
 
 def finite_array(value: object, shape: tuple[int, ...], key: str, *, fail: Fail) -> FloatArray:
-    """``value`` (nested lists of numbers, or a numeric array) as a float array of ``shape``.
+    """``value`` (nested lists of numbers, NumPy scalars among them, or a numeric array)
+    as a float array of ``shape``.
 
     Raises:
         what ``fail`` returns, for ``key``: ``must be 3x3 finite numbers, got ...`` for a
@@ -167,7 +168,7 @@ def finite_array(value: object, shape: tuple[int, ...], key: str, *, fail: Fail)
             return v.dtype.kind in "iuf"
         if isinstance(v, list | tuple):
             return all(numbers(x) for x in v)
-        return isinstance(v, int | float) and not isinstance(v, bool)
+        return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
 
     arr = np.zeros(0)
     if numbers(value):

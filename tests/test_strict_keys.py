@@ -15,6 +15,7 @@ import yaml
 
 from lampsam.config_loader import ConfigError, from_mapping
 from lampsam.datasets.rgbd import camera_from_yaml
+from lampsam.datasets.scene3d import load_scene
 from lampsam.datasets.world import WORLDS_DIR, load_world
 from lampsam.errors import DatasetError
 from lampsam.strict_keys import MISSING, array, check_keys, finite_array, number
@@ -149,3 +150,20 @@ def test_valid_files_read_as_before(tmp_path: Path) -> None:
     cam = camera_from_yaml(_kinect_file(tmp_path, "cx", 31))
     assert (cam.width, cam.cx, cam.min_depth, cam.max_depth) == (64, 31.0, 0.3, 6.0)
     np.testing.assert_array_equal(cam.body_T_camera[:3, 3], [0.0, 0.0, 0.4])
+
+
+def test_scene3d_values_name_the_world_file_and_key(tmp_path: Path) -> None:
+    """The office world's 3-D scene with a bad end of its wall ``south`` and a bad
+    height: the file and the key's path inside it (walls are named by their id)."""
+    doc = yaml.safe_load((WORLDS_DIR / "office.yaml").read_text())
+    doc["scene3d"]["walls"][0]["end"] = [10.0, "north"]
+    path = tmp_path / "office.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(DatasetError, match=r"office\.yaml: scene3d\.walls\[south\]\.end: must be 2 finite "
+                                           r"numbers, got \[10\.0, 'north'\]$"):
+        load_scene(path)
+    doc["scene3d"]["walls"][0]["end"] = [10.0, 0.0]
+    doc["scene3d"]["height"] = math.inf
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(DatasetError, match=r"office\.yaml: scene3d\.height: must be finite, got inf$"):
+        load_scene(path)
