@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
-from lampsam.datasets.textio import read_text, read_yaml
+from lampsam.datasets.textio import data_lines, read_yaml
 from lampsam.datasets.tum import pose_from_tum_fields, read_tum_3d
 from lampsam.errors import DatasetError
 from lampsam.strict_keys import array, number
@@ -148,10 +148,7 @@ def _read_list(path: Path) -> tuple[list[float], list[Path]]:
         raise DatasetError("file list not found", path)
     times: list[float] = []
     files: list[Path] = []
-    for lineno, raw in enumerate(read_text(path).splitlines(), start=1):
-        text = raw.strip()
-        if not text or text.startswith("#"):
-            continue
+    for lineno, text in data_lines(path):
         parts = text.split()
         if len(parts) != 2:
             raise DatasetError(
@@ -292,11 +289,9 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
     if not pose_file.exists():
         raise DatasetError("pose.txt not found", pose_file)
     poses = []
-    for lineno, raw in enumerate(read_text(pose_file).splitlines(), start=1):
-        if not raw.strip() or raw.lstrip().startswith("#"):
-            continue
+    for lineno, text in data_lines(pose_file):
         try:
-            vals = [float(v) for v in raw.split()]
+            vals = [float(v) for v in text.split()]
         except ValueError as exc:
             raise DatasetError(f"bad number: {exc}", pose_file, lineno) from exc
         if len(vals) != 7 or not all(math.isfinite(v) for v in vals):

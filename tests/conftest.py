@@ -4,17 +4,20 @@ subprocess."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from lampsam.datasets.paths import shared_dataset
+from lampsam.interrupt import EXIT_INTERRUPTED
 
 
 @pytest.fixture
@@ -110,3 +113,37 @@ def wait_for_line(proc: subprocess.Popen[str], text: str, timeout: float = 120.0
             return lines
     proc.kill()
     raise AssertionError(f"{text!r} never printed: {''.join(lines)}")
+
+
+def interrupted_summary(proc: subprocess.Popen[str], out: Path, total_steps: int,
+                        lines: Sequence[str] = (), signal_name: str | None = None) -> dict[str, Any]:
+    """Wait (120 s at most: a hang at exit fails) for a ``lampsam slam`` stopped by a
+    signal and check what it left: exit 3 with no traceback (and ``SIGxxx received``
+    with ``signal_name``), ``summary.json`` status interrupted with some but not all of
+    the run's ``total_steps``, ``trajectory.tum`` one finite row per finished step,
+    ``landmarks.csv`` written, no temporary file left in ``out``.
+
+    Args:
+        lines: stderr lines already read from ``proc`` (:func:`wait_for_line`).
+
+    Returns:
+        The summary.
+    """
+    try:
+        _, rest = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("the process hung at exit after the signal") from None
+    rest = "".join(lines) + rest
+    assert proc.returncode == EXIT_INTERRUPTED, rest
+    assert "Traceback" not in rest
+    if signal_name is not None:
+        assert f"{signal_name} received" in rest, rest
+    summary: dict[str, Any] = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    assert 0 < summary["steps"] < total_steps
+    traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
+    assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
+    assert (out / "landmarks.csv").read_text().startswith("id,type")
+    assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
+    return summary

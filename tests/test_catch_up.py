@@ -3,13 +3,11 @@ keyframes while steps wait (lampsam.backend.tracking.CatchUp, GraphSlam.step(upd
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -23,8 +21,7 @@ from lampsam.backend.tracking import run_decoupled
 from lampsam.config_loader import ConfigError
 from lampsam.datasets.logrun import LoggedRun, read_run
 from lampsam.frontend.pipeline import iter_run
-from lampsam.interrupt import EXIT_INTERRUPTED
-from tests.conftest import SimRun, start_lampsam, wait_for_line
+from tests.conftest import SimRun, interrupted_summary, start_lampsam, wait_for_line
 
 Steps = list[tuple[float, np.ndarray, Frame | None]]
 
@@ -128,23 +125,6 @@ def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str], out: Path,
                          "--max-lag", "-1", "--config", str(cfg))
 
 
-def _interrupted_summary(proc: subprocess.Popen[str], lines: list[str],
-                         out: Path) -> dict[str, Any]:
-    """Wait (120 s at most: a hang at exit fails) for the stopped run; it exits 3 with no
-    traceback, status interrupted and some but not all of the 241 steps; its summary."""
-    try:
-        _, rest = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise AssertionError("the process hung at exit after SIGTERM") from None
-    rest = "".join(lines) + rest
-    assert proc.returncode == EXIT_INTERRUPTED, rest
-    assert "Traceback" not in rest
-    summary: dict[str, Any] = json.loads((out / "summary.json").read_text())  # JSON
-    assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 241
-    return summary
-
 def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str], sim_run: SimRun) -> None:
     """SIGTERM to ``lampsam slam --online decoupled`` while the worker catches up
     (``catch_up = 8``, the tracker never waiting): exit 3, no traceback, the steps the
@@ -157,11 +137,8 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str], sim_run: 
     # the worker has finished steps (a signal before its first would leave 0 on a loaded machine)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     proc.send_signal(signal.SIGTERM)
-    summary = _interrupted_summary(proc, lines, out)
-    traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
-    assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
+    summary = interrupted_summary(proc, out, 241, lines)
     assert summary["online_keyframes_per_update_max"] <= 8
-    assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
 
 
 def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path, cli_env: dict[str, str],
@@ -189,4 +166,4 @@ def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path, cli_env:
     finally:
         for pid in children:
             os.kill(int(pid), signal.SIGCONT)
-    _interrupted_summary(proc, lines, out)
+    interrupted_summary(proc, out, 241, lines)
