@@ -1,9 +1,10 @@
 """Strict checks of one YAML/TOML mapping's keys and values, with one set of messages.
 
 The dataclass loader (:func:`lampsam.config_loader.from_mapping`) and the readers that
-check a mapping by hand (a world file's sections, :mod:`lampsam.datasets.world`; an
-RGB-D camera's ``kinect.yaml``, :mod:`lampsam.datasets.rgbd`) use these checks, so the
-same mistake reads the same everywhere::
+check a mapping by hand (a world file's sections, :mod:`lampsam.datasets.world`, and
+its ``scene3d``, :mod:`lampsam.datasets.scene3d`; an RGB-D camera's ``kinect.yaml``,
+:mod:`lampsam.datasets.rgbd`) use these checks, so the same mistake reads the same
+everywhere::
 
     world.yaml: ceiling.lamps[0].brightnes: unknown key (did you mean 'brightness'?)
     world.yaml: ceiling.lamps[0].height: missing (required)
