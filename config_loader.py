@@ -22,14 +22,15 @@ that maps onto a dataclass (the rig, ...), goes through :func:`from_mapping`:
 Every message names the file and the dotted key, e.g.
 ``run.toml: isam2.keyframe_distance: must be >= 0, got -1.0``.
 
-This module sits beside :mod:`lampsam.errors` at the package root so that
+The key and number checks and their messages are :mod:`lampsam.strict_keys`'s,
+shared with the readers that check a YAML mapping by hand (world files, RGB-D camera
+files). This module sits beside :mod:`lampsam.errors` at the package root so that
 every stage (datasets to cli) may import it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import enum
 import math
 import re
@@ -45,6 +46,7 @@ import tomllib
 import yaml
 
 from lampsam.errors import InputError
+from lampsam.strict_keys import check_keys, check_number, join_key, kind
 
 T = TypeVar("T")
 
@@ -255,7 +257,7 @@ def read_table_file(path: str | Path) -> dict[str, Any]:
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError("", _toml_problem(exc, text), path) from exc
     if not isinstance(doc, dict):
-        raise ConfigError("", f"the top level must be a table, got {_kind(doc)}", path)
+        raise ConfigError("", f"the top level must be a table, got {kind(doc)}", path)
     return doc
 
 
@@ -304,31 +306,6 @@ def from_mapping(
         ConfigError: unknown key, wrong type, missing required key, out of range.
     """
     return _Converter(source).build(cls, data, key, base)
-
-
-def _join(path: str, name: str | int) -> str:
-    if isinstance(name, int):
-        return f"{path}[{name}]"
-    return f"{path}.{name}" if path else name
-
-
-def _kind(value: object) -> str:
-    """A value's type as a TOML/YAML user says it."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, int):
-        return "an integer"
-    if isinstance(value, float):
-        return "a float"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, Mapping):
-        return "a table"
-    if isinstance(value, list | tuple):
-        return "an array"
-    return type(value).__name__
 
 
 def _type_name(tp: object) -> str:
@@ -381,23 +358,13 @@ class _Converter:
 
     # ----------------------------------------------------------------- dataclasses
     def build(self, cls: type[T], data: object, path: str, base: T | None) -> T:
-        if not isinstance(data, Mapping):
-            raise self.fail(path, f"must be a table, got {_kind(data)}")
         fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+        data = check_keys(data, path, fields, fail=self.fail)
         hints = _hints(cls)
-        for name in data:
-            if not isinstance(name, str):
-                raise self.fail(_join(path, str(name)), "keys must be strings")
-            if name not in fields:
-                close = difflib.get_close_matches(name, list(fields), n=1)
-                hint = (f"did you mean {close[0]!r}?" if close
-                        else f"known keys: {', '.join(sorted(fields))}")
-                what = "table" if isinstance(data[name], Mapping) else "key"
-                raise self.fail(_join(path, name), f"unknown {what} ({hint})")
         kwargs: dict[str, object] = {}
         for name, value in data.items():
             f = fields[name]
-            key = _join(path, name)
+            key = join_key(path, name)
             current = getattr(base, name) if base is not None else _default_of(f)
             converted = self.convert(hints[name], value, key, current)
             bad = f.metadata.get(LIMITS_KEY, FINITE).problem(converted)
@@ -408,13 +375,13 @@ class _Converter:
             missing = [n for n, f in fields.items() if n not in kwargs
                        and _default_of(f) is dataclasses.MISSING]
             if missing:
-                raise self.fail(_join(path, missing[0]), "missing (required)")
+                raise self.fail(join_key(path, missing[0]), "missing (required)")
         try:
             if base is not None:
                 return dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
             return cls(**kwargs)
         except FieldValueError as exc:
-            raise self.fail(_join(path, exc.key), exc.problem) from exc
+            raise self.fail(join_key(path, exc.key), exc.problem) from exc
         except (ValueError, TypeError) as exc:
             raise self.fail(path, str(exc)) from exc
 
@@ -445,25 +412,19 @@ class _Converter:
         if tp is bool:
             if isinstance(value, bool):
                 return value
-            raise self.fail(key, f"must be true or false, got {_kind(value)} ({value!r})")
+            raise self.fail(key, f"must be true or false, got {kind(value)} ({value!r})")
         if tp is int:
-            if isinstance(value, int) and not isinstance(value, bool):
-                return value
-            raise self.fail(key, f"must be an integer, got {_kind(value)} ({value!r})")
-        if tp is float:
-            if isinstance(value, int | float) and not isinstance(value, bool):
-                if isinstance(value, float) and math.isnan(value):
-                    raise self.fail(key, "must be a number, got nan")
-                return float(value)
-            raise self.fail(key, f"must be a number, got {_kind(value)} ({value!r})")
+            return check_number(value, key, fail=self.fail, integer=True)
+        if tp is float:  # infinite where the field's limits allow it
+            return float(check_number(value, key, fail=self.fail, finite=False))
         if tp is str:
             if isinstance(value, str):
                 return value
-            raise self.fail(key, f"must be a string, got {_kind(value)} ({value!r})")
+            raise self.fail(key, f"must be a string, got {kind(value)} ({value!r})")
         if tp is Path or (isinstance(tp, type) and issubclass(tp, Path)):
             if isinstance(value, str | Path):
                 return Path(value)
-            raise self.fail(key, f"must be a path string, got {_kind(value)}")
+            raise self.fail(key, f"must be a path string, got {kind(value)}")
         if origin in (tuple, list) or tp in (tuple, list):
             return self._sequence(tp, origin or tp, args, value, key)
         if origin in (dict, Mapping) or tp is dict:
@@ -472,7 +433,7 @@ class _Converter:
             return self._array(value, key)
         if isinstance(tp, type) and isinstance(value, tp):
             return value
-        raise self.fail(key, f"must be {_type_name(tp)}, got {_kind(value)}")
+        raise self.fail(key, f"must be {_type_name(tp)}, got {kind(value)}")
 
     def _union(self, args: tuple[Any, ...], value: object, key: str, current: object) -> Any:
         options = [a for a in args if a is not type(None)]
@@ -494,21 +455,21 @@ class _Converter:
     def _sequence(self, tp: Any, origin: Any, args: tuple[Any, ...], value: object,
                   key: str) -> Any:
         if isinstance(value, str | bytes) or not isinstance(value, list | tuple):
-            raise self.fail(key, f"must be an array, got {_kind(value)} ({value!r})")
+            raise self.fail(key, f"must be an array, got {kind(value)} ({value!r})")
         if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
             if len(value) != len(args):
                 raise self.fail(key, f"must have {len(args)} elements, got {len(value)}")
-            return tuple(self.convert(a, v, _join(key, i), None)
+            return tuple(self.convert(a, v, join_key(key, i), None)
                          for i, (a, v) in enumerate(zip(args, value, strict=True)))
         item = args[0] if args else Any
-        items = [self.convert(item, v, _join(key, i), None) for i, v in enumerate(value)]
+        items = [self.convert(item, v, join_key(key, i), None) for i, v in enumerate(value)]
         return tuple(items) if origin is tuple else items
 
     def _mapping(self, args: tuple[Any, ...], value: object, key: str) -> dict[str, Any]:
         if not isinstance(value, Mapping):
-            raise self.fail(key, f"must be a table, got {_kind(value)}")
+            raise self.fail(key, f"must be a table, got {kind(value)}")
         vt = args[1] if len(args) == 2 else Any
-        return {str(k): self.convert(vt, v, _join(key, str(k)), None) for k, v in value.items()}
+        return {str(k): self.convert(vt, v, join_key(key, str(k)), None) for k, v in value.items()}
 
     def _array(self, value: object, key: str) -> np.ndarray:
         def numbers(v: object) -> bool:
@@ -524,7 +485,7 @@ class _Converter:
             except ValueError as exc:  # ragged
                 raise self.fail(key, f"must be a rectangular array of numbers: {exc}") from exc
         else:
-            raise self.fail(key, f"must be an array of numbers, got {_kind(value)}")
+            raise self.fail(key, f"must be an array of numbers, got {kind(value)}")
         if not np.all(np.isfinite(arr)):
             raise self.fail(key, "must be finite (no nan or inf)")
         return arr

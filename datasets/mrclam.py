@@ -38,7 +38,7 @@ from lampsam.datasets.logrun import (
     Trajectory,
     write_run,
 )
-from lampsam.datasets.textio import open_text
+from lampsam.datasets.textio import data_lines
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -94,25 +94,21 @@ def _read_table(path: Path, ncols: int, monotonic_col: int | None = 0) -> FloatA
     """
     rows: list[list[float]] = []
     last = -math.inf
-    with open_text(path) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            parts = text.split()
-            if len(parts) != ncols:
-                raise DatasetError(f"expected {ncols} columns, got {len(parts)}", path, lineno)
-            try:
-                vals = [float(p) for p in parts]
-            except ValueError as exc:
-                raise DatasetError(f"not a number: {text!r}", path, lineno) from exc
-            if not all(math.isfinite(v) for v in vals):
-                raise DatasetError(f"non-finite value: {text!r}", path, lineno)
-            if monotonic_col is not None:
-                if vals[monotonic_col] < last:
-                    raise DatasetError("time goes backwards", path, lineno)
-                last = vals[monotonic_col]
-            rows.append(vals)
+    for lineno, text in data_lines(path):
+        parts = text.split()
+        if len(parts) != ncols:
+            raise DatasetError(f"expected {ncols} columns, got {len(parts)}", path, lineno)
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError as exc:
+            raise DatasetError(f"not a number: {text!r}", path, lineno) from exc
+        if not all(math.isfinite(v) for v in vals):
+            raise DatasetError(f"non-finite value: {text!r}", path, lineno)
+        if monotonic_col is not None:
+            if vals[monotonic_col] < last:
+                raise DatasetError("time goes backwards", path, lineno)
+            last = vals[monotonic_col]
+        rows.append(vals)
     if not rows:
         raise DatasetError("no records", path)
     return np.asarray(rows, dtype=float)

@@ -26,15 +26,15 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray, ImageU8, ImageU16
-from lampsam.datasets.textio import read_text, read_yaml
+from lampsam.datasets.textio import data_lines, read_yaml
 from lampsam.datasets.tum import pose_from_tum_fields, read_tum_3d
 from lampsam.errors import DatasetError
+from lampsam.strict_keys import array, number
 
 log = logging.getLogger(__name__)
 
@@ -148,10 +148,7 @@ def _read_list(path: Path) -> tuple[list[float], list[Path]]:
         raise DatasetError("file list not found", path)
     times: list[float] = []
     files: list[Path] = []
-    for lineno, raw in enumerate(read_text(path).splitlines(), start=1):
-        text = raw.strip()
-        if not text or text.startswith("#"):
-            continue
+    for lineno, text in data_lines(path):
         parts = text.split()
         if len(parts) != 2:
             raise DatasetError(
@@ -172,35 +169,6 @@ def _read_list(path: Path) -> tuple[list[float], list[Path]]:
     return times, files
 
 
-def _camera_number(meta: dict[str, Any], key: str, path: Path, default: float | None = None,
-                   integer: bool = False) -> float:
-    """``meta[key]`` as a finite number (an integer with ``integer``), or DatasetError naming it."""
-    if key not in meta:
-        if default is None:
-            raise DatasetError(f"camera key {key} is missing", path)
-        return default
-    value = meta[key]
-    ok = isinstance(value, int) if integer else isinstance(value, (int, float))
-    if isinstance(value, bool) or not ok or not math.isfinite(value):
-        raise DatasetError(f"camera key {key}: must be {'an integer' if integer else 'a finite number'}"
-                           f", got {value!r}", path)
-    return value
-
-
-def _camera_array(meta: dict[str, Any], key: str, shape: tuple[int, ...], path: Path) -> FloatArray:
-    """``meta[key]`` as a finite float array of ``shape``, or DatasetError naming it."""
-    if key not in meta:
-        raise DatasetError(f"camera key {key} is missing", path)
-    try:
-        value = np.asarray(meta[key], dtype=float)
-    except (TypeError, ValueError):
-        value = np.zeros(0)
-    if value.shape != shape or not np.all(np.isfinite(value)):
-        raise DatasetError(f"camera key {key}: must be {'x'.join(map(str, shape))} finite numbers, "
-                           f"got {meta[key]!r}", path)
-    return value
-
-
 def camera_from_yaml(path: Path) -> RgbdCamera:
     """The camera of a lampsam ``kinect.yaml`` (written by ``kinect_sim``).
 
@@ -214,19 +182,26 @@ def camera_from_yaml(path: Path) -> RgbdCamera:
     if not isinstance(meta, dict):
         raise DatasetError("expected a mapping of camera keys (width, height, fx, ...), got "
                            + ("an empty file" if meta is None else type(meta).__name__), path)
+
+    def fail(key: str, problem: str) -> DatasetError:
+        return DatasetError(f"camera key {key}: {problem}", path)
+
+    def num(key: str, default: float | None = None, integer: bool = False) -> float:
+        return number(meta, key, "", fail=fail, default=default, integer=integer)
+
     T = np.eye(4)
-    T[:3, :3] = _camera_array(meta, "body_R_camera", (3, 3), path)
-    T[:3, 3] = _camera_array(meta, "body_t_camera", (3,), path)
+    T[:3, :3] = array(meta, "body_R_camera", (3, 3), "", fail=fail)
+    T[:3, 3] = array(meta, "body_t_camera", (3,), "", fail=fail)
     return RgbdCamera(
-        width=int(_camera_number(meta, "width", path, integer=True)),
-        height=int(_camera_number(meta, "height", path, integer=True)),
-        fx=float(_camera_number(meta, "fx", path)),
-        fy=float(_camera_number(meta, "fy", path)),
-        cx=float(_camera_number(meta, "cx", path)),
-        cy=float(_camera_number(meta, "cy", path)),
-        depth_scale=float(_camera_number(meta, "depth_scale", path)),
-        min_depth=float(_camera_number(meta, "min_depth", path, default=0.3)),
-        max_depth=float(_camera_number(meta, "max_depth", path, default=6.0)),
+        width=int(num("width", integer=True)),
+        height=int(num("height", integer=True)),
+        fx=num("fx"),
+        fy=num("fy"),
+        cx=num("cx"),
+        cy=num("cy"),
+        depth_scale=num("depth_scale"),
+        min_depth=num("min_depth", default=0.3),
+        max_depth=num("max_depth", default=6.0),
         body_T_camera=T,
     )
 
@@ -314,11 +289,9 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
     if not pose_file.exists():
         raise DatasetError("pose.txt not found", pose_file)
     poses = []
-    for lineno, raw in enumerate(read_text(pose_file).splitlines(), start=1):
-        if not raw.strip() or raw.lstrip().startswith("#"):
-            continue
+    for lineno, text in data_lines(pose_file):
         try:
-            vals = [float(v) for v in raw.split()]
+            vals = [float(v) for v in text.split()]
         except ValueError as exc:
             raise DatasetError(f"bad number: {exc}", pose_file, lineno) from exc
         if len(vals) != 7 or not all(math.isfinite(v) for v in vals):

@@ -50,6 +50,7 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.errors import DatasetError
+from lampsam.strict_keys import finite_array, number
 
 log = logging.getLogger(__name__)
 
@@ -182,30 +183,22 @@ class Scene3D:
 
 
 # ---------------------------------------------------------------------------- parsing
+def _fail(key: str, problem: str) -> DatasetError:
+    """``scene3d.key: problem``, the key's path in the world file (the file itself is
+    added by :func:`load_scene`)."""
+    return DatasetError(f"{key if key.startswith('scene3d') else 'scene3d.' + key}: {problem}")
+
+
 def _vec(value: Any, n: int, where: str) -> FloatArray:
-    """``value`` as ``n`` finite floats, or a DatasetError naming ``where``."""
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise DatasetError(f"scene3d: {where}: expected {n} numbers, got {value!r}") from exc
-    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise DatasetError(f"scene3d: {where}: expected {n} finite numbers, got {value!r}")
-    return arr
+    """``value`` as ``n`` finite floats, or a DatasetError naming ``where``
+    (:func:`lampsam.strict_keys.finite_array`)."""
+    return finite_array(value, (n,), where, fail=_fail)
 
 
 def _num(item: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
-    """``item[key]`` as a finite float (``default`` when absent and given)."""
-    if key not in item:
-        if default is None:
-            raise DatasetError(f"scene3d: {where}: missing '{key}'")
-        return float(default)
-    try:
-        value = float(item[key])
-    except (TypeError, ValueError) as exc:
-        raise DatasetError(f"scene3d: {where}: '{key}' is not a number: {item[key]!r}") from exc
-    if not math.isfinite(value):
-        raise DatasetError(f"scene3d: {where}: '{key}' is not finite")
-    return value
+    """``item[key]`` as a finite float (``default`` when absent and given;
+    :func:`lampsam.strict_keys.number`)."""
+    return number(item, key, where, fail=_fail, default=default)
 
 
 def _wall_boxes(

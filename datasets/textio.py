@@ -12,7 +12,7 @@ from __future__ import annotations
 import io
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -89,6 +89,17 @@ def open_text(path: Path) -> TextIO:
     return io.StringIO(read_text(path), newline=None)
 
 
+def data_lines(path: Path) -> Iterator[tuple[int, str]]:
+    """``(line number, text)`` of each line of a text file (:func:`open_text`) that is
+    not blank or a ``#`` comment; the text stripped of surrounding white space, the
+    number 1-based."""
+    with open_text(path) as fh:
+        for lineno, raw in enumerate(fh, start=1):
+            text = raw.strip()
+            if text and not text.startswith("#"):
+                yield lineno, text
+
+
 def parse_float(text: str, path: Path, line: int, column: str) -> float:
     """A finite float, or DatasetError naming file, line and column."""
     try:
@@ -127,30 +138,26 @@ def read_csv(
     """
     rows: list[list[Any]] = []
     lines: list[int] = []
-    with open_text(path) as fh:
-        header_seen = False
-        for lineno, raw in enumerate(fh, start=1):
-            text = raw.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = [f.strip() for f in text.split(",")]
-            if not header_seen:
-                if tuple(fields) != tuple(header):
-                    raise DatasetError(
-                        f"expected header {','.join(header)!r}, got {text!r}", path, lineno
-                    )
-                header_seen = True
-                continue
-            if len(fields) != len(header):
+    header_seen = False
+    for lineno, text in data_lines(path):
+        fields = [f.strip() for f in text.split(",")]
+        if not header_seen:
+            if tuple(fields) != tuple(header):
                 raise DatasetError(
-                    f"malformed line: expected {len(header)} fields, got {len(fields)}",
-                    path,
-                    lineno,
+                    f"expected header {','.join(header)!r}, got {text!r}", path, lineno
                 )
-            rows.append(
-                [p(f, path, lineno, c) for p, f, c in zip(parsers, fields, header, strict=True)]
+            header_seen = True
+            continue
+        if len(fields) != len(header):
+            raise DatasetError(
+                f"malformed line: expected {len(header)} fields, got {len(fields)}",
+                path,
+                lineno,
             )
-            lines.append(lineno)
+        rows.append(
+            [p(f, path, lineno, c) for p, f, c in zip(parsers, fields, header, strict=True)]
+        )
+        lines.append(lineno)
     if not header_seen:
         raise DatasetError(f"empty file (expected header {','.join(header)!r})", path)
     if not rows and not allow_empty:
@@ -299,17 +306,7 @@ def fast_columns(path: Path, header: Sequence[str], kinds: str) -> tuple[list[An
 
 def data_line_numbers(path: Path) -> list[int]:
     """1-based line numbers of a table's data lines (after the header; no blanks/comments)."""
-    out: list[int] = []
-    header_seen = False
-    with open_text(path) as fh:
-        for n, raw in enumerate(fh, start=1):
-            line = raw.strip()
-            if not line or line.startswith("#"):
-                continue
-            if header_seen:
-                out.append(n)
-            header_seen = True
-    return out
+    return [n for n, _ in data_lines(path)][1:]
 
 
 def columns(

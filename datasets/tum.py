@@ -25,7 +25,7 @@ import numpy as np
 from lampsam.angles import wrap_angle
 from lampsam.arrays import FloatArray
 from lampsam.datasets.tables import Trajectory
-from lampsam.datasets.textio import check_coordinates, check_time, open_text, parse_float
+from lampsam.datasets.textio import check_coordinates, check_time, data_lines, parse_float
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
 
@@ -62,23 +62,19 @@ def read_tum_rows(path: str | Path) -> TumRows:
     path = Path(path)
     rows: list[list[float]] = []
     lines: list[int] = []
-    with open_text(path) as fh:
-        for lineno, raw in enumerate(fh, start=1):
-            text = raw.strip()
-            if not text or text.startswith("#"):
-                continue
-            fields = text.split()
-            if len(fields) != 8:
-                raise DatasetError(
-                    f"malformed line: expected 8 fields 't x y z qx qy qz qw', got {len(fields)}",
-                    path,
-                    lineno,
-                )
-            vals = [parse_float(f, path, lineno, c) for f, c in zip(fields, TUM_FIELDS, strict=True)]
-            if sum(v * v for v in vals[4:]) < 1e-12:
-                raise DatasetError("zero quaternion", path, lineno)
-            rows.append(vals)
-            lines.append(lineno)
+    for lineno, text in data_lines(path):
+        fields = text.split()
+        if len(fields) != 8:
+            raise DatasetError(
+                f"malformed line: expected 8 fields 't x y z qx qy qz qw', got {len(fields)}",
+                path,
+                lineno,
+            )
+        vals = [parse_float(f, path, lineno, c) for f, c in zip(fields, TUM_FIELDS, strict=True)]
+        if sum(v * v for v in vals[4:]) < 1e-12:
+            raise DatasetError("zero quaternion", path, lineno)
+        rows.append(vals)
+        lines.append(lineno)
     if not rows:
         raise DatasetError("no poses (empty trajectory)", path)
     a = np.array(rows, dtype=np.float64)

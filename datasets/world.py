@@ -58,6 +58,7 @@ from lampsam.datasets.mounting import mounted
 from lampsam.datasets.openings import OPENING_KEYS, Opening, parse_opening
 from lampsam.datasets.textio import read_yaml as _read_yaml
 from lampsam.errors import DatasetError
+from lampsam.strict_keys import check_keys, finite_array, number
 
 log = logging.getLogger(__name__)
 
@@ -274,7 +275,8 @@ _KNOWN_TOP = {"name", "description", "rig", "render", "simulation", "path", "cei
 
 
 class _Ctx:
-    """Error context: the file and the key path being parsed."""
+    """Error context: the file being parsed; the strict checks of
+    :mod:`lampsam.strict_keys` with its messages (``key.path: problem``, the file named)."""
 
     def __init__(self, path: Path | None):
         """Remember the file for error messages."""
@@ -283,6 +285,20 @@ class _Ctx:
     def fail(self, where: str, msg: str) -> DatasetError:
         """A DatasetError ``where: msg`` naming the world file."""
         return DatasetError(f"{where}: {msg}", self.path)
+
+    def keys(self, d: Any, where: str, allowed: set[str], required: set[str]) -> None:
+        """DatasetError unless ``d`` is a mapping with the required and only allowed keys."""
+        check_keys(d, where, allowed, required, fail=self.fail)
+
+    def num(self, d: Mapping[str, Any], key: str, where: str, default: float | None = None,
+            **checks: bool) -> float:
+        """A finite number ``d[key]`` (or the default); ``checks``: ``positive``,
+        ``nonneg``, ``integer`` (:func:`lampsam.strict_keys.number`)."""
+        return number(d, key, where, fail=self.fail, default=default, **checks)
+
+    def vec(self, value: Any, n: int, where: str) -> tuple[float, ...]:
+        """A tuple of ``n`` finite numbers, or DatasetError naming ``where``."""
+        return tuple(float(x) for x in finite_array(value, (n,), where, fail=self.fail))
 
 
 def _with_mount(ctx: _Ctx, rig: Any) -> Any:
@@ -295,7 +311,7 @@ def _with_mount(ctx: _Ctx, rig: Any) -> Any:
     cam = dict(rig["camera"])
     if "mount_rpy_deg" not in cam:
         return rig
-    rpy = _vec(ctx, cam.pop("mount_rpy_deg"), 3, "rig.camera.mount_rpy_deg")
+    rpy = ctx.vec(cam.pop("mount_rpy_deg"), 3, "rig.camera.mount_rpy_deg")
     up = cam.get("body_R_camera", DEFAULT_BODY_R_CAMERA)
     try:
         cam["body_R_camera"] = mounted(np.asarray(up, dtype=np.float64).reshape(3, 3), rpy).tolist()
@@ -304,89 +320,46 @@ def _with_mount(ctx: _Ctx, rig: Any) -> Any:
     return {**rig, "camera": cam}
 
 
-def _check_keys(ctx: _Ctx, d: Any, where: str, allowed: set[str], required: set[str]) -> None:
-    """DatasetError unless ``d`` is a mapping with the required and only allowed keys."""
-    if not isinstance(d, Mapping):
-        raise ctx.fail(where, "must be a mapping")
-    unknown = set(d) - allowed
-    if unknown:
-        raise ctx.fail(where, f"unknown keys {sorted(unknown)} (allowed: {sorted(allowed)})")
-    missing = required - set(d)
-    if missing:
-        raise ctx.fail(where, f"missing keys {sorted(missing)}")
-
-
-def _num(ctx: _Ctx, d: Mapping[str, Any], key: str, where: str, default: float | None = None,
-         positive: bool = False, nonneg: bool = False) -> float:  # fmt: skip
-    """A finite number ``d[key]`` (or the default), optionally positive/non-negative."""
-    if key not in d:
-        if default is None:
-            raise ctx.fail(where, f"missing {key!r}")
-        return float(default)
-    try:
-        v = float(d[key])
-    except (TypeError, ValueError) as exc:
-        raise ctx.fail(f"{where}.{key}", f"not a number: {d[key]!r}") from exc
-    if not math.isfinite(v):
-        raise ctx.fail(f"{where}.{key}", "must be finite")
-    if positive and v <= 0:
-        raise ctx.fail(f"{where}.{key}", f"must be > 0, got {v}")
-    if nonneg and v < 0:
-        raise ctx.fail(f"{where}.{key}", f"must be >= 0, got {v}")
-    return v
-
-
-def _vec(ctx: _Ctx, value: Any, n: int, where: str) -> tuple[float, ...]:
-    """A tuple of ``n`` finite numbers, or DatasetError naming ``where``."""
-    try:
-        arr = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise ctx.fail(where, f"expected {n} numbers, got {value!r}") from exc
-    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise ctx.fail(where, f"expected {n} finite numbers, got {value!r}")
-    return tuple(float(x) for x in arr)
-
-
 def _parse_item(ctx: _Ctx, d: Any, where: str) -> TextureItem:
     """One texture mark of a surface."""
-    _check_keys(ctx, d, where, {"kind", "center", "size", "radius", "yaw_deg", "grey", "corners"},
+    ctx.keys(d, where, {"kind", "center", "size", "radius", "yaw_deg", "grey", "corners"},
                 {"kind", "center"})  # fmt: skip
     kind = d["kind"]
-    center = _vec(ctx, d["center"], 2, f"{where}.center")
-    grey = _num(ctx, d, "grey", where, 50.0, nonneg=True)
+    center = ctx.vec(d["center"], 2, f"{where}.center")
+    grey = ctx.num(d, "grey", where, 50.0, nonneg=True)
     if kind == "rect":
-        size = _vec(ctx, d.get("size"), 2, f"{where}.size")
+        size = ctx.vec(d.get("size"), 2, f"{where}.size")
         if min(size) <= 0:
             raise ctx.fail(f"{where}.size", "must be > 0")
-        yaw = math.radians(_num(ctx, d, "yaw_deg", where, 0.0))
+        yaw = math.radians(ctx.num(d, "yaw_deg", where, 0.0))
         return TextureItem("rect", center, size, yaw, grey, bool(d.get("corners", False)))  # type: ignore[arg-type]
     if kind == "disc":
-        r = _num(ctx, d, "radius", where, positive=True)
+        r = ctx.num(d, "radius", where, positive=True)
         return TextureItem("disc", center, (2 * r, 2 * r), 0.0, grey, False)  # type: ignore[arg-type]
     raise ctx.fail(f"{where}.kind", f"must be 'rect' or 'disc', got {kind!r}")
 
 
 def _parse_surface(ctx: _Ctx, d: Any, where: str) -> Surface:
     """One ceiling surface (with its tile grid and marks)."""
-    _check_keys(ctx, d, where, {"name", "height", "extent", "grey", "tiles", "items", "corners"},
+    ctx.keys(d, where, {"name", "height", "extent", "grey", "tiles", "items", "corners"},
                 {"height", "extent"})  # fmt: skip
-    ext = _vec(ctx, d["extent"], 4, f"{where}.extent")
+    ext = ctx.vec(d["extent"], 4, f"{where}.extent")
     if not (ext[2] > ext[0] and ext[3] > ext[1]):
         raise ctx.fail(f"{where}.extent", "needs xmin < xmax and ymin < ymax")
     tiles = None
     if d.get("tiles") is not None:
         t = d["tiles"]
         tw = f"{where}.tiles"
-        _check_keys(ctx, t, tw, {"pitch", "origin", "line_width", "grey", "corners"}, {"pitch"})
+        ctx.keys(t, tw, {"pitch", "origin", "line_width", "grey", "corners"}, {"pitch"})
         pitch = t["pitch"]
-        pitch2 = _vec(ctx, [pitch, pitch] if np.isscalar(pitch) else pitch, 2, f"{tw}.pitch")
+        pitch2 = ctx.vec([pitch, pitch] if np.isscalar(pitch) else pitch, 2, f"{tw}.pitch")
         if min(pitch2) <= 0:
             raise ctx.fail(f"{tw}.pitch", "must be > 0")
         tiles = TileGrid(
             pitch=pitch2,  # type: ignore[arg-type]
-            origin=_vec(ctx, t.get("origin", [ext[0], ext[1]]), 2, f"{tw}.origin"),  # type: ignore[arg-type]
-            line_width=_num(ctx, t, "line_width", tw, 0.02, positive=True),
-            grey=_num(ctx, t, "grey", tw, 125.0, nonneg=True),
+            origin=ctx.vec(t.get("origin", [ext[0], ext[1]]), 2, f"{tw}.origin"),  # type: ignore[arg-type]
+            line_width=ctx.num(t, "line_width", tw, 0.02, positive=True),
+            grey=ctx.num(t, "grey", tw, 125.0, nonneg=True),
             corners=bool(t.get("corners", True)),
         )
     items = d.get("items") or []
@@ -394,9 +367,9 @@ def _parse_surface(ctx: _Ctx, d: Any, where: str) -> Surface:
         raise ctx.fail(f"{where}.items", "must be a list")
     return Surface(
         name=str(d.get("name", where)),
-        height=_num(ctx, d, "height", where, positive=True),
+        height=ctx.num(d, "height", where, positive=True),
         extent=ext,  # type: ignore[arg-type]
-        grey=_num(ctx, d, "grey", where, 175.0, nonneg=True),
+        grey=ctx.num(d, "grey", where, 175.0, nonneg=True),
         tiles=tiles,
         items=tuple(_parse_item(ctx, it, f"{where}.items[{k}]") for k, it in enumerate(items)),
         corners=bool(d.get("corners", False)),
@@ -407,25 +380,22 @@ def _parse_lamp(ctx: _Ctx, d: Any, where: str) -> Lamp:
     """One lamp; ``diameter`` (round) and ``size`` (square) set length = width."""
     allowed = {"id", "shape", "center", "height", "length", "width", "diameter", "size",
                "yaw_deg", "brightness"}  # fmt: skip
-    _check_keys(ctx, d, where, allowed, {"id", "shape", "center", "height"})
+    ctx.keys(d, where, allowed, {"id", "shape", "center", "height"})
     shape = d["shape"]
-    try:
-        lamp_id = int(d["id"])
-    except (TypeError, ValueError) as exc:
-        raise ctx.fail(f"{where}.id", f"not an integer: {d['id']!r}") from exc
-    center = _vec(ctx, d["center"], 2, f"{where}.center")
-    height = _num(ctx, d, "height", where, positive=True)
-    yaw = math.radians(_num(ctx, d, "yaw_deg", where, 0.0))
-    bright = _num(ctx, d, "brightness", where, 320.0, positive=True)
+    lamp_id = int(ctx.num(d, "id", where, integer=True))
+    center = ctx.vec(d["center"], 2, f"{where}.center")
+    height = ctx.num(d, "height", where, positive=True)
+    yaw = math.radians(ctx.num(d, "yaw_deg", where, 0.0))
+    bright = ctx.num(d, "brightness", where, 320.0, positive=True)
     if shape == "rect":
-        length = _num(ctx, d, "length", where, positive=True)
-        width = _num(ctx, d, "width", where, positive=True)
+        length = ctx.num(d, "length", where, positive=True)
+        width = ctx.num(d, "width", where, positive=True)
         if width > length:
             raise ctx.fail(where, "rect lamp: width must not exceed length")
     elif shape == "round":
-        length = width = _num(ctx, d, "diameter", where, positive=True)
+        length = width = ctx.num(d, "diameter", where, positive=True)
     elif shape == "square":
-        length = width = _num(ctx, d, "size", where, positive=True)
+        length = width = ctx.num(d, "size", where, positive=True)
     else:
         raise ctx.fail(f"{where}.shape", f"must be rect, round or square, got {shape!r}")
     return Lamp(lamp_id, shape, center, height, length, width, yaw, bright)  # type: ignore[arg-type]
@@ -442,27 +412,27 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         raise ctx.fail("world", "must be a mapping")
     rig = Rig.from_dict(_with_mount(ctx, doc.get("rig") or {}), source)
     rd = doc.get("render") or {}
-    _check_keys(ctx, rd, "render", {"supersample", "texel", "noise_sigma", "bloom", "bloom_sigma",
+    ctx.keys(rd, "render", {"supersample", "texel", "noise_sigma", "bloom", "bloom_sigma",
                                     "background"}, set())  # fmt: skip
     render = RenderSettings(
-        supersample=int(_num(ctx, rd, "supersample", "render", 2, positive=True)),
-        texel=_num(ctx, rd, "texel", "render", 0.005, positive=True),
-        noise_sigma=_num(ctx, rd, "noise_sigma", "render", 2.0, nonneg=True),
-        bloom=_num(ctx, rd, "bloom", "render", 0.0, nonneg=True),
-        bloom_sigma=_num(ctx, rd, "bloom_sigma", "render", 4.0, positive=True),
-        background=_num(ctx, rd, "background", "render", 60.0, nonneg=True),
+        supersample=int(ctx.num(rd, "supersample", "render", 2, positive=True, integer=True)),
+        texel=ctx.num(rd, "texel", "render", 0.005, positive=True),
+        noise_sigma=ctx.num(rd, "noise_sigma", "render", 2.0, nonneg=True),
+        bloom=ctx.num(rd, "bloom", "render", 0.0, nonneg=True),
+        bloom_sigma=ctx.num(rd, "bloom_sigma", "render", 4.0, positive=True),
+        background=ctx.num(rd, "background", "render", 60.0, nonneg=True),
     )
     sd = doc.get("simulation") or {}
-    _check_keys(ctx, sd, "simulation", {"odometry_rate_hz", "image_rate_hz"}, set())
+    ctx.keys(sd, "simulation", {"odometry_rate_hz", "image_rate_hz"}, set())
     sim = SimulationSettings(
-        odometry_rate_hz=_num(ctx, sd, "odometry_rate_hz", "simulation", 30.0, positive=True),
-        image_rate_hz=_num(ctx, sd, "image_rate_hz", "simulation", 15.0, positive=True),
+        odometry_rate_hz=ctx.num(sd, "odometry_rate_hz", "simulation", 30.0, positive=True),
+        image_rate_hz=ctx.num(sd, "image_rate_hz", "simulation", 15.0, positive=True),
     )
     ratio = sim.odometry_rate_hz / sim.image_rate_hz
     if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
         raise ctx.fail("simulation", "odometry_rate_hz must be a multiple of image_rate_hz")
     pd = doc.get("path") or {}
-    _check_keys(ctx, pd, "path", {"speed", "start_heading_deg", "waypoints"}, set())
+    ctx.keys(pd, "path", {"speed", "start_heading_deg", "waypoints"}, set())
     wps = pd.get("waypoints") or []
     try:
         waypoints = np.asarray(wps, dtype=np.float64).reshape(-1, 2)
@@ -470,9 +440,9 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         raise ctx.fail("path.waypoints", "must be a list of [x, y]") from exc
     if not np.all(np.isfinite(waypoints)):
         raise ctx.fail("path.waypoints", "must be finite")
-    start = pd.get("start_heading_deg")
+    start = None if pd.get("start_heading_deg") is None else ctx.num(pd, "start_heading_deg", "path")
     cd = doc.get("ceiling") or {}
-    _check_keys(ctx, cd, "ceiling", {"surfaces", "lamps", "corner_id_start", "openings"}, set())
+    ctx.keys(cd, "ceiling", {"surfaces", "lamps", "corner_id_start", "openings"}, set())
     surfaces = tuple(
         _parse_surface(ctx, s, f"ceiling.surfaces[{k}]")
         for k, s in enumerate(cd.get("surfaces") or [])
@@ -483,20 +453,20 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
     openings = []
     for k, od in enumerate(cd.get("openings") or []):
         where = f"ceiling.openings[{k}]"
-        _check_keys(ctx, od, where, OPENING_KEYS, {"kind", "center", "size", "height"})
+        ctx.keys(od, where, OPENING_KEYS, {"kind", "center", "size", "height"})
         openings.append(
             parse_opening(
                 od,
                 where,
-                lambda d, key, w, default=None, **kw: _num(ctx, d, key, w, default, **kw),
-                lambda value, n, w: _vec(ctx, value, n, w),
+                ctx.num,
+                ctx.vec,
                 ctx.fail,
             )
         )
     ids = [lp.id for lp in lamps]
     if len(set(ids)) != len(ids):
         raise ctx.fail("ceiling.lamps", "duplicate lamp ids")
-    corner_start = int(_num(ctx, cd, "corner_id_start", "ceiling", 1000))
+    corner_start = int(ctx.num(cd, "corner_id_start", "ceiling", 1000, integer=True))
     if ids and max(ids) >= corner_start:
         raise ctx.fail("ceiling.lamps", f"lamp ids must be below corner_id_start={corner_start}")
     z_cam = rig.camera.z_cam
@@ -513,7 +483,7 @@ def world_from_dict(doc: Any, source: Path | None = None) -> World:
         surfaces=surfaces,
         lamps=lamps,
         waypoints=waypoints,
-        speed=_num(ctx, pd, "speed", "path", 0.4, positive=True),
+        speed=ctx.num(pd, "speed", "path", 0.4, positive=True),
         start_heading=None if start is None else math.radians(float(start)),
         render=render,
         simulation=sim,

@@ -1,18 +1,23 @@
-"""Shared fixtures: seeded generators, the shared real-data folder, and the environment
-for running this checkout's ``lampsam`` in a subprocess."""
+"""Shared fixtures: seeded generators, the shared real-data folder, simulated runs made
+once per session, and the environment for running this checkout's ``lampsam`` in a
+subprocess."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from lampsam.datasets.paths import shared_dataset
+from lampsam.interrupt import EXIT_INTERRUPTED
 
 
 @pytest.fixture
@@ -27,6 +32,49 @@ def require_shared(name: str) -> Path:
     if path is None:
         pytest.skip(f"shared dataset {name!r} not found (set LAMPSAM_DATA or place ../shared/data)")
     return path
+
+
+SimRun = Callable[..., Path]
+"""``sim_run(world="lab", *, seed, duration)``: the folder of a simulated run (see
+:func:`sim_run`)."""
+
+
+def _fingerprint(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file and folder below ``folder``: relative path -> (size, mtime in ns)."""
+    return {str(p.relative_to(folder)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in folder.rglob("*")}
+
+
+@pytest.fixture(scope="session")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimRun]:
+    """Factory of simulated runs (``lampsam.simulate_world``, in-process), each made once
+    per test session (once per xdist worker) and shared by every test that asks for the
+    same ``(world, seed, duration)``.
+
+    The runs are read-only: a test that writes into one (an output file, a corrupted
+    copy) must copy it first. Checked when the session ends: any file added, removed or
+    rewritten below a shared run fails the last test's teardown, naming the run.
+
+    Returns:
+        ``make(world="lab", *, seed, duration) -> Path`` (``duration`` in seconds of
+        the world's path; the run's folder, holding ``rig.yaml``, ``images/`` ...).
+    """
+    from lampsam.datasets.simulator import simulate_world
+
+    made: dict[tuple[str, int, float], tuple[Path, dict[str, tuple[int, int]]]] = {}
+
+    def make(world: str = "lab", *, seed: int, duration: float) -> Path:
+        key = (world, seed, float(duration))
+        if key not in made:
+            name = f"sim_{world}_seed{seed}_{duration:g}s".replace(".", "_")
+            out = simulate_world(world, tmp_path_factory.mktemp(name) / "run", seed=seed,
+                                 duration=duration, workers=1)
+            made[key] = (out, _fingerprint(out))
+        return made[key][0]
+
+    yield make
+    changed = [str(out) for out, before in made.values() if _fingerprint(out) != before]
+    assert not changed, f"a test wrote into a shared simulated run (read-only): {changed}"
 
 
 #: the folder that holds this checkout's ``lampsam/`` (a development checkout is importable
@@ -65,3 +113,37 @@ def wait_for_line(proc: subprocess.Popen[str], text: str, timeout: float = 120.0
             return lines
     proc.kill()
     raise AssertionError(f"{text!r} never printed: {''.join(lines)}")
+
+
+def interrupted_summary(proc: subprocess.Popen[str], out: Path, total_steps: int,
+                        lines: Sequence[str] = (), signal_name: str | None = None) -> dict[str, Any]:
+    """Wait (120 s at most: a hang at exit fails) for a ``lampsam slam`` stopped by a
+    signal and check what it left: exit 3 with no traceback (and ``SIGxxx received``
+    with ``signal_name``), ``summary.json`` status interrupted with some but not all of
+    the run's ``total_steps``, ``trajectory.tum`` one finite row per finished step,
+    ``landmarks.csv`` written, no temporary file left in ``out``.
+
+    Args:
+        lines: stderr lines already read from ``proc`` (:func:`wait_for_line`).
+
+    Returns:
+        The summary.
+    """
+    try:
+        _, rest = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError("the process hung at exit after the signal") from None
+    rest = "".join(lines) + rest
+    assert proc.returncode == EXIT_INTERRUPTED, rest
+    assert "Traceback" not in rest
+    if signal_name is not None:
+        assert f"{signal_name} received" in rest, rest
+    summary: dict[str, Any] = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    assert 0 < summary["steps"] < total_steps
+    traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
+    assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
+    assert (out / "landmarks.csv").read_text().startswith("id,type")
+    assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
+    return summary

@@ -41,6 +41,7 @@ from lampsam.datasets.motion import follow_waypoints, noisy_wheel_travel
 from lampsam.factors.ceiling import project_point
 from lampsam.factors.gtsam_factors import projection_factor
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation
+from tests.conftest import SimRun
 
 K_WHEEL = 4e-5  # m, eq. 15 slip constant of the hand-built worlds
 
@@ -50,13 +51,9 @@ def _rms(x: np.ndarray) -> float:
 
 
 @pytest.fixture(scope="module")
-def lab(tmp_path_factory: pytest.TempPathFactory) -> tuple[LoggedRun, list, bool]:
+def lab(sim_run: SimRun) -> tuple[LoggedRun, list, bool]:
     """6 s of the simulated lab world and the real frontend's frames (made once)."""
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("lab") / "run"
-    simulate_world("lab", out, seed=0, duration=6.0, workers=1)
-    run = read_run(out)
+    run = read_run(sim_run(seed=0, duration=6.0))
     frames, ceiling = make_frames(run, "images")
     return run, list(frames), ceiling
 

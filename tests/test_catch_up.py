@@ -3,13 +3,11 @@ keyframes while steps wait (lampsam.backend.tracking.CatchUp, GraphSlam.step(upd
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -22,20 +20,16 @@ from lampsam.backend.slam import drive, iter_steps, make_backend, start_pose_of
 from lampsam.backend.tracking import run_decoupled
 from lampsam.config_loader import ConfigError
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.datasets.simulator import simulate_world
 from lampsam.frontend.pipeline import iter_run
-from lampsam.interrupt import EXIT_INTERRUPTED
-from tests.conftest import start_lampsam, wait_for_line
+from tests.conftest import SimRun, interrupted_summary, start_lampsam, wait_for_line
 
 Steps = list[tuple[float, np.ndarray, Frame | None]]
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+def lab_run(sim_run: SimRun) -> LoggedRun:
     """4 s of the simulated lab (61 frames, 31 keyframes), seed 2."""
-    out = tmp_path_factory.mktemp("catchup") / "lab"
-    simulate_world("lab", out, seed=2, duration=4.0, workers=1)
-    return read_run(out)
+    return read_run(sim_run(seed=2, duration=4.0))
 
 
 @pytest.fixture(scope="module")
@@ -120,36 +114,18 @@ def test_config_rejects_catch_up_below_one() -> None:
 
 
 
-def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str],
-                        out: Path) -> subprocess.Popen[str]:
+def _start_catch_up_run(tmp_path: Path, cli_env: dict[str, str], out: Path,
+                        sim_run: SimRun) -> subprocess.Popen[str]:
     """``lampsam slam`` on 16 s of ``lab`` (seed 1), decoupled, the worker catching up
     8 keyframes per update and the tracker never waiting (``--max-lag -1``)."""
-    run = tmp_path / "lab"
-    simulate_world("lab", run, seed=1, duration=16.0, workers=1)
+    run = sim_run(seed=1, duration=16.0)
     cfg = tmp_path / "cu.toml"
     cfg.write_text("[online]\ncatch_up = 8\n")
     return start_lampsam(cli_env, "slam", str(run), "--out", str(out), "--online", "decoupled",
                          "--max-lag", "-1", "--config", str(cfg))
 
 
-def _interrupted_summary(proc: subprocess.Popen[str], lines: list[str],
-                         out: Path) -> dict[str, Any]:
-    """Wait (120 s at most: a hang at exit fails) for the stopped run; it exits 3 with no
-    traceback, status interrupted and some but not all of the 241 steps; its summary."""
-    try:
-        _, rest = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise AssertionError("the process hung at exit after SIGTERM") from None
-    rest = "".join(lines) + rest
-    assert proc.returncode == EXIT_INTERRUPTED, rest
-    assert "Traceback" not in rest
-    summary: dict[str, Any] = json.loads((out / "summary.json").read_text())  # JSON
-    assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 241
-    return summary
-
-def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
+def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str], sim_run: SimRun) -> None:
     """SIGTERM to ``lampsam slam --online decoupled`` while the worker catches up
     (``catch_up = 8``, the tracker never waiting): exit 3, no traceback, the steps the
     worker finished written (deferred keyframes updated first), finite, status
@@ -157,19 +133,16 @@ def test_sigterm_mid_catch_up(tmp_path: Path, cli_env: dict[str, str]) -> None:
     tracker sent its last step (a fast machine): the worker still stops after the step
     it is on rather than working through its backlog."""
     out = tmp_path / "out"
-    proc = _start_catch_up_run(tmp_path, cli_env, out)
+    proc = _start_catch_up_run(tmp_path, cli_env, out, sim_run)
     # the worker has finished steps (a signal before its first would leave 0 on a loaded machine)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     proc.send_signal(signal.SIGTERM)
-    summary = _interrupted_summary(proc, lines, out)
-    traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
-    assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
+    summary = interrupted_summary(proc, out, 241, lines)
     assert summary["online_keyframes_per_update_max"] <= 8
-    assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
 
 
-def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
-                                                        cli_env: dict[str, str]) -> None:
+def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path, cli_env: dict[str, str],
+                                                        sim_run: SimRun) -> None:
     """A stop while the mapping worker lags far behind the tracker (the inbox's pipe
     full of steps it will never read; a heavily loaded machine) still ends the process:
     exit 3 with the finished steps written, not a hang at exit waiting for the queue's
@@ -178,7 +151,7 @@ def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
     at exit in ``Queue._finalize_join`` (py-spy) on each try. The sleep only makes the
     hang likely: the test cannot fail on a correct build however slow the machine."""
     out = tmp_path / "out"
-    proc = _start_catch_up_run(tmp_path, cli_env, out)
+    proc = _start_catch_up_run(tmp_path, cli_env, out, sim_run)
     lines = wait_for_line(proc, "first estimates back from the mapping worker")
     children = subprocess.run(["pgrep", "-P", str(proc.pid)], capture_output=True,
                               text=True, check=False).stdout.split()
@@ -193,4 +166,4 @@ def test_sigterm_while_the_worker_lags_far_behind_exits(tmp_path: Path,
     finally:
         for pid in children:
             os.kill(int(pid), signal.SIGCONT)
-    _interrupted_summary(proc, lines, out)
+    interrupted_summary(proc, out, 241, lines)

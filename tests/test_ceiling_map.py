@@ -38,6 +38,7 @@ from lampsam.datasets.motion import follow_waypoints, noisy_wheel_travel
 from lampsam.errors import DatasetError, InputError
 from lampsam.factors.ceiling import project_point
 from lampsam.frontend.measurements import CeilingFrame, CornerObservation, LampObservation
+from tests.conftest import SimRun
 
 K_WHEEL = 4e-5  # m, eq. 15 slip constant (twice the lab's: a visible drift in 20 s)
 
@@ -254,13 +255,9 @@ def test_start_parsing(tmp_path: Path) -> None:
 
 # --------------------------------------------------------------------------- CLI end to end
 @pytest.fixture(scope="module")
-def lab4(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def lab4(sim_run: SimRun) -> Path:
     """4 s of the simulated lab (61 images)."""
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("map_lab") / "run"
-    simulate_world("lab", out, seed=5, duration=4.0, workers=1)
-    return out
+    return sim_run(seed=5, duration=4.0)
 
 
 def test_cli_save_map_then_localize_only(lab4: Path, tmp_path: Path,

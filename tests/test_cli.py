@@ -21,7 +21,7 @@ import pytest
 
 from lampsam.angles import wrap_angle
 from lampsam.cli import main
-from tests.conftest import require_shared
+from tests.conftest import SimRun, require_shared
 
 
 def _read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -150,13 +150,9 @@ def test_unknown_option_value_exits_2(
 
 # --------------------------------------------------------------------------- frontend-eval
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def lab_run(sim_run: SimRun) -> Path:
     """Half a second of the simulated lab (8 images of 320x240)."""
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("cli_lab") / "run"
-    simulate_world("lab", out, seed=3, duration=0.5, workers=1)
-    return out
+    return sim_run(seed=3, duration=0.5)
 
 
 def test_frontend_eval_on_tiny_run(

@@ -43,7 +43,7 @@ def test_opening_keys_are_checked() -> None:
         "rig": {"camera": {"width": 320, "height": 240, "hfov_deg": 120}},
         "ceiling": {"openings": [{"kind": "skylight", "center": [0, 0], "size": [1, 1], "height": 2.7, "brightnes": 2}]},
     }
-    with pytest.raises(DatasetError, match=r"ceiling.openings\[0\].*unknown keys \['brightnes'\]"):
+    with pytest.raises(DatasetError, match=r"ceiling\.openings\[0\]\.brightnes: unknown key \(did you mean 'brightness'\?\)"):
         world_from_dict(doc)
     doc["ceiling"]["openings"][0] = {"kind": "door", "center": [0, 0], "size": [1, 1], "height": 2.7}
     with pytest.raises(DatasetError, match="skylight or window"):

@@ -24,6 +24,7 @@ from lampsam.backend.ekf import EkfSlam
 from lampsam.backend.slam import drive, iter_steps, make_frames, start_pose_of
 from lampsam.datasets.logrun import LoggedRun, OdometryModel, Rig, read_run
 from lampsam.frontend.measurements import CeilingFrame, LampObservation
+from tests.conftest import SimRun
 
 SIGMA_M = 5e-4  # normalised-coordinate sigma of a lamp centroid (the frontend's ~0.05 px)
 
@@ -81,13 +82,9 @@ def test_young_lamp_update_reaches_the_mode_and_the_single_linearisation_oversho
 
 
 @pytest.fixture(scope="module")
-def lab_seed2(tmp_path_factory: pytest.TempPathFactory) -> tuple[LoggedRun, list]:
+def lab_seed2(sim_run: SimRun) -> tuple[LoggedRun, list]:
     """12.5 s of lab, seed 2 (a strip lamp enters the image at 11.7 s) and its frames."""
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("lab2") / "run"
-    simulate_world("lab", out, seed=2, duration=12.5, workers=1)
-    run = read_run(out)
+    run = read_run(sim_run(seed=2, duration=12.5))
     frames, _ = make_frames(run, "images")
     return run, list(frames)
 

@@ -14,8 +14,8 @@ from lampsam.backend.fixed_lag import keyframe_stamps
 from lampsam.backend.graph import Isam2Slam
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.datasets.simulator import simulate_world
 from lampsam.frontend.pipeline import iter_run
+from tests.conftest import SimRun
 
 
 def test_keyframe_stamps_new_touched_and_lamps() -> None:
@@ -31,11 +31,9 @@ def test_keyframe_stamps_new_touched_and_lamps() -> None:
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+def lab_run(sim_run: SimRun) -> LoggedRun:
     """6 s of the simulated lab (90 frames)."""
-    out = tmp_path_factory.mktemp("lag") / "lab"
-    simulate_world("lab", out, seed=3, duration=6.0, workers=1)
-    return read_run(out)
+    return read_run(sim_run(seed=3, duration=6.0))
 
 
 def test_fixed_lag_bounds_the_window_and_keeps_lamps(lab_run: LoggedRun) -> None:

@@ -20,21 +20,18 @@ import pytest
 from lampsam.evaluation.frontend_eval import evaluate_run
 from lampsam.evaluation.gallery import load_photo, make_gallery, run_photo
 from lampsam.frontend.pipeline import iter_run
-from tests.conftest import require_shared
+from tests.conftest import SimRun, require_shared
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("lab") / "run"
-    simulate_world("lab", out, seed=3, duration=6.0, workers=1)
-    return out
+def lab_run(sim_run: SimRun) -> Path:
+    """6 s of the simulated lab (91 images), seed 3."""
+    return sim_run(seed=3, duration=6.0)
 
 
-def test_targets_on_simulated_lab_run(lab_run: Path) -> None:
+def test_targets_on_simulated_lab_run(lab_run: Path, tmp_path: Path) -> None:
     """recall >= 99 %, no false lamp, centroid RMS <= 0.3 px, axis RMS <= 0.5 deg."""
-    res = evaluate_run(lab_run, out=lab_run / "fe.json")
+    res = evaluate_run(lab_run, out=tmp_path / "fe.json")
     assert res.n_frames >= 80 and res.n_truth_lamps_full >= 100
     assert res.lamp_recall >= 0.99
     assert res.n_false == 0
@@ -44,7 +41,7 @@ def test_targets_on_simulated_lab_run(lab_run: Path) -> None:
     assert res.m_rms <= 0.3 / 92.376 and res.n_axis_m >= 20 and res.axis_m_rms_deg <= 0.5
     assert res.corner_repeatability >= 0.7
     assert res.ncc_precision >= 0.97
-    assert (lab_run / "fe.json").is_file()
+    assert (tmp_path / "fe.json").is_file()
 
 
 def test_process_run_frames_in_time_order(lab_run: Path) -> None:

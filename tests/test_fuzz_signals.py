@@ -17,26 +17,21 @@ import pytest
 
 from lampsam.backend.interface import SlamBackend, SlamResult, StepEstimate
 from lampsam.backend.slam import drive
-from lampsam.datasets.simulator import simulate_world
 from lampsam.interrupt import EXIT_INTERRUPTED, clear_stop, interruptible, request_stop
-from tests.conftest import start_lampsam, wait_for_line
+from tests.conftest import SimRun, interrupted_summary, start_lampsam, wait_for_line
 
 
 @pytest.fixture(scope="module")
-def run6(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def run6(sim_run: SimRun) -> Path:
     """6 s of the lab world (91 images), seed 1."""
-    out = tmp_path_factory.mktemp("signals") / "run"
-    simulate_world("lab", out, seed=1, duration=6.0, workers=1)
-    return out
+    return sim_run(seed=1, duration=6.0)
 
 
 @pytest.fixture(scope="module")
-def run15(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def run15(sim_run: SimRun) -> Path:
     """15 s of the lab world (226 images), seed 1: long enough that a signal sent when the
     first step is done lands mid-run on a fast machine (the smoothers read keyframes only)."""
-    out = tmp_path_factory.mktemp("signals15") / "run"
-    simulate_world("lab", out, seed=1, duration=15.0, workers=1)
-    return out
+    return sim_run(seed=1, duration=15.0)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
@@ -49,17 +44,7 @@ def test_signal_mid_slam_writes_finished_steps(run15: Path, tmp_path: Path,
     proc = start_lampsam(cli_env, "slam", str(run15), "--out", str(out), "--backend", "batch")
     wait_for_line(proc, "first step done")  # a step finished: not 0 steps on a loaded machine
     proc.send_signal(sig)
-    _, rest = proc.communicate(timeout=120)
-    assert proc.returncode == EXIT_INTERRUPTED, rest
-    assert "Traceback" not in rest
-    assert f"{sig.name} received" in rest
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "interrupted"
-    assert 0 < summary["steps"] < 226
-    traj = np.loadtxt(out / "trajectory.tum", ndmin=2)
-    assert len(traj) == summary["steps"] and np.all(np.isfinite(traj))
-    assert (out / "landmarks.csv").read_text().startswith("id,type")
-    assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
+    interrupted_summary(proc, out, 226, signal_name=sig.name)
 
 
 @pytest.mark.slow

@@ -22,8 +22,8 @@ from lampsam.backend.slam import run_slam
 from lampsam.cli import main
 from lampsam.datasets.graph_text import read_graph_text
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
-from lampsam.datasets.simulator import simulate_world
 from lampsam.factors.gtsam_factors import projection_factor
+from tests.conftest import SimRun
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +36,9 @@ def rb_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def ceiling_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def ceiling_run(sim_run: SimRun) -> Path:
     """2 s of the lab world, seed 3."""
-    out = tmp_path_factory.mktemp("g2o_ceiling") / "run"
-    simulate_world("lab", out, seed=3, duration=2.0, workers=1)
-    return out
+    return sim_run(seed=3, duration=2.0)
 
 
 def _lines(path: Path, tag: str) -> list[list[str]]:

@@ -161,7 +161,7 @@ def test_office_scene_doors_and_changes() -> None:
             },
             "outside wall",
         ),
-        ({"furniture": [{"id": "a", "center": [0, 0], "size": [1, 1]}]}, "expected 3"),
+        ({"furniture": [{"id": "a", "center": [0, 0], "size": [1, 1]}]}, r"furniture\[a\]\.size: must be 3 finite numbers"),
         (
             {
                 "walls": [{"id": "w", "start": [0, 0], "end": [2, 0]}],

@@ -34,10 +34,10 @@ from lampsam.backend.slam import (
     write_results,
 )
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.datasets.simulator import simulate_world
 from lampsam.errors import EstimationError, LampsamError
 from lampsam.frontend.measurements import CeilingFrame
 from lampsam.frontend.pipeline import iter_run
+from tests.conftest import SimRun
 
 #: summary.json keys that are timings (differ run to run)
 TIMING_KEYS = {"time_per_frame_ms", "final_optimisation_s", "total_time_s", "update_median_ms",
@@ -45,11 +45,9 @@ TIMING_KEYS = {"time_per_frame_ms", "final_optimisation_s", "total_time_s", "upd
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+def lab_run(sim_run: SimRun) -> LoggedRun:
     """6 s of the simulated lab (91 frames), seed 4."""
-    out = tmp_path_factory.mktemp("lazy") / "lab"
-    simulate_world("lab", out, seed=4, duration=6.0, workers=1)
-    return read_run(out)
+    return read_run(sim_run(seed=4, duration=6.0))
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from lampsam.observe import emit, listening, observing
+from tests.conftest import SimRun
 
 rr = pytest.importorskip("rerun", reason="rerun-sdk not installed (pip install 'lampsam[viz]')")
 
@@ -36,15 +37,14 @@ def test_observer_is_scoped_to_the_block() -> None:
     assert seen == [("x.y", {"a": 1})] and not listening()
 
 
-def test_slam_run_to_rrd_and_back(tmp_path: Path) -> None:
+def test_slam_run_to_rrd_and_back(tmp_path: Path, sim_run: SimRun) -> None:
     """EKF on 4 s of the simulated lab (truth frames): every step's pose, image and
     detections are in the recording, the map is logged, and the path ends at the result."""
     from lampsam.backend.slam import run_slam
     from lampsam.datasets.logrun import read_run
-    from lampsam.datasets.simulator import simulate_world
     from lampsam.evaluation.live import live_view
 
-    run_dir = simulate_world("lab", tmp_path / "run", seed=1, duration=4.0)
+    run_dir = sim_run(seed=1, duration=4.0)
     run = read_run(run_dir)
     rrd = tmp_path / "live" / "slam.rrd"
     with live_view(str(rrd), "test slam", run=run):

@@ -10,12 +10,13 @@ from pathlib import Path
 import pytest
 
 from lampsam.backend.slam import run_slam
-from lampsam.datasets.simulator import simulate_world
+from tests.conftest import SimRun
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulate_world("lab", tmp_path_factory.mktemp("lab") / "run", seed=0, duration=5.0)
+def lab_run(sim_run: SimRun) -> Path:
+    """5 s of the simulated lab, seed 0."""
+    return sim_run(seed=0, duration=5.0)
 
 
 @pytest.mark.parametrize("backend", ["ekf", "isam2"])

@@ -16,18 +16,16 @@ import pytest
 from lampsam.backend.pipelined import FrameTimes, frame_source, pack_frame, unpack_frame
 from lampsam.backend.slam import run_slam
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.datasets.simulator import simulate_world
 from lampsam.errors import FrontendError
 from lampsam.frontend.measurements import CeilingFrame
 from lampsam.frontend.pipeline import iter_run
+from tests.conftest import SimRun
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+def lab_run(sim_run: SimRun) -> LoggedRun:
     """4 s of the simulated lab (60 frames)."""
-    out = tmp_path_factory.mktemp("pipe") / "lab"
-    simulate_world("lab", out, seed=3, duration=4.0, workers=1)
-    return read_run(out)
+    return read_run(sim_run(seed=3, duration=4.0))
 
 
 def _bytes(frames: list[CeilingFrame]) -> list[bytes]:

@@ -23,18 +23,15 @@ from lampsam.datasets.odometry import (
 from lampsam.datasets.rosbag_export import export_bag, typestore_for
 from lampsam.datasets.rosbag_import import ImportOptions, import_bag
 from lampsam.errors import DatasetError, InputError
+from tests.conftest import SimRun
 
 JOINTS = ("left_wheel_joint", "right_wheel_joint")
 
 
 @pytest.fixture(scope="module")
-def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def lab1(sim_run: SimRun) -> Path:
     """One second of the simulated lab (31 odometry samples, 16 images)."""
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("bag_sim") / "run"
-    simulate_world("lab", out, seed=4, duration=1.0, workers=1)
-    return out
+    return sim_run(seed=4, duration=1.0)
 
 
 def _position_rms(run_dir: Path) -> tuple[np.ndarray, float]:
@@ -64,18 +61,18 @@ def _same_run(a: LoggedRun, b: LoggedRun) -> None:
     [(True, False, False, "run.bag"), (False, False, False, "bag2"), (False, True, True, "bag2m")],
 )
 def test_round_trip_is_exact(
-    sim_run: Path, tmp_path: Path, ros1: bool, compressed: bool, mcap: bool, name: str
+    lab1: Path, tmp_path: Path, ros1: bool, compressed: bool, mcap: bool, name: str
 ) -> None:
     """run -> bag -> run: same files' contents and the same SLAM result."""
     bag = tmp_path / name
-    summary = export_bag(sim_run, bag, ros1=ros1, compressed=compressed, mcap=mcap)
+    summary = export_bag(lab1, bag, ros1=ros1, compressed=compressed, mcap=mcap)
     assert summary.counts["/joint_states"] == 31
     back = tmp_path / "back"
     report = import_bag(bag, back, ImportOptions(wheel_joints=JOINTS, wheel_radius=0.05))
     assert report.chosen["joints"] == "/joint_states"
-    _same_run(read_run(sim_run), read_run(back))
+    _same_run(read_run(lab1), read_run(back))
     if not ros1 and not compressed:  # one SLAM comparison is enough (the inputs are equal)
-        poses_a, rms_a = _position_rms(sim_run)
+        poses_a, rms_a = _position_rms(lab1)
         poses_b, rms_b = _position_rms(back)
         np.testing.assert_array_equal(poses_b, poses_a)
         assert rms_b == rms_a < 0.02
@@ -211,13 +208,13 @@ def _independent_bag(run: LoggedRun, path: Path, ros1: bool,
 
 
 @pytest.mark.parametrize("ros1", [True, False])
-def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool,
+def test_import_of_an_independent_bag(lab1: Path, tmp_path: Path, ros1: bool,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     """Odometry poses with covariance, compressed images, camera_info, a two-step static
     tf and a laser: the imported run has Pose2 increments of the odometry poses (1e-9)
     with the step covariances the poses' covariances were summed from (1e-12), the
     original's images and camera, and the same SLAM accuracy (``lampsam slam``, iSAM2)."""
-    run = read_run(sim_run)
+    run = read_run(lab1)
     bag = tmp_path / ("indep.bag" if ros1 else "indep")
     poses, qs = _independent_bag(run, bag, ros1)
     out = tmp_path / "imported"
@@ -253,11 +250,11 @@ def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool,
     # same accuracy: SLAM over the imported run (with the original's truth) vs the original
     import shutil
 
-    shutil.copy(sim_run / "groundtruth.tum", out / "groundtruth.tum")
+    shutil.copy(lab1 / "groundtruth.tum", out / "groundtruth.tum")
     text = (out / "groundtruth.tum").read_text().splitlines()
     shifted = [text[0]] + [f"{float(ln.split()[0]) + 1.7e9:.6f} " + ln.split(" ", 1)[1] for ln in text[1:]]
     (out / "groundtruth.tum").write_text("\n".join(shifted) + "\n")
-    _, rms_orig = _position_rms(sim_run)
+    _, rms_orig = _position_rms(lab1)
     capsys.readouterr()
     assert main(["slam", str(out), "--out", str(tmp_path / "slam"), "--frames", "images"]) == 0
     printed = re.search(r"isam2: .*position error RMS ([0-9.]+) m", capsys.readouterr().out)
@@ -265,11 +262,11 @@ def test_import_of_an_independent_bag(sim_run: Path, tmp_path: Path, ros1: bool,
     assert float(printed.group(1)) == pytest.approx(rms_orig, abs=1.5e-3)
 
 
-def test_pose2_covariance_unknown_or_absent(sim_run: Path, tmp_path: Path) -> None:
+def test_pose2_covariance_unknown_or_absent(lab1: Path, tmp_path: Path) -> None:
     """``-1`` in covariance[0] leaves the increments on either side of that message
     without a covariance (NaN: the model default), the others are the step covariances;
     a topic whose covariances are all zero gives no covariance at all."""
-    run = read_run(sim_run)
+    run = read_run(lab1)
     poses, qs = _independent_bag(run, tmp_path / "b1", ros1=False, unknown_cov=(5,))
     report = import_bag(tmp_path / "b1", tmp_path / "r1")
     cov = read_run(tmp_path / "r1").odometry.cov  # type: ignore[union-attr]
@@ -280,17 +277,17 @@ def test_pose2_covariance_unknown_or_absent(sim_run: Path, tmp_path: Path) -> No
     assert any(f"for {n - 2} of {n} increments" in s and "Pose2OdometryModel default" in s
                for s in report.notes)
     # export_bag of a wheel run writes zero covariances: the import reads them as unknown
-    export_bag(sim_run, tmp_path / "b2")
+    export_bag(lab1, tmp_path / "b2")
     import_bag(tmp_path / "b2", tmp_path / "r2", ImportOptions(topics={"joints": "none"}))
     assert np.all(np.isnan(read_run(tmp_path / "r2").odometry.cov))  # type: ignore[union-attr]
 
 
 @pytest.mark.parametrize("ros1", [True, False])
-def test_pose2_run_round_trip(sim_run: Path, tmp_path: Path, ros1: bool) -> None:
+def test_pose2_run_round_trip(lab1: Path, tmp_path: Path, ros1: bool) -> None:
     """A Pose2 run (increments with covariances, one without) -> bag -> run: the same
     increments and covariances to float precision (the one without: the model's default
     noise without its floor, what the backend would have used)."""
-    run = read_run(sim_run)
+    run = read_run(lab1)
     rng = np.random.default_rng(3)
     poses, qs = _independent_bag(run, tmp_path / "src", ros1=False)
     cov = qs + np.einsum("nij,nkj->nik", a := rng.normal(0, 1e-3, (len(qs), 3, 3)), a)
@@ -313,9 +310,9 @@ def test_pose2_run_round_trip(sim_run: Path, tmp_path: Path, ros1: bool) -> None
     np.testing.assert_allclose(back.cov, want, rtol=0, atol=1e-15)
 
 
-def test_errors_list_topics(sim_run: Path, tmp_path: Path) -> None:
+def test_errors_list_topics(lab1: Path, tmp_path: Path) -> None:
     bag = tmp_path / "b"
-    export_bag(sim_run, bag)
+    export_bag(lab1, bag)
     with pytest.raises(DatasetError, match=r"no odometry topic.*JointState.*/camera/image_raw \(sensor_msgs/msg/Image\)"):
         import_bag(bag, tmp_path / "o1", ImportOptions(topics={"joints": "none"},
                                                        wheel_joints=JOINTS, wheel_radius=0.05))
@@ -331,12 +328,12 @@ def test_errors_list_topics(sim_run: Path, tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="bag not found"):
         import_bag(tmp_path / "absent.bag", tmp_path / "o6")
     with pytest.raises(InputError, match=r"--out: the output directory is not empty \(use --force"):
-        export_bag(sim_run, bag)
+        export_bag(lab1, bag)
 
 
-def test_cli_export_then_import(sim_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_export_then_import(lab1: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bag = tmp_path / "cli.bag"
-    assert main(["export-bag", str(sim_run), "--out", str(bag), "--ros1"]) == 0
+    assert main(["export-bag", str(lab1), "--out", str(bag), "--ros1"]) == 0
     assert "/camera/image_raw: 16 messages" in capsys.readouterr().out
     out = tmp_path / "cli_run"
     assert main(["import-bag", str(bag), "--out", str(out), "--wheel-joints", ",".join(JOINTS),
@@ -348,13 +345,13 @@ def test_cli_export_then_import(sim_run: Path, tmp_path: Path, capsys: pytest.Ca
 
 
 @pytest.mark.parametrize("ros1", [True, False])
-def test_cli_export_over_a_bag_needs_force(sim_run: Path, tmp_path: Path, ros1: bool,
+def test_cli_export_over_a_bag_needs_force(lab1: Path, tmp_path: Path, ros1: bool,
                                            capsys: pytest.CaptureFixture[str]) -> None:
     """``export-bag`` over an existing bag: exit 2 with the other writers' message and the
     old bag untouched; with ``--force`` the new bag replaces it (ROS1: the file; ROS2: the
     files of the same names, a stranger file kept) and reads back as the run."""
     bag = tmp_path / ("b.bag" if ros1 else "b")
-    argv = ["export-bag", str(sim_run), "--out", str(bag)] + (["--ros1"] if ros1 else [])
+    argv = ["export-bag", str(lab1), "--out", str(bag)] + (["--ros1"] if ros1 else [])
     assert main(argv) == 0
     if ros1:
         bag.write_bytes(b"old bag")
@@ -375,18 +372,18 @@ def test_cli_export_over_a_bag_needs_force(sim_run: Path, tmp_path: Path, ros1: 
         assert (bag / "notes.txt").read_text() == "mine\n"
         assert not [f for f in tmp_path.iterdir() if f.name.startswith(".")]  # no temporary left
     import_bag(bag, tmp_path / "back", ImportOptions(wheel_joints=JOINTS, wheel_radius=0.05))
-    _same_run(read_run(sim_run), read_run(tmp_path / "back"))
+    _same_run(read_run(lab1), read_run(tmp_path / "back"))
 
 
-def test_slam_writes_its_graph_as_g2o(sim_run: Path, tmp_path: Path) -> None:
+def test_slam_writes_its_graph_as_g2o(lab1: Path, tmp_path: Path) -> None:
     """``lampsam slam --g2o``: GTSAM reads the poses (start + one per keyframe), the
     landmarks and the odometry factors; the last pose is the result's last keyframe."""
     import gtsam
 
     g2o = tmp_path / "graph.g2o"
-    assert main(["slam", str(sim_run), "--out", str(tmp_path / "s"), "--g2o", str(g2o)]) == 0
+    assert main(["slam", str(lab1), "--out", str(tmp_path / "s"), "--g2o", str(g2o)]) == 0
     graph, values = gtsam.readG2o(str(g2o), False)
-    res = run_slam(sim_run, "isam2", frames="images")
+    res = run_slam(lab1, "isam2", frames="images")
     kf = np.flatnonzero(res.keyframes)
     n_pose = len(kf) + 1  # X(0) is the start pose
     n_xy = sum(ln.startswith("VERTEX_XY ") for ln in g2o.read_text().splitlines())

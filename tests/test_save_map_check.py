@@ -18,16 +18,13 @@ import yaml
 from lampsam.backend.ceiling_map_io import MAP_VERSION, read_map
 from lampsam.backend.localize_run import MAP_CHECK_NOT_RUN, save_map
 from lampsam.cli import main
+from tests.conftest import SimRun
 
 
 @pytest.fixture(scope="module")
-def lab4(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def lab4(sim_run: SimRun) -> Path:
     """4 s of the simulated lab (61 images)."""
-    from lampsam.datasets.simulator import simulate_world
-
-    out = tmp_path_factory.mktemp("map_check_lab") / "run"
-    simulate_world("lab", out, seed=5, duration=4.0, workers=1)
-    return out
+    return sim_run(seed=5, duration=4.0)
 
 
 def test_no_map_check_same_map_without_figures(lab4: Path, tmp_path: Path) -> None:

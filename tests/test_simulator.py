@@ -24,6 +24,7 @@ from lampsam.datasets.simulator import simulate_world
 from lampsam.datasets.world import load_world, world_from_dict
 from lampsam.datasets.world_landmarks import world_landmarks
 from lampsam.errors import DatasetError
+from tests.conftest import SimRun
 
 F = 160.0 / math.tan(math.radians(60.0))  # 92.37604307 px
 CX, CY = 159.5, 119.5
@@ -214,7 +215,7 @@ def test_world_loader_errors_and_extra_sections(tmp_path: Path) -> None:
         world_from_dict(doc)
     doc = _world([])
     doc["ceiling"]["surfaces"][0]["colour"] = 3
-    with pytest.raises(DatasetError, match="unknown keys"):
+    with pytest.raises(DatasetError, match=r"ceiling\.surfaces\[0\]\.colour: unknown key"):
         world_from_dict(doc)
     with pytest.raises(DatasetError, match="built-in"):
         load_world("no_such_world")
@@ -239,8 +240,8 @@ def test_builtin_worlds_load() -> None:
     assert all(lp.shape == "rect" for lp in corridor.lamps) and len(corridor.lamps) >= 8
 
 
-def test_short_simulated_run_reads_back(tmp_path: Path) -> None:
-    out = simulate_world("lab", tmp_path / "run", seed=3, duration=2.0, workers=1)
+def test_short_simulated_run_reads_back(sim_run: SimRun, tmp_path: Path) -> None:
+    out = sim_run(seed=3, duration=2.0)
     run = read_run(out)
     assert run.meta["complete"] is True and run.meta["world"] == "lab"
     assert run.images is not None and run.groundtruth is not None and run.landmarks is not None

@@ -11,18 +11,16 @@ from lampsam.backend.odometry import motion_model
 from lampsam.backend.slam import iter_steps, make_backend, start_pose_of
 from lampsam.backend.tracking import replay_latency, run_decoupled
 from lampsam.datasets.logrun import LoggedRun, read_run
-from lampsam.datasets.simulator import simulate_world
 from lampsam.errors import LampsamError
 from lampsam.factors.gtsam_factors import pose_array
 from lampsam.frontend.pipeline import iter_run
+from tests.conftest import SimRun
 
 
 @pytest.fixture(scope="module")
-def lab_run(tmp_path_factory: pytest.TempPathFactory) -> LoggedRun:
+def lab_run(sim_run: SimRun) -> LoggedRun:
     """3 s of the simulated lab (45 frames)."""
-    out = tmp_path_factory.mktemp("track") / "lab"
-    simulate_world("lab", out, seed=3, duration=3.0, workers=1)
-    return read_run(out)
+    return read_run(sim_run(seed=3, duration=3.0))
 
 
 def test_tracked_poses_are_backend_estimates_plus_odometry(lab_run: LoggedRun) -> None:
