@@ -29,6 +29,7 @@ import numpy as np
 from scipy.special import chdtri
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.alias_gate import match_log_odds
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs
 from lampsam.backend.planar_gate import rival_material
@@ -103,6 +104,7 @@ def associate(
     patches: Mapping[int, np.ndarray | None] | None = None,
     screened: dict[int, dict[int, tuple[float, bool]]] | None = None,
     same_place: Callable[[int, int], bool] | None = None,
+    alias_density: float = 0.0,
 ) -> list[Assignment]:
     """Associate one frame's observations with the map (paper eqs. 19-20, NCC for corners).
 
@@ -125,6 +127,12 @@ def associate(
         same_place: ``planar_unique``: ``same_place(a, b)`` tells that landmarks ``a``
             and ``b`` stand at one place (a tree mapped twice): such a rival of the
             nearest landmark does not hold the sighting.
+        alias_density: ``alias_odds``: landmarks per m^2 (the map's,
+            :func:`lampsam.backend.alias_gate.map_density`); a range-bearing pair
+            inside the gate is kept only when its likelihood is ``alias_odds`` times
+            that of an unmapped landmark at this density (0: no test). A sighting
+            whose every gated pair fails is ``"new"`` with ``alias_new``, else
+            ``"dropped"`` (held with ``planar_unique``).
 
     Returns:
         One :class:`Assignment` per observation, in input order.
@@ -134,6 +142,8 @@ def associate(
     best_d2: dict[int, float] = {}
     # planar_unique: (d2, log det Psi) of the landmarks within its threshold (NaN: not known)
     near: dict[int, list[tuple[float, float, int]]] = {}
+    alias_min = math.log(config.alias_odds) if config.alias_odds > 0.0 else -math.inf
+    aliased: set[int] = set()  # sightings with a gated pair the alias test refused
     for i, obs in enumerate(observations):
         if config.use_known_ids and obs.landmark_id is not None:
             lid = int(obs.landmark_id)
@@ -148,6 +158,7 @@ def associate(
             items = ((lid, (float("nan"), False)) for lid in candidates.get(obs.kind, ()))
         unique = config.planar_unique and obs.kind == "point2"
         unique_t = config.unique_threshold(len(obs.z))
+        alias = alias_density > 0.0 and obs.kind == "point2" and math.isfinite(alias_min)
         for lid, (d2_screen, exact) in items:
             screen_only = not math.isnan(d2_screen)
             if screen_only and d2_screen >= gate and not (unique and d2_screen < unique_t):
@@ -160,6 +171,7 @@ def associate(
                     best = min(best, d2_screen)
                     continue
             logdet = math.nan
+            pred = None
             if exact:
                 d2 = d2_screen
             else:
@@ -167,7 +179,7 @@ def associate(
                 if pred is None:
                     continue
                 d2 = mahalanobis2(*pred)
-                if unique:
+                if unique or alias:
                     sign, ld = np.linalg.slogdet(pred[1])
                     logdet = float(ld) if sign > 0 else math.nan
             best = min(best, d2)
@@ -175,6 +187,14 @@ def associate(
                 near.setdefault(i, []).append((d2, logdet, lid))
             if d2 >= gate:
                 continue
+            if alias:
+                if pred is None:  # an exact screen distance: the covariance is still needed
+                    pred = innovation(lid, obs)
+                    sign, ld = np.linalg.slogdet(pred[1]) if pred is not None else (0.0, 0.0)
+                    logdet = float(ld) if sign > 0 else math.nan
+                if match_log_odds(d2, logdet, float(obs.z[1]), alias_density) < alias_min:
+                    aliased.add(i)
+                    continue
             if obs.kind == "corner":
                 if ncc < config.ncc_min:
                     continue
@@ -197,6 +217,10 @@ def associate(
         used.add(lid)
     for i, obs in enumerate(observations):
         if i in result:
+            continue
+        if i in aliased:  # only refused pairs: held, or a landmark of its own
+            result[i] = (Assignment(i, None, "new") if config.alias_new
+                         else Assignment(i, None, "dropped", best_d2[i]))
             continue
         if best_d2.get(i, float("inf")) > config.new_threshold(len(obs.z)):
             result[i] = Assignment(i, None, "new")

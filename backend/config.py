@@ -206,6 +206,20 @@ class AssociationConfig:
             reads it; known-id runs never gate, so they are unchanged.
         odometry_noise_max, odometry_noise_window: its upper bound (default 100) and
             window (default 150 matches).
+        alias_odds: smoothers without ids: a range-bearing match inside the gate is
+            kept only when its likelihood (eq. 19, Gaussian with its own ``Psi``) is
+            at least this many times that of "a landmark not mapped yet" at the
+            map's landmark density (:mod:`lampsam.backend.alias_gate`); a sighting
+            whose every gated match fails starts a landmark of its own
+            (``alias_new``) or is held. 0 (default): off, the gate alone
+            (docs/noids-aliasing.md).
+        alias_spacing: the landmark spacing for ``alias_odds``, m (density
+            ``1 / spacing^2``); 0 (default): the median nearest-neighbour distance
+            of the mapped planar landmarks, re-estimated at every keyframe.
+        alias_new: a sighting the alias test refused starts a landmark of its own
+            (default True: a tree mapped twice is merged by the final solve, where a
+            held one is lost: on cityTrees_reduced_1k holding recorded 152-218 of
+            406 sightings); False: it is dropped, or held with ``planar_unique``.
     """
 
     use_known_ids: bool = True
@@ -243,6 +257,9 @@ class AssociationConfig:
     odometry_noise_adapt: bool = False
     odometry_noise_max: float = field(default=100.0, metadata=limits(ge=1.0))
     odometry_noise_window: int = field(default=150, metadata=limits(ge=1))
+    alias_odds: float = field(default=0.0, metadata=limits(ge=0.0))
+    alias_spacing: float = field(default=0.0, metadata=limits(ge=0.0))
+    alias_new: bool = True
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

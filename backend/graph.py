@@ -50,6 +50,7 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.alias_gate import map_density
 from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import point_key
@@ -163,7 +164,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                 assignments = associate(
                     obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                     self.config.association, lambda i: i in self._landmarks, patches, screened,
-                    self._same_place)
+                    self._same_place, self._alias_density())
                 if self.config.association.joint_compatibility:
                     assignments = self._joint_planar(gate_ctx, obs, assignments, screened)
                 learn_scale(self.noise_scale, obs, assignments, screened)
@@ -222,6 +223,16 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
             self.n_deferred += 1
             self._place_deferred_lamps()
         return n_matched, n_new
+
+    def _alias_density(self) -> float:
+        """Landmarks per m^2 for ``association.alias_odds`` (0: the test is off):
+        the stated ``alias_spacing``'s, else the map's
+        (:func:`lampsam.backend.alias_gate.map_density` of the planar landmarks)."""
+        acfg = self.config.association
+        if acfg.alias_odds <= 0.0:
+            return 0.0
+        xy = [lm.state[:2] for lm in self._landmarks.values() if lm.kind == "point2"]
+        return map_density(np.array(xy, float).reshape(-1, 2), acfg.alias_spacing)
 
     def _place_deferred_lamps(self) -> None:
         """Lamps mapped since the last update, moved to their sights' fused estimate.
