@@ -14,6 +14,7 @@ Entry points (loaded on first use)::
 
 Modules:
 
+* :mod:`~lampsam.backend.alias_gate` -- The alias test: a range-bearing match must beat "a landmark not yet mapped" (no ids).
 * :mod:`~lampsam.backend.association` -- Data association shared by the EKF, iSAM2 and batch backends (paper 1, eqs. 19-20).
 * :mod:`~lampsam.backend.ceiling` -- The upward-camera observation model as the backends use it (wraps :mod:`lampsam.factors.ceiling`).
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
