@@ -73,15 +73,16 @@ class Isam2Updates(GraphState):
         t0 = time.perf_counter()
         self._pose_cache = {}
         try:
+            relin = False
             if self.smoother is not None:
                 self._fixed_lag_update()
                 self._joint_at = {}  # (marginalisation relinearises: no bound across it)
             else:
                 relin = self._relinearized(self.isam.update(self._new_graph, self._new_values))
-                for _ in range(self.config.isam2.extra_updates):
-                    relin |= self._relinearized(self.isam.update())
-                if relin and self.divergence_check:
-                    self._damp_divergence()
+            for _ in range(self.config.isam2.extra_updates):
+                relin |= self._relinearized(self.isam.update())
+            if relin and self.divergence_check and self.smoother is None:
+                self._damp_divergence()
         except RuntimeError as exc:
             if not (ill_conditioned(exc) and self._refactor_qr(exc)):
                 self._recover(exc)
