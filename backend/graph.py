@@ -455,6 +455,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                    "n_held_unused": float(self.n_held - self.n_held_given_back
                                           - self.n_revisit_resolved),
                    "n_qr_rebuilds": float(self.n_refactorized),
+                   "n_damped_rebuilds": float(self.n_damped),
                    "update_median_ms": float(np.median(self.update_times) * 1e3)
                    if self.update_times else float("nan"),
                    "update_p95_ms": float(np.percentile(self.update_times, 95) * 1e3)

@@ -131,6 +131,9 @@ class GraphState(SlamBackend):
         #: whether it factors with QR from then on (:mod:`lampsam.backend.isam2_update`)
         self.n_refactorized = 0
         self.qr_factorization = False
+        #: iSAM2 rebuilt from a Levenberg-Marquardt solution after its Gauss-Newton step
+        #: raised the graph's error (:meth:`~lampsam.backend.isam2_update.Isam2Updates._damp_divergence`)
+        self.n_damped = 0
         self._update_factor_lids: list[tuple[int, int]] = []  # (graph index, landmark)
         self._joint_cache: dict[int, tuple[FloatArray, FloatArray, FloatArray] | None] = {}
         # (lamp id, measurement size) -> (keyframe, exact eq.-19 distance there), for _reuse_far

@@ -11,6 +11,18 @@ failed update is not fatal (:meth:`Isam2Updates._recover`, logged):
 - any other failure (e.g. GTSAM's CheiralityException: a relinearised landmark below
   the camera) drops the offending measurements and rebuilds iSAM2 from the rest.
 
+- a *diverging* Gauss-Newton step (iSAM2 takes undamped steps: on a graph made
+  inconsistent by wrong associations or stiff ties the steps can grow without
+  bound, the estimates swing by hundreds of metres at each relinearisation and
+  a landmark seen once, which follows its pose's swings, runs off to infinity
+  until the solve fails on it): after an update that relinearised, when the
+  graph's error at the new estimate exceeds :data:`DIVERGENCE_RATIO` times its
+  error at the linearisation point (plus :data:`DIVERGENCE_MARGIN`), the whole
+  graph is solved by Levenberg-Marquardt (never raises the error) from the
+  better of the two and iSAM2 is rebuilt there with Powell's dogleg steps (a
+  trust region) for the rest of the run, nothing dropped
+  (:meth:`Isam2Updates._damp_divergence`).
+
 Why QR: GTSAM (4.3) factors each clique's frontal block ``A`` (the joint information
 of its frontal variables) by Cholesky and refuses it when the reciprocal condition
 number of the diagonally equilibrated block is under ``sqrt(eps)`` (1.5e-8).
@@ -24,6 +36,7 @@ square-root information (condition the square root: 1.4e4) and has no such test.
 from __future__ import annotations
 
 import logging
+import math
 import re
 import time
 
@@ -40,6 +53,13 @@ from lampsam.errors import EstimationError
 
 log = logging.getLogger(__name__)
 
+#: A relinearising update whose estimate has more than this times the graph's error
+#: at iSAM2's linearisation point (plus :data:`DIVERGENCE_MARGIN`) is a diverging
+#: Gauss-Newton step. A converging step lowers the error (ratio under 1).
+DIVERGENCE_RATIO = 2.0
+#: ... plus this much error (half a chi-square sum): small graphs' noise.
+DIVERGENCE_MARGIN = 100.0
+
 
 class Isam2Updates(GraphState):
     """Sending a keyframe's factors to iSAM2 (mixin of :class:`~lampsam.backend.graph.GraphSlam`)."""
@@ -53,13 +73,16 @@ class Isam2Updates(GraphState):
         t0 = time.perf_counter()
         self._pose_cache = {}
         try:
+            relin = False
             if self.smoother is not None:
                 self._fixed_lag_update()
                 self._joint_at = {}  # (marginalisation relinearises: no bound across it)
             else:
-                self._relinearized(self.isam.update(self._new_graph, self._new_values))
+                relin = self._relinearized(self.isam.update(self._new_graph, self._new_values))
             for _ in range(self.config.isam2.extra_updates):
-                self._relinearized(self.isam.update())
+                relin |= self._relinearized(self.isam.update())
+            if relin and self.divergence_check and self.smoother is None:
+                self._damp_divergence()
         except RuntimeError as exc:
             if not (ill_conditioned(exc) and self._refactor_qr(exc)):
                 self._recover(exc)
@@ -72,8 +95,9 @@ class Isam2Updates(GraphState):
         self.update_times.append(t1 - t0)
         self.estimate_times.append(time.perf_counter() - t1)
 
-    def _relinearized(self, result: gtsam.ISAM2Result) -> None:
-        """Forget the gate's joint-marginal records when an update relinearised variables.
+    def _relinearized(self, result: gtsam.ISAM2Result) -> bool:
+        """Forget the gate's joint-marginal records when an update relinearised variables;
+        whether it did.
 
         :meth:`~lampsam.backend.gating.Gating._bound_far` bounds an exact distance by
         an earlier joint marginal; that holds for one linearisation only (new
@@ -81,6 +105,44 @@ class Isam2Updates(GraphState):
         """
         if result.getVariablesRelinearized():
             self._joint_at = {}
+            return True
+        return False
+
+    #: Check each relinearising update for a diverging Gauss-Newton step (module doc).
+    divergence_check = True
+
+    def _damp_divergence(self) -> bool:
+        """After a relinearising update: when iSAM2's estimate has more error than its
+        linearisation point (:data:`DIVERGENCE_RATIO`, :data:`DIVERGENCE_MARGIN`), or a
+        non-finite one, solve the whole graph by Levenberg-Marquardt (``[batch]``'s
+        parameters) from the lower-error of the two and rebuild iSAM2 from that
+        solution with Powell's dogleg steps (``ISAM2DoglegParams``) for the rest of
+        the run: on an inconsistent graph a Gauss-Newton step from near a minimum
+        (LM stops at a small, not zero, gradient) can be huge again where the
+        information is near singular. Nothing dropped; counted in ``n_damped``.
+        Returns whether it did.
+
+        Costs two error evaluations and one full estimate per relinearisation
+        (every ``relinearize_skip`` updates), read only when the step converges.
+        """
+        assert self.isam is not None
+        est, lin = self.isam.calculateEstimate(), self.isam.getLinearizationPoint()
+        e_est, e_lin = self.graph.error(est), self.graph.error(lin)
+        if math.isfinite(e_est) and e_est <= DIVERGENCE_RATIO * e_lin + DIVERGENCE_MARGIN:
+            return False
+        start = lin if not (math.isfinite(e_est) and e_est < e_lin) else est
+        opt = gtsam.LevenbergMarquardtOptimizer(self.graph, start, self.config.batch.to_gtsam())
+        values = opt.optimize()
+        self.n_damped += 1
+        isam = gtsam.ISAM2(self._isam2_params())
+        isam.update(self.graph, values)  # (raises like any update: the caller recovers)
+        log.warning("iSAM2 update at keyframe %d: the Gauss-Newton step raised the graph's "
+                    "error %.4g -> %.4g; solved by Levenberg-Marquardt (%.4g, %d iterations) "
+                    "and rebuilt there with dogleg steps for the rest of the run, no "
+                    "measurement dropped", self._k, e_lin, e_est, opt.error(), opt.iterations())
+        self.isam = isam
+        self._forget_linearisation()
+        return True
 
     def _fixed_lag_update(self) -> None:
         """One fixed-lag update (:mod:`lampsam.backend.fixed_lag`): keys stamped with the
@@ -116,10 +178,13 @@ class Isam2Updates(GraphState):
 
     def _isam2_params(self) -> gtsam.ISAM2Params:
         """iSAM2 parameters for a rebuild: the backend's (``isam2_params``, with its
-        per-symbol thresholds), switched to QR for good once a rebuild needed it."""
+        per-symbol thresholds), switched to QR for good once a rebuild needed it, and
+        to Powell's dogleg for good once a Gauss-Newton step diverged."""
         params = self.isam2_params
         if self.qr_factorization:
             params.setFactorization("QR")
+        if self.n_damped:  # (Powell's dogleg: a trust region bounds each step)
+            params.setOptimizationParams(gtsam.ISAM2DoglegParams())
         return params
 
     def _last_estimate(self) -> gtsam.Values:

@@ -90,7 +90,10 @@ class RevisitRecord:
         n_best, runner_up: inliers of the best hypothesis and of its best rival.
         outcome: ``few`` (too few landmarks), ``weak`` (best under the inliers
             needed), ``ambiguous`` (rival within the margin), ``drift`` (beyond the
-            drift bound) or ``tied``.
+            drift bound), ``self-similar``, ``uninformative`` (it contradicts a
+            current association, but without its self-pairs it has fewer than
+            ``revisit_min_inliers`` inliers), ``contradicts`` (not moved), ``confirmed``
+            or ``tied``.
     """
 
     k: int
@@ -227,6 +230,13 @@ class RevisitMerge(HeldSightings):
         # sighting went to the wrong landmark, or the alignment is wrong: no tie)
         pairs = [(recent[a], old[b]) for a, b in al.pairs if a < len(recent)]
         wrong = [(r, o) for r, o in pairs if r.first_kf <= lo and r.id != o.id]
+        # a landmark paired with itself is what "no revisit" predicts too: moving
+        # sightings needs the inliers that say something new (copies, held clusters,
+        # the contradicted pairs) to be enough on their own
+        informative = len(al.pairs) - sum(1 for r, o in pairs if r.id == o.id)
+        if wrong and informative < cfg.revisit_min_inliers:
+            self._record(k, recent, old, n_best, runner, "uninformative")
+            return 0
         if wrong and not (2 * len(wrong) < n_best and self._move_window_sightings(wrong, lo)):
             self._record(k, recent, old, n_best, runner, "contradicts")
             return 0

@@ -11,7 +11,10 @@ logs are for checking its defaults on what those logs do not have; their paramet
   view at once, long stretches with one or none) and a heading noise that closes each
   lap metres off;
 - ``odo2x``: a uniform field, but the odometry's true noise is twice the stated
-  sigma (the file understates it), denser trees and a longer range than the tuning log.
+  sigma (the file understates it), denser trees and a longer range than the tuning log;
+- ``loop2``, ``sparse`` (added later, fixed before any run on them): a 120 m x 90 m
+  loop with 60 trees, and 150 uniform trees in 140 m with odometry 1.5x noisier
+  than stated.
 
 The log is written as ``ODOMETRY`` and ``BR`` records and the truth as ``VERTEX2``
 (:mod:`lampsam.datasets.graph_text` reads both), as
@@ -78,6 +81,13 @@ HELD_OUT: dict[str, tuple[HeldOutSpec, int]] = {
     "odo2x": (HeldOutSpec(layout="uniform", n_poses=2500, n_landmarks=400, extent=150.0,
                           true_noise=2.0, max_range=20.0, sigma_bearing0=0.01,
                           sigma_bearing_per_m=0.002), 103),
+    # two more, fixed 2026-11-24 23:30 UTC before any run on them (session revisitloop):
+    # a squarer loop with more trees, and a sparse uniform field with odometry 1.5x noisier
+    # than stated
+    "loop2": (HeldOutSpec(layout="loop", n_landmarks=60, loop_size=(120.0, 90.0),
+                          corridor=10.0, laps=3, sigma_theta=0.005, max_range=15.0), 201),
+    "sparse": (HeldOutSpec(layout="uniform", n_poses=2500, n_landmarks=150, extent=140.0,
+                           true_noise=1.5, max_range=15.0), 202),
 }
 
 
