@@ -7,6 +7,7 @@ through the general per-step driver (:func:`lampsam.backend.slam.drive`).
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterator
 
@@ -23,6 +24,8 @@ from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.factors.geometry import wrap_angle
 from lampsam.frontend.measurements import RangeBearingFrame, RangeBearingObservation
 from lampsam.observe import listening
+
+log = logging.getLogger(__name__)
 
 
 def graph_log_steps(graph_log: GraphLog, known_ids: bool = True
@@ -44,6 +47,21 @@ def graph_log_steps(graph_log: GraphLog, known_ids: bool = True
                     for s in graph_log.sightings[k])
         frame = RangeBearingFrame(float(t), obs) if obs else None
         yield float(t), samples[k : k + 1], frame
+
+
+def closures_unused_reason(backend: str, config: SlamConfig, known_ids: bool,
+                           pose_covariances: bool) -> str:
+    """Why a run over a log with loop closures leaves them out (the known-id iSAM2 /
+    batch path adds them, :mod:`lampsam.backend.dense_log`; nothing else does)."""
+    if backend == "ekf":
+        return "the EKF's state holds the current pose only: closing a loop needs the past poses"
+    if not known_ids:
+        return "association without ids runs the per-step path, which has no pose-pose factors"
+    if backend == "batch" and config.batch.huber_k is not None:
+        return "[batch] huber_k runs the per-step path ([graph] closure_kernel is the closures' own)"
+    if pose_covariances:
+        return "pose covariances run the per-step path"
+    return "the per-step path runs (a live view, or a log the fast path refuses)"
 
 
 def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfig | None = None,
@@ -108,8 +126,14 @@ def run_graph_log_backend(graph_log: GraphLog, backend: str = "isam2",
     if quick is not None:
         result = quick
     else:
+        if graph_log.closures:
+            log.warning("%s: the %d loop closures are not used by this run (%s): its poses "
+                        "are the odometry and landmarks alone", graph_log.path,
+                        len(graph_log.closures), closures_unused_reason(backend, config, known_ids,
+                                                                        pose_covariances))
         be = make_backend(backend, model, config, start)
         result = drive(be, graph_log_steps(graph_log, known_ids))
+    result.extra["loop_closures_used"] = float(len(graph_log.closures) if quick is not None else 0)
     result.extra["total_time_s"] = time.perf_counter() - t0
     result.extra["total_cpu_s"] = time.process_time() - c0
     return result, be
