@@ -18,6 +18,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.dense_log import run_known_ids
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
 from lampsam.backend.odometry import Pose2Motion
+from lampsam.backend.pose_graph import closures_unused_reason
 from lampsam.backend.slam import drive, make_backend
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.datasets.odometry import Pose2OdometryModel
@@ -47,21 +48,6 @@ def graph_log_steps(graph_log: GraphLog, known_ids: bool = True
                     for s in graph_log.sightings[k])
         frame = RangeBearingFrame(float(t), obs) if obs else None
         yield float(t), samples[k : k + 1], frame
-
-
-def closures_unused_reason(backend: str, config: SlamConfig, known_ids: bool,
-                           pose_covariances: bool) -> str:
-    """Why a run over a log with loop closures leaves them out (the known-id iSAM2 /
-    batch path adds them, :mod:`lampsam.backend.dense_log`; nothing else does)."""
-    if backend == "ekf":
-        return "the EKF's state holds the current pose only: closing a loop needs the past poses"
-    if not known_ids:
-        return "association without ids runs the per-step path, which has no pose-pose factors"
-    if backend == "batch" and config.batch.huber_k is not None:
-        return "[batch] huber_k runs the per-step path ([graph] closure_kernel is the closures' own)"
-    if pose_covariances:
-        return "pose covariances run the per-step path"
-    return "the per-step path runs (a live view, or a log the fast path refuses)"
 
 
 def run_graph_log(graph_log: GraphLog, backend: str = "isam2", config: SlamConfig | None = None,

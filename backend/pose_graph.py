@@ -24,11 +24,13 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
+from lampsam.backend.config import SlamConfig
 from lampsam.backend.config_graph import PoseGraphConfig
+from lampsam.backend.interface import SlamResult
 from lampsam.backend.models import init_point2
 from lampsam.datasets.graph_text import GraphLog, PoseEdge
-from lampsam.factors.gtsam_factors import check_cov
 from lampsam.factors.geometry import wrap_angle
+from lampsam.factors.gtsam_factors import check_cov
 
 log = logging.getLogger(__name__)
 
@@ -62,9 +64,9 @@ def closure_factor(e: PoseEdge, key_i: int, key_j: int, config: PoseGraphConfig
 
 def _diagonal(model: gtsam.noiseModel.Base) -> gtsam.noiseModel.Diagonal:
     """A ``Diagonal`` model with the marginal sigmas of a (robust-wrapped) Gaussian one."""
-    if isinstance(model, gtsam.noiseModel.Robust):
-        model = model.noise()
-    return gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(model.covariance())))
+    gauss = model.noise() if isinstance(model, gtsam.noiseModel.Robust) else model
+    assert isinstance(gauss, gtsam.noiseModel.Gaussian)
+    return gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.diag(gauss.covariance())))
 
 
 def lago_graph(graph: gtsam.NonlinearFactorGraph) -> gtsam.NonlinearFactorGraph:
@@ -150,4 +152,34 @@ def closure_chi2(g: GraphLog, poses: FloatArray) -> FloatArray:
         r = gtsam.Pose2.Logmap(gtsam.Pose2(*e.delta).between(xi.between(xj)))
         r[2] = wrap_angle(r[2])
         out[c] = float(r @ np.linalg.solve(e.cov, r))
+    return out
+
+
+def closures_unused_reason(backend: str, config: SlamConfig, known_ids: bool,
+                           pose_covariances: bool = False) -> str:
+    """Why a run over a log with loop closures leaves them out (the known-id iSAM2 /
+    batch path adds them, :mod:`lampsam.backend.dense_log`; nothing else does)."""
+    if backend == "ekf":
+        return ("the EKF's state holds the current pose only: closing a loop would need "
+                "the past poses in its state; use --backend isam2 or batch")
+    if not known_ids:
+        return "association without ids runs the per-step path, which has no pose-pose factors"
+    if backend == "batch" and config.batch.huber_k is not None:
+        return "[batch] huber_k runs the per-step path ([graph] closure_kernel is the closures' own)"
+    if pose_covariances:
+        return "pose covariances run the per-step path"
+    return "the per-step path ran (a live view, or a log the fast path refuses)"
+
+
+def closure_summary(g: GraphLog, result: SlamResult, backend: str, config: SlamConfig,
+                    known_ids: bool) -> dict[str, object]:
+    """The ``summary.json`` ``input`` entries of a log's loop closures: their count,
+    how many the run used (``result.extra["loop_closures_used"]``, 0 when absent), the
+    odometry edges read backwards, and a ``closures_warning`` when they went unused."""
+    used = int(result.extra.get("loop_closures_used", 0))
+    out: dict[str, object] = {"loop_closures": len(g.closures), "loop_closures_used": used,
+                              "reversed_odometry_edges": g.n_reversed}
+    if g.closures and not used:
+        out["closures_warning"] = (f"the {len(g.closures)} loop closures are not used: "
+                                   + closures_unused_reason(backend, config, known_ids))
     return out
