@@ -339,8 +339,10 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
             isam.update(new_graph, new_values)
             for _ in range(cfg.extra_updates):
                 isam.update()
-        except RuntimeError as exc:
-            log.debug("iSAM2 update failed at keyframe %d (%s): the general path runs", k, exc)
+        except RuntimeError as exc:  # with loop closures, say it: the general path has none
+            (log.warning if g.closures else log.debug)(
+                "iSAM2 update failed at keyframe %d (%s): the general path runs", k,
+                " ".join(str(exc).split())[:200])
             return False
         t1 = time.perf_counter()
         kf_pose = pose_array(isam.calculateEstimatePose2(X(k)))

@@ -168,7 +168,8 @@ def closures_unused_reason(backend: str, config: SlamConfig, known_ids: bool,
         return "[batch] huber_k runs the per-step path ([graph] closure_kernel is the closures' own)"
     if pose_covariances:
         return "pose covariances run the per-step path"
-    return "the per-step path ran (a live view, or a log the fast path refuses)"
+    return ("the per-step path ran: an iSAM2 update threw (warned above), a live view, or "
+            "a log the known-id path refuses")
 
 
 def closure_summary(g: GraphLog, result: SlamResult, backend: str, config: SlamConfig,
