@@ -17,16 +17,21 @@ class PoseGraphConfig:
     """Loop closures of a graph text log (``lampsam slam FILE``; docs/log-format.md).
 
     Attributes:
-        batch_init: where batch LM starts on a log with loop closures: ``"chain"``
+        batch_init: where batch LM starts on a log with loop closures: ``"backend"``
+            (``[batch] init``: by default the online iSAM2 pass, default), ``"chain"``
             (the odometry chained, dead reckoning, landmarks from their first
-            sighting; default), ``"lago"`` (GTSAM's ``lago.initialize`` on the pose
-            graph, landmarks placed from their first sighting off it) or
-            ``"backend"`` (``[batch] init``: the online iSAM2 pass first). A log
-            without loop closures always starts as ``[batch] init`` says. Chosen on
-            GTSAM's w10000.graph (chain and LAGO reach the same minimum, chi-square
-            289.735, in the same CPU time) and w20000.txt (both stop at LM's 100
-            iterations, chi-square 1779 from the chain, 3356 from LAGO; iSAM2
-            throws there, GTSAM's own too): docs/log-format.md.
+            sighting) or ``"lago"`` (GTSAM's ``lago.initialize`` on the pose graph,
+            each edge's covariance cut to its diagonal, landmarks placed from their
+            first sighting off it). A log without loop closures always starts as
+            ``[batch] init`` says. Chosen on GTSAM's w20000.txt, where LM from the
+            chain or LAGO stops in local minima (chi-square 1779 and 3356-4032 after
+            LM's 100 iterations) while iSAM2 (QR) ends at 37.5; on w10000.graph all
+            reach the same minimum (docs/log-format.md).
+        isam2_factorization: GTSAM's ISAM2 factorization on a log with loop closures,
+            ``"QR"`` (default) or ``"CHOLESKY"`` (GTSAM's default, and lampsam's on
+            logs without closures): with Cholesky, GTSAM's own iSAM2 throws
+            "indeterminate linear system" at pose 1191 of w20000.txt (16,601 of 20,061
+            updates fail), QR runs through.
         closure_kernel: robust loss on the loop-closure factors only: ``"none"``
             (Gaussian, default), ``"huber"`` or ``"cauchy"`` (GTSAM's
             ``mEstimator``), for files that may hold wrong closures.
@@ -34,7 +39,8 @@ class PoseGraphConfig:
             covariance (default 3.0).
     """
 
-    batch_init: str = "chain"
+    batch_init: str = "backend"
+    isam2_factorization: str = "QR"
     closure_kernel: str = "none"
     closure_kernel_k: float = field(default=3.0, metadata=limits(gt=0.0))
 
@@ -44,6 +50,9 @@ class PoseGraphConfig:
         if self.batch_init not in ("lago", "chain", "backend"):
             raise FieldValueError("batch_init", "must be 'lago', 'chain' or 'backend', got "
                                   f"{self.batch_init!r}")
+        if self.isam2_factorization not in ("QR", "CHOLESKY"):
+            raise FieldValueError("isam2_factorization", "must be 'QR' or 'CHOLESKY', got "
+                                  f"{self.isam2_factorization!r}")
         if self.closure_kernel not in ("none", "huber", "cauchy"):
             raise FieldValueError("closure_kernel", "must be 'none', 'huber' or 'cauchy', got "
                                   f"{self.closure_kernel!r}")

@@ -323,7 +323,10 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
     graph.add(prior)
     initial = gtsam.Values()
     initial.insert(X(0), gtsam.Pose2(*start))
-    isam = gtsam.ISAM2(cfg.to_gtsam()) if online else None
+    params = cfg.to_gtsam()
+    if g.closures:  # Cholesky throws "indeterminate" on pose graphs GTSAM's QR solves
+        params.setFactorization(config.graph.isam2_factorization)
+    isam = gtsam.ISAM2(params) if online else None
     update_times: list[float] = []
     estimate_times: list[float] = []
     step_times = np.full(n, t_plan / max(n, 1))  # the first pass, shared out over the steps

@@ -19,17 +19,19 @@ For each file:
   to the first pose.
 - ``gtsam-lm``: GTSAM's Levenberg-Marquardt (default parameters) from the file's vertices
   when every pose has one, else from ``gtsam.lago.initialize`` of GTSAM's graph (as GTSAM's
-  ``Pose2SLAMExample_lago.py``; ``load2D``'s own guess for the poses a file leaves out is
+  ``Pose2SLAMExample_lago.py``, each covariance cut to its diagonal, which LAGO requires:
+  :func:`lampsam.backend.pose_graph.lago_graph`; ``load2D``'s own guess for the poses a file leaves out is
   not used: on a backwards chain LM stops metres away from it). This is the reference of
   the RMS column; its chi-square says whether another solver found a lower minimum.
-- ``gtsam-isam2``: GTSAM's ISAM2 with lampsam's parameters (``Isam2Config.to_gtsam()``), one
+- ``gtsam-isam2``: GTSAM's ISAM2 with lampsam's parameters (``Isam2Config.to_gtsam()``, and
+  ``[graph] isam2_factorization`` on a file with closures, as lampsam's run), one
   ``update`` per pose in chain order with every factor whose later pose it is, the new pose
   predicted from the previous estimate and its odometry edge (as ``Pose2ISAM2Example.py``).
   The time reference of the ratio column.
 - ``lampsam-isam2``, ``lampsam-batch``: ``run_graph_log`` on lampsam's reading, default
-  config (batch starts from the chain's dead reckoning: ``[graph] batch_init``);
-  ``lampsam-batch-lago`` and ``lampsam-batch-isam2`` with ``batch_init = "lago"`` /
-  ``"backend"`` (the online iSAM2 pass first), one run each, for the choice of that default.
+  config (batch starts from the online iSAM2 pass: ``[graph] batch_init``);
+  ``lampsam-batch-chain`` and ``lampsam-batch-lago`` with ``batch_init = "chain"`` /
+  ``"lago"``, one run each, for the choice of that default.
 
 Columns: ``rms_vs_lm_m`` (RMS position difference from ``gtsam-lm`` over all poses),
 ``chi2`` (twice GTSAM's graph error, prior included, at each solution), ``wall_s`` and
@@ -55,6 +57,7 @@ import numpy as np
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log
+from lampsam.backend.pose_graph import lago_graph
 from lampsam.datasets.graph_text import GraphLog, read_graph_text
 
 DEV = ("noisyToyGraph.txt", "w100.graph", "w10000.graph", "w20000.txt")
@@ -88,7 +91,7 @@ def gtsam_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, ids: list
     if all(i in vertices for i in ids):
         start, how = initial, "file vertices"
     else:
-        start, how = gtsam.lago.initialize(graph), "LAGO"
+        start, how = gtsam.lago.initialize(lago_graph(graph)), "LAGO"
     return gtsam.LevenbergMarquardtOptimizer(graph, start, gtsam.LevenbergMarquardtParams()).optimize(), how
 
 
@@ -102,7 +105,10 @@ def gtsam_isam2(graph: gtsam.NonlinearFactorGraph, g: GraphLog, config: SlamConf
         f = graph.at(n)
         if f is not None:
             by_step.setdefault(max(order[key] for key in f.keys()), []).append(f)
-    isam = gtsam.ISAM2(config.isam2.to_gtsam())
+    params = config.isam2.to_gtsam()
+    if g.closures:  # as lampsam's run: [graph] isam2_factorization
+        params.setFactorization(config.graph.isam2_factorization)
+    isam = gtsam.ISAM2(params)
     pose = prev = gtsam.Pose2(*g.start_pose())
     fails = 0
     for k, pid in enumerate(g.pose_ids):
@@ -178,9 +184,10 @@ def bench_file(path: Path, repeats: int) -> list[dict[str, Any]]:
 
     row(f"gtsam-lm ({how})", ref, lm_wall, lm_cpu, "ok")
     row("gtsam-isam2", poses_of(isam, ids), is_wall, is_cpu, f"{fails} updates threw" if fails else "ok")
-    runs = [("lampsam-isam2", "isam2", "chain", repeats), ("lampsam-batch", "batch", "chain", repeats),
-            ("lampsam-batch-lago (1 run)", "batch", "lago", 1),
-            ("lampsam-batch-isam2 (1 run)", "batch", "backend", 1)]
+    runs = [("lampsam-isam2", "isam2", "backend", repeats),
+            ("lampsam-batch", "batch", "backend", repeats),
+            ("lampsam-batch-chain (1 run)", "batch", "chain", 1),
+            ("lampsam-batch-lago (1 run)", "batch", "lago", 1)]
     for label, backend, init, n_runs in runs:
         cfg = dataclasses.replace(config, graph=dataclasses.replace(config.graph, batch_init=init))
         res, wall, cpu = timed(lambda b=backend, c=cfg: run_graph_log(g, b, c), n_runs)
