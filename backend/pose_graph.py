@@ -9,10 +9,12 @@ reading of the same line) at the step of its later pose: iSAM2 gets it in that s
 update, batch LM sees the whole graph.
 
 Batch LM on a graph with loop closures starts (``[graph] batch_init``, :class:`~lampsam.
-backend.config_graph.PoseGraphConfig`) from GTSAM's LAGO (``gtsam.lago.initialize``: the
-headings from a linear least-squares over the cycles of the graph, then the positions given
-those headings; Carlone et al., IJRR 2014), from the chain's dead reckoning, or from the
-online iSAM2 pass; docs/log-format.md gives the figures behind the default.
+backend.config_graph.PoseGraphConfig`) from the online iSAM2 pass (default: ``[batch]
+init``), from the chain's dead reckoning, or from GTSAM's LAGO (``gtsam.lago.initialize``:
+the headings from a linear least-squares over the cycles of the graph, then the positions
+given those headings; Carlone et al., IJRR 2014). iSAM2 on such a log factorizes by QR
+(``[graph] isam2_factorization``). docs/log-format.md gives the figures behind both
+defaults.
 """
 
 from __future__ import annotations
