@@ -297,3 +297,15 @@ def test_cauchy_kernel_resists_wrong_closures(tmp_path: Path) -> None:
     robust = run_graph_log(g, "batch", robust_cfg).poses
     assert rms_xy(plain, ref) > 1.0
     assert rms_xy(robust, ref) < 0.1, (rms_xy(robust, ref), rms_xy(plain, ref))
+
+
+def test_graph_table_is_read_and_bad_values_are_named() -> None:
+    """``[graph]`` in a config file: read, and a bad value names its dotted key."""
+    from lampsam.config_loader import ConfigError
+
+    cfg = SlamConfig.from_dict({"graph": {"batch_init": "lago", "closure_kernel": "huber"}})
+    assert cfg.graph == PoseGraphConfig(batch_init="lago", closure_kernel="huber")
+    with pytest.raises(ConfigError, match=r"graph\.batch_init.*'lago', 'chain' or 'backend'"):
+        SlamConfig.from_dict({"graph": {"batch_init": "odometry"}})
+    with pytest.raises(ConfigError, match=r"graph\.closure_kernel_k"):
+        SlamConfig.from_dict({"graph": {"closure_kernel_k": -1.0}})
