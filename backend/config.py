@@ -20,6 +20,7 @@ import gtsam
 import numpy as np
 from scipy.special import chdtri
 
+from lampsam.backend.config_graph import PoseGraphConfig
 from lampsam.backend.config_offline import BatchConfig, ReassociationConfig
 from lampsam.config_loader import FieldValueError, check_limits, from_mapping, limits, plain
 from lampsam.datasets.odometry import Pose2OdometryModel
@@ -583,6 +584,8 @@ class SlamConfig:
             ``[pose2_odometry]``); a run's ``rig.yaml`` section of the same name
             overrides it. Wheel odometry takes its constants from ``rig.yaml``.
         online: the decoupled online run's mapping worker (``[online]``).
+        graph: loop closures of graph text logs (``[graph]``,
+            :class:`~lampsam.backend.config_graph.PoseGraphConfig`).
     """
 
     features: tuple[str, ...] = ("lamps", "corners")
@@ -594,6 +597,7 @@ class SlamConfig:
     reassociation: ReassociationConfig = field(default_factory=ReassociationConfig)
     pose2_odometry: Pose2OdometryModel = field(default_factory=Pose2OdometryModel)
     online: OnlineConfig = field(default_factory=OnlineConfig)
+    graph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
 
     def __post_init__(self) -> None:
         """Check the feature names (:class:`FieldValueError` naming the key)."""

@@ -23,6 +23,11 @@ observation records, association, gating state, per-step covariance records):
    step's pose from its keyframe's (:func:`~lampsam.backend.pose_cov.odometry_bridge`
    between keyframes) and each landmark's marginal.
 
+A log with loop closures (:attr:`~lampsam.datasets.graph_text.GraphLog.closures`) makes
+every pose a keyframe and adds each closure to the factors of its later pose's keyframe,
+after that keyframe's sightings (:mod:`lampsam.backend.pose_graph`); batch then starts
+from ``[graph] batch_init``.
+
 No pose covariance is computed (``run_graph_log(pose_covariances=False)``). Anything
 the fast path does not cover returns None from :func:`run_known_ids` and the caller
 runs the general path, which then gives the usual result and messages: a sample
@@ -50,6 +55,7 @@ from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, SlamResul
 from lampsam.backend.models import init_point2, landmark_estimate
 from lampsam.backend.odometry import Pose2Motion
 from lampsam.backend.pose_cov import compose_cov, odometry_bridge
+from lampsam.backend.pose_graph import closure_factor, closures_by_step, lago_start
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.errors import LampsamError
 from lampsam.factors.geometry import wrap_angle
@@ -210,6 +216,8 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
                    odo=[(np.zeros(3), np.zeros((3, 3)))],
                    step_delta=np.zeros((n, 3)), step_cov=np.zeros((n, 3, 3)))
     seen: set[int] = set()
+    every_pose = bool(g.closures)  # a pose graph: every pose a variable, as GTSAM's graph
+    closing = closures_by_step(g)
     k = 0
     since = 0
     first: tuple[FloatArray, FloatArray] = (np.zeros(3), np.zeros((3, 3)))
@@ -227,7 +235,7 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
             delta = pose_array(gtsam.Pose2(*delta).compose(gtsam.Pose2(*d)))
         since += 1
         a, b = int(bounds[i]), int(bounds[i + 1])
-        if a == b:  # no sighting: a step between keyframes
+        if a == b and not every_pose:  # no sighting: a step between keyframes
             if delta_cov is None:
                 delta_cov = first[1] + floor_to_step
             plan.step_kf[i] = k
@@ -260,6 +268,13 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
                 again.append(f)
         for f_again in again:
             graph.add(f_again)
+        plan.step_kf[i] = k
+        for e in closing.get(i, ()):  # loop closures whose later pose is this one
+            try:
+                graph.add(closure_factor(e, X(int(plan.step_kf[e.i])), X(int(plan.step_kf[e.j])),
+                                         config.graph))
+            except LampsamError:
+                return None
         plan.factors.append(graph)
         plan.new_lms.append(new)
         plan.sighted.append(lids[a:b])
@@ -267,7 +282,6 @@ def plan_log(g: GraphLog, motion: Pose2Motion, config: SlamConfig) -> LogPlan | 
         plan.pred_delta.append(delta)
         plan.odo.append((np.asarray(f_delta, float), np.asarray(f_cov, float)))
         plan.is_kf[i] = True
-        plan.step_kf[i] = k
         since = 0
     return plan
 
@@ -293,7 +307,8 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
     """
     if backend not in ("isam2", "batch") or (backend == "batch" and config.batch.huber_k is not None):
         return None
-    online = backend == "isam2" or config.batch.init == "isam2"
+    start_from = config.graph.batch_init if g.closures else "backend"
+    online = backend == "isam2" or (config.batch.init == "isam2" and start_from == "backend")
     t_plan = time.perf_counter()
     plan = plan_log(g, motion, config)
     if plan is None:
@@ -308,7 +323,10 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
     graph.add(prior)
     initial = gtsam.Values()
     initial.insert(X(0), gtsam.Pose2(*start))
-    isam = gtsam.ISAM2(cfg.to_gtsam()) if online else None
+    params = cfg.to_gtsam()
+    if g.closures:  # Cholesky throws "indeterminate" on pose graphs GTSAM's QR solves
+        params.setFactorization(config.graph.isam2_factorization)
+    isam = gtsam.ISAM2(params) if online else None
     update_times: list[float] = []
     estimate_times: list[float] = []
     step_times = np.full(n, t_plan / max(n, 1))  # the first pass, shared out over the steps
@@ -324,8 +342,10 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
             isam.update(new_graph, new_values)
             for _ in range(cfg.extra_updates):
                 isam.update()
-        except RuntimeError as exc:
-            log.debug("iSAM2 update failed at keyframe %d (%s): the general path runs", k, exc)
+        except RuntimeError as exc:  # with loop closures, say it: the general path has none
+            (log.warning if g.closures else log.debug)(
+                "iSAM2 update failed at keyframe %d (%s): the general path runs", k,
+                " ".join(str(exc).split())[:200])
             return False
         t1 = time.perf_counter()
         kf_pose = pose_array(isam.calculateEstimatePose2(X(k)))
@@ -363,6 +383,8 @@ def run_known_ids(g: GraphLog, backend: str, config: SlamConfig, motion: Pose2Mo
         status = "interrupted"
         log.warning("interrupted (%s): writing the %d keyframes finished so far",
                     exc or "KeyboardInterrupt", done)
+    if backend == "batch" and start_from == "lago" and done == len(plan.factors):
+        initial = lago_start(graph, initial, plan.new_lms) or initial
     return _finish(plan, g, config, backend, graph, initial, isam, predicted, done, status,
                    step_times, update_times, estimate_times)
 

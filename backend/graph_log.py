@@ -7,6 +7,7 @@ through the general per-step driver (:func:`lampsam.backend.slam.drive`).
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterator
 
@@ -17,12 +18,15 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.dense_log import run_known_ids
 from lampsam.backend.interface import Frame, SlamBackend, SlamResult
 from lampsam.backend.odometry import Pose2Motion
+from lampsam.backend.pose_graph import closures_unused_reason
 from lampsam.backend.slam import drive, make_backend
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.datasets.odometry import Pose2OdometryModel
 from lampsam.factors.geometry import wrap_angle
 from lampsam.frontend.measurements import RangeBearingFrame, RangeBearingObservation
 from lampsam.observe import listening
+
+log = logging.getLogger(__name__)
 
 
 def graph_log_steps(graph_log: GraphLog, known_ids: bool = True
@@ -108,8 +112,14 @@ def run_graph_log_backend(graph_log: GraphLog, backend: str = "isam2",
     if quick is not None:
         result = quick
     else:
+        if graph_log.closures:
+            log.warning("%s: the %d loop closures are not used by this run (%s): its poses "
+                        "are the odometry and landmarks alone", graph_log.path,
+                        len(graph_log.closures), closures_unused_reason(backend, config, known_ids,
+                                                                        pose_covariances))
         be = make_backend(backend, model, config, start)
         result = drive(be, graph_log_steps(graph_log, known_ids))
+    result.extra["loop_closures_used"] = float(len(graph_log.closures) if quick is not None else 0)
     result.extra["total_time_s"] = time.perf_counter() - t0
     result.extra["total_cpu_s"] = time.process_time() - c0
     return result, be

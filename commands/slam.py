@@ -233,6 +233,7 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
     import numpy as np
 
     from lampsam.backend.graph_log import run_graph_log
+    from lampsam.backend.pose_graph import closure_summary
     from lampsam.backend.slam import summary, write_landmarks, write_trajectory
     from lampsam.datasets.graph_text import read_graph_text, read_vertices
     from lampsam.datasets.logrun import Trajectory
@@ -241,11 +242,9 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
 
     glog = read_graph_text(args.run)
     no_landmarks = None
-    if glog.n_landmarks == 0:
-        no_landmarks = ("no landmark sightings: the trajectory is the odometry chained (dead "
-                        "reckoning)" + (f" and its {glog.n_skipped_edges} loop closures are not used"
-                                        if glog.n_skipped_edges else "")
-                        + "; to optimise a pose graph use gtsam.readG2o with an optimizer")
+    if glog.n_landmarks == 0 and not glog.closures:
+        no_landmarks = ("no landmark sightings and no loop closures: the trajectory is the "
+                        "odometry chained (dead reckoning)")
         log.warning("%s: %s", glog.path, no_landmarks)
     truth = None
     if args.truth:
@@ -288,9 +287,11 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                   "landmarks_in_file": glog.n_landmarks, "known_ids": known,
                   "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
                                  else "the origin (no VERTEX for the first pose)"),
-                  "skipped_non_odometry_edges": glog.n_skipped_edges}
+                  **closure_summary(glog, result, args.backend, config, known)}
     if no_landmarks:
         s["input"]["warning"] = no_landmarks
+    if "closures_warning" in s["input"]:  # EKF, no ids: backend/pose_graph.py
+        log.warning("%s: %s", glog.path, s["input"]["closures_warning"])
     write_json_atomic(out / "summary.json", s)
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o
@@ -314,6 +315,8 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
     if result.extra.get("n_held"):
         msg += (f"; {int(result.extra['n_held'])} sightings held as ambiguous, "
                 f"{int(result.extra['n_held_unused'])} of them never used")
+    if glog.closures:
+        msg += (f"; {s['input']['loop_closures_used']} of {len(glog.closures)} loop closures used")
     err = s.get("error")
     if err:
         msg += f"; position error RMS {err['position_rms_m']:.3f} m"

@@ -18,17 +18,23 @@ the odometry between consecutive poses and landmark sightings from poses:
   Cartesian sighting with information, turned into ``[bearing, range]`` with its
   covariance propagated to first order.
 
-Text after ``#`` is a comment. ``FIX id`` (g2o's gauge) is read and left out: lampsam holds
+Text after ``#`` is a comment. ``EQUIV i j`` (TORO's pose equivalence, in GTSAM's
+``w100.graph``) is counted and left out, as ``gtsam.load2D`` leaves it out (warned).
+``FIX id`` (g2o's gauge) is read and left out: lampsam holds
 the first pose with its prior (a warning names any other fixed id). A file written by
 ``lampsam slam ... --g2o`` reads back: its ``LAMPSAM_*`` lines (the ceiling model) are
 counted and left out, and as it writes each sighting twice (``EDGE_SE2_XY`` for g2o, ``BR``
 for GTSAM), a file holding both reads the ``BR`` lines only (warned).
 
 Each pose becomes one step, at time ``t = k`` s for the ``k``-th pose (the formats
-carry no times). An edge between poses that are not consecutive (a loop closure of
-a pose graph) has no place in a landmark-SLAM step stream: it is counted and left
-out, with a warning. Bad input gives a :class:`~lampsam.errors.DatasetError` naming
-the file and line.
+carry no times). The odometry chain is built in file order: an edge from the chain's
+last pose to a new one extends it, and so does an edge from a new pose to the last one
+(a chain written backwards, ``EDGE2 1 0`` as in GTSAM's ``w100.graph``: the edge
+``j_T_i`` is inverted, :func:`invert_edge`; a file whose first edge runs to a lower id
+starts its chain at that id). Every other pose-pose edge is a loop closure
+(:class:`PoseEdge`, kept as written, ``i_T_j``, between two poses of the chain,
+wherever the file lists it). Bad input gives a :class:`~lampsam.errors.DatasetError`
+naming the file and line (a closure to a pose that no odometry reaches: that edge's line).
 """
 
 from __future__ import annotations
@@ -67,6 +73,25 @@ class Sighting:
     cov: FloatArray
 
 
+@dataclass(frozen=True)
+class PoseEdge:
+    """A pose-pose edge that is not the odometry chain (a loop closure).
+
+    Attributes:
+        i, j: the step indices (positions in :attr:`GraphLog.pose_ids`) of its poses.
+        delta: (3,) the measured ``i_T_j`` (m, m, rad), as the file writes it.
+        cov: (3, 3) its covariance in GTSAM's ``Pose2`` tangent order ``(x, y, theta)``
+            (m^2, rad^2; a g2o information matrix inverted).
+        line: the file's line of the record (for messages).
+    """
+
+    i: int
+    j: int
+    delta: FloatArray
+    cov: FloatArray
+    line: int
+
+
 @dataclass
 class GraphLog:
     """A planar landmark-SLAM log read from a text file.
@@ -78,7 +103,10 @@ class GraphLog:
             (sample 0: zero, the start), ``t = k`` s.
         sightings: per pose, its landmark sightings.
         vertices: the file's ``VERTEX`` poses by id (initial values or truth).
-        n_skipped_edges: pose-pose edges that are not odometry (left out).
+        n_skipped_edges: pose-pose edges that are not odometry (the loop closures,
+            ``len(closures)`` when read by :func:`read_graph_text`).
+        closures: the loop closures (:class:`PoseEdge`), in file order.
+        n_reversed: odometry edges written backwards (``j -> j-1``) and inverted.
     """
 
     path: Path
@@ -87,6 +115,8 @@ class GraphLog:
     sightings: list[list[Sighting]]
     vertices: dict[int, FloatArray] = field(default_factory=dict)
     n_skipped_edges: int = 0
+    closures: list[PoseEdge] = field(default_factory=list)
+    n_reversed: int = 0
 
     @property
     def n_landmarks(self) -> int:
@@ -117,6 +147,31 @@ def _covariance_2d(v: list[float]) -> FloatArray:
     if v[0] != 0 and v[1] == 0 and v[2] != 0 and v[3] != 0 and v[4] == 0 and v[5] == 0:
         return np.array([[v[0], v[1], v[4]], [v[1], v[2], v[5]], [v[4], v[5], v[3]]])
     return _sym(v)
+
+
+def invert_edge(delta: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The edge ``j_T_i`` of a measured ``i_T_j`` with its covariance.
+
+    With GTSAM's right perturbation (``T exp(xi)``, ``xi = (x, y, theta)``),
+    ``(T exp(xi))^-1 = T^-1 exp(-Ad_T xi)``: the inverse's covariance is
+    ``Ad_T cov Ad_T^T``, ``Ad_T = [[c, -s, y], [s, c, -x], [0, 0, 1]]`` (``Pose2``'s
+    adjoint), exactly, not to first order only; a ``BetweenFactorPose2`` on the
+    inverted edge has the same error at every pair of poses as the original.
+
+    Args:
+        delta: (3,) ``i_T_j`` as ``(x, y, theta)``, m and rad.
+        cov: (3, 3) its covariance.
+
+    Returns:
+        ``(delta (3,), cov (3, 3))`` of ``j_T_i`` (theta wrapped to (-pi, pi]).
+    """
+    x, y, th = (float(v) for v in delta)
+    c, s = math.cos(th), math.sin(th)
+    inv = np.array([-(c * x + s * y), s * x - c * y, -th])
+    inv[2] = math.atan2(math.sin(inv[2]), math.cos(inv[2]))
+    ad = np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
+    out = ad @ np.asarray(cov, float) @ ad.T
+    return inv, 0.5 * (out + out.T)
 
 
 #: Records of 3-D files (GTSAM's ``pose3example.txt``, g2o SE3 graphs), refused by name.
@@ -195,7 +250,9 @@ def read_graph_text(path: str | Path) -> GraphLog:
     fixed: list[str] = []
     n_lampsam = 0
     vertices: dict[int, FloatArray] = {}
-    skipped = 0
+    edges: list[tuple[int, int, FloatArray, FloatArray, int, str]] = []  # not the chain
+    n_reversed = 0
+    n_equiv = 0
     counts = {"ODOMETRY": 11, "EDGE2": 11, "EDGE_SE2": 11, "LANDMARK": 7, "LANDMARK2": 7,
               "EDGE_SE2_XY": 7, "BR": 6, "VERTEX2": 4, "VERTEX_SE2": 4, "VERTEX_XY": 3,
               "VERTEX": 4}
@@ -207,6 +264,9 @@ def read_graph_text(path: str | Path) -> GraphLog:
             tag = parts[0]
             if tag == "FIX":  # g2o's gauge; lampsam holds the first pose (one id per field)
                 fixed.extend(parts[1:])
+                continue
+            if tag == "EQUIV":  # TORO's pose equivalence (w100.graph); GTSAM's load2D skips it
+                n_equiv += 1
                 continue
             if tag.startswith("LAMPSAM_"):  # lampsam's ceiling-model lines (its --g2o)
                 n_lampsam += 1
@@ -251,22 +311,27 @@ def read_graph_text(path: str | Path) -> GraphLog:
                 except np.linalg.LinAlgError:
                     raise DatasetError(f"{tag} {i} {j}: the {'information' if tag == 'EDGE_SE2' else 'covariance'}"
                                        " matrix is not positive definite", path, line_no) from None
-                if not pose_ids:
+                delta = np.array(nums[:3])
+                cov = np.asarray(cov, dtype=np.float64)
+                if not pose_ids:  # the first edge starts the chain at its lower id
+                    if j < i:
+                        i, j = j, i
+                        delta, cov = invert_edge(delta, cov)
+                        n_reversed += 1
                     pose_ids.append(i)
                     index[i] = 0
                 if i == pose_ids[-1] and j not in index:
-                    index[j] = len(pose_ids)
-                    pose_ids.append(j)
-                    deltas.append(np.array(nums[:3]))
-                    covs.append(np.asarray(cov, dtype=np.float64))
-                elif i in index and j in index:
-                    skipped += 1
-                else:
-                    raise DatasetError(f"{tag} {i} {j}: odometry must continue from the last "
-                                       f"pose ({pose_ids[-1]}): the pose-pose records must chain "
-                                       "the poses in file order, each from the previous pose to a "
-                                       "new one (a chain written backwards, j -> j-1, is not read)",
-                                       path, line_no)
+                    extend = (j, delta, cov)
+                elif j == pose_ids[-1] and i not in index:  # written backwards: j -> j-1
+                    extend = (i, *invert_edge(delta, cov))
+                    n_reversed += 1
+                else:  # a loop closure: checked when the chain is complete
+                    edges.append((i, j, delta, cov, line_no, tag))
+                    continue
+                index[extend[0]] = len(pose_ids)
+                pose_ids.append(extend[0])
+                deltas.append(extend[1])
+                covs.append(extend[2])
                 continue
             i, lid = ids
             if tag == "BR":
@@ -304,6 +369,9 @@ def read_graph_text(path: str | Path) -> GraphLog:
         pending = [q for q in pending if q[3] != "EDGE_SE2_XY"]
         log.warning("%s: both BR and EDGE_SE2_XY sightings (as lampsam's --g2o writes each "
                     "sighting): the %d EDGE_SE2_XY lines are left out, the BR lines read", path, n_xy)
+    if n_equiv:
+        log.warning("%s: %d EQUIV lines (TORO's pose equivalences) left out, as GTSAM's load2D "
+                    "leaves them out", path, n_equiv)
     if n_lampsam:
         log.warning("%s: %d LAMPSAM_* lines (lampsam's ceiling-model factors) left out: a planar "
                     "log reads the standard records", path, n_lampsam)
@@ -315,13 +383,25 @@ def read_graph_text(path: str | Path) -> GraphLog:
         if i not in index:
             raise DatasetError(f"sighting from pose {i}, which no odometry reaches", path, line_no)
         sightings[index[i]].append(s)
-    if skipped:
-        log.warning("%s: %d pose-pose edges that are not odometry (loop closures) left out",
-                    path, skipped)
+    closures: list[PoseEdge] = []
+    for i, j, delta, cov, line_no, tag in edges:
+        lost = next((x for x in (i, j) if x not in index), None)
+        if lost is not None:
+            raise DatasetError(f"{tag} {i} {j}: pose {lost} is not on the odometry chain "
+                               f"({pose_ids[0]} ... {pose_ids[-1]}, {len(pose_ids)} poses): a loop "
+                               "closure must join two poses that the odometry reaches (each "
+                               "odometry edge runs from the chain's last pose to a new one, "
+                               "or back)", path, line_no)
+        if i == j:
+            raise DatasetError(f"{tag} {i} {j}: an edge from a pose to itself", path, line_no)
+        closures.append(PoseEdge(index[i], index[j], delta, cov, line_no))
+    if closures:
+        log.info("%s: %d loop closures (pose-pose edges off the odometry chain)", path,
+                 len(closures))
     n = len(pose_ids)
     odo = Pose2OdometryLog(t=np.arange(n, dtype=float), delta=np.array(deltas),
                            cov=np.array(covs))
-    return GraphLog(path, pose_ids, odo, sightings, vertices, skipped)
+    return GraphLog(path, pose_ids, odo, sightings, vertices, len(closures), closures, n_reversed)
 
 
 def read_vertices(path: str | Path) -> dict[int, FloatArray]:

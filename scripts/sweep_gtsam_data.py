@@ -12,8 +12,8 @@ temporary folder (the first lines; named in the table). Each run is classified:
 
 Where the known-id batch works and GTSAM reads the file (``gtsam.load2D`` for iSAM text,
 ``gtsam.readG2o(path, False)`` for ``.g2o``), GTSAM's Levenberg-Marquardt is run on GTSAM's
-own graph of the same (possibly truncated) file, with the pose-pose edges that are not
-odometry (loop closures, which lampsam leaves out by design) removed and a tight prior on the
+own graph of the same (possibly truncated) file, loop closures included (lampsam's iSAM2 and
+batch use them; until issue #15 they were left out of both), with a tight prior on the
 first pose at lampsam's start, starting from lampsam's batch estimate (poses and the
 landmarks of ``landmarks.csv``, 6 significant digits). If lampsam builds the same graph and
 reached its minimum, LM does not move: the table gives the largest position and heading
@@ -130,19 +130,12 @@ def compare_with_gtsam(path: Path, traj: np.ndarray, landmarks: dict[int, np.nda
         graph, initial = gtsam.readG2o(str(path), False)
     else:
         graph, initial = gtsam.load2D(str(path))
-    chain = set(zip(glog.pose_ids[:-1], glog.pose_ids[1:], strict=True))
     pose_keys = set(glog.pose_ids)
     kept = gtsam.NonlinearFactorGraph()
-    n_dropped = 0
     for k in range(graph.size()):
         f = graph.at(k)
-        if f is None:
-            continue
-        keys = list(f.keys())
-        if len(keys) == 2 and all(key in pose_keys for key in keys) and tuple(keys) not in chain:
-            n_dropped += 1
-            continue
-        kept.add(f)
+        if f is not None:
+            kept.add(f)
     n_sightings = sum(len(ss) for ss in glog.sightings)
     n_gtsam = sum(1 for k in range(kept.size()) if kept.at(k) is not None
                   and not all(key in pose_keys for key in kept.at(k).keys()))
@@ -171,7 +164,7 @@ def compare_with_gtsam(path: Path, traj: np.ndarray, landmarks: dict[int, np.nda
     dyaw = np.abs(np.angle(np.exp(1j * (ref[:, 2] - traj[:, 2]))))
     return (f"max |dp| {dpos.max():.2e} m, max |dtheta| {dyaw.max():.2e} rad over {len(ref)} poses;"
             f" GTSAM graph error {err_ours:.6g} (lampsam) vs {err_lm:.6g} (LM)"
-            + (f" ({n_dropped} loop closures left out of both)" if n_dropped else ""))
+            + (f" ({len(glog.closures)} loop closures in both)" if glog.closures else ""))
 
 
 def main() -> None:

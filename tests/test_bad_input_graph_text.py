@@ -99,3 +99,32 @@ def test_own_g2o_export_reads_back(tmp_path: Path) -> None:
     yaw = 2 * np.arctan2(est[:, 6], est[:, 7])
     assert np.abs(est[:, 1:3] - ref[:, :2]).max() < 1e-4  # m (measured 4.9e-6: LM tolerance)
     assert np.abs(np.angle(np.exp(1j * (yaw - ref[:, 2])))).max() < 1e-4  # rad (5e-7)
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    ("EDGE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE2 1 2 1 0 0 1 0 0 1 0 1\nEDGE2 0 9 0 0 0 1 0 0 1 0 1\n",
+     r"g.txt:3: EDGE2 0 9: pose 9 is not on the odometry chain \(0 ... 2, 3 poses\): a loop "
+     r"closure must join two poses that the odometry reaches"),
+    ("EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 7 0 0 0 0 1 0 0 1 0 1\nEDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n",
+     r"g.txt:2: EDGE_SE2 7 0: pose 7 is not on the odometry chain"),
+    ("EDGE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE2 1 1 0 0 0 1 0 0 1 0 1\n",
+     r"g.txt:2: EDGE2 1 1: an edge from a pose to itself"),
+], ids=["closure_to_missing_pose", "closure_from_missing_pose", "self_edge"])
+def test_bad_loop_closures_are_named(tmp_path: Path, text: str, match: str) -> None:
+    """A loop closure to a pose that no odometry reaches names the closure's own line (was:
+    every pose-pose edge off the chain left out with one warning)."""
+    path = tmp_path / "g.txt"
+    path.write_text(text)
+    with pytest.raises(DatasetError, match=match):
+        read_graph_text(path)
+
+
+def test_closure_listed_before_its_pose_is_read(tmp_path: Path) -> None:
+    """w100.graph lists ``EDGE2 99 40`` before ``EDGE2 99 98`` brings pose 99 onto the
+    chain: the closure is resolved once the whole file is read."""
+    path = tmp_path / "g.graph"
+    path.write_text("EDGE2 1 0 -1 0 0 1 0 1 1 0 0\nEDGE2 2 0 -2 0 0 1 0 1 1 0 0\n"
+                    "EDGE2 2 1 -1 0 0 1 0 1 1 0 0\nEQUIV 2 0\n")
+    log = read_graph_text(path)
+    assert log.pose_ids == [0, 1, 2] and log.n_reversed == 2
+    assert [(e.i, e.j, e.line) for e in log.closures] == [(2, 0, 2)]

@@ -65,8 +65,8 @@ def test_gtsam_example_graph_batch_matches_gtsam_lm() -> None:
     ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n", r"g.txt:1: 3-D record 'VERTEX_SE3:QUAT'"),
     ("EDGE3 0 1 1 0 0 0 0 0\n", r"g.txt:1: 3-D record 'EDGE3'"),
     ("3.857e+003\t2.3e-004\t-5.2e-005\n", r"g.txt:1: the line starts with a number .*not an iSAM"),
-    ("EDGE2 1 0 -1 0 0 1 0 1 1 0 0\nEDGE2 2 1 -1 0 0 1 0 1 1 0 0\n",
-     r"g.txt:2: EDGE2 2 1: odometry must continue .*written backwards"),
+    ("EDGE2 0 1 1 0 0 1 0 1 1 0 0\nEDGE2 3 4 1 0 0 1 0 1 1 0 0\n",
+     r"g.txt:2: EDGE2 3 4: pose 3 is not on the odometry chain \(0 ... 1, 2 poses\)"),
 ])
 def test_other_graph_files_are_refused_by_name(text: str, match: str, tmp_path: Path) -> None:
     p = tmp_path / "g.txt"
@@ -75,18 +75,30 @@ def test_other_graph_files_are_refused_by_name(text: str, match: str, tmp_path: 
         read_graph_text(p)
 
 
-def test_pose_graph_without_landmarks_warns_dead_reckoning(
+def test_pose_graph_without_landmarks_uses_its_closures(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """A pose graph (odometry + loop closures, no landmarks) runs, but says what it is."""
+    """A pose graph (odometry + a loop closure, no landmarks) was dead reckoning with a
+    warning; iSAM2 now uses the closure and warns of nothing (tests/test_pose_graph.py
+    holds it against GTSAM's LM)."""
     p = tmp_path / "pg.g2o"
     p.write_text("".join(f"EDGE_SE2 {k} {k + 1} 1 0 0.5 100 0 0 100 0 400\n" for k in range(6))
                  + "EDGE_SE2 6 0 0 0 0 100 0 0 100 0 400\n")
     with caplog.at_level(logging.WARNING):
         rc = main(["slam", str(p), "--backend", "isam2", "--out", str(tmp_path / "out")])
-    assert rc == 0
-    assert "no landmark sightings" in caplog.text and "1 loop closures are not used" in caplog.text
+    assert rc == 0 and "dead reckoning" not in caplog.text
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert "dead reckoning" in s["input"]["warning"] and s["steps"] == 7
+    assert s["input"]["loop_closures_used"] == 1 and "warning" not in s["input"] and s["steps"] == 7
+
+
+def test_odometry_alone_warns_dead_reckoning(tmp_path: Path, caplog: pytest.LogCaptureFixture
+                                            ) -> None:
+    """A chain without sightings or closures is dead reckoning, and says so."""
+    p = tmp_path / "chain.g2o"
+    p.write_text("".join(f"EDGE_SE2 {k} {k + 1} 1 0 0.5 100 0 0 100 0 400\n" for k in range(6)))
+    with caplog.at_level(logging.WARNING):
+        assert main(["slam", str(p), "--backend", "isam2", "--out", str(tmp_path / "out")]) == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert "dead reckoning" in caplog.text and "dead reckoning" in s["input"]["warning"]
 
 
 @pytest.mark.parametrize(("files", "hint"), [
