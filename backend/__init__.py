@@ -20,6 +20,7 @@ Modules:
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
 * :mod:`~lampsam.backend.ceiling_map_io` -- The saved ceiling map: write it once after mapping, read it back every day.
 * :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+* :mod:`~lampsam.backend.config_graph` -- Configuration of pose-graph edges read from text logs (``[graph]``): the loop closures of an iSAM / g2o file (:mod:`lampsam.backend.pose_graph`).
 * :mod:`~lampsam.backend.config_offline` -- Configuration of the offline passes: batch Levenberg-Marquardt (``[batch]``) and the batch re-association without ids (``[reassociation]``).
 * :mod:`~lampsam.backend.constellation` -- Revisit detection by constellation: a 2-D rigid alignment of recent landmarks to the map.
 * :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
@@ -64,6 +65,7 @@ Modules:
 * :mod:`~lampsam.backend.pipelined` -- Frontend and estimator overlapped: ceiling frames made ahead in a worker.
 * :mod:`~lampsam.backend.planar_gate` -- Vectorised range-bearing prediction and gate against every planar landmark (eqs. 19-20).
 * :mod:`~lampsam.backend.pose_cov` -- Pose-covariance algebra on SE(2) in GTSAM's right tangent (docs/conventions.md).
+* :mod:`~lampsam.backend.pose_graph` -- Loop closures of a graph text log as factors, and the batch start on a graph with them.
 * :mod:`~lampsam.backend.reassociate` -- Batch association without ids: re-associate every sighting against the optimised map.
 * :mod:`~lampsam.backend.revisit_merge` -- Revisit check without ids: the local scan matched to the older map by constellation.
 * :mod:`~lampsam.backend.slam` -- Run a SLAM backend over a logged run, and write its results.
