@@ -55,7 +55,9 @@ from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
 from lampsam.backend.online_final import final_solve, online_association
 from lampsam.backend.reassociate import Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
+from lampsam.datasets.landmark_log_heldout import HeldOutSpec, simulate_held_out
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+from lampsam.safe_io import write_text_atomic
 
 #: A run whose RMS from GTSAM's LM exceeds this (m) counts as diverged.
 DIVERGED_M = 5.0
@@ -69,8 +71,41 @@ VARIANTS: dict[str, list[str]] = {
 
 
 
+#: Held-out logs of the online picker (session 16, engineer autopick): specs and seeds fixed
+#: at 22:55 UTC on 2026-11-24, before any candidate ran on them, and not looked at until the
+#: final table (:mod:`lampsam.datasets.landmark_log_heldout`'s simulator, new specs):
+#: ``corridor``: a 150 m x 6 m loop driven twice with 120 trees 2-3 m either side (a
+#: corridor: few trees in view, the two sides 6 m apart); ``odo3x``: a uniform field whose
+#: odometry noise is 3x the stated sigma (understated); ``overstated``: a uniform field
+#: whose odometry noise is 1/4 of the stated sigma (stated too large, as
+#: victoriaPark_reduced_1k's).
+NEW_HELD_OUT: dict[str, tuple[HeldOutSpec, int]] = {
+    "corridor": (HeldOutSpec(layout="loop", n_landmarks=120, loop_size=(150.0, 6.0),
+                             corridor=3.0, laps=2, max_range=10.0), 201),
+    "odo3x": (HeldOutSpec(layout="uniform", n_poses=2000, n_landmarks=250, extent=120.0,
+                          true_noise=3.0, max_range=12.0), 202),
+    "overstated": (HeldOutSpec(layout="uniform", n_poses=2000, n_landmarks=250,
+                               extent=120.0, true_noise=0.25, max_range=12.0), 203),
+}
+
+
+def write_new_held_out(path: Path, name: str) -> Path:
+    """Write :data:`NEW_HELD_OUT` log ``name`` to ``path`` and its truth to
+    ``<stem>_truth.txt`` (``VERTEX2``), as ``landmark_log_heldout.write_held_out``."""
+    spec, seed = NEW_HELD_OUT[name]
+    lines, truth, _ = simulate_held_out(spec, np.random.default_rng(seed))
+    write_text_atomic(path, "\n".join(lines) + "\n")
+    write_text_atomic(path.with_name(path.stem + "_truth.txt"),
+                      "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
+                              for k, p in enumerate(truth)))
+    return path
+
+
 def load_log(scale: ModuleType, name: str, out: Path) -> GraphLog:
     """A log by name (module doc)."""
+    if name in NEW_HELD_OUT:
+        out.mkdir(parents=True, exist_ok=True)
+        return read_graph_text(write_new_held_out(out / f"heldout_{name}.txt", name))
     if name == "synth2":
         out.mkdir(parents=True, exist_ok=True)
         spec = LandmarkLogSpec(n_landmarks=800, sigma_fwd=0.02, sigma_side=0.06,
@@ -89,7 +124,8 @@ def load_truth(g: GraphLog, name: str, out: Path) -> np.ndarray | None:
     """(n, 3) true poses of a simulated log (written beside it), else None."""
     stem = {"synthetic": "synthetic", "synth2": "synth2"}.get(name, f"heldout_{name}")
     tpath = out / f"{stem}_truth.txt"
-    if name not in ("synthetic", "synth2", "grid", "loop", "odo2x") or not tpath.exists():
+    if (name not in ("synthetic", "synth2", "grid", "loop", "odo2x", *NEW_HELD_OUT)
+            or not tpath.exists()):
         return None
     v = read_vertices(tpath)
     return np.array([v[i] for i in g.pose_ids])
