@@ -52,7 +52,7 @@ from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
-from lampsam.backend.online_final import final_solve, online_association
+from lampsam.backend.online_final import final_solve, online_association, run_online_picker
 from lampsam.backend.reassociate import Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
 from lampsam.datasets.landmark_log_heldout import HeldOutSpec, simulate_held_out
@@ -67,7 +67,10 @@ VARIANTS: dict[str, list[str]] = {
     "both": ["association.planar_unique=true", "association.revisit_check=true"],
     "both16": ["association.planar_unique=true", "association.revisit_check=true",
                "pose2_odometry.cov_scale=16"],
+    "picker": [],  # [reassociation] online_candidates = --candidates (run_picker)
 }
+#: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
+PICKER_CANDIDATES = "defaults,both+cov_scale=16,cov_scale=1/16,both+cov_scale=1/16"
 
 
 
@@ -146,6 +149,9 @@ def main() -> None:
     ap.add_argument("--variants", default="",
                     help=f"comma-separated named settings ({', '.join(VARIANTS)}), each run "
                          "after the --set overrides; empty: --set alone")
+    ap.add_argument("--candidates", default=PICKER_CANDIDATES,
+                    help="the picker variant's [reassociation] online_candidates, "
+                         f"comma-separated (default {PICKER_CANDIDATES})")
     ap.add_argument("--diagnose", action="store_true",
                     help="also the known-id batch on the sightings the online run recorded "
                          "(what the held and dropped sightings cost, apart from the association)")
@@ -185,8 +191,56 @@ def main() -> None:
         for v in variants:
             config = bench.with_overrides(SlamConfig(), args.set + VARIANTS.get(v, []))
             label = f"{v}: {base_label}" if v and args.set else (v or base_label)
+            if v == "picker":
+                config = dataclasses.replace(config, reassociation=dataclasses.replace(
+                    config.reassociation, online_candidates=tuple(args.candidates.split(","))))
+                run_picker(g, name, config, label, args, scale, lm, truth, twins, n_trees2)
+                continue
             run_variant(g, name, config, label, args, bench, scale, lm, truth, twins, n_trees2,
                         n_sight)
+
+
+def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
+               args: argparse.Namespace, scale: ModuleType, lm: np.ndarray,
+               truth: np.ndarray | None, twins: dict[int, int], n_trees2: int) -> None:
+    """The online picker (:func:`lampsam.backend.online_final.run_online_picker`) per
+    backend: one row per candidate (its final solve's RMS, count, ``C``, CPU), then the
+    choice, and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM."""
+    for b in args.backends.split(","):
+        c0 = time.process_time()
+        final, _, cands, chosen = run_online_picker(g, b, config)
+        c_all = time.process_time() - c0
+        rms: list[float] = []
+        for c in cands:
+            if c.solve is None:
+                rms.append(float("nan"))
+                on = c.online
+                r_on = (_rms(on.poses, lm[:len(on.poses)]) if on is not None and len(on.poses)
+                        else float("nan"))
+                print(f"| {name} | {b} candidate {c.name}: {c.status[:70]} | online {r_on:.3f} | "
+                      f"| | | | | {c.cpu_s:.1f} | (loses) |", flush=True)
+                continue
+            run = c.solve
+            mapped, dup, wrong = scale.score(run.sightings, scale.tree_ids(g, run.sightings,
+                                                                           twins))
+            r = _rms(run.poses, lm)
+            rms.append(r)
+            held = int(c.online.extra.get("n_held_unused", 0)) if c.online is not None else 0
+            div = "yes" if not (np.isfinite(r) and r <= DIVERGED_M) else ""
+            print(f"| {name} | {b} candidate {c.name} ({held} held unused, "
+                  f"{run.n_dropped} not in the association{_vs_truth(run.poses, truth)}) | "
+                  f"{r:.3f} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
+                  f"{run.cost:.1f} | | {c.cpu_s:.1f} | {div} |", flush=True)
+        ok = [i for i, x in enumerate(rms) if np.isfinite(x)]
+        best = min(ok, key=lambda i: rms[i]) if ok else -1
+        r_ch = rms[chosen]
+        verdict = ("C picked the best by RMS" if chosen == best else
+                   f"best by RMS: {cands[best].name} ({rms[best]:.3f})" if best >= 0 else "none")
+        div = "yes" if not (np.isfinite(r_ch) and r_ch <= DIVERGED_M) else ""
+        print(f"| {name} | **{b} picker ({label}) -> {cands[chosen].name}**; {verdict}"
+              f"{_vs_truth(final.poses, truth)} | **{r_ch:.3f}** | "
+              f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].cost:.1f} | | "
+              f"{c_all:.1f} (all) | {div} |", flush=True)
 
 
 def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
