@@ -30,6 +30,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +50,9 @@ from lampsam.backend.noids_offline import (
 )
 from lampsam.backend.reassociate import Sightings, first_sight_positions, sightings_from
 from lampsam.datasets.graph_text import GraphLog
+from lampsam.errors import LampsamError
 from lampsam.interrupt import stop_requested
+from lampsam.observe import observing
 
 log = logging.getLogger(__name__)
 
@@ -197,12 +201,31 @@ class Candidate:
                 "cpu_s": round(self.cpu_s, 3)}
 
 
-def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | None
-                   ) -> Candidate:
-    """One candidate: the online run with ``spec``'s changes, then :func:`final_solve` of
-    its association with ``config`` as given (its ``cov_scale`` replaced by the
-    candidate's, which only sets the recorded ``noids_scale``): every candidate's ``C``
-    is then the same sightings under the same noise and the same ``c_new``."""
+class OverBudget(LampsamError):
+    """A candidate's online run went past its CPU budget
+    (``[reassociation] online_candidate_cpu_factor``)."""
+
+
+def _budget_watch(c0: float, budget_s: float) -> Callable[[str, Mapping[str, Any]], None]:
+    """An observer (:mod:`lampsam.observe`) that raises :class:`OverBudget` at the first
+    step after ``budget_s`` s of process CPU since ``c0``; the run's driver then ends it
+    as failed, keeping its finished steps."""
+
+    def watch(event: str, _: Mapping[str, Any]) -> None:
+        if event == "slam.step" and time.process_time() - c0 > budget_s:
+            raise OverBudget(f"stopped after {budget_s:.1f} s of CPU (its budget: "
+                             "[reassociation] online_candidate_cpu_factor)")
+
+    return watch
+
+
+def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | None,
+                   budget_s: float = float("inf")) -> Candidate:
+    """One candidate: the online run with ``spec``'s changes (stopped past ``budget_s``
+    s of CPU), then :func:`final_solve` of its association with ``config`` as given (its
+    ``cov_scale`` replaced by the candidate's, which only sets the recorded
+    ``noids_scale``): every candidate's ``C`` is then the same sightings under the same
+    noise and the same ``c_new``."""
     name = "as given" if spec is None else spec
     if stop_requested():
         return Candidate(name, "not run (stop requested)")
@@ -212,7 +235,8 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
     quiet = CandidatePruneFilter()  # the online map's pruning is not the written map's
     online_log.addFilter(quiet)
     try:
-        online, be = run_graph_log_backend(g, backend, cfg, known_ids=False)
+        with observing(_budget_watch(c0, budget_s) if np.isfinite(budget_s) else None):
+            online, be = run_graph_log_backend(g, backend, cfg, known_ids=False)
     finally:
         online_log.removeFilter(quiet)
     if online.n_pruned:
@@ -266,10 +290,14 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
         run; when no candidate has a final solve, the answer is the chosen one's online
         run (``online_final`` 0; ``online`` None, or None too when no candidate ran).
     """
-    specs: list[str | None] = list(config.reassociation.online_candidates) or [None]
-    cands = []
+    rc = config.reassociation
+    specs: list[str | None] = list(rc.online_candidates) or [None]
+    cands: list[Candidate] = []
     for spec in specs:
-        c = _run_candidate(g, backend, config, spec)
+        done = [x.cpu_s for x in cands if x.status == "ok"]
+        budget = (max(rc.online_candidate_cpu_factor * min(done),
+                      rc.online_candidate_cpu_floor_s) if done else float("inf"))
+        c = _run_candidate(g, backend, config, spec, budget)
         log.info("online candidate %s: %s, C %.1f, %.1f s CPU", c.name, c.status, c.cost,
                  c.cpu_s)
         cands.append(c)

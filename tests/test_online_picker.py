@@ -167,3 +167,30 @@ def test_online_candidates_are_checked() -> None:
                       (["both", "both"], "twice")]:
         with pytest.raises(ConfigError, match=said):
             SlamConfig.from_dict({"reassociation": {"online_candidates": bad}})
+
+
+def test_a_candidate_past_its_cpu_budget_is_stopped_and_loses(
+        small: tuple[Path, Path, GraphLog], monkeypatch: pytest.MonkeyPatch) -> None:
+    """An online run past its CPU budget stops at the next step, failed, and loses; the
+    budget is ``online_candidate_cpu_factor`` times the least CPU of the candidates
+    finished before it, at least ``online_candidate_cpu_floor_s``; the first has none."""
+    import lampsam.backend.online_final as of
+
+    _, _, g = small
+    c = of._run_candidate(g, "isam2", SlamConfig(), "defaults", budget_s=0.0)
+    assert c.status.startswith("online failed: stopped after 0.0 s of CPU") and c.final is None
+    assert c.online is not None and len(c.online.poses) < len(g.pose_ids)
+    budgets: list[float] = []
+    cpu = iter([2.0, 0.5, 9.0])
+
+    def fake(g_: GraphLog, backend: str, config: SlamConfig, spec: str | None,
+             budget_s: float = float("inf")) -> of.Candidate:
+        budgets.append(budget_s)
+        return of.Candidate(str(spec), "ok", 1.0 + len(budgets), cpu_s=next(cpu))
+
+    monkeypatch.setattr(of, "_run_candidate", fake)
+    cfg = _with(SlamConfig(), "defaults", "both", "cov_scale=16")
+    cfg = dataclasses.replace(cfg, reassociation=dataclasses.replace(
+        cfg.reassociation, online_candidate_cpu_factor=4.0, online_candidate_cpu_floor_s=3.0))
+    of.run_online_picker(g, "isam2", cfg)  # the fakes have no final solve: an online answer
+    assert budgets == [float("inf"), 8.0, 3.0]
