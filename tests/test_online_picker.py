@@ -123,12 +123,22 @@ def test_a_failed_candidate_loses_and_is_reported(
 
 
 def test_cli_summary_lists_every_candidate_and_the_choice(
-        small: tuple[Path, Path, GraphLog], tmp_path: Path,
+        small: tuple[Path, Path, GraphLog], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture) -> None:
     """``summary.json`` names the online backend and the final solve's, lists every
     candidate (name, status, C, landmarks, held / unused, CPU) and the chosen one; the
-    written files are the chosen candidate's; no pruning warning speaks of an online
-    map that is not the one written."""
+    written files are the chosen candidate's; the online runs' pruning warnings (one
+    faked here per run) are not printed: their maps are not the one written."""
+    import lampsam.backend.online_final as of
+    from lampsam.backend.interface import log_pruned
+
+    real = of.run_graph_log_backend
+
+    def pruning(*args: object, **kw: object):  # type: ignore[no-untyped-def]
+        log_pruned(7, {"seen_too_few": 7}, 2)  # as an online run that pruned its map says
+        return real(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(of, "run_graph_log_backend", pruning)
     path, tpath, _ = small
     (tmp_path / "c.toml").write_text(
         '[reassociation]\nonline_candidates = ["defaults", "cov_scale=10000"]\n')
