@@ -244,7 +244,7 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
     # a stopped or failed run's last keyframe may hold sightings past the steps it kept:
     # its status is checked before its association is read
     if online.status != "ok" or be is None:
-        return Candidate(name, f"online {online.status}", online=online,
+        return Candidate(name, "online " + " ".join(online.status.split()), online=online,
                          cpu_s=time.process_time() - c0)
     s = online_association(be, online)
     if not len(s.k):
