@@ -22,6 +22,14 @@ never used, or dropped between its gate and the new-landmark threshold, are not 
 association; the description length charges each as a sighting that matches nothing,
 as offline.
 
+The online picker (:func:`run_online_picker`, ``[reassociation] online_candidates``):
+no single online setting holds on every log, so each candidate setting is run online and
+final-solved, and the final solve with the least description length ``C`` is kept. Only
+the online run sees a candidate's changes; every final solve uses the config as given,
+so the ``C`` are of the same sightings under the same noise. A candidate whose online run
+fails, is stopped (a stop request, or its CPU budget), records nothing, or whose final
+solve fails, loses.
+
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
 
