@@ -129,7 +129,7 @@ class ReassociationConfig:
             Default ``defaults``, ``both+cov_scale=16``, ``cov_scale=1/16`` (the
             stated setting; the one that holds Victoria Park online; the one that holds
             victoriaPark_reduced_1k, whose stated odometry noise is ~4x too large in
-            sigma): no divergence added on the 10 logs measured, for the sum of the
+            sigma): no divergence added on the 11 logs measured, for the sum of the
             candidates' CPU, 1.3-12.7x one run's (docs/noids-offline.md, "The online
             picker").
         online_candidate_cpu_factor: a candidate's online run is stopped (and loses)
