@@ -116,6 +116,30 @@ class ReassociationConfig:
         online_final_singletons: the final solve starts with every sighting the online
             run held and never used, or dropped, as a landmark of its own, for the
             description-length merges to place (default False).
+        online_candidates: with ``online_final``, settings of the online pass to
+            try, each run online and final-solved, the final solve with the least
+            description length ``C`` kept (:func:`lampsam.backend.online_final.run_online_picker`); a candidate
+            whose online run fails, or is stopped, loses. Each is a string of
+            ``+``-joined changes to the config as given (:func:`online_candidate_changes`):
+            ``defaults`` (none), ``planar_unique``, ``revisit_check``, ``both`` (the
+            two), ``cov_scale=X`` (the online pass's ``[pose2_odometry] cov_scale``; X
+            a number or a fraction such as ``1/16``). Only the online pass sees them:
+            every final solve runs with the config as given, so ``C`` compares like
+            with like. Empty: the online pass runs once with the config as given.
+            Default ``defaults``, ``both+cov_scale=16``, ``cov_scale=1/16`` (the
+            stated setting; the one that holds Victoria Park online; the one that holds
+            victoriaPark_reduced_1k, whose stated odometry noise is ~4x too large in
+            sigma): no divergence added on the 11 logs measured, for the sum of the
+            candidates' CPU, 1.3-12.7x one run's (docs/noids-offline.md, "The online
+            picker").
+        online_candidate_cpu_factor: a candidate's online run is stopped (and loses)
+            once its process CPU exceeds this factor times the least CPU (online run and
+            final solve) of the candidates finished before it, or
+            ``online_candidate_cpu_floor_s`` if that is more (default 5; inf: never
+            stopped). A candidate that starves (holds most sightings as ambiguous) runs
+            far longer than one that holds: on MRCLAM 68 s against 1.8 s.
+        online_candidate_cpu_floor_s: the least budget of a candidate's online run, s of
+            process CPU (default 30).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -138,9 +162,69 @@ class ReassociationConfig:
     online_final_cov_scale: float = field(default=1.0, metadata=limits(gt=0.0))
     online_final_passes: int = field(default=20, metadata=limits(ge=1))
     online_final_singletons: bool = False
+    online_candidates: tuple[str, ...] = ("defaults", "both+cov_scale=16", "cov_scale=1/16")
+    online_candidate_cpu_factor: float = field(default=5.0,
+                                               metadata=limits(ge=1.0, finite=False))
+    online_candidate_cpu_floor_s: float = field(default=30.0, metadata=limits(ge=0.0))
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
         check_limits(self)
         if not self.scales or any(not q > 0 for q in self.scales):
             raise FieldValueError("scales", f"needs one or more factors > 0, got {self.scales}")
+        for i, spec in enumerate(self.online_candidates):
+            try:
+                online_candidate_changes(spec)
+            except ValueError as exc:
+                raise FieldValueError(f"online_candidates[{i}]", str(exc)) from None
+        if len(set(self.online_candidates)) != len(self.online_candidates):
+            raise FieldValueError("online_candidates",
+                                  f"names a candidate twice: {list(self.online_candidates)}")
+
+
+#: ``online_candidates`` tokens that switch an ``[association]`` option on
+_ASSOCIATION_TOKENS = {"planar_unique": ("planar_unique",),
+                       "revisit_check": ("revisit_check",),
+                       "both": ("planar_unique", "revisit_check")}
+
+
+def online_candidate_changes(spec: str) -> tuple[dict[str, bool], float | None]:
+    """The changes one ``[reassociation] online_candidates`` entry makes to the online pass.
+
+    Args:
+        spec: ``+``-joined tokens: ``defaults``, ``planar_unique``, ``revisit_check``,
+            ``both``, ``cov_scale=X`` (X > 0: a number or ``a/b``); e.g.
+            ``"both+cov_scale=16"``.
+
+    Returns:
+        ``(association options set to True, the online pass's cov_scale or None)``.
+
+    Raises:
+        ValueError: an unknown token (the message names it and the known ones), an
+            empty entry, a bad or non-positive ``cov_scale``, or ``defaults`` with others.
+    """
+    tokens = [t.strip() for t in spec.split("+")]
+    if not spec.strip() or any(not t for t in tokens):
+        raise ValueError(f"empty candidate or token in {spec!r}")
+    if "defaults" in tokens and len(tokens) > 1:
+        raise ValueError(f"'defaults' stands alone, got {spec!r}")
+    assoc: dict[str, bool] = {}
+    cov: float | None = None
+    for t in tokens:
+        if t == "defaults":
+            continue
+        if t in _ASSOCIATION_TOKENS:
+            assoc.update(dict.fromkeys(_ASSOCIATION_TOKENS[t], True))
+            continue
+        name, sep, text = t.partition("=")
+        if name.strip() != "cov_scale" or not sep:
+            raise ValueError(f"unknown token {t!r} in {spec!r} (known: defaults, "
+                             f"{', '.join(_ASSOCIATION_TOKENS)}, cov_scale=X)")
+        num, slash, den = text.partition("/")
+        try:
+            cov = float(num) / (float(den) if slash else 1.0)
+        except (ValueError, ZeroDivisionError):
+            raise ValueError(f"cov_scale in {spec!r}: not a number or fraction: {text!r}") from None
+        if not (cov > 0 and cov < float("inf")):
+            raise ValueError(f"cov_scale in {spec!r} must be > 0 and finite, got {text!r}")
+    return assoc, cov

@@ -121,8 +121,8 @@ class OfflineRun:
                 if c >= min_observations}
 
 
-class _CandidatePruneFilter(logging.Filter):
-    """Drops the pruned-landmark warning of a candidate EKF pass: its map is an
+class CandidatePruneFilter(logging.Filter):
+    """Drops the pruned-landmark warning of a candidate's online pass: its map is an
     intermediate one that the batch re-associates, and the warning read as if the
     final map had been pruned once per candidate."""
 
@@ -149,7 +149,7 @@ def online_pass(g: GraphLog, config: SlamConfig, scale: float
                                            cov_scale=config.pose2_odometry.cov_scale * scale))
     be = make_backend("ekf", cfg.pose2_odometry, cfg, g.start_pose())
     backend_log = logging.getLogger("lampsam.backend")
-    quiet = _CandidatePruneFilter()
+    quiet = CandidatePruneFilter()
     backend_log.addFilter(quiet)
     try:
         res = drive(be, graph_log_steps(g, False))

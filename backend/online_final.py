@@ -22,6 +22,14 @@ never used, or dropped between its gate and the new-landmark threshold, are not 
 association; the description length charges each as a sighting that matches nothing,
 as offline.
 
+The online picker (:func:`run_online_picker`, ``[reassociation] online_candidates``):
+no single online setting holds on every log, so each candidate setting is run online and
+final-solved, and the final solve with the least description length ``C`` is kept. Only
+the online run sees a candidate's changes; every final solve uses the config as given,
+so the ``C`` are of the same sightings under the same noise. A candidate whose online run
+fails, is stopped (a stop request, or its CPU budget), records nothing, or whose final
+solve fails, loses.
+
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
 
@@ -30,14 +38,18 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.config_offline import online_candidate_changes
 from lampsam.backend.graph_log import run_graph_log_backend
-from lampsam.backend.interface import SlamBackend, SlamResult
+from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
 from lampsam.backend.noids_offline import (
+    CandidatePruneFilter,
     OfflineRun,
     dropped_sightings,
     final_pass,
@@ -46,6 +58,9 @@ from lampsam.backend.noids_offline import (
 )
 from lampsam.backend.reassociate import Sightings, first_sight_positions, sightings_from
 from lampsam.datasets.graph_text import GraphLog
+from lampsam.errors import LampsamError
+from lampsam.interrupt import stop_requested
+from lampsam.observe import observing
 
 log = logging.getLogger(__name__)
 
@@ -144,43 +159,194 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
     return run
 
 
+def candidate_config(config: SlamConfig, spec: str) -> SlamConfig:
+    """``config`` with one ``[reassociation] online_candidates`` entry's changes
+    (:func:`lampsam.backend.config_offline.online_candidate_changes`): the association
+    options it names on, and the online pass's odometry ``cov_scale`` if it sets one."""
+    assoc, cov = online_candidate_changes(spec)
+    cfg = dataclasses.replace(config, association=dataclasses.replace(config.association,
+                                                                      **assoc))
+    if cov is not None:
+        cfg = dataclasses.replace(cfg, pose2_odometry=dataclasses.replace(
+            cfg.pose2_odometry, cov_scale=cov))
+    return cfg
+
+
+@dataclasses.dataclass
+class Candidate:
+    """One online setting's run and final solve (:func:`run_online_picker`).
+
+    Attributes:
+        name: the ``online_candidates`` entry (``"as given"`` without a list).
+        status: ``"ok"`` (final solve done), ``"online <status>"`` (the online run failed
+            or was stopped), ``"no sightings recorded"``, ``"final solve failed: ..."``,
+            or ``"not run (stop requested)"``; any but ``"ok"`` loses.
+        cost: the final solve's description length ``C`` (NaN without one).
+        final: the final solve as a result (None without one); online: the online run.
+        cpu_s: process CPU of the online run and the final solve, s.
+        solve: the final solve's :class:`~lampsam.backend.noids_offline.OfflineRun`
+            (its association; None without one).
+    """
+
+    name: str
+    status: str
+    cost: float = float("nan")
+    final: SlamResult | None = None
+    online: SlamResult | None = None
+    cpu_s: float = 0.0
+    solve: OfflineRun | None = None
+
+    def row(self) -> dict[str, object]:
+        """The candidate's entry in ``summary.json`` (``online_picker.candidates``)."""
+        on = self.online.extra if self.online is not None else {}
+        return {"name": self.name, "status": self.status,
+                "C": None if not np.isfinite(self.cost) else round(float(self.cost), 3),
+                "landmarks": None if self.final is None else len(self.final.landmarks),
+                "landmarks_online": None if self.online is None else len(self.online.landmarks),
+                "held": int(on.get("n_held", 0)), "held_unused": int(on.get("n_held_unused", 0)),
+                "sightings_dropped": (None if self.final is None else
+                                      int(self.final.extra["sightings_dropped"])),
+                "cpu_s": round(self.cpu_s, 3)}
+
+
+class OverBudget(LampsamError):
+    """A candidate's online run went past its CPU budget
+    (``[reassociation] online_candidate_cpu_factor``)."""
+
+
+def _budget_watch(c0: float, budget_s: float) -> Callable[[str, Mapping[str, Any]], None]:
+    """An observer (:mod:`lampsam.observe`) that raises :class:`OverBudget` at the first
+    step after ``budget_s`` s of process CPU since ``c0``; the run's driver then ends it
+    as failed, keeping its finished steps."""
+
+    def watch(event: str, _: Mapping[str, Any]) -> None:
+        if event == "slam.step" and time.process_time() - c0 > budget_s:
+            raise OverBudget(f"stopped after {budget_s:.1f} s of CPU (its budget: "
+                             "[reassociation] online_candidate_cpu_factor)")
+
+    return watch
+
+
+def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | None,
+                   budget_s: float = float("inf")) -> Candidate:
+    """One candidate: the online run with ``spec``'s changes (stopped past ``budget_s``
+    s of CPU), then :func:`final_solve` of its association with ``config`` as given (its
+    ``cov_scale`` replaced by the candidate's, which only sets the recorded
+    ``noids_scale``): every candidate's ``C`` is then the same sightings under the same
+    noise and the same ``c_new``."""
+    name = "as given" if spec is None else spec
+    if stop_requested():
+        return Candidate(name, "not run (stop requested)")
+    t0, c0 = time.perf_counter(), time.process_time()
+    cfg = config if spec is None else candidate_config(config, spec)
+    online_log = logging.getLogger("lampsam.backend")
+    quiet = CandidatePruneFilter()  # the online map's pruning is not the written map's
+    online_log.addFilter(quiet)
+    try:
+        with observing(_budget_watch(c0, budget_s) if np.isfinite(budget_s) else None):
+            online, be = run_graph_log_backend(g, backend, cfg, known_ids=False)
+    finally:
+        online_log.removeFilter(quiet)
+    if online.n_pruned:
+        log.info("online run (%s): %d landmarks pruned from its map", name, online.n_pruned)
+    # a stopped or failed run's last keyframe may hold sightings past the steps it kept:
+    # its status is checked before its association is read
+    if online.status != "ok" or be is None:
+        return Candidate(name, "online " + " ".join(online.status.split()), online=online,
+                         cpu_s=time.process_time() - c0)
+    s = online_association(be, online)
+    if not len(s.k):
+        return Candidate(name, "no sightings recorded", online=online,
+                         cpu_s=time.process_time() - c0)
+    c1 = time.process_time()
+    solve_cfg = dataclasses.replace(config, pose2_odometry=cfg.pose2_odometry)
+    try:
+        best = final_solve(g, solve_cfg, online, s)
+    except (RuntimeError, KeyboardInterrupt) as exc:  # GTSAM's LM, or SIGINT / SIGTERM
+        why = f"{type(exc).__name__}: {str(exc).strip()[:120] or 'interrupted'}"
+        log.error("final solve of candidate %s stopped (%s)", name, why)
+        return Candidate(name, f"final solve failed: {why}", online=online,
+                         cpu_s=time.process_time() - c0)
+    extra = {k: v for k, v in online.extra.items() if k not in ("total_time_s", "total_cpu_s")}
+    extra.update({"online_final": 1.0, "online_cpu_s": c1 - c0,
+                  "online_final_cpu_s": time.process_time() - c1,
+                  "online_landmarks": float(len(online.landmarks)),
+                  "online_landmarks_pruned": float(online.n_pruned)})
+    final = result_of(g, final_config(solve_cfg), best, extra, t0, c0)
+    return Candidate(name, "ok", best.cost, final, online, time.process_time() - c0, best)
+
+
+def pick(cands: list[Candidate]) -> int:
+    """Index of the candidate whose final solve has the least ``C``; without any, the
+    first whose online run finished, else 0."""
+    ok = [i for i, c in enumerate(cands) if c.status == "ok"]
+    if ok:
+        return min(ok, key=lambda i: cands[i].cost)
+    done = [i for i, c in enumerate(cands) if c.online is not None and c.online.status == "ok"]
+    return done[0] if done else 0
+
+
+def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
+                      ) -> tuple[SlamResult, SlamResult | None, list[Candidate], int]:
+    """``lampsam slam LOG --no-ids --backend B`` with ``[reassociation] online_final``:
+    each ``[reassociation] online_candidates`` entry (none: the config as given) run
+    online and final-solved, the least ``C`` kept (module doc).
+
+    Returns:
+        ``(answer, online, candidates, chosen)``: the chosen candidate's final solve
+        (``backend`` "batch", ``extra`` as :func:`run_online_final`'s) and its online
+        run; when no candidate has a final solve, the answer is the chosen one's online
+        run (``online_final`` 0; ``online`` None, or None too when no candidate ran).
+    """
+    rc = config.reassociation
+    specs: list[str | None] = list(rc.online_candidates) or [None]
+    cands: list[Candidate] = []
+    for spec in specs:
+        done = [x.cpu_s for x in cands if x.status == "ok"]
+        budget = (max(rc.online_candidate_cpu_factor * min(done),
+                      rc.online_candidate_cpu_floor_s) if done else float("inf"))
+        c = _run_candidate(g, backend, config, spec, budget)
+        log.info("online candidate %s: %s, C %.1f, %.1f s CPU", c.name, c.status, c.cost,
+                 c.cpu_s)
+        cands.append(c)
+    i = pick(cands)
+    c = cands[i]
+    lost = [x.name for x in cands if x.status != "ok"]
+    if lost and len(cands) > 1:
+        log.warning("online candidates without a final solve (they lose): %s; chosen: %s",
+                    ", ".join(f"{x.name} ({x.status[:60]})" for x in cands if x.status != "ok"),
+                    c.name)
+    if c.final is None:
+        answer = c.online
+        if answer is None:  # a stop request before the first candidate ran
+            answer, _ = run_graph_log_backend(g, backend, config, known_ids=False)
+        answer.extra["online_final"] = 0.0
+        return answer, None, cands, i
+    if len(cands) > 1:
+        c.final.extra.update({"online_candidates": float(len(cands)),
+                              "online_candidate_chosen": float(i),
+                              "online_picker_cpu_s": float(sum(x.cpu_s for x in cands))})
+    if c.final.n_pruned:
+        log_pruned(c.final.n_pruned, c.final.pruned, config.association.min_observations)
+    return c.final, c.online, cands, i
+
+
 def run_online_final(g: GraphLog, backend: str, config: SlamConfig
                      ) -> tuple[SlamResult, SlamResult]:
-    """``lampsam slam LOG --no-ids --backend B`` with ``[reassociation] online_final``: the
-    online run, then :func:`final_solve` of its association.
+    """The online run at ``config`` as given (``online_candidates`` ignored), then
+    :func:`final_solve` of its association.
 
     Returns:
         ``(final, online)``: the final solve as a result (``backend`` "batch"; ``extra``:
         :func:`lampsam.backend.noids_offline.result_of`'s keys, ``online_final`` 1,
-        ``online_cpu_s``, ``online_final_cpu_s``, ``online_landmarks``, and the online
-        run's own keys such as ``n_held``), and the online run's result. When the online
-        run did not finish (status not ok) or recorded no sighting, or the final solve
-        failed (GTSAM threw) or was interrupted (it is logged), ``final`` is ``online``
-        with ``online_final`` 0.
+        ``online_cpu_s``, ``online_final_cpu_s``, ``online_landmarks``,
+        ``online_landmarks_pruned``, and the online run's own keys such as
+        ``n_held``), and the online run's result. When the online run did not finish
+        (status not ok) or recorded no sighting, or the final solve failed (GTSAM
+        threw) or was interrupted (it is logged), ``final`` is ``online`` with
+        ``online_final`` 0.
     """
-    t0, c0 = time.perf_counter(), time.process_time()
-    online, be = run_graph_log_backend(g, backend, config, known_ids=False)
-    # a stopped or failed run's last keyframe may hold sightings past the steps it kept:
-    # its status is checked before its association is read
-    if online.status != "ok" or be is None:
-        online.extra["online_final"] = 0.0
-        return online, online
-    s = online_association(be, online)
-    if not len(s.k):
-        online.extra["online_final"] = 0.0
-        return online, online
-    c1 = time.process_time()
-    try:
-        best = final_solve(g, config, online, s)
-    except (RuntimeError, KeyboardInterrupt) as exc:  # GTSAM's LM, or SIGINT / SIGTERM
-        log.error("final solve stopped (%s: %s): the online answer is written",
-                  type(exc).__name__, str(exc).strip()[:120] or "interrupted")
-        online.extra["online_final"] = 0.0
-        return online, online
-    cfg = final_config(config)
-    extra = {k: v for k, v in online.extra.items() if k not in ("total_time_s", "total_cpu_s")}
-    extra.update({"online_final": 1.0, "online_cpu_s": c1 - c0,
-                  "online_final_cpu_s": time.process_time() - c1,
-                  "online_landmarks": float(len(online.landmarks))})
-    final = result_of(g, cfg, best, extra, t0, c0)
-    return final, online
+    cfg = dataclasses.replace(config, reassociation=dataclasses.replace(
+        config.reassociation, online_candidates=()))
+    final, online, _, _ = run_online_picker(g, backend, cfg)
+    return final, (final if online is None else online)

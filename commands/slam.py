@@ -260,15 +260,20 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
     try_final = (not known and not offline and config.reassociation.online_final
                  and glog.n_landmarks > 0)
     online = None  # the online run, when a final solve of its association is the result
+    picker: dict[str, Any] | None = None  # the candidates, with [reassociation] online_candidates
     if offline:  # the EKF's no-ids pass at each [reassociation] scales, re-associated in batch
         from lampsam.backend.noids_offline import run_offline
 
         result = run_offline(glog, config)
-    elif try_final:  # the online run's association re-solved in batch at the stated noise
-        from lampsam.backend.online_final import run_online_final
+    elif try_final:  # each online candidate's association re-solved in batch at the stated noise
+        from lampsam.backend.online_final import run_online_picker
 
-        result, ran = run_online_final(glog, args.backend, config)
-        online = None if ran is result else ran
+        result, online, cands, chosen = run_online_picker(glog, args.backend, config)
+        if config.reassociation.online_candidates:
+            picker = {"chosen": cands[chosen].name,
+                      "rule": "least C of the final solves (candidates that did not finish "
+                              "one lose)",
+                      "candidates": [c.row() for c in cands]}
     else:
         result = run_graph_log(glog, args.backend, config, known_ids=known)
     write_trajectory(out / "trajectory.tum", result)
@@ -277,12 +282,16 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         write_trajectory(out / "online.tum", online)
     s = summary(result, truth)
     if online is not None:
+        s["backend"] = args.backend  # the online run's; the written answer is the batch's
+        s["final_solve"] = result.backend
         s["trajectory"] = {
             "trajectory.tum": "the final solve: the online run's association re-solved in "
                               "batch at the log's stated noise ([reassociation] online_final)",
             "online.tum": f"the poses of the online {args.backend} run as it made them"}
         if truth is not None:
             s["online_error"] = summary(online, truth).get("error")
+    if picker is not None:
+        s["online_picker"] = picker
     s["input"] = {"file": str(glog.path), "poses": len(glog.pose_ids),
                   "landmarks_in_file": glog.n_landmarks, "known_ids": known,
                   "start_pose": ("the first pose's VERTEX" if glog.pose_ids[0] in glog.vertices
@@ -304,6 +313,11 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         msg += (f"; no ids offline: EKF pass with odometry variance x{s['noids_scale']:g} (chosen "
                 f"of {', '.join(f'{q:g}' for q in config.reassociation.scales)}), "
                 f"{int(s['reassociation_passes'])} batch re-association passes")
+    if picker is not None:
+        rows = picker["candidates"]
+        msg += ("; online candidates: " + ", ".join(
+            f"{r['name']} " + (f"C {r['C']:.1f}" if r["status"] == "ok" else f"({r['status'][:40]})")
+            for r in rows) + f"; chosen {picker['chosen']} (least C)")
     if online is not None:
         msg += (f"; final solve of the online {args.backend} run's association at the stated "
                 f"noise ({int(s['reassociation_passes'])} re-association passes, "

@@ -125,12 +125,15 @@ def test_cli_writes_the_final_solve_and_the_online_poses(tmp_path: Path,
     """``lampsam slam LOG --no-ids --backend isam2``: ``trajectory.tum`` is the final solve,
     ``online.tum`` the online poses (different files, same steps), the summary says which
     is which and counts the final solve's moves; ``online_final = false`` writes the
-    online run alone, as before. ``--g2o`` writes the final solve's graph."""
+    online run alone, as before. ``--g2o`` writes the final solve's graph. (One online
+    setting, ``online_candidates = []``: the picker is tested in test_online_picker.)"""
     path, tpath = write_landmark_log(tmp_path / "log.txt", dataclasses.replace(
         SPEC, n_poses=120), np.random.default_rng(2))
     out = tmp_path / "out"
+    (tmp_path / "one.toml").write_text("[reassociation]\nonline_candidates = []\n")
     assert main(["slam", str(path), "--no-ids", "--backend", "isam2", "--truth", str(tpath),
-                 "--out", str(out), "--g2o", str(tmp_path / "final.g2o")]) == 0
+                 "--config", str(tmp_path / "one.toml"), "--out", str(out),
+                 "--g2o", str(tmp_path / "final.g2o")]) == 0
     assert "EDGE_SE2_XY" in (tmp_path / "final.g2o").read_text()  # the final solve's graph
     s = json.loads((out / "summary.json").read_text())
     assert s["online_final"] == 1.0 and set(s["trajectory"]) == {"trajectory.tum", "online.tum"}

@@ -4,7 +4,7 @@ Usage::
 
     python scripts/bench/bench_online_final.py [--logs vp1k,city,synthetic,mrclam,victoria]
         [--backends isam2,ekf] [--set SECTION.KEY=VALUE ...] [--label NAME]
-        [--variants defaults,both,both16]
+        [--variants defaults,both,both16,picker] [--candidates defaults,...]
 
 For each log: GTSAM's LM on the file's graph with its ids (the reference, as
 ``bench_landmark_logs.py``: GTSAM's iSAM2 one update per pose, then LM), lampsam's
@@ -30,9 +30,16 @@ label.
 ``--variants`` runs several settings of :data:`VARIANTS` in one invocation (the
 reference runs once per log; each variant's overrides are applied after ``--set``):
 ``defaults``; ``both`` = ``[association] planar_unique`` and ``revisit_check`` on;
-``both16`` = ``both`` and ``[pose2_odometry] cov_scale = 16``. The last column says
-"yes" when the final solve (or, if it did not run, the online answer) is more than
-:data:`DIVERGED_M` from GTSAM's LM.
+``both16`` = ``both`` and ``[pose2_odometry] cov_scale = 16``; ``picker`` = the online
+picker (:func:`lampsam.backend.online_final.run_online_picker`) with ``[reassociation]
+online_candidates`` = ``--candidates`` (default :data:`PICKER_CANDIDATES`): one row per
+candidate (its final solve, or its status when it lost without one), then the chosen one
+and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM. The last
+column says "yes" when the final solve (or, if it did not run, the online answer) is more
+than :data:`DIVERGED_M` from GTSAM's LM.
+
+``corridor``, ``odo3x`` and ``overstated`` (:data:`NEW_HELD_OUT`) are held-out logs of
+the picker, fixed before it ran on them.
 """
 
 from __future__ import annotations
@@ -52,10 +59,12 @@ from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
-from lampsam.backend.online_final import final_solve, online_association
+from lampsam.backend.online_final import final_solve, online_association, run_online_picker
 from lampsam.backend.reassociate import Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
+from lampsam.datasets.landmark_log_heldout import HeldOutSpec, simulate_held_out
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+from lampsam.safe_io import write_text_atomic
 
 #: A run whose RMS from GTSAM's LM exceeds this (m) counts as diverged.
 DIVERGED_M = 5.0
@@ -65,12 +74,48 @@ VARIANTS: dict[str, list[str]] = {
     "both": ["association.planar_unique=true", "association.revisit_check=true"],
     "both16": ["association.planar_unique=true", "association.revisit_check=true",
                "pose2_odometry.cov_scale=16"],
+    "picker": [],  # [reassociation] online_candidates = --candidates (run_picker)
+}
+#: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
+PICKER_CANDIDATES = "defaults,both+cov_scale=16,cov_scale=1/16"
+
+
+
+#: Held-out logs of the online picker (session 16, engineer autopick): specs and seeds fixed
+#: at 22:55 UTC on 2026-11-24, before any candidate ran on them, and not looked at until the
+#: final table (:mod:`lampsam.datasets.landmark_log_heldout`'s simulator, new specs):
+#: ``corridor``: a 150 m x 6 m loop driven twice with 120 trees 2-3 m either side (a
+#: corridor: few trees in view, the two sides 6 m apart); ``odo3x``: a uniform field whose
+#: odometry noise is 3x the stated sigma (understated); ``overstated``: a uniform field
+#: whose odometry noise is 1/4 of the stated sigma (stated too large, as
+#: victoriaPark_reduced_1k's).
+NEW_HELD_OUT: dict[str, tuple[HeldOutSpec, int]] = {
+    "corridor": (HeldOutSpec(layout="loop", n_landmarks=120, loop_size=(150.0, 6.0),
+                             corridor=3.0, laps=2, max_range=10.0), 201),
+    "odo3x": (HeldOutSpec(layout="uniform", n_poses=2000, n_landmarks=250, extent=120.0,
+                          true_noise=3.0, max_range=12.0), 202),
+    "overstated": (HeldOutSpec(layout="uniform", n_poses=2000, n_landmarks=250,
+                               extent=120.0, true_noise=0.25, max_range=12.0), 203),
 }
 
+
+def write_new_held_out(path: Path, name: str) -> Path:
+    """Write :data:`NEW_HELD_OUT` log ``name`` to ``path`` and its truth to
+    ``<stem>_truth.txt`` (``VERTEX2``), as ``landmark_log_heldout.write_held_out``."""
+    spec, seed = NEW_HELD_OUT[name]
+    lines, truth, _ = simulate_held_out(spec, np.random.default_rng(seed))
+    write_text_atomic(path, "\n".join(lines) + "\n")
+    write_text_atomic(path.with_name(path.stem + "_truth.txt"),
+                      "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
+                              for k, p in enumerate(truth)))
+    return path
 
 
 def load_log(scale: ModuleType, name: str, out: Path) -> GraphLog:
     """A log by name (module doc)."""
+    if name in NEW_HELD_OUT:
+        out.mkdir(parents=True, exist_ok=True)
+        return read_graph_text(write_new_held_out(out / f"heldout_{name}.txt", name))
     if name == "synth2":
         out.mkdir(parents=True, exist_ok=True)
         spec = LandmarkLogSpec(n_landmarks=800, sigma_fwd=0.02, sigma_side=0.06,
@@ -89,7 +134,8 @@ def load_truth(g: GraphLog, name: str, out: Path) -> np.ndarray | None:
     """(n, 3) true poses of a simulated log (written beside it), else None."""
     stem = {"synthetic": "synthetic", "synth2": "synth2"}.get(name, f"heldout_{name}")
     tpath = out / f"{stem}_truth.txt"
-    if name not in ("synthetic", "synth2", "grid", "loop", "odo2x") or not tpath.exists():
+    if (name not in ("synthetic", "synth2", "grid", "loop", "odo2x", *NEW_HELD_OUT)
+            or not tpath.exists()):
         return None
     v = read_vertices(tpath)
     return np.array([v[i] for i in g.pose_ids])
@@ -110,6 +156,9 @@ def main() -> None:
     ap.add_argument("--variants", default="",
                     help=f"comma-separated named settings ({', '.join(VARIANTS)}), each run "
                          "after the --set overrides; empty: --set alone")
+    ap.add_argument("--candidates", default=PICKER_CANDIDATES,
+                    help="the picker variant's [reassociation] online_candidates, "
+                         f"comma-separated (default {PICKER_CANDIDATES})")
     ap.add_argument("--diagnose", action="store_true",
                     help="also the known-id batch on the sightings the online run recorded "
                          "(what the held and dropped sightings cost, apart from the association)")
@@ -149,8 +198,56 @@ def main() -> None:
         for v in variants:
             config = bench.with_overrides(SlamConfig(), args.set + VARIANTS.get(v, []))
             label = f"{v}: {base_label}" if v and args.set else (v or base_label)
+            if v == "picker":
+                config = dataclasses.replace(config, reassociation=dataclasses.replace(
+                    config.reassociation, online_candidates=tuple(args.candidates.split(","))))
+                run_picker(g, name, config, label, args, scale, lm, truth, twins, n_trees2)
+                continue
             run_variant(g, name, config, label, args, bench, scale, lm, truth, twins, n_trees2,
                         n_sight)
+
+
+def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
+               args: argparse.Namespace, scale: ModuleType, lm: np.ndarray,
+               truth: np.ndarray | None, twins: dict[int, int], n_trees2: int) -> None:
+    """The online picker (:func:`lampsam.backend.online_final.run_online_picker`) per
+    backend: one row per candidate (its final solve's RMS, count, ``C``, CPU), then the
+    choice, and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM."""
+    for b in args.backends.split(","):
+        c0 = time.process_time()
+        final, _, cands, chosen = run_online_picker(g, b, config)
+        c_all = time.process_time() - c0
+        rms: list[float] = []
+        for c in cands:
+            if c.solve is None:
+                rms.append(float("nan"))
+                on = c.online
+                r_on = (_rms(on.poses, lm[:len(on.poses)]) if on is not None and len(on.poses)
+                        else float("nan"))
+                print(f"| {name} | {b} candidate {c.name}: {c.status[:70]} | online {r_on:.3f} | "
+                      f"| | | | | {c.cpu_s:.1f} | (loses) |", flush=True)
+                continue
+            run = c.solve
+            mapped, dup, wrong = scale.score(run.sightings, scale.tree_ids(g, run.sightings,
+                                                                           twins))
+            r = _rms(run.poses, lm)
+            rms.append(r)
+            held = int(c.online.extra.get("n_held_unused", 0)) if c.online is not None else 0
+            div = "yes" if not (np.isfinite(r) and r <= DIVERGED_M) else ""
+            print(f"| {name} | {b} candidate {c.name} ({held} held unused, "
+                  f"{run.n_dropped} not in the association{_vs_truth(run.poses, truth)}) | "
+                  f"{r:.3f} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
+                  f"{run.cost:.1f} | | {c.cpu_s:.1f} | {div} |", flush=True)
+        ok = [i for i, x in enumerate(rms) if np.isfinite(x)]
+        best = min(ok, key=lambda i: rms[i]) if ok else -1
+        r_ch = rms[chosen]
+        verdict = ("C picked the best by RMS" if chosen == best else
+                   f"best by RMS: {cands[best].name} ({rms[best]:.3f})" if best >= 0 else "none")
+        div = "yes" if not (np.isfinite(r_ch) and r_ch <= DIVERGED_M) else ""
+        print(f"| {name} | **{b} picker ({label}) -> {cands[chosen].name}**; {verdict}"
+              f"{_vs_truth(final.poses, truth)} | **{r_ch:.3f}** | "
+              f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].cost:.1f} | | "
+              f"{c_all:.1f} (all) | {div} |", flush=True)
 
 
 def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
