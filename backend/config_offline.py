@@ -123,7 +123,10 @@ class ReassociationConfig:
             ``+``-joined changes to the config as given (:func:`online_candidate_changes`):
             ``defaults`` (none), ``planar_unique``, ``revisit_check``, ``both`` (the
             two), ``cov_scale=X`` (the online pass's ``[pose2_odometry] cov_scale``; X
-            a number or a fraction such as ``1/16``). Only the online pass sees them:
+            a number or a fraction such as ``1/16``), ``alias_odds=X`` (the online
+            pass's ``[association] alias_odds``, for aliased sparse logs; not a default
+            candidate: on MRCLAM its split map has the least ``C``, 0.21 m and 29
+            landmarks for 15, docs/noids-aliasing.md). Only the online pass sees them:
             every final solve runs with the config as given, so ``C`` compares like
             with like. Empty: the online pass runs once with the config as given.
             Default ``defaults``, ``both+cov_scale=16``, ``cov_scale=1/16`` (the
@@ -188,27 +191,27 @@ _ASSOCIATION_TOKENS = {"planar_unique": ("planar_unique",),
                        "both": ("planar_unique", "revisit_check")}
 
 
-def online_candidate_changes(spec: str) -> tuple[dict[str, bool], float | None]:
+def online_candidate_changes(spec: str) -> tuple[dict[str, bool | float], float | None]:
     """The changes one ``[reassociation] online_candidates`` entry makes to the online pass.
 
     Args:
         spec: ``+``-joined tokens: ``defaults``, ``planar_unique``, ``revisit_check``,
-            ``both``, ``cov_scale=X`` (X > 0: a number or ``a/b``); e.g.
-            ``"both+cov_scale=16"``.
+            ``both``, ``cov_scale=X``, ``alias_odds=X`` (X > 0: a number or ``a/b``);
+            e.g. ``"both+cov_scale=16"``.
 
     Returns:
-        ``(association options set to True, the online pass's cov_scale or None)``.
+        ``(association options and their values, the online pass's cov_scale or None)``.
 
     Raises:
         ValueError: an unknown token (the message names it and the known ones), an
-            empty entry, a bad or non-positive ``cov_scale``, or ``defaults`` with others.
+            empty entry, a bad or non-positive ``cov_scale`` / ``alias_odds``, or ``defaults`` with others.
     """
     tokens = [t.strip() for t in spec.split("+")]
     if not spec.strip() or any(not t for t in tokens):
         raise ValueError(f"empty candidate or token in {spec!r}")
     if "defaults" in tokens and len(tokens) > 1:
         raise ValueError(f"'defaults' stands alone, got {spec!r}")
-    assoc: dict[str, bool] = {}
+    assoc: dict[str, bool | float] = {}
     cov: float | None = None
     for t in tokens:
         if t == "defaults":
@@ -217,14 +220,23 @@ def online_candidate_changes(spec: str) -> tuple[dict[str, bool], float | None]:
             assoc.update(dict.fromkeys(_ASSOCIATION_TOKENS[t], True))
             continue
         name, sep, text = t.partition("=")
+        if name.strip() == "alias_odds" and sep:
+            assoc["alias_odds"] = _positive_number(text, spec, "alias_odds")
+            continue
         if name.strip() != "cov_scale" or not sep:
             raise ValueError(f"unknown token {t!r} in {spec!r} (known: defaults, "
-                             f"{', '.join(_ASSOCIATION_TOKENS)}, cov_scale=X)")
-        num, slash, den = text.partition("/")
-        try:
-            cov = float(num) / (float(den) if slash else 1.0)
-        except (ValueError, ZeroDivisionError):
-            raise ValueError(f"cov_scale in {spec!r}: not a number or fraction: {text!r}") from None
-        if not (cov > 0 and cov < float("inf")):
-            raise ValueError(f"cov_scale in {spec!r} must be > 0 and finite, got {text!r}")
+                             f"{', '.join(_ASSOCIATION_TOKENS)}, cov_scale=X, alias_odds=X)")
+        cov = _positive_number(text, spec, "cov_scale")
     return assoc, cov
+
+
+def _positive_number(text: str, spec: str, key: str) -> float:
+    """``text`` (a number or ``a/b``) as a finite float > 0; ValueError naming ``key``."""
+    num, slash, den = text.partition("/")
+    try:
+        value = float(num) / (float(den) if slash else 1.0)
+    except (ValueError, ZeroDivisionError):
+        raise ValueError(f"{key} in {spec!r}: not a number or fraction: {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise ValueError(f"{key} in {spec!r} must be > 0 and finite, got {text!r}")
+    return value

@@ -171,7 +171,10 @@ def test_online_candidates_are_checked() -> None:
     cfg = candidate_config(SlamConfig(), "revisit_check+cov_scale=16")
     assert cfg.association.revisit_check and not cfg.association.planar_unique
     assert cfg.pose2_odometry.cov_scale == 16.0
-    for bad, said in [(["defaults", "bothh"], r"online_candidates\[1\].*unknown token 'bothh'"),
+    cfg = candidate_config(SlamConfig(), "alias_odds=1+cov_scale=1/16")
+    assert cfg.association.alias_odds == 1.0 and cfg.pose2_odometry.cov_scale == 0.0625
+    for bad, said in [(["alias_odds=-1"], "alias_odds.*must be > 0"),
+                      (["alias_odds=x"], "alias_odds.*not a number"),(["defaults", "bothh"], r"online_candidates\[1\].*unknown token 'bothh'"),
                       (["cov_scale=0"], "must be > 0"), (["cov_scale=1/0"], "not a number"),
                       (["defaults+both"], "stands alone"), ([""], "empty"),
                       (["both", "both"], "twice")]:
