@@ -8,6 +8,7 @@ Frozen dataclasses with documented defaults, checked on construction like the re
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 
@@ -191,7 +192,7 @@ _ASSOCIATION_TOKENS = {"planar_unique": ("planar_unique",),
                        "both": ("planar_unique", "revisit_check")}
 
 
-def online_candidate_changes(spec: str) -> tuple[dict[str, bool | float], float | None]:
+def online_candidate_changes(spec: str) -> tuple[dict[str, Any], float | None]:
     """The changes one ``[reassociation] online_candidates`` entry makes to the online pass.
 
     Args:
@@ -211,7 +212,7 @@ def online_candidate_changes(spec: str) -> tuple[dict[str, bool | float], float 
         raise ValueError(f"empty candidate or token in {spec!r}")
     if "defaults" in tokens and len(tokens) > 1:
         raise ValueError(f"'defaults' stands alone, got {spec!r}")
-    assoc: dict[str, bool | float] = {}
+    assoc: dict[str, Any] = {}
     cov: float | None = None
     for t in tokens:
         if t == "defaults":
