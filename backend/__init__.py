@@ -20,6 +20,7 @@ Modules:
 * :mod:`~lampsam.backend.ceiling_graph` -- Ceiling landmarks in the factor graphs (lamps and corners), via :mod:`lampsam.factors.gtsam_factors`.
 * :mod:`~lampsam.backend.ceiling_map_io` -- The saved ceiling map: write it once after mapping, read it back every day.
 * :mod:`~lampsam.backend.config` -- Configuration of the SLAM backends: frozen dataclasses with documented defaults.
+* :mod:`~lampsam.backend.config_association` -- Configuration of data association (``[association]``): the gate, landmark initialisation and pruning, and the no-ids options, shared by every backend.
 * :mod:`~lampsam.backend.config_graph` -- Configuration of pose-graph edges read from text logs (``[graph]``): the loop closures of an iSAM / g2o file (:mod:`lampsam.backend.pose_graph`).
 * :mod:`~lampsam.backend.config_offline` -- Configuration of the offline passes: batch Levenberg-Marquardt (``[batch]``) and the batch re-association without ids (``[reassociation]``).
 * :mod:`~lampsam.backend.constellation` -- Revisit detection by constellation: a 2-D rigid alignment of recent landmarks to the map.
