@@ -138,7 +138,7 @@ class AssociationConfig:
         planar_noise_adapt: without ids, gate range-bearing observations with the
             innovation covariance scaled by a factor estimated online from the
             squared distances of unambiguous matches
-            (:class:`lampsam.backend.association.InnovationScale`: ``margin x``
+            (:class:`lampsam.backend.innovation_scale.InnovationScale`: ``margin x``
             their median over the chi-square's truncated median, clamped to
             ``[planar_noise_floor, 1]`` over the last ``planar_noise_window``
             matches). Never wider than the stated noise; the factors and the EKF

@@ -41,8 +41,6 @@ from lampsam.backend.association import (
     TentativeLandmarks,
     associate,
     corner_budget,
-    innovation_scale,
-    learn_scale,
 )
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.covariance import LowerCovariance
@@ -63,6 +61,7 @@ from lampsam.backend.ekf_update import (
     observability_project,
     stacked_gain,
 )
+from lampsam.backend.innovation_scale import innovation_scale, learn_scale
 from lampsam.backend.interface import (
     Frame,
     LandmarkEstimate,

@@ -49,7 +49,7 @@ def joint_point2(obs: list[Obs], assignments: list[Assignment],
         planar: landmark id -> (state offset, dim) of every live planar landmark.
         innovation: eq. 19 of one pair; predict: ``h`` and its Jacobians of one pair.
         cov: the EKF covariance ``P``.
-        scale: the innovation covariance scale (``association.InnovationScale``).
+        scale: the innovation covariance scale (``innovation_scale.InnovationScale``).
 
     Returns:
         The assignments with the planar ones re-paired (``"matched"``), kept

@@ -51,7 +51,7 @@ from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.alias_gate import map_density
-from lampsam.backend.association import Assignment, associate, corner_budget, learn_scale
+from lampsam.backend.association import Assignment, associate, corner_budget
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import point_key
 from lampsam.backend.config import SlamConfig
@@ -63,6 +63,7 @@ from lampsam.backend.handlers import (
     value_of_kind,
 )
 from lampsam.backend.held_sightings import held_candidates
+from lampsam.backend.innovation_scale import learn_scale
 from lampsam.backend.interface import (
     Frame,
     GraphSnapshot,

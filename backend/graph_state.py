@@ -25,7 +25,6 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.association import innovation_scale
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CEILING_SYMBOLS
 from lampsam.backend.config import SlamConfig
@@ -37,6 +36,7 @@ from lampsam.backend.handlers import (
     ValueKind,
     value_of_kind,
 )
+from lampsam.backend.innovation_scale import innovation_scale
 from lampsam.backend.interface import LandmarkKind, SlamBackend
 from lampsam.backend.models import Obs
 from lampsam.backend.odometry import OdometryConstants, motion_model

@@ -168,7 +168,7 @@ def screen_point2(observations: list[Obs], lids: list[int], z_hat: FloatArray, s
             without ``R``, with the robot-landmark cross term).
         config: association thresholds.
         scale: innovation covariance scale
-            (:class:`lampsam.backend.association.InnovationScale`): the distances are
+            (:class:`lampsam.backend.innovation_scale.InnovationScale`): the distances are
             ``d2 / scale``.
 
     Returns:

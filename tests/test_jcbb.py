@@ -82,7 +82,7 @@ def test_jcbb_with_the_learnt_scale_leaves_a_new_tree_unpaired() -> None:
     stated covariance (pose 0.5 m, sensor 0.3 m sigma) whose real scatter is 0.1 of it:
     at the stated covariance JCBB pairs the sighting with the mapped tree (d2 = 6.6
     < 9.21); with the joint covariance scaled by the learnt 0.1
-    (:class:`lampsam.backend.association.InnovationScale`) it stays unpaired (66)."""
+    (:class:`lampsam.backend.innovation_scale.InnovationScale`) it stays unpaired (66)."""
     tree = np.array([5.0, 0.0])
     z = np.array([5.0, 1.5])
     s_stated = (0.5**2 + 0.3**2) * np.eye(2)
