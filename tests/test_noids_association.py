@@ -9,15 +9,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from lampsam.backend.association import (
-    Assignment,
-    InnovationScale,
-    associate,
-    innovation_scale,
-    learn_scale,
-)
+from lampsam.backend.association import Assignment, associate
 from lampsam.backend.config import AssociationConfig, SlamConfig
 from lampsam.backend.graph_log import run_graph_log
+from lampsam.backend.innovation_scale import InnovationScale, innovation_scale, learn_scale
 from lampsam.backend.models import Obs
 from lampsam.backend.planar_gate import screen_point2
 from lampsam.datasets.graph_text import read_graph_text
