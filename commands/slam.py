@@ -299,8 +299,8 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                   **closure_summary(glog, result, args.backend, config, known)}
     if no_landmarks:
         s["input"]["warning"] = no_landmarks
-    if "closures_warning" in s["input"]:  # EKF, no ids: backend/pose_graph.py
-        log.warning("%s: %s", glog.path, s["input"]["closures_warning"])
+    # unused loop closures (EKF, no ids) were warned by backend/graph_log.py as the run
+    # started; summary.json keeps the reason as input.closures_warning
     write_json_atomic(out / "summary.json", s)
     if args.g2o:
         from lampsam.backend.g2o_export import write_result_g2o
