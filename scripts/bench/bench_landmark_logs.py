@@ -64,7 +64,6 @@ import argparse
 import dataclasses
 import logging
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -73,6 +72,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 from scipy.spatial import cKDTree
+from timing import print_rows  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log
@@ -425,18 +425,7 @@ def main() -> None:
         rows += bench_log(name, g, truth, backends, args.repeats, args.no_ids,
                           with_overrides(SlamConfig(), args.set), args.pose_covariances,
                           args.general)
-        _print(rows)
-
-
-def _print(rows: list[dict[str, Any]]) -> None:
-    cols = list(rows[0])
-    print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
-    print("| " + " | ".join(cols) + " |")
-    print("|" + "---|" * len(cols))
-    for r in rows:
-        print("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c])
-                                for c in cols) + " |")
-    print(flush=True)
+        print_rows(rows)
 
 
 if __name__ == "__main__":

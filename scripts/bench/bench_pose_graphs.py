@@ -44,9 +44,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import os
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -54,6 +52,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from timing import print_rows  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log
@@ -207,19 +206,7 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     for path in args.files or default_files():
         rows += bench_file(path, args.repeats)
-        _print(rows)
-
-
-def _print(rows: list[dict[str, Any]]) -> None:
-    cols = list(rows[0])
-    print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
-    print("| " + " | ".join(cols) + " |")
-    print("|" + "---|" * len(cols))
-    for r in rows:
-        print("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c])
-                                for c in cols) + " |")
-    print(flush=True)
-    sys.stdout.flush()
+        print_rows(rows)
 
 
 if __name__ == "__main__":
