@@ -64,6 +64,23 @@ def match_log_odds(d2: float, logdet_psi: float, range_m: float, density: float)
     return log_match - math.log(density * range_m)
 
 
+def psi_logdet(psi: FloatArray | None) -> float:
+    """``log det Psi`` of an innovation covariance; NaN when there is none (the
+    landmark could not be predicted) or it is not positive definite."""
+    if psi is None:
+        return math.nan
+    sign, logdet = np.linalg.slogdet(psi)
+    return float(logdet) if sign > 0 else math.nan
+
+
+def refuses(d2: float, psi: FloatArray | None, range_m: float, density: float,
+            odds: float) -> bool:
+    """Whether the alias test refuses a gated range-bearing pair: its log-odds
+    (:func:`match_log_odds`) under ``log odds`` (``odds`` > 0). A pair without a
+    usable ``Psi`` (:func:`psi_logdet` NaN) is refused."""
+    return match_log_odds(d2, psi_logdet(psi), range_m, density) < math.log(odds)
+
+
 def map_density(xy: FloatArray, spacing: float = 0.0) -> float:
     """Landmarks per m^2: ``1 / spacing^2``, or from the map when ``spacing`` is 0.
 

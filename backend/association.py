@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.alias_gate import match_log_odds
+from lampsam.backend.alias_gate import psi_logdet, refuses
 from lampsam.backend.config import AssociationConfig
 from lampsam.backend.models import Obs
 from lampsam.backend.planar_gate import rival_material
@@ -140,7 +140,6 @@ def associate(
     best_d2: dict[int, float] = {}
     # planar_unique: (d2, log det Psi) of the landmarks within its threshold (NaN: not known)
     near: dict[int, list[tuple[float, float, int]]] = {}
-    alias_min = math.log(config.alias_odds) if config.alias_odds > 0.0 else -math.inf
     aliased: set[int] = set()  # sightings with a gated pair the alias test refused
     for i, obs in enumerate(observations):
         if config.use_known_ids and obs.landmark_id is not None:
@@ -156,7 +155,7 @@ def associate(
             items = ((lid, (float("nan"), False)) for lid in candidates.get(obs.kind, ()))
         unique = config.planar_unique and obs.kind == "point2"
         unique_t = config.unique_threshold(len(obs.z))
-        alias = alias_density > 0.0 and obs.kind == "point2" and math.isfinite(alias_min)
+        alias = alias_density > 0.0 and obs.kind == "point2" and config.alias_odds > 0.0
         for lid, (d2_screen, exact) in items:
             screen_only = not math.isnan(d2_screen)
             if screen_only and d2_screen >= gate and not (unique and d2_screen < unique_t):
@@ -177,9 +176,8 @@ def associate(
                 if pred is None:
                     continue
                 d2 = mahalanobis2(*pred)
-                if unique or alias:
-                    sign, ld = np.linalg.slogdet(pred[1])
-                    logdet = float(ld) if sign > 0 else math.nan
+                if unique:
+                    logdet = psi_logdet(pred[1])
             best = min(best, d2)
             if unique and d2 < unique_t:
                 near.setdefault(i, []).append((d2, logdet, lid))
@@ -188,9 +186,8 @@ def associate(
             if alias:
                 if pred is None:  # an exact screen distance: the covariance is still needed
                     pred = innovation(lid, obs)
-                    sign, ld = np.linalg.slogdet(pred[1]) if pred is not None else (0.0, 0.0)
-                    logdet = float(ld) if sign > 0 else math.nan
-                if match_log_odds(d2, logdet, float(obs.z[1]), alias_density) < alias_min:
+                if refuses(d2, None if pred is None else pred[1], float(obs.z[1]),
+                           alias_density, config.alias_odds):
                     aliased.add(i)
                     continue
             if obs.kind == "corner":

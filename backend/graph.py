@@ -162,12 +162,14 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
                 cands, screened = self._screen(obs, pose, pose_cov())
                 self._prefetch_joint(gate_ctx[0], obs, screened)
                 patches = {lid: self._landmarks[lid].patch for lid in cands.get("corner", ())}
+                density = self._alias_density()
                 assignments = associate(
                     obs, cands, lambda lid, o: self._innovation(gate_ctx, lid, o),
                     self.config.association, lambda i: i in self._landmarks, patches, screened,
-                    self._same_place, self._alias_density())
+                    self._same_place, density)
                 if self.config.association.joint_compatibility:
-                    assignments = self._joint_planar(gate_ctx, obs, assignments, screened)
+                    assignments = self._joint_planar(gate_ctx, obs, assignments, screened,
+                                                     density)
                 learn_scale(self.noise_scale, obs, assignments, screened)
                 if self.odo_scale is not None:
                     feed_scale(self.odo_scale, self.idle, obs, assignments, screened,

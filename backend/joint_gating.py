@@ -23,7 +23,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray
-from lampsam.backend.alias_gate import match_log_odds
+from lampsam.backend.alias_gate import refuses
 from lampsam.backend.association import Assignment, mahalanobis2, reassign_jointly
 from lampsam.backend.gating import Gating
 from lampsam.backend.models import Obs, predict, residual
@@ -60,7 +60,8 @@ class JointGating(Gating):
 
     def _joint_planar(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray],
                       obs: list[Obs], assignments: list[Assignment],
-                      screened: dict[int, dict[int, tuple[float, bool]]]) -> list[Assignment]:
+                      screened: dict[int, dict[int, tuple[float, bool]]],
+                      density: float = 0.0) -> list[Assignment]:
         """Re-pair an ambiguous keyframe's range-bearing sightings by JCBB (module doc).
 
         Args:
@@ -68,13 +69,14 @@ class JointGating(Gating):
                 iSAM2, current pose, odometry since ``k`` and its covariance).
             obs: the frame's observations; assignments: :func:`associate`'s.
             screened: the planar screen (:meth:`Gating._screen_planar`).
+            density: the alias test's landmark density, as given to :func:`associate`
+                (0: off); a pair it refused is no JCBB candidate.
 
         Returns:
             The assignments, re-paired where the keyframe is ambiguous.
         """
         gate = self.config.association.gate(2)
-        density = self._alias_density()
-        alias_min = math.log(self.config.association.alias_odds) if density > 0.0 else -math.inf
+        odds = self.config.association.alias_odds
         cands: dict[int, list[int]] = {}
         for i, o in enumerate(obs):
             if o.kind != "point2" or o.landmark_id is not None or i not in screened:
@@ -86,11 +88,9 @@ class JointGating(Gating):
                     pred = self._innovation(gate_ctx, lid, o)  # cached joint marginal
                 if not exact:
                     d2 = math.inf if pred is None else mahalanobis2(*pred)
-                if d2 < gate and density > 0.0:  # alias_odds: a pair associate() refused stays out
-                    ld = np.linalg.slogdet(pred[1]) if pred is not None else (0.0, math.nan)
-                    if match_log_odds(d2, float(ld[1]) if ld[0] > 0 else math.nan,
-                                      float(o.z[1]), density) < alias_min:
-                        continue
+                if d2 < gate and density > 0.0 and refuses(  # a pair associate() refused
+                        d2, None if pred is None else pred[1], float(o.z[1]), density, odds):
+                    continue
                 if d2 < gate:
                     inside.append((d2, lid))
             cands[i] = [lid for _, lid in sorted(inside)]
@@ -125,10 +125,6 @@ class JointGating(Gating):
         self.n_jcbb_changed += sum(a.landmark_id != b.landmark_id or a.status != b.status
                                    for a, b in zip(assignments, out, strict=True))
         return out
-
-    def _alias_density(self) -> float:
-        """Landmarks per m^2 for the alias test (:meth:`GraphSlam._alias_density`); 0: off."""
-        return 0.0
 
     def _joint_block(self, gate_ctx: tuple[int, FloatArray, FloatArray, FloatArray],
                      lids: list[int]) -> FloatArray | None:
