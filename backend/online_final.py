@@ -311,11 +311,10 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
         cands.append(c)
     i = pick(cands)
     c = cands[i]
-    lost = [x.name for x in cands if x.status != "ok"]
+    lost = [x for x in cands if x.status != "ok"]
     if lost and len(cands) > 1:
         log.warning("online candidates without a final solve (they lose): %s; chosen: %s",
-                    ", ".join(f"{x.name} ({x.status[:60]})" for x in cands if x.status != "ok"),
-                    c.name)
+                    ", ".join(f"{x.name} ({x.status[:60]})" for x in lost), c.name)
     if c.final is None:
         answer = c.online
         if answer is None:  # a stop request before the first candidate ran

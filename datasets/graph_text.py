@@ -103,8 +103,6 @@ class GraphLog:
             (sample 0: zero, the start), ``t = k`` s.
         sightings: per pose, its landmark sightings.
         vertices: the file's ``VERTEX`` poses by id (initial values or truth).
-        n_skipped_edges: pose-pose edges that are not odometry (the loop closures,
-            ``len(closures)`` when read by :func:`read_graph_text`).
         closures: the loop closures (:class:`PoseEdge`), in file order.
         n_reversed: odometry edges written backwards (``j -> j-1``) and inverted.
     """
@@ -114,7 +112,6 @@ class GraphLog:
     odometry: Pose2OdometryLog
     sightings: list[list[Sighting]]
     vertices: dict[int, FloatArray] = field(default_factory=dict)
-    n_skipped_edges: int = 0
     closures: list[PoseEdge] = field(default_factory=list)
     n_reversed: int = 0
 
@@ -401,7 +398,7 @@ def read_graph_text(path: str | Path) -> GraphLog:
     n = len(pose_ids)
     odo = Pose2OdometryLog(t=np.arange(n, dtype=float), delta=np.array(deltas),
                            cov=np.array(covs))
-    return GraphLog(path, pose_ids, odo, sightings, vertices, len(closures), closures, n_reversed)
+    return GraphLog(path, pose_ids, odo, sightings, vertices, closures, n_reversed)
 
 
 def read_vertices(path: str | Path) -> dict[int, FloatArray]:
