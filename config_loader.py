@@ -46,6 +46,7 @@ import tomllib
 import yaml
 
 from lampsam.errors import InputError
+from lampsam.strict_keys import MISSING as MISSING_KEY
 from lampsam.strict_keys import check_keys, check_number, join_key, kind
 
 T = TypeVar("T")
@@ -375,7 +376,7 @@ class _Converter:
             missing = [n for n, f in fields.items() if n not in kwargs
                        and _default_of(f) is dataclasses.MISSING]
             if missing:
-                raise self.fail(join_key(path, missing[0]), "missing (required)")
+                raise self.fail(join_key(path, missing[0]), MISSING_KEY)
         try:
             if base is not None:
                 return dataclasses.replace(base, **kwargs)  # type: ignore[type-var]
