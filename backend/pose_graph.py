@@ -32,7 +32,7 @@ from lampsam.backend.interface import SlamResult
 from lampsam.backend.models import init_point2
 from lampsam.datasets.graph_text import GraphLog, PoseEdge
 from lampsam.factors.geometry import wrap_angle
-from lampsam.factors.gtsam_factors import check_cov
+from lampsam.factors.gtsam_factors import check_cov, robust_wrap
 
 log = logging.getLogger(__name__)
 
@@ -41,12 +41,9 @@ def closure_noise(cov: FloatArray, config: PoseGraphConfig) -> gtsam.noiseModel.
     """The noise model of one loop closure: its (3, 3) covariance, wrapped in the
     ``[graph] closure_kernel`` (Huber or Cauchy at ``closure_kernel_k`` sigmas) if any."""
     gauss = gtsam.noiseModel.Gaussian.Covariance(check_cov(cov, 3, "loop closure"))
-    k = config.closure_kernel_k
-    if config.closure_kernel == "huber":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), gauss)
-    if config.closure_kernel == "cauchy":
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), gauss)
-    return gauss
+    if config.closure_kernel == "none":
+        return gauss
+    return robust_wrap(gauss, config.closure_kernel_k, config.closure_kernel)
 
 
 def closures_by_step(g: GraphLog) -> dict[int, list[PoseEdge]]:

@@ -195,13 +195,19 @@ def check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
     return arr
 
 
-def robust_wrap(base: gtsam.noiseModel.Base, robust: float | None) -> gtsam.noiseModel.Base:
-    """``base`` unchanged for ``robust=None``, else wrapped in a Huber kernel with threshold ``robust`` (> 0)."""
+#: GTSAM's robust kernels by the names lampsam's configs use
+_KERNELS = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
+
+
+def robust_wrap(base: gtsam.noiseModel.Base, robust: float | None,
+                kernel: str = "huber") -> gtsam.noiseModel.Base:
+    """``base`` unchanged for ``robust=None``, else wrapped in a ``kernel`` (``"huber"`` or
+    ``"cauchy"``) with threshold ``robust`` (> 0, in sigmas of ``base``)."""
     if robust is None:
         return base
     if not robust > 0.0:
-        raise FactorError(f"Huber threshold must be > 0, got {robust}")
-    return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust), base)
+        raise FactorError(f"{kernel.capitalize()} threshold must be > 0, got {robust}")
+    return gtsam.noiseModel.Robust.Create(_KERNELS[kernel].Create(robust), base)
 
 
 def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseModel.Base:
