@@ -196,7 +196,8 @@ def check_cov(cov: FloatArray, dim: int, what: str) -> FloatArray:
 
 
 #: GTSAM's robust kernels by the names lampsam's configs use
-_KERNELS = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
+_KERNELS = {"huber": gtsam.noiseModel.mEstimator.Huber.Create,
+            "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create}
 
 
 def robust_wrap(base: gtsam.noiseModel.Base, robust: float | None,
@@ -207,7 +208,7 @@ def robust_wrap(base: gtsam.noiseModel.Base, robust: float | None,
         return base
     if not robust > 0.0:
         raise FactorError(f"{kernel.capitalize()} threshold must be > 0, got {robust}")
-    return gtsam.noiseModel.Robust.Create(_KERNELS[kernel].Create(robust), base)
+    return gtsam.noiseModel.Robust.Create(_KERNELS[kernel](robust), base)
 
 
 def noise_model(cov: FloatArray, robust: float | None = None) -> gtsam.noiseModel.Base:
