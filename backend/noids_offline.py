@@ -45,10 +45,11 @@ variance factor.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import gtsam
@@ -121,13 +122,25 @@ class OfflineRun:
                 if c >= min_observations}
 
 
-class CandidatePruneFilter(logging.Filter):
-    """Drops the pruned-landmark warning of a candidate's online pass: its map is an
-    intermediate one that the batch re-associates, and the warning read as if the
-    final map had been pruned once per candidate."""
+class _CandidatePruneFilter(logging.Filter):
+    """Drops the pruned-landmark warning (:func:`candidate_pruning_quiet`)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith("%d landmarks pruned from the map")
+
+
+@contextlib.contextmanager
+def candidate_pruning_quiet() -> Iterator[None]:
+    """Inside: the backends' pruned-landmark warning is dropped. A candidate's online
+    pass makes an intermediate map that the batch re-associates, and the warning read
+    as if the final map had been pruned once per candidate."""
+    backend_log = logging.getLogger("lampsam.backend")
+    quiet = _CandidatePruneFilter()
+    backend_log.addFilter(quiet)
+    try:
+        yield
+    finally:
+        backend_log.removeFilter(quiet)
 
 
 def online_pass(g: GraphLog, config: SlamConfig, scale: float
@@ -148,13 +161,8 @@ def online_pass(g: GraphLog, config: SlamConfig, scale: float
         pose2_odometry=dataclasses.replace(config.pose2_odometry,
                                            cov_scale=config.pose2_odometry.cov_scale * scale))
     be = make_backend("ekf", cfg.pose2_odometry, cfg, g.start_pose())
-    backend_log = logging.getLogger("lampsam.backend")
-    quiet = CandidatePruneFilter()
-    backend_log.addFilter(quiet)
-    try:
+    with candidate_pruning_quiet():
         res = drive(be, graph_log_steps(g, False))
-    finally:
-        backend_log.removeFilter(quiet)
     s = sightings_from(list(be.planar_sightings))  # type: ignore[attr-defined]
     lms = first_sight_positions(res.poses, s)
     for lm in list(res.landmarks) + list(res.provisional):

@@ -49,8 +49,8 @@ from lampsam.backend.config_offline import online_candidate_changes
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
 from lampsam.backend.noids_offline import (
-    CandidatePruneFilter,
     OfflineRun,
+    candidate_pruning_quiet,
     dropped_sightings,
     final_pass,
     result_of,
@@ -239,14 +239,10 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
         return Candidate(name, "not run (stop requested)")
     t0, c0 = time.perf_counter(), time.process_time()
     cfg = config if spec is None else candidate_config(config, spec)
-    online_log = logging.getLogger("lampsam.backend")
-    quiet = CandidatePruneFilter()  # the online map's pruning is not the written map's
-    online_log.addFilter(quiet)
-    try:
-        with observing(_budget_watch(c0, budget_s) if np.isfinite(budget_s) else None):
-            online, be = run_graph_log_backend(g, backend, cfg, known_ids=False)
-    finally:
-        online_log.removeFilter(quiet)
+    # the online map's pruning is not the written map's
+    with candidate_pruning_quiet(), observing(
+            _budget_watch(c0, budget_s) if np.isfinite(budget_s) else None):
+        online, be = run_graph_log_backend(g, backend, cfg, known_ids=False)
     if online.n_pruned:
         log.info("online run (%s): %d landmarks pruned from its map", name, online.n_pruned)
     # a stopped or failed run's last keyframe may hold sightings past the steps it kept:
