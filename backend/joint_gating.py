@@ -34,7 +34,7 @@ def current_pose_block(s_kk: FloatArray, s_kl: FloatArray, delta: FloatArray,
     """Covariance of the current pose ``x = x_k * delta`` and its cross-covariance with landmarks.
 
     ``S_xx = Ad S_kk Ad^T + C`` and ``S_xl = Ad S_kl`` with ``Ad = Ad(delta^-1)``
-    (right tangent, as :func:`lampsam.backend.gating.eq19_covariance`).
+    (right tangent, as :func:`lampsam.backend.pose_cov.eq19_covariance`).
 
     Args:
         s_kk: (3, 3) marginal of keyframe ``k``; s_kl: (3, m) its cross-covariance

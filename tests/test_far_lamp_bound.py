@@ -1,6 +1,6 @@
 """The far-lamp bound of the exact gate (issue 19): a lower bound, and the same decisions.
 
-:meth:`~lampsam.backend.gating.Gating._bound_far` carries a lamp's last exact joint
+:meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._bound_far` carries a lamp's last exact joint
 marginal to the current pose by the odometry alone. On a seeded ceiling run where
 every lamp pair goes to the exact gate:
 

@@ -18,7 +18,8 @@ from gtsam.symbol_shorthand import X
 from lampsam.backend.ceiling import CeilingModel
 from lampsam.backend.ceiling_graph import CeilingHandler
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.gating import RELATIVE_GATE_KEYFRAMES, Gating
+from lampsam.backend.gate_exact import RELATIVE_GATE_KEYFRAMES
+from lampsam.backend.gating import Gating
 from lampsam.backend.graph import Isam2Slam
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.models import Obs
