@@ -47,7 +47,7 @@ import yaml
 
 from lampsam.errors import InputError
 from lampsam.strict_keys import MISSING as MISSING_KEY
-from lampsam.strict_keys import check_keys, check_number, join_key, kind
+from lampsam.strict_keys import check_keys, check_number, finite_array, join_key, kind
 
 T = TypeVar("T")
 
@@ -431,7 +431,7 @@ class _Converter:
         if origin in (dict, Mapping) or tp is dict:
             return self._mapping(args, value, key)
         if origin is np.ndarray or tp is np.ndarray:
-            return self._array(value, key)
+            return finite_array(value, None, key, fail=self.fail)
         if isinstance(tp, type) and isinstance(value, tp):
             return value
         raise self.fail(key, f"must be {_type_name(tp)}, got {kind(value)}")
@@ -471,22 +471,3 @@ class _Converter:
             raise self.fail(key, f"must be a table, got {kind(value)}")
         vt = args[1] if len(args) == 2 else Any
         return {str(k): self.convert(vt, v, join_key(key, str(k)), None) for k, v in value.items()}
-
-    def _array(self, value: object, key: str) -> np.ndarray:
-        def numbers(v: object) -> bool:
-            if isinstance(v, list | tuple):
-                return all(numbers(x) for x in v)
-            return isinstance(v, int | float) and not isinstance(v, bool)
-
-        if isinstance(value, np.ndarray):
-            arr = value.astype(np.float64)
-        elif isinstance(value, list | tuple) and numbers(value):
-            try:
-                arr = np.asarray(value, dtype=np.float64)
-            except ValueError as exc:  # ragged
-                raise self.fail(key, f"must be a rectangular array of numbers: {exc}") from exc
-        else:
-            raise self.fail(key, f"must be an array of numbers, got {kind(value)}")
-        if not np.all(np.isfinite(arr)):
-            raise self.fail(key, "must be finite (no nan or inf)")
-        return arr

@@ -155,13 +155,18 @@ def array(data: Mapping[str, Any], key: str, shape: tuple[int, ...], where: str,
     return finite_array(data[key], shape, name, fail=fail)
 
 
-def finite_array(value: object, shape: tuple[int, ...], key: str, *, fail: Fail) -> FloatArray:
+def finite_array(value: object, shape: tuple[int, ...] | None, key: str, *,
+                 fail: Fail) -> FloatArray:
     """``value`` (nested lists of numbers, NumPy scalars among them, or a numeric array)
-    as a float array of ``shape``.
+    as a float array of ``shape``, or of any shape with at least one axis when ``shape``
+    is None (a config field annotated ``np.ndarray``, whose shape its owner checks).
 
     Raises:
-        what ``fail`` returns, for ``key``: ``must be 3x3 finite numbers, got ...`` for a
-            value of another shape, one that is not all numbers, or one not all finite.
+        what ``fail`` returns, for ``key``: ``must be 3x3 finite numbers, got ...``
+            (``must be an array of finite numbers, got ...`` without a shape) for a
+            value of another shape, a ragged one, one that is not all numbers (a
+            ``bool`` never is; nor a string, nor an array of them), or one not all
+            finite.
     """
 
     def numbers(v: object) -> bool:
@@ -171,12 +176,14 @@ def finite_array(value: object, shape: tuple[int, ...], key: str, *, fail: Fail)
             return all(numbers(x) for x in v)
         return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
 
-    arr = np.zeros(0)
+    arr: FloatArray | None = None
     if numbers(value):
         try:
-            arr = np.asarray(value, dtype=np.float64)
+            arr = np.array(value, dtype=np.float64)  # a copy: the caller's array stays its own
         except ValueError:  # ragged
             pass
-    if arr.shape != shape or not np.all(np.isfinite(arr)):
-        raise fail(key, f"must be {'x'.join(map(str, shape))} finite numbers, got {value!r}")
+    if (arr is None or not (arr.shape == shape if shape is not None else arr.ndim >= 1)
+            or not np.all(np.isfinite(arr))):
+        want = "an array of" if shape is None else "x".join(map(str, shape))
+        raise fail(key, f"must be {want} finite numbers, got {value!r}")
     return arr

@@ -202,6 +202,12 @@ _LAYOUTS = {
 
 def _unknown_record(tag: str, known: list[str]) -> str:
     """The message for a line whose first word is no record tag (long words cut to 40 chars)."""
+    try:
+        float(tag)
+        return (f"the line starts with a number ({tag!r}), not a record tag: not an iSAM / g2o "
+                "graph file (a plain table of numbers?)")
+    except ValueError:
+        pass
     shown = repr(tag if len(tag) <= 40 else tag[:40] + "...")
     if "," in tag:
         return (f"the line {shown} holds commas: a CSV table, not an iSAM / g2o graph file "
@@ -211,22 +217,16 @@ def _unknown_record(tag: str, known: list[str]) -> str:
     return f"unknown record {shown} (known: {', '.join(known)})"
 
 
-def _is_int(text: str) -> bool:
-    """True when ``text`` parses as an integer."""
-    try:
-        int(text)
-    except ValueError:
-        return False
-    return True
-
-
-def _is_number(text: str) -> bool:
-    """True when ``text`` parses as a float."""
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+def _ids(tag: str, words: list[str], path: Path, line_no: int) -> list[int]:
+    """The integer ids of a record, or DatasetError naming the first that is not one."""
+    ids = []
+    for x in words:
+        try:
+            ids.append(int(x))
+        except ValueError:
+            raise DatasetError(f"{tag}: ids must be integers, got {x!r} (symbol ids such "
+                               "as PyFG's 'L0' / 'A1' are not read)", path, line_no) from None
+    return ids
 
 
 def read_graph_text(path: str | Path) -> GraphLog:
@@ -271,21 +271,14 @@ def read_graph_text(path: str | Path) -> GraphLog:
             if tag in _TAGS_3D:
                 raise DatasetError(f"3-D record {tag!r}: lampsam reads planar (2-D) graphs only "
                                    "(VERTEX_SE2 / EDGE_SE2 / ODOMETRY / LANDMARK ...)", path, line_no)
-            if tag not in counts and _is_number(tag):
-                raise DatasetError(f"the line starts with a number ({tag!r}), not a record tag: not an "
-                                   "iSAM / g2o graph file (a plain table of numbers?)", path, line_no)
             if tag not in counts:
                 raise DatasetError(_unknown_record(tag, sorted(counts)), path, line_no)
             if len(parts) - 1 != counts[tag]:
                 raise DatasetError(f"{tag} needs {counts[tag]} fields, got {len(parts) - 1} "
                                    f"(layout: {tag} {_LAYOUTS[tag]})", path, line_no)
             n_ids = 2 if counts[tag] >= 6 else 1
-            bad_id = next((x for x in parts[1 : 1 + n_ids] if not _is_int(x)), None)
-            if bad_id is not None:
-                raise DatasetError(f"{tag}: ids must be integers, got {bad_id!r} (symbol ids such "
-                                   "as PyFG's 'L0' / 'A1' are not read)", path, line_no)
+            ids = _ids(tag, parts[1 : 1 + n_ids], path, line_no)
             try:
-                ids = [int(x) for x in parts[1 : 1 + n_ids]]
                 nums = [float(x) for x in parts[1 + len(ids):]]
             except ValueError as exc:
                 raise DatasetError(f"{tag}: not a number ({exc})", path, line_no) from None

@@ -7,6 +7,7 @@ with exit code 2 and a one-line message on stderr, before any work is done.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -73,6 +74,17 @@ def test_nested_partial_table_changes_only_given_keys() -> None:
     base = _Outer(name="base", inner=_Inner(count=7))
     cfg = from_mapping(_Outer, {"inner": {"distance": 0.5}}, base=base)
     assert cfg.name == "base" and cfg.inner == _Inner(distance=0.5, count=7)
+
+
+def test_array_field_refuses_non_numeric_arrays() -> None:
+    """An ``np.ndarray`` field goes through :func:`lampsam.strict_keys.finite_array`: an
+    array of strings is a ConfigError naming the file and key (it was a bare ValueError
+    from ``astype``), an array of bools is refused like a list of them, and a ragged or
+    non-finite value reads as everywhere else."""
+    for bad in (np.array(["a", "b"]), np.array([True, False]), [[1], [2, 3]], [1, math.nan]):
+        with pytest.raises(ConfigError, match=r"^a\.toml: matrix: must be an array of finite "
+                                              r"numbers, got "):
+            from_mapping(_Outer, {"matrix": bad}, source="a.toml")
 
 
 @pytest.mark.parametrize(

@@ -78,6 +78,22 @@ def test_arrays_shape_type_and_finiteness() -> None:
         array({}, "R", (3, 3), "", fail=_fail)
 
 
+def test_array_of_any_shape() -> None:
+    """``shape=None`` (config_loader's ``np.ndarray`` fields): any shape with an axis, the
+    same number rules and one message; the result is a copy of the caller's array."""
+    src = np.eye(2)
+    out = finite_array(src, None, "m", fail=_fail)
+    np.testing.assert_array_equal(out, np.eye(2))
+    src[0, 0] = 5.0
+    assert out[0, 0] == 1.0
+    np.testing.assert_array_equal(finite_array([np.float32(1.5), 2], None, "m", fail=_fail),
+                                  [1.5, 2.0])
+    for bad in (5, [[1], [2, 3]], np.array(["a"]), np.array([True]), [1, math.inf],
+                np.array(5.0), "1 2"):
+        with pytest.raises(_Bad, match=r"^c\.m: must be an array of finite numbers, got "):
+            finite_array(bad, None, "c.m", fail=_fail)
+
+
 # --------------------------------------------------------------------------- the three users
 @dataclass(frozen=True)
 class _Lamp:
