@@ -31,7 +31,6 @@ from lampsam.backend.config_graph import PoseGraphConfig
 from lampsam.backend.interface import SlamResult
 from lampsam.backend.models import init_point2
 from lampsam.datasets.graph_text import GraphLog, PoseEdge
-from lampsam.factors.geometry import wrap_angle
 from lampsam.factors.gtsam_factors import check_cov, robust_wrap
 
 log = logging.getLogger(__name__)
@@ -127,30 +126,6 @@ def lago_start(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
     for key in initial.keys():  # a landmark not placed above (none today): its own start
         if not out.exists(key):
             out.insert(key, initial.atPoint2(key))
-    return out
-
-
-def chain_poses(g: GraphLog, start: FloatArray) -> FloatArray:
-    """(N, 3) the chain's dead reckoning from ``start``: each pose the previous one
-    composed with its odometry sample (theta wrapped)."""
-    poses = np.zeros((len(g.pose_ids), 3))
-    cur = gtsam.Pose2(*np.asarray(start, float))
-    for k, d in enumerate(g.odometry.delta):
-        if k:
-            cur = cur.compose(gtsam.Pose2(*d))
-        poses[k] = [cur.x(), cur.y(), cur.theta()]
-    return poses
-
-
-def closure_chi2(g: GraphLog, poses: FloatArray) -> FloatArray:
-    """(C,) each closure's squared Mahalanobis residual at the (N, 3) poses:
-    ``e^T cov^-1 e`` with ``e = Log(i_T_j^-1 (x_i^-1 x_j))`` (GTSAM's between error)."""
-    out = np.zeros(len(g.closures))
-    for c, e in enumerate(g.closures):
-        xi, xj = gtsam.Pose2(*poses[e.i]), gtsam.Pose2(*poses[e.j])
-        r = gtsam.Pose2.Logmap(gtsam.Pose2(*e.delta).between(xi.between(xj)))
-        r[2] = wrap_angle(r[2])
-        out[c] = float(r @ np.linalg.solve(e.cov, r))
     return out
 
 

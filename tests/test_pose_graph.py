@@ -20,8 +20,8 @@ import pytest
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.config_graph import PoseGraphConfig
 from lampsam.backend.graph_log import run_graph_log
-from lampsam.backend.pose_graph import chain_poses, closure_chi2
-from lampsam.datasets.graph_text import invert_edge, read_graph_text
+from lampsam.datasets.graph_text import GraphLog, invert_edge, read_graph_text
+from lampsam.factors.geometry import wrap_angle
 
 ODO_COV = np.diag([0.03 ** 2, 0.03 ** 2, 0.015 ** 2])
 LOOP_COV = np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2])
@@ -29,6 +29,30 @@ LOOP_COV = np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2])
 #: error decrease, lampsam's at [batch] relative_error_tol 1e-4, GTSAM's default at 1e-5
 #: (the same minimum: graph chi-square equal to 1e-7 relative on the backwards chain)
 LM_TOL = 1e-3
+
+
+def _chain_poses(g: GraphLog, start: np.ndarray) -> np.ndarray:
+    """(N, 3) the chain's dead reckoning from ``start``: each pose the previous one
+    composed with its odometry sample (theta wrapped)."""
+    poses = np.zeros((len(g.pose_ids), 3))
+    cur = gtsam.Pose2(*np.asarray(start, float))
+    for k, d in enumerate(g.odometry.delta):
+        if k:
+            cur = cur.compose(gtsam.Pose2(*d))
+        poses[k] = [cur.x(), cur.y(), cur.theta()]
+    return poses
+
+
+def _closure_chi2(g: GraphLog, poses: np.ndarray) -> np.ndarray:
+    """(C,) each closure's squared Mahalanobis residual at the (N, 3) poses:
+    ``e^T cov^-1 e`` with ``e = Log(i_T_j^-1 (x_i^-1 x_j))`` (GTSAM's between error)."""
+    out = np.zeros(len(g.closures))
+    for c, e in enumerate(g.closures):
+        xi, xj = gtsam.Pose2(*poses[e.i]), gtsam.Pose2(*poses[e.j])
+        r = gtsam.Pose2.Logmap(gtsam.Pose2(*e.delta).between(xi.between(xj)))
+        r[2] = wrap_angle(r[2])
+        out[c] = float(r @ np.linalg.solve(e.cov, r))
+    return out
 
 
 def _p(a: np.ndarray) -> gtsam.Pose2:
@@ -189,7 +213,7 @@ def test_loop_closures_reduce_the_error_and_match_gtsam(tmp_path: Path, backend:
     truth, pairs = write_loop_g2o(path, np.random.default_rng(5))
     g = read_graph_text(path)
     assert len(g.closures) == len(pairs) == 16 and g.n_reversed == 0
-    dead = chain_poses(g, g.start_pose())
+    dead = _chain_poses(g, g.start_pose())
     res = run_graph_log(g, backend, SlamConfig())
     assert res.status == "ok" and res.extra["loop_closures_used"] == len(pairs)
     err_dead, err = rms_xy(dead, truth), rms_xy(res.poses, truth)
@@ -265,11 +289,11 @@ def test_ekf_warns_and_leaves_the_closures_out(tmp_path: Path, caplog: pytest.Lo
 
 
 def test_closure_chi2_is_the_factor_error(tmp_path: Path) -> None:
-    """closure_chi2 equals twice the closures' BetweenFactorPose2 error at the same poses."""
+    """The closures' chi-square (_closure_chi2) equals twice the closures' BetweenFactorPose2 error at the same poses."""
     path = tmp_path / "loop.g2o"
     write_loop_g2o(path, np.random.default_rng(5))
     g = read_graph_text(path)
-    poses = chain_poses(g, g.start_pose())
+    poses = _chain_poses(g, g.start_pose())
     total = 0.0
     for e in g.closures:
         f = gtsam.BetweenFactorPose2(e.i, e.j, _p(e.delta), gtsam.noiseModel.Gaussian.Covariance(e.cov))
@@ -277,7 +301,7 @@ def test_closure_chi2_is_the_factor_error(tmp_path: Path) -> None:
         v.insert(e.i, _p(poses[e.i]))
         v.insert(e.j, _p(poses[e.j]))
         total += 2 * f.error(v)
-    assert float(closure_chi2(g, poses).sum()) == pytest.approx(total, rel=1e-9)
+    assert float(_closure_chi2(g, poses).sum()) == pytest.approx(total, rel=1e-9)
 
 
 def test_cauchy_kernel_resists_wrong_closures(tmp_path: Path) -> None:
