@@ -118,7 +118,8 @@ def _report_run(backend: str, label: str, result: SlamResult, run: LoggedRun, ou
         return EXIT_INTERRUPTED
     s = _plot_and_summarize(out, result, run)
     print(f"{label}: {s['steps']} steps, {s['keyframes']} keyframes, {s['landmarks']} "
-          f"landmarks ({s['landmarks_pruned']} pruned){_error_text(s)}; written to {out}")
+          f"landmarks ({s['landmarks_pruned']} pruned){_damped_text(result)}{_error_text(s)}; "
+          f"written to {out}")
     if result.status != "ok":
         print(f"{backend}: {result.status}; the {result.backend} estimate is written "
               f"to {out}", file=sys.stderr)
@@ -143,6 +144,17 @@ def _error_text(s: dict[str, Any]) -> str:
         return ""
     return (f"; position error RMS {err['position_rms_m']:.3f} m, max {err['position_max_m']:.3f} m;"
             f" heading RMS {err['heading_rms_deg']:.2f} deg")
+
+
+def _damped_text(result: SlamResult) -> str:
+    """``"; N diverging iSAM2 step(s) damped ..."`` when the smoother damped any
+    (``extra["n_damped_rebuilds"]``, :meth:`~lampsam.backend.isam2_update.Isam2Updates._damp_divergence`),
+    else ""."""
+    n = int(result.extra.get("n_damped_rebuilds", 0))
+    if not n:
+        return ""
+    return (f"; {n} diverging iSAM2 step{'s' if n > 1 else ''} damped (Levenberg-Marquardt "
+            "solve, then dogleg steps)")
 
 
 def _check_map_flags(args: argparse.Namespace) -> None:
@@ -331,6 +343,7 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                 f"{int(result.extra['n_held_unused'])} of them never used")
     if glog.closures:
         msg += (f"; {s['input']['loop_closures_used']} of {len(glog.closures)} loop closures used")
+    msg += _damped_text(result)
     err = s.get("error")
     if err:
         msg += f"; position error RMS {err['position_rms_m']:.3f} m"
