@@ -99,7 +99,7 @@ class Isam2Updates(GraphState):
         """Forget the gate's joint-marginal records when an update relinearised variables;
         whether it did.
 
-        :meth:`~lampsam.backend.gating.Gating._bound_far` bounds an exact distance by
+        :meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._bound_far` bounds an exact distance by
         an earlier joint marginal; that holds for one linearisation only (new
         Jacobians can widen a marginal).
         """
@@ -281,12 +281,9 @@ class Isam2Updates(GraphState):
         log.warning("iSAM2 update failed at keyframe %d (%s: %s): dropping this update's "
                     "factors of %d landmarks (%d removed) and rebuilding iSAM2",
                     self._k, type(exc).__name__, str(exc).strip()[:120], len(bad), len(entered))
-        removed_keys = set()
+        removed_keys: set[int] = set()
         for lid in entered:
-            lm = self._landmarks.pop(lid)
-            removed_keys.update(self.handlers[lm.kind].keys(lm))
-            self.n_pruned += 1
-            self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
+            self._drop_failed(lid, removed_keys)
         graph = gtsam.NonlinearFactorGraph()
         for i in range(self.graph.size()):
             f = self.graph.at(i)
@@ -299,10 +296,7 @@ class Isam2Updates(GraphState):
             sym = gtsam.Symbol(key)
             lid = int(sym.index())
             if chr(sym.chr()) != "x" and lid in self._landmarks:
-                lm = self._landmarks.pop(lid)
-                removed_keys.update(self.handlers[lm.kind].keys(lm))
-                self.n_pruned += 1
-                self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
+                self._drop_failed(lid, removed_keys)
             removed_keys.add(key)
         values = self._rebuild_values(old, removed_keys)
         initial = gtsam.Values()
@@ -319,6 +313,14 @@ class Isam2Updates(GraphState):
                                   f"{type(exc2).__name__} {exc2}") from exc2
         self._forget_linearisation()
         self.n_recoveries += 1
+
+    def _drop_failed(self, lid: int, removed_keys: set[int]) -> None:
+        """Remove landmark ``lid`` for a rebuild (:meth:`_recover`): its keys join
+        ``removed_keys``, and it counts as pruned (reason ``failed_update``)."""
+        lm = self._landmarks.pop(lid)
+        removed_keys.update(self.handlers[lm.kind].keys(lm))
+        self.n_pruned += 1
+        self.pruned["failed_update"] = self.pruned.get("failed_update", 0) + 1
 
 
 def ill_conditioned(exc: RuntimeError) -> bool:
