@@ -152,7 +152,9 @@ class EkfState(SlamBackend):
 
     # ------------------------------------------------------------------ prediction helpers
     def _h(self, slot: Slot, obs: Obs | None) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Predicted measurement and coordinate Jacobians (robot, landmark).
+        """``(z_hat (m,), H_r (m, 3), H_l (m, d))``: the predicted measurement of landmark
+        ``slot`` (``d = slot.dim``) and its Jacobians in plain coordinates (robot
+        ``(x, y, theta)``, landmark state), world frame.
 
         With ``ekf.first_estimate_jacobians`` the Jacobians are taken at the landmark's
         first estimate (the prediction ``z_hat`` at the current one); with
@@ -171,7 +173,8 @@ class EkfState(SlamBackend):
         return z_hat, z_D_pose @ tangent_D_coords(pose[2]), z_D_l
 
     def _innovation(self, lid: int, obs: Obs) -> tuple[FloatArray, FloatArray] | None:
-        """``(nu, Psi)`` of eq. 19 for landmark ``lid`` and ``obs``."""
+        """``(nu (m,), Psi (m, m))`` of eq. 19 for landmark ``lid`` and ``obs``, with the
+        robot-landmark cross-covariance; None when the landmark is not predictable."""
         slot = self._slots[lid]
         obs = for_landmark(obs, slot.dim)
         try:

@@ -40,7 +40,9 @@ class ExactGate(GraphState):
         """Joint marginal blocks ``(S_kk, S_kl, S_ll)`` of keyframe ``k`` and a landmark.
 
         From iSAM2's ``jointMarginalCovariance``; the landmark block is over the
-        EKF-form state (the handler's keys, in order). None without iSAM2.
+        EKF-form state (the handler's keys, in order). Shapes (3, 3), (3, d), (d, d)
+        with ``d = len(lm.state)``; the pose in the right tangent of ``X(k)``, the
+        landmark in world coordinates (m, rad). None without iSAM2.
         """
         if self.isam is None or not lm.in_graph:
             return None
@@ -125,6 +127,17 @@ class ExactGate(GraphState):
         cross-covariance with a landmark follow from the joint marginal of
         ``(X(k), landmark)``. Without the cross term the gate is far too wide: a
         landmark initialised from the pose is strongly correlated with it.
+
+        Args:
+            gate_ctx: ``(k, pose (3,), delta (3,), delta_cov (3, 3))``: the last keyframe in
+                iSAM2, the current pose (world), the odometry since ``X(k)`` and its
+                covariance (:meth:`~lampsam.backend.graph.GraphSlam._gate_context`).
+            lid: the landmark; obs: the observation.
+
+        Returns:
+            ``nu`` (m,) and ``Psi`` (m, m) in the measurement's units (``m`` its rows
+            for this landmark), ``Psi`` scaled by the online innovation scale for
+            planar points; None when the landmark is not predictable from ``pose``.
         """
         k, pose, delta, delta_cov = gate_ctx
         lm = self._landmarks[lid]
@@ -173,7 +186,7 @@ class ExactGate(GraphState):
         return o, z_hat, h_p, h_l
 
     def _relative_covs(self) -> dict[int, FloatArray]:
-        """Tangent covariance of the current keyframe relative to each recent keyframe.
+        """(3, 3) tangent covariance of the current keyframe relative to each recent keyframe.
 
         ``{j: cov(x_j^-1 x_k)}`` for the current keyframe ``k`` and the last
         :data:`RELATIVE_GATE_KEYFRAMES` keyframes before it, from the odometry
@@ -203,7 +216,7 @@ class ExactGate(GraphState):
         return out
 
     def _odometry_since(self, j: int) -> FloatArray:
-        """``x_j^-1 x_k`` (x, y, theta) from the keyframes' odometry (``k`` the current keyframe)."""
+        """(3,) ``x_j^-1 x_k`` (x, y in m, theta in rad) from the keyframes' odometry (``k`` the current keyframe)."""
         d = gtsam.Pose2()
         for step in range(j + 1, self._k + 1):
             d = d.compose(gtsam.Pose2(*self._odo[step][0]))
