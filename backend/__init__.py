@@ -30,12 +30,16 @@ Modules:
 * :mod:`~lampsam.backend.ekf_gate` -- The EKF's vectorised gate (paper 1, eqs. 19-20): a frame's candidates and distances.
 * :mod:`~lampsam.backend.ekf_joint` -- Joint compatibility (JCBB) for the EKF's planar observations without ids (eqs. 19-20).
 * :mod:`~lampsam.backend.ekf_landmarks` -- Landmark book-keeping of the EKF state.
+* :mod:`~lampsam.backend.ekf_map` -- The EKF's map: landmarks added (paper 1, eqs. 24-25), merged and pruned.
+* :mod:`~lampsam.backend.ekf_state` -- The EKF's state, prediction (paper 1, eqs. 13-15) and innovations (eq. 19).
 * :mod:`~lampsam.backend.ekf_update` -- The EKF's stacked measurement update and gathered innovation covariances (eqs. 19-23).
 * :mod:`~lampsam.backend.final_moves` -- The last pass of offline association without ids: single sightings, and merges with the poses free, by description length.
 * :mod:`~lampsam.backend.fixed_lag` -- Fixed-lag smoothing for the online iSAM2 backend (``[isam2] fixed_lag``, keyframes).
 * :mod:`~lampsam.backend.g2o_export` -- A SLAM result as a g2o graph file (``lampsam slam ... --g2o OUT.g2o``).
 * :mod:`~lampsam.backend.gate_bracket` -- A bracket of the exact gate distance from the pose and landmark marginals alone (issue 19).
-* :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: innovations and their covariance (paper eqs. 19-20).
+* :mod:`~lampsam.backend.gate_exact` -- The exact gate of a factor-graph backend: eq.-19 innovations with the pose-landmark cross-covariance.
+* :mod:`~lampsam.backend.gate_shortcuts` -- Lamp-gate shortcuts: settle a lamp pair without iSAM2's joint marginal when the decision is known.
+* :mod:`~lampsam.backend.gating` -- Gating of a factor-graph backend: the screen of a keyframe's observations (paper eqs. 19-20).
 * :mod:`~lampsam.backend.graph` -- Factor-graph backends: iSAM2 (online) and batch Levenberg-Marquardt (offline).
 * :mod:`~lampsam.backend.graph_log` -- SLAM on a graph text log (iSAM ``ODOMETRY``/``LANDMARK``, g2o; e.g. GTSAM's ``victoria_park.txt``): one step per pose, each sighting with its own covariance.
 * :mod:`~lampsam.backend.graph_state` -- The state a factor-graph backend keeps, and the primitives every part of it uses.
