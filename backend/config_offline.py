@@ -144,6 +144,17 @@ class ReassociationConfig:
             far longer than one that holds: on MRCLAM 68 s against 1.8 s.
         online_candidate_cpu_floor_s: the least budget of a candidate's online run, s of
             process CPU (default 30).
+        online_final_held_mixture: after the final solve, the sightings the online run
+            held and never used, or dropped, enter it as max-mixture factors
+            (:mod:`lampsam.backend.held_placement`): each is explained by the best of its
+            candidate landmarks (those within the new-landmark threshold at the final
+            map, and clusters of left-out sightings that pay as landmarks of their own)
+            or by none (cost ``c_new``), chosen again at every linearisation; the
+            placement is kept if the description length ``C`` fell (default False: on
+            Victoria Park it maps 117 landmarks for 119 trees and halves the distance to
+            the known-association optimum with twin ids merged, but moves the answer
+            0.180 -> 0.303 m from GTSAM's LM on the file's ids, which keeps four twin
+            pairs apart; docs/noids-offline.md, "Placing the held sightings").
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -170,6 +181,7 @@ class ReassociationConfig:
     online_candidate_cpu_factor: float = field(default=5.0,
                                                metadata=limits(ge=1.0, finite=False))
     online_candidate_cpu_floor_s: float = field(default=30.0, metadata=limits(ge=0.0))
+    online_final_held_mixture: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

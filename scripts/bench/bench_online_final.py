@@ -75,6 +75,11 @@ VARIANTS: dict[str, list[str]] = {
     "both16": ["association.planar_unique=true", "association.revisit_check=true",
                "pose2_odometry.cov_scale=16"],
     "picker": [],  # [reassociation] online_candidates = --candidates (run_picker)
+    # the left-out sightings placed by max-mixture factors (backend/held_placement.py)
+    "mix": ["reassociation.online_final_held_mixture=true"],
+    "both16mix": ["association.planar_unique=true", "association.revisit_check=true",
+                  "pose2_odometry.cov_scale=16", "reassociation.online_final_held_mixture=true"],
+    "pickermix": ["reassociation.online_final_held_mixture=true"],  # the picker, with it
 }
 #: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
 PICKER_CANDIDATES = "defaults,both+cov_scale=16,cov_scale=1/16"
@@ -198,7 +203,7 @@ def main() -> None:
         for v in variants:
             config = bench.with_overrides(SlamConfig(), args.set + VARIANTS.get(v, []))
             label = f"{v}: {base_label}" if v and args.set else (v or base_label)
-            if v == "picker":
+            if v in ("picker", "pickermix"):
                 config = dataclasses.replace(config, reassociation=dataclasses.replace(
                     config.reassociation, online_candidates=tuple(args.candidates.split(","))))
                 run_picker(g, name, config, label, args, scale, lm, truth, twins, n_trees2)
