@@ -148,13 +148,17 @@ class ReassociationConfig:
             held and never used, or dropped, enter it as max-mixture factors
             (:mod:`lampsam.backend.held_placement`): each is explained by the best of its
             candidate landmarks (those within the new-landmark threshold at the final
-            map, and clusters of left-out sightings that pay as landmarks of their own)
-            or by none (cost ``c_new``), chosen again at every linearisation; the
-            placement is kept if the description length ``C`` fell (default False: on
-            Victoria Park it maps 117 landmarks for 119 trees and halves the distance to
-            the known-association optimum with twin ids merged, but moves the answer
-            0.180 -> 0.303 m from GTSAM's LM on the file's ids, which keeps four twin
-            pairs apart; docs/noids-offline.md, "Placing the held sightings").
+            map) or by none (cost ``c_new``), chosen again at every linearisation; the
+            placement is kept if the description length ``C`` fell (default False: nearer
+            GTSAM's LM on every log measured but Victoria Park, 0.180 -> 0.300 m there,
+            where the final map merges four twin id pairs that LM keeps apart; 108
+            landmarks for 119 trees against 107; docs/noids-offline.md, "Placing the held
+            sightings").
+        online_final_held_new_landmarks: with ``online_final_held_mixture``, clusters of
+            left-out sightings that pay as landmarks of their own (two sightings or more,
+            joined inside the association gate) are candidates too (default False: Victoria
+            Park 117 landmarks for 119 trees against 108 without, but on the held-out loop
+            and corridor logs they map trees twice, 62 landmarks for 50 and 137 for 120).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -182,6 +186,7 @@ class ReassociationConfig:
                                                metadata=limits(ge=1.0, finite=False))
     online_candidate_cpu_floor_s: float = field(default=30.0, metadata=limits(ge=0.0))
     online_final_held_mixture: bool = False
+    online_final_held_new_landmarks: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

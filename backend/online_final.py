@@ -173,8 +173,9 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
 
 def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     """The final answer with the sightings it left out placed by max-mixture factors
-    (:func:`lampsam.backend.held_placement.place_into`, new landmarks inside the
-    association gate), kept only if the description length ``C`` fell.
+    (:func:`lampsam.backend.held_placement.place_into`; with
+    ``online_final_held_new_landmarks`` new landmarks joined inside the association
+    gate), kept only if the description length ``C`` fell.
 
     Args:
         g: the log; cfg: the final solve's config (:func:`final_config`); run: its answer.
@@ -184,8 +185,8 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     dk, dz, dr = dropped_sightings(g, run.sightings)
     s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
     c_new = cfg.association.new_threshold(2)
-    placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new,
-                        cfg.association.gate(2))
+    gate = cfg.association.gate(2) if cfg.reassociation.online_final_held_new_landmarks else None
+    placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate)
     if placed is None:
         return run
     s2, graph, values, n = placed

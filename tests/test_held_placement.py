@@ -181,19 +181,25 @@ def test_final_solve_with_the_mixture_places_the_left_out_sightings(tmp_path: Pa
     base = final_solve(g, cfg16, online, Sightings(s.k, s.z, s.r, s.lid.copy()))
     left = len(dropped_sightings(g, base.sightings)[0])
     assert left > 0
-    on = dataclasses.replace(cfg16, reassociation=dataclasses.replace(
-        cfg16.reassociation, online_final_held_mixture=True))
-    mix = final_solve(g, on, online, Sightings(s.k, s.z, s.r, s.lid.copy()))
-    n0 = len(base.sightings.k)
-    assert len(mix.sightings.k) > n0 and mix.cost < base.cost
-    assert np.array_equal(mix.sightings.lid[:n0], base.sightings.lid)
-    fid = np.array([min(g.sightings[k], key=lambda c: abs(c.range - z[1])).landmark
-                    for k, z in zip(mix.sightings.k.tolist(), mix.sightings.z, strict=True)])
-    for j in range(n0, len(mix.sightings.k)):
-        lid = mix.sightings.lid[j]
-        own = fid[:n0][base.sightings.lid == lid]
-        if len(own):
-            assert np.bincount(own).argmax() == fid[j]
+    for new in (True, False):
+        on = dataclasses.replace(cfg16, reassociation=dataclasses.replace(
+            cfg16.reassociation, online_final_held_mixture=True,
+            online_final_held_new_landmarks=new))
+        mix = final_solve(g, on, online, Sightings(s.k, s.z, s.r, s.lid.copy()))
+        n0 = len(base.sightings.k)
+        assert len(mix.sightings.k) > n0 and mix.cost < base.cost
+        assert np.array_equal(mix.sightings.lid[:n0], base.sightings.lid)
+        assert sum(m.kind == "held" for m in mix.moves) == len(mix.sightings.k) - n0
+        fid = np.array([min(g.sightings[k], key=lambda c: abs(c.range - z[1])).landmark
+                        for k, z in zip(mix.sightings.k.tolist(), mix.sightings.z,
+                                        strict=True)])
+        for j in range(n0, len(mix.sightings.k)):
+            lid = mix.sightings.lid[j]
+            own = fid[:n0][base.sightings.lid == lid]
+            if len(own):
+                assert np.bincount(own).argmax() == fid[j]
+            else:
+                assert new  # a new landmark only with the option
 
 
 @pytest.mark.parametrize("bad", [0.0, -1.0])
