@@ -13,9 +13,12 @@ error is the best of its candidate landmarks' range-bearing errors or the consta
 landmarks settle together with the choice (:func:`place_held`). The candidates
 (:func:`mixture_candidates`) are the landmarks within the new-landmark threshold of the
 sighting at the final map (stated noise, pose fixed), less those its pose already
-sights. At the optimum the choices become ordinary factors (each pose's choices at most
-one per landmark), the association is re-solved and kept only if the description length
-``C`` fell (:func:`place_into`).
+sights. Optionally (``[reassociation] online_final_held_new_landmarks``) clusters of
+left-out sightings that pay as landmarks of their own are candidates too
+(:func:`new_landmarks`: the trees the online run never mapped). At the optimum the
+choices become ordinary factors (each pose's choices at most one per landmark), the
+association is re-solved (:func:`place_into`), and the caller keeps it only if the
+description length ``C`` fell.
 
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """

@@ -145,7 +145,9 @@ def final_config(config: SlamConfig) -> SlamConfig:
 
 def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sightings
                 ) -> OfflineRun:
-    """The online association ``s`` re-solved in batch (module doc).
+    """The online association ``s`` re-solved in batch (module doc), then, with
+    ``[reassociation] online_final_held_mixture``, the sightings it left out placed
+    (:func:`place_left_out`).
 
     Args:
         g: the log; config: the online run's config (:func:`final_config` is applied).
@@ -175,7 +177,8 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     """The final answer with the sightings it left out placed by max-mixture factors
     (:func:`lampsam.backend.held_placement.place_into`; with
     ``online_final_held_new_landmarks`` new landmarks joined inside the association
-    gate), kept only if the description length ``C`` fell.
+    gate), kept only if the description length ``C`` fell; if GTSAM fails on the mixture
+    graph, ``run`` as it is (logged).
 
     Args:
         g: the log; cfg: the final solve's config (:func:`final_config`); run: its answer.
@@ -186,7 +189,12 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
     c_new = cfg.association.new_threshold(2)
     gate = cfg.association.gate(2) if cfg.reassociation.online_final_held_new_landmarks else None
-    placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate)
+    try:
+        placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate)
+    except RuntimeError as exc:  # GTSAM's LM on the mixture graph: keep the answer
+        log.warning("placing the left-out sightings failed (%s): the final solve without "
+                    "them is kept", str(exc).strip()[:120])
+        return run
     if placed is None:
         return run
     s2, graph, values, n = placed

@@ -164,11 +164,14 @@ def test_held_sightings_of_an_unmapped_tree_start_a_landmark() -> None:
     assert np.hypot(*(np.asarray(p.values.atPoint2(L(int(p.lid[0])))) - tree)) < 0.1
 
 
-def test_final_solve_with_the_mixture_places_the_left_out_sightings(tmp_path: Path) -> None:
+def test_final_solve_with_the_mixture_places_the_left_out_sightings(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``online_final_held_mixture`` on a seeded 200-pose log (the online run at 16x the
     odometry variance leaves some sightings out): the final solve with it holds every
     sighting it held before with the same landmark, its ``C`` is lower, and every
-    sighting it placed on a mapped landmark is of that landmark's tree (file ids)."""
+    sighting it placed on a mapped landmark is of that landmark's tree (file ids); new
+    landmarks only with ``online_final_held_new_landmarks``. When GTSAM fails on the
+    mixture graph the final solve without the placement is the answer."""
     spec = LandmarkLogSpec(n_poses=200, n_landmarks=30, extent=40.0, stop_every=0)
     g = read_graph_text(write_landmark_log(tmp_path / "log.txt", spec,
                                            np.random.default_rng(1))[0])
@@ -200,6 +203,15 @@ def test_final_solve_with_the_mixture_places_the_left_out_sightings(tmp_path: Pa
                 assert np.bincount(own).argmax() == fid[j]
             else:
                 assert new  # a new landmark only with the option
+
+    import lampsam.backend.online_final as of
+
+    def fails(*_: object, **__: object) -> None:
+        raise RuntimeError("Indeterminant linear system")
+
+    monkeypatch.setattr(of, "place_into", fails)
+    kept = final_solve(g, on, online, Sightings(s.k, s.z, s.r, s.lid.copy()))
+    assert np.array_equal(kept.sightings.lid, base.sightings.lid) and kept.cost == base.cost
 
 
 @pytest.mark.parametrize("bad", [0.0, -1.0])
