@@ -149,11 +149,13 @@ class ReassociationConfig:
             (:mod:`lampsam.backend.held_placement`): each is explained by the best of its
             candidate landmarks (those within the new-landmark threshold at the final
             map) or by none (cost ``c_new``), chosen again at every linearisation; the
-            placement is kept if the description length ``C`` fell (default False: nearer
+            placement is kept if the description length ``C`` fell. It runs in every
+            online candidate's final solve (default False: on the chosen candidates nearer
             GTSAM's LM on every log measured but Victoria Park, 0.180 -> 0.300 m there,
-            where the final map merges four twin id pairs that LM keeps apart; 108
-            landmarks for 119 trees against 107; docs/noids-offline.md, "Placing the held
-            sightings").
+            where the final map merges four twin id pairs that LM keeps apart, 108
+            landmarks for 119 trees against 107; in every candidate it turns MRCLAM's
+            pick to ``cov_scale=1/16``, 0.342 m against 0.005; docs/noids-offline.md,
+            "Placing the held sightings").
         online_final_held_new_landmarks: with ``online_final_held_mixture``, clusters of
             left-out sightings that pay as landmarks of their own (two sightings or more,
             joined inside the association gate) are candidates too (default False: Victoria
