@@ -34,8 +34,10 @@ reference runs once per log; each variant's overrides are applied after ``--set`
 picker (:func:`lampsam.backend.online_final.run_online_picker`) with ``[reassociation]
 online_candidates`` = ``--candidates`` (default :data:`PICKER_CANDIDATES`): one row per
 candidate (its final solve, or its status when it lost without one), then the chosen one
-and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM. The last
-column says "yes" when the final solve (or, if it did not run, the online answer) is more
+and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM; ``mix``,
+``both16mix``, ``pickermix`` = ``defaults``, ``both16``, ``picker`` with ``[reassociation]
+online_final_held_mixture`` on (the left-out sightings placed by max-mixture factors in
+each final solve, :mod:`lampsam.backend.held_placement`). The last column says "yes" when the final solve (or, if it did not run, the online answer) is more
 than :data:`DIVERGED_M` from GTSAM's LM.
 
 ``corridor``, ``odo3x`` and ``overstated`` (:data:`NEW_HELD_OUT`) are held-out logs of
