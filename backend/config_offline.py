@@ -144,6 +144,23 @@ class ReassociationConfig:
             far longer than one that holds: on MRCLAM 68 s against 1.8 s.
         online_candidate_cpu_floor_s: the least budget of a candidate's online run, s of
             process CPU (default 30).
+        online_final_held_mixture: after the final solve, the sightings the online run
+            held and never used, or dropped, enter it as max-mixture factors
+            (:mod:`lampsam.backend.held_placement`): each is explained by the best of its
+            candidate landmarks (those within the new-landmark threshold at the final
+            map) or by none (cost ``c_new``), chosen again at every linearisation; the
+            placement is kept if the description length ``C`` fell. It runs in every
+            online candidate's final solve (default False: on the chosen candidates nearer
+            GTSAM's LM on every log measured but Victoria Park, 0.180 -> 0.300 m there,
+            where the final map merges four twin id pairs that LM keeps apart, 108
+            landmarks for 119 trees against 107; in every candidate it turns MRCLAM's
+            pick to ``cov_scale=1/16``, 0.342 m against 0.005; docs/noids-offline.md,
+            "Placing the held sightings").
+        online_final_held_new_landmarks: with ``online_final_held_mixture``, clusters of
+            left-out sightings that pay as landmarks of their own (two sightings or more,
+            joined inside the association gate) are candidates too (default False: Victoria
+            Park 117 landmarks for 119 trees against 108 without, but on the held-out loop
+            and corridor logs they map trees twice, 62 landmarks for 50 and 137 for 120).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -170,6 +187,8 @@ class ReassociationConfig:
     online_candidate_cpu_factor: float = field(default=5.0,
                                                metadata=limits(ge=1.0, finite=False))
     online_candidate_cpu_floor_s: float = field(default=30.0, metadata=limits(ge=0.0))
+    online_final_held_mixture: bool = False
+    online_final_held_new_landmarks: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

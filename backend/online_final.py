@@ -47,16 +47,26 @@ from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.config_offline import online_candidate_changes
 from lampsam.backend.graph_log import run_graph_log_backend
+from lampsam.backend.held_placement import place_into
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
+from lampsam.backend.landmark_moves import Move
 from lampsam.backend.noids_offline import (
     OfflineRun,
+    association_cost,
+    batch_graph_inputs,
     candidate_pruning_quiet,
     dropped_sightings,
     final_pass,
+    group_chi2,
     result_of,
     solve_candidate,
 )
-from lampsam.backend.reassociate import Sightings, first_sight_positions, sightings_from
+from lampsam.backend.reassociate import (
+    Sightings,
+    first_sight_positions,
+    read_estimate,
+    sightings_from,
+)
 from lampsam.datasets.graph_text import GraphLog
 from lampsam.errors import LampsamError
 from lampsam.interrupt import stop_requested
@@ -135,7 +145,9 @@ def final_config(config: SlamConfig) -> SlamConfig:
 
 def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sightings
                 ) -> OfflineRun:
-    """The online association ``s`` re-solved in batch (module doc).
+    """The online association ``s`` re-solved in batch (module doc), then, with
+    ``[reassociation] online_final_held_mixture``, the sightings it left out placed
+    (:func:`place_left_out`).
 
     Args:
         g: the log; config: the online run's config (:func:`final_config` is applied).
@@ -156,7 +168,48 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
              len(run.passes), len(run.moves), run.cost)
     if cfg.reassociation.final_pass:
         run = final_pass(g, cfg, run)
+    if cfg.reassociation.online_final_held_mixture:
+        run = place_left_out(g, cfg, run)
     return run
+
+
+def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
+    """The final answer with the sightings it left out placed by max-mixture factors
+    (:func:`lampsam.backend.held_placement.place_into`; with
+    ``online_final_held_new_landmarks`` new landmarks joined inside the association
+    gate), kept only if the description length ``C`` fell; if GTSAM fails on the mixture
+    graph, ``run`` as it is (logged).
+
+    Args:
+        g: the log; cfg: the final solve's config (:func:`final_config`); run: its answer.
+    """
+    c0 = time.process_time()
+    prior, odo = batch_graph_inputs(g, cfg)
+    dk, dz, dr = dropped_sightings(g, run.sightings)
+    s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
+    c_new = cfg.association.new_threshold(2)
+    gate = cfg.association.gate(2) if cfg.reassociation.online_final_held_new_landmarks else None
+    try:
+        placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate)
+    except RuntimeError as exc:  # GTSAM's LM on the mixture graph: keep the answer
+        log.warning("placing the left-out sightings failed (%s): the final solve without "
+                    "them is kept", str(exc).strip()[:120])
+        return run
+    if placed is None:
+        return run
+    s2, graph, values, n = placed
+    poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s2.lid).tolist())
+    co, cs, no, ns = group_chi2(graph, values)
+    dropped = sum(len(x) for x in g.sightings) - len(s2.k)
+    out = dataclasses.replace(
+        run, poses=poses, landmarks=lms, sightings=s2, chi2_odometry=co, chi2_sightings=cs,
+        dof_odometry=no, dof_sightings=ns, n_dropped=dropped,
+        cost=association_cost(co + cs, len(lms), dropped, c_new),
+        batch_cpu_s=run.batch_cpu_s + time.process_time() - c0, graph=graph, values=values,
+        moves=run.moves + [Move("held", (-1, -1), 0.0)] * n)
+    log.info("held sightings placed by max-mixture: %d of %d, C %.1f -> %.1f", n, len(dk),
+             run.cost, out.cost)
+    return out if out.cost < run.cost else run
 
 
 def candidate_config(config: SlamConfig, spec: str) -> SlamConfig:

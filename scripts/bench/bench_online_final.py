@@ -34,8 +34,10 @@ reference runs once per log; each variant's overrides are applied after ``--set`
 picker (:func:`lampsam.backend.online_final.run_online_picker`) with ``[reassociation]
 online_candidates`` = ``--candidates`` (default :data:`PICKER_CANDIDATES`): one row per
 candidate (its final solve, or its status when it lost without one), then the chosen one
-and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM. The last
-column says "yes" when the final solve (or, if it did not run, the online answer) is more
+and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM; ``mix``,
+``both16mix``, ``pickermix`` = ``defaults``, ``both16``, ``picker`` with ``[reassociation]
+online_final_held_mixture`` on (the left-out sightings placed by max-mixture factors in
+each final solve, :mod:`lampsam.backend.held_placement`). The last column says "yes" when the final solve (or, if it did not run, the online answer) is more
 than :data:`DIVERGED_M` from GTSAM's LM.
 
 ``corridor``, ``odo3x`` and ``overstated`` (:data:`NEW_HELD_OUT`) are held-out logs of
@@ -75,6 +77,11 @@ VARIANTS: dict[str, list[str]] = {
     "both16": ["association.planar_unique=true", "association.revisit_check=true",
                "pose2_odometry.cov_scale=16"],
     "picker": [],  # [reassociation] online_candidates = --candidates (run_picker)
+    # the left-out sightings placed by max-mixture factors (backend/held_placement.py)
+    "mix": ["reassociation.online_final_held_mixture=true"],
+    "both16mix": ["association.planar_unique=true", "association.revisit_check=true",
+                  "pose2_odometry.cov_scale=16", "reassociation.online_final_held_mixture=true"],
+    "pickermix": ["reassociation.online_final_held_mixture=true"],  # the picker, with it
 }
 #: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
 PICKER_CANDIDATES = "defaults,both+cov_scale=16,cov_scale=1/16"
@@ -198,7 +205,7 @@ def main() -> None:
         for v in variants:
             config = bench.with_overrides(SlamConfig(), args.set + VARIANTS.get(v, []))
             label = f"{v}: {base_label}" if v and args.set else (v or base_label)
-            if v == "picker":
+            if v in ("picker", "pickermix"):
                 config = dataclasses.replace(config, reassociation=dataclasses.replace(
                     config.reassociation, online_candidates=tuple(args.candidates.split(","))))
                 run_picker(g, name, config, label, args, scale, lm, truth, twins, n_trees2)
