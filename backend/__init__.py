@@ -44,6 +44,7 @@ Modules:
 * :mod:`~lampsam.backend.graph_log` -- SLAM on a graph text log (iSAM ``ODOMETRY``/``LANDMARK``, g2o; e.g. GTSAM's ``victoria_park.txt``): one step per pose, each sighting with its own covariance.
 * :mod:`~lampsam.backend.graph_state` -- The state a factor-graph backend keeps, and the primitives every part of it uses.
 * :mod:`~lampsam.backend.handlers` -- How a landmark kind lives in the factor graph: the handler protocol and its record.
+* :mod:`~lampsam.backend.held_placement` -- Placing the sightings an online run held, in the final solve, by max-mixture factors.
 * :mod:`~lampsam.backend.held_sightings` -- Held range-bearing sightings without ids: held while ambiguous, given back once not.
 * :mod:`~lampsam.backend.innovation_scale` -- Online robust scale of the association gate's normalised innovations (``[association] odometry_noise_adapt``; shared by the EKF and the smoothers).
 * :mod:`~lampsam.backend.interface` -- One interface for the three SLAM backends (``ekf``, ``isam2``, ``batch``).

@@ -21,6 +21,7 @@ Modules:
 * :mod:`~lampsam.evaluation.frontend_eval` -- The ceiling frontend measured against truth.
 * :mod:`~lampsam.evaluation.frontend_synthetic` -- A small independent renderer of ceiling images with truth, for the frontend's tests.
 * :mod:`~lampsam.evaluation.gallery` -- Overlay gallery of the ceiling frontend on real photos (``lampsam gallery``).
+* :mod:`~lampsam.evaluation.held_plots` -- Per-pose error along a drive against a reference trajectory, with where the sightings an online run left out were made (issue 15, docs/noids-offline.md "Placing the held sightings"). Plot only: the estimates come finished.
 * :mod:`~lampsam.evaluation.lamp_plots` -- Figures of the lamp measurement studies: centroid error by grid tilt and by cause.
 * :mod:`~lampsam.evaluation.laser_trials` -- Laser global-localization trials on a CARMEN log, scored against its corrected poses.
 * :mod:`~lampsam.evaluation.live` -- Live view of a run in Rerun (``--rerun [FILE.rrd | ADDRESS]`` on ``slam``, ``localize``, ``stereo``).
