@@ -241,6 +241,38 @@ def _parse_robotlaser(tok: list[str], path: Path, line_no: int) -> _Scan:
                  _logger_stamp(tok, k + 13), line_no, max_range)
 
 
+def _parse_odom(tok: list[str], path: Path, line_no: int) -> list[float]:
+    """An ``ODOM`` line: ``[x, y, theta, timestamp]``."""
+    if len(tok) < 8:
+        raise DatasetError(f"ODOM needs at least 8 fields, got {len(tok)}", path=path,
+                           line=line_no)
+    values = _floats(tok[1:8], path, line_no)
+    return [*values[:3], values[6]]
+
+
+#: Laser messages lampsam does not read, and why (for the "no scans" error).
+UNREAD_LASERS = {
+    "RAWLASER1": "no pose", "RAWLASER2": "no pose", "RAWLASER3": "no pose",
+    "RAWLASER4": "no pose", "RLASER": "the rear laser", "ROBOTLASER2": "the rear laser",
+    "LASER3": "no pose", "LASER4": "no pose", "REMISSIONFLASER": "not read",
+}
+
+
+def _found(others: dict[str, int], odom_t: list[float]) -> str:
+    """What a log without FLASER/ROBOTLASER1 scans holds instead, for its error."""
+    parts = [f"{n} {name} ({UNREAD_LASERS[name]})" for name, n in others.items()
+             if name in UNREAD_LASERS]
+    if odom_t:
+        parts.append(f"{len(odom_t)} ODOM")
+    if not parts:
+        return ""
+    hint = ""
+    if any(name.startswith(("RAWLASER", "LASER")) for name in others):
+        hint = ("; raw laser messages carry no pose: write the scans as FLASER lines at "
+                "corrected poses (a scan matcher's output) to build a map from them")
+    return f"; found {', '.join(parts)}{hint}"
+
+
 def _increasing(t: FloatArray) -> bool:
     """Whether ``t`` is finite and strictly increasing."""
     return bool(np.all(np.isfinite(t)) and np.all(np.diff(t) > 0))
@@ -446,7 +478,8 @@ def read_carmen(path: str | Path, max_range: float | None = None, strict_time: b
 
     Raises:
         DatasetError: missing file, malformed FLASER/ROBOTLASER1/ODOM line (wrong
-            field count, not a number, NaN), beam geometry changing within the log, no
+            field count, not a number, NaN; a malformed LAST line without its newline,
+            as a logger stopped mid-write leaves it, is skipped with the warning), beam geometry changing within the log, no
             scans, time going backwards with ``strict_time``; the message names the
             file and line.
     """
@@ -460,28 +493,41 @@ def read_carmen(path: str | Path, max_range: float | None = None, strict_time: b
     robot: list[_Scan] = []
     odom_t: list[float] = []
     odom_poses: list[list[float]] = []
+    others: dict[str, int] = {}
+    # A malformed record is an error, unless it is a last line without its newline:
+    # a logger stopped while writing leaves that, and it is skipped with a warning.
+    cut: DatasetError | None = None
     try:
         with opener(path, "rt", encoding="utf-8-sig", errors="replace") as fh:
             for line_no, raw in enumerate(fh, start=1):
                 tok = raw.split()
                 if not tok or tok[0].startswith("#"):
                     continue
-                if tok[0] == "FLASER":
-                    flaser.append(_parse_flaser(tok, path, line_no))
-                elif tok[0] == "ROBOTLASER1":
-                    robot.append(_parse_robotlaser(tok, path, line_no))
-                elif tok[0] == "ODOM":
-                    if len(tok) < 8:
-                        raise DatasetError(f"ODOM needs at least 8 fields, got {len(tok)}",
-                                           path=path, line=line_no)
-                    values = _floats(tok[1:8], path, line_no)
-                    odom_poses.append(values[:3])
-                    odom_t.append(values[6])
+                try:
+                    if tok[0] == "FLASER":
+                        flaser.append(_parse_flaser(tok, path, line_no))
+                    elif tok[0] == "ROBOTLASER1":
+                        robot.append(_parse_robotlaser(tok, path, line_no))
+                    elif tok[0] == "ODOM":
+                        odom_rec = _parse_odom(tok, path, line_no)
+                        odom_poses.append(odom_rec[:3])
+                        odom_t.append(odom_rec[3])
+                    else:
+                        others[tok[0]] = others.get(tok[0], 0) + 1
+                except DatasetError as exc:
+                    if raw.endswith("\n"):
+                        raise
+                    cut = exc
     except (OSError, EOFError, UnicodeDecodeError) as exc:
         raise DatasetError(f"cannot read: {exc}", path=path) from exc
+    cut_note = ""
+    if cut is not None:
+        cut_note = (f"skipped the last line, cut off without its newline ({cut}): the log "
+                    "was stopped while it was written")
     message, raw_scans = _choose_message(flaser, robot, path)
     if not raw_scans:
-        raise DatasetError("no FLASER or ROBOTLASER1 scans in the log", path=path)
+        raise DatasetError("no FLASER or ROBOTLASER1 scans in the log" + _found(others, odom_t),
+                           path=path)
     start, step, n_beams = _check_geometry(raw_scans, message, path)
     angles = (flaser_beam_angles(n_beams) if message == "FLASER"
               else start + np.arange(n_beams, dtype=np.float64) * step)
@@ -489,7 +535,7 @@ def read_carmen(path: str | Path, max_range: float | None = None, strict_time: b
     t, source, time_note = derive_scan_times(np.array([s.t for s in scans]),
                                              np.array([s.logger_t for s in scans]),
                                              scan_rate_hz)
-    notes = [v for v in (time_note, drop_note) if v]
+    notes = [v for v in (cut_note, time_note, drop_note) if v]
     if notes:
         log.warning("%s: %s", path, "; ".join(notes))
     if max_range is None:
