@@ -130,6 +130,7 @@ def test_build_map_warns_on_a_raw_odometry_log(
     import yaml
 
     from lampsam.localization.map_build import build_map
+    from lampsam.localization.map_store import load_env_map
 
     poses, ranges = scans_and_poses
     log_path = _write_log(tmp_path / "raw.log", _drift(poses, 0.01), ranges)
@@ -138,3 +139,7 @@ def test_build_map_warns_on_a_raw_odometry_log(
     assert "the scans disagree with each other" in caplog.text and "raw.log" in caplog.text
     manifest = yaml.safe_load((tmp_path / "map" / "manifest.yaml").read_text())
     assert manifest["layers"]["grid"]["scan_consistency"]["poor"] is True
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        load_env_map(tmp_path / "map")
+    assert "whose poses disagree" in caplog.text and "unreliable" in caplog.text
