@@ -46,3 +46,27 @@ def test_raw_laser_messages_are_named_in_the_error(tmp_path: Path) -> None:
     assert "no FLASER or ROBOTLASER1 scans in the log" in msg
     assert "1 RAWLASER1 (no pose)" in msg and "1 RLASER (the rear laser)" in msg
     assert "1 ODOM" in msg
+
+
+def test_the_front_laser_params_give_the_flaser_geometry(tmp_path: Path) -> None:
+    """A 240-deg Hokuyo logged as FLASER: the log's PARAM lines say so (they were ignored,
+    so its scans were read over 180 deg and every wall bent)."""
+    import math
+
+    import numpy as np
+
+    scans = "".join(_flaser(k).replace("FLASER 4 1.0 2.0 3.0 4.0", "FLASER 5 1 2 3 4 5")
+                    for k in range(3))
+    path = tmp_path / "urg.log"
+    path.write_text("PARAM laser_front_laser_fov 240 host 0\n" + scans)
+    a = read_carmen(path).scans.angles
+    np.testing.assert_allclose(np.degrees(a), [-120, -60, 0, 60, 120], atol=1e-9)
+    path.write_text("PARAM laser_front_laser_fov 240.0 host 0\n"
+                    "PARAM laser_front_laser_flipped 1 host 0\n" + scans)
+    np.testing.assert_allclose(np.degrees(read_carmen(path).scans.angles),
+                               [120, 60, 0, -60, -120], atol=1e-9)
+    path.write_text(scans)  # no PARAM: a SICK over 180 deg, as before
+    assert math.isclose(float(np.degrees(read_carmen(path).scans.angles[0])), -90.0)
+    path.write_text("PARAM laser_front_laser_fov wide host 0\n" + scans)
+    with pytest.raises(DatasetError, match=r"urg.log:1: PARAM laser_front_laser_fov 'wide'"):
+        read_carmen(path)
