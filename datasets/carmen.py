@@ -19,9 +19,10 @@ Lines used (CARMEN logger format, whitespace separated; ``#`` lines are comments
 Beam angles, in the laser frame (rad, CCW from forward, first beam on the right):
 
 - ROBOTLASER1: ``start_angle + i * angular_resolution`` as the message says.
-- FLASER carries only the beam count; the scanner is a SICK LMS covering 180 deg
-  from the right: ``-pi/2 + i * step`` with ``step = pi / n`` for an even count
-  (180 beams: 1 deg, -90..89 deg; 360: 0.5 deg) and ``step = pi / (n - 1)`` for an
+- FLASER carries only the beam count; the log's ``PARAM laser_front_laser_fov``
+  (degrees) and ``PARAM laser_front_laser_flipped`` give the geometry when present,
+  else the scanner is a SICK LMS covering 180 deg from the right: ``-pi/2 + i * step``
+  with ``step = pi / n`` for an even count (180 beams: 1 deg, -90..89 deg; 360: 0.5 deg) and ``step = pi / (n - 1)`` for an
   odd count (181: 1 deg and 361: 0.5 deg, both ends included)
   (:func:`flaser_beam_angles`). The 180-beam convention gives the sharpest walls on
   the Intel log (tests/test_carmen.py); reversing the beam order blurs them.
@@ -146,20 +147,31 @@ def carmen_beam_angles(n_beams: int, fov: float = math.pi) -> FloatArray:
     return -fov / 2 + np.arange(n_beams, dtype=np.float64) * (fov / n_beams)
 
 
-def flaser_beam_angles(n_beams: int) -> FloatArray:
-    """Beam angles of a FLASER scan of ``n_beams`` (a SICK LMS over 180 deg), rad.
+def flaser_beam_angles(n_beams: int, fov: float = math.pi, flipped: bool = False) -> FloatArray:
+    """Beam angles of a FLASER scan of ``n_beams`` (a SICK LMS over 180 deg by default), rad.
 
     Args:
         n_beams: the beam count of the message.
+        fov: the field of view, rad (the log's ``PARAM laser_front_laser_fov``, in
+            degrees there; default pi).
+        flipped: the scanner is mounted upside down (``PARAM
+            laser_front_laser_flipped 1``): the first beam is on the left.
 
     Returns:
-        (n_beams,) ``-pi/2 + i * step``: ``step = pi / n`` for an even count (180 -> 1
-        deg, 360 -> 0.5 deg), ``pi / (n - 1)`` for an odd count (181 -> 1 deg,
-        361 -> 0.5 deg, both ends of the half circle included).
+        (n_beams,) ``-fov/2 + i * step``: ``step = fov / n`` for an even count (180 over
+        pi -> 1 deg, 360 -> 0.5 deg), ``fov / (n - 1)`` for an odd count (181 -> 1
+        deg, 361 -> 0.5 deg, both ends included); reversed when ``flipped``.
     """
     if n_beams > 1 and n_beams % 2 == 1:
-        return -math.pi / 2 + np.arange(n_beams, dtype=np.float64) * (math.pi / (n_beams - 1))
-    return carmen_beam_angles(n_beams)
+        a = -fov / 2 + np.arange(n_beams, dtype=np.float64) * (fov / (n_beams - 1))
+    else:
+        a = carmen_beam_angles(n_beams, fov)
+    return a[::-1].copy() if flipped else a
+
+
+#: ``PARAM`` names of the front laser's geometry that the FLASER angles follow.
+FOV_PARAM = "laser_front_laser_fov"
+FLIPPED_PARAM = "laser_front_laser_flipped"
 
 
 def _floats(tokens: list[str], path: Path, line_no: int) -> list[float]:
@@ -239,6 +251,67 @@ def _parse_robotlaser(tok: list[str], path: Path, line_no: int) -> _Scan:
                            path=path, line=line_no)
     return _Scan((start, step, n), ranges, tail[0:3], tail[3:6], tail[11],
                  _logger_stamp(tok, k + 13), line_no, max_range)
+
+
+def _parse_odom(tok: list[str], path: Path, line_no: int) -> list[float]:
+    """An ``ODOM`` line: ``[x, y, theta, timestamp]``."""
+    if len(tok) < 8:
+        raise DatasetError(f"ODOM needs at least 8 fields, got {len(tok)}", path=path,
+                           line=line_no)
+    values = _floats(tok[1:8], path, line_no)
+    return [*values[:3], values[6]]
+
+
+#: Laser messages lampsam does not read, and why (for the "no scans" error).
+UNREAD_LASERS = {
+    "RAWLASER1": "no pose", "RAWLASER2": "no pose", "RAWLASER3": "no pose",
+    "RAWLASER4": "no pose", "RLASER": "the rear laser", "ROBOTLASER2": "the rear laser",
+    "LASER3": "no pose", "LASER4": "no pose", "REMISSIONFLASER": "not read",
+}
+
+
+def _found(others: dict[str, int], odom_t: list[float]) -> str:
+    """What a log without FLASER/ROBOTLASER1 scans holds instead, for its error."""
+    parts = [f"{n} {name} ({UNREAD_LASERS[name]})" for name, n in others.items()
+             if name in UNREAD_LASERS]
+    if odom_t:
+        parts.append(f"{len(odom_t)} ODOM")
+    if not parts:
+        return ""
+    hint = ""
+    if any(name.startswith(("RAWLASER", "LASER")) for name in others):
+        hint = ("; raw laser messages carry no pose: write the scans as FLASER lines at "
+                "corrected poses (a scan matcher's output) to build a map from them")
+    return f"; found {', '.join(parts)}{hint}"
+
+
+def _flaser_geometry(params: dict[str, tuple[str, int]], path: Path) -> tuple[float, bool]:
+    """``(fov, flipped)`` of the FLASER scans from the log's PARAM lines (default pi, False).
+
+    Raises:
+        DatasetError: a value that is not a number, or a field of view outside (0, 360] deg.
+    """
+    fov = math.pi
+    flipped = False
+    if FOV_PARAM in params:
+        text, line = params[FOV_PARAM]
+        try:
+            deg = float(text)
+        except ValueError as exc:
+            raise DatasetError(f"PARAM {FOV_PARAM} {text!r} is not a number", path=path,
+                               line=line) from exc
+        if not 0.0 < deg <= 360.0:
+            raise DatasetError(f"PARAM {FOV_PARAM} {deg:g} deg is outside (0, 360]", path=path,
+                               line=line)
+        fov = math.radians(deg)
+    if FLIPPED_PARAM in params:
+        text, line = params[FLIPPED_PARAM]
+        try:
+            flipped = float(text) != 0.0
+        except ValueError as exc:
+            raise DatasetError(f"PARAM {FLIPPED_PARAM} {text!r} is not a number", path=path,
+                               line=line) from exc
+    return fov, flipped
 
 
 def _increasing(t: FloatArray) -> bool:
@@ -446,7 +519,8 @@ def read_carmen(path: str | Path, max_range: float | None = None, strict_time: b
 
     Raises:
         DatasetError: missing file, malformed FLASER/ROBOTLASER1/ODOM line (wrong
-            field count, not a number, NaN), beam geometry changing within the log, no
+            field count, not a number, NaN; a malformed LAST line without its newline,
+            as a logger stopped mid-write leaves it, is skipped with the warning), beam geometry changing within the log, no
             scans, time going backwards with ``strict_time``; the message names the
             file and line.
     """
@@ -460,36 +534,53 @@ def read_carmen(path: str | Path, max_range: float | None = None, strict_time: b
     robot: list[_Scan] = []
     odom_t: list[float] = []
     odom_poses: list[list[float]] = []
+    others: dict[str, int] = {}
+    params: dict[str, tuple[str, int]] = {}
+    # A malformed record is an error, unless it is a last line without its newline:
+    # a logger stopped while writing leaves that, and it is skipped with a warning.
+    cut: DatasetError | None = None
     try:
         with opener(path, "rt", encoding="utf-8-sig", errors="replace") as fh:
             for line_no, raw in enumerate(fh, start=1):
                 tok = raw.split()
                 if not tok or tok[0].startswith("#"):
                     continue
-                if tok[0] == "FLASER":
-                    flaser.append(_parse_flaser(tok, path, line_no))
-                elif tok[0] == "ROBOTLASER1":
-                    robot.append(_parse_robotlaser(tok, path, line_no))
-                elif tok[0] == "ODOM":
-                    if len(tok) < 8:
-                        raise DatasetError(f"ODOM needs at least 8 fields, got {len(tok)}",
-                                           path=path, line=line_no)
-                    values = _floats(tok[1:8], path, line_no)
-                    odom_poses.append(values[:3])
-                    odom_t.append(values[6])
+                try:
+                    if tok[0] == "FLASER":
+                        flaser.append(_parse_flaser(tok, path, line_no))
+                    elif tok[0] == "ROBOTLASER1":
+                        robot.append(_parse_robotlaser(tok, path, line_no))
+                    elif tok[0] == "ODOM":
+                        odom_rec = _parse_odom(tok, path, line_no)
+                        odom_poses.append(odom_rec[:3])
+                        odom_t.append(odom_rec[3])
+                    elif tok[0] == "PARAM" and len(tok) >= 3 and tok[1] in (FOV_PARAM,
+                                                                         FLIPPED_PARAM):
+                        params[tok[1]] = (tok[2], line_no)
+                    else:
+                        others[tok[0]] = others.get(tok[0], 0) + 1
+                except DatasetError as exc:
+                    if raw.endswith("\n"):
+                        raise
+                    cut = exc
     except (OSError, EOFError, UnicodeDecodeError) as exc:
         raise DatasetError(f"cannot read: {exc}", path=path) from exc
+    cut_note = ""
+    if cut is not None:
+        cut_note = (f"skipped the last line, cut off without its newline ({cut}): the log "
+                    "was stopped while it was written")
     message, raw_scans = _choose_message(flaser, robot, path)
     if not raw_scans:
-        raise DatasetError("no FLASER or ROBOTLASER1 scans in the log", path=path)
+        raise DatasetError("no FLASER or ROBOTLASER1 scans in the log" + _found(others, odom_t),
+                           path=path)
     start, step, n_beams = _check_geometry(raw_scans, message, path)
-    angles = (flaser_beam_angles(n_beams) if message == "FLASER"
+    angles = (flaser_beam_angles(n_beams, *_flaser_geometry(params, path)) if message == "FLASER"
               else start + np.arange(n_beams, dtype=np.float64) * step)
     scans, drop_note = _drop_backwards(raw_scans, strict_time, path)
     t, source, time_note = derive_scan_times(np.array([s.t for s in scans]),
                                              np.array([s.logger_t for s in scans]),
                                              scan_rate_hz)
-    notes = [v for v in (time_note, drop_note) if v]
+    notes = [v for v in (cut_note, time_note, drop_note) if v]
     if notes:
         log.warning("%s: %s", path, "; ".join(notes))
     if max_range is None:

@@ -130,12 +130,18 @@ def grey_from_compressed(msg: Any, where: str) -> ImageU8:
 def depth_mm_from_image(msg: Any, where: str) -> ImageU16:
     """uint16 (H, W) depth in millimetres (0 = none) of a ``16UC1`` or ``32FC1`` image.
 
+    ``mono16`` on a depth topic (older OpenNI drivers) is read as ``16UC1`` (mm); a
+    ``mono16`` topic is taken for depth only by its name (``is_depth`` in
+    ``rosbag_import``), never by its encoding, as cameras use it for grey images.
+
     Raises:
         DatasetError: another encoding, or a data size that does not match.
     """
     enc = str(msg.encoding)
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = bytes(msg.data)
+    if enc == "mono16":
+        enc = "16UC1"
     if enc not in DEPTH_ENCODINGS or len(data) < h * step:
         raise DatasetError(f"{where}: depth encoding {enc!r} ({len(data)} bytes) not supported")
     order = ">" if msg.is_bigendian else "<"

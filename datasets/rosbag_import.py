@@ -128,7 +128,9 @@ class ImportOptions:
         wheel_base: distance between the wheels, m (the rig's wheel odometry model).
         k_wheel: wheel slip constant ``k_r = k_l`` of the rig, m (paper 1 eq. 15).
         rig: a ``rig.yaml`` to use instead of the bag's camera_info / tf.
-        base_frame: the robot body frame of the tf tree.
+        base_frame: the robot body frame of the tf tree (when it has no static tf
+            to the camera, the odometry messages' ``child_frame_id`` is tried, e.g.
+            ``base_footprint``, and the report says so).
     """
 
     topics: dict[str, str] = field(default_factory=dict)
@@ -361,7 +363,8 @@ def _read_streams(reader: Any, chosen: dict[str, str], opts: ImportOptions,
     by_topic = {topic: kind for kind, topic in chosen.items()}
     conns = [c for c in reader.connections if c.topic in by_topic]
     s: dict[str, Any] = {"joints": [], "odometry": [], "truth": [], "tf": [], "info": None,
-                         "rig": None, "image_size": None, "camera_frame": None}  # fmt: skip
+                         "rig": None, "image_size": None, "camera_frame": None,
+                         "odom_child": None}  # fmt: skip
     images = ImageWriter(out) if "image" in chosen else None
     depth_fh = scans_fh = None
     depth_last = scan_last = -math.inf
@@ -390,6 +393,8 @@ def _read_streams(reader: Any, chosen: dict[str, str], opts: ImportOptions,
                 s["joints"].append((t, pos[0], pos[1]))
             elif kind in ("odometry", "groundtruth"):
                 key = "odometry" if kind == "odometry" else "truth"
+                if kind == "odometry" and s["odom_child"] is None:
+                    s["odom_child"] = str(getattr(msg, "child_frame_id", "")).lstrip("/") or None
                 if not _increasing(s[key], conn.topic, t, report):
                     continue
                 p = msg.pose.pose
@@ -491,11 +496,23 @@ def _rig(s: dict[str, Any], opts: ImportOptions, chosen: dict[str, str], bag: Pa
     width, height, k, d, model = s["info"]
     intr = intrinsics_from_k(width, height, k, d, model, f"{bag}:{chosen['camera_info']}")
     mount = _tf_chain(s["tf"], opts.base_frame, s["camera_frame"] or "")
+    child = s.get("odom_child")
+    if mount is None and child and child != opts.base_frame:
+        # the odometry's body frame (base_footprint on many robots) when base_link has no tf
+        mount = _tf_chain(s["tf"], child, s["camera_frame"] or "")
+        if mount is not None:
+            report.notes.append(
+                f"camera mounting from the static tf of {child!r}, the odometry's "
+                f"child_frame_id ({opts.base_frame!r} has none to the camera; --base-frame "
+                "chooses)")
     if mount is None:
         frames = sorted({f for tr in s["tf"] for f in (tr.header.frame_id, tr.child_frame_id)})
         raise DatasetError(
-            f"no static tf from {opts.base_frame!r} to the camera frame {s['camera_frame']!r} "
-            f"(frames: {', '.join(frames) or 'none'}); give --rig RIG.yaml", bag)
+            f"no static tf from {opts.base_frame!r}"
+            + (f" or the odometry's child frame {child!r}" if child and child != opts.base_frame
+               else "")
+            + f" to the camera frame {s['camera_frame']!r} (frames: "
+            f"{', '.join(frames) or 'none'}); give --base-frame FRAME or --rig RIG.yaml", bag)
     rot, trans = mount
     try:
         camera = intr.camera(body_t_camera=trans, body_R_camera=rot)

@@ -16,6 +16,7 @@ Views of the same parsed rows:
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,13 @@ from lampsam.datasets.tables import Trajectory
 from lampsam.datasets.textio import check_coordinates, check_time, data_lines, parse_float
 from lampsam.errors import DatasetError
 from lampsam.safe_io import atomic_path
+
+log = logging.getLogger(__name__)
+
+#: A planar read warns when a pose's body z axis tilts more than this from world z, deg.
+MAX_PLANAR_TILT_DEG = 20.0
+#: Time stamps above this (about year 5100 in seconds) are taken for nanoseconds, s.
+MAX_SECONDS_STAMP = 1e11
 
 TUM_FIELDS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
 """Column names of a TUM line (used in error messages)."""
@@ -65,8 +73,10 @@ def read_tum_rows(path: str | Path) -> TumRows:
     for lineno, text in data_lines(path):
         fields = text.split()
         if len(fields) != 8:
+            hint = " (comma-separated? TUM is space-separated)" if "," in text else ""
             raise DatasetError(
-                f"malformed line: expected 8 fields 't x y z qx qy qz qw', got {len(fields)}",
+                f"malformed line: expected 8 fields 't x y z qx qy qz qw', got {len(fields)}"
+                + hint,
                 path,
                 lineno,
             )
@@ -80,6 +90,9 @@ def read_tum_rows(path: str | Path) -> TumRows:
     a = np.array(rows, dtype=np.float64)
     check_time(a[:, 0], lines, path)
     check_coordinates(a[:, 1:4], lines, path, "x/y/z")
+    if a[0, 0] > MAX_SECONDS_STAMP:
+        log.warning("%s:%d: time stamp %.6g s is thousands of years from now: nanoseconds? "
+                    "TUM time stamps are seconds (divide by 1e9)", path, lines[0], a[0, 0])
     return TumRows(t=a[:, 0].copy(), xyz=a[:, 1:4].copy(), quat_xyzw=a[:, 4:8].copy(), lines=lines)
 
 
@@ -101,6 +114,21 @@ def yaw_from_quaternions(quat_xyzw: FloatArray) -> FloatArray:
     )
 
 
+def tilt_deg(quat_xyzw: FloatArray) -> FloatArray:
+    """Angle between each rotation's body z axis and world z, deg.
+
+    Args:
+        quat_xyzw: (K, 4) ``(qx, qy, qz, qw)``, any non-zero norm.
+
+    Returns:
+        (K,) ``acos(1 - 2 (qx^2 + qy^2))`` of the unit quaternions, deg in [0, 180].
+    """
+    q = np.asarray(quat_xyzw, dtype=np.float64).reshape(-1, 4)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    cos_tilt = np.clip(1.0 - 2.0 * (q[:, 0] ** 2 + q[:, 1] ** 2), -1.0, 1.0)
+    return np.degrees(np.arccos(cos_tilt))
+
+
 def pose_from_tum_fields(vals: list[float] | FloatArray) -> FloatArray:
     """(4, 4) transform from the seven numbers ``tx ty tz qx qy qz qw`` (quaternion normalised)."""
     from scipy.spatial.transform import Rotation
@@ -115,12 +143,25 @@ def pose_from_tum_fields(vals: list[float] | FloatArray) -> FloatArray:
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory as planar poses ``(x, y, yaw)``.
 
-    ``theta`` is the yaw of the quaternion; ``z`` and any roll/pitch are dropped.
+    ``theta`` is the yaw of the quaternion; ``z`` and any roll/pitch are dropped (one
+    warning, naming the line, when a pose tilts over :data:`MAX_PLANAR_TILT_DEG`: a
+    camera-frame trajectory read this way is wrong).
 
     Raises:
         DatasetError: as :func:`read_tum_rows`.
     """
     rows = read_tum_rows(path)
+    tilt = tilt_deg(rows.quat_xyzw)
+    over = np.flatnonzero(tilt > MAX_PLANAR_TILT_DEG)
+    if len(over):
+        first = int(over[0])
+        log.warning(
+            "%s:%d: the pose tilts %.0f deg from upright (%d of %d poses over %.0f deg): read as "
+            "planar (x, y, yaw) with roll and pitch dropped, which is only right for a body "
+            "frame with z up; a camera-frame trajectory (z forward, as visual SLAM writes "
+            "it) must be turned into the robot's body frame first", Path(path),
+            rows.lines[first], tilt[first], len(over), len(tilt),
+            MAX_PLANAR_TILT_DEG)
     poses = np.column_stack([rows.xyz[:, :2], yaw_from_quaternions(rows.quat_xyzw)])
     return Trajectory(t=rows.t, poses=poses)
 

@@ -246,8 +246,8 @@ def _ray_cells(grid: OccupancyGrid, start_xy: FloatArray, end_xy: FloatArray,
     return np.unique(np.concatenate(out))
 
 
-def _apply_update(grid: OccupancyGrid, free_flat: IntArray, hit_flat: IntArray,
-                  config: LogOddsConfig) -> None:
+def apply_update(grid: OccupancyGrid, free_flat: IntArray, hit_flat: IntArray,
+                 config: LogOddsConfig) -> None:
     """Add ``l_free`` to free cells, ``l_occ`` to hit cells (hits win), then clamp."""
     hit_flat = np.unique(hit_flat)
     free_flat = np.setdiff1d(free_flat, hit_flat, assume_unique=True)
@@ -285,6 +285,27 @@ def integrate_points(grid: OccupancyGrid, sensor_xy: FloatArray, points_xy: Floa
         points_xy = points_xy[finite]
     if len(points_xy) == 0:
         return
+    free_flat, hit_flat = point_cells(grid, sensor_xy, points_xy, max_range, config)
+    apply_update(grid, free_flat, hit_flat, config)
+
+
+def point_cells(grid: OccupancyGrid, sensor_xy: FloatArray, points_xy: FloatArray,
+                max_range: float, config: LogOddsConfig = LogOddsConfig()
+                ) -> tuple[IntArray, IntArray]:
+    """The cells :func:`integrate_points` updates, without updating them.
+
+    Args:
+        grid: the map (only its geometry is used).
+        sensor_xy: (2,) sensor position, world metres (finite).
+        points_xy: (N, 2) finite obstacle points, world metres.
+        max_range: metres; farther points only clear free space.
+        config: the inverse sensor model (its ray step).
+
+    Returns:
+        ``(free_flat, hit_flat)``: flat indices ``iy * W + ix`` of the cells a beam
+        passes through and of the cells where a beam ends (hits win where both apply
+        when they are applied).
+    """
     delta = points_xy - sensor_xy
     dist = np.hypot(delta[:, 0], delta[:, 1])
     hit = dist <= max_range
@@ -297,7 +318,7 @@ def integrate_points(grid: OccupancyGrid, sensor_xy: FloatArray, points_xy: Floa
     hit_cells = grid.world_to_cell(points_xy[hit])
     hit_cells = hit_cells[grid.in_bounds(hit_cells)]
     free_flat = np.union1d(free_flat, cut_cells[:, 1] * grid.width + cut_cells[:, 0])
-    _apply_update(grid, free_flat, hit_cells[:, 1] * grid.width + hit_cells[:, 0], config)
+    return free_flat, hit_cells[:, 1] * grid.width + hit_cells[:, 0]
 
 
 def integrate_scan(grid: OccupancyGrid, sensor_pose: FloatArray, ranges: FloatArray,
@@ -325,11 +346,30 @@ def integrate_scan(grid: OccupancyGrid, sensor_pose: FloatArray, ranges: FloatAr
         raise GridMapError(f"ranges {ranges.shape} and angles {angles.shape} differ in shape")
     if not np.all(np.isfinite(sensor_pose)):
         raise GridMapError(f"sensor pose is not finite: {sensor_pose}")
+    pts = scan_points(sensor_pose, ranges, angles, max_range)
+    integrate_points(grid, sensor_pose[:2], pts, max_range, config)
+
+
+def scan_points(sensor_pose: FloatArray, ranges: FloatArray, angles: FloatArray,
+                max_range: float) -> FloatArray:
+    """World points of a scan's beams as :func:`integrate_scan` fuses them.
+
+    NaN and non-positive ranges are left out; ranges at or beyond ``max_range``
+    (``inf``: no return) are cut to just beyond it, so they clear free space only.
+
+    Args:
+        sensor_pose: (3,) finite scanner pose ``(x, y, theta)``, metres/rad.
+        ranges: (B,) ranges, metres.
+        angles: (B,) beam angles in the scanner frame, rad.
+        max_range: metres.
+
+    Returns:
+        (K, 2) world points, metres.
+    """
     usable = ~np.isnan(ranges) & (ranges > 0)
     r = np.minimum(ranges[usable], max_range * (1.0 + 1e-9))
     phi = sensor_pose[2] + angles[usable]
-    pts = sensor_pose[:2] + r[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
-    integrate_points(grid, sensor_pose[:2], pts, max_range, config)
+    return sensor_pose[:2] + r[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
 
 
 def grid_from_scans(poses: FloatArray, ranges: FloatArray, angles: FloatArray,

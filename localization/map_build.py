@@ -23,7 +23,9 @@ It runs in named stages:
    manifest.
 
 A laser map may use ``all``, ``even`` or ``odd`` scans of the log (:func:`select_scans`)
-and is refused when fewer than ``LaserGridConfig.min_scans`` scans went into it.
+and is refused when fewer than ``LaserGridConfig.min_scans`` scans went into it; its scans
+are cross-checked at their poses and a log whose poses disagree (raw odometry) is
+warned about (``grid.scan_consistency`` in the manifest, ``laser_consistency.py``).
 
 World frame: docs/conventions.md (``x, y`` on the floor, ``z`` up, metres).
 """
@@ -45,7 +47,7 @@ from lampsam.datasets.rgbd import RgbdSequence
 from lampsam.localization.ceiling_map import CeilingFeatureMap
 from lampsam.localization.depth_grid import build_depth_layers
 from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, free_mask, load_map_server
-from lampsam.localization.laser_grid import build_laser_grid
+from lampsam.localization.laser_grid import build_checked_laser_grid
 from lampsam.localization.map_config import EnvMapConfig
 from lampsam.localization.map_poses import (
     camera_poses_from_planar,
@@ -201,7 +203,7 @@ def laser_layers(
     else:
         scan_poses = chosen.poses
     t0 = time.perf_counter()
-    grid, n_used = build_laser_grid(chosen, scan_poses, config.laser)
+    grid, n_used, consistency = build_checked_laser_grid(chosen, scan_poses, config.laser)
     timings["grid"] = time.perf_counter() - t0
     if n_used < config.laser.min_scans:
         raise EnvMapError(
@@ -226,6 +228,18 @@ def laser_layers(
                             round(float(np.degrees(chosen.angles[-1])), 4)],
         "time_source": chosen.time_source,
     }
+    if consistency is not None:
+        grid_info["scan_consistency"] = consistency.as_dict()
+        if consistency.poor:
+            log.warning(
+                "%s: the scans disagree with each other at the %s poses: %.0f %% of the hits "
+                "checked lie on walls the rest of the log saw (below %.0f %%): the poses look "
+                "like raw odometry, not corrected ones, or the beam angles are wrong (a FLASER "
+                "scanner that is not 180 deg needs PARAM laser_front_laser_fov), so this map "
+                "shows walls twice and localization on it will be wrong; give corrected poses "
+                "(--poses slam:TUM) or a '-corrected' log (manifest: grid.scan_consistency)",
+                log_path, "log's" if pose_kind != "slam" else "SLAM", 100 * consistency.score,
+                100 * consistency.threshold)
     return Layers(grid, config.laser.log_odds, grid_info, n_used, timings)
 
 

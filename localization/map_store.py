@@ -14,6 +14,7 @@ reads it. World frame: docs/conventions.md (``x, y`` on the floor, ``z`` up, met
 from __future__ import annotations
 
 import datetime
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,8 @@ from lampsam.localization.ceiling_map import CEILING_FILE, CeilingFeatureMap
 from lampsam.localization.grid import LogOddsConfig, OccupancyGrid, save_map_server
 from lampsam.localization.spatial_map import SPATIAL_FILE, SpatialFeatureMap, SpatialMapConfig
 from lampsam.safe_io import write_text_atomic
+
+log = logging.getLogger(__name__)
 
 #: The manifest's file name inside a map directory.
 MANIFEST_FILE = "manifest.yaml"
@@ -222,6 +225,13 @@ def load_env_map(path: str | Path) -> EnvironmentMap:
             f"this lampsam's ({ENVMAP_VERSION})"
         )
     layers = manifest.get("layers", {})
+    consistency = layers.get("grid", {}).get("scan_consistency") or {}
+    if isinstance(consistency, dict) and consistency.get("poor") is True:
+        log.warning("%s: this map was built from laser scans whose poses disagree (%.0f %% of "
+                    "the hits checked on walls the rest of the log saw, below %.0f %%): its "
+                    "walls may be doubled and localization on it is unreliable", path,
+                    100 * float(consistency.get("score") or 0.0),
+                    100 * float(consistency.get("threshold") or 0.0))
     grid = load_map_server(path / layers.get("grid", {}).get("file", f"{GRID_STEM}.yaml"))
     spatial = (
         SpatialFeatureMap.load(path / layers["spatial_features"]["file"])
