@@ -23,6 +23,7 @@ Modules:
 * :mod:`~lampsam.localization.filter_config` -- Settings of the global localizer: the Table-1 configuration and each stage's options.
 * :mod:`~lampsam.localization.grid` -- Log-odds occupancy grids and ROS map_server files.
 * :mod:`~lampsam.localization.laser` -- Global localization from planar laser scans on a grid map, from no prior knowledge.
+* :mod:`~lampsam.localization.laser_consistency` -- Do a laser log's poses agree with each other? A cross-check of its scans.
 * :mod:`~lampsam.localization.laser_grid` -- Grid map from planar laser scans at known poses (CARMEN logs, LaserScan runs).
 * :mod:`~lampsam.localization.likelihood` -- Measurement models of the particle filter: scan log-likelihood per particle.
 * :mod:`~lampsam.localization.localizer` -- Global localization on the environment map (paper 2, secs. 3-4, Fig. 11).
