@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +22,7 @@ from lampsam.commands._args import (
     positive_int,
 )
 from lampsam.errors import LampsamError
+from lampsam.interrupt import EXIT_INTERRUPTED
 
 if TYPE_CHECKING:
     from lampsam.datasets.kinect_sim import KinectConfig
@@ -201,6 +203,11 @@ def _localize_laser_log(args: argparse.Namespace) -> int:
     path = write_json(result, out / "result.json")
     s = result["summary"]
     assert isinstance(s, dict)
+    if result["status"] == "interrupted":
+        print(f"interrupted after {s['trials']} of {args.trials} trials: {s['localized']} "
+              f"localized ({s['correct']} correct, {s['wrong_accepted']} wrong); the finished "
+              f"trials are written to {path} (status interrupted)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(f"{s['trials']} trials: {s['localized']} localized ({s['correct']} correct, "
           f"{s['wrong_accepted']} wrong), {s['ambiguous']} ambiguous, {s['failed']} failed; "
           f"success rate {s['success_rate']:.2f}, compute {s['compute_s_mean']:.2f} s CPU per trial; {path}")

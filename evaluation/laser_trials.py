@@ -12,11 +12,16 @@ noise (:func:`simulated_odometry`).
 Success: final estimate within 30 cm and 10 deg of the corrected pose (the
 paper's criterion). Beams without a return (at or beyond the log's maximum
 range) and beyond the beam model's range are left out.
+
+A stop request (SIGINT or SIGTERM: the ``localize`` command handles them at once)
+during the trials ends them there: the trials finished are kept and the result's
+``status`` is ``"interrupted"`` (``"ok"`` otherwise), so the command still writes them.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -39,6 +44,8 @@ from lampsam.localization.likelihood import LikelihoodFieldModel
 from lampsam.localization.result import json_safe
 from lampsam.localization.result import summarize as summarize_trials
 from lampsam.safe_io import write_text_atomic
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -266,21 +273,23 @@ def laser_trials(
     spacing = last_start / max(config.trials - 1, 1)
     starts = np.linspace(0, last_start, config.trials) + config.start_offset * spacing
     starts = np.clip(starts.round().astype(int), 0, last_start)
-    records = []
-    for trial, s in enumerate(starts):
-        idx = test_idx[s : s + n_use]
-        rec = run_trial(model, grid, scans, idx, config, np.random.default_rng([config.seed, trial]),
-                        pyramid)
-        records.append(rec)
-        if progress:
-            used = idx[: len(rec["scans"])]  # type: ignore[arg-type]
-            print(f"trial {trial:3d} scans {used[0]:4d}..{used[-1]:4d} ({rec['t_span']:5.1f} s, "
-                  f"{rec['distance_driven']:4.1f} m): error {100 * float(rec['error_pos']):7.1f} "  # type: ignore[arg-type]
-                  f"cm {rec['error_theta_deg']:6.1f} deg {'OK ' if rec['success'] else 'FAIL'} "
-                  f"{rec['status']:9s} margin {float(rec['margin']):7.1f} "  # type: ignore[arg-type]
-                  f"{rec['time_s']:.1f} s wall {float(rec['compute_s']):.1f} s cpu", flush=True)  # type: ignore[arg-type]  # fmt: skip
+    records: list[dict[str, object]] = []
+    try:
+        for trial, s in enumerate(starts):
+            idx = test_idx[s : s + n_use]
+            rec = run_trial(model, grid, scans, idx, config,
+                            np.random.default_rng([config.seed, trial]), pyramid)
+            records.append(rec)
+            _print_trial(progress, trial, idx, rec)
+    except KeyboardInterrupt as exc:
+        log.warning("laser trials stopped (%s) after %d of %d trials; the finished ones are kept",
+                    exc or "SIGINT", len(records), len(starts))
+        status = "interrupted"
+    else:
+        status = "ok"
     return {
-        "summary": summarize(records, t_map),
+        "status": status,
+        "summary": summarize(records, t_map) if records else summarize_trials([]),
         "settings": asdict(config),
         "log": str(log_path),
         "holdout": (f"map {'from even-numbered scans' if map_dir is None else str(map_dir)}, "
@@ -289,6 +298,18 @@ def laser_trials(
                 "origin": grid.origin.tolist(), "free_cells": n_free},
         "trials": records,
     }  # fmt: skip
+
+
+def _print_trial(progress: bool, trial: int, idx: np.ndarray, rec: dict[str, object]) -> None:
+    """One progress line of a finished trial (when ``progress``)."""
+    if not progress:
+        return
+    used = idx[: len(rec["scans"])]  # type: ignore[arg-type]
+    print(f"trial {trial:3d} scans {used[0]:4d}..{used[-1]:4d} ({rec['t_span']:5.1f} s, "
+          f"{rec['distance_driven']:4.1f} m): error {100 * float(rec['error_pos']):7.1f} "  # type: ignore[arg-type]
+          f"cm {rec['error_theta_deg']:6.1f} deg {'OK ' if rec['success'] else 'FAIL'} "
+          f"{rec['status']:9s} margin {float(rec['margin']):7.1f} "  # type: ignore[arg-type]
+          f"{rec['time_s']:.1f} s wall {float(rec['compute_s']):.1f} s cpu", flush=True)  # type: ignore[arg-type]  # fmt: skip
 
 
 def write_json(result: dict[str, object], path: str | Path) -> Path:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from lampsam.config_loader import check_limits, limits
 from lampsam.localization.grid import LogOddsConfig
 from lampsam.localization.map_tables import TableConfig
 from lampsam.localization.spatial_map import SpatialMapConfig
@@ -33,14 +34,17 @@ class DepthGridConfig:
         log_odds: the inverse sensor model (grid.py's defaults).
     """
 
-    resolution: float = 0.05
+    resolution: float = field(default=0.05, metadata=limits(gt=0.0))
     height_band: tuple[float, float] = (0.08, 1.8)
     band_reference: str = "floor"
-    depth_stride: int = 2
-    free_bucket: float = 0.25
-    bearing_bin_deg: float = 0.5
-    margin: float = 0.3
+    depth_stride: int = field(default=2, metadata=limits(ge=1))
+    free_bucket: float = field(default=0.25, metadata=limits(ge=0.0))
+    bearing_bin_deg: float = field(default=0.5, metadata=limits(gt=0.0))
+    margin: float = field(default=0.3, metadata=limits(ge=0.0))
     log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+
+    def __post_init__(self) -> None:
+        check_limits(self)
 
 
 @dataclass(frozen=True)
@@ -70,15 +74,18 @@ class LaserGridConfig:
             simulated odometry drift: 0.653).
     """
 
-    resolution: float = 0.1
-    max_range: float = 25.0
-    min_move: float = 0.1
-    min_turn: float = 0.1
-    margin: float = 1.0
+    resolution: float = field(default=0.1, metadata=limits(gt=0.0))
+    max_range: float = field(default=25.0, metadata=limits(gt=0.0))
+    min_move: float = field(default=0.1, metadata=limits(ge=0.0))
+    min_turn: float = field(default=0.1, metadata=limits(ge=0.0))
+    margin: float = field(default=1.0, metadata=limits(ge=0.0))
     log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
-    min_scans: int = 10
-    consistency_chunks: int = 6
-    min_consistency: float = 0.75
+    min_scans: int = field(default=10, metadata=limits(ge=1))
+    consistency_chunks: int = field(default=6, metadata=limits(ge=0))
+    min_consistency: float = field(default=0.75, metadata=limits(ge=0.0, le=1.0))
+
+    def __post_init__(self) -> None:
+        check_limits(self)
 
 
 @dataclass(frozen=True)

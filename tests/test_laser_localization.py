@@ -93,10 +93,9 @@ def test_holdout_split_never_shares_a_scan() -> None:
     assert np.all(m % 2 == 0) and np.all(t % 2 == 1)
 
 
-def test_cli_localize_carmen_log_trials(tmp_path: Path) -> None:
-    """`lampsam localize LOG --map MAP --scans odd --trials N`: scored trials, strict summary."""
-    import json
-
+def _room_log(tmp_path: Path) -> Path:
+    """A CARMEN log of a loop in :func:`_room` (0.15 m per scan, seeded range noise) and
+    its map (``tmp_path / "map"``, built by ``lampsam build-map``); returns the log."""
     from lampsam.cli import main
     from lampsam.datasets.carmen import carmen_beam_angles
 
@@ -117,6 +116,16 @@ def test_cli_localize_carmen_log_trials(tmp_path: Path) -> None:
     log_path = tmp_path / "room.log"
     log_path.write_text("\n".join(lines) + "\n")
     assert main(["build-map", str(log_path), "--out", str(tmp_path / "map")]) == 0
+    return log_path
+
+
+def test_cli_localize_carmen_log_trials(tmp_path: Path) -> None:
+    """`lampsam localize LOG --map MAP --scans odd --trials N`: scored trials, strict summary."""
+    import json
+
+    from lampsam.cli import main
+
+    log_path = _room_log(tmp_path)
     out = tmp_path / "loc"
     rc = main(["localize", str(log_path), "--map", str(tmp_path / "map"), "--scans", "odd",
                "--trials", "3", "--out", str(out)])  # fmt: skip
@@ -125,6 +134,36 @@ def test_cli_localize_carmen_log_trials(tmp_path: Path) -> None:
     assert summary["trials"] == 3 and summary["wrong_accepted"] == 0 and rc == 0
     assert summary["correct"] == summary["localized"] >= 2
     assert all(t["scans"][0] % 2 == 1 for t in doc["trials"])  # odd scans only
+    assert doc["status"] == "ok"
+
+
+def test_cli_localize_carmen_log_keeps_finished_trials_when_stopped(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stop (SIGTERM / SIGINT raise KeyboardInterrupt in ``localize``) during the third
+    of four trials: exit code 3, ``result.json`` written with the two finished trials and
+    status ``interrupted`` (before: nothing written)."""
+    import json
+
+    from lampsam.cli import main
+    from lampsam.evaluation import laser_trials as lt
+
+    log_path = _room_log(tmp_path)
+    calls: list[int] = []
+    real = lt.run_trial
+
+    def stopped_on_third(*a, **k):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt("stopped by SIGTERM")
+        return real(*a, **k)
+
+    monkeypatch.setattr(lt, "run_trial", stopped_on_third)
+    out = tmp_path / "loc"
+    rc = main(["localize", str(log_path), "--map", str(tmp_path / "map"), "--scans", "odd",
+               "--trials", "4", "--out", str(out)])  # fmt: skip
+    doc = json.loads((out / "result.json").read_text(), parse_constant=lambda c: 1 / 0)
+    assert rc == 3 and doc["status"] == "interrupted"
+    assert doc["summary"]["trials"] == len(doc["trials"]) == 2
 
 
 def test_research_adds_modes_and_keeps_a_converged_cluster() -> None:
