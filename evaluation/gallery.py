@@ -80,6 +80,10 @@ class GalleryEntry:
     time_ms: float
 
 
+#: Photo files ``make_gallery`` reads (OpenCV decodes them; case-insensitive).
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+
+
 def config_for_width(width: int, base: FrontendConfig | None = None) -> FrontendConfig:
     """Scale the size-dependent settings from 320 px wide images to ``width``.
 
@@ -260,46 +264,61 @@ def make_gallery(
     photos_dir: str | Path,
     out_png: str | Path,
     full_size: bool = True,
-    small: tuple[int, int] = (320, 240),
+    small_width: int = 320,
 ) -> list[GalleryEntry]:
-    """Run the frontend on every ``*.jpg``/``*.png`` of a folder and draw the gallery.
+    """Run the frontend on every photo of a folder (:data:`PHOTO_SUFFIXES`) and draw the
+    gallery.
+
+    A file that cannot be read as an image is skipped with a warning naming it (one bad
+    photo does not cost the others).
 
     Args:
         photos_dir: folder of photos.
-        out_png: the gallery image to write (one row per photo; columns: 320x240,
+        out_png: the gallery image to write (one row per photo; columns: reduced size,
             working width).
         full_size: also run on the full-resolution photo at its working width
             (:func:`run_photo_working`, the path of ``frontend-eval --photos``).
-        small: the reduced size ``(width, height)``.
+        small_width: the reduced width, px; the height keeps the photo's aspect ratio
+            (320 x 240 for a 4:3 photo).
 
     Returns:
         One entry per photo and size.
 
     Raises:
-        LampsamError: the folder has no photos.
+        LampsamError: the folder has no readable photos.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    files = sorted(
-        p for p in Path(photos_dir).glob("*") if p.suffix.lower() in (".jpg", ".jpeg", ".png")
-    )
+    files = sorted(p for p in Path(photos_dir).glob("*") if p.suffix.lower() in PHOTO_SUFFIXES)
     if not files:
-        raise LampsamError(f"{photos_dir}: no .jpg or .png photos")
+        raise LampsamError(f"{photos_dir}: no photos ({', '.join(PHOTO_SUFFIXES)})")
     ensure_dir(Path(out_png).parent)
-    sizes: list[tuple[int, int] | None] = [small] + ([None] if full_size else [])
+    sizes: list[tuple[int, int] | None] = [(small_width, 0)] + ([None] if full_size else [])
     fig, axes = plt.subplots(
         len(files), len(sizes), figsize=(4.0 * len(sizes), 3.0 * len(files)), squeeze=False
     )
     entries: list[GalleryEntry] = []
     for r, path in enumerate(files):
+        try:
+            full = load_photo(path, None)
+        except LampsamError as exc:
+            log.warning("%s; skipped", exc)
+            for ax in axes[r]:
+                ax.text(0.5, 0.5, f"{path.name}:\nnot readable, skipped", ha="center",
+                        va="center", transform=ax.transAxes)
+                ax.set_axis_off()
+            continue
         for c, size in enumerate(sizes):
             if size is None:
-                img, lamps, corners, ms = run_photo_working(load_photo(path, None))
+                img, lamps, corners, ms = run_photo_working(full)
             else:
-                img = load_photo(path, size)
+                h, w = full.shape
+                small = (size[0], max(1, round(size[0] * h / w)))
+                img = np.asarray(cv2.resize(full, small, interpolation=cv2.INTER_AREA),
+                                 dtype=np.uint8)
                 lamps, corners, ms = run_photo(img)
             used = [lm for lm in lamps.lamps if not lm.touches_border]
             entry = GalleryEntry(
@@ -329,6 +348,9 @@ def make_gallery(
                 f"({entry.n_oriented} oriented), {entry.n_border} border, "
                 f"{entry.n_corners} corners",
             )
+    if not entries:
+        plt.close(fig)
+        raise LampsamError(f"{photos_dir}: none of its {len(files)} photos could be read")
     fig.legend(handles=legend_handles(), loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.9 / (3.0 * len(files)), 1, 1))
     with atomic_path(out_png) as tmp:

@@ -257,3 +257,28 @@ def test_a_jpeg_cut_short_is_decoded_with_a_warning(tmp_path: Path,
         assert load_photo(cut, None).shape == (120, 160)
     assert any("cut short" in r.getMessage() and "cut.jpg" in r.getMessage()
                for r in caplog.records)
+
+
+def test_gallery_skips_an_unreadable_photo_and_keeps_a_portrait_ones_aspect(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """One corrupt file among the photos is skipped with a warning naming it (was: the
+    whole gallery refused); a portrait photo's reduced column keeps its aspect (320 x 427,
+    was squashed to 320 x 240); a ``.tif`` is read like the others."""
+    rng = np.random.default_rng(11)
+    img = np.full((800, 600), 110.0)  # portrait, 600 wide
+    img[200:240, 150:450] = 250.0
+    img[560:600, 150:450] = 250.0
+    img = np.clip(np.rint(img + rng.normal(0.0, 2.0, img.shape)), 0, 255).astype(np.uint8)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    cv2.imwrite(str(photos / "a_portrait.tif"), img)
+    (photos / "b_broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    with caplog.at_level("WARNING"):
+        entries = make_gallery(photos, tmp_path / "g.png", full_size=False)
+    assert [(e.name, e.width, e.height) for e in entries] == [("a_portrait.tif", 320, 427)]
+    assert entries[0].n_lamps == 2
+    assert any("b_broken.jpg" in r.getMessage() and "skipped" in r.getMessage()
+               for r in caplog.records)
+    (photos / "a_portrait.tif").unlink()
+    with pytest.raises(LampsamError, match="none of its 1 photos could be read"):
+        make_gallery(photos, tmp_path / "g2.png", full_size=False)
