@@ -350,7 +350,9 @@ def make_gallery(
             )
     if not entries:
         plt.close(fig)
-        raise LampsamError(f"{photos_dir}: none of its {len(files)} photos could be read")
+        names = ", ".join(p.name for p in files[:5]) + (", ..." if len(files) > 5 else "")
+        raise LampsamError(f"{photos_dir}: none of its {len(files)} photos could be read "
+                           f"({names})")
     fig.legend(handles=legend_handles(), loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.9 / (3.0 * len(files)), 1, 1))
     with atomic_path(out_png) as tmp:
