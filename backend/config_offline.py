@@ -144,6 +144,11 @@ class ReassociationConfig:
             far longer than one that holds: on MRCLAM 68 s against 1.8 s.
         online_candidate_cpu_floor_s: the least budget of a candidate's online run, s of
             process CPU (default 30).
+        online_label_entropy: the online picker compares candidates by ``C`` plus twice
+            the entropy of each recorded sighting's label among its rival landmarks
+            (:mod:`lampsam.backend.label_entropy`, the ICL of mixture models): a map that
+            splits one landmark into copies closer than the noise pays for its guessed
+            labels (default False: ``C`` alone).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -170,6 +175,7 @@ class ReassociationConfig:
     online_candidate_cpu_factor: float = field(default=5.0,
                                                metadata=limits(ge=1.0, finite=False))
     online_candidate_cpu_floor_s: float = field(default=30.0, metadata=limits(ge=0.0))
+    online_label_entropy: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

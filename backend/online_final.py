@@ -48,6 +48,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.config_offline import online_candidate_changes
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
+from lampsam.backend.label_entropy import label_cost
 from lampsam.backend.noids_offline import (
     OfflineRun,
     candidate_pruning_quiet,
@@ -181,11 +182,15 @@ class Candidate:
         status: ``"ok"`` (final solve done), ``"online <status>"`` (the online run failed
             or was stopped), ``"no sightings recorded"``, ``"final solve failed: ..."``,
             or ``"not run (stop requested)"``; any but ``"ok"`` loses.
-        cost: the final solve's description length ``C`` (NaN without one).
+        cost: what the picker compares: the final solve's description length ``C``,
+            plus ``label_cost`` with ``[reassociation] online_label_entropy`` (NaN
+            without a final solve).
         final: the final solve as a result (None without one); online: the online run.
         cpu_s: process CPU of the online run and the final solve, s.
         solve: the final solve's :class:`~lampsam.backend.noids_offline.OfflineRun`
             (its association; None without one).
+        label_cost: twice the entropy of its sightings' labels
+            (:func:`candidate_label_cost`; NaN without a final solve).
     """
 
     name: str
@@ -195,6 +200,7 @@ class Candidate:
     online: SlamResult | None = None
     cpu_s: float = 0.0
     solve: OfflineRun | None = None
+    label_cost: float = float("nan")
 
     def row(self) -> dict[str, object]:
         """The candidate's entry in ``summary.json`` (``online_picker.candidates``)."""
@@ -268,12 +274,23 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
                   "online_final_cpu_s": time.process_time() - c1,
                   "online_landmarks": float(len(online.landmarks)),
                   "online_landmarks_pruned": float(online.n_pruned)})
+    labels = candidate_label_cost(best)
+    extra["noids_label_cost"] = labels
     final = result_of(g, final_config(solve_cfg), best, extra, t0, c0)
-    return Candidate(name, "ok", best.cost, final, online, time.process_time() - c0, best)
+    cost = best.cost + labels if config.reassociation.online_label_entropy else best.cost
+    return Candidate(name, "ok", cost, final, online, time.process_time() - c0, best, labels)
+
+
+def candidate_label_cost(run: OfflineRun) -> float:
+    """Twice the entropy of the labels of a final solve's sightings
+    (:func:`lampsam.backend.label_entropy.label_cost` at its optimum)."""
+    s = run.sightings
+    return label_cost(run.poses, s.k, s.z, s.r, s.lid, run.landmarks)
 
 
 def pick(cands: list[Candidate]) -> int:
-    """Index of the candidate whose final solve has the least ``C``; without any, the
+    """Index of the candidate whose final solve has the least ``cost`` (``C``, plus the
+    label entropy with ``[reassociation] online_label_entropy``); without any, the
     first whose online run finished, else 0."""
     ok = [i for i, c in enumerate(cands) if c.status == "ok"]
     if ok:
