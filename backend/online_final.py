@@ -48,7 +48,7 @@ from lampsam.backend.config import SlamConfig
 from lampsam.backend.config_offline import online_candidate_changes
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
-from lampsam.backend.label_entropy import label_cost
+from lampsam.backend.label_entropy import label_cost, profiled_cost, sighting_scale
 from lampsam.backend.noids_offline import (
     OfflineRun,
     candidate_pruning_quiet,
@@ -182,15 +182,16 @@ class Candidate:
         status: ``"ok"`` (final solve done), ``"online <status>"`` (the online run failed
             or was stopped), ``"no sightings recorded"``, ``"final solve failed: ..."``,
             or ``"not run (stop requested)"``; any but ``"ok"`` loses.
-        cost: what the picker compares: the final solve's description length ``C``,
-            plus ``label_cost`` with ``[reassociation] online_label_entropy`` (NaN
-            without a final solve).
+        cost: what the picker compares: the final solve's description length ``C``;
+            with ``[reassociation] online_label_entropy`` it at the candidate's own
+            sighting noise scale plus ``label_cost`` (:func:`label_entropy_costs`; NaN without a
+            final solve).
         final: the final solve as a result (None without one); online: the online run.
         cpu_s: process CPU of the online run and the final solve, s.
         solve: the final solve's :class:`~lampsam.backend.noids_offline.OfflineRun`
             (its association; None without one).
         label_cost: twice the entropy of its sightings' labels
-            (:func:`candidate_label_cost`; NaN without a final solve).
+            (:func:`label_entropy_costs`; NaN without it or without a final solve).
     """
 
     name: str
@@ -274,18 +275,34 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
                   "online_final_cpu_s": time.process_time() - c1,
                   "online_landmarks": float(len(online.landmarks)),
                   "online_landmarks_pruned": float(online.n_pruned)})
-    labels = candidate_label_cost(best)
-    extra["noids_label_cost"] = labels
     final = result_of(g, final_config(solve_cfg), best, extra, t0, c0)
-    cost = best.cost + labels if config.reassociation.online_label_entropy else best.cost
-    return Candidate(name, "ok", cost, final, online, time.process_time() - c0, best, labels)
+    return Candidate(name, "ok", best.cost, final, online, time.process_time() - c0, best)
 
 
-def candidate_label_cost(run: OfflineRun) -> float:
-    """Twice the entropy of the labels of a final solve's sightings
-    (:func:`lampsam.backend.label_entropy.label_cost` at its optimum)."""
+def candidate_label_cost(run: OfflineRun, s2: float = 1.0) -> float:
+    """Twice the entropy of the labels of a final solve's sightings at their noise times
+    ``s2`` (:func:`lampsam.backend.label_entropy.label_cost` at its optimum)."""
     s = run.sightings
-    return label_cost(run.poses, s.k, s.z, s.r, s.lid, run.landmarks)
+    return label_cost(run.poses, s.k, s.z, s.r * s2, s.lid, run.landmarks)
+
+
+def label_entropy_costs(cands: list[Candidate], new_cost: float) -> None:
+    """With ``[reassociation] online_label_entropy``: each finished candidate's ``cost``
+    and ``label_cost`` at its own sighting noise scale (:mod:`lampsam.backend.label_entropy`:
+    ``C`` with the sightings' chi-square at that scale, plus the label entropy term);
+    its final answer's ``extra`` gets ``noids_label_cost``, ``noids_picker_cost`` and
+    ``noids_sighting_scale``."""
+    for c in cands:
+        run = c.solve
+        if c.status != "ok" or run is None:
+            continue
+        s2 = sighting_scale(run.chi2_sightings, run.dof_sightings)
+        c.label_cost = candidate_label_cost(run, s2)
+        c.cost = profiled_cost(run.chi2_odometry, run.chi2_sightings, run.dof_sightings,
+                               len(run.landmarks), run.n_dropped, new_cost, s2, c.label_cost)
+        if c.final is not None:
+            c.final.extra.update({"noids_label_cost": c.label_cost, "noids_picker_cost": c.cost,
+                                  "noids_sighting_scale": s2})
 
 
 def pick(cands: list[Candidate]) -> int:
@@ -322,6 +339,10 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
         log.info("online candidate %s: %s, C %.1f, %.1f s CPU", c.name, c.status, c.cost,
                  c.cpu_s)
         cands.append(c)
+    if rc.online_label_entropy:
+        label_entropy_costs(cands, config.association.new_threshold(2))
+        log.info("online picker: costs with the label entropy %s",
+                 ", ".join(f"{c.name} {c.cost:.1f}" for c in cands))
     i = pick(cands)
     c = cands[i]
     lost = [x for x in cands if x.status != "ok"]

@@ -280,7 +280,9 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
             print(f"| {name} | {b} candidate {c.name} ({held} held unused, "
                   f"{run.n_dropped} not in the association{_vs_truth(run.poses, truth)}) | "
                   f"{r:.3f} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
-                  f"{run.cost:.1f} + labels {c.label_cost:.1f} | | {c.cpu_s:.1f} | {div} |",
+                  f"{run.cost:.1f}; labels {c.label_cost:.1f}; picker {c.cost:.1f}; sightings "
+                  f"chi2/dof {run.chi2_sightings / max(run.dof_sightings, 1):.3f} | | "
+                  f"{c.cpu_s:.1f} | {div} |",
                   flush=True)
         ok = [i for i, x in enumerate(rms) if np.isfinite(x)]
         best = min(ok, key=lambda i: rms[i]) if ok else -1
