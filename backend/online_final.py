@@ -182,16 +182,16 @@ class Candidate:
         status: ``"ok"`` (final solve done), ``"online <status>"`` (the online run failed
             or was stopped), ``"no sightings recorded"``, ``"final solve failed: ..."``,
             or ``"not run (stop requested)"``; any but ``"ok"`` loses.
-        cost: what the picker compares: the final solve's description length ``C``;
-            with ``[reassociation] online_label_entropy`` it at the candidate's own
-            sighting noise scale plus ``label_cost`` (:func:`label_entropy_costs`; NaN without a
-            final solve).
+        cost: the final solve's description length ``C`` (NaN without one).
         final: the final solve as a result (None without one); online: the online run.
         cpu_s: process CPU of the online run and the final solve, s.
         solve: the final solve's :class:`~lampsam.backend.noids_offline.OfflineRun`
             (its association; None without one).
         label_cost: twice the entropy of its sightings' labels
             (:func:`label_entropy_costs`; NaN without it or without a final solve).
+        picker_cost: with ``[reassociation] online_label_entropy``, what the picker
+            compares: ``C`` at the candidate's own sighting noise scale plus
+            ``label_cost`` (:func:`label_entropy_costs`); NaN without it.
     """
 
     name: str
@@ -202,6 +202,11 @@ class Candidate:
     cpu_s: float = 0.0
     solve: OfflineRun | None = None
     label_cost: float = float("nan")
+    picker_cost: float = float("nan")
+
+    def score(self) -> float:
+        """What :func:`pick` compares: ``picker_cost`` where set, else ``cost``."""
+        return self.picker_cost if np.isfinite(self.picker_cost) else self.cost
 
     def row(self) -> dict[str, object]:
         """The candidate's entry in ``summary.json`` (``online_picker.candidates``)."""
@@ -287,8 +292,8 @@ def candidate_label_cost(run: OfflineRun, s2: float = 1.0) -> float:
 
 
 def label_entropy_costs(cands: list[Candidate], new_cost: float) -> None:
-    """With ``[reassociation] online_label_entropy``: each finished candidate's ``cost``
-    and ``label_cost`` at its own sighting noise scale (:mod:`lampsam.backend.label_entropy`:
+    """With ``[reassociation] online_label_entropy``: each finished candidate's
+    ``picker_cost`` and ``label_cost`` at its own sighting noise scale (:mod:`lampsam.backend.label_entropy`:
     ``C`` with the sightings' chi-square at that scale, plus the label entropy term);
     its final answer's ``extra`` gets ``noids_label_cost``, ``noids_picker_cost`` and
     ``noids_sighting_scale``."""
@@ -298,20 +303,21 @@ def label_entropy_costs(cands: list[Candidate], new_cost: float) -> None:
             continue
         s2 = sighting_scale(run.chi2_sightings, run.dof_sightings)
         c.label_cost = candidate_label_cost(run, s2)
-        c.cost = profiled_cost(run.chi2_odometry, run.chi2_sightings, run.dof_sightings,
+        c.picker_cost = profiled_cost(run.chi2_odometry, run.chi2_sightings, run.dof_sightings,
                                len(run.landmarks), run.n_dropped, new_cost, s2, c.label_cost)
         if c.final is not None:
-            c.final.extra.update({"noids_label_cost": c.label_cost, "noids_picker_cost": c.cost,
+            c.final.extra.update({"noids_label_cost": c.label_cost,
+                                  "noids_picker_cost": c.picker_cost,
                                   "noids_sighting_scale": s2})
 
 
 def pick(cands: list[Candidate]) -> int:
-    """Index of the candidate whose final solve has the least ``cost`` (``C``, plus the
-    label entropy with ``[reassociation] online_label_entropy``); without any, the
-    first whose online run finished, else 0."""
+    """Index of the candidate whose final solve has the least :meth:`Candidate.score`
+    (``C``, or with ``[reassociation] online_label_entropy`` the picker cost); without
+    any, the first whose online run finished, else 0."""
     ok = [i for i, c in enumerate(cands) if c.status == "ok"]
     if ok:
-        return min(ok, key=lambda i: cands[i].cost)
+        return min(ok, key=lambda i: cands[i].score())
     done = [i for i, c in enumerate(cands) if c.online is not None and c.online.status == "ok"]
     return done[0] if done else 0
 
@@ -342,7 +348,7 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
     if rc.online_label_entropy:
         label_entropy_costs(cands, config.association.new_threshold(2))
         log.info("online picker: costs with the label entropy %s",
-                 ", ".join(f"{c.name} {c.cost:.1f}" for c in cands))
+                 ", ".join(f"{c.name} {c.picker_cost:.1f}" for c in cands))
     i = pick(cands)
     c = cands[i]
     lost = [x for x in cands if x.status != "ok"]

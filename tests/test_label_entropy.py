@@ -133,11 +133,17 @@ def test_picker_cost_adds_the_label_term(tmp_path: pytest.TempPathFactory) -> No
     _, _, cands, _ = run_online_picker(g, "isam2", dataclasses.replace(base, reassociation=rc))
     (c,) = cands
     assert c.solve is not None and np.isfinite(c.label_cost) and c.label_cost >= 0.0
-    assert c.label_cost == pytest.approx(candidate_label_cost(c.solve))
-    assert c.cost == pytest.approx(c.solve.cost + c.label_cost)
+    assert c.label_cost == pytest.approx(candidate_label_cost(
+        c.solve, max(1.0, c.solve.chi2_sightings / c.solve.dof_sightings)))
+    s2 = max(1.0, c.solve.chi2_sightings / c.solve.dof_sightings)
+    assert c.cost == c.solve.cost and c.score() == c.picker_cost
+    assert c.picker_cost == pytest.approx(c.solve.cost + c.label_cost + c.solve.chi2_sightings
+                                          * (1.0 / s2 - 1.0) + c.solve.dof_sightings
+                                          * np.log(s2))
     assert c.final is not None and c.final.extra["noids_label_cost"] == pytest.approx(c.label_cost)
-    assert c.final.extra["noids_sighting_scale"] == pytest.approx(
-        max(1.0, c.solve.chi2_sightings / c.solve.dof_sightings))
+    assert c.final.extra["noids_sighting_scale"] == pytest.approx(s2)
+    assert c.final.extra["noids_picker_cost"] == pytest.approx(c.picker_cost)
     rc0 = dataclasses.replace(rc, online_label_entropy=False)
     _, _, (c0,), _ = run_online_picker(g, "isam2", dataclasses.replace(base, reassociation=rc0))
     assert c0.solve is not None and c0.cost == pytest.approx(c0.solve.cost)
+    assert np.isnan(c0.picker_cost) and c0.score() == c0.cost

@@ -280,7 +280,7 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
             print(f"| {name} | {b} candidate {c.name} ({held} held unused, "
                   f"{run.n_dropped} not in the association{_vs_truth(run.poses, truth)}) | "
                   f"{r:.3f} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
-                  f"{run.cost:.1f}; labels {c.label_cost:.1f}; picker {c.cost:.1f}; sightings "
+                  f"{run.cost:.1f}; labels {c.label_cost:.1f}; picker {c.picker_cost:.1f}; sightings "
                   f"chi2/dof {run.chi2_sightings / max(run.dof_sightings, 1):.3f} | | "
                   f"{c.cpu_s:.1f} | {div} |",
                   flush=True)
@@ -292,7 +292,7 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
         div = "yes" if not (np.isfinite(r_ch) and r_ch <= DIVERGED_M) else ""
         print(f"| {name} | **{b} picker ({label}) -> {cands[chosen].name}**; {verdict}"
               f"{_vs_truth(final.poses, truth)} | **{r_ch:.3f}** | "
-              f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].cost:.1f} | | "
+              f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].score():.1f} | | "
               f"{c_all:.1f} (all) | {div} |", flush=True)
 
 
