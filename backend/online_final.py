@@ -28,7 +28,10 @@ final-solved, and the final solve with the least description length ``C`` is kep
 the online run sees a candidate's changes; every final solve uses the config as given,
 so the ``C`` are of the same sightings under the same noise. A candidate whose online run
 fails, is stopped (a stop request, or its CPU budget), records nothing, or whose final
-solve fails, loses.
+solve fails, loses. With ``[reassociation] online_label_entropy`` (default) the picker
+compares ``C`` plus the entropy of the sightings' labels, at each candidate's own
+sighting noise scale (:mod:`lampsam.backend.label_entropy`): a map that splits a
+landmark into copies closer than the noise pays for its guessed labels.
 
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
