@@ -51,6 +51,7 @@ Modules:
 * :mod:`~lampsam.backend.isam2_update` -- iSAM2 updates of a factor-graph backend, and recovery from a failed one.
 * :mod:`~lampsam.backend.joint_gating` -- Joint compatibility for the smoothers' range-bearing observations without ids.
 * :mod:`~lampsam.backend.keyframes` -- Keyframe policy of the factor-graph backends.
+* :mod:`~lampsam.backend.label_entropy` -- The label entropy of an association: what the online picker's ``C`` adds so that a landmark split in overlapping copies does not win (no ids).
 * :mod:`~lampsam.backend.landmark_merge` -- Merging duplicate planar landmarks after the fact (association without ids).
 * :mod:`~lampsam.backend.landmark_moves` -- Merge and split landmarks by description length (offline association without ids).
 * :mod:`~lampsam.backend.landmarks` -- Landmark lifecycle in a factor-graph backend: start, observe, triangulate, insert, prune.

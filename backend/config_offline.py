@@ -125,17 +125,17 @@ class ReassociationConfig:
             ``defaults`` (none), ``planar_unique``, ``revisit_check``, ``both`` (the
             two), ``cov_scale=X`` (the online pass's ``[pose2_odometry] cov_scale``; X
             a number or a fraction such as ``1/16``), ``alias_odds=X`` (the online
-            pass's ``[association] alias_odds``, for aliased sparse logs; not a default
-            candidate: on MRCLAM its split map has the least ``C``, 0.21 m and 29
-            landmarks for 15, docs/noids-aliasing.md). Only the online pass sees them:
-            every final solve runs with the config as given, so ``C`` compares like
-            with like. Empty: the online pass runs once with the config as given.
-            Default ``defaults``, ``both+cov_scale=16``, ``cov_scale=1/16`` (the
-            stated setting; the one that holds Victoria Park online; the one that holds
-            victoriaPark_reduced_1k, whose stated odometry noise is ~4x too large in
-            sigma): no divergence added on the 11 logs measured, for the sum of the
-            candidates' CPU, 1.3-12.7x one run's (docs/noids-offline.md, "The online
-            picker").
+            pass's ``[association] alias_odds``, for aliased sparse logs). Only the
+            online pass sees them: every final solve runs with the config as given, so
+            ``C`` compares like with like. Empty: the online pass runs once with the
+            config as given. Default ``defaults``, ``both+cov_scale=16``,
+            ``cov_scale=1/16``, ``alias_odds=1`` (the stated setting; the one that holds
+            Victoria Park online; the one that holds victoriaPark_reduced_1k, whose
+            stated odometry noise is ~4x too large in sigma; the alias test, the one
+            that holds cityTrees_reduced_1k, a grid of trees sighted a few at a time,
+            chosen there with ``online_label_entropy``: docs/noids-aliasing.md, last
+            section): no divergence added on the logs measured, for the sum of the
+            candidates' CPU (docs/noids-offline.md, "The online picker").
         online_candidate_cpu_factor: a candidate's online run is stopped (and loses)
             once its process CPU exceeds this factor times the least CPU (online run and
             final solve) of the candidates finished before it, or
@@ -161,6 +161,13 @@ class ReassociationConfig:
             joined inside the association gate) are candidates too (default False: Victoria
             Park 117 landmarks for 119 trees against 108 without, but on the held-out loop
             and corridor logs they map trees twice, 62 landmarks for 50 and 137 for 120).
+        online_label_entropy: the online picker compares candidates by ``C`` plus twice
+            the entropy of each recorded sighting's label among its rival landmarks
+            (:mod:`lampsam.backend.label_entropy`, the ICL of mixture models): a map that
+            splits one landmark into copies closer than the noise pays for its guessed
+            labels; a candidate whose sightings fit worse than stated is scored at its
+            own noise scale (default True: with it ``C`` no longer takes the alias
+            test's split map on MRCLAM; False: ``C`` alone, docs/noids-aliasing.md).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -183,12 +190,14 @@ class ReassociationConfig:
     online_final_cov_scale: float = field(default=1.0, metadata=limits(gt=0.0))
     online_final_passes: int = field(default=20, metadata=limits(ge=1))
     online_final_singletons: bool = False
-    online_candidates: tuple[str, ...] = ("defaults", "both+cov_scale=16", "cov_scale=1/16")
+    online_candidates: tuple[str, ...] = ("defaults", "both+cov_scale=16", "cov_scale=1/16",
+                                          "alias_odds=1")
     online_candidate_cpu_factor: float = field(default=5.0,
                                                metadata=limits(ge=1.0, finite=False))
     online_candidate_cpu_floor_s: float = field(default=30.0, metadata=limits(ge=0.0))
     online_final_held_mixture: bool = False
     online_final_held_new_landmarks: bool = False
+    online_label_entropy: bool = True
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

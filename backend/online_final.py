@@ -28,7 +28,10 @@ final-solved, and the final solve with the least description length ``C`` is kep
 the online run sees a candidate's changes; every final solve uses the config as given,
 so the ``C`` are of the same sightings under the same noise. A candidate whose online run
 fails, is stopped (a stop request, or its CPU budget), records nothing, or whose final
-solve fails, loses.
+solve fails, loses. With ``[reassociation] online_label_entropy`` (default) the picker
+compares ``C`` plus the entropy of the sightings' labels, at each candidate's own
+sighting noise scale (:mod:`lampsam.backend.label_entropy`): a map that splits a
+landmark into copies closer than the noise pays for its guessed labels.
 
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
@@ -49,6 +52,7 @@ from lampsam.backend.config_offline import online_candidate_changes
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.held_placement import place_into
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
+from lampsam.backend.label_entropy import label_cost, profiled_cost, sighting_scale
 from lampsam.backend.landmark_moves import Move
 from lampsam.backend.noids_offline import (
     OfflineRun,
@@ -239,6 +243,11 @@ class Candidate:
         cpu_s: process CPU of the online run and the final solve, s.
         solve: the final solve's :class:`~lampsam.backend.noids_offline.OfflineRun`
             (its association; None without one).
+        label_cost: twice the entropy of its sightings' labels
+            (:func:`label_entropy_costs`; NaN without it or without a final solve).
+        picker_cost: with ``[reassociation] online_label_entropy``, what the picker
+            compares: ``C`` at the candidate's own sighting noise scale plus
+            ``label_cost`` (:func:`label_entropy_costs`); NaN without it.
     """
 
     name: str
@@ -248,6 +257,12 @@ class Candidate:
     online: SlamResult | None = None
     cpu_s: float = 0.0
     solve: OfflineRun | None = None
+    label_cost: float = float("nan")
+    picker_cost: float = float("nan")
+
+    def score(self) -> float:
+        """What :func:`pick` compares: ``picker_cost`` where set, else ``cost``."""
+        return self.picker_cost if np.isfinite(self.picker_cost) else self.cost
 
     def row(self) -> dict[str, object]:
         """The candidate's entry in ``summary.json`` (``online_picker.candidates``)."""
@@ -325,12 +340,40 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
     return Candidate(name, "ok", best.cost, final, online, time.process_time() - c0, best)
 
 
+def candidate_label_cost(run: OfflineRun, s2: float = 1.0) -> float:
+    """Twice the entropy of the labels of a final solve's sightings at their noise times
+    ``s2`` (:func:`lampsam.backend.label_entropy.label_cost` at its optimum)."""
+    s = run.sightings
+    return label_cost(run.poses, s.k, s.z, s.r * s2, s.lid, run.landmarks)
+
+
+def label_entropy_costs(cands: list[Candidate], new_cost: float) -> None:
+    """With ``[reassociation] online_label_entropy``: each finished candidate's
+    ``picker_cost`` and ``label_cost`` at its own sighting noise scale (:mod:`lampsam.backend.label_entropy`:
+    ``C`` with the sightings' chi-square at that scale, plus the label entropy term);
+    its final answer's ``extra`` gets ``noids_label_cost``, ``noids_picker_cost`` and
+    ``noids_sighting_scale``."""
+    for c in cands:
+        run = c.solve
+        if c.status != "ok" or run is None:
+            continue
+        s2 = sighting_scale(run.chi2_sightings, run.dof_sightings)
+        c.label_cost = candidate_label_cost(run, s2)
+        c.picker_cost = profiled_cost(run.chi2_odometry, run.chi2_sightings, run.dof_sightings,
+                               len(run.landmarks), run.n_dropped, new_cost, s2, c.label_cost)
+        if c.final is not None:
+            c.final.extra.update({"noids_label_cost": c.label_cost,
+                                  "noids_picker_cost": c.picker_cost,
+                                  "noids_sighting_scale": s2})
+
+
 def pick(cands: list[Candidate]) -> int:
-    """Index of the candidate whose final solve has the least ``C``; without any, the
-    first whose online run finished, else 0."""
+    """Index of the candidate whose final solve has the least :meth:`Candidate.score`
+    (``C``, or with ``[reassociation] online_label_entropy`` the picker cost); without
+    any, the first whose online run finished, else 0."""
     ok = [i for i, c in enumerate(cands) if c.status == "ok"]
     if ok:
-        return min(ok, key=lambda i: cands[i].cost)
+        return min(ok, key=lambda i: cands[i].score())
     done = [i for i, c in enumerate(cands) if c.online is not None and c.online.status == "ok"]
     return done[0] if done else 0
 
@@ -358,6 +401,10 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
         log.info("online candidate %s: %s, C %.1f, %.1f s CPU", c.name, c.status, c.cost,
                  c.cpu_s)
         cands.append(c)
+    if rc.online_label_entropy:
+        label_entropy_costs(cands, config.association.new_threshold(2))
+        log.info("online picker: costs with the label entropy %s",
+                 ", ".join(f"{c.name} {c.picker_cost:.1f}" for c in cands))
     i = pick(cands)
     c = cands[i]
     lost = [x for x in cands if x.status != "ok"]

@@ -41,7 +41,8 @@ each final solve, :mod:`lampsam.backend.held_placement`). The last column says "
 than :data:`DIVERGED_M` from GTSAM's LM.
 
 ``corridor``, ``odo3x`` and ``overstated`` (:data:`NEW_HELD_OUT`) are held-out logs of
-the picker, fixed before it ran on them.
+the picker, fixed before it ran on them; ``carpark`` and ``pillars``
+(:data:`ALIASED_HELD_OUT`) aliased held-out logs of its label-entropy cost.
 """
 
 from __future__ import annotations
@@ -106,11 +107,52 @@ NEW_HELD_OUT: dict[str, tuple[HeldOutSpec, int]] = {
 }
 
 
+#: Aliased held-out logs of the label-entropy cost (session 17, engineer aliascost): specs
+#: and seeds fixed at 01:25 UTC on 2026-11-25, before any run on them. Each is a
+#: :data:`NEW_HELD_OUT`-style spec and seed, then ``(every, radius, stated)``: sightings
+#: kept at every ``every``-th pose only (sparse, as cityTrees' every 5th), ranges measured
+#: to the surface of a pillar of ``radius`` m (short by ``radius``, as MRCLAM's tubes), and
+#: the stated range and bearing sigma ``stated`` times the true ones.
+#: ``carpark``: lamps on a 5 m grid, 0-4 in view at every 5th pose, noise stated right;
+#: ``pillars``: pillars of radius 0.15 m on a 4 m grid, every 2nd pose, ranges to the
+#: pillar's surface and measurement noise understated 2x.
+ALIASED_HELD_OUT: dict[str, tuple[HeldOutSpec, int, tuple[int, float, float]]] = {
+    "carpark": (HeldOutSpec(layout="grid", n_poses=1500, extent=80.0, spacing=5.0, jitter=0.05,
+                            sigma_side=0.03, sigma_theta=0.006, max_range=7.0), 301,
+                (5, 0.0, 1.0)),
+    "pillars": (HeldOutSpec(layout="grid", n_poses=1500, extent=60.0, spacing=4.0, jitter=0.05,
+                            max_range=8.0), 302, (2, 0.15, 0.5)),
+}
+
+
+def aliased_lines(lines: list[str], every: int, radius: float, stated: float) -> list[str]:
+    """:data:`ALIASED_HELD_OUT`'s changes to a simulated log's records: ``BR`` sightings
+    kept at every ``every``-th pose, their range less ``radius`` m, their stated sigmas
+    times ``stated``; other records unchanged."""
+    out: list[str] = []
+    for line in lines:
+        f = line.split()
+        if f[0] != "BR":
+            out.append(line)
+            continue
+        if int(f[1]) % every:
+            continue
+        b, r, sb, sr = (float(x) for x in f[3:7])
+        out.append(f"BR {f[1]} {f[2]} {b:.9g} {r - radius:.9g} {sb * stated:.9g} "
+                   f"{sr * stated:.9g}")
+    return out
+
+
 def write_new_held_out(path: Path, name: str) -> Path:
     """Write :data:`NEW_HELD_OUT` log ``name`` to ``path`` and its truth to
     ``<stem>_truth.txt`` (``VERTEX2``), as ``landmark_log_heldout.write_held_out``."""
-    spec, seed = NEW_HELD_OUT[name]
-    lines, truth, _ = simulate_held_out(spec, np.random.default_rng(seed))
+    if name in ALIASED_HELD_OUT:
+        spec, seed, (every, radius, stated) = ALIASED_HELD_OUT[name]
+        lines, truth, _ = simulate_held_out(spec, np.random.default_rng(seed))
+        lines = aliased_lines(lines, every, radius, stated)
+    else:
+        spec, seed = NEW_HELD_OUT[name]
+        lines, truth, _ = simulate_held_out(spec, np.random.default_rng(seed))
     write_text_atomic(path, "\n".join(lines) + "\n")
     write_text_atomic(path.with_name(path.stem + "_truth.txt"),
                       "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
@@ -120,7 +162,7 @@ def write_new_held_out(path: Path, name: str) -> Path:
 
 def load_log(scale: ModuleType, name: str, out: Path) -> GraphLog:
     """A log by name (module doc)."""
-    if name in NEW_HELD_OUT:
+    if name in NEW_HELD_OUT or name in ALIASED_HELD_OUT:
         out.mkdir(parents=True, exist_ok=True)
         return read_graph_text(write_new_held_out(out / f"heldout_{name}.txt", name))
     if name == "synth2":
@@ -141,7 +183,8 @@ def load_truth(g: GraphLog, name: str, out: Path) -> np.ndarray | None:
     """(n, 3) true poses of a simulated log (written beside it), else None."""
     stem = {"synthetic": "synthetic", "synth2": "synth2"}.get(name, f"heldout_{name}")
     tpath = out / f"{stem}_truth.txt"
-    if (name not in ("synthetic", "synth2", "grid", "loop", "odo2x", *NEW_HELD_OUT)
+    if (name not in ("synthetic", "synth2", "grid", "loop", "odo2x", *NEW_HELD_OUT,
+                     *ALIASED_HELD_OUT)
             or not tpath.exists()):
         return None
     v = read_vertices(tpath)
@@ -244,7 +287,10 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
             print(f"| {name} | {b} candidate {c.name} ({held} held unused, "
                   f"{run.n_dropped} not in the association{_vs_truth(run.poses, truth)}) | "
                   f"{r:.3f} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
-                  f"{run.cost:.1f} | | {c.cpu_s:.1f} | {div} |", flush=True)
+                  f"{run.cost:.1f}; labels {c.label_cost:.1f}; picker {c.picker_cost:.1f}; sightings "
+                  f"chi2/dof {run.chi2_sightings / max(run.dof_sightings, 1):.3f} | | "
+                  f"{c.cpu_s:.1f} | {div} |",
+                  flush=True)
         ok = [i for i, x in enumerate(rms) if np.isfinite(x)]
         best = min(ok, key=lambda i: rms[i]) if ok else -1
         r_ch = rms[chosen]
@@ -253,7 +299,7 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
         div = "yes" if not (np.isfinite(r_ch) and r_ch <= DIVERGED_M) else ""
         print(f"| {name} | **{b} picker ({label}) -> {cands[chosen].name}**; {verdict}"
               f"{_vs_truth(final.poses, truth)} | **{r_ch:.3f}** | "
-              f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].cost:.1f} | | "
+              f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].score():.1f} | | "
               f"{c_all:.1f} (all) | {div} |", flush=True)
 
 
