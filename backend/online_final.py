@@ -147,16 +147,21 @@ def final_config(config: SlamConfig) -> SlamConfig:
         reassociation=dataclasses.replace(rc, passes=rc.online_final_passes))
 
 
-def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sightings
-                ) -> OfflineRun:
+def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sightings,
+                place: bool = True) -> OfflineRun:
     """The online association ``s`` re-solved in batch (module doc), then, with
-    ``[reassociation] online_final_held_mixture``, the sightings it left out placed
-    (:func:`place_left_out`).
+    ``[reassociation] online_final_held_mixture`` and ``place``, the sightings it left
+    out placed (:func:`place_left_out`).
 
     Args:
         g: the log; config: the online run's config (:func:`final_config` is applied).
         online: the online run's result ((N, 3) poses at every log pose).
         s: its association (:func:`online_association`; ``s.lid`` is updated in place).
+        place: False for the picker's candidates: the placement lowers ``C`` by
+            different amounts in different candidates and would sway the pick (MRCLAM:
+            ``cov_scale=1/16``, 0.342 m against the defaults' 0.005), so the picker
+            places the left-out sightings of the chosen candidate only
+            (:func:`place_chosen`).
 
     Returns:
         The answer; its ``scale`` is the online pass's odometry variance factor relative
@@ -172,9 +177,32 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
              len(run.passes), len(run.moves), run.cost)
     if cfg.reassociation.final_pass:
         run = final_pass(g, cfg, run)
-    if cfg.reassociation.online_final_held_mixture:
+    if place and cfg.reassociation.online_final_held_mixture:
         run = place_left_out(g, cfg, run)
     return run
+
+
+def place_chosen(g: GraphLog, config: SlamConfig, c: Candidate) -> None:
+    """With ``[reassociation] online_final_held_mixture``: the chosen candidate's final
+    solve with the sightings it left out placed (:func:`place_left_out`, kept only if
+    ``C`` fell); ``c.solve`` and ``c.final`` are replaced in place (``c.cost`` and the
+    picker's costs stay those of the pick). ``c.final.extra`` gets
+    ``noids_held_placed`` (0 when nothing was placed)."""
+    if not config.reassociation.online_final_held_mixture or c.solve is None or c.final is None:
+        return
+    c0 = time.process_time()
+    placed = place_left_out(g, final_config(config), c.solve)
+    n = sum(m.kind == "held" for m in placed.moves) - sum(m.kind == "held" for m in c.solve.moves)
+    if placed is not c.solve:
+        old = c.final.extra
+        new = result_of(g, final_config(config), placed, {}, time.perf_counter(), c0)
+        cpu = time.process_time() - c0
+        new.extra = {**old, **{k: v for k, v in new.extra.items()
+                               if k not in ("total_time_s", "total_cpu_s")},
+                     "total_cpu_s": float(old.get("total_cpu_s", 0.0)) + cpu,
+                     "online_final_cpu_s": float(old.get("online_final_cpu_s", 0.0)) + cpu}
+        c.solve, c.final = placed, new
+    c.final.extra["noids_held_placed"] = float(n)
 
 
 def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
@@ -325,7 +353,7 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
     c1 = time.process_time()
     solve_cfg = dataclasses.replace(config, pose2_odometry=cfg.pose2_odometry)
     try:
-        best = final_solve(g, solve_cfg, online, s)
+        best = final_solve(g, solve_cfg, online, s, place=False)
     except (RuntimeError, KeyboardInterrupt) as exc:  # GTSAM's LM, or SIGINT / SIGTERM
         why = f"{type(exc).__name__}: {str(exc).strip()[:120] or 'interrupted'}"
         log.error("final solve of candidate %s stopped (%s)", name, why)
@@ -417,6 +445,7 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
             answer, _ = run_graph_log_backend(g, backend, config, known_ids=False)
         answer.extra["online_final"] = 0.0
         return answer, None, cands, i
+    place_chosen(g, config, c)
     if len(cands) > 1:
         c.final.extra.update({"online_candidates": float(len(cands)),
                               "online_candidate_chosen": float(i),

@@ -207,3 +207,41 @@ def test_a_candidate_past_its_cpu_budget_is_stopped_and_loses(
         cfg.reassociation, online_candidate_cpu_factor=4.0, online_candidate_cpu_floor_s=3.0))
     of.run_online_picker(g, "isam2", cfg)  # the fakes have no final solve: an online answer
     assert budgets == [float("inf"), 8.0, 3.0]
+
+
+def test_the_held_placement_runs_after_the_pick_on_the_chosen_candidate_only(
+        small: tuple[Path, Path, GraphLog], monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``online_final_held_mixture`` the candidates are compared without the
+    placement (the same pick and the same ``C`` as with it off), and only the chosen
+    one's final solve is placed: one placement call, its ``C`` at most the pick's, every
+    sighting the pick held kept with its landmark, ``noids_held_placed`` counting the
+    sightings added."""
+    import lampsam.backend.online_final as of
+
+    _, _, g = small
+    base = _with(SlamConfig(), "cov_scale=10000", "defaults")
+    on = dataclasses.replace(base, reassociation=dataclasses.replace(
+        base.reassociation, online_final_held_mixture=True))
+    calls: list[int] = []
+    real = of.place_left_out
+
+    def counted(*a, **k):  # type: ignore[no-untyped-def]
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(of, "place_left_out", counted)
+    f0, _, c0, i0 = run_online_picker(g, "isam2", base)
+    assert not calls
+    f1, _, c1, i1 = run_online_picker(g, "isam2", on)
+    assert len(calls) == 1 and i1 == i0 and _costs(c1) == _costs(c0)
+    before, after = c0[i0].solve, c1[i1].solve
+    assert before is not None and after is not None and after.cost <= before.cost
+    n0 = len(before.sightings.k)
+    assert np.array_equal(after.sightings.lid[:n0], before.sightings.lid)
+    assert f1.extra["noids_held_placed"] == len(after.sightings.k) - n0 > 0
+    assert f1.extra["online_candidate_chosen"] == f0.extra["online_candidate_chosen"]
+
+
+def _costs(cands: list) -> list[float]:  # type: ignore[type-arg]
+    """The candidates' ``C``, rounded (the same pick compares the same numbers)."""
+    return [round(float(c.cost), 6) for c in cands]
