@@ -85,7 +85,7 @@ VARIANTS: dict[str, list[str]] = {
     "pickermix": ["reassociation.online_final_held_mixture=true"],  # the picker, with it
 }
 #: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
-PICKER_CANDIDATES = "defaults,both+cov_scale=16,cov_scale=1/16"
+PICKER_CANDIDATES = ",".join(SlamConfig().reassociation.online_candidates)
 
 
 
