@@ -297,6 +297,8 @@ class Candidate:
         on = self.online.extra if self.online is not None else {}
         return {"name": self.name, "status": self.status,
                 "C": None if not np.isfinite(self.cost) else round(float(self.cost), 3),
+                "picker_cost": (None if not np.isfinite(self.picker_cost)
+                                else round(float(self.picker_cost), 3)),
                 "landmarks": None if self.final is None else len(self.final.landmarks),
                 "landmarks_online": None if self.online is None else len(self.online.landmarks),
                 "held": int(on.get("n_held", 0)), "held_unused": int(on.get("n_held_unused", 0)),

@@ -283,8 +283,10 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         result, online, cands, chosen = run_online_picker(glog, args.backend, config)
         if config.reassociation.online_candidates:
             picker = {"chosen": cands[chosen].name,
-                      "rule": "least C of the final solves (candidates that did not finish "
-                              "one lose)",
+                      "rule": ("least C plus label entropy at each candidate's noise scale "
+                               "(picker_cost)" if config.reassociation.online_label_entropy
+                               else "least C") + " of the final solves (candidates that did "
+                              "not finish one lose)",
                       "candidates": [c.row() for c in cands]}
     else:
         result = run_graph_log(glog, args.backend, config, known_ids=known)
@@ -327,9 +329,12 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                 f"{int(s['reassociation_passes'])} batch re-association passes")
     if picker is not None:
         rows = picker["candidates"]
+        by = "picker cost" if config.reassociation.online_label_entropy else "C"
         msg += ("; online candidates: " + ", ".join(
-            f"{r['name']} " + (f"C {r['C']:.1f}" if r["status"] == "ok" else f"({r['status'][:40]})")
-            for r in rows) + f"; chosen {picker['chosen']} (least C)")
+            f"{r['name']} " + (f"C {r['C']:.1f}" + (f" cost {r['picker_cost']:.1f}"
+                                                     if r["picker_cost"] is not None else "")
+                               if r["status"] == "ok" else f"({r['status'][:40]})")
+            for r in rows) + f"; chosen {picker['chosen']} (least {by})")
     if online is not None:
         msg += (f"; final solve of the online {args.backend} run's association at the stated "
                 f"noise ({int(s['reassociation_passes'])} re-association passes, "

@@ -151,8 +151,8 @@ def test_cli_summary_lists_every_candidate_and_the_choice(
     p = s["online_picker"]
     assert p["chosen"] == "defaults" and [r["name"] for r in p["candidates"]] == [
         "defaults", "cov_scale=10000"]
-    keys = {"name", "status", "C", "landmarks", "landmarks_online", "held", "held_unused",
-            "sightings_dropped", "cpu_s"}
+    keys = {"name", "status", "C", "picker_cost", "landmarks", "landmarks_online", "held",
+            "held_unused", "sightings_dropped", "cpu_s"}
     assert all(set(r) == keys and r["status"] == "ok" for r in p["candidates"])
     assert p["candidates"][0]["C"] < p["candidates"][1]["C"]
     assert s["noids_cost"] == pytest.approx(p["candidates"][0]["C"], abs=1e-3)
@@ -160,7 +160,8 @@ def test_cli_summary_lists_every_candidate_and_the_choice(
     assert "online_landmarks_pruned" in s
     pruned = [r for r in caplog.records if "landmarks pruned from the map" in r.getMessage()]
     assert len(pruned) == (1 if s["landmarks_pruned"] else 0)
-    assert "chosen defaults (least C)" in capsys.readouterr().out
+    assert all(isinstance(r["picker_cost"], float) for r in p["candidates"])
+    assert "chosen defaults (least picker cost)" in capsys.readouterr().out
 
 
 def test_online_candidates_are_checked() -> None:
