@@ -28,6 +28,11 @@ R = np.diag([0.05**2, 0.2**2])
 #: the new-landmark threshold chi2_2^-1(0.9999) and the gate chi2_2^-1(0.99)
 C_NEW = SlamConfig().association.new_threshold(2)
 GATE = SlamConfig().association.gate(2)
+
+#: The config with the held sightings' placement off (``online_final_held_mixture``, on by
+#: default): these tests check the final solve of the association the online run made.
+NO_PLACE = dataclasses.replace(SlamConfig(), reassociation=dataclasses.replace(
+    SlamConfig().reassociation, online_final_held_mixture=False))
 N_POSES = 12
 
 
@@ -175,7 +180,7 @@ def test_final_solve_with_the_mixture_places_the_left_out_sightings(
     spec = LandmarkLogSpec(n_poses=200, n_landmarks=30, extent=40.0, stop_every=0)
     g = read_graph_text(write_landmark_log(tmp_path / "log.txt", spec,
                                            np.random.default_rng(1))[0])
-    cfg = SlamConfig()
+    cfg = NO_PLACE
     cfg16 = dataclasses.replace(cfg, pose2_odometry=dataclasses.replace(cfg.pose2_odometry,
                                                                         cov_scale=16.0))
     online, be = run_graph_log_backend(g, "isam2", cfg16, known_ids=False)

@@ -29,6 +29,11 @@ from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_lo
 R = np.diag([0.05**2, 0.15**2])
 C_NEW = SlamConfig().association.new_threshold(2)
 
+#: The config with the held sightings' placement off (``online_final_held_mixture``, on by
+#: default): these tests check the final solve of the association the online run made.
+NO_PLACE = dataclasses.replace(SlamConfig(), reassociation=dataclasses.replace(
+    SlamConfig().reassociation, online_final_held_mixture=False))
+
 
 def _ring(n: int, radius: float, rng: np.random.Generator) -> np.ndarray:
     """(n, 3) poses on a circle around the origin, heading random."""
@@ -130,7 +135,7 @@ def test_picker_cost_adds_the_label_term(tmp_path: pytest.TempPathFactory) -> No
                                  LandmarkLogSpec(n_poses=120, n_landmarks=30, extent=40.0,
                                                  stop_every=0), np.random.default_rng(2))
     g = read_graph_text(path)
-    base = SlamConfig()
+    base = NO_PLACE
     rc = dataclasses.replace(base.reassociation, online_candidates=("defaults",),
                              online_label_entropy=True)
     _, _, cands, _ = run_online_picker(g, "isam2", dataclasses.replace(base, reassociation=rc))
@@ -159,7 +164,7 @@ def test_city_trees_the_picker_takes_the_alias_test() -> None:
     within 0.1 m of lampsam's known-id batch with the tree count within 10 %."""
     path = Path(gtsam.findExampleDataFile("victoria_park.txt")).parent / "cityTrees_reduced_1k.g2o"
     g = read_graph_text(path)
-    base = SlamConfig()
+    base = NO_PLACE
     assert base.reassociation.online_label_entropy
     rc = dataclasses.replace(base.reassociation,
                              online_candidates=("cov_scale=1/16", "alias_odds=1"))

@@ -35,6 +35,11 @@ def _inflated(cfg: SlamConfig, q: float = 16.0) -> SlamConfig:
     return dataclasses.replace(cfg, pose2_odometry=dataclasses.replace(cfg.pose2_odometry,
                                                                        cov_scale=q))
 
+#: The config with the held sightings' placement off (``online_final_held_mixture``, on by
+#: default): these tests check the final solve of the association the online run made.
+NO_PLACE = dataclasses.replace(SlamConfig(), reassociation=dataclasses.replace(
+    SlamConfig().reassociation, online_final_held_mixture=False))
+
 
 def _file_ids(g: GraphLog, s: Sightings) -> np.ndarray:
     """(S,) the file's id of each sighting (same pose, same range)."""
@@ -66,7 +71,7 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
 def online_run(tmp_path_factory: pytest.TempPathFactory
                ) -> tuple[GraphLog, SlamResult, Sightings]:
     g = _log(tmp_path_factory.mktemp("online_final"))
-    online, be = run_graph_log_backend(g, "isam2", _inflated(SlamConfig()), known_ids=False)
+    online, be = run_graph_log_backend(g, "isam2", _inflated(NO_PLACE), known_ids=False)
     assert be is not None and online.status == "ok"
     return g, online, online_association(be, online)
 
@@ -85,7 +90,7 @@ def test_final_solve_of_a_right_association_is_the_known_id_batch(
     assert len(s.k) > 0.99 * sum(len(ss) for ss in g.sightings)
     known = _known_batch(g, s)
     assert _rms(online.poses, known.poses) > 0.02
-    run = final_solve(g, _inflated(SlamConfig()), online, s)
+    run = final_solve(g, _inflated(NO_PLACE), online, s)
     assert _one_to_one(run.sightings.lid, fid)
     assert run.scale == 16.0
     assert float(np.abs(run.poses[:, :2] - known.poses[:, :2]).max()) < 1e-3
@@ -113,7 +118,7 @@ def test_final_solve_merges_a_duplicate_of_the_online_pass(
     lid[(fid == tree) & (s0.k >= after)] = int(lid.max()) + 1
     s = Sightings(s0.k.copy(), s0.z, s0.r, lid)
     assert not _one_to_one(s.lid, fid)
-    run = final_solve(g, _inflated(SlamConfig()), online, s)
+    run = final_solve(g, _inflated(NO_PLACE), online, s)
     assert _one_to_one(run.sightings.lid, fid)
     known = _known_batch(g, s0)
     assert float(np.abs(run.poses[:, :2] - known.poses[:, :2]).max()) < 1e-3
@@ -189,7 +194,7 @@ def test_a_failed_final_solve_keeps_the_online_answer(
     monkeypatch.setattr(of, "final_solve", boom)
     g = read_graph_text(write_landmark_log(tmp_path / "log.txt", dataclasses.replace(
         SPEC, n_poses=60), np.random.default_rng(3))[0])
-    final, online = of.run_online_final(g, "isam2", SlamConfig())
+    final, online = of.run_online_final(g, "isam2", NO_PLACE)
     assert final is online and online.status == "ok" and online.extra["online_final"] == 0.0
 
 
@@ -229,6 +234,6 @@ def test_an_online_run_that_stopped_mid_log_is_written_as_it_is(
     monkeypatch.setattr(of, "run_graph_log_backend", stopped)
     g = read_graph_text(write_landmark_log(tmp_path / "log.txt", dataclasses.replace(
         SPEC, n_poses=60), np.random.default_rng(3))[0])
-    final, online = of.run_online_final(g, "isam2", SlamConfig())
+    final, online = of.run_online_final(g, "isam2", NO_PLACE)
     assert final is online and online.status == "failed"
     assert online.extra["online_final"] == 0.0
