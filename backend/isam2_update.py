@@ -41,6 +41,7 @@ import re
 import time
 
 import gtsam
+import numpy as np
 from gtsam.symbol_shorthand import X
 
 from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
@@ -59,6 +60,14 @@ log = logging.getLogger(__name__)
 DIVERGENCE_RATIO = 2.0
 #: ... plus this much error (half a chi-square sum): small graphs' noise.
 DIVERGENCE_MARGIN = 100.0
+#: The check evaluates the graph's error only when some variable's Gauss-Newton step
+#: (iSAM2's delta from its linearisation point) is at least this large, in the
+#: variables' own units (m, rad, 1/m for inverse depth): the diverging steps seen were
+#: tens to hundreds of metres (docs/failures.md, "The loop's numerical failure"), while
+#: a converging ceiling run's largest step is 0.1-0.55 (lab, seed 3). Two full error
+#: evaluations per relinearisation cost 1.33x the 173 s lab run's CPU (tidy7,
+#: docs/architecture.md); the step is read from iSAM2 at no extra cost.
+DIVERGENCE_MIN_STEP = 1.0
 
 
 class Isam2Updates(GraphState):
@@ -123,9 +132,13 @@ class Isam2Updates(GraphState):
         Returns whether it did.
 
         Costs two error evaluations and one full estimate per relinearisation
-        (every ``relinearize_skip`` updates), read only when the step converges.
+        (every ``relinearize_skip`` updates) whose largest step is at least
+        :data:`DIVERGENCE_MIN_STEP`; read only when the step converges.
         """
         assert self.isam is not None
+        step = np.abs(self.isam.getDelta().vector())
+        if step.size and float(step.max()) < DIVERGENCE_MIN_STEP:
+            return False
         est, lin = self.isam.calculateEstimate(), self.isam.getLinearizationPoint()
         e_est, e_lin = self.graph.error(est), self.graph.error(lin)
         if math.isfinite(e_est) and e_est <= DIVERGENCE_RATIO * e_lin + DIVERGENCE_MARGIN:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 from gtsam.symbol_shorthand import L, X
 
 from lampsam.backend.config import Isam2Config, SlamConfig
@@ -115,3 +116,25 @@ def test_check_is_read_only_on_a_consistent_graph() -> None:
         out.append(np.array([est.atPoint2(L(k)) for k in range(1, N_POSES)]))
     assert np.array_equal(out[0], out[1])
     assert Isam2Updates.divergence_check is True  # on by default
+
+
+def test_small_steps_skip_the_error_evaluations(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The check reads the graph's error only when some variable's Gauss-Newton step is at
+    least ``DIVERGENCE_MIN_STEP`` (1 m / rad): with every step below it, thresholds that
+    would damp any evaluated update (ratio and margin -1) damp nothing; with the step
+    threshold at 0 the same run damps."""
+    from lampsam.backend import isam2_update
+
+    monkeypatch.setattr(isam2_update, "DIVERGENCE_RATIO", -1.0)
+    monkeypatch.setattr(isam2_update, "DIVERGENCE_MARGIN", -1.0)
+    counts = []
+    for min_step in (isam2_update.DIVERGENCE_MIN_STEP, 0.0):
+        monkeypatch.setattr(isam2_update, "DIVERGENCE_MIN_STEP", min_step)
+        rng = np.random.default_rng(3)
+        cfg = SlamConfig(isam2=Isam2Config(relinearize_skip=1, every_frame=True))
+        be = make_backend("isam2", Pose2OdometryModel(), cfg, np.zeros(3))
+        _ring(be, rng)
+        for _ in range(5):
+            be._flush()
+        counts.append(be.n_damped)
+    assert counts[0] == 0 and counts[1] >= 1

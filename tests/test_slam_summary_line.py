@@ -4,7 +4,7 @@ iSAM2's divergence check (:meth:`lampsam.backend.isam2_update.Isam2Updates._damp
 counts each diverging Gauss-Newton step it damps in ``extra["n_damped_rebuilds"]``
 (summary.json); the one-line summary says so when the count is not zero. On a clean
 simulated run nothing diverges, so the thresholds are set below any error to make the
-check damp every relinearising update.
+check damp every relinearising update (its step threshold set to 0).
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ def test_damped_steps_are_printed_when_nonzero(sim_run: SimRun, tmp_path: Path,
     assert n == 0 and "diverging" not in line
     monkeypatch.setattr(isam2_update, "DIVERGENCE_RATIO", -1.0)
     monkeypatch.setattr(isam2_update, "DIVERGENCE_MARGIN", -1.0)
+    monkeypatch.setattr(isam2_update, "DIVERGENCE_MIN_STEP", 0.0)
     line, n = _slam_line(run, tmp_path / "forced", capsys)
     m = re.search(r"; (\d+) diverging iSAM2 steps? damped \(Levenberg-Marquardt solve", line)
     assert m is not None, line
