@@ -231,14 +231,14 @@ class Isam2Config:
         far_lamp_recheck: a lamp whose exact gate distance was above
             ``far_lamp_factor`` times the new-landmark threshold within this many
             keyframes keeps that distance instead of a new joint marginal
-            (:meth:`~lampsam.backend.gating.Gating._reuse_far`; default 5: on the lab
+            (:meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._reuse_far`; default 5: on the lab
             path 0.78x the online CPU and keyframe p95 57 -> 43 ms, 10-seed accuracy
             unchanged, docs/speed.md; 0: always exact).
         far_lamp_factor: see ``far_lamp_recheck`` (default 2.0).
         far_lamp_bound: settle a lamp without a joint marginal when a lower bound of
             its exact gate distance, from its last joint marginal carried by the
             odometry, is beyond the new-landmark threshold
-            (:meth:`~lampsam.backend.gating.Gating._bound_far`; the same decisions as
+            (:meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._bound_far`; the same decisions as
             the exact gate; default False).
         bracket_gate: settle a lamp pair without a joint marginal when a bracket of
             its exact gate distance from the current pose marginal, the lamp's last

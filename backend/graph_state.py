@@ -140,7 +140,7 @@ class GraphState(SlamBackend):
         self._far: dict[tuple[int, int], tuple[int, float]] = {}
         self.n_far_reused = 0
         #: landmark id -> (gate keyframe, joint blocks) of its last exact joint marginal
-        #: (:meth:`~lampsam.backend.gating.Gating._bound_far`)
+        #: (:meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._bound_far`)
         self._joint_at: dict[int, tuple[int, tuple[FloatArray, FloatArray, FloatArray]]] = {}
         self.n_far_bounded = 0
         #: lamp pairs settled inside / outside the gate by :meth:`~lampsam.backend.gating.Gating._bracket`
