@@ -345,7 +345,10 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
         msg += "; no final solve (the online run did not finish or mapped nothing, or it failed)"
     if result.extra.get("n_held"):
         msg += (f"; {int(result.extra['n_held'])} sightings held as ambiguous, "
-                f"{int(result.extra['n_held_unused'])} of them never used")
+                f"{int(result.extra['n_held_unused'])} of them never used online")
+    if result.extra.get("noids_held_placed"):
+        msg += (f"; {int(result.extra['noids_held_placed'])} left-out sightings placed in the "
+                "final solve (max-mixture)")
     if glog.closures:
         msg += (f"; {s['input']['loop_closures_used']} of {len(glog.closures)} loop closures used")
     msg += _damped_text(result)

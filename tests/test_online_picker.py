@@ -168,7 +168,10 @@ def test_cli_summary_lists_every_candidate_and_the_choice(
     pruned = [r for r in caplog.records if "landmarks pruned from the map" in r.getMessage()]
     assert len(pruned) == (1 if s["landmarks_pruned"] else 0)
     assert all(isinstance(r["picker_cost"], float) for r in p["candidates"])
-    assert "chosen defaults (least picker cost)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "chosen defaults (least picker cost)" in printed
+    assert s["noids_held_placed"] > 0
+    assert f"{int(s['noids_held_placed'])} left-out sightings placed" in printed
 
 
 def test_online_candidates_are_checked() -> None:
