@@ -38,11 +38,11 @@ from lampsam.backend.interface import (
     LandmarkKind,
     SlamResult,
     StepEstimate,
+    check_step_time,
     log_pruned,
 )
 from lampsam.backend.models import Obs, for_landmark, observations_from_frame, residual
 from lampsam.backend.odometry_scale import feed_scale
-from lampsam.errors import EstimationError
 from lampsam.factors.geometry import wrap_angle, wrap_axis
 
 log = logging.getLogger(__name__)
@@ -192,9 +192,7 @@ class EkfSlam(EkfMap):
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
         """See :meth:`SlamBackend.step`. Raises EstimationError on NaN odometry or time reversal."""
         t0 = time.perf_counter()
-        if t < self._last_t:
-            raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
-        self._last_t = t
+        self._last_t = check_step_time(t, self._last_t)
         self.predict(self.motion.check(t, wheel))
         n_matched = n_new = 0
         if frame is not None:

@@ -70,6 +70,7 @@ from lampsam.backend.interface import (
     LandmarkEstimate,
     SlamResult,
     StepEstimate,
+    check_step_time,
 )
 from lampsam.backend.isam2_update import Isam2Updates
 from lampsam.backend.joint_gating import JointGating
@@ -324,9 +325,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
         prediction until that update.
         """
         t0 = time.perf_counter()
-        if t < self._last_t:
-            raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
-        self._last_t = t
+        self._last_t = check_step_time(t, self._last_t)
         u = self.motion.check(t, odometry)
         given, self._given_odometry = self._given_odometry, None
         if len(u):

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, TypeAlias
 import numpy as np
 
 from lampsam.arrays import BoolArray, FloatArray
+from lampsam.errors import EstimationError
 from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
 
 if TYPE_CHECKING:
@@ -238,6 +239,18 @@ class SlamBackend(abc.ABC):
         Args:
             status: status to record (``"interrupted"`` when the caller stopped early).
         """
+
+
+def check_step_time(t: float, last_t: float) -> float:
+    """``t`` (s) when it does not go back from the previous step's ``last_t``; returns it
+    (the caller's new ``last_t``).
+
+    Raises:
+        EstimationError: time goes backwards (the same message for every backend).
+    """
+    if t < last_t:
+        raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {last_t:.3f})")
+    return t
 
 
 def empty_result(backend: str, status: str) -> SlamResult:

@@ -76,13 +76,13 @@ from lampsam.backend.interface import (
     SlamResult,
     StepEstimate,
     StepHistory,
+    check_step_time,
 )
 from lampsam.backend.localize_config import LocalizeConfig
 from lampsam.backend.map_frame import MapFrame, shift_only
 from lampsam.backend.map_release import UNSEEN_RADIUS, Released, ReleaseTracker
 from lampsam.backend.models import Obs, observations_from_frame
 from lampsam.backend.odometry import OdometryConstants, motion_model
-from lampsam.errors import EstimationError
 from lampsam.factors.geometry import tangent_D_coords, wrap_angle, wrap_axis
 
 log = logging.getLogger(__name__)
@@ -477,9 +477,7 @@ class MapLocalizer(SlamBackend):
     def step(self, t: float, wheel: FloatArray, frame: Frame | None) -> StepEstimate:
         """See :meth:`SlamBackend.step`; ``n_new`` is always 0 (the map is not grown)."""
         t0 = time.perf_counter()
-        if t < self._last_t:
-            raise EstimationError(f"t={t:.3f} s: time goes backwards (previous {self._last_t:.3f})")
-        self._last_t = t
+        self._last_t = check_step_time(t, self._last_t)
         self._t = t
         u = self.motion.check(t, wheel)
         if len(u):
