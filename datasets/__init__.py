@@ -43,6 +43,7 @@ Modules:
 * :mod:`~lampsam.datasets.ros_messages` -- Conversions between ROS messages (as ``rosbags`` builds them) and lampsam arrays.
 * :mod:`~lampsam.datasets.rosbag_export` -- Write a logged run as a ROS1 ``.bag`` or a ROS2 bag (``rosbags``, no ROS install).
 * :mod:`~lampsam.datasets.rosbag_import` -- Read a ROS1 ``.bag`` or ROS2 bag (``.db3`` / ``.mcap``) into a logged run (``rosbags``).
+* :mod:`~lampsam.datasets.scan_times` -- Strictly increasing scan times from the time stamps a laser log gives (CARMEN reader).
 * :mod:`~lampsam.datasets.scene3d` -- Three-dimensional world content for the forward RGB-D sensor (paper 2, sec. 2).
 * :mod:`~lampsam.datasets.scene_mesh` -- Meshes and picture textures of a :class:`~lampsam.datasets.scene3d.Scene3D` for the RGB-D renderer.
 * :mod:`~lampsam.datasets.shapes` -- Signed distance functions of the simulated ceiling's planar shapes (rectangles, discs).
