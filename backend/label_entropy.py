@@ -53,17 +53,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from lampsam.arrays import FloatArray, IntArray
-from lampsam.backend.landmark_moves import point_residuals, sighted_points
+from lampsam.backend.landmark_moves import point_chi2, sighted_points
 from lampsam.backend.noids_offline import association_cost
 
 #: Rival landmarks per sighting (the nearest to where it puts its landmark).
 N_NEAR = 8
-
-
-def _mahalanobis(poses: FloatArray, z: FloatArray, w: FloatArray, xy: FloatArray) -> FloatArray:
-    nu, _ = point_residuals(poses, z, xy)
-    out: FloatArray = np.einsum("ni,nij,nj->n", nu, w, nu)
-    return out
 
 
 def label_entropy(poses: FloatArray, k: IntArray, z: FloatArray, r: FloatArray, lid: IntArray,
@@ -88,7 +82,7 @@ def label_entropy(poses: FloatArray, k: IntArray, z: FloatArray, r: FloatArray, 
     xy = np.array([landmarks[int(i)] for i in ids], float).reshape(-1, 2)
     pk = np.asarray(poses, float)[k]
     w: FloatArray = np.asarray(np.linalg.inv(r), float)
-    d_own = _mahalanobis(pk, z, w, np.array([landmarks[int(i)] for i in lid], float))
+    d_own = point_chi2(pk, z, w, np.array([landmarks[int(i)] for i in lid], float))
     m = min(n_near, len(ids))
     _, nb = cKDTree(xy).query(sighted_points(pk, z), k=m)
     nb = np.asarray(nb, int).reshape(s, m)
@@ -101,7 +95,7 @@ def label_entropy(poses: FloatArray, k: IntArray, z: FloatArray, r: FloatArray, 
     d = np.full((s, m + 1), np.inf)
     d[:, 0] = d_own
     for c in range(m):
-        dc = _mahalanobis(pk, z, w, xy[nb[:, c]])
+        dc = point_chi2(pk, z, w, xy[nb[:, c]])
         d[:, c + 1] = np.where(skip[:, c], np.inf, dc)
     a = -0.5 * (d - d.min(axis=1, keepdims=True))
     t = np.exp(a)

@@ -262,14 +262,15 @@ def solve_candidate(g: GraphLog, config: SlamConfig, scale: float, poses0: Float
             report(len(passes) + 1, Pass(len(np.unique(s.lid)), merged, 0, 0,
                                          float(graph.error(values))),
                    *read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist()), s)
-    return _answer(g, config, scale, s, passes, online_cpu_s, time.process_time() - c1, graph,
+    return answer_of(g, config, scale, s, passes, online_cpu_s, time.process_time() - c1, graph,
                    values, moves)
 
 
-def _answer(g: GraphLog, config: SlamConfig, scale: float, s: Sightings, passes: list[Pass],
+def answer_of(g: GraphLog, config: SlamConfig, scale: float, s: Sightings, passes: list[Pass],
             online_cpu_s: float, batch_cpu_s: float, graph: gtsam.NonlinearFactorGraph,
             values: gtsam.Values, moves: list[Move]) -> OfflineRun:
-    """The :class:`OfflineRun` of an association and its optimum."""
+    """The :class:`OfflineRun` of an association and its optimum: its poses, landmarks,
+    group chi-squares, dropped count and description length ``C``."""
     poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist())
     co, cs, no, ns = group_chi2(graph, values)
     dropped = sum(len(x) for x in g.sightings) - len(s.k)
@@ -338,7 +339,7 @@ def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
     if not moves and len(s.k) == len(run.sightings.k):
         return run
     moves = [Move("readmit", (-1, -1), 0.0)] * (len(s.k) - len(run.sightings.k)) + moves
-    out = _answer(g, config, run.scale, s, run.passes, run.online_cpu_s,
+    out = answer_of(g, config, run.scale, s, run.passes, run.online_cpu_s,
                   run.batch_cpu_s + time.process_time() - c0, graph, values,
                   run.moves + moves)
     if report is not None:

@@ -56,19 +56,17 @@ from lampsam.backend.label_entropy import label_cost, profiled_cost, sighting_sc
 from lampsam.backend.landmark_moves import Move
 from lampsam.backend.noids_offline import (
     OfflineRun,
-    association_cost,
+    answer_of,
     batch_graph_inputs,
     candidate_pruning_quiet,
     dropped_sightings,
     final_pass,
-    group_chi2,
     result_of,
     solve_candidate,
 )
 from lampsam.backend.reassociate import (
     Sightings,
     first_sight_positions,
-    read_estimate,
     sightings_from,
 )
 from lampsam.datasets.graph_text import GraphLog
@@ -191,11 +189,12 @@ def place_chosen(g: GraphLog, config: SlamConfig, c: Candidate) -> None:
     if not config.reassociation.online_final_held_mixture or c.solve is None or c.final is None:
         return
     c0 = time.process_time()
-    placed = place_left_out(g, final_config(config), c.solve)
-    n = sum(m.kind == "held" for m in placed.moves) - sum(m.kind == "held" for m in c.solve.moves)
+    cfg = final_config(config)
+    placed = place_left_out(g, cfg, c.solve)
+    n = len(placed.sightings.k) - len(c.solve.sightings.k)  # placed ones are appended
     if placed is not c.solve:
         old = c.final.extra
-        new = result_of(g, final_config(config), placed, {}, time.perf_counter(), c0)
+        new = result_of(g, cfg, placed, {}, time.perf_counter(), c0)
         cpu = time.process_time() - c0
         new.extra = {**old, **{k: v for k, v in new.extra.items()
                                if k not in ("total_time_s", "total_cpu_s")},
@@ -230,15 +229,9 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     if placed is None:
         return run
     s2, graph, values, n = placed
-    poses, lms = read_estimate(values, len(g.pose_ids), np.unique(s2.lid).tolist())
-    co, cs, no, ns = group_chi2(graph, values)
-    dropped = sum(len(x) for x in g.sightings) - len(s2.k)
-    out = dataclasses.replace(
-        run, poses=poses, landmarks=lms, sightings=s2, chi2_odometry=co, chi2_sightings=cs,
-        dof_odometry=no, dof_sightings=ns, n_dropped=dropped,
-        cost=association_cost(co + cs, len(lms), dropped, c_new),
-        batch_cpu_s=run.batch_cpu_s + time.process_time() - c0, graph=graph, values=values,
-        moves=run.moves + [Move("held", (-1, -1), 0.0)] * n)
+    out = answer_of(g, cfg, run.scale, s2, run.passes, run.online_cpu_s,
+                    run.batch_cpu_s + time.process_time() - c0, graph, values,
+                    run.moves + [Move("held", (-1, -1), 0.0)] * n)
     log.info("held sightings placed by max-mixture: %d of %d, C %.1f -> %.1f", n, len(dk),
              run.cost, out.cost)
     return out if out.cost < run.cost else run
