@@ -296,7 +296,7 @@ def make_gallery(
     if not files:
         raise LampsamError(f"{photos_dir}: no photos ({', '.join(PHOTO_SUFFIXES)})")
     ensure_dir(Path(out_png).parent)
-    sizes: list[tuple[int, int] | None] = [(small_width, 0)] + ([None] if full_size else [])
+    sizes: list[int | None] = [small_width] + ([None] if full_size else [])  # None: working width
     fig, axes = plt.subplots(
         len(files), len(sizes), figsize=(4.0 * len(sizes), 3.0 * len(files)), squeeze=False
     )
@@ -315,10 +315,7 @@ def make_gallery(
             if size is None:
                 img, lamps, corners, ms = run_photo_working(full)
             else:
-                h, w = full.shape
-                small = (size[0], max(1, round(size[0] * h / w)))
-                img = np.asarray(cv2.resize(full, small, interpolation=cv2.INTER_AREA),
-                                 dtype=np.uint8)
+                img = resize_width(full, size)
                 lamps, corners, ms = run_photo(img)
             used = [lm for lm in lamps.lamps if not lm.touches_border]
             entry = GalleryEntry(

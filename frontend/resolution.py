@@ -148,7 +148,7 @@ def resize_width(image: ImageU8, width: int) -> ImageU8:
     h, w = image.shape
     if width == w:
         return image
-    size = (width, round(width * h / w))
+    size = (width, max(1, round(width * h / w)))
     return np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
 
 
