@@ -45,6 +45,17 @@ PYPATH = re.compile(r"^(?:lampsam/)?((?:[\w-]+/)+[\w-]+\.py)(?:::([\w.]+))?$")
 SUBPACKAGES = ("", "backend.", "datasets.", "frontend.", "factors.", "localization.",
                "evaluation.", "commands.")
 
+#: TOML tables the commands load into a dataclass by name (``load_config(..., table=...)`` in
+#: ``commands/``); the other tables are fields of :class:`~lampsam.backend.config.SlamConfig`.
+TABLES = {
+    "frontend": "lampsam.frontend.pipeline.FrontendConfig",
+    "stereo": "lampsam.backend.stereo.StereoEstimatorConfig",
+    "kinect": "lampsam.datasets.kinect_sim.KinectConfig",
+    "envmap": "lampsam.localization.map_config.EnvMapConfig",
+    "localize": "lampsam.localization.filter_config.GlobalLocalizerConfig",
+}
+TOML_KEY = re.compile(r"`{1,2}\[([a-z_0-9.]+)\] ([a-z_0-9]+)")
+
 #: Code spans in the docs that start like a lampsam module but name a variable's attribute.
 NOT_CODE = {
     "graph.error",  # a gtsam graph's error(), docs/architecture.md
@@ -92,6 +103,10 @@ def index() -> Index:
                     if inspect.isclass(t) and dataclasses.is_dataclass(t):
                         sections.setdefault(f.name, set()).update(
                             x.name for x in dataclasses.fields(t))
+    for table, qual in TABLES.items():
+        mod, _, cls = qual.rpartition(".")
+        sections.setdefault(table, set()).update(
+            f.name for f in dataclasses.fields(getattr(mods[mod], cls)))
     return Index(mods, names, sections)
 
 
@@ -295,3 +310,20 @@ def test_resolver_tells_stale_names(index: Index, target: str,
                                     expected: tuple[bool, str | None]) -> None:
     """The check itself: a moved method, a missing one and a moved class are caught."""
     assert _resolve(index, target) == expected
+
+
+def test_toml_keys_named_in_docs_and_docstrings_exist(index: Index) -> None:
+    """``[section] key`` in docstrings and docs/*.md names a field of that table's dataclass
+    (``[frontend.lamps] key``: of the nested table's)."""
+    files = _package_files() + sorted((ROOT / "docs").rglob("*.md"))
+    bad = []
+    n = 0
+    for path in files:
+        for ln, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            for m in TOML_KEY.finditer(line):
+                n += 1
+                section, key = m.group(1).rsplit(".", 1)[-1], m.group(2)
+                if key not in index.sections.get(section, ()):
+                    bad.append(f"{path.relative_to(ROOT)}:{ln}: [{m.group(1)}] {key}")
+    assert n > 100
+    assert not bad, "\n".join(bad)
