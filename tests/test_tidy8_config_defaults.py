@@ -1,5 +1,6 @@
-"""Every option of every configuration dataclass (``*Config`` in the package) is documented in
-its ``Attributes:`` section with its default, and that default is the code's.
+"""Every option of every configuration dataclass (``*Config`` in the package, and the
+dataclasses they nest) is documented in its ``Attributes:`` section with its default, and
+that default is the code's.
 
 Forms read (one entry may document several fields: ``a, b: ...``):
 
@@ -41,8 +42,16 @@ _LIST = re.compile(rf"\b[Dd]efaults?\b:?\s*((?:{_VALUE})(?:\s*,\s*(?:{_VALUE}))+
 _AFTER = re.compile(rf"({_VALUE})\s*\((?:[^()]*,\s*)?default\b")
 
 
+def code_default(f: dataclasses.Field[object]) -> object:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return dataclasses.MISSING
+
+
 def config_classes() -> list[type]:
-    """The package's ``*Config`` dataclasses."""
+    """The package's ``*Config`` dataclasses and the dataclasses their fields hold."""
     out = []
     for info in pkgutil.walk_packages([str(ROOT)], "lampsam."):
         if info.name.startswith(("lampsam.tests", "lampsam.scripts")) or info.name.endswith(
@@ -51,6 +60,14 @@ def config_classes() -> list[type]:
         m = importlib.import_module(info.name)
         out += [v for v in vars(m).values() if inspect.isclass(v) and dataclasses.is_dataclass(v)
                 and v.__module__ == m.__name__ and v.__name__.endswith("Config")]
+    stack, seen = list(out), set(out)  # and the dataclasses they nest (MotionNoise, ...)
+    while stack:
+        for f in dataclasses.fields(stack.pop()):
+            nested = type(code_default(f))
+            if dataclasses.is_dataclass(nested) and nested not in seen:
+                seen.add(nested)
+                out.append(nested)
+                stack.append(nested)
     return sorted(out, key=lambda c: (c.__module__, c.__name__))
 
 
@@ -132,14 +149,6 @@ def same(stated: object, code: object) -> bool:
     if isinstance(code, tuple | list) and isinstance(stated, tuple | list):
         return len(code) == len(stated) and all(same(s, c) for s, c in zip(stated, code, strict=True))
     return stated == code
-
-
-def code_default(f: dataclasses.Field[object]) -> object:
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:
-        return f.default_factory()
-    return dataclasses.MISSING
 
 
 CLASSES = config_classes()
