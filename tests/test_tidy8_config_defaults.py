@@ -28,6 +28,7 @@ from pathlib import Path
 import pytest
 
 import lampsam
+from lampsam.config_loader import _default_of  # the loader's own reading of a default
 
 ROOT = Path(lampsam.__file__).resolve().parent
 
@@ -40,14 +41,6 @@ _DEFAULTS = re.compile(rf"\b[Dd]efaults\b:?\s*((?:{_VALUE})(?:\s*(?:,|and)\s*(?:
 _RANGE = re.compile(rf"\b[Dd]efault\s+({_NUM})\s*-\s*({_NUM})\b")
 _LIST = re.compile(rf"\b[Dd]efaults?\b:?\s*((?:{_VALUE})(?:\s*,\s*(?:{_VALUE}))+)")
 _AFTER = re.compile(rf"({_VALUE})\s*\((?:[^()]*,\s*)?default\b")
-
-
-def code_default(f: dataclasses.Field[object]) -> object:
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:
-        return f.default_factory()
-    return dataclasses.MISSING
 
 
 def config_classes() -> list[type]:
@@ -63,7 +56,7 @@ def config_classes() -> list[type]:
     stack, seen = list(out), set(out)  # and the dataclasses they nest (MotionNoise, ...)
     while stack:
         for f in dataclasses.fields(stack.pop()):
-            nested = type(code_default(f))
+            nested = type(_default_of(f))
             if dataclasses.is_dataclass(nested) and nested not in seen:
                 seen.add(nested)
                 out.append(nested)
@@ -174,7 +167,7 @@ def test_every_option_documents_its_default(cls: type) -> None:
     for f in dataclasses.fields(cls):
         if not f.init:
             continue
-        code = code_default(f)
+        code = _default_of(f)
         if f.name not in documented:
             bad.append(f"{f.name}: not in the docstring's Attributes (default {code!r})")
         elif dataclasses.is_dataclass(code) or code is dataclasses.MISSING:
