@@ -154,7 +154,7 @@ def map_from_estimates(estimates: list[LandmarkEstimate], rig: Rig,
     Args:
         estimates: :attr:`lampsam.backend.interface.SlamResult.landmarks`.
         rig: the mapping run's rig.
-        patches: corner id -> (P, P) patch (:func:`lampsam.backend.localize_only.corner_patches`).
+        patches: corner id -> (P, P) patch (:func:`corner_patches`).
         source: provenance for ``map.yaml``.
     """
     patches = patches or {}

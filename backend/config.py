@@ -183,14 +183,14 @@ class Isam2Config:
         lamp_relinearize_threshold: the threshold for lamps' variables (position and
             axis) where the graph's lamps have their own symbol characters (the ceiling
             graph: :data:`~lampsam.backend.ceiling_graph.CEILING_SYMBOLS`); None: the
-            same as every variable's.
+            same as every variable's (default None).
         relinearize_skip: relinearise every this many updates (default 10, GTSAM's;
             1 made the lab run's updates 2-3x slower).
         cache_linearized_factors: GTSAM's ``cacheLinearizedFactors`` (keep each
             factor's linearisation between relinearisations; default True, GTSAM's).
         find_unused_factor_slots: GTSAM's ``findUnusedFactorSlots`` (default False).
         extra_updates: extra ``update()`` calls per keyframe (default 0).
-        sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad).
+        sigma_start_xy, sigma_start_theta: prior on the known start pose (m, rad; default 1e-3).
         pose_cov_every_step: every step's estimate carries its pose covariance (the
             last keyframe's marginal composed with the odometry since; default True).
             With the corner budget below the marginal costs, together with the pose
@@ -314,7 +314,7 @@ class OnlineConfig:
 
     Attributes:
         catch_up: iSAM2 keyframes per update at most when the mapping worker is
-            behind (1: off, one update per keyframe). While frames wait in its queue
+            behind (default 1: off, one update per keyframe). While frames wait in its queue
             the worker associates each new keyframe against the prediction (the
             newest estimate plus odometry) and defers its update, up to this many
             keyframes, then runs one update for all of them
@@ -333,7 +333,7 @@ class SlamConfig:
     """Everything :func:`lampsam.backend.slam.run_slam` needs.
 
     Attributes:
-        features: ceiling feature types to use, a subset of ``("lamps", "corners")``.
+        features: ceiling feature types to use, a subset of ``("lamps", "corners")`` (default both).
         association, noise, ekf, isam2, batch, reassociation: the parts above. ``noise`` is also
             the default noise of a range-bearing observation that carries no
             covariance of its own (``sigma_range``, ``sigma_bearing``).

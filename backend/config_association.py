@@ -120,12 +120,12 @@ class AssociationConfig:
             16 as Victoria Park needs, the loop's run fails; for a log like Victoria
             Park set both and ``[pose2_odometry] cov_scale = 16``.
         planar_unique_prob: the rival's zone for ``planar_unique``: the chi-square
-            quantile of this probability (0, default: the new-landmark threshold,
+            quantile of this probability (default 0: the new-landmark threshold,
             ``new_prob``; e.g. ``gate_prob`` for a rival inside the gate only).
         planar_unique_ratio: with ``planar_unique``, a rival in that zone holds the
             sighting only when its likelihood (eq. 19, Gaussian with its own ``Psi``)
             is at least this fraction of the nearest landmark's
-            (:func:`lampsam.backend.planar_gate.rival_ratio`); 0: any rival holds it.
+            (:func:`lampsam.backend.planar_gate.rival_ratio`); default 0: any rival holds it.
             Held sightings are re-gated later and given back once unambiguous
             (:mod:`lampsam.backend.held_sightings`).
         planar_relative_gate: without ids, gate range-bearing observations of
@@ -174,7 +174,7 @@ class AssociationConfig:
             likelihood of ``nu ~ N(0, a S_x + b R)`` truncated at the gate, over the
             last ``odometry_noise_window`` matches; the factor starts at 1, the
             stated noise, and stays in ``[1, odometry_noise_max]``). Every backend
-            reads it; known-id runs never gate, so they are unchanged.
+            reads it; known-id runs never gate, so they are unchanged (default False).
         odometry_noise_max, odometry_noise_window: its upper bound (default 100) and
             window (default 150 matches).
         alias_odds: smoothers without ids: a range-bearing match inside the gate is

@@ -65,33 +65,34 @@ class ReassociationConfig:
 
     Attributes:
         passes: passes at most (default 0: off, the online association is final).
-        window: new landmarks per revisit constellation.
+        window: new landmarks per revisit constellation (default 12).
         revisit_keyframes: an old landmark is a revisit candidate when idle this many
-            keyframes before the constellation's first landmark was made.
-        radius: old landmarks within this distance of the constellation's centre, m.
+            keyframes before the constellation's first landmark was made (default 300).
+        radius: old landmarks within this distance of the constellation's centre, m (default 100).
         tol: inlier distance and pair-length tolerance, m (the optimised map's
-            non-rigidity across a revisit).
-        min_inliers: inliers a revisit alignment needs.
-        margin: inliers by which it must beat any differently-paired hypothesis.
-        max_rotation: largest rotation believed, rad.
-        merge_radius: duplicate pairs closer than this are tested, m (0: no pair test).
+            non-rigidity across a revisit; default 0.75).
+        min_inliers: inliers a revisit alignment needs (default 4).
+        margin: inliers by which it must beat any differently-paired hypothesis (default 2).
+        max_rotation: largest rotation believed, rad (default 0.5).
+        merge_radius: duplicate pairs closer than this are tested, m (default 10; 0: no pair test).
         switch: a sighting inside the gate of its landmark moves to another landmark
-            closer by more than this in squared Mahalanobis distance (inf: never).
+            closer by more than this in squared Mahalanobis distance (default inf: never).
         fit_noise: the re-association's gate uses the sightings' noise shrunk to their
             own spread at each pass's optimum (its variance-component factor, never above 1:
             :func:`lampsam.backend.reassociate.noise_factor`), and a sighting beyond the
-            new-landmark threshold of its landmark and outside every gate splits off.
+            new-landmark threshold of its landmark and outside every gate splits off
+            (default False).
         cost_moves: after the passes, merge and split single landmarks by description
             length (:mod:`lampsam.backend.landmark_moves`; the offline pipeline of
-            :mod:`lampsam.backend.noids_offline` only).
+            :mod:`lampsam.backend.noids_offline` only; default True).
         final_pass: on the chosen candidate only, single sightings move to another
             landmark inside their gate (or a new one), and landmark pairs merge with the
             poses free, where that lowers the description length
-            (:func:`lampsam.backend.final_moves.refine_final`).
-        final_rounds: LM re-solves of the final pass at most.
+            (:func:`lampsam.backend.final_moves.refine_final`; default True).
+        final_rounds: LM re-solves of the final pass at most (default 30).
         readmit_dropped: the final pass first takes back the sightings the online pass
             dropped where a landmark explains one at ``d2 < c_new``
-            (:func:`lampsam.backend.final_moves.readmit`), kept if ``C`` falls. Off: on
+            (:func:`lampsam.backend.final_moves.readmit`), kept if ``C`` falls. Default False: on
             Victoria Park it took back 134 of 138 and lowered ``C``, but the RMS from
             the known-id batch rose 0.372 -> 0.431 m and 14 went to a neighbour's
             landmark (docs/noids-offline.md).

@@ -15,8 +15,9 @@ C-order buffer of which only the lower triangle (row >= column) of the leading
   (the robot, eqs. 13-15); the ``P_MM`` block is not touched.
 - :meth:`LowerCovariance.append` / :meth:`LowerCovariance.delete`: augmentation
   (eqs. 24-25) writes one new row block; removal compacts the triangle in place.
-- reads: :meth:`columns` (``P[:, o:o+d]``), :meth:`block` (``P[r0:r1, c0:c1]``),
-  :meth:`take` (gathered entries), :meth:`dense` (a full copy, for checks).
+- reads (:class:`LowerCovariance`'s): :meth:`~LowerCovariance.columns` (``P[:, o:o+d]``),
+  :meth:`~LowerCovariance.block` (``P[r0:r1, c0:c1]``), :meth:`~LowerCovariance.take`
+  (gathered entries), :meth:`~LowerCovariance.dense` (a full copy, for checks).
 
 Why ``scipy.linalg.cython_blas`` and not ``scipy.linalg.blas``: the f2py wrappers of
 ``scipy.linalg.blas`` copy any argument that is not contiguous, and the leading

@@ -29,7 +29,7 @@ from lampsam.backend.ekf_landmarks import (
 from lampsam.backend.ekf_state import EkfState
 from lampsam.backend.interface import LandmarkKind
 from lampsam.backend.landmark_merge import ekf_merge_once
-from lampsam.backend.models import Obs, initialize
+from lampsam.backend.models import Obs, initialize, try_initialize
 from lampsam.factors.geometry import tangent_D_coords
 
 log = logging.getLogger(__name__)
@@ -42,12 +42,10 @@ class EkfMap(EkfState):
     def _augment(self, obs: Obs, lid: int | None) -> int | None:
         """Add a landmark from one observation with the full cross-covariance (eqs. 24-25)."""
         pose = self._x[:3].copy()
-        try:
-            state, g_pose, g_z, cov_z = initialize(pose, obs, self.config.association,
-                                                   self.ceiling)
-        except Exception as exc:
-            log.debug("cannot initialise a landmark: %s", exc)
+        started = try_initialize(pose, obs, self.config.association, self.ceiling)
+        if started is None:
             return None
+        state, g_pose, g_z, cov_z = started
         g_r = g_pose @ tangent_D_coords(pose[2])  # right tangent -> coordinates
         d = len(state)
         self._x = grown_state(self._x, self._n, d)

@@ -1,6 +1,6 @@
 """A bracket of the exact gate distance from the pose and landmark marginals alone (issue 19).
 
-The exact gate of the smoothers (:meth:`~lampsam.backend.gating.Gating._innovation`,
+The exact gate of the smoothers (:meth:`~lampsam.backend.gate_exact.ExactGate._innovation`,
 paper eqs. 19-20) needs iSAM2's joint marginal of the last keyframe pose and the
 landmark, because the pose-landmark cross-covariance matters. That query is cheap
 for a landmark near the Bayes tree's root and costs 10-40 ms for one that was not
@@ -143,7 +143,7 @@ def settle_bracketed(sole: set[tuple[int, int]],
     - ``hi < gate`` and it is in ``sole`` (:func:`sole_candidates`): matched whatever
       the exact distance (``"inside"``, reported as ``hi``);
     - ``lo > new_threshold`` (and ``lo > far`` when given: the exact gate would have
-      recorded a distance that far, :meth:`~lampsam.backend.gating.Gating._reuse_far`
+      recorded a distance that far, :meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._reuse_far`
       reuses it): neither a match nor keeping the observation from being new
       (``"outside"``, reported as ``lo``).
 

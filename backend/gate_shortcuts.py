@@ -46,7 +46,7 @@ class LampGateShortcuts(ExactGate):
         The lamp's last exact joint marginal, of ``(X(j), lamp)`` at an earlier gate
         (:attr:`_joint_at`, within :data:`~lampsam.backend.gate_exact.RELATIVE_GATE_KEYFRAMES`), is carried to the
         current pose through the odometry since ``X(j)`` alone
-        (:func:`propagate_joint`). That is the joint marginal of a graph with fewer
+        (:func:`~lampsam.backend.pose_cov.eq19_covariance`). That is the joint marginal of a graph with fewer
         factors than iSAM2's now: every factor added since (this path's observations,
         other loop closures) only adds information, so at the same linearisation the
         propagated covariance bounds the exact one from above, ``Psi`` likewise, and

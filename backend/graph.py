@@ -274,7 +274,7 @@ class GraphSlam(JointGating, RevisitMerge, LandmarkLifecycle, Isam2Updates):
 
     def _gate_context(self, k: int, pose: FloatArray
                       ) -> tuple[int, FloatArray, FloatArray, FloatArray]:
-        """``(k0, pose, delta, cov)`` of the gate (:meth:`~lampsam.backend.gating.Gating._innovation`).
+        """``(k0, pose, delta, cov)`` of the gate (:meth:`~lampsam.backend.gate_exact.ExactGate._innovation`).
 
         ``k0`` is the newest keyframe in iSAM2 (``k - 1`` unless keyframes were
         deferred), ``delta`` (x, y, theta) and ``cov`` (3, 3, right tangent) the

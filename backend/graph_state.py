@@ -143,7 +143,7 @@ class GraphState(SlamBackend):
         #: (:meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._bound_far`)
         self._joint_at: dict[int, tuple[int, tuple[FloatArray, FloatArray, FloatArray]]] = {}
         self.n_far_bounded = 0
-        #: lamp pairs settled inside / outside the gate by :meth:`~lampsam.backend.gating.Gating._bracket`
+        #: lamp pairs settled inside / outside the gate by :meth:`~lampsam.backend.gate_shortcuts.LampGateShortcuts._bracket`
         self.n_bracket_inside = 0
         self.n_bracket_outside = 0
         self._odo: list[tuple[FloatArray, FloatArray]] = [(np.zeros(3), np.zeros((3, 3)))]

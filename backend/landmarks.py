@@ -27,7 +27,7 @@ from lampsam.backend.ceiling import MIN_USABLE_HEIGHT
 from lampsam.backend.graph_state import GraphState
 from lampsam.backend.handlers import GraphLandmark, GraphValue
 from lampsam.backend.interface import LandmarkKind, log_pruned
-from lampsam.backend.models import Obs, initialize
+from lampsam.backend.models import Obs, try_initialize
 from lampsam.backend.reassociate import Sightings, refine
 from lampsam.errors import EstimationError
 
@@ -49,12 +49,10 @@ class LandmarkLifecycle(GraphState):
 
     def _start_landmark(self, pose: FloatArray, pose_cov: FloatArray, k: int, obs: Obs,
                         lid: int | None) -> int:
-        try:
-            state, g_pose, g_z, cov_z = initialize(pose, obs, self.config.association,
-                                                   self.ceiling)
-        except Exception as exc:
-            log.debug("cannot initialise a landmark: %s", exc)
+        started = try_initialize(pose, obs, self.config.association, self.ceiling)
+        if started is None:
             return 0
+        state, g_pose, g_z, cov_z = started
         cov_meas = g_z @ cov_z @ g_z.T
         cov = g_pose @ pose_cov @ g_pose.T + cov_meas
         lid_given = lid

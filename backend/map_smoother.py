@@ -42,7 +42,7 @@ map's common error costs three variables, not a dense ``3 L x 3 L`` prior. Its v
 that repeated sightings of the map across the whole run, tied to the world by the known
 start and the odometry, can move the map's frame; the filter sees only the start.
 
-Solved with Levenberg-Marquardt once at :meth:`finish` from the filter's poses and the
+Solved with Levenberg-Marquardt once at :meth:`MapSmoother.finish` from the filter's poses and the
 map (the default: the filter already gives the online estimate), or with iSAM2
 (:attr:`MapSmootherConfig.update_every` > 0: an update every that many steps, whose
 current pose is then the online estimate of those steps). The result's pose

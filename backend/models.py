@@ -20,6 +20,7 @@ them with :func:`lampsam.factors.geometry.tangent_D_coords`.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -35,6 +36,8 @@ from lampsam.frontend.measurements import CeilingFrame, RangeBearingFrame
 
 if TYPE_CHECKING:  # ceiling.py takes Obs records: import its type for annotations only
     from lampsam.backend.ceiling import CeilingModel
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -223,6 +226,18 @@ def initialize(pose: FloatArray, obs: Obs, assoc: AssociationConfig,
     if ceiling is None:
         raise ValueError(f"ceiling landmark kind {obs.kind!r} needs a CeilingModel")
     return ceiling.initialize(pose, obs, assoc.height_prior())
+
+
+def try_initialize(pose: FloatArray, obs: Obs, assoc: AssociationConfig,
+                   ceiling: CeilingModel | None = None
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+    """:func:`initialize`, or None (logged at debug level) when the observation cannot start
+    a landmark (the EKF's augmentation and the smoothers' new landmarks skip it)."""
+    try:
+        return initialize(pose, obs, assoc, ceiling)
+    except Exception as exc:
+        log.debug("cannot initialise a landmark: %s", exc)
+        return None
 
 
 def landmark_estimate(lid: int, kind: str, state: FloatArray, cov: FloatArray, n_obs: int,

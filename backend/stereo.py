@@ -70,22 +70,22 @@ class StereoEstimatorConfig:
     """Settings shared by the four estimators.
 
     Attributes:
-        min_disparity_px: raw triangulation needs ``x_r - x_l`` above this, px.
+        min_disparity_px: raw triangulation needs ``x_r - x_l`` above this, px (default 0.5).
         min_separation_px: raw flags ``collinear`` when the two points' mean
             coordinates ``(x_l + x_r) / 2`` (their rays from the rig centre) are
             closer than this, px: the points are nearly in line with the camera,
-            cannot be told apart, and the heading rests on their depth difference.
+            cannot be told apart, and the heading rests on their depth difference (default 1).
         min_depth: a point nearer than this (estimated or predicted depth) is
-            treated as behind the camera, m.
-        gn_iterations: Gauss-Newton steps of the raw solver.
-        max_condition: raw fails when ``H^T H`` is worse conditioned than this.
+            treated as behind the camera, m (default 0.05).
+        gn_iterations: Gauss-Newton steps of the raw solver (default 6).
+        max_condition: raw fails when ``H^T H`` is worse conditioned than this (default 1e10).
         sigma_init: prior standard deviations ``(x, y, theta)`` (m, m, rad) put on
-            the first raw fix, for the EKF and both smoothers alike.
-        gate_chi2: innovation gate (4 dof); 0 disables it. 25 ~ p = 5e-5.
-        isam2_relinearize_threshold: iSAM2 relinearisation threshold.
+            the first raw fix, for the EKF and both smoothers alike (default (1.0, 1.0, 0.3)).
+        gate_chi2: innovation gate (4 dof; default 25, p ~ 5e-5); 0 disables it.
+        isam2_relinearize_threshold: iSAM2 relinearisation threshold (default 0.01).
         isam2_extra_updates: extra ``update()`` calls per frame (each one more
-            Gauss-Newton iteration with relinearisation).
-        lm_max_iterations: batch LM iterations.
+            Gauss-Newton iteration with relinearisation; default 2).
+        lm_max_iterations: batch LM iterations (default 100).
     """
 
     min_disparity_px: float = 0.5

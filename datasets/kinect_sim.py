@@ -61,8 +61,8 @@ class KinectConfig:
         max_incidence_deg: rays meeting a surface more obliquely than this give no
             depth (grazing-angle drop-out, default 75).
         depth_scale: stored 16-bit value per metre (default 5000, like TUM RGB-D).
-        body_t_camera: (3,) optical centre in the body frame, metres (default 0.15 m
-            forward, 0.45 m above the floor).
+        body_t_camera: (3,) optical centre in the body frame, metres (default
+            ``(0.15, 0.0, 0.45)``: 0.15 m forward, 0.45 m above the floor).
         pitch_deg: downward tilt of the optical axis (default 0).
         rate_hz: frame rate of the mapping drive (default 3).
         pixel_noise: sigma of colour noise, grey levels (default 2).

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from lampsam.arrays import FloatArray
-from lampsam.safe_io import write_text_atomic
+from lampsam.datasets.landmark_log_sim import odometry_record, sighting_records, write_log_and_truth
 
 
 @dataclass(frozen=True)
@@ -192,17 +192,14 @@ def simulate_held_out(spec: HeldOutSpec, rng: np.random.Generator
         pose = _compose(pose, d)
         truth.append(pose.copy())
         meas = d + spec.true_noise * rng.multivariate_normal(np.zeros(3), cov)
-        lines.append(f"ODOMETRY {k - 1} {k} {meas[0]:.9g} {meas[1]:.9g} {meas[2]:.9g} "
-                     f"{cov[0, 0]:.9g} 0 0 {cov[1, 1]:.9g} 0 {cov[2, 2]:.9g}")
-        rel = marks - pose[:2]
-        rng_ = np.hypot(rel[:, 0], rel[:, 1])
-        for j in np.flatnonzero((rng_ < spec.max_range) & (rng_ > 1.0)):
-            sb = spec.sigma_bearing0 + spec.sigma_bearing_per_m * rng_[j]
-            b = math.remainder(math.atan2(rel[j, 1], rel[j, 0]) - pose[2], math.tau)
-            b += rng.normal(0, sb)
-            r = rng_[j] + rng.normal(0, spec.sigma_range)
-            lines.append(f"BR {k} {n + j} {b:.9g} {r:.9g} {sb:.9g} {spec.sigma_range:.9g}")
+        lines.append(odometry_record(k, meas, cov))
+        lines += sighting_records(k, pose, marks, n, spec, rng, _wrap_remainder)
     return lines, np.array(truth), marks
+
+
+def _wrap_remainder(angle: float) -> float:
+    """``angle`` wrapped to [-pi, pi] by ``math.remainder`` (these logs' wrap)."""
+    return math.remainder(angle, math.tau)
 
 
 def write_held_out(path: str | Path, name: str) -> tuple[Path, Path]:
@@ -211,10 +208,5 @@ def write_held_out(path: str | Path, name: str) -> tuple[Path, Path]:
     if name not in HELD_OUT:
         raise ValueError(f"held-out log {name!r}: one of {', '.join(HELD_OUT)}")
     spec, seed = HELD_OUT[name]
-    path = Path(path)
     lines, truth, _ = simulate_held_out(spec, np.random.default_rng(seed))
-    write_text_atomic(path, "\n".join(lines) + "\n")
-    tpath = path.with_name(path.stem + "_truth.txt")
-    write_text_atomic(tpath, "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
-                                     for k, p in enumerate(truth)))
-    return path, tpath
+    return write_log_and_truth(path, lines, truth)

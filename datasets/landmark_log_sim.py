@@ -14,8 +14,10 @@ sighting's own sigmas), the truth as ``VERTEX2`` records
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -88,17 +90,90 @@ def simulate_landmark_log(spec: LandmarkLogSpec, rng: np.random.Generator
                          math.atan2(math.sin(pose[2] + d[2]), math.cos(pose[2] + d[2]))])
         truth.append(pose.copy())
         meas = d + rng.multivariate_normal(np.zeros(3), cov)
-        lines.append(f"ODOMETRY {k - 1} {k} {meas[0]:.9g} {meas[1]:.9g} {meas[2]:.9g} "
-                     f"{cov[0, 0]:.9g} 0 0 {cov[1, 1]:.9g} 0 {cov[2, 2]:.9g}")
-        rel = marks - pose[:2]
-        rng_ = np.hypot(rel[:, 0], rel[:, 1])
-        for j in np.flatnonzero((rng_ < spec.max_range) & (rng_ > 1.0)):
-            b = math.atan2(rel[j, 1], rel[j, 0]) - pose[2]
-            sb = spec.sigma_bearing0 + spec.sigma_bearing_per_m * rng_[j]
-            b = math.atan2(math.sin(b), math.cos(b)) + rng.normal(0, sb)
-            r = rng_[j] + rng.normal(0, spec.sigma_range)
-            lines.append(f"BR {k} {spec.n_poses + j} {b:.9g} {r:.9g} {sb:.9g} {spec.sigma_range:.9g}")
+        lines.append(odometry_record(k, meas, cov))
+        lines += sighting_records(k, pose, marks, spec.n_poses, spec, rng, _wrap_atan2)
     return lines, np.array(truth), marks
+
+
+class SightingNoise(Protocol):
+    """The sighting model of a simulated log (:class:`LandmarkLogSpec`, ``HeldOutSpec``)."""
+
+    @property
+    def max_range(self) -> float:
+        """Sighting range, m."""
+        ...
+
+    @property
+    def sigma_range(self) -> float:
+        """Range noise, m."""
+        ...
+
+    @property
+    def sigma_bearing0(self) -> float:
+        """Bearing noise at zero range, rad."""
+        ...
+
+    @property
+    def sigma_bearing_per_m(self) -> float:
+        """Bearing noise growth with range, rad/m."""
+        ...
+
+
+def _wrap_atan2(angle: float) -> float:
+    """``angle`` wrapped to (-pi, pi] through ``atan2(sin, cos)`` (this simulator's logs)."""
+    return math.atan2(math.sin(angle), math.cos(angle))
+
+
+def odometry_record(k: int, meas: FloatArray, cov: FloatArray) -> str:
+    """The ``ODOMETRY k-1 k dx dy dtheta`` record with the stated covariance's upper triangle.
+
+    Args:
+        k: the pose the odometry leads to.
+        meas: (3,) measured increment ``(dx, dy, dtheta)`` in the earlier body frame (m, rad).
+        cov: (3, 3) diagonal covariance of it.
+    """
+    return (f"ODOMETRY {k - 1} {k} {meas[0]:.9g} {meas[1]:.9g} {meas[2]:.9g} "
+            f"{cov[0, 0]:.9g} 0 0 {cov[1, 1]:.9g} 0 {cov[2, 2]:.9g}")
+
+
+def sighting_records(k: int, pose: FloatArray, marks: FloatArray, first_id: int,
+                     noise: SightingNoise, rng: np.random.Generator,
+                     wrap: Callable[[float], float]) -> list[str]:
+    """``BR`` records of pose ``k``: every landmark between 1 m and ``max_range``, in index order.
+
+    Bearing noise ``sigma_bearing0 + sigma_bearing_per_m * range`` (rad), range noise
+    ``sigma_range`` (m); per landmark one bearing then one range draw from ``rng``.
+
+    Args:
+        k: pose index.
+        pose: (3,) true ``world_T_body`` (m, rad).
+        marks: (L, 2) landmark positions, m; landmark ``j`` is written as ``first_id + j``.
+        first_id: the id of landmark 0.
+        noise: the sighting noise.
+        rng: the generator.
+        wrap: the true bearing's wrap to (-pi, pi] (each simulator keeps its own, so that
+            its logs stay the same to the last digit).
+    """
+    rel = marks - pose[:2]
+    rng_ = np.hypot(rel[:, 0], rel[:, 1])
+    out = []
+    for j in np.flatnonzero((rng_ < noise.max_range) & (rng_ > 1.0)):
+        sb = noise.sigma_bearing0 + noise.sigma_bearing_per_m * rng_[j]
+        b = wrap(math.atan2(rel[j, 1], rel[j, 0]) - pose[2]) + rng.normal(0, sb)
+        r = rng_[j] + rng.normal(0, noise.sigma_range)
+        out.append(f"BR {k} {first_id + j} {b:.9g} {r:.9g} {sb:.9g} {noise.sigma_range:.9g}")
+    return out
+
+
+def write_log_and_truth(path: str | Path, lines: list[str], truth: FloatArray) -> tuple[Path, Path]:
+    """Write the records to ``path`` and the true poses (N, 3) to ``<stem>_truth.txt``
+    (``VERTEX2``). Returns ``(log path, truth path)``."""
+    path = Path(path)
+    write_text_atomic(path, "\n".join(lines) + "\n")
+    tpath = path.with_name(path.stem + "_truth.txt")
+    write_text_atomic(tpath, "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
+                                     for k, p in enumerate(truth)))
+    return path, tpath
 
 
 def write_landmark_log(path: str | Path, spec: LandmarkLogSpec, rng: np.random.Generator
@@ -108,10 +183,5 @@ def write_landmark_log(path: str | Path, spec: LandmarkLogSpec, rng: np.random.G
     Returns:
         ``(log path, truth path)``.
     """
-    path = Path(path)
     lines, truth, _ = simulate_landmark_log(spec, rng)
-    write_text_atomic(path, "\n".join(lines) + "\n")
-    tpath = path.with_name(path.stem + "_truth.txt")
-    write_text_atomic(tpath, "".join(f"VERTEX2 {k} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g}\n"
-                                     for k, p in enumerate(truth)))
-    return path, tpath
+    return write_log_and_truth(path, lines, truth)

@@ -27,7 +27,7 @@ A run with Pose2-increment odometry (``odometry_pose2.csv``) has no wheel joints
 is written as ``/odom`` only, each pose ``pose_i = pose_{i-1} delta_i`` (the first
 increment taken from the origin) with pose covariance (x, y, yaw rows/cols)
 ``S_i = S_{i-1} + R_{i-1} C_i R_{i-1}^T``, the inverse of what
-:func:`lampsam.datasets.rosbag_import.increment_covariances` undoes, so the import
+:func:`lampsam.datasets.rosbag_build.increment_covariances` undoes, so the import
 gives the increments and covariances back. When no increment has a covariance
 every message's covariance is zero, which the import reads as unknown again (NaN);
 when only some lack one, those add the default

@@ -31,36 +31,34 @@ checked as strictly as a ``rig.yaml``.
 (:func:`~lampsam.datasets.odometry.increments_from_poses`). Their covariance is
 approximated from the messages' absolute pose covariances (rows/cols x, y, yaw of
 the 6x6, in the header's odometry frame, as REP 105 has it) by
-:func:`increment_covariances`: the difference of consecutive pose covariances,
-rotated into the earlier body frame, its negative eigenvalues clipped to zero (the
+:func:`~lampsam.datasets.rosbag_build.increment_covariances`: the difference of
+consecutive pose covariances, rotated into the earlier body frame, its negative eigenvalues clipped to zero (the
 backend adds :class:`~lampsam.datasets.odometry.Pose2OdometryModel`'s per-sample
 floor). Where either pose's covariance is unknown (``-1`` in ``[0]``), or every
 message's covariance on the topic is zero (a driver that fills none in), the
 increment's covariance is left empty: the backend's
 :class:`~lampsam.datasets.odometry.Pose2OdometryModel` default applies. The report
 says which was used and how many increments were clipped.
+
+This module chooses the topics and writes the run; :mod:`~lampsam.datasets.rosbag_streams`
+reads the messages, :mod:`~lampsam.datasets.rosbag_build` makes the rig and the odometry.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from lampsam.datasets.calibration import intrinsics_from_k
 from lampsam.datasets.logrun import (
     GROUNDTRUTH_FILE,
     META_FILE,
     ODOMETRY_FILE,
     RIG_FILE,
-    ImageWriter,
-    OdometryLog,
     Trajectory,
     write_meta,
     write_odometry,
@@ -69,20 +67,11 @@ from lampsam.datasets.logrun import (
 from lampsam.datasets.odometry import (
     ODOMETRY_POSE2_FILE,
     Pose2OdometryLog,
-    increments_from_poses,
     write_pose2_odometry,
 )
-from lampsam.datasets.rig import Rig
-from lampsam.datasets.ros_messages import (
-    DEPTH_ENCODINGS,
-    camera_info_fields,
-    depth_mm_from_image,
-    grey_from_compressed,
-    grey_from_image,
-    rotation_of,
-    stamp_seconds,
-    yaw_of,
-)
+from lampsam.datasets.ros_messages import DEPTH_ENCODINGS
+from lampsam.datasets.rosbag_build import odometry_from_streams, rig_from_streams
+from lampsam.datasets.rosbag_streams import read_streams
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -110,11 +99,6 @@ _PREFERRED = {
     "rig": ("/lampsam/rig",),
 }
 _TRUTH_WORDS = ("ground_truth", "groundtruth", "truth", "mocap", "vicon")
-_XYYAW = [0, 1, 5]
-"""Rows/cols of x, y, yaw in a ROS 6x6 pose covariance (x, y, z, roll, pitch, yaw)."""
-DEPTH_FILE = "depth.csv"
-DEPTH_DIR = "depth"
-SCANS_FILE = "scans.csv"
 
 
 @dataclass
@@ -257,32 +241,6 @@ def choose_topics(
     return chosen
 
 
-def _tf_chain(transforms: list[Any], base: str, child: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """``base_R_child, base_t_child`` through static transforms, or None (no path)."""
-    edges: dict[str, list[tuple[str, np.ndarray, np.ndarray, bool]]] = {}
-    for tr in transforms:
-        parent, kid = tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")
-        r = rotation_of(tr.transform.rotation)
-        v = tr.transform.translation
-        t = np.array([v.x, v.y, v.z])
-        edges.setdefault(parent, []).append((kid, r, t, False))
-        edges.setdefault(kid, []).append((parent, r, t, True))
-    stack = [(base.lstrip("/"), np.eye(3), np.zeros(3))]
-    seen = {base.lstrip("/")}
-    while stack:
-        frame, rot, trans = stack.pop()
-        if frame == child.lstrip("/"):
-            return rot, trans
-        for nxt, r, t, inverse in edges.get(frame, []):
-            if nxt in seen:
-                continue
-            seen.add(nxt)
-            if inverse:  # edge stored as nxt -> frame: invert it
-                r, t = r.T, -r.T @ t
-            stack.append((nxt, rot @ r, trans + rot @ t))
-    return None
-
-
 def import_bag(bag: str | Path, out: str | Path, options: ImportOptions | None = None) -> ImportReport:
     """Read ``bag`` and write the logged run ``out`` (module docstring).
 
@@ -324,11 +282,11 @@ def import_bag(bag: str | Path, out: str | Path, options: ImportOptions | None =
         report.chosen = chosen
         report.ignored = {t: ty for t, ty in topics.items() if t not in chosen.values()}
         out.mkdir(parents=True, exist_ok=True)
-        streams = _read_streams(reader, chosen, opts, report, out)
+        streams = read_streams(reader, chosen, opts, report, out)
     finally:
         reader.close()
-    rig = _rig(streams, opts, chosen, bag, report, need_wheels=odo_kind == "joints")
-    odometry = _odometry(streams, odo_kind, opts, rig, report, chosen, bag)
+    rig = rig_from_streams(streams, opts, chosen, bag, report, need_wheels=odo_kind == "joints")
+    odometry = odometry_from_streams(streams, odo_kind, opts, rig, report, chosen, bag)
     if streams["image_size"] is not None and streams["image_size"] != (rig.camera.height, rig.camera.width):
         raise DatasetError(f"images are {streams['image_size']} (h, w) but the camera is "
                            f"{rig.camera.height}x{rig.camera.width}", bag)  # fmt: skip
@@ -347,251 +305,6 @@ def import_bag(bag: str | Path, out: str | Path, options: ImportOptions | None =
     for line in report.lines():
         log.info("import %s: %s", bag.name, line)
     return report
-
-
-def _increasing(stream: list[Any], topic: str, t: float, report: ImportReport) -> bool:
-    """True when ``t`` is after the stream's last time; else count a skip."""
-    if stream and not t > stream[-1][0]:
-        report.skip(topic, "time stamp does not increase")
-        return False
-    return True
-
-
-def _read_streams(reader: Any, chosen: dict[str, str], opts: ImportOptions,
-                  report: ImportReport, out: Path) -> dict[str, Any]:
-    """One pass over the chosen topics; images and depth are written as they come."""
-    by_topic = {topic: kind for kind, topic in chosen.items()}
-    conns = [c for c in reader.connections if c.topic in by_topic]
-    s: dict[str, Any] = {"joints": [], "odometry": [], "truth": [], "tf": [], "info": None,
-                         "rig": None, "image_size": None, "camera_frame": None,
-                         "odom_child": None}  # fmt: skip
-    images = ImageWriter(out) if "image" in chosen else None
-    depth_fh = scans_fh = None
-    depth_last = scan_last = -math.inf
-    img_last = -math.inf
-    try:
-        for conn, bag_ns, raw in reader.messages(connections=conns):
-            kind = by_topic[conn.topic]
-            msg = reader.deserialize(raw, conn.msgtype)
-            header = getattr(msg, "header", None)
-            t = stamp_seconds(header.stamp) if header is not None else bag_ns * 1e-9
-            where = f"{conn.topic} at {t:.6f} s"
-            report.used.setdefault(conn.topic, 0)
-            if kind == "joints":
-                names = list(msg.name)
-                assert opts.wheel_joints is not None
-                missing = [j for j in opts.wheel_joints if j not in names]
-                if missing:
-                    if not s["joints"] and report.used[conn.topic] == 0 and len(names) >= 2:
-                        raise DatasetError(f"wheel joint {missing[0]!r} not in {conn.topic} "
-                                           f"(joints: {', '.join(names)})")  # fmt: skip
-                    report.skip(conn.topic, "wheel joints absent")
-                    continue
-                if not _increasing(s["joints"], conn.topic, t, report):
-                    continue
-                pos = [float(msg.position[names.index(j)]) for j in opts.wheel_joints]
-                s["joints"].append((t, pos[0], pos[1]))
-            elif kind in ("odometry", "groundtruth"):
-                key = "odometry" if kind == "odometry" else "truth"
-                if kind == "odometry" and s["odom_child"] is None:
-                    s["odom_child"] = str(getattr(msg, "child_frame_id", "")).lstrip("/") or None
-                if not _increasing(s[key], conn.topic, t, report):
-                    continue
-                p = msg.pose.pose
-                cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[np.ix_(_XYYAW, _XYYAW)]
-                if float(msg.pose.covariance[0]) == -1.0:
-                    cov = np.full((3, 3), np.nan)
-                s[key].append((t, np.array([p.position.x, p.position.y, yaw_of(p.orientation)]), cov))
-            elif kind == "image":
-                if not t > img_last:
-                    report.skip(conn.topic, "time stamp does not increase")
-                    continue
-                img = (grey_from_compressed(msg, where) if "Compressed" in conn.msgtype
-                       else grey_from_image(msg, where))  # fmt: skip
-                if s["image_size"] is None:
-                    s["image_size"] = img.shape
-                    s["camera_frame"] = header.frame_id if header is not None else None
-                elif img.shape != s["image_size"]:
-                    report.skip(conn.topic, f"size {img.shape} differs from the first image")
-                    continue
-                assert images is not None
-                images.write(t, img)
-                img_last = t
-            elif kind == "camera_info":
-                if s["info"] is None:
-                    s["info"] = camera_info_fields(msg)
-            elif kind == "tf_static":
-                s["tf"].extend(msg.transforms)
-            elif kind == "rig":
-                s["rig"] = str(msg.data)
-            elif kind == "depth":
-                if not t > depth_last:
-                    report.skip(conn.topic, "time stamp does not increase")
-                    continue
-                depth_fh = depth_fh or _table(out / DEPTH_FILE, "t,file")
-                (out / DEPTH_DIR).mkdir(exist_ok=True)
-                rel = f"{DEPTH_DIR}/{report.used[conn.topic]:06d}.png"
-                import cv2
-
-                cv2.imwrite(str(out / rel), depth_mm_from_image(msg, where))
-                depth_fh.write(f"{t:.6f},{rel}\n")
-                depth_last = t
-            elif kind == "scan":
-                if not t > scan_last:
-                    report.skip(conn.topic, "time stamp does not increase")
-                    continue
-                scans_fh = scans_fh or _table(
-                    out / SCANS_FILE, "t,angle_min,angle_increment,range_min,range_max,ranges")
-                ranges = " ".join(f"{r:.4f}" if math.isfinite(r) else "nan" for r in msg.ranges)
-                scans_fh.write(f"{t:.6f},{msg.angle_min:.9f},{msg.angle_increment:.9f},"
-                               f"{msg.range_min:.4f},{msg.range_max:.4f},{ranges}\n")  # fmt: skip
-                scan_last = t
-            report.used[conn.topic] += 1
-    finally:
-        if images is not None:
-            images.close()
-        for fh in (depth_fh, scans_fh):
-            if fh is not None:
-                fh.close()
-    return s
-
-
-def _table(path: Path, header: str) -> Any:
-    """Open a CSV table for writing with its header line."""
-    fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 (closed by the caller)
-    fh.write(header + "\n")
-    return fh
-
-
-def _rig(s: dict[str, Any], opts: ImportOptions, chosen: dict[str, str], bag: Path,
-         report: ImportReport, need_wheels: bool) -> Rig:
-    """The rig: ``opts.rig``, the bag's ``/lampsam/rig``, or camera_info + tf + options.
-
-    ``need_wheels``: the odometry is wheel travel, so ``wheel_base`` and ``k_wheel``
-    must be given; else (Pose2 odometry) the rig's wheel model is unused and absent
-    values take :class:`~lampsam.datasets.rig.OdometryModel`'s defaults.
-    """
-    if opts.rig is not None:
-        return Rig.from_yaml(opts.rig)
-    if s["rig"] is not None:
-        rig = Rig.from_dict(yaml.safe_load(s["rig"]), Path(f"{bag}:{chosen['rig']}"), strict=True)
-        report.notes.append(f"rig from {chosen['rig']}")
-        return rig
-    from lampsam.datasets.rig import OdometryModel
-
-    dflt = OdometryModel()
-    odometry = {"wheel_base": dflt.wheel_base if opts.wheel_base is None else opts.wheel_base,
-                "k_r": dflt.k_r if opts.k_wheel is None else opts.k_wheel,
-                "k_l": dflt.k_l if opts.k_wheel is None else opts.k_wheel}  # fmt: skip
-    missing = [k for k, v in (("--wheel-base", opts.wheel_base), ("--k-wheel", opts.k_wheel)) if v is None]
-    if missing and need_wheels:
-        raise DatasetError(f"the bag has no /lampsam/rig: give {' and '.join(missing)} (or --rig RIG.yaml)", bag)
-    if s["image_size"] is None:
-        from lampsam.datasets.camera import CameraModel
-
-        cam = CameraModel()  # no images: the camera is unused
-        return Rig.from_dict({"camera": cam.to_dict(), "odometry": odometry}, None, strict=True)
-    if s["info"] is None:
-        raise DatasetError("images but no sensor_msgs/CameraInfo topic (or give --rig RIG.yaml)", bag)
-    width, height, k, d, model = s["info"]
-    intr = intrinsics_from_k(width, height, k, d, model, f"{bag}:{chosen['camera_info']}")
-    mount = _tf_chain(s["tf"], opts.base_frame, s["camera_frame"] or "")
-    child = s.get("odom_child")
-    if mount is None and child and child != opts.base_frame:
-        # the odometry's body frame (base_footprint on many robots) when base_link has no tf
-        mount = _tf_chain(s["tf"], child, s["camera_frame"] or "")
-        if mount is not None:
-            report.notes.append(
-                f"camera mounting from the static tf of {child!r}, the odometry's "
-                f"child_frame_id ({opts.base_frame!r} has none to the camera; --base-frame "
-                "chooses)")
-    if mount is None:
-        frames = sorted({f for tr in s["tf"] for f in (tr.header.frame_id, tr.child_frame_id)})
-        raise DatasetError(
-            f"no static tf from {opts.base_frame!r}"
-            + (f" or the odometry's child frame {child!r}" if child and child != opts.base_frame
-               else "")
-            + f" to the camera frame {s['camera_frame']!r} (frames: "
-            f"{', '.join(frames) or 'none'}); give --base-frame FRAME or --rig RIG.yaml", bag)
-    rot, trans = mount
-    try:
-        camera = intr.camera(body_t_camera=trans, body_R_camera=rot)
-    except ValueError as exc:
-        raise DatasetError(f"camera from the bag: {exc}", bag) from exc
-    return Rig.from_dict({"camera": camera.to_dict(), "odometry": odometry}, None, strict=True)
-
-
-def increment_covariances(poses: np.ndarray, pose_cov: np.ndarray) -> tuple[np.ndarray, int]:
-    """Approximate increment covariances from absolute pose covariances.
-
-    ``C_i = R_{i-1}^T (S_i - S_{i-1}) R_{i-1}`` with ``R_{i-1} = diag(Rot(theta_{i-1}), 1)``
-    (the earlier body frame), symmetrised, negative eigenvalues clipped to zero. This
-    treats the odometry's pose covariance as a sum of independent per-step
-    contributions expressed in the odometry frame (what a dead-reckoning filter that
-    adds ``R Q R^T`` per step reports) and ignores the coupling of the earlier yaw
-    error into the translation (the adjoint term), so it is exact for that model when
-    the heading variance is small.
-
-    Args:
-        poses: (N, 3) ``odom_T_body`` x, y (m), yaw (rad).
-        pose_cov: (N, 3, 3) covariance of each pose in the odometry frame (x, y, yaw);
-            NaN: unknown.
-
-    Returns:
-        (N, 3, 3) right-tangent covariances of the increments (the first: zero, or NaN
-        if its pose's covariance is unknown; NaN where either pose's is unknown), and
-        how many increments had a negative eigenvalue clipped.
-    """
-    n = len(poses)
-    out = np.full((n, 3, 3), np.nan)
-    if n and np.all(np.isfinite(pose_cov[0])):
-        out[0] = 0.0
-    clipped = 0
-    for i in range(1, n):
-        diff = pose_cov[i] - pose_cov[i - 1]
-        if not np.all(np.isfinite(diff)):
-            continue
-        c, sn = math.cos(poses[i - 1, 2]), math.sin(poses[i - 1, 2])
-        rot = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
-        m = rot.T @ diff @ rot
-        m = 0.5 * (m + m.T)
-        w, v = np.linalg.eigh(m)
-        if w.min() < 0:
-            clipped += 1
-            m = (v * np.maximum(w, 0.0)) @ v.T
-        out[i] = m
-    return out, clipped
-
-
-def _odometry(s: dict[str, Any], kind: str, opts: ImportOptions, rig: Rig,
-              report: ImportReport, chosen: dict[str, str], bag: Path) -> OdometryLog | Pose2OdometryLog:
-    """Wheel travel per sample (first: 0) from joints, or Pose2 increments from odometry poses."""
-    if kind == "joints":
-        if opts.wheel_radius is None or not opts.wheel_radius > 0:
-            raise DatasetError("--wheel-joints needs a positive --wheel-radius", bag)
-        if len(s["joints"]) < 2:
-            raise DatasetError(f"{chosen['joints']}: fewer than 2 usable messages", bag)
-        a = np.array(s["joints"])
-        travel = np.vstack([np.zeros((1, 2)), np.diff(a[:, 1:3], axis=0)]) * opts.wheel_radius
-        return OdometryLog(t=a[:, 0], d_left=travel[:, 0], d_right=travel[:, 1])
-    if len(s["odometry"]) < 2:
-        raise DatasetError(f"{chosen['odometry']}: fewer than 2 usable messages", bag)
-    t = np.array([x[0] for x in s["odometry"]])
-    p = np.array([x[1] for x in s["odometry"]])
-    pose_cov = np.array([x[2] for x in s["odometry"]])
-    if not np.any(np.nan_to_num(pose_cov)):  # all zero (or unknown): no covariance given
-        pose_cov[:] = np.nan
-    cov, clipped = increment_covariances(p, pose_cov)
-    known = int(np.all(np.isfinite(cov[1:]), axis=(1, 2)).sum())
-    steps = len(t) - 1
-    report.notes.append(
-        f"odometry: Pose2 increments; covariance from the pose covariances (difference of "
-        f"consecutive poses' x/y/yaw covariance rotated into the earlier body frame) for "
-        f"{known} of {steps} increments"
-        + (f", {clipped} with negative eigenvalues clipped to 0" if clipped else "")
-        + (f"; {steps - known} with zero/unknown covariance use the Pose2OdometryModel default"
-           if known < steps else ""))  # fmt: skip
-    return Pose2OdometryLog(t=t, delta=increments_from_poses(p), cov=cov)
 
 
 def topic_counts(bag: str | Path) -> Counter[str]:

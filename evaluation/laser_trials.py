@@ -77,7 +77,7 @@ class LaserTrialsConfig:
         scans: the scans the trials start from and use: ``"odd"`` (default,
             held out from a map of the even ones), ``"even"`` or ``"all"``.
         start_offset: shift of the start instants, in fractions of their
-            spacing (0.5 gives starts between the default ones: tuning trials).
+            spacing (default 0; 0.5 gives starts between those: tuning trials).
         odometry: noise of the simulated odometry.
         localizer: the filter.
         accept: the acceptance test; while it fails, a trial takes more of the

@@ -60,7 +60,7 @@ class LampDetectorConfig:
         min_area_px: smaller blobs are rejected (default 6).
         max_area_fraction: blobs larger than this fraction of the image are
             rejected (glare, a window; default 0.2).
-        ratio_threshold: ``R_ori`` above which a lamp is oriented (paper: 1.5).
+        ratio_threshold: ``R_ori`` above which a lamp is oriented (default 1.5, the paper's).
         support_px: the moments are taken inside the blob dilated by this many
             pixels, so that anti-aliased edge pixels below ``k`` count (default 2).
         ring_px: width of the background ring outside the support (default 3).

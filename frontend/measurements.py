@@ -39,7 +39,7 @@ class LampObservation:
         landmark_id: known association (simulator truth), else None.
         touches_border: the blob touches the image border; its centroid and axis
             are biased. The detector drops such blobs by default; when kept
-            (``LampDetectorConfig.keep_border``) the backends must not use them.
+            (``FrontendConfig.keep_border_lamps``) the backends must not use them.
     """
 
     m: FloatArray

@@ -72,7 +72,7 @@ class SearchConfig:
             filter at the search resolution, then an even subsample). Default 160.
         min_score: leaves below this mean score per point (nats) are never
             candidates: the search's starting threshold (Cartographer's
-            ``min_score``). Default -2.0.
+            ``min_score``). Default -1.0.
         window: leaves more than this below the best leaf (mean score per
             point, nats) are never candidates: the threshold rises with the best
             leaf found so far. Default 1.0.

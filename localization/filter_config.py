@@ -62,7 +62,7 @@ class FilterConfig:
             roughening between updates on the same scan 5 cm and 0.03 rad
             (strong enough for the particles to reach the likelihood's peak).
         adaptive_sample_size: KLD-adaptive sample size (Fox 2003) when
-            ``pf.kld`` is not set. None: on in :attr:`Mode.OURS` only.
+            ``pf.kld`` is not set. Default None: on in :attr:`Mode.OURS` only.
         likelihood_field: weigh particles with the likelihood field
             (:class:`~lampsam.localization.likelihood.LikelihoodFieldModel`,
             no occlusion) instead of the ray-casting model. Default False.
@@ -73,7 +73,7 @@ class FilterConfig:
             candidates share the rest). Default 0.05.
         recheck_modes: the converged estimate and the best distinct modes of
             the first update (up to this many in all) are re-scored by a short
-            ray-casting filter; useful with the likelihood field. 0 = off.
+            ray-casting filter; useful with the likelihood field. Default 0 (off).
         mode_separation: two modes are distinct when more than this apart in
             position (m) or heading (rad). Default (0.5, 0.5).
         recheck_radius: disc radius (m) of the re-scoring particles around each
@@ -90,7 +90,7 @@ class FilterConfig:
             estimate and its half-turn twin are each refined and scored on the
             scan; the better one is kept if it wins by this log-likelihood
             margin (nats, after tempering), else the attempt ends unverified
-            (no ceiling test can tell the two apart). 0 = off. None: 3.0 in
+            (no ceiling test can tell the two apart). 0 = off. Default None: 3.0 in
             :attr:`Mode.OURS`, off otherwise.
         keep_scans_on_restart: after a failed verification, the virtual scans
             of the earlier turns stay in the next attempt's filter, scored
@@ -132,7 +132,7 @@ class GlobalLocalizerConfig:
     Attributes:
         mode: which Table-1 configuration. Default PROPOSED.
         turn_rate: in-place turning rate (rad/s). Default 30 deg/s (paper).
-        turn_angle: how far to turn (rad). Default one full turn.
+        turn_angle: how far to turn (rad). Default 360 deg (one full turn).
         drive_step: distance driven between verifier decisions (m). Default 0.25.
         max_verify_distance: give up verifying (count as failure) after this
             distance (m), sequential verifier. Default 3.0.
@@ -140,14 +140,14 @@ class GlobalLocalizerConfig:
         refine_with_ceiling: the first ceiling frame of the verification drive
             that matches at least two lamps corrects the pose
             (:func:`~lampsam.localization.verification.refine_pose`) before the
-            frames are tested. None: on in :attr:`Mode.OURS` only.
+            frames are tested. Default None: on in :attr:`Mode.OURS` only.
         verifier: ``"r_loc"`` (the paper's ``R_loc`` over a fixed distance,
             eq. 10) or ``"sequential"``
             (:class:`~lampsam.localization.verification.SequentialVerifier`,
             decides earlier). Default ``"r_loc"``.
         relocate_distance: after a failed attempt whose turn found no
             candidate, drive on until this distance (m) since the turn before
-            turning again (a turn 0.3 m away sees the same ambiguity). None:
+            turning again (a turn 0.3 m away sees the same ambiguity). Default None:
             1.5 m in :attr:`Mode.OURS`, 0 (off) otherwise.
         head_for_open_space: in the verifying modes, before the verification
             drive, turn (the shorter way, at ``turn_rate``) to face open space
@@ -162,7 +162,7 @@ class GlobalLocalizerConfig:
             ``localized`` only when the estimate's scan log-likelihood exceeds
             the best well-separated competing mode's by this many nats
             (:func:`~lampsam.localization.acceptance.mode_margin`), else
-            ``ambiguous``; the paper's ``success`` is not affected.
+            ``ambiguous``; the paper's ``success`` is not affected. Default 8.0.
         max_refine: the ceiling correction is applied only when within this
             ``(metres, radians)``; a larger one is a different pose, left to
             verification. Default (0.3 m, 10 deg): the success bound.

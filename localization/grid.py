@@ -191,14 +191,43 @@ def occupancy_probabilities(grid: OccupancyGrid) -> FloatArray:
     return 1.0 / (1.0 + np.exp(-grid.log_odds))
 
 
+def logit(p: float) -> float:
+    """Log-odds ``log(p / (1 - p))`` of a probability ``0 < p < 1``."""
+    return math.log(p / (1.0 - p))
+
+
+def occupied_cells(log_odds: FloatArray, config: LogOddsConfig = LogOddsConfig()) -> BoolArray:
+    """map_server's occupied rule, ``p > occupied_thresh``, on log-odds: ``l > logit(thresh)``.
+
+    The one form of the rule (grids, their chunks in the consistency check): the
+    logistic function is increasing, so the two forms differ only for a value within
+    rounding of the threshold; log-odds sums of ``l_occ`` / ``l_free`` do not come
+    near it (nearest 0.011 on the Intel map, docs/architecture.md).
+
+    Args:
+        log_odds: (...) cell log-odds.
+        config: ``occupied_thresh``.
+
+    Returns:
+        (...) bool.
+    """
+    return np.asarray(log_odds) > logit(config.occupied_thresh)
+
+
+def free_cells(log_odds: FloatArray, config: LogOddsConfig = LogOddsConfig()) -> BoolArray:
+    """map_server's free rule, ``p < free_thresh``, on log-odds: ``l < logit(thresh)``,
+    (...) bool (:func:`occupied_cells`)."""
+    return np.asarray(log_odds) < logit(config.free_thresh)
+
+
 def occupied_mask(grid: OccupancyGrid, config: LogOddsConfig = LogOddsConfig()) -> BoolArray:
     """Cells with occupancy probability above ``config.occupied_thresh``, (H, W) bool."""
-    return occupancy_probabilities(grid) > config.occupied_thresh
+    return occupied_cells(grid.log_odds, config)
 
 
 def free_mask(grid: OccupancyGrid, config: LogOddsConfig = LogOddsConfig()) -> BoolArray:
     """Cells with occupancy probability below ``config.free_thresh``, (H, W) bool."""
-    return occupancy_probabilities(grid) < config.free_thresh
+    return free_cells(grid.log_odds, config)
 
 
 # ---------------------------------------------------------------------- updates

@@ -57,9 +57,10 @@ class LaserLocalizerConfig:
         search: the branch-and-bound search (10 cm cells, 1 deg, 8 candidates).
         search_scans: at most this many first scans joined by odometry for the
             search (default 4), and only while the odometry has turned less
-            than ``search_max_turn`` (deg, default 20) and moved less than
-            ``search_max_move`` (m, default 3) since the first: odometry error
-            on a turn would smear the joined points.
+            than ``search_max_turn`` and moved less than ``search_max_move``
+            since the first: odometry error on a turn would smear the joined points.
+        search_max_turn: degrees (default 20).
+        search_max_move: metres (default 3).
         research_after: while not accepted this many scans after the first
             test, search again over the newest scans and add the candidates
             as extra modes (default 4).
@@ -187,18 +188,18 @@ class LaserAcceptConfig:
     Attributes:
         min_margin: accept (``localized``) when the estimate's joint scan
             log-likelihood exceeds the best competing hypothesis' by this many
-            nats (tempered). Calibrated on tuning trials (docs/localization.md).
+            nats (tempered; default 8). Calibrated on tuning trials (docs/localization.md).
         min_score: and when the scans fit the map at the estimate: joint
             log-likelihood per used beam (nats, untempered) at least this, over
             the last ``fit_scans`` scans (a long odometry chain drifts beyond
-            the per-scan refinement window, so older scans are left out).
+            the per-scan refinement window, so older scans are left out; default 0.45).
         fit_scans: scans of the fit (default 4).
-        modes: competing hypotheses: the distinct modes of the first update.
-        separation: two hypotheses are distinct when this far apart (m, rad).
+        modes: competing hypotheses: the distinct modes of the first update (default 8).
+        separation: two hypotheses are distinct when this far apart (m, rad; default (1.0, 0.5)).
         refine: half-width of the grid search refining each hypothesis'
-            anchor pose (m, rad), with ``refine_steps`` values per axis.
-        refine_steps: grid values per axis (odd).
-        max_scans: while not accepted, keep adding scans up to this many in all.
+            anchor pose (m, rad; default (0.2, 0.1)), with ``refine_steps`` values per axis.
+        refine_steps: grid values per axis (odd; default 5).
+        max_scans: while not accepted, keep adding scans up to this many in all (default 12).
     """
 
     min_margin: float = 8.0

@@ -25,7 +25,7 @@ class DepthGridConfig:
         band_reference: ``"floor"`` (``z = 0``, simulated runs), ``"fit"`` (the floor
             plane fitted to the fused cloud with Open3D RANSAC: sets "up" and the
             floor height, for hand-held data) or ``"camera"`` (heights relative to
-            the first camera).
+            the first camera); default ``"floor"``.
         depth_stride: use every n-th pixel in both directions (default 2).
         free_bucket: floor rays clear free space to within this distance of the
             farthest floor point of their bearing, metres (default 0.25).

@@ -19,7 +19,7 @@ Each variant (``make_backend`` -> ``step`` per :func:`iter_steps` step -> ``fini
 the public API of :mod:`lampsam.backend.slam`) runs over each length ``--repeats``
 times, the variants interleaved within each repeat: ``ekf``, ``ekf-dense`` (the
 same filter with the covariance stored as the full matrix and updated by general
-numpy products, ``P -= W @ W.T``: :class:`DenseCovariance`, the storage the EKF had
+numpy products, ``P -= W @ W.T``: ``dense_covariance.DenseCovariance``, the storage the EKF had
 before its in-place lower-triangle ``dsyrk`` storage; the reference of the
 ``vs dense`` ratio), ``isam2`` (the backend's default config: relinearisation threshold
 0.01 checked at every update) and ``isam2-gtsam`` (GTSAM's defaults: 0.1, every
@@ -43,6 +43,9 @@ noisy. BLAS is limited to one thread (see below).
 Writes ``OUT/scaling.json`` (every number, per run) and ``OUT/scaling.png``
 (log-log figure with the fitted lines). The load average at the start and end is
 recorded in the JSON.
+
+The world and its simulation live in the sibling module ``corridor_world.py``, the
+dense reference storage in ``dense_covariance.py`` (both in ``scripts/bench``).
 """
 
 from __future__ import annotations
@@ -57,37 +60,28 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse
-import contextlib
 import gc
 import json
 import logging
-import math
 import sys
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
-from unittest import mock
 
 import numpy as np
+from corridor_world import (  # scripts/bench/corridor_world.py, a sibling module
+    CorridorConfig,
+    dead_reckoning_error,
+    simulate_corridor,
+)
+from dense_covariance import covariance_storage  # scripts/bench/dense_covariance.py
 
-import lampsam.backend.ekf as ekf_module
-from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import AssociationConfig, MeasurementNoiseConfig, SlamConfig
 from lampsam.backend.slam import frames_from_range_bearing, iter_steps, make_backend
-from lampsam.datasets.logrun import (
-    LoggedRun,
-    OdometryLog,
-    OdometryModel,
-    RangeBearingLog,
-    Rig,
-    Trajectory,
-)
+from lampsam.datasets.logrun import LoggedRun
 from lampsam.errors import LampsamError
 from lampsam.evaluation.scaling_plots import ScalingSeries, fit_series, save_scaling_figure
-from lampsam.factors.geometry import wrap_angle
-from lampsam.factors.motion import diff_drive_step
 from lampsam.safe_io import write_text_atomic
 
 log = logging.getLogger("bench_scaling")
@@ -101,199 +95,11 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
     "isam2": ("isam2", {}),
     "isam2-gtsam": ("isam2", {"relinearize_threshold": 0.1, "relinearize_skip": 10}),
 }
-#: Variants whose EKF keeps the covariance as a full matrix (:class:`DenseCovariance`).
+#: Variants whose EKF keeps the covariance as a full matrix (``dense_covariance.DenseCovariance``).
 DENSE_REFERENCE = frozenset({"ekf-dense"})
 #: Map size at which the EKF is held to real time, and its budget per update (15 Hz).
 TARGET_LANDMARKS = 1500
 TARGET_S = 1.0 / 15.0
-
-
-class DenseCovariance:
-    """The reference storage: the full ``n x n`` matrix in a capacity buffer, numpy products.
-
-    Same interface as :class:`lampsam.backend.covariance.LowerCovariance`; the update
-    is ``P -= W @ W.T`` (an n x n temporary, both triangles), the prediction writes
-    the robot rows and columns, augmentation writes both the new rows and columns,
-    and removal copies ``P[ix_(keep, keep)]``. Only for timing against the in-place
-    storage (the EKF's results agree to round-off: tests/test_covariance.py).
-    """
-
-    def __init__(self, initial: FloatArray, capacity: int = 64) -> None:
-        p0 = np.asarray(initial, float)
-        n0 = p0.shape[0]
-        self._buf = np.zeros((max(capacity, n0), max(capacity, n0)))
-        self._buf[:n0, :n0] = p0
-        self._n = n0
-
-    @property
-    def n(self) -> int:
-        return self._n
-
-    def _p(self) -> FloatArray:
-        return self._buf[: self._n, : self._n]
-
-    def dense(self) -> FloatArray:
-        return self._p().copy()
-
-    def block(self, r0: int, r1: int, c0: int, c1: int) -> FloatArray:
-        return self._p()[r0:r1, c0:c1].copy()
-
-    def columns(self, o: int, d: int) -> FloatArray:
-        return self._p()[:, o : o + d]
-
-    def take(self, rows: IntArray, cols: IntArray) -> FloatArray:
-        return self._p()[rows, cols]
-
-    def downdate(self, w: FloatArray) -> None:
-        p = self._p()
-        p -= w @ w.T
-
-    def transform_leading(self, f: FloatArray, q: FloatArray) -> None:
-        r = f.shape[0]
-        p = self._p()
-        p[:r, :r] = f @ p[:r, :r] @ f.T + q
-        p[:r, r:] = f @ p[:r, r:]
-        p[r:, :r] = p[:r, r:].T
-
-    def append(self, cross: FloatArray, new: FloatArray) -> None:
-        d, n = new.shape[0], self._n
-        if n + d > self._buf.shape[0]:
-            buf = np.zeros((2 * (n + d), 2 * (n + d)))
-            buf[:n, :n] = self._p()
-            self._buf = buf
-        self._buf[n : n + d, :n] = cross
-        self._buf[:n, n : n + d] = cross.T
-        self._buf[n : n + d, n : n + d] = new
-        self._n = n + d
-
-    def delete(self, keep: np.ndarray) -> None:
-        idx = np.flatnonzero(keep)
-        p = self._p()[np.ix_(idx, idx)].copy()
-        self._n = len(idx)
-        self._p()[:] = p
-
-
-@contextlib.contextmanager
-def covariance_storage(dense: bool) -> Iterator[None]:
-    """EKFs constructed inside the block store P as :class:`DenseCovariance` when ``dense``."""
-    if not dense:
-        yield
-        return
-    with mock.patch.object(ekf_module, "LowerCovariance", DenseCovariance):
-        yield
-
-
-@dataclass(frozen=True)
-class CorridorConfig:
-    """The synthetic corridor world and its sensors.
-
-    Attributes:
-        spacing: distance between landmarks along each wall, m (default 0.5).
-        half_width: distance from the centre line to each wall, m (default 1.5).
-        speed: forward speed, m/s (default 0.5).
-        odo_rate: odometry rate, Hz (default 20).
-        frame_every: a range-bearing frame every this many odometry samples
-            (default 10: 2 Hz, one every 0.25 m).
-        weave_rate: amplitude of the weaving yaw rate, rad/s (default 0.05).
-        weave_period: its period, s (default 20).
-        wheel_base: m (default 0.4); k_wheel: eq. 15 slip constant, m (default 2e-5).
-        max_range: sensor range, m (default 3.0).
-        half_fov: half field of view about body x, rad (default pi/2).
-        sigma_range: range noise, m (default 0.03); sigma_bearing: rad (default 0.01).
-    """
-
-    spacing: float = 0.5
-    half_width: float = 1.5
-    speed: float = 0.5
-    odo_rate: float = 20.0
-    frame_every: int = 10
-    weave_rate: float = 0.05
-    weave_period: float = 20.0
-    wheel_base: float = 0.4
-    k_wheel: float = 2e-5
-    max_range: float = 3.0
-    half_fov: float = math.pi / 2
-    sigma_range: float = 0.03
-    sigma_bearing: float = 0.01
-
-
-def corridor_landmarks(length: float, cfg: CorridorConfig) -> FloatArray:
-    """Landmarks on both walls of a corridor along world x from 0 to ``length``.
-
-    Returns:
-        (L, 2) world positions (x, y), m; ids are the row indices.
-    """
-    xs = np.arange(0.0, length + 1e-9, cfg.spacing)
-    left = np.column_stack([xs, np.full_like(xs, cfg.half_width)])
-    right = np.column_stack([xs, np.full_like(xs, -cfg.half_width)])
-    return np.vstack([left, right])
-
-
-def simulate_corridor(length: float, cfg: CorridorConfig, rng: np.random.Generator,
-                      known_ids: bool = True) -> tuple[LoggedRun, FloatArray]:
-    """A run along the corridor: noisy wheel odometry and range-bearing frames.
-
-    The true wheel travels follow ``v`` and a weaving yaw rate
-    ``w(t) = weave_rate cos(2 pi t / weave_period)`` (``d_r,l = v dt +- b w dt / 2``);
-    the logged travels add ``N(0, k |d|)`` per wheel (paper 1, eq. 15).
-
-    Args:
-        length: corridor length, m.
-        cfg: world and sensor parameters.
-        rng: the random generator (all noise).
-        known_ids: log the true landmark ids (else -1: association by the gate).
-
-    Returns:
-        ``(run, landmarks (L, 2))``; the run has odometry, range-bearing frames and
-        the true trajectory at the odometry times.
-    """
-    lms = corridor_landmarks(length, cfg)
-    dt = 1.0 / cfg.odo_rate
-    n_max = int(math.ceil(1.5 * length / (cfg.speed * dt)))  # weaving lengthens the path
-    t = np.arange(n_max + 1) * dt
-    w = cfg.weave_rate * np.cos(2.0 * math.pi * t / cfg.weave_period)
-    ds = np.full(n_max + 1, cfg.speed * dt)
-    d_right = ds + 0.5 * cfg.wheel_base * w * dt
-    d_left = ds - 0.5 * cfg.wheel_base * w * dt
-    d_right[0] = d_left[0] = 0.0
-    poses = np.zeros((n_max + 1, 3))
-    n = n_max
-    for i in range(1, n_max + 1):
-        poses[i] = diff_drive_step(poses[i - 1], float(d_left[i]), float(d_right[i]),
-                                   cfg.wheel_base)[0]
-        if poses[i, 0] >= length:  # the end of the corridor
-            n = i
-            break
-    t, d_left, d_right, poses = t[: n + 1], d_left[: n + 1], d_right[: n + 1], poses[: n + 1]
-    meas_left = d_left + rng.normal(0.0, 1.0, n + 1) * np.sqrt(cfg.k_wheel * np.abs(d_left))
-    meas_right = d_right + rng.normal(0.0, 1.0, n + 1) * np.sqrt(cfg.k_wheel * np.abs(d_right))
-    rb_t: list[FloatArray] = []
-    rb_id: list[IntArray] = []
-    rb_r: list[FloatArray] = []
-    rb_b: list[FloatArray] = []
-    for i in range(cfg.frame_every, n + 1, cfg.frame_every):
-        x, y, th = poses[i]
-        dx, dy = lms[:, 0] - x, lms[:, 1] - y
-        rng_true = np.hypot(dx, dy)
-        bearing = np.asarray(wrap_angle(np.arctan2(dy, dx) - th), float)
-        seen = np.flatnonzero((rng_true <= cfg.max_range) & (np.abs(bearing) <= cfg.half_fov))
-        k = len(seen)
-        rb_t.append(np.full(k, t[i]))
-        rb_id.append(seen.astype(np.int64) if known_ids else np.full(k, -1, np.int64))
-        rb_r.append(rng_true[seen] + rng.normal(0.0, cfg.sigma_range, k))
-        rb_b.append(np.asarray(wrap_angle(bearing[seen] + rng.normal(0.0, cfg.sigma_bearing, k)),
-                               float))
-    rig = Rig(odometry=OdometryModel(wheel_base=cfg.wheel_base, k_r=cfg.k_wheel, k_l=cfg.k_wheel))
-    run = LoggedRun(
-        path=Path(f"<corridor {length:g} m>"),
-        rig=rig,
-        odometry=OdometryLog(t=t, d_left=meas_left, d_right=meas_right),
-        groundtruth=Trajectory(t=t, poses=poses),
-        range_bearing=RangeBearingLog(t=np.concatenate(rb_t), landmark_id=np.concatenate(rb_id),
-                                      range=np.concatenate(rb_r), bearing=np.concatenate(rb_b)),
-        meta={"source": "bench_scaling corridor", "length_m": length},
-    )
-    return run, lms
 
 
 def landmarks_in_state(backend: Any, n_started: int) -> int:
@@ -308,16 +114,6 @@ def landmarks_in_state(backend: Any, n_started: int) -> int:
     return n_started
 
 
-def dead_reckoning_error(run: LoggedRun) -> float:
-    """End position error of the logged (noisy) odometry alone, m (a reference)."""
-    assert run.groundtruth is not None
-    pose = run.groundtruth.poses[0].copy()
-    b = run.rig.odometry.wheel_base
-    for d_l, d_r in zip(run.odometry.d_left, run.odometry.d_right, strict=True):
-        pose = diff_drive_step(pose, float(d_l), float(d_r), b)[0]
-    return float(np.hypot(*(pose[:2] - run.groundtruth.poses[-1, :2])))
-
-
 def time_one_run(backend: str, run: LoggedRun, config: SlamConfig, tail: float,
                  dense_reference: bool = False) -> dict[str, Any]:
     """Drive one backend over a run, timing every step that carries a frame.
@@ -327,7 +123,7 @@ def time_one_run(backend: str, run: LoggedRun, config: SlamConfig, tail: float,
         run: the run (range-bearing frames).
         config: SLAM config.
         tail: fraction of the frames, at the end of the run, that is summarised.
-        dense_reference: the EKF stores its covariance as :class:`DenseCovariance`.
+        dense_reference: the EKF stores its covariance as ``dense_covariance.DenseCovariance``.
 
     Returns:
         ``status``, ``n_landmarks`` (median in the state over the tail),
