@@ -41,8 +41,10 @@ Modules:
 * :mod:`~lampsam.datasets.rig` -- The sensor rig of a logged run (``rig.yaml``): ceiling camera and wheel odometry.
 * :mod:`~lampsam.datasets.robot_frames` -- What a robot records while it turns in place and while it drives on (paper 2, sec. 4).
 * :mod:`~lampsam.datasets.ros_messages` -- Conversions between ROS messages (as ``rosbags`` builds them) and lampsam arrays.
+* :mod:`~lampsam.datasets.rosbag_build` -- What a bag's streams become (:mod:`lampsam.datasets.rosbag_import`): the rig and the odometry.
 * :mod:`~lampsam.datasets.rosbag_export` -- Write a logged run as a ROS1 ``.bag`` or a ROS2 bag (``rosbags``, no ROS install).
 * :mod:`~lampsam.datasets.rosbag_import` -- Read a ROS1 ``.bag`` or ROS2 bag (``.db3`` / ``.mcap``) into a logged run (``rosbags``).
+* :mod:`~lampsam.datasets.rosbag_streams` -- One pass over a bag's chosen topics (:mod:`lampsam.datasets.rosbag_import`).
 * :mod:`~lampsam.datasets.scan_times` -- Strictly increasing scan times from the time stamps a laser log gives (CARMEN reader).
 * :mod:`~lampsam.datasets.scene3d` -- Three-dimensional world content for the forward RGB-D sensor (paper 2, sec. 2).
 * :mod:`~lampsam.datasets.scene_mesh` -- Meshes and picture textures of a :class:`~lampsam.datasets.scene3d.Scene3D` for the RGB-D renderer.

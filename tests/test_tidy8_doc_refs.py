@@ -269,10 +269,12 @@ def test_code_names_in_docs_resolve(index: Index) -> None:
                 fm = PYPATH.match(x)
                 if fm:
                     n += 1
-                    if not (ROOT / fm.group(1)).exists() and not (ROOT.parent / fm.group(1)).exists():
+                    path = fm.group(1)  # `lampsam/x.py` names the package root, whatever the clone's folder is called
+                    in_pkg = path.removeprefix("lampsam/") if path.startswith("lampsam/") else path
+                    if not (ROOT / in_pkg).exists() and not (ROOT.parent / path).exists():
                         bad.append(f"{where}: no such file")
                     elif fm.group(2):
-                        mod = "lampsam." + fm.group(1).removesuffix(".py").replace("/", ".")
+                        mod = "lampsam." + in_pkg.removesuffix(".py").replace("/", ".")
                         if mod not in index.modules or _walk(
                                 index.modules[mod], fm.group(2).split(".")) is _MISSING:
                             bad.append(f"{where}: no {fm.group(2)} in {fm.group(1)}")
