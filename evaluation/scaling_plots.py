@@ -31,7 +31,8 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 #: Line colours per backend (same as the comparison figures).
-COLORS = {"ekf": "tab:red", "isam2": "tab:blue", "isam2-gtsam": "tab:cyan", "batch": "tab:green"}
+COLORS = {"ekf": "tab:red", "ekf-dense": "tab:orange", "isam2": "tab:blue", "isam2-gtsam": "tab:cyan",
+          "batch": "tab:green"}
 
 
 class ScalingFitError(LampsamError):
