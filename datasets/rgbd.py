@@ -356,7 +356,47 @@ def read_tum_rgbd(
                 "%s: no frame has a pose within %.3f s (poses span %.3f-%.3f s, frames "
                 "%.3f-%.3f s): the sequence is read without poses", gt, max_dt, t_gt[0],
                 t_gt[-1], keep_t[0], keep_t[-1])
+    if poses is not None:
+        check_upright(poses, np.array([0.0, 0.0, 1.0]), gt)
     return RgbdSequence(root, camera, np.array(keep_t), tuple(keep_rgb), tuple(keep_depth), poses)
+
+
+# A camera whose image-down axis lies further than this from the world's down, while it
+# does not look at the floor, is taken for a pose file in another world convention.
+TILT_WARN_DEG = 60.0
+
+
+def check_upright(world_T_camera: FloatArray, world_up: FloatArray, path: Path) -> bool:
+    """Warn when the camera poses look like another world convention than ``world_up``.
+
+    A TUM RGB-D ``groundtruth.txt`` is z-up (motion capture); poses from a visual SLAM
+    system are often in the first camera's frame (y down, z forward). Read as z-up, such a
+    drive maps on the wrong plane (a slambook2 drive written as a TUM folder: a map with no
+    free cell, without a word). Flagged when, on the median frame, the image-down axis
+    (camera ``y``) lies over :data:`TILT_WARN_DEG` from the world's down while the optical
+    axis does not point at the floor (a camera looking down at the floor is left alone).
+
+    Args:
+        world_T_camera: (N, 4, 4) camera poses.
+        world_up: (3,) the world's up direction.
+        path: the pose file, for the warning.
+
+    Returns:
+        True when it warned.
+    """
+    up = np.asarray(world_up, float) / np.linalg.norm(world_up)
+    down_cos = np.clip(world_T_camera[:, :3, 1] @ -up, -1.0, 1.0)
+    tilt = float(np.degrees(np.arccos(np.median(down_cos))))
+    looks_down = float(np.median(world_T_camera[:, :3, 2] @ up)) < -0.5
+    if tilt <= TILT_WARN_DEG or looks_down:
+        return False
+    log.warning("%s: the camera's image-down axis lies %.0f deg from the world's down "
+                "(%s) on the median frame: these poses look like another convention "
+                "(a visual SLAM trajectory in the first camera's frame: y down, z forward) "
+                "than the z-up motion-capture frame a TUM groundtruth.txt is read in; a map "
+                "from them lies on the wrong plane", path, tilt,
+                "-z" if np.allclose(up, [0, 0, 1]) else f"-{up.round(3).tolist()}")
+    return True
 
 
 def read_slambook2(path: str | Path) -> RgbdSequence:

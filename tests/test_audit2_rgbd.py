@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from lampsam.datasets import rgbd
 from lampsam.datasets.rgbd import read_slambook2, read_tum_rgbd
@@ -33,7 +34,7 @@ body_R_camera: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
 
 
 def make_tum(root: Path, depth_m: list[np.ndarray], scale: float = 5000.0, ext: str = "png",
-             gt_times: list[float] | None = None) -> Path:
+             gt_times: list[float] | None = None, quat: str = "0.5 -0.5 0.5 -0.5") -> Path:
     """A TUM RGB-D folder: colour 11 ms after each depth frame, poses 3 ms after."""
     (root / "rgb").mkdir(parents=True)
     (root / "depth").mkdir()
@@ -52,8 +53,12 @@ def make_tum(root: Path, depth_m: list[np.ndarray], scale: float = 5000.0, ext: 
     (root / "kinect.yaml").write_text(YAML.format(scale=scale))
     times = gt_times if gt_times is not None else [100.0 + 0.5 * k for k in range(len(depth_m))]
     (root / "groundtruth.txt").write_text("# t tx ty tz qx qy qz qw\n" + "".join(
-        f"{t + 0.003:.4f} {0.1 * k} 0 0 0 0 0 1\n" for k, t in enumerate(times)))
+        f"{t + 0.003:.4f} {0.1 * k} 0 0.5 {quat}\n" for k, t in enumerate(times)))
     return root
+
+
+# camera upright in a z-up world, looking along x (image down = -z): kinect_sim's mounting
+UPRIGHT = "0.5 -0.5 0.5 -0.5"
 
 
 def ramp(rng: np.random.Generator) -> np.ndarray:
@@ -149,3 +154,25 @@ def test_slambook2_with_fewer_poses_than_frames_says_so(
         seq = read_slambook2(root)
     assert len(seq) == 2
     assert "3.png" in caplog.text and "not used" in caplog.text
+
+
+def test_poses_in_a_camera_convention_are_warned_about(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    rng = np.random.default_rng(6)
+    frames = [ramp(rng) for _ in range(3)]
+    with caplog.at_level(logging.WARNING):
+        read_tum_rgbd(make_tum(tmp_path / "upright", frames))
+        assert caplog.text == ""
+        # pitched 28 deg down toward the floor (z-up, a handheld camera): no warning
+        pitched = Rotation.from_euler("y", 28, degrees=True).as_matrix() @ Rotation.from_quat(
+            [0.5, -0.5, 0.5, -0.5]).as_matrix()
+        q = " ".join(f"{v:.6f}" for v in Rotation.from_matrix(pitched).as_quat())
+        read_tum_rgbd(make_tum(tmp_path / "pitched", frames, quat=q))
+        assert caplog.text == ""
+        # looking straight down at the floor: no warning either
+        read_tum_rgbd(make_tum(tmp_path / "floor", frames, quat="1 0 0 0"))
+        assert caplog.text == ""
+        # identity: the first camera's frame of a visual SLAM trajectory (y down, z forward)
+        read_tum_rgbd(make_tum(tmp_path / "camframe", frames, quat="0 0 0 1"))
+    assert "image-down axis lies 90 deg from the world's down (-z)" in caplog.text
+    assert "camframe/groundtruth.txt" in caplog.text
