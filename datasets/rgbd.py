@@ -371,8 +371,7 @@ def check_upright(world_T_camera: FloatArray, world_up: FloatArray, path: Path) 
 
     A TUM RGB-D ``groundtruth.txt`` is z-up (motion capture); poses from a visual SLAM
     system are often in the first camera's frame (y down, z forward). Read as z-up, such a
-    drive maps on the wrong plane (a slambook2 drive written as a TUM folder: a map with no
-    free cell, without a word). Flagged when, on the median frame, the image-down axis
+    drive maps on the wrong plane. Flagged when, on the median frame, the image-down axis
     (camera ``y``) lies over :data:`TILT_WARN_DEG` from the world's down while the optical
     axis does not point at the floor (a camera looking down at the floor is left alone).
 

@@ -304,10 +304,9 @@ def _read_csv_lines(path: Path, header: list[str]) -> tuple[FloatArray, list[int
 def _check_on_sensor(meas: FloatArray, lines: list[int], rig: StereoRig, path: Path) -> None:
     """Refuse a seen frame whose coordinate lies off the image (|x| > half its width).
 
-    The coordinates are from the principal point (docs/stereo.md); pixel columns
-    (0 .. width) written instead put half of them off the sensor, and the estimators
-    then ran to a wrong answer without a word (7.5 m RMS lateral error on a simulated
-    run shifted by 700 px, against 1.2 m).
+    The coordinates are from the principal point (docs/stereo.md); a coordinate off the
+    image (pixel columns 0 .. width of a target in the image's right half, another
+    origin) is no measurement, and the estimators would run on it to a wrong answer.
     """
     half = rig.half_width_px()
     z = meas[:, 2:6]
