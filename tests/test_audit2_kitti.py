@@ -119,3 +119,18 @@ def test_calibration_of_another_image_size_is_warned(
     with caplog.at_level(logging.WARNING):
         read_kitti_sequence(ok)
     assert caplog.text == ""
+
+
+def test_stereo_experiment_takes_a_kitti_folder_and_refuses_a_bad_one_first(
+        tmp_path: Path) -> None:
+    from lampsam.cli import main
+
+    root = make(tmp_path / "seq", "image_0", "image_1")
+    labelled_calib(root)
+    (root / "image_1" / "000002.png").unlink()
+    # refused before the simulated seeds run (they take seconds), naming the missing image
+    assert main(["stereo-experiment", "--seeds", "1", "--kitti", str(root),
+                 "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out" / "stereo_rms.md").exists()
+    assert main(["stereo-experiment", "--kitti", str(root), "--no-kitti",
+                 "--out", str(tmp_path / "out2")]) == 2
