@@ -392,8 +392,9 @@ def check_upright(world_T_camera: FloatArray, world_up: FloatArray, path: Path) 
     log.warning("%s: the camera's image-down axis lies %.0f deg from the world's down "
                 "(%s) on the median frame: these poses look like another convention "
                 "(a visual SLAM trajectory in the first camera's frame: y down, z forward) "
-                "than the z-up motion-capture frame a TUM groundtruth.txt is read in; a map "
-                "from them lies on the wrong plane", path, tilt,
+                "than the z-up motion-capture frame a TUM groundtruth.txt is read in, or the "
+                "camera looks up at the ceiling; a floor map from them lies on the wrong plane",
+                path, tilt,
                 "-z" if np.allclose(up, [0, 0, 1]) else f"-{up.round(3).tolist()}")
     return True
 
