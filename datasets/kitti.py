@@ -9,7 +9,9 @@ Layout (as in the shared folder ``kitti_stereo_seq1``)::
                      raw ``calib_cam_to_cam.txt`` (P_rect_00/01 grey, P_rect_02/03
                      colour; S_rect_xx, the rectified size, checked against the images)
     poses.txt        one 3x4 [R | t] per frame: the left camera in the frame of the
-                     left camera at frame 0 (KITTI camera axes: x right, y down, z forward)
+                     left camera at frame 0 (KITTI camera axes: x right, y down, z forward);
+                     in the benchmark's own layout (dataset/sequences/NN/) the ground truth
+                     dataset/poses/NN.txt is found without copying
     image_l/*.png    left images, sorted by name (or the KITTI odometry benchmark's
     image_r/*.png    image_0/image_1 grey, image_2/image_3 colour); right images, same names
 
@@ -206,11 +208,30 @@ def read_kitti_sequence(path: Path) -> KittiStereoSequence:
                     "the %dx%d images: a calibration for another image size (another "
                     "sequence, or images resized)? The poses will be wrong", calib_path, cx, cy,
                     w, h)
-    poses = _read_matrices(path / "poses.txt")
+    pose_path = _pose_file(path)
+    poses = _read_matrices(pose_path)
     if len(poses) != len(left):
-        raise KittiError(f"{len(poses)} poses for {len(left)} image pairs", path / "poses.txt")
+        raise KittiError(f"{len(poses)} poses for {len(left)} image pairs", pose_path)
     log.info("KITTI sequence %s: %d pairs %dx%d", path, len(left), w, h)
     return KittiStereoSequence(path, p_left, p_right, poses, left, right, w, h)
+
+
+def _pose_file(path: Path) -> Path:
+    """``poses.txt`` in the folder, else the odometry benchmark's ``../../poses/NN.txt``.
+
+    The benchmark keeps the ground truth apart (``dataset/sequences/NN/`` and
+    ``dataset/poses/NN.txt``), and only for sequences 00-10.
+    """
+    own = path / "poses.txt"
+    if own.exists():
+        return own
+    shared = path.parent.parent / "poses" / f"{path.name}.txt"
+    if path.parent.name == "sequences" and shared.is_file():
+        log.info("%s: ground truth from %s", path, shared)
+        return shared
+    raise KittiError("no poses.txt: the check scores against ground-truth poses (the odometry "
+                     "benchmark has them for sequences 00-10 only, as dataset/poses/NN.txt; "
+                     "copy it here as poses.txt)", own)
 
 
 def _image_folders(path: Path) -> tuple[Path, Path]:

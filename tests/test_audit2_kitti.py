@@ -134,3 +134,17 @@ def test_stereo_experiment_takes_a_kitti_folder_and_refuses_a_bad_one_first(
     assert not (tmp_path / "out" / "stereo_rms.md").exists()
     assert main(["stereo-experiment", "--kitti", str(root), "--no-kitti",
                  "--out", str(tmp_path / "out2")]) == 2
+
+
+def test_benchmark_layout_finds_its_poses_and_a_missing_pose_file_says_why(
+        tmp_path: Path) -> None:
+    seq = make(tmp_path / "dataset" / "sequences" / "07", "image_0", "image_1")
+    labelled_calib(seq)
+    poses = seq / "poses.txt"
+    (tmp_path / "dataset" / "poses").mkdir()
+    poses.rename(tmp_path / "dataset" / "poses" / "07.txt")
+    assert len(read_kitti_sequence(seq)) == 3
+    (tmp_path / "dataset" / "poses" / "07.txt").unlink()  # sequences 11-21: no ground truth
+    with pytest.raises(KittiError, match=r"07/poses.txt: no poses.txt: the check scores against "
+                                         r"ground-truth poses .*sequences 00-10"):
+        read_kitti_sequence(seq)
