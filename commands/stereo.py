@@ -88,8 +88,16 @@ def _cmd_stereo_experiment(args: argparse.Namespace) -> int:
     from lampsam.datasets.paths import shared_dataset
     from lampsam.evaluation.stereo_experiment import stereo_experiment
 
+    if args.kitti and args.no_kitti:
+        raise LampsamError("--kitti and --no-kitti: give one")
     out = output_dir(args)  # before the seeds run: a non-empty --out needs --force
-    kitti = None if args.no_kitti else shared_dataset("kitti_stereo_seq1")
+    if args.kitti:
+        from lampsam.datasets.kitti import read_kitti_sequence
+
+        kitti: Path | None = Path(args.kitti)
+        read_kitti_sequence(Path(args.kitti))  # a bad folder is refused before the seeds run
+    else:
+        kitti = None if args.no_kitti else shared_dataset("kitti_stereo_seq1")
     if kitti is None and not args.no_kitti:
         log.warning("shared dataset kitti_stereo_seq1 not found (set LAMPSAM_DATA): "
                     "the KITTI check is skipped")
@@ -103,5 +111,9 @@ def add_stereo_experiment(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output directory (stereo_rms.md/.json, figures)")
     p.add_argument("--seeds", type=positive_int, default=20, help="seeds per scenario (default 20)")
     p.add_argument("--no-kitti", action="store_true", help="skip the KITTI real-data check")
+    p.add_argument("--kitti", default=None, metavar="DIR",
+                   help="KITTI stereo sequence for the real-data check (default: the shared "
+                        "kitti_stereo_seq1; image_l/image_r or the odometry benchmark's "
+                        "image_0..3 with calib.txt, or calib_cam_to_cam.txt, and poses.txt)")
     add_force(p)
     p.set_defaults(func=_cmd_stereo_experiment)

@@ -38,7 +38,7 @@ from lampsam.datasets.logrun import (
     Trajectory,
     write_run,
 )
-from lampsam.datasets.textio import data_lines
+from lampsam.datasets.textio import open_text
 from lampsam.errors import DatasetError
 
 log = logging.getLogger(__name__)
@@ -81,22 +81,45 @@ class MrclamData:
     n_dropped_unknown: int = 0
 
 
-def _read_table(path: Path, ncols: int, monotonic_col: int | None = 0) -> FloatArray:
+def _read_table(path: Path, ncols: int, monotonic_col: int | None = 0,
+                unique_time: bool = False) -> FloatArray:
     """Read a whitespace table; every bad line raises a DatasetError naming it.
+
+    The file's last line, when it is cut short (too few columns and no newline at the
+    end: a logger stopped mid-write), is skipped with a warning naming it. With
+    ``unique_time``, a time stamp repeated with different values keeps its first row,
+    with one warning naming the first such line; an exact repeat is dropped silently.
 
     Args:
         path: the file.
         ncols: number of columns expected.
         monotonic_col: column whose values must not decrease (time), or None.
+        unique_time: one row per time (odometry, ground truth; not measurements, where
+            several landmarks share a time).
 
     Returns:
         (R, ncols) array.
     """
     rows: list[list[float]] = []
+    lines: list[int] = []
+    raw_lines: list[tuple[int, str]] = []
+    with open_text(path) as fh:
+        raw_lines = list(enumerate(fh, start=1))
+    ends_cut = bool(raw_lines) and not raw_lines[-1][1].endswith("\n")
+    last_data = max((n for n, r in raw_lines if r.strip() and not r.strip().startswith("#")),
+                    default=0)
     last = -math.inf
-    for lineno, text in data_lines(path):
+    repeated: list[int] = []
+    for lineno, raw in raw_lines:
+        text = raw.strip()
+        if not text or text.startswith("#"):
+            continue
         parts = text.split()
         if len(parts) != ncols:
+            if lineno == last_data and ends_cut and len(parts) < ncols:
+                log.warning("%s:%d: the last line is cut short (%d of %d columns, no newline): "
+                            "skipped", path, lineno, len(parts), ncols)
+                continue
             raise DatasetError(f"expected {ncols} columns, got {len(parts)}", path, lineno)
         try:
             vals = [float(p) for p in parts]
@@ -107,8 +130,16 @@ def _read_table(path: Path, ncols: int, monotonic_col: int | None = 0) -> FloatA
         if monotonic_col is not None:
             if vals[monotonic_col] < last:
                 raise DatasetError("time goes backwards", path, lineno)
+            if unique_time and vals[monotonic_col] == last:
+                if vals != rows[-1]:
+                    repeated.append(lineno)
+                continue
             last = vals[monotonic_col]
         rows.append(vals)
+        lines.append(lineno)
+    if repeated:
+        log.warning("%s:%d: %d time stamps repeated with different values: the first row of "
+                    "each is kept", path, repeated[0], len(repeated))
     if not rows:
         raise DatasetError("no records", path)
     return np.asarray(rows, dtype=float)
@@ -133,6 +164,12 @@ def mrclam_files(root: Path, prefix: str = "ds0_RS_", robot: int = ORIGINAL_ROBO
                 "barcodes": root / f"{prefix}Barcodes.dat"}
     if (root / f"Robot{robot}_Odometry.dat").exists():
         log.info("%s: MRCLAM dataset layout, robot %d", root, robot)
+        others = sorted(int(f.name[5:-13]) for f in root.glob("Robot*_Odometry.dat")
+                        if f.name[5:-13].isdigit() and int(f.name[5:-13]) != robot)
+        if others:
+            log.warning("%s: robot %d is read; robots %s (Robot<i>_*.dat) are not used "
+                        "(one robot a run: from Python, mrclam_run(folder, robot=i))", root,
+                        robot, ", ".join(map(str, others)))
         return {"control": root / f"Robot{robot}_Odometry.dat",
                 "measurement": root / f"Robot{robot}_Measurement.dat",
                 "groundtruth": root / f"Robot{robot}_Groundtruth.dat",
@@ -143,12 +180,14 @@ def mrclam_files(root: Path, prefix: str = "ds0_RS_", robot: int = ORIGINAL_ROBO
                        f"Robot{robot}_Odometry.dat (MRCLAM_DatasetN as distributed)", root)
 
 
-def read_mrclam(root: Path, prefix: str = "ds0_RS_") -> MrclamData:
+def read_mrclam(root: Path, prefix: str = "ds0_RS_", robot: int = ORIGINAL_ROBOT) -> MrclamData:
     """Read one MRCLAM robot folder.
 
     Args:
         root: folder holding ``<prefix>Control.dat`` etc., or ``Robot1_Odometry.dat`` etc.
         prefix: file prefix (default the 50 Hz resampled ``ds0_RS_``).
+        robot: the robot read in the dataset's own layout (1-5; the other robots'
+            files are named in a warning and not used).
 
     Returns:
         The parsed data with other robots' measurements dropped.
@@ -157,10 +196,17 @@ def read_mrclam(root: Path, prefix: str = "ds0_RS_") -> MrclamData:
         DatasetError: a missing file, a malformed line, NaN, time going backwards.
     """
     root = Path(root)
-    files = mrclam_files(root, prefix)
-    control = _read_table(files["control"], 3)
-    meas = _read_table(files["measurement"], 4)
-    gt = _read_table(files["groundtruth"], 4)
+    files = mrclam_files(root, prefix, robot)
+    control = _read_table(files["control"], 3, unique_time=True)
+    try:
+        meas = _read_table(files["measurement"], 4)
+    except DatasetError as exc:
+        if "no records" in str(exc):
+            raise DatasetError("no measurements (no record in the file): this robot saw no "
+                               "landmark, so there is nothing to map", files["measurement"]
+                               ) from None
+        raise
+    gt = _read_table(files["groundtruth"], 4, unique_time=True)
     lms = _read_table(files["landmarks"], 5, monotonic_col=None)
     codes = _read_table(files["barcodes"], 2, monotonic_col=None)
 
@@ -171,7 +217,15 @@ def read_mrclam(root: Path, prefix: str = "ds0_RS_") -> MrclamData:
     is_robot = np.isin(ids, ROBOT_IDS)
     keep = np.isin(ids, list(known))
     n_robot = int(is_robot.sum())
-    n_unknown = int((~keep & ~is_robot).sum())
+    unknown = ~keep & ~is_robot
+    n_unknown = int(unknown.sum())
+    if n_unknown:
+        codes_seen, counts = np.unique(np.round(meas[unknown, 1]).astype(np.int64),
+                                       return_counts=True)
+        log.warning("%s: %d of %d measurements are of barcodes in neither %s nor %s (%s): "
+                    "dropped", files["measurement"], n_unknown, len(meas),
+                    files["barcodes"].name, files["landmarks"].name,
+                    ", ".join(f"{c}: {n}" for c, n in list(zip(codes_seen, counts, strict=True))[:8]))
     log.info(
         "%s: %d measurements, dropped %d of other robots and %d of unknown barcodes",
         root, len(meas), n_robot, n_unknown,
@@ -226,6 +280,7 @@ def mrclam_run(
     k_wheel: float = MRCLAM_WHEEL_K,
     known_ids: bool = True,
     duration: float | None = None,
+    robot: int = ORIGINAL_ROBOT,
 ) -> LoggedRun:
     """Serve MRCLAM as an in-memory :class:`~lampsam.datasets.logrun.LoggedRun`.
 
@@ -236,13 +291,14 @@ def mrclam_run(
         known_ids: keep the landmark ids (known association); False writes -1
             (association by the gate alone).
         duration: keep only the first ``duration`` seconds (None: all).
+        robot: the robot, in the dataset's own layout (:func:`read_mrclam`).
 
     Returns:
         A run with odometry, range-bearing measurements and Vicon ground truth (no
         images; the landmark truth is in :func:`read_mrclam`'s ``landmark_xy``, since
         the run format's landmark table has no planar type).
     """
-    data = read_mrclam(root)
+    data = read_mrclam(root, robot=robot)
     t, d_left, d_right = wheel_travel(data.control_t, data.v, data.w, wheel_base)
     meas_keep = np.ones(len(data.meas_t), dtype=bool)
     gt_keep = np.ones(len(data.gt_t), dtype=bool)

@@ -5,7 +5,8 @@ TUM benchmark's)::
 
     rgb.txt, depth.txt   "timestamp filename" lines, '#' comments
     rgb/*.png            8-bit colour
-    depth/*.png          16-bit depth, metres = value / depth_scale, 0 = no depth
+    depth/*.png          16-bit depth, metres = value / depth_scale, 0 = no depth; or a
+                         32-bit float image (TIFF) in metres, NaN / 0 = no depth
     groundtruth.txt      optional world_T_camera, TUM "t tx ty tz qx qy qz qw"
     kinect.yaml          optional intrinsics + depth_scale (lampsam runs); without it
                          the camera must be given
@@ -125,12 +126,78 @@ class RgbdSequence:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise DatasetError("depth image missing or unreadable", path)
+        if img.dtype == np.float32 and img.ndim == 2:
+            img = depth_metres_to_u16(img, self.camera.depth_scale, path)
         if img.dtype != np.uint16 or img.ndim != 2:
             raise DatasetError(
-                f"depth image must be 16-bit single channel, got {img.dtype} {img.shape}", path
+                f"depth image must be 16-bit single channel (or 32-bit float metres), got "
+                f"{img.dtype} {img.shape}", path
             )
         _check_shape(img, self.camera, path)
+        check_depth_range(img, self.camera, path)
         return np.asarray(img, dtype=np.uint16)
+
+
+# Folders warned about a depth range that does not fit the camera, and files warned about
+# holding no depth (one warning each: a map build reads each frame more than once).
+_RANGE_WARNED: set[Path] = set()
+_EMPTY_WARNED: set[Path] = set()
+
+# Below this share of the present depth pixels inside [min_depth, max_depth] the
+# depth_scale is suspected (a TUM folder read at 1000 instead of 5000 puts ~all of it beyond).
+SUSPECT_IN_RANGE = 0.2
+
+
+def depth_metres_to_u16(depth_m: np.ndarray, depth_scale: float, path: Path) -> np.ndarray:
+    """A 32-bit float depth image in metres as the camera's 16-bit units.
+
+    Args:
+        depth_m: (H, W) float32 depth, metres; NaN, inf and values <= 0 mean no depth.
+        depth_scale: stored value per metre of the result.
+        path: the file, for the warning.
+
+    Returns:
+        (H, W) uint16, ``round(depth_m * depth_scale)``, 0 where there is no depth;
+        values beyond 65535 (over 13.1 m at scale 5000) are set to 0 with a warning.
+    """
+    d = np.asarray(depth_m, dtype=np.float64)
+    ok = np.isfinite(d) & (d > 0)
+    scaled = np.where(ok, np.rint(np.where(ok, d, 0.0) * depth_scale), 0.0)
+    over = scaled > 65535
+    if np.any(over):
+        log.warning("%s: %d float depth pixels beyond %.1f m do not fit 16 bits at depth_scale "
+                    "%g: read as no depth", path, int(over.sum()), 65535 / depth_scale,
+                    depth_scale)
+        scaled[over] = 0
+    return scaled.astype(np.uint16)
+
+
+def check_depth_range(depth: np.ndarray, camera: RgbdCamera, path: Path) -> None:
+    """Warn when a depth frame holds no depth, or hardly any inside the camera's range.
+
+    An all-zero frame is warned about once per file (it adds nothing to a map); a frame whose
+    present pixels lie mostly outside ``[min_depth, max_depth]`` once per folder (the
+    usual cause is a wrong ``depth_scale``: TUM stores 5000 per metre, a RealSense or
+    slambook2 1000).
+    """
+    present = depth > 0
+    n = int(present.sum())
+    if n == 0:
+        if path in _EMPTY_WARNED:
+            return
+        _EMPTY_WARNED.add(path)
+        log.warning("%s: the depth image holds no depth (every pixel 0): the frame adds nothing",
+                    path)
+        return
+    z = depth[present].astype(np.float64) / camera.depth_scale
+    inside = float(np.mean((z >= camera.min_depth) & (z <= camera.max_depth)))
+    if inside < SUSPECT_IN_RANGE and path.parent not in _RANGE_WARNED:
+        _RANGE_WARNED.add(path.parent)
+        log.warning(
+            "%s: only %.0f %% of the depth pixels lie within %.1f-%.1f m at depth_scale %g "
+            "(median %.2f m): is depth_scale right (TUM 5000, RealSense / slambook2 1000 per "
+            "metre)? Pixels outside the range are not used", path, 100 * inside,
+            camera.min_depth, camera.max_depth, camera.depth_scale, float(np.median(z)))
 
 
 def _check_shape(img: np.ndarray, camera: RgbdCamera, path: Path) -> None:
@@ -212,7 +279,9 @@ def read_tum_rgbd(
     """Read a TUM RGB-D directory.
 
     Colour frames are associated to depth frames by nearest time stamp (within
-    ``max_dt``); unmatched depth frames are dropped with a logged warning.
+    ``max_dt``); unmatched depth frames are dropped with a logged warning, and so are
+    frames without a ``groundtruth.txt`` pose within ``max_dt`` when some others have one
+    (when none has, the sequence is read without poses, with a warning).
 
     Args:
         path: the directory with ``rgb.txt`` and ``depth.txt``.
@@ -267,9 +336,67 @@ def read_tum_rgbd(
         idx = np.clip(idx, 0, len(t_gt) - 1)
         prev = np.clip(idx - 1, 0, len(t_gt) - 1)
         best = np.where(np.abs(t_gt[prev] - keep_t) < np.abs(t_gt[idx] - keep_t), prev, idx)
-        if np.all(np.abs(t_gt[best] - keep_t) <= max_dt):
+        posed = np.abs(t_gt[best] - keep_t) <= max_dt
+        if np.all(posed):
             poses = T_gt[best]
+        elif np.any(posed):
+            # The TUM benchmark's motion capture often starts after the camera: keep the
+            # frames that have a pose rather than losing every pose.
+            log.warning(
+                "%s: %d of %d frames have no pose within %.3f s (poses span %.3f-%.3f s, "
+                "frames %.3f-%.3f s): those frames are dropped", gt, int((~posed).sum()),
+                len(keep_t), max_dt, t_gt[0], t_gt[-1], keep_t[0], keep_t[-1])
+            keep = np.flatnonzero(posed)
+            keep_t = [keep_t[k] for k in keep]
+            keep_rgb = [keep_rgb[k] for k in keep]
+            keep_depth = [keep_depth[k] for k in keep]
+            poses = T_gt[best[keep]]
+        else:
+            log.warning(
+                "%s: no frame has a pose within %.3f s (poses span %.3f-%.3f s, frames "
+                "%.3f-%.3f s): the sequence is read without poses", gt, max_dt, t_gt[0],
+                t_gt[-1], keep_t[0], keep_t[-1])
+    if poses is not None:
+        check_upright(poses, np.array([0.0, 0.0, 1.0]), gt)
     return RgbdSequence(root, camera, np.array(keep_t), tuple(keep_rgb), tuple(keep_depth), poses)
+
+
+# A camera whose image-down axis lies further than this from the world's down, while it
+# does not look at the floor, is taken for a pose file in another world convention.
+TILT_WARN_DEG = 60.0
+
+
+def check_upright(world_T_camera: FloatArray, world_up: FloatArray, path: Path) -> bool:
+    """Warn when the camera poses look like another world convention than ``world_up``.
+
+    A TUM RGB-D ``groundtruth.txt`` is z-up (motion capture); poses from a visual SLAM
+    system are often in the first camera's frame (y down, z forward). Read as z-up, such a
+    drive maps on the wrong plane. Flagged when, on the median frame, the image-down axis
+    (camera ``y``) lies over :data:`TILT_WARN_DEG` from the world's down while the optical
+    axis does not point at the floor (a camera looking down at the floor is left alone).
+
+    Args:
+        world_T_camera: (N, 4, 4) camera poses.
+        world_up: (3,) the world's up direction.
+        path: the pose file, for the warning.
+
+    Returns:
+        True when it warned.
+    """
+    up = np.asarray(world_up, float) / np.linalg.norm(world_up)
+    down_cos = np.clip(world_T_camera[:, :3, 1] @ -up, -1.0, 1.0)
+    tilt = float(np.degrees(np.arccos(np.median(down_cos))))
+    looks_down = float(np.median(world_T_camera[:, :3, 2] @ up)) < -0.5
+    if tilt <= TILT_WARN_DEG or looks_down:
+        return False
+    log.warning("%s: the camera's image-down axis lies %.0f deg from the world's down "
+                "(%s) on the median frame: these poses look like another convention "
+                "(a visual SLAM trajectory in the first camera's frame: y down, z forward) "
+                "than the z-up motion-capture frame a TUM groundtruth.txt is read in, or the "
+                "camera looks up at the ceiling; a floor map from them lies on the wrong plane",
+                path, tilt,
+                "-z" if np.allclose(up, [0, 0, 1]) else f"-{up.round(3).tolist()}")
+    return True
 
 
 def read_slambook2(path: str | Path) -> RgbdSequence:
@@ -302,6 +429,11 @@ def read_slambook2(path: str | Path) -> RgbdSequence:
     if not poses:
         raise DatasetError("no poses (empty file)", pose_file)
     n = len(poses)
+    unposed = sorted(f.name for f in (root / "color").glob("*.png")
+                     if f.stem.isdigit() and int(f.stem) > n)
+    if unposed:
+        log.warning("%s: %d poses, so %d colour frames beyond %d.png (%s) are not used",
+                    pose_file, n, len(unposed), n, ", ".join(unposed[:5]))
     rgb = tuple(root / "color" / f"{i + 1}.png" for i in range(n))
     depth = tuple(root / "depth" / f"{i + 1}.pgm" for i in range(n))
     for f in rgb + depth:

@@ -286,6 +286,11 @@ def _read_csv(path: Path, header: list[str]) -> FloatArray:
     directory, a BOM and blank / ``#`` lines are handled as in every other reader, and
     the line named for a time that does not increase is the file's own line.
     """
+    return _read_csv_lines(path, header)[0]
+
+
+def _read_csv_lines(path: Path, header: list[str]) -> tuple[FloatArray, list[int]]:
+    """:func:`_read_csv` and each row's line number in the file."""
     rows, lines = read_csv(path, header, [parse_float] * len(header))
     out = np.array(rows, dtype=float)
     bad = np.flatnonzero(np.diff(out[:, 0]) <= 0)
@@ -293,7 +298,28 @@ def _read_csv(path: Path, header: list[str]) -> FloatArray:
         k = int(bad[0]) + 1
         raise DatasetError(f"time does not increase ({out[k, 0]:g} after {out[k - 1, 0]:g})",
                            path, lines[k])
-    return out
+    return out, list(lines)
+
+
+def _check_on_sensor(meas: FloatArray, lines: list[int], rig: StereoRig, path: Path) -> None:
+    """Refuse a seen frame whose coordinate lies off the image (|x| > half its width).
+
+    The coordinates are from the principal point (docs/stereo.md); a coordinate off the
+    image (pixel columns 0 .. width of a target in the image's right half, another
+    origin) is no measurement, and the estimators would run on it to a wrong answer.
+    """
+    half = rig.half_width_px()
+    z = meas[:, 2:6]
+    off = (meas[:, 1] > 0.5) & np.any(np.abs(z) > half + 1e-9, axis=1)
+    if np.any(off):
+        k = int(np.flatnonzero(off)[0])
+        j = int(np.argmax(np.abs(z[k]) > half + 1e-9))
+        col = ["xl1", "xr1", "xl2", "xr2"][j]
+        raise DatasetError(
+            f"column {col!r}: {z[k, j]:g} px lies off the "
+            f"{rig.width_px}-px image ({int(off.sum())} seen frames like it): coordinates are "
+            f"measured from the principal point, positive to the left, within +-{half:g} px "
+            "(docs/stereo.md), not pixel columns", path, lines[k])
 
 
 def _run_description(meta_path: Path) -> tuple[dict[str, Any], StereoRig, StereoNoise, FloatArray]:
@@ -337,7 +363,9 @@ def read_stereo_run(path: Path) -> StereoRun:
         raise DatasetError(f"not a stereo run directory (no {RUN_YAML})", meta_path)
     meta, rig, noise, points = _run_description(meta_path)
     odo = _read_csv(path / ODOMETRY_CSV, ["t", "v", "omega"])
-    meas = _read_csv(path / MEASUREMENTS_CSV, ["t", "seen", "xl1", "xr1", "xl2", "xr2"])
+    meas, meas_lines = _read_csv_lines(path / MEASUREMENTS_CSV,
+                                       ["t", "seen", "xl1", "xr1", "xl2", "xr2"])
+    _check_on_sensor(meas, meas_lines, rig, path / MEASUREMENTS_CSV)
     if len(odo) != len(meas) or not np.allclose(odo[:, 0], meas[:, 0], atol=1e-6):
         raise DatasetError(f"odometry and measurement times differ ({ODOMETRY_CSV}: {len(odo)} "
                            f"rows, {MEASUREMENTS_CSV}: {len(meas)}; every frame needs one row "

@@ -41,6 +41,7 @@ from lampsam.frontend.resolution import (
     detect_photo_lamps,
     lamp_config_for_width,
     resize_width,
+    small_photo_warning,
 )
 from lampsam.safe_io import atomic_path
 
@@ -121,6 +122,9 @@ def load_photo(path: str | Path, size: tuple[int, int] | None) -> ImageU8:
     read = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if read is None:
         raise LampsamError(f"{path}: cannot read the image (missing or not an image)")
+    small = small_photo_warning(read.shape[1], read.shape[0])
+    if small:
+        log.warning("%s: %s", path, small)
     if jpeg_cut_short(Path(path)):
         log.warning("%s: the JPEG is cut short (no end-of-image marker): its lower part is "
                     "decoded grey and its lamps there are missed", path)

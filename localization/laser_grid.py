@@ -87,8 +87,8 @@ def build_checked_laser_grid(
     Args:
         scans: the scans.
         poses: (N, 3) laser poses, metres/rad.
-        config: parameters; ``consistency_chunks`` (0: no check) and
-            ``min_consistency``.
+        config: parameters; ``consistency_chunks`` (0: no check),
+            ``min_consistency`` and ``min_chunk_consistency``.
         check: False skips the check whatever the config says.
 
     Returns:
@@ -129,5 +129,6 @@ def build_checked_laser_grid(
     if check:
         hits = [np.concatenate(h) if h else np.zeros(0, np.int64) for h in chunk_hits]
         consistency = cross_chunk_consistency(chunk_grids, hits, config.log_odds,
-                                              config.min_consistency)
+                                              config.min_consistency,
+                                              config.min_chunk_consistency)
     return grid, len(keys), consistency

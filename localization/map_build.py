@@ -232,14 +232,12 @@ def laser_layers(
         grid_info["scan_consistency"] = consistency.as_dict()
         if consistency.poor:
             log.warning(
-                "%s: the scans disagree with each other at the %s poses: %.0f %% of the hits "
-                "checked lie on walls the rest of the log saw (below %.0f %%): the poses look "
+                "%s: the scans disagree with each other at the %s poses: %s: the poses look "
                 "like raw odometry, not corrected ones, or the beam angles are wrong (a FLASER "
                 "scanner that is not 180 deg needs PARAM laser_front_laser_fov), so this map "
                 "shows walls twice and localization on it will be wrong; give corrected poses "
                 "(--poses slam:TUM) or a '-corrected' log (manifest: grid.scan_consistency)",
-                log_path, "log's" if pose_kind != "slam" else "SLAM", 100 * consistency.score,
-                100 * consistency.threshold)
+                log_path, "log's" if pose_kind != "slam" else "SLAM", consistency.reason())
     return Layers(grid, config.laser.log_odds, grid_info, n_used, timings)
 
 

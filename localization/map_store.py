@@ -227,11 +227,12 @@ def load_env_map(path: str | Path) -> EnvironmentMap:
     layers = manifest.get("layers", {})
     consistency = layers.get("grid", {}).get("scan_consistency") or {}
     if isinstance(consistency, dict) and consistency.get("poor") is True:
-        log.warning("%s: this map was built from laser scans whose poses disagree (%.0f %% of "
-                    "the hits checked on walls the rest of the log saw, below %.0f %%): its "
-                    "walls may be doubled and localization on it is unreliable", path,
-                    100 * float(consistency.get("score") or 0.0),
-                    100 * float(consistency.get("threshold") or 0.0))
+        why = consistency.get("reason") or (  # maps written before the worst-chunk rule
+            f"{100 * float(consistency.get('score') or 0.0):.0f} % of the hits checked on "
+            f"walls the rest of the log saw, below "
+            f"{100 * float(consistency.get('threshold') or 0.0):.0f} %")
+        log.warning("%s: this map was built from laser scans whose poses disagree (%s): its "
+                    "walls may be doubled and localization on it is unreliable", path, why)
     grid = load_map_server(path / layers.get("grid", {}).get("file", f"{GRID_STEM}.yaml"))
     spatial = (
         SpatialFeatureMap.load(path / layers["spatial_features"]["file"])

@@ -244,7 +244,7 @@ def test_a_jpeg_cut_short_is_decoded_with_a_warning(tmp_path: Path,
     from lampsam.evaluation.gallery import jpeg_cut_short, load_photo
 
     rng = np.random.default_rng(7)
-    img = np.clip(rng.normal(128, 40, (120, 160)), 0, 255).astype(np.uint8)
+    img = np.clip(rng.normal(128, 40, (180, 240)), 0, 255).astype(np.uint8)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])
     assert ok
     whole, cut = tmp_path / "whole.jpg", tmp_path / "cut.jpg"
@@ -252,9 +252,9 @@ def test_a_jpeg_cut_short_is_decoded_with_a_warning(tmp_path: Path,
     cut.write_bytes(buf.tobytes()[: len(buf) // 2])
     assert not jpeg_cut_short(whole) and jpeg_cut_short(cut)
     with caplog.at_level("WARNING"):
-        assert load_photo(whole, None).shape == (120, 160)
+        assert load_photo(whole, None).shape == (180, 240)
         assert not caplog.records
-        assert load_photo(cut, None).shape == (120, 160)
+        assert load_photo(cut, None).shape == (180, 240)
     assert any("cut short" in r.getMessage() and "cut.jpg" in r.getMessage()
                for r in caplog.records)
 
