@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from lampsam.arrays import FloatArray, IntArray
-from lampsam.localization.grid import LogOddsConfig
+from lampsam.localization.grid import LogOddsConfig, free_cells, occupied_cells
 
 
 @dataclass(frozen=True)
@@ -109,15 +109,13 @@ def cross_chunk_consistency(chunk_log_odds: list[FloatArray], chunk_hits: list[I
         The :class:`ScanConsistency`.
     """
     total = np.sum(chunk_log_odds, axis=0)
-    occ_l = math.log(log_odds.occupied_thresh / (1.0 - log_odds.occupied_thresh))
-    free_l = math.log(log_odds.free_thresh / (1.0 - log_odds.free_thresh))
     kernel = np.ones((3, 3), np.uint8)
     per: list[float] = []
     checked = consistent = n_hits = 0
     for lo_k, hits in zip(chunk_log_odds, chunk_hits, strict=True):
         other = np.clip(total - lo_k, log_odds.l_min, log_odds.l_max)
-        near_occ = cv2.dilate((other > occ_l).astype(np.uint8), kernel).astype(bool).ravel()
-        seen = near_occ | (other < free_l).ravel()
+        near_occ = cv2.dilate(occupied_cells(other, log_odds).astype(np.uint8), kernel).astype(bool).ravel()
+        seen = near_occ | free_cells(other, log_odds).ravel()
         k_seen = seen[hits]
         k_ok = near_occ[hits] & k_seen
         n_seen, n_ok = int(k_seen.sum()), int(k_ok.sum())
