@@ -171,6 +171,15 @@ class ReassociationConfig:
             labels; a candidate whose sightings fit worse than stated is scored at its
             own noise scale (default True: with it ``C`` no longer takes the alias
             test's split map on MRCLAM; False: ``C`` alone, docs/noids-aliasing.md).
+        online_final_held_new_unexplained: with ``online_final_held_new_landmarks``, only
+            the left-out sightings that no mapped landmark explains (none within ``c_new``
+            at the final map) are clustered into new landmarks (default True; False: all
+            of them, session 17's rule, which mapped trees twice on the held-out loop).
+        online_final_held_new_merge: with ``online_final_held_new_landmarks``, the final
+            pass's merges and single moves (:mod:`lampsam.backend.final_moves`) run again
+            after the placement, each kept only if ``C`` falls, so a tree mapped twice is
+            merged back (default True). docs/noids-offline.md, "Victoria Park: the
+            reference and the trees never mapped".
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -201,6 +210,9 @@ class ReassociationConfig:
     online_final_held_mixture: bool = True
     online_final_held_new_landmarks: bool = False
     online_label_entropy: bool = True
+    # vpgap
+    online_final_held_new_unexplained: bool = True
+    online_final_held_new_merge: bool = True
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""
