@@ -180,6 +180,12 @@ class ReassociationConfig:
             after the placement, each kept only if ``C`` falls, so a tree mapped twice is
             merged back (default True). docs/noids-offline.md, "Victoria Park: the
             reference and the trees never mapped".
+        online_final_held_residual_scale: with ``online_final_held_mixture``, each
+            left-out sighting's choice among its candidate landmarks and "none" is made at
+            the noise the final solve's residuals show: the threshold and the "none" cost
+            are ``c_new`` times the sightings' chi-square per dof, at most 1 (default
+            False; Victoria Park's sightings fit at 0.09 of their stated variance, and its
+            wrong placements are of trees 3-10 m from the landmark they were put on).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -213,6 +219,7 @@ class ReassociationConfig:
     # vpgap
     online_final_held_new_unexplained: bool = True
     online_final_held_new_merge: bool = True
+    online_final_held_residual_scale: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

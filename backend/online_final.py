@@ -212,7 +212,10 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     then with ``online_final_held_new_merge`` the final pass's merges and single moves,
     :func:`lampsam.backend.noids_offline.final_pass`, so that a tree mapped twice is
     merged back), kept only if the description length ``C`` fell; if GTSAM fails on the
-    mixture graph, ``run`` as it is (logged).
+    mixture graph, ``run`` as it is (logged). With ``online_final_held_residual_scale``
+    the candidates' threshold and the "none" cost are ``c_new`` times the sightings'
+    chi-square per dof at ``run``'s optimum (at most 1): the choice is made at the noise
+    the residuals show, the factors keep the stated noise.
 
     Args:
         g: the log; cfg: the final solve's config (:func:`final_config`); run: its answer.
@@ -224,6 +227,11 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     c_new = cfg.association.new_threshold(2)
     rc = cfg.reassociation
     gate = cfg.association.gate(2) if rc.online_final_held_new_landmarks else None
+    if rc.online_final_held_residual_scale:  # choose at the noise the residuals show
+        s2 = min(1.0, run.chi2_sightings / max(run.dof_sightings, 1))
+        c_new, gate = c_new * s2, None if gate is None else gate * s2
+        log.info("placing the left-out sightings at the sightings' residual variance "
+                 "factor %.3f (threshold %.1f)", s2, c_new)
     try:
         placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate,
                             rc.online_final_held_new_unexplained)

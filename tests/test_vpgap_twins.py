@@ -3,6 +3,7 @@ landmark explains (backend/held_placement.py, ``online_final_held_new_unexplaine
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import gtsam
@@ -11,9 +12,13 @@ from gtsam.symbol_shorthand import L, X
 from scipy.stats import chi2 as chi2_dist
 
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.held_placement import new_landmarks
+from lampsam.backend.noids_offline import dropped_sightings
+from lampsam.backend.online_final import final_solve, online_association
 from lampsam.backend.reassociate import Sightings
-from lampsam.datasets.graph_text import GraphLog, Sighting
+from lampsam.datasets.graph_text import GraphLog, Sighting, read_graph_text
+from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 from lampsam.datasets.odometry import Pose2OdometryLog
 from lampsam.evaluation.twin_ids import (
     lm_reference,
@@ -147,3 +152,41 @@ def test_new_landmarks_from_unexplained_sightings_only() -> None:
     assert len(every) == 2 and len(only) == 1
     (xy,) = only.values()
     assert np.hypot(*(xy - far)) < 0.05
+
+
+def test_placement_at_the_residual_noise_puts_no_sighting_on_a_neighbour(
+        tmp_path: Path) -> None:
+    """A seeded 200-pose log whose sightings are stated at 10x their true variance (as
+    Victoria Park's, which fit at 0.1): the final solve's left-out sightings placed with
+    ``online_final_held_residual_scale`` go to their own tree's landmark only (file ids),
+    no more of them than at the stated noise, and ``C`` falls."""
+    spec = LandmarkLogSpec(n_poses=200, n_landmarks=30, extent=40.0, stop_every=0)
+    g = read_graph_text(write_landmark_log(tmp_path / "log.txt", spec,
+                                           np.random.default_rng(1))[0])
+    g = dataclasses.replace(g, sightings=[[dataclasses.replace(x, cov=10.0 * x.cov)
+                                           for x in ss] for ss in g.sightings])
+    base_cfg = SlamConfig()
+    cfg16 = dataclasses.replace(base_cfg, pose2_odometry=dataclasses.replace(
+        base_cfg.pose2_odometry, cov_scale=16.0), reassociation=dataclasses.replace(
+        base_cfg.reassociation, online_final_held_mixture=False))
+    online, be = run_graph_log_backend(g, "isam2", cfg16, known_ids=False)
+    assert be is not None and online.status == "ok"
+    s = online_association(be, online)
+    base = final_solve(g, cfg16, online, Sightings(s.k, s.z, s.r, s.lid.copy()))
+    assert len(dropped_sightings(g, base.sightings)[0]) > 0
+    assert base.chi2_sightings / base.dof_sightings < 0.3
+    placed = {}
+    for scaled in (False, True):
+        on = dataclasses.replace(cfg16, reassociation=dataclasses.replace(
+            cfg16.reassociation, online_final_held_mixture=True,
+            online_final_held_residual_scale=scaled))
+        placed[scaled] = final_solve(g, on, online, Sightings(s.k, s.z, s.r, s.lid.copy()))
+    n0 = len(base.sightings.k)
+    mix = placed[True]
+    assert n0 < len(mix.sightings.k) <= len(placed[False].sightings.k)
+    assert mix.cost <= base.cost
+    fid = np.array([min(g.sightings[k], key=lambda c: abs(c.range - z[1])).landmark
+                    for k, z in zip(mix.sightings.k.tolist(), mix.sightings.z, strict=True)])
+    for j in range(n0, len(mix.sightings.k)):
+        own = fid[:n0][base.sightings.lid == mix.sightings.lid[j]]
+        assert len(own) and np.bincount(own).argmax() == fid[j]

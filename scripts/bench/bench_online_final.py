@@ -113,6 +113,9 @@ PLACEMENTS: dict[str, dict[str, bool]] = {
                                    "online_final_held_new_landmarks": True,
                                    "online_final_held_new_unexplained": True,
                                    "online_final_held_new_merge": True},
+    "mixture at residual noise": {"online_final_held_mixture": True,
+                                  "online_final_held_new_landmarks": False,
+                                  "online_final_held_residual_scale": True},
 }
 #: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
 PICKER_CANDIDATES = ",".join(SlamConfig().reassociation.online_candidates)
