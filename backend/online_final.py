@@ -228,10 +228,10 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     rc = cfg.reassociation
     gate = cfg.association.gate(2) if rc.online_final_held_new_landmarks else None
     if rc.online_final_held_residual_scale:  # choose at the noise the residuals show
-        s2 = min(1.0, run.chi2_sightings / max(run.dof_sightings, 1))
-        c_new, gate = c_new * s2, None if gate is None else gate * s2
+        f = min(1.0, run.chi2_sightings / max(run.dof_sightings, 1))
+        c_new, gate = c_new * f, None if gate is None else gate * f
         log.info("placing the left-out sightings at the sightings' residual variance "
-                 "factor %.3f (threshold %.1f)", s2, c_new)
+                 "factor %.3f (threshold %.1f)", f, c_new)
     try:
         placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate,
                             rc.online_final_held_new_unexplained)
