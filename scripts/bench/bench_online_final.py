@@ -11,8 +11,11 @@ For each log: GTSAM's LM on the file's graph with its ids (the reference, as
 known-id batch (its RMS from LM: the "known-id figure" of issue 15), then for each
 backend the online run without ids (:func:`lampsam.backend.graph_log.run_graph_log_backend`,
 config with the ``--set`` overrides) and the final solve of its association at the
-log's stated noise (:func:`lampsam.backend.online_final.final_solve`). Printed per run:
-position RMS from GTSAM's LM, landmarks with 2+ sightings against the trees sighted 2+
+log's stated noise (:func:`lampsam.backend.online_final.final_solve`). Per log, first
+the references (:func:`references`): GTSAM's LM on the file's graph with its ids and with
+its twin ids merged (:mod:`lampsam.evaluation.twin_ids`), lampsam's known-id batch on each,
+and per twin pair the evidence for one tree. Printed per run: position RMS from GTSAM's
+LM on the file's ids / with the twin ids merged, landmarks with 2+ sightings against the trees sighted 2+
 times (file ids, twins as one: ``bench_noids_scale.twin_map``), duplicated trees, wrong
 sightings (``bench_noids_scale.score``), the description length ``C`` (final solve),
 failures (iSAM2 recoveries that dropped measurements) and process CPU s of each stage.
@@ -37,7 +40,10 @@ candidate (its final solve, or its status when it lost without one), then the ch
 and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM; ``mix``,
 ``both16mix``, ``pickermix`` = ``defaults``, ``both16``, ``picker`` with ``[reassociation]
 online_final_held_mixture`` on (the left-out sightings placed by max-mixture factors in
-each final solve, :mod:`lampsam.backend.held_placement`). The last column says "yes" when the final solve (or, if it did not run, the online answer) is more
+each final solve, :mod:`lampsam.backend.held_placement`). ``placements`` = the picker without
+the placement, then each rule of :data:`PLACEMENTS` on the chosen candidate, with
+:func:`trace_placed` (``--candidates`` the chosen one alone gives the same answer for
+a fraction of the CPU). The last column says "yes" when the final solve (or, if it did not run, the online answer) is more
 than :data:`DIVERGED_M` from GTSAM's LM.
 
 ``corridor``, ``odo3x`` and ``overstated`` (:data:`NEW_HELD_OUT`) are held-out logs of
