@@ -172,6 +172,21 @@ class ReassociationConfig:
             labels; a candidate whose sightings fit worse than stated is scored at its
             own noise scale (default True: with it ``C`` no longer takes the alias
             test's split map on MRCLAM; False: ``C`` alone, docs/noids-aliasing.md).
+        online_final_held_new_unexplained: with ``online_final_held_new_landmarks``, only
+            the left-out sightings that no mapped landmark explains (none within ``c_new``
+            at the final map) are clustered into new landmarks (default True; False: all
+            of them, session 17's rule, which mapped trees twice on the held-out loop).
+        online_final_held_new_merge: with ``online_final_held_new_landmarks``, the final
+            pass's merges and single moves (:mod:`lampsam.backend.final_moves`) run again
+            after the placement, each kept only if ``C`` falls, so a tree mapped twice is
+            merged back (default True). docs/noids-offline.md, "Victoria Park: the
+            reference and the trees never mapped".
+        online_final_held_residual_scale: with ``online_final_held_mixture``, each
+            left-out sighting's choice among its candidate landmarks and "none" is made at
+            the noise the final solve's residuals show: the threshold and the "none" cost
+            are ``c_new`` times the sightings' chi-square per dof, at most 1 (default
+            False; Victoria Park's sightings fit at 0.09 of their stated variance, and its
+            wrong placements are of trees 3-10 m from the landmark they were put on).
     """
 
     passes: int = field(default=0, metadata=limits(ge=0))
@@ -202,6 +217,10 @@ class ReassociationConfig:
     online_final_held_mixture: bool = True
     online_final_held_new_landmarks: bool = False
     online_label_entropy: bool = True
+    # vpgap
+    online_final_held_new_unexplained: bool = True
+    online_final_held_new_merge: bool = True
+    online_final_held_residual_scale: bool = False
 
     def __post_init__(self) -> None:
         """Check the declared ranges (:class:`FieldValueError` naming the key)."""

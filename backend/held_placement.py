@@ -146,8 +146,8 @@ def held_clusters(poses: FloatArray, dk: IntArray, dz: FloatArray, dr: FloatArra
 
 
 def new_landmarks(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings,
-                  dk: IntArray, dz: FloatArray, dr: FloatArray, new_cost: float, gate: float
-                  ) -> dict[int, FloatArray]:
+                  dk: IntArray, dz: FloatArray, dr: FloatArray, new_cost: float, gate: float,
+                  unexplained: bool = False) -> dict[int, FloatArray]:
     """Unmapped trees among the left-out sightings, as candidate landmarks.
 
     A cluster of :func:`held_clusters` with two sightings or more becomes a candidate
@@ -156,13 +156,22 @@ def new_landmarks(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings,
     below the sum over its sightings of ``min(d2 to their nearest mapped candidate,
     c_new)``.
 
+    Args:
+        unexplained: cluster only the left-out sightings that no mapped landmark explains
+            (none within ``new_cost`` at fixed poses, :func:`mixture_candidates`); False:
+            all of them (a mapped tree's left-out sightings may then become its copy).
+
     Returns:
         New landmark id -> (2,) its fitted position, world, m.
     """
-    cl = held_clusters(poses, dk, dz, dr, gate)
-    if not len(cl):
-        return {}
     cands = mixture_candidates(poses, lms, s, dk, dz, dr, new_cost)
+    use = (np.array([not c for c in cands], bool) if unexplained
+           else np.ones(len(dk), bool))
+    cl = np.full(len(dk), -1, int)
+    if use.any():
+        cl[use] = held_clusters(poses, dk[use], dz[use], dr[use], gate)
+    if not len(cl) or cl.max() < 0:
+        return {}
     w: FloatArray = np.asarray(np.linalg.inv(dr), float)
     top = max(lms, default=-1) + 1
     out: dict[int, FloatArray] = {}
@@ -187,7 +196,7 @@ def new_landmarks(poses: FloatArray, lms: dict[int, FloatArray], s: Sightings,
 
 def place_held(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, s: Sightings,
                dk: IntArray, dz: FloatArray, dr: FloatArray, new_cost: float,
-               gate: float | None = None) -> Placement:
+               gate: float | None = None, unexplained: bool = False) -> Placement:
     """The left-out sightings placed by max-mixture factors on the final graph.
 
     Args:
@@ -198,6 +207,8 @@ def place_held(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, s: Sight
         gate: with a value, the left-out sightings' clusters that pay as landmarks of
             their own (:func:`new_landmarks`, joined inside ``gate``) are candidates
             too; None: only the mapped landmarks.
+        unexplained: with ``gate``, only the left-out sightings no mapped landmark
+            explains are clustered (:func:`new_landmarks`).
 
     Returns:
         The :class:`Placement`: each sighting's component at the mixture graph's LM
@@ -209,7 +220,8 @@ def place_held(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, s: Sight
     while values.exists(X(n_kf)):
         n_kf += 1
     poses, lms = read_estimate(values, n_kf, np.unique(s.lid).tolist())
-    fresh = {} if gate is None else new_landmarks(poses, lms, s, dk, dz, dr, new_cost, gate)
+    fresh = {} if gate is None else new_landmarks(poses, lms, s, dk, dz, dr, new_cost, gate,
+                                                  unexplained)
     cands = mixture_candidates(poses, {**lms, **fresh}, s, dk, dz, dr, new_cost)
     mix = gtsam.NonlinearFactorGraph(graph)
     start = gtsam.Values(values)
@@ -256,21 +268,21 @@ def place_held(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, s: Sight
 def place_into(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
                s: Sightings, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                dk: IntArray, dz: FloatArray, dr: FloatArray, new_cost: float,
-               gate: float | None = None
+               gate: float | None = None, unexplained: bool = False
                ) -> tuple[Sightings, gtsam.NonlinearFactorGraph, gtsam.Values, int] | None:
     """:func:`place_held`, then the association with the placed sightings as ordinary
     factors, re-solved by LM from the mixture's optimum.
 
     Args:
         prior, odometry: as :func:`lampsam.backend.reassociate.build_graph`.
-        s, graph, values, dk, dz, dr, new_cost, gate: as :func:`place_held`.
+        s, graph, values, dk, dz, dr, new_cost, gate, unexplained: as :func:`place_held`.
 
     Returns:
         ``(sightings with the placed ones appended, graph, optimum, number placed)``, or
         None when none was placed. The caller compares description lengths: the
         placed sightings' chi-square against ``c_new`` each saved.
     """
-    p = place_held(graph, values, s, dk, dz, dr, new_cost, gate)
+    p = place_held(graph, values, s, dk, dz, dr, new_cost, gate, unexplained)
     t = p.lid >= 0
     if not t.any():
         return None

@@ -208,8 +208,14 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     """The final answer with the sightings it left out placed by max-mixture factors
     (:func:`lampsam.backend.held_placement.place_into`; with
     ``online_final_held_new_landmarks`` new landmarks joined inside the association
-    gate), kept only if the description length ``C`` fell; if GTSAM fails on the mixture
-    graph, ``run`` as it is (logged).
+    gate, of the sightings no landmark explains with ``online_final_held_new_unexplained``,
+    then with ``online_final_held_new_merge`` the final pass's merges and single moves,
+    :func:`lampsam.backend.noids_offline.final_pass`, so that a tree mapped twice is
+    merged back), kept only if the description length ``C`` fell; if GTSAM fails on the
+    mixture graph, ``run`` as it is (logged). With ``online_final_held_residual_scale``
+    the candidates' threshold and the "none" cost are ``c_new`` times the sightings'
+    chi-square per dof at ``run``'s optimum (at most 1): the choice is made at the noise
+    the residuals show, the factors keep the stated noise.
 
     Args:
         g: the log; cfg: the final solve's config (:func:`final_config`); run: its answer.
@@ -219,9 +225,16 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
     dk, dz, dr = dropped_sightings(g, run.sightings)
     s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
     c_new = cfg.association.new_threshold(2)
-    gate = cfg.association.gate(2) if cfg.reassociation.online_final_held_new_landmarks else None
+    rc = cfg.reassociation
+    gate = cfg.association.gate(2) if rc.online_final_held_new_landmarks else None
+    if rc.online_final_held_residual_scale:  # choose at the noise the residuals show
+        f = min(1.0, run.chi2_sightings / max(run.dof_sightings, 1))
+        c_new, gate = c_new * f, None if gate is None else gate * f
+        log.info("placing the left-out sightings at the sightings' residual variance "
+                 "factor %.3f (threshold %.1f)", f, c_new)
     try:
-        placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate)
+        placed = place_into(prior, odo, s, run.graph, run.values, dk, dz, dr, c_new, gate,
+                            rc.online_final_held_new_unexplained)
     except RuntimeError as exc:  # GTSAM's LM on the mixture graph: keep the answer
         log.warning("placing the left-out sightings failed (%s): the final solve without "
                     "them is kept", str(exc).strip()[:120])
@@ -234,6 +247,9 @@ def place_left_out(g: GraphLog, cfg: SlamConfig, run: OfflineRun) -> OfflineRun:
                     run.moves + [Move("held", (-1, -1), 0.0)] * n)
     log.info("held sightings placed by max-mixture: %d of %d, C %.1f -> %.1f", n, len(dk),
              run.cost, out.cost)
+    if gate is not None and rc.online_final_held_new_merge:
+        out = final_pass(g, cfg, out)
+        log.info("final pass after the placement: C %.1f", out.cost)
     return out if out.cost < run.cost else run
 
 

@@ -82,6 +82,7 @@ from lampsam.datasets.graph_text import GraphLog, Sighting, read_graph_text, rea
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
 from lampsam.datasets.logrun import LoggedRun
 from lampsam.datasets.odometry import Pose2OdometryLog
+from lampsam.evaluation.twin_ids import file_graph
 from lampsam.frontend.measurements import RangeBearingFrame
 
 
@@ -126,19 +127,9 @@ def graph_log_from_run(run: LoggedRun, config: SlamConfig, max_dt: float = 0.5
 
 
 def gtsam_graph(g: GraphLog, config: SlamConfig) -> gtsam.NonlinearFactorGraph:
-    """The log's graph in GTSAM: prior, odometry and bearing-range factors."""
-    graph = gtsam.NonlinearFactorGraph()
-    c = config.isam2
-    graph.add(gtsam.PriorFactorPose2(X(0), gtsam.Pose2(*g.start_pose()), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([c.sigma_start_xy, c.sigma_start_xy, c.sigma_start_theta]))))
-    for k in range(1, len(g.pose_ids)):
-        graph.add(gtsam.BetweenFactorPose2(X(k - 1), X(k), gtsam.Pose2(*g.odometry.delta[k]),
-                                           gtsam.noiseModel.Gaussian.Covariance(g.odometry.cov[k])))
-    for k, ss in enumerate(g.sightings):
-        for s in ss:
-            graph.add(gtsam.BearingRangeFactor2D(X(k), L(s.landmark), gtsam.Rot2(s.bearing), s.range,
-                                                 gtsam.noiseModel.Gaussian.Covariance(s.cov)))
-    return graph
+    """The log's graph in GTSAM: prior, odometry and bearing-range factors
+    (:func:`lampsam.evaluation.twin_ids.file_graph`)."""
+    return file_graph(g, config)
 
 
 def gtsam_isam2(g: GraphLog, config: SlamConfig

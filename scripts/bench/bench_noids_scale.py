@@ -51,6 +51,7 @@ from lampsam.backend.reassociate import Pass, Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text
 from lampsam.datasets.landmark_log_heldout import HELD_OUT, write_held_out
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+from lampsam.evaluation import twin_ids
 
 _HERE = Path(__file__).resolve().parent
 
@@ -106,27 +107,10 @@ def file_ids(g: GraphLog, s: Sightings) -> np.ndarray:
 
 
 def twin_map(g: GraphLog, landmarks: dict[int, np.ndarray], radius: float = 1.5) -> dict[int, int]:
-    """File id -> the smallest file id of its twin group: ids whose known-id positions
-    are within ``radius`` m and never sighted at one pose (one tree under two file ids:
-    Victoria Park has four such pairs, 0.1-1.4 m apart). Ids sighted together stay
-    apart (cityTrees has six pairs 0.05 m apart, always sighted together)."""
-    together = {(a, b) for ss in g.sightings for a in (x.landmark for x in ss)
-                for b in (x.landmark for x in ss) if a != b}
-    ids = sorted(landmarks)
-    parent = {i: i for i in ids}
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            i = parent[i]
-        return i
-
-    for a in ids:
-        for b in ids:
-            if a < b and (a, b) not in together and float(
-                    np.hypot(*(landmarks[a] - landmarks[b]))) < radius:
-                ra, rb = root(a), root(b)
-                parent[max(ra, rb)] = min(ra, rb)
-    return {i: root(i) for i in ids}
+    """File id -> the smallest file id of its twin group
+    (:func:`lampsam.evaluation.twin_ids.twin_map`: ids within ``radius`` m in the
+    known-id map and never sighted at one pose)."""
+    return twin_ids.twin_map(g, landmarks, radius)
 
 
 def tree_ids(g: GraphLog, s: Sightings, twins: dict[int, int]) -> np.ndarray:

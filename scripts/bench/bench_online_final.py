@@ -11,8 +11,11 @@ For each log: GTSAM's LM on the file's graph with its ids (the reference, as
 known-id batch (its RMS from LM: the "known-id figure" of issue 15), then for each
 backend the online run without ids (:func:`lampsam.backend.graph_log.run_graph_log_backend`,
 config with the ``--set`` overrides) and the final solve of its association at the
-log's stated noise (:func:`lampsam.backend.online_final.final_solve`). Printed per run:
-position RMS from GTSAM's LM, landmarks with 2+ sightings against the trees sighted 2+
+log's stated noise (:func:`lampsam.backend.online_final.final_solve`). Per log, first
+the references (:func:`references`): GTSAM's LM on the file's graph with its ids and with
+its twin ids merged (:mod:`lampsam.evaluation.twin_ids`), lampsam's known-id batch on each,
+and per twin pair the evidence for one tree. Printed per run: position RMS from GTSAM's
+LM on the file's ids / with the twin ids merged, landmarks with 2+ sightings against the trees sighted 2+
 times (file ids, twins as one: ``bench_noids_scale.twin_map``), duplicated trees, wrong
 sightings (``bench_noids_scale.score``), the description length ``C`` (final solve),
 failures (iSAM2 recoveries that dropped measurements) and process CPU s of each stage.
@@ -37,7 +40,10 @@ candidate (its final solve, or its status when it lost without one), then the ch
 and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM; ``mix``,
 ``both16mix``, ``pickermix`` = ``defaults``, ``both16``, ``picker`` with ``[reassociation]
 online_final_held_mixture`` on (the left-out sightings placed by max-mixture factors in
-each final solve, :mod:`lampsam.backend.held_placement`). The last column says "yes" when the final solve (or, if it did not run, the online answer) is more
+each final solve, :mod:`lampsam.backend.held_placement`). ``placements`` = the picker without
+the placement, then each rule of :data:`PLACEMENTS` on the chosen candidate, with
+:func:`trace_placed` (``--candidates`` the chosen one alone gives the same answer for
+a fraction of the CPU). The last column says "yes" when the final solve (or, if it did not run, the online answer) is more
 than :data:`DIVERGED_M` from GTSAM's LM.
 
 ``corridor``, ``odo3x`` and ``overstated`` (:data:`NEW_HELD_OUT`) are held-out logs of
@@ -48,6 +54,7 @@ the picker, fixed before it ran on them; ``carpark`` and ``pillars``
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import logging
 import os
@@ -56,17 +63,22 @@ from collections import Counter
 from pathlib import Path
 from types import ModuleType
 
-import gtsam
 import numpy as np
 from timing import sibling  # scripts/bench/timing.py, a sibling module
 
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.graph_log import run_graph_log, run_graph_log_backend
-from lampsam.backend.online_final import final_solve, online_association, run_online_picker
+from lampsam.backend.online_final import (
+    final_solve,
+    online_association,
+    place_chosen,
+    run_online_picker,
+)
 from lampsam.backend.reassociate import Sightings
 from lampsam.datasets.graph_text import GraphLog, read_graph_text, read_vertices
 from lampsam.datasets.landmark_log_heldout import HeldOutSpec, simulate_held_out
 from lampsam.datasets.landmark_log_sim import LandmarkLogSpec, write_landmark_log
+from lampsam.evaluation import twin_ids
 from lampsam.safe_io import write_text_atomic
 
 #: A run whose RMS from GTSAM's LM exceeds this (m) counts as diverged.
@@ -83,6 +95,33 @@ VARIANTS: dict[str, list[str]] = {
     "both16mix": ["association.planar_unique=true", "association.revisit_check=true",
                   "pose2_odometry.cov_scale=16", "reassociation.online_final_held_mixture=true"],
     "pickermix": ["reassociation.online_final_held_mixture=true"],  # the picker, with it
+    # the picker without the placement, then each of PLACEMENTS on the chosen candidate
+    "placements": [],
+}
+#: ``placements``: ways of placing the chosen candidate's left-out sightings
+#: (``[reassociation]`` fields; :func:`lampsam.backend.online_final.place_chosen`).
+PLACEMENTS: dict[str, dict[str, bool]] = {
+    "none": {"online_final_held_mixture": False},
+    "mixture": {"online_final_held_mixture": True, "online_final_held_new_landmarks": False},
+    "new (all left out)": {"online_final_held_mixture": True,
+                           "online_final_held_new_landmarks": True,
+                           "online_final_held_new_unexplained": False,
+                           "online_final_held_new_merge": False},
+    "new (all) + merges": {"online_final_held_mixture": True,
+                           "online_final_held_new_landmarks": True,
+                           "online_final_held_new_unexplained": False,
+                           "online_final_held_new_merge": True},
+    "new (unexplained)": {"online_final_held_mixture": True,
+                          "online_final_held_new_landmarks": True,
+                          "online_final_held_new_unexplained": True,
+                          "online_final_held_new_merge": False},
+    "new (unexplained) + merges": {"online_final_held_mixture": True,
+                                   "online_final_held_new_landmarks": True,
+                                   "online_final_held_new_unexplained": True,
+                                   "online_final_held_new_merge": True},
+    "mixture at residual noise": {"online_final_held_mixture": True,
+                                  "online_final_held_new_landmarks": False,
+                                  "online_final_held_residual_scale": True},
 }
 #: ``--candidates`` default: the picker's candidates (``[reassociation] online_candidates``)
 PICKER_CANDIDATES = ",".join(SlamConfig().reassociation.online_candidates)
@@ -223,46 +262,99 @@ def main() -> None:
             raise SystemExit(f"--variants: unknown {v!r} (known: {', '.join(VARIANTS)})")
     print("load average (1, 5, 15 min): " + ", ".join(f"{v:.1f}" for v in os.getloadavg()))
     print(f"setting: {base_label}; variants: {args.variants or '-'}")
-    print("| log | run | RMS vs LM [m] | landmarks 2+ / trees 2+ | dup | wrong / sightings | C "
-          "| failures | CPU [s] | diverged |")
+    print("| log | run | RMS vs LM: file ids / twins merged [m] | landmarks 2+ / trees 2+ | dup "
+          "| wrong / sightings | C | failures | CPU [s] | diverged |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs.split(","):
         g = load_log(scale, name, Path(args.out))
         truth = load_truth(g, name, Path(args.out))
-        n = len(g.pose_ids)
-        graph = bench.gtsam_graph(g, SlamConfig())
-        est = bench.gtsam_isam2(g, SlamConfig())[0]
-        lm = bench.poses_of(gtsam.LevenbergMarquardtOptimizer(
-            graph, est, gtsam.LevenbergMarquardtParams()).optimize(), n)
-        c0 = time.process_time()
-        known = run_graph_log(g, "batch", SlamConfig())
-        c_known = time.process_time() - c0
-        twins = scale.twin_map(g, {int(x.id): np.asarray(x.position[:2], float)
-                                   for x in list(known.landmarks) + list(known.provisional)})
-        trees = Counter(twins.get(x.landmark, x.landmark) for ss in g.sightings for x in ss)
-        n_trees2 = sum(1 for v in trees.values() if v >= 2)
+        refs, twins, n_trees2 = references(g, name, bench, truth)
         n_sight = sum(len(ss) for ss in g.sightings)
-        print(f"| {name} | known-id batch (file noise{_vs_truth(known.poses, truth)}) | "
-              f"{_rms(known.poses, lm):.3f} | "
-              f"{len(known.landmarks)} / {n_trees2} | | | | | {c_known:.1f} | |", flush=True)
         for v in variants:
             config = bench.with_overrides(SlamConfig(), args.set + VARIANTS.get(v, []))
             label = f"{v}: {base_label}" if v and args.set else (v or base_label)
-            if v in ("picker", "pickermix"):
+            if v in ("picker", "pickermix", "placements"):
                 config = dataclasses.replace(config, reassociation=dataclasses.replace(
                     config.reassociation, online_candidates=tuple(args.candidates.split(","))))
-                run_picker(g, name, config, label, args, scale, lm, truth, twins, n_trees2)
+                run_picker(g, name, config, label, args, scale, refs, truth, twins, n_trees2,
+                           placements=v == "placements")
                 continue
-            run_variant(g, name, config, label, args, bench, scale, lm, truth, twins, n_trees2,
-                        n_sight)
+            run_variant(g, name, config, label, args, bench, scale, refs, truth, twins,
+                        n_trees2, n_sight)
+
+
+Refs = tuple[np.ndarray, np.ndarray]
+
+
+def _two(poses: np.ndarray, refs: Refs) -> str:
+    """``"a / b"``: position RMS of ``poses`` from GTSAM's LM on the file's ids and on
+    the file's graph with its twin ids merged (the same figure twice without twins)."""
+    n = min(len(poses), len(refs[0]))
+    if not n:
+        return "nan / nan"
+    return f"{_rms(poses[:n], refs[0][:n]):.3f} / {_rms(poses[:n], refs[1][:n]):.3f}"
+
+
+def references(g: GraphLog, name: str, bench: ModuleType, truth: np.ndarray | None
+               ) -> tuple[Refs, dict[int, int], int]:
+    """The two references of a log, printed: GTSAM's LM on the file's graph with its ids
+    (from GTSAM's iSAM2, one update per pose) and with its twin ids merged
+    (:mod:`lampsam.evaluation.twin_ids`, from the first's optimum), lampsam's known-id
+    batch on each (the "known-id figure" of issue 15, both ways), and per twin pair the
+    evidence for one tree (:func:`lampsam.evaluation.twin_ids.twin_tests`).
+
+    Returns:
+        ``((LM poses, twin-merged LM poses), twin map, trees seen 2+ (twins as one))``.
+    """
+    cfg = SlamConfig()
+    ref = twin_ids.lm_reference(g, cfg, bench.gtsam_isam2(g, cfg)[0])
+    c0 = time.process_time()
+    known = run_graph_log(g, "batch", cfg)
+    c_known = time.process_time() - c0
+    twins = twin_ids.twin_map(g, {int(x.id): np.asarray(x.position[:2], float)
+                                  for x in list(known.landmarks) + list(known.provisional)})
+    groups = twin_ids.twin_groups(twins)
+    gm = twin_ids.merged_log(g, twins)
+    ref_m = (twin_ids.lm_reference(gm, cfg, twin_ids.merged_start(ref, twins)) if groups
+             else ref)
+    refs = (ref.poses, ref_m.poses)
+    trees = Counter(twins.get(x.landmark, x.landmark) for ss in g.sightings for x in ss)
+    n_trees2 = sum(1 for v in trees.values() if v >= 2)
+    print(f"| {name} | LM on the file's graph: chi2/dof {ref.chi2 / max(ref.dof, 1):.3f}, "
+          f"sightings' {ref.chi2_sightings / max(ref.dof_sightings, 1):.3f}; twin groups "
+          f"{groups or 'none'}; LM with them merged: chi2 +{ref_m.chi2 - ref.chi2:.1f}"
+          f"{_vs_truth(ref.poses, truth)} | {_two(ref_m.poses, refs)} (LM merged) | | | | | "
+          "| | |", flush=True)
+    print(f"| {name} | known-id batch, file ids (file noise{_vs_truth(known.poses, truth)}) | "
+          f"{_two(known.poses, refs)} | {len(known.landmarks)} / {n_trees2} | | | | | "
+          f"{c_known:.1f} | |", flush=True)
+    if groups:
+        km = run_graph_log(gm, "batch", cfg)
+        print(f"| {name} | known-id batch, twin ids merged | {_two(km.poses, refs)} | "
+              f"{len(km.landmarks)} / {n_trees2} | | | | | | |", flush=True)
+    for t in twin_ids.twin_tests(g, cfg, ref, twins):
+        print(f"| {name} | twins {t.ids[0]}/{t.ids[1]} ({t.n[0]}+{t.n[1]} sightings, "
+              f"{t.separation_m:.2f} m apart, viewed {t.view_angle_deg:.0f} deg apart): merge "
+              f"chi2 +{t.chi2_merge:.1f} (p {t.p_stated:.2g} stated; residual variance "
+              f"x{t.scale:.3f}: p {t.p_scaled:.2g}); poses fixed: two points "
+              f"{t.chi2_two:.1f}, one {t.chi2_one:.1f}, one trunk r {t.radius_m:.2f} m "
+              f"{t.chi2_trunk:.1f} | | | | | | | | |", flush=True)
+    return refs, twins, n_trees2
 
 
 def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
-               args: argparse.Namespace, scale: ModuleType, lm: np.ndarray,
-               truth: np.ndarray | None, twins: dict[int, int], n_trees2: int) -> None:
+               args: argparse.Namespace, scale: ModuleType, refs: Refs,
+               truth: np.ndarray | None, twins: dict[int, int], n_trees2: int,
+               placements: bool = False) -> None:
     """The online picker (:func:`lampsam.backend.online_final.run_online_picker`) per
     backend: one row per candidate (its final solve's RMS, count, ``C``, CPU), then the
-    choice, and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM."""
+    choice, and whether ``C`` chose the candidate whose final solve is nearest GTSAM's LM.
+    With ``placements``: the picker without the placement, then each of
+    :data:`PLACEMENTS` on the chosen candidate (:func:`run_placements`)."""
+    lm = refs[0]
+    if placements:
+        config = dataclasses.replace(config, reassociation=dataclasses.replace(
+            config.reassociation, online_final_held_mixture=False))
     for b in args.backends.split(","):
         c0 = time.process_time()
         final, _, cands, chosen = run_online_picker(g, b, config)
@@ -286,7 +378,7 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
             div = "yes" if not (np.isfinite(r) and r <= DIVERGED_M) else ""
             print(f"| {name} | {b} candidate {c.name} ({held} held unused, "
                   f"{run.n_dropped} not in the association{_vs_truth(run.poses, truth)}) | "
-                  f"{r:.3f} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
+                  f"{_two(run.poses, refs)} | {mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
                   f"{run.cost:.1f}; labels {c.label_cost:.1f}; picker {c.picker_cost:.1f}; sightings "
                   f"chi2/dof {run.chi2_sightings / max(run.dof_sightings, 1):.3f} | | "
                   f"{c.cpu_s:.1f} | {div} |",
@@ -298,16 +390,82 @@ def run_picker(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: 
                    f"best by RMS: {cands[best].name} ({rms[best]:.3f})" if best >= 0 else "none")
         div = "yes" if not (np.isfinite(r_ch) and r_ch <= DIVERGED_M) else ""
         print(f"| {name} | **{b} picker ({label}) -> {cands[chosen].name}**; {verdict}"
-              f"{_vs_truth(final.poses, truth)} | **{r_ch:.3f}** | "
+              f"{_vs_truth(final.poses, truth)} | **{_two(final.poses, refs)}** | "
               f"{len(final.landmarks)} / {n_trees2} | | | {cands[chosen].score():.1f} | | "
               f"{c_all:.1f} (all) | {div} |", flush=True)
+        if placements and cands[chosen].solve is not None:
+            run_placements(g, name, config, cands[chosen], scale, refs, truth, twins, n_trees2)
+
+
+def _key(k: np.ndarray, z: np.ndarray) -> list[tuple[int, float]]:
+    return [(int(a), round(float(b[1]), 9)) for a, b in zip(k, z, strict=True)]
+
+
+def trace_placed(g: GraphLog, scale: ModuleType, before: Sightings, after: Sightings,
+                 twins: dict[int, int]) -> str:
+    """What a placement did with the sightings ``before`` left out, by their file tree
+    (twins as one): placed / left-out; placed on the landmark of another tree while
+    their own tree has one ("neighbour"), while their own tree had none before
+    ("unmapped -> neighbour"), on a landmark new since ``before`` ("new")."""
+    f0, f1 = scale.tree_ids(g, before, twins), scale.tree_ids(g, after, twins)
+
+    def majority(s: Sightings, f: np.ndarray) -> dict[int, int]:
+        return {int(i): Counter(f[s.lid == i].tolist()).most_common(1)[0][0]
+                for i in np.unique(s.lid).tolist()}
+
+    m0, m1 = majority(before, f0), majority(after, f1)
+    mapped0 = set(m0.values())
+    old = set(_key(before.k, before.z))
+    n_left = sum(len(ss) for ss in g.sightings) - len(before.k)
+    placed = own = nb = un_nb = new = new_wrong = 0
+    for j, key in enumerate(_key(after.k, after.z)):
+        if key in old:
+            continue
+        placed += 1
+        lid, tree = int(after.lid[j]), int(f1[j])
+        if lid not in m0:
+            new += 1
+            new_wrong += m1[lid] != tree
+        elif m1[lid] == tree:
+            own += 1
+        elif tree in mapped0:
+            nb += 1
+        else:
+            un_nb += 1
+    return (f"{placed} of {n_left} placed: {own} own tree, {nb} neighbour, {un_nb} unmapped "
+            f"-> neighbour, {new} on new landmarks ({new_wrong} not their majority)")
+
+
+def run_placements(g: GraphLog, name: str, config: SlamConfig, c: object,  # noqa: PLR0913
+                   scale: ModuleType, refs: Refs, truth: np.ndarray | None,
+                   twins: dict[int, int], n_trees2: int) -> None:
+    """Each of :data:`PLACEMENTS` on the chosen candidate ``c`` (a
+    :class:`lampsam.backend.online_final.Candidate` whose final solve was not placed):
+    RMS from both references, landmarks 2+, dup, wrong, ``C``, the placement's CPU, and
+    :func:`trace_placed`."""
+    base = c.solve  # type: ignore[attr-defined]
+    for label, fields in PLACEMENTS.items():
+        cc = copy.copy(c)
+        cfg = dataclasses.replace(config, reassociation=dataclasses.replace(
+            config.reassociation, **fields))
+        c0 = time.process_time()
+        place_chosen(g, cfg, cc)  # type: ignore[arg-type]
+        cpu = time.process_time() - c0
+        run = cc.solve  # type: ignore[attr-defined]
+        mapped, dup, wrong = scale.score(run.sightings, scale.tree_ids(g, run.sightings, twins))
+        moves = Counter(m.kind for m in run.moves[len(base.moves):])
+        print(f"| {name} | placement {label} ({trace_placed(g, scale, base.sightings, run.sightings, twins)}; "
+              f"moves {dict(moves)}{_vs_truth(run.poses, truth)}) | {_two(run.poses, refs)} | "
+              f"{mapped} / {n_trees2} | {dup} | {wrong} / {len(run.sightings.k)} | "
+              f"{run.cost:.1f} | | +{cpu:.1f} | |", flush=True)
 
 
 def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa: PLR0913
                 args: argparse.Namespace, bench: ModuleType, scale: ModuleType,
-                lm: np.ndarray, truth: np.ndarray | None, twins: dict[int, int],
+                refs: Refs, truth: np.ndarray | None, twins: dict[int, int],
                 n_trees2: int, n_sight: int) -> None:
     """One setting on one log: the online run and its final solve per backend, printed."""
+    lm = refs[0]
     for b in args.backends.split(","):
         c0 = time.process_time()
         online, be = run_graph_log_backend(g, b, config, known_ids=False)
@@ -326,10 +484,9 @@ def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa:
         fid = scale.tree_ids(g, s0, twins)
         mapped, dup, wrong = scale.score(s0, fid)
         ties = len(getattr(be, "revisit_ties", []))
-        r_on = _rms(online.poses, lm)
         print(f"| {name} | {b} online ({label}; {ties} revisit ties, "
               f"{int(online.extra.get('n_held_unused', 0))} held unused"
-              f"{_vs_truth(online.poses, truth)}) | {r_on:.3f} | "
+              f"{_vs_truth(online.poses, truth)}) | {_two(online.poses, refs)} | "
               f"{mapped} / {n_trees2} | {dup} | {wrong} / {len(s.k)} of {n_sight} | | "
               f"{fails} | {c_on:.1f} | |", flush=True)
         c1 = time.process_time()
@@ -342,7 +499,7 @@ def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa:
         r_fin = _rms(run.poses, lm)
         div = "yes" if not (np.isfinite(r_fin) and r_fin <= DIVERGED_M) else ""
         print(f"| {name} | {b} + final solve ({label}; {len(run.passes)} passes, "
-              f"{dict(moves)}{_vs_truth(run.poses, truth)}) | **{r_fin:.3f}** | "
+              f"{dict(moves)}{_vs_truth(run.poses, truth)}) | **{_two(run.poses, refs)}** | "
               f"{mapped} / {n_trees2} | "
               f"{dup} | {wrong} / {len(run.sightings.k)} | {run.cost:.1f} | | "
               f"+{c_fin:.1f} | {div} |", flush=True)
@@ -352,13 +509,13 @@ def run_variant(g: GraphLog, name: str, config: SlamConfig, label: str,  # noqa:
                     for kk, ss in enumerate(g.sightings)]
             kr = run_graph_log(dataclasses.replace(g, sightings=kept), "batch", SlamConfig())
             print(f"| {name} | known ids, the {len(s0.k)} recorded sightings only | "
-                  f"{_rms(kr.poses, lm):.3f} | {len(kr.landmarks)} / {n_trees2} | | | | | | |",
+                  f"{_two(kr.poses, refs)} | {len(kr.landmarks)} / {n_trees2} | | | | | | |",
                   flush=True)
         cfg_known = dataclasses.replace(SlamConfig(), pose2_odometry=config.pose2_odometry)
         if cfg_known.pose2_odometry.cov_scale != 1.0:
             kn = run_graph_log(g, b, cfg_known)
             print(f"| {name} | {b} known ids, cov_scale "
-                  f"{cfg_known.pose2_odometry.cov_scale:g} | {_rms(kn.poses, lm):.3f} | "
+                  f"{cfg_known.pose2_odometry.cov_scale:g} | {_two(kn.poses, refs)} | "
                   f"{len(kn.landmarks)} / {n_trees2} | | | | | | |", flush=True)
 
 
