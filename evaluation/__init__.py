@@ -40,6 +40,7 @@ Modules:
 * :mod:`~lampsam.evaluation.table1` -- Paper 2's Table 1 on the simulated ``office`` world: the trials (``lampsam table1``).
 * :mod:`~lampsam.evaluation.table1_plots` -- Figures of the global-localization experiment (paper 2, Table 1).
 * :mod:`~lampsam.evaluation.table1_report` -- The Table-1 report: the Markdown table, the figure and the collected trial records.
+* :mod:`~lampsam.evaluation.twin_ids` -- Twin file ids: one tree under two ids in a graph log, and the reference with them merged.
 """
 
 from lampsam._lazy import lazy_exports
