@@ -57,6 +57,14 @@ class LampDetectorConfig:
             blobs matching no model are not lamps; None (default): no check.
         thin_width_px: short-axis width ``sqrt(12 lambda_min)`` below which a
             blob is thin (default 3 px).
+        thin_min_length_px: a thin blob's brightest pixel gets the wider
+            margin ``max_peak_drop_thin_grey`` only when its long-axis extent
+            ``sqrt(12 lambda_max)`` is at least this (a line: a lamp seen
+            edge-on); a thin blob shorter than this is small both ways and its
+            brightest pixel gets ``max_peak_drop_grey`` (a white smoke detector
+            2-3 px across in a 160x120 frame is not a lamp; default 6 px, twice
+            ``thin_width_px``; 0: every thin blob gets the wider margin, the
+            rule before).
         min_area_px: smaller blobs are rejected (default 6).
         max_area_fraction: blobs larger than this fraction of the image are
             rejected (glare, a window; default 0.2).
@@ -94,6 +102,7 @@ class LampDetectorConfig:
     max_crowding: float | None = 0.2
     size_gate: tuple[tuple[float, float, float], ...] | None = None
     thin_width_px: float = 3.0
+    thin_min_length_px: float = 6.0
     min_area_px: int = 6
     max_area_fraction: float = 0.2
     ratio_threshold: float = 1.5
