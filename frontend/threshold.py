@@ -78,7 +78,8 @@ def auto_threshold(
     """Choose the lamp threshold ``k`` for one image.
 
     Otsu's threshold of the image; while more than ``max_bright_fraction`` of
-    the pixels lie above it (a bright ceiling: Otsu separated dark structure
+    the pixels lie above it (clipped pixels, level 255, not counted when
+    ``bright_fraction_unclipped``: a saturated window is not ceiling) (a bright ceiling: Otsu separated dark structure
     from the ceiling, not the ceiling from the lamps), Otsu again on the upper
     class only; never below ``median + min_relative_level (peak - median)``.
     Images whose peak is within ``min_contrast_grey`` of the median have no
@@ -134,8 +135,11 @@ def threshold_and_peak(
         return None, peak
     sums = (hist * np.arange(256, dtype=np.float64)).cumsum()
     k = _otsu_cumulative(cum, sums, 0)
+    # Clipped pixels (255) lie above every threshold and tell nothing about where the
+    # ceiling ends: a saturated window must not push k above the lamps.
+    clipped = hist[255] if config.bright_fraction_unclipped else 0.0
     for _ in range(config.max_otsu_iterations):
-        above = total - cum[int(k)]
+        above = total - cum[int(k)] - clipped
         if above <= config.max_bright_fraction * total:
             break
         lo = int(k) + 1
