@@ -78,8 +78,9 @@ def auto_threshold(
     """Choose the lamp threshold ``k`` for one image.
 
     Otsu's threshold of the image; while more than ``max_bright_fraction`` of
-    the pixels lie above it (clipped pixels, level 255, not counted when
-    ``bright_fraction_unclipped``: a saturated window is not ceiling) (a bright ceiling: Otsu separated dark structure
+    the pixels lie above it and less than ``clipped_light_share`` of those are
+    clipped (255: an upper class mostly clipped is light sources, a saturated
+    window beside the lamps, not ceiling) (a bright ceiling: Otsu separated dark structure
     from the ceiling, not the ceiling from the lamps), Otsu again on the upper
     class only; never below ``median + min_relative_level (peak - median)``.
     Images whose peak is within ``min_contrast_grey`` of the median have no
@@ -135,12 +136,14 @@ def threshold_and_peak(
         return None, peak
     sums = (hist * np.arange(256, dtype=np.float64)).cumsum()
     k = _otsu_cumulative(cum, sums, 0)
-    # Clipped pixels (255) lie above every threshold and tell nothing about where the
-    # ceiling ends: a saturated window must not push k above the lamps.
-    clipped = hist[255] if config.bright_fraction_unclipped else 0.0
+    # An upper class made mostly of clipped pixels (255) is light sources (lamps, a
+    # sunlit window), not ceiling: splitting it again would cut the clip from the lamps.
+    share = config.clipped_light_share
     for _ in range(config.max_otsu_iterations):
-        above = total - cum[int(k)] - clipped
+        above = total - cum[int(k)]
         if above <= config.max_bright_fraction * total:
+            break
+        if share is not None and hist[255] >= share * above:
             break
         lo = int(k) + 1
         k_next = _otsu_cumulative(cum[lo:] - cum[lo - 1], sums[lo:] - sums[lo - 1], lo)

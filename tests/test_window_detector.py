@@ -1,7 +1,7 @@
 """The lamp detector on ceilings of other buildings: a bright window in view, a small camera.
 
 docs/photo-labels.md, last section. Synthetic images, seeded; each test fails with
-the rule before (``bright_fraction_unclipped=False``, ``thin_min_length_px=0``).
+the rule before (``clipped_light_share=None``, ``thin_min_length_px=0``).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from lampsam.frontend.lamp_config import DEFAULT_CONFIG, LampDetectorConfig
 from lampsam.frontend.lamps import measure_blobs
 from lampsam.frontend.threshold import auto_threshold
 
-OLD_THRESHOLD = dataclasses.replace(DEFAULT_CONFIG, bright_fraction_unclipped=False)
+OLD_THRESHOLD = dataclasses.replace(DEFAULT_CONFIG, clipped_light_share=None)
 OLD_THIN = dataclasses.replace(DEFAULT_CONFIG, thin_min_length_px=0.0)
 
 
