@@ -24,12 +24,14 @@ class LampDetectorConfig:
         max_bright_fraction: automatic threshold: Otsu is re-applied to the
             upper class while more than this fraction of the image lies above
             the threshold (default 0.08: lamps are a small part of a ceiling).
-        clipped_light_share: automatic threshold: the repeated Otsu also stops
-            when at least this fraction of the pixels above the threshold are
-            clipped (level 255): such an upper class is light sources (lamps, a
-            saturated window), not ceiling, and a further Otsu step would split
-            the clip from the lamps (a window covering 10 % of a frame otherwise
-            drives ``k`` to 254, above fluorescent tubes at 190-250; default
+        light_share: automatic threshold: the repeated Otsu also stops when
+            at least this fraction of the pixels above the threshold are at a
+            light source's level (``>= peak - max_peak_drop_grey``, the level the
+            blobs' dimness test asks of a lamp; clipped, 255, when that test is
+            off): such an upper class is light sources (lamps, a bright window),
+            not ceiling, and a further Otsu step would only split the brightest
+            lights from the others (a window covering 10 % of a frame otherwise
+            drives ``k`` to 243-254, above fluorescent tubes at 190-250; default
             0.5: most of it; None: the rule before).
         max_otsu_iterations: automatic threshold: at most this many Otsu steps
             (default 4).
@@ -100,7 +102,7 @@ class LampDetectorConfig:
 
     threshold: int | None = None
     max_bright_fraction: float = 0.08
-    clipped_light_share: float | None = 0.5
+    light_share: float | None = 0.5
     max_otsu_iterations: int = 4
     min_contrast_grey: float = 30.0
     min_relative_level: float = 0.5

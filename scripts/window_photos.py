@@ -10,7 +10,7 @@ textured sky window (:func:`lampsam.evaluation.photo_augment.paste_window`,
 seed 0), prints the threshold, the working width (from the photo's lamps, with
 the second look, as ``frontend-eval --photos``), detections, false detections
 by kind, modules and fittings found. ``--old`` runs the rules before the window
-session (``clipped_light_share=None``, ``thin_min_length_px=0``).
+session (``light_share=None``, ``thin_min_length_px=0``).
 docs/photo-labels.md, last section, has the figures.
 """
 
@@ -39,7 +39,7 @@ def main() -> None:
     args = ap.parse_args()
     cfg = FrontendConfig().lamps
     if args.old:
-        cfg = dataclasses.replace(cfg, clipped_light_share=None, thin_min_length_px=0.0)
+        cfg = dataclasses.replace(cfg, light_share=None, thin_min_length_px=0.0)
     which = [w for w in args.which.split(",") if w]
     for name, pl in read_labels(args.labels).items():
         if which and name.split("_")[0] not in which:

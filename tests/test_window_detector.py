@@ -1,7 +1,7 @@
 """The lamp detector on ceilings of other buildings: a bright window in view, a small camera.
 
 docs/photo-labels.md, last section. Synthetic images, seeded; each test fails with
-the rule before (``clipped_light_share=None``, ``thin_min_length_px=0``).
+the rule before (``light_share=None``, ``thin_min_length_px=0``).
 """
 
 from __future__ import annotations
@@ -15,13 +15,16 @@ from lampsam.frontend.lamp_config import DEFAULT_CONFIG, LampDetectorConfig
 from lampsam.frontend.lamps import measure_blobs
 from lampsam.frontend.threshold import auto_threshold
 
-OLD_THRESHOLD = dataclasses.replace(DEFAULT_CONFIG, clipped_light_share=None)
+OLD_THRESHOLD = dataclasses.replace(DEFAULT_CONFIG, light_share=None)
 OLD_THIN = dataclasses.replace(DEFAULT_CONFIG, thin_min_length_px=0.0)
 
 
-def ceiling_with_window(rng: np.random.Generator) -> tuple[np.ndarray, list[tuple[int, int]]]:
+def ceiling_with_window(
+    rng: np.random.Generator, sky: bool = False
+) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """320x240 ceiling (grey 120, noise 3) with six unclipped tubes (levels 242-254; noise keeps them below 255) and a
-    saturated 3x2-pane window with bars covering ~9 % of the frame; returns the tube centres."""
+    saturated 3x2-pane window with bars covering ~9 % of the frame (``sky``: panes 240-254
+    with a gradient, never clipped); returns the tube centres."""
     img = np.full((240, 320), 120.0)
     centres = []
     for i, level in enumerate((242, 246, 249, 251, 253, 254)):
@@ -29,12 +32,14 @@ def ceiling_with_window(rng: np.random.Generator) -> tuple[np.ndarray, list[tupl
         cv2.rectangle(img, (cx - 16, cy - 4), (cx + 16, cy + 4), float(level), -1)
         centres.append((cx, cy))
     x0, y0, ww, wh = 100, 20, 120, 62  # 7440 px = 9.7 % of the frame
-    img[y0:y0 + wh, x0:x0 + ww] = 255.0
+    img[y0:y0 + wh, x0:x0 + ww] = np.linspace(254.0, 241.0, wh)[:, None] if sky else 255.0
     for x in np.linspace(x0, x0 + ww - 3, 4).round().astype(int):
         img[y0:y0 + wh, x:x + 3] = 70.0
     for y in np.linspace(y0, y0 + wh - 3, 3).round().astype(int):
         img[y:y + 3, x0:x0 + ww] = 70.0
     noisy = np.where(img < 255, np.clip(img + rng.normal(0.0, 3.0, img.shape), 0, 254), 255)
+    if sky:
+        noisy[y0:y0 + wh, x0:x0 + ww] = np.minimum(noisy[y0:y0 + wh, x0:x0 + ww], 254)
     return noisy.astype(np.uint8), centres
 
 
@@ -60,10 +65,20 @@ def test_tubes_beside_a_saturated_window_are_all_found() -> None:
     assert found(new, centres) == len(centres)
 
 
-def test_unclipped_bright_frames_keep_their_threshold() -> None:
-    """Without clipped pixels the rule is the old one, bit for bit."""
+def test_unclipped_sky_window_does_not_lift_the_threshold_either() -> None:
+    img, centres = ceiling_with_window(np.random.default_rng(5), sky=True)
+    assert int(img.max()) == 254  # nothing clipped: the share counts light-level pixels
+    k_old = auto_threshold(img, OLD_THRESHOLD)
+    k_new = auto_threshold(img, DEFAULT_CONFIG)
+    assert k_old is not None and k_old > 240
+    assert k_new is not None and 130 < k_new < 230
+    assert found(measure_blobs(img, DEFAULT_CONFIG)[0], centres) == len(centres)
+
+
+def test_frames_without_a_bright_majority_keep_their_threshold() -> None:
+    """A noisy bright frame whose upper classes are never mostly at the peak's level: the old rule."""
     rng = np.random.default_rng(2)
-    img = np.clip(rng.normal(150, 40, (120, 160)), 0, 254).astype(np.uint8)
+    img = np.clip(rng.normal(150, 40, (120, 160)), 0, 255).astype(np.uint8)
     assert auto_threshold(img, DEFAULT_CONFIG) == auto_threshold(img, OLD_THRESHOLD)
 
 
