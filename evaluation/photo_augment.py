@@ -31,6 +31,10 @@ and blue gains 0.6-1.5 against green, in linear light), ``blur`` (Gaussian,
 sigma 1-12 px of a 4000 px photo), ``noise`` (Gaussian, sigma 2-16 grey
 levels, per pixel and channel) and ``jpeg`` (re-encoded at quality 50-95).
 
+A bright window in view (:func:`paste_window`): a barred window, flat saturated or
+a textured sky, pasted where it hides the fewest lamps, its panes labelled
+``window`` (``scripts/window_photos.py``; docs/photo-labels.md, last section).
+
 Every draw comes from one seeded :class:`numpy.random.Generator`.
 """
 
