@@ -31,6 +31,10 @@ and blue gains 0.6-1.5 against green, in linear light), ``blur`` (Gaussian,
 sigma 1-12 px of a 4000 px photo), ``noise`` (Gaussian, sigma 2-16 grey
 levels, per pixel and channel) and ``jpeg`` (re-encoded at quality 50-95).
 
+A bright window in view (:func:`paste_window`): a barred window, flat saturated or
+a textured sky, pasted where it hides the fewest lamps, its panes labelled
+``window`` (``scripts/window_photos.py``; docs/photo-labels.md, last section).
+
 Every draw comes from one seeded :class:`numpy.random.Generator`.
 """
 
@@ -395,3 +399,89 @@ def format_families(totals: dict[str, PhotoScore]) -> str:
             + (", ".join(f"{k} {v}" for k, v in sorted(s.false_by_kind.items())) or "-")
         )
     return "\n".join(lines)
+
+
+def window_rect(labels: PhotoLabels, size: tuple[int, int]) -> tuple[int, int]:
+    """Top-left ``(col, row)`` of a ``size`` px window pasted where it hides the fewest lamps.
+
+    Candidates on a 12 x 12 grid of positions over the photo; the score is the
+    number of lamp centres inside the window (ties: the first in raster order).
+    """
+    ww, wh = size
+    cols = np.linspace(0, labels.width - ww, 12).astype(int)
+    rows = np.linspace(0, labels.height - wh, 12).astype(int)
+    centres = np.array([r.centre for r in labels.regions if r.kind == "lamp"]).reshape(-1, 2)
+    best, best_n = (0, 0), math.inf
+    for r0 in rows.tolist():
+        for c0 in cols.tolist():
+            inside = ((centres[:, 0] >= c0 - 0.1 * ww) & (centres[:, 0] <= c0 + 1.1 * ww)
+                      & (centres[:, 1] >= r0 - 0.1 * wh) & (centres[:, 1] <= r0 + 1.1 * wh))
+            n = int(np.count_nonzero(inside))
+            if n < best_n:
+                best, best_n = (c0, r0), n
+    return best
+
+
+def paste_window(
+    grey: ImageU8,
+    labels: PhotoLabels,
+    frac: tuple[float, float] = (0.36, 0.29),
+    panes: tuple[int, int] = (3, 2),
+    bar_frac: float = 0.012,
+    textured: bool = False,
+    rng: np.random.Generator | None = None,
+) -> tuple[ImageU8, PhotoLabels]:
+    """A photo with a bright window pasted in, and its labels with the window added.
+
+    The window (the audit's case, docs/failures.md: a 360x220 px saturated pane
+    with glazing bars in a 1000 px photo) covers ``frac`` of the photo's width
+    and height, split into ``panes`` (columns, rows) by dark bars ``bar_frac``
+    of the photo's width thick (grey 70, a frame round the outside too). Panes
+    are 255 (flat, saturated) or, ``textured``, sky 235-255 with a vertical
+    gradient and seeded noise (clipped at 255). Lamps whose centres the window
+    covers are marked occluded; each pane is labelled ``window``.
+
+    Args:
+        grey: shape (H, W) uint8 full-resolution photo.
+        labels: its labels.
+        frac: window width and height as fractions of the photo's.
+        panes: panes across and down.
+        bar_frac: bar thickness / photo width.
+        textured: sky texture instead of flat saturated panes.
+        rng: the generator for the texture (needed when ``textured``).
+    """
+    h, w = grey.shape
+    ww, wh = int(round(frac[0] * w)), int(round(frac[1] * h))
+    c0, r0 = window_rect(labels, (ww, wh))
+    bar = max(int(round(bar_frac * w)), 1)
+    out = grey.copy()
+    if textured:
+        if rng is None:
+            raise ValueError("paste_window: a textured window needs a generator")
+        grad = np.linspace(255.0, 235.0, wh)[:, None] * np.ones((1, ww))
+        sky = np.clip(grad + rng.normal(0.0, 6.0, (wh, ww)), 0, 255)
+        pane_img = sky.astype(np.uint8)
+    else:
+        pane_img = np.full((wh, ww), 255, dtype=np.uint8)
+    out[r0:r0 + wh, c0:c0 + ww] = pane_img
+    regions = []
+    xs = np.linspace(0, ww - bar, panes[0] + 1).round().astype(int)
+    ys = np.linspace(0, wh - bar, panes[1] + 1).round().astype(int)
+    for x in xs.tolist():
+        out[r0:r0 + wh, c0 + x:c0 + x + bar] = 70
+    for y in ys.tolist():
+        out[r0 + y:r0 + y + bar, c0:c0 + ww] = 70
+    for i in range(panes[0]):
+        for j in range(panes[1]):
+            x_lo, x_hi = c0 + xs[i] + bar, c0 + xs[i + 1]
+            y_lo, y_hi = r0 + ys[j] + bar, r0 + ys[j + 1]
+            regions.append(Region("window", np.array([(x_lo + x_hi - 1) / 2, (y_lo + y_hi - 1) / 2]),
+                                  0.0, float(x_hi - x_lo), float(y_hi - y_lo)))
+
+    def covered(r: Region) -> bool:
+        cx, cy = r.centre.tolist()
+        return bool(c0 <= cx < c0 + ww and r0 <= cy < r0 + wh)
+
+    kept = tuple(replace(r, occluded=True) if r.kind == "lamp" and covered(r) else r
+                 for r in labels.regions)
+    return out, replace(labels, regions=kept + tuple(regions))

@@ -314,9 +314,15 @@ def shape_checks(
         fill = s0 / (4.0 * math.pi * math.sqrt(max(a * c - b * b, 1e-12)))
         merged[j] = not thin and fill < config.min_fill
         if config.max_peak_drop_grey is not None:
-            # Thin blobs (area sampling dims them) are judged by their brightest pixel.
-            if thin:
+            # Thin blobs are judged by their brightest pixel (the others are edge pixels).
+            # A thin line (a lamp seen edge-on) has no pixel wholly inside the lamp, so
+            # area sampling dims it: the wider margin. A blob small both ways has few
+            # pixels, but a light source still saturates its centre pixel: the usual
+            # margin (a white detector 2-3 px across in a 160x120 frame is not a lamp).
+            if thin and math.sqrt(12.0 * max(a + c - lam_min, 0.0)) >= config.thin_min_length_px:
                 too_dim[j] = brightest < peak - config.max_peak_drop_thin_grey
+            elif thin:
+                too_dim[j] = brightest < peak - config.max_peak_drop_grey
             else:
                 too_dim[j] = fifth < peak - config.max_peak_drop_grey
     return np.array(too_dim), np.array(merged), levels[0].astype(np.float64)

@@ -24,6 +24,15 @@ class LampDetectorConfig:
         max_bright_fraction: automatic threshold: Otsu is re-applied to the
             upper class while more than this fraction of the image lies above
             the threshold (default 0.08: lamps are a small part of a ceiling).
+        light_share: automatic threshold: the repeated Otsu also stops when
+            at least this fraction of the pixels above the threshold are at a
+            light source's level (``>= peak - max_peak_drop_grey``, the level the
+            blobs' dimness test asks of a lamp; clipped, 255, when that test is
+            off): such an upper class is light sources (lamps, a bright window),
+            not ceiling, and a further Otsu step would only split the brightest
+            lights from the others (a window covering 10 % of a frame otherwise
+            drives ``k`` to 243-254, above fluorescent tubes at 190-250; default
+            0.5: most of it; None: the rule before).
         max_otsu_iterations: automatic threshold: at most this many Otsu steps
             (default 4).
         min_contrast_grey: below this grey-level spread between the image's
@@ -57,6 +66,14 @@ class LampDetectorConfig:
             blobs matching no model are not lamps; None (default): no check.
         thin_width_px: short-axis width ``sqrt(12 lambda_min)`` below which a
             blob is thin (default 3 px).
+        thin_min_length_px: a thin blob's brightest pixel gets the wider
+            margin ``max_peak_drop_thin_grey`` only when its long-axis extent
+            ``sqrt(12 lambda_max)`` is at least this (a line: a lamp seen
+            edge-on); a thin blob shorter than this is small both ways and its
+            brightest pixel gets ``max_peak_drop_grey`` (a white smoke detector
+            2-3 px across in a 160x120 frame is not a lamp; default 6 px, twice
+            ``thin_width_px``; 0: every thin blob gets the wider margin, the
+            rule before).
         min_area_px: smaller blobs are rejected (default 6).
         max_area_fraction: blobs larger than this fraction of the image are
             rejected (glare, a window; default 0.2).
@@ -85,6 +102,7 @@ class LampDetectorConfig:
 
     threshold: int | None = None
     max_bright_fraction: float = 0.08
+    light_share: float | None = 0.5
     max_otsu_iterations: int = 4
     min_contrast_grey: float = 30.0
     min_relative_level: float = 0.5
@@ -94,6 +112,7 @@ class LampDetectorConfig:
     max_crowding: float | None = 0.2
     size_gate: tuple[tuple[float, float, float], ...] | None = None
     thin_width_px: float = 3.0
+    thin_min_length_px: float = 6.0
     min_area_px: int = 6
     max_area_fraction: float = 0.2
     ratio_threshold: float = 1.5

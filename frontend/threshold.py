@@ -9,6 +9,8 @@ on the 256-bin histogram of a uint8 image (grey levels 0..255).
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -78,7 +80,10 @@ def auto_threshold(
     """Choose the lamp threshold ``k`` for one image.
 
     Otsu's threshold of the image; while more than ``max_bright_fraction`` of
-    the pixels lie above it (a bright ceiling: Otsu separated dark structure
+    the pixels lie above it and less than ``light_share`` of those are at a
+    light source's level (within ``max_peak_drop_grey`` of the peak: an upper
+    class mostly that bright is light sources, a window beside the lamps, not
+    ceiling) (a bright ceiling: Otsu separated dark structure
     from the ceiling, not the ceiling from the lamps), Otsu again on the upper
     class only; never below ``median + min_relative_level (peak - median)``.
     Images whose peak is within ``min_contrast_grey`` of the median have no
@@ -134,9 +139,19 @@ def threshold_and_peak(
         return None, peak
     sums = (hist * np.arange(256, dtype=np.float64)).cumsum()
     k = _otsu_cumulative(cum, sums, 0)
+    # An upper class made mostly of pixels at a light source's level (within
+    # max_peak_drop_grey of the peak, the blobs' dimness test; clipped when that is off)
+    # is light sources (lamps, a sunlit window), not ceiling: splitting it again would
+    # only cut the brightest lights from the others.
+    share = config.light_share
+    drop = config.max_peak_drop_grey
+    light_from = 255 if drop is None else min(max(math.ceil(peak - drop), 1), 255)
+    n_light = total - cum[light_from - 1]
     for _ in range(config.max_otsu_iterations):
         above = total - cum[int(k)]
         if above <= config.max_bright_fraction * total:
+            break
+        if share is not None and n_light >= share * above:
             break
         lo = int(k) + 1
         k_next = _otsu_cumulative(cum[lo:] - cum[lo - 1], sums[lo:] - sums[lo - 1], lo)
