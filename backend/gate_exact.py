@@ -19,6 +19,8 @@ tangent of ``Pose2``; measurements as :mod:`lampsam.backend.models`.
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
@@ -91,7 +93,9 @@ class ExactGate(GraphState):
         for i, pairs in screened.items():
             gate = cfg.gate(len(obs[i].z))
             for lid, (d2, exact) in pairs.items():
-                if (not exact and d2 < gate and lid not in seen and lid not in self._joint_cache
+                # NaN: a planar pair the screen left to the joint marginal (associate asks it)
+                if (not exact and (d2 < gate or math.isnan(d2)) and lid not in seen
+                        and lid not in self._joint_cache
                         and lid in self._landmarks and self._landmarks[lid].in_graph):
                     seen.add(lid)
                     lids.append(lid)
