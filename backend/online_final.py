@@ -33,6 +33,15 @@ compares ``C`` plus the entropy of the sightings' labels, at each candidate's ow
 sighting noise scale (:mod:`lampsam.backend.label_entropy`): a map that splits a
 landmark into copies closer than the noise pays for its guessed labels.
 
+CPU budgets (:mod:`lampsam.backend.cpu_budget`): the first candidate's online run gets
+``[reassociation] online_first_cpu_per_sighting`` s per sighting of the log (the later
+ones ``online_candidate_cpu_factor`` times the least finished one's), each final solve
+``final_solve_cpu_per_sighting``, both at least ``online_candidate_cpu_floor_s``. A final
+solve past its budget stops at its next pass, round or stage and keeps the last
+association it accepted (a valid answer; the warning, the candidate's row and
+``noids_stopped_by_budget`` say so); the chosen one's left-out sightings are then not
+placed.
+
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
 

@@ -223,12 +223,9 @@ def duplicate_merges(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         return {}
 
     def diff_cov(ia: IntArray, ib: IntArray) -> FloatArray:
-        out = np.empty((len(ia), 2, 2))
-        for n, (a, b) in enumerate(zip(ia.tolist(), ib.tolist(), strict=True)):
-            if budget is not None and n % BUDGET_CHECK_PAIRS == 0:
-                budget.check("duplicate merges (joint marginals)")
-            out[n] = pair_diff_cov(marg, int(ids[a]), int(ids[b]))
-        return out
+        if budget is not None:
+            budget.check("duplicate merges (joint marginals)")
+        return pairs_diff_cov(marg, ids[ia], ids[ib], budget)
 
     sigma = landmark_sigma_max(marg, ids, budget)
     pairs = merge_pairs(ids, xy, created, diff_cov, covis.together, gate, ambiguity, radius,
@@ -237,8 +234,43 @@ def duplicate_merges(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     return {p.drop: p.keep for p in pairs}
 
 
-#: how many pair (or landmark) marginals between two looks at the CPU budget
+#: how many landmark marginals between two looks at the CPU budget
 BUDGET_CHECK_PAIRS = 32
+#: landmarks in one joint-marginal query of :func:`pairs_diff_cov`
+JOINT_CHUNK = 120
+
+
+def pairs_diff_cov(marg: gtsam.Marginals, a: IntArray, b: IntArray,
+                   budget: CpuBudget | None = None) -> FloatArray:
+    """(K, 2, 2) covariances of ``l_a - l_b`` for the landmark id pairs ``a``, ``b``
+    (K,): :func:`pair_diff_cov` of each, from one joint marginal over the landmarks of
+    up to :data:`JOINT_CHUNK` of them at a time (a marginal of a Gaussian is a
+    sub-block of any larger joint marginal: one Bayes-tree query instead of one per
+    pair; on pillars' online map 0.08 s for 60 pairs against 3.7 s, the blocks equal
+    to 5e-14 relative). ``budget`` is checked before each query."""
+    out = np.empty((len(a), 2, 2))
+    n = 0
+    while n < len(a):
+        if budget is not None and n:
+            budget.check("duplicate merges (joint marginals)")
+        keys: dict[int, None] = {}
+        end = n
+        while end < len(a) and len(keys.keys() | {int(a[end]), int(b[end])}) <= JOINT_CHUNK:
+            keys[int(a[end])] = None
+            keys[int(b[end])] = None
+            end += 1
+        if len(keys) <= 2:  # one pair
+            out[n] = pair_diff_cov(marg, int(a[n]), int(b[n]))
+            n += 1
+            continue
+        jm = marg.jointMarginalCovariance([L(i) for i in keys])
+        for m in range(n, end):
+            ka, kb = L(int(a[m])), L(int(b[m]))
+            # the joint holds its upper blocks only: (smaller key, larger key)
+            ab = jm.at(ka, kb) if ka < kb else jm.at(kb, ka).T
+            out[m] = jm.at(ka, ka) + jm.at(kb, kb) - ab - ab.T
+        n = end
+    return out
 
 
 def landmark_sigma_max(marg: gtsam.Marginals, ids: IntArray,

@@ -164,6 +164,16 @@ def test_duplicate_merges_are_the_same_with_the_pre_test(
     monkeypatch.setattr(ra, "landmark_sigma_max", lambda *a, **k: None)
     without = duplicate_merges(graph, v, lms, s, cfg.gate(2), cfg.new_threshold(2), 10.0)
     assert with_test == without and int(s.lid.max()) in with_test
+    # the pairs' blocks from chunked joint marginals are the pair-by-pair ones
+    marg = gtsam.Marginals(graph, v)
+    ids = np.array(sorted(lms))
+    a = np.repeat(ids[:12], 3)
+    b = np.array([ids[j + d] for j in range(12) for d in (1, 5, 9)])
+    a, b = np.r_[a, b], np.r_[b, a]  # either key order
+    monkeypatch.setattr(ra, "JOINT_CHUNK", 8)  # several chunks
+    got = ra.pairs_diff_cov(marg, a, b)
+    want = np.array([ra.pair_diff_cov(marg, int(x), int(y)) for x, y in zip(a, b, strict=True)])
+    assert np.abs(got - want).max() <= 1e-9 * np.abs(want).max()
 
 
 def test_a_final_solve_past_its_budget_keeps_the_answer_before_the_cut(
