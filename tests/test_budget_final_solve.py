@@ -239,3 +239,37 @@ def test_the_picker_reports_a_final_solve_stopped_by_its_budget(
     assert any("stopped by its CPU budget" in m and "final_solve_cpu_per_sighting" in m
                for m in msgs)
     assert any("left-out sightings are not placed" in m for m in msgs)
+
+
+def test_the_gate_prefetches_planar_joint_marginals_equal_to_per_landmark_queries(
+        run: tuple[GraphLog, SlamResult, Sightings], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Online iSAM2 without ids on the seeded log: each keyframe's planar landmarks the
+    screen leaves to the joint marginal are fetched in one query (they were asked one by
+    one: the prefetch skipped NaN screen distances and sized Point2 blocks as 3-D), and
+    the cached blocks equal a per-landmark ``jointMarginalCovariance`` to 1e-8."""
+    from gtsam.symbol_shorthand import X
+
+    from lampsam.backend.gate_exact import ExactGate
+
+    g, _, _ = run
+    orig = ExactGate._prefetch_joint
+    checked: list[int] = []
+
+    def check(self, k, obs, screened):  # type: ignore[no-untyped-def]
+        n = orig(self, k, obs, screened)
+        if n and len(checked) < 40:
+            for lid, (s_kk, s_kl, s_ll) in list(self._joint_cache.items())[:3]:
+                lm = self._landmarks[lid]
+                full = np.asarray(self.isam.jointMarginalCovariance(
+                    [X(k), *self.handlers[lm.kind].keys(lm)]).fullMatrix())
+                scale = np.abs(full).max()
+                np.testing.assert_allclose(s_kk, full[:3, :3], rtol=0, atol=1e-8 * scale)
+                np.testing.assert_allclose(s_kl, full[:3, 3:], rtol=0, atol=1e-8 * scale)
+                np.testing.assert_allclose(s_ll, full[3:, 3:], rtol=0, atol=1e-8 * scale)
+                checked.append(len(s_ll))
+        return n
+
+    monkeypatch.setattr(ExactGate, "_prefetch_joint", check)
+    online, _ = run_graph_log_backend(g, "isam2", NO_PLACE, known_ids=False)
+    assert online.status == "ok"
+    assert len(checked) >= 20 and set(checked) == {2}
