@@ -16,10 +16,14 @@ stop a run early.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
+import signal
+import threading
 import time
+from collections.abc import Iterator
 
 from lampsam.errors import LampsamError
 
@@ -70,6 +74,38 @@ class CpuBudget:
         if self.spent(stage):
             raise BudgetSpent(f"{stage}: stopped by its CPU budget ({self.limit_s:.1f} s, "
                               f"{self.what})")
+
+
+@contextlib.contextmanager
+def interrupt_past(budget: CpuBudget | None, stage: str) -> Iterator[None]:
+    """Inside: :class:`BudgetSpent` is raised at the first Python bytecode after
+    ``budget`` is spent (a process-CPU timer, ``ITIMER_PROF``), for stages that have no
+    look at the budget of their own (GTSAM's calls finish first). The caller catches it
+    and keeps the state before the stage. Outside the main thread, or with no finite
+    budget, nothing is armed (the stage runs to its end); a budget already spent raises
+    at once."""
+    if budget is None or not math.isfinite(budget.limit_s):
+        yield
+        return
+    budget.check(stage)
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def fire(_sig: int, _frame: object) -> None:
+        signal.setitimer(signal.ITIMER_PROF, 0.0)
+        budget.spent(stage)  # records the stage and warns (the timer and process_time agree)
+        budget.stopped = budget.stopped or stage
+        raise BudgetSpent(f"{stage}: stopped by its CPU budget ({budget.limit_s:.1f} s, "
+                          f"{budget.what})")
+
+    old = signal.signal(signal.SIGPROF, fire)
+    signal.setitimer(signal.ITIMER_PROF, max(budget.limit_s - budget.used(), 1e-3))
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0.0)
+        signal.signal(signal.SIGPROF, old)
 
 
 def sighting_budget(per_sighting_s: float, n_sightings: int, floor_s: float) -> float:

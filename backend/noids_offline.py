@@ -58,7 +58,7 @@ from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.cpu_budget import CpuBudget
+from lampsam.backend.cpu_budget import BudgetSpent, CpuBudget, interrupt_past
 from lampsam.backend.final_moves import readmit, refine_final
 from lampsam.backend.graph_log import graph_log_steps
 from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, LandmarkKind, SlamResult
@@ -319,11 +319,22 @@ def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
     landmark explains first (:func:`lampsam.backend.final_moves.readmit`), then single
     sightings and merges with the poses free; each kept only if ``C`` falls, so the
     chosen candidate stays the least. ``report`` is called once
-    after it (as one more pass) if anything moved. A spent ``budget``
-    (:class:`lampsam.backend.cpu_budget.CpuBudget`) skips it: ``run`` as it is, with
+    after it (as one more pass) if anything moved. A ``budget``
+    (:class:`lampsam.backend.cpu_budget.CpuBudget`) spent before it or while it runs
+    (:func:`lampsam.backend.cpu_budget.interrupt_past`) gives ``run`` as it is, with
     ``stopped`` set."""
     if budget is not None and budget.spent("final pass"):
         return dataclasses.replace(run, stopped=run.stopped or budget.stopped)
+    try:
+        with interrupt_past(budget, "final pass"):
+            return _final_pass(g, config, run, report)
+    except BudgetSpent:  # stopped inside: the answer before the final pass
+        return dataclasses.replace(run, stopped=run.stopped or "final pass")
+
+
+def _final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
+                report: PassReport | None) -> OfflineRun:
+    """:func:`final_pass`'s work (``run`` is not modified)."""
     c0 = time.process_time()
     prior, odo = batch_graph_inputs(g, config)
     s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())

@@ -58,7 +58,7 @@ import numpy as np
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
 from lampsam.backend.config_offline import ReassociationConfig, online_candidate_changes
-from lampsam.backend.cpu_budget import CpuBudget, sighting_budget
+from lampsam.backend.cpu_budget import BudgetSpent, CpuBudget, interrupt_past, sighting_budget
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.held_placement import place_into
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
@@ -478,7 +478,13 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
         log.warning("the chosen candidate's final solve was stopped by its CPU budget (in %s): "
                     "its left-out sightings are not placed", c.solve.stopped)
     else:
-        place_chosen(g, config, c)
+        placing = CpuBudget(final_s, "[reassociation] final_solve_cpu_per_sighting")
+        try:
+            with interrupt_past(placing, "placement of the left-out sightings"):
+                place_chosen(g, config, c)
+        except BudgetSpent:  # the chosen final solve as it was before the placement
+            log.warning("the placement of the chosen candidate's left-out sightings was "
+                        "stopped by its CPU budget: they are not placed")
     if len(cands) > 1:
         c.final.extra.update({"online_candidates": float(len(cands)),
                               "online_candidate_chosen": float(i),

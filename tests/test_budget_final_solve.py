@@ -273,3 +273,52 @@ def test_the_gate_prefetches_planar_joint_marginals_equal_to_per_landmark_querie
     online, _ = run_graph_log_backend(g, "isam2", NO_PLACE, known_ids=False)
     assert online.status == "ok"
     assert len(checked) >= 20 and set(checked) == {2}
+
+
+def test_interrupt_past_stops_a_stage_without_looks_of_its_own() -> None:
+    """A busy stage that never looks at its budget is stopped by the CPU timer once the
+    budget is spent; the stage is recorded and the previous SIGPROF handler is back;
+    a spent budget raises before the stage starts; no budget arms nothing."""
+    import signal
+
+    from lampsam.backend.cpu_budget import BudgetSpent, interrupt_past
+
+    before = signal.getsignal(signal.SIGPROF)
+    b = CpuBudget(0.2, "a test budget")
+    n = 0
+    with pytest.raises(BudgetSpent, match="busy stage"), interrupt_past(b, "busy stage"):
+        while n < 10**10:
+            n += 1
+    assert b.stopped == "busy stage" and n < 10**10
+    assert signal.getsignal(signal.SIGPROF) is before
+    assert signal.getitimer(signal.ITIMER_PROF) == (0.0, 0.0)
+    with pytest.raises(BudgetSpent), interrupt_past(b, "next stage"):
+        raise AssertionError("not reached")
+    with interrupt_past(None, "free"):
+        n = -1
+    assert n == -1
+
+
+def test_a_final_pass_stopped_inside_keeps_the_answer_before_it(
+        run: tuple[GraphLog, SlamResult, Sightings], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The final pass (its moves have no look at the budget) stopped inside by the timer:
+    the answer is the one before the final pass, marked stopped there."""
+    import time
+
+    import lampsam.backend.noids_offline as no
+    from lampsam.backend.noids_offline import final_pass
+
+    g, online, s0 = run
+    base = final_solve(g, NO_PLACE, online, _copy(s0), place=False)
+
+    def slow(*a: object, **k: object) -> None:
+        t0 = time.process_time()
+        while time.process_time() - t0 < 30.0:  # CPU-bound, never looks at a budget
+            pass
+        raise AssertionError("not stopped")
+
+    monkeypatch.setattr(no, "_final_pass", slow)
+    b = CpuBudget(0.3, "a test budget")
+    out = final_pass(g, final_config(NO_PLACE), base, budget=b)
+    assert out.stopped == "final pass" and out.cost == base.cost
+    assert np.array_equal(out.sightings.lid, base.sightings.lid)
