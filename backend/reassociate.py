@@ -58,7 +58,7 @@ from scipy.spatial import cKDTree
 from lampsam.arrays import FloatArray
 from lampsam.backend.config_offline import ReassociationConfig
 from lampsam.backend.constellation import align_constellation
-from lampsam.backend.cpu_budget import BudgetSpent, CpuBudget
+from lampsam.backend.cpu_budget import BudgetSpent, CpuBudget, interrupt_past
 from lampsam.backend.landmark_merge import CoVisibility, merge_pairs
 from lampsam.backend.planar_gate import predict_point2
 from lampsam.backend.pose_cov import pose_array
@@ -447,7 +447,11 @@ def refine(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatA
         poses, lms = read_estimate(values, n_kf, live)
         # the gate's noise: the stated R, or (second stage) shrunk to the sightings' spread
         f = noise_factor(sighting_d2(poses, lms, s)) if fitting else 1.0
-        relabel = revisit_merges(lms, s, cfg)
+        try:  # the constellation alignments have no look at the budget of their own
+            with interrupt_past(budget, "revisit merges"):
+                relabel = revisit_merges(lms, s, cfg)
+        except BudgetSpent:  # the pass under way is dropped: the last accepted stays
+            break
         if cfg.merge_radius > 0:
             try:
                 dup = duplicate_merges(graph, values, lms, s, gate, ambiguity,

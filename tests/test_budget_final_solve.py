@@ -31,10 +31,11 @@ NO_PLACE = dataclasses.replace(SlamConfig(), reassociation=dataclasses.replace(
 
 class CountingBudget(CpuBudget):
     """A budget spent at its ``n``-th look (``spent`` or ``check``), whatever the CPU:
-    the tests cut at a chosen place, independent of the machine's speed."""
+    the tests cut at a chosen place, independent of the machine's speed (its limit is
+    inf, so no CPU timer is armed)."""
 
     def __init__(self, n: int) -> None:
-        super().__init__(0.0, "a test budget")
+        super().__init__(float("inf"), "a test budget")
         self.left = n
         self.stages: list[str] = []
 
@@ -44,7 +45,8 @@ class CountingBudget(CpuBudget):
             self.left -= 1
             if self.left > 0:
                 return False
-        return super().spent(stage)
+            self.stopped = stage
+        return True
 
 
 @pytest.fixture(scope="module")
