@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lampsam.arrays import FloatArray, IntArray
+from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.covariance import LowerCovariance
 from lampsam.factors.geometry import mahalanobis2_2x2
 
@@ -137,7 +137,7 @@ def merge_pairs(ids: IntArray, xy: FloatArray, created: IntArray, diff_cov: Diff
 
 
 def pair_bound_far(d: FloatArray, s_i: FloatArray, s_j: FloatArray, threshold: float
-                   ) -> FloatArray:
+                   ) -> BoolArray:
     """(K,) True where a pair is surely beyond ``threshold`` in squared Mahalanobis
     distance, from its (K, 2) difference ``d`` (m) and upper bounds ``s_i``, ``s_j`` (K,)
     of each landmark's largest marginal standard deviation (m).
@@ -149,7 +149,7 @@ def pair_bound_far(d: FloatArray, s_i: FloatArray, s_j: FloatArray, threshold: f
     that is at the threshold.
     """
     bound = (np.asarray(s_i, float) + np.asarray(s_j, float)) ** 2 * threshold
-    out: FloatArray = np.einsum("ki,ki->k", d, d) > bound * (1.0 + 1e-9)
+    out: BoolArray = np.einsum("ki,ki->k", d, d) > bound * (1.0 + 1e-9)
     return out
 
 
