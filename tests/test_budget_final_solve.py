@@ -324,3 +324,24 @@ def test_a_final_pass_stopped_inside_keeps_the_answer_before_it(
     out = final_pass(g, final_config(NO_PLACE), base, budget=b)
     assert out.stopped == "final pass" and out.cost == base.cost
     assert np.array_equal(out.sightings.lid, base.sightings.lid)
+
+
+def test_cli_says_the_final_solve_was_stopped_by_its_budget(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``lampsam slam LOG --no-ids``: with a tiny final-solve budget the printed line says
+    the final solve was stopped, and ``summary.json`` has the flag and the stage."""
+    import json
+
+    from lampsam.cli import main
+
+    path, _ = write_landmark_log(tmp_path / "log.txt", SPEC, np.random.default_rng(1))
+    (tmp_path / "c.toml").write_text(
+        '[reassociation]\nonline_candidates = ["defaults"]\n'
+        "final_solve_cpu_per_sighting = 1e-12\nonline_candidate_cpu_floor_s = 0.0\n")
+    out = tmp_path / "out"
+    assert main(["slam", str(path), "--no-ids", "--backend", "isam2", "--config",
+                 str(tmp_path / "c.toml"), "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["noids_stopped_by_budget"] == 1.0
+    assert s["online_picker"]["candidates"][0]["stopped_by_budget"] == "re-association pass 1"
+    assert "STOPPED by its CPU budget" in capsys.readouterr().out
