@@ -25,6 +25,7 @@ Modules:
 * :mod:`~lampsam.backend.config_offline` -- Configuration of the offline passes: batch Levenberg-Marquardt (``[batch]``) and the batch re-association without ids (``[reassociation]``).
 * :mod:`~lampsam.backend.constellation` -- Revisit detection by constellation: a 2-D rigid alignment of recent landmarks to the map.
 * :mod:`~lampsam.backend.covariance` -- A growable symmetric covariance kept as its lower triangle, updated in place by BLAS.
+* :mod:`~lampsam.backend.cpu_budget` -- CPU budgets of the no-ids final solves: stop cleanly, keep what is finished (issue 15).
 * :mod:`~lampsam.backend.dense_log` -- Known-id fast path of the smoothers over a planar landmark log, one step per pose.
 * :mod:`~lampsam.backend.ekf` -- The paper's EKF-SLAM (paper 1, eqs. 13-25), exploiting the sparsity of its Jacobians.
 * :mod:`~lampsam.backend.ekf_gate` -- The EKF's vectorised gate (paper 1, eqs. 19-20): a frame's candidates and distances.

@@ -172,6 +172,22 @@ class ReassociationConfig:
             labels; a candidate whose sightings fit worse than stated is scored at its
             own noise scale (default True: with it ``C`` no longer takes the alias
             test's split map on MRCLAM; False: ``C`` alone, docs/noids-aliasing.md).
+        online_first_cpu_per_sighting: the CPU budget of the first online candidate's
+            online run (the later ones have ``online_candidate_cpu_factor``'s), s of
+            process CPU per range-bearing sighting of the log, at least
+            ``online_candidate_cpu_floor_s`` (default 0.05: 467 s on the 9,342
+            sightings of the held-out pillars log; the slowest first candidate measured
+            used 0.012 s per sighting, Victoria Park's 44 s; inf: no budget). Past it
+            the run stops and loses, as a later candidate past its own budget.
+        final_solve_cpu_per_sighting: the CPU budget of each final solve (the
+            re-association passes with their duplicate merges, the description-length
+            moves, the final pass, the placement of the left-out sightings), s of
+            process CPU per range-bearing sighting, at least
+            ``online_candidate_cpu_floor_s`` (default 0.05; inf: no budget). Past it
+            the solve stops at the next pass, round or stage and keeps the last one it
+            accepted (a warning names the stage; ``summary.json`` has
+            ``noids_stopped_by_budget`` and the candidate's ``stopped_by_budget``).
+            docs/noids-aliasing.md, last section.
         online_final_held_new_unexplained: with ``online_final_held_new_landmarks``, only
             the left-out sightings that no mapped landmark explains (none within ``c_new``
             at the final map) are clustered into new landmarks (default True; False: all
@@ -217,6 +233,10 @@ class ReassociationConfig:
     online_final_held_mixture: bool = True
     online_final_held_new_landmarks: bool = False
     online_label_entropy: bool = True
+    online_first_cpu_per_sighting: float = field(default=0.05,
+                                                 metadata=limits(gt=0.0, finite=False))
+    final_solve_cpu_per_sighting: float = field(default=0.05,
+                                                metadata=limits(gt=0.0, finite=False))
     # vpgap
     online_final_held_new_unexplained: bool = True
     online_final_held_new_merge: bool = True

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from lampsam.arrays import FloatArray, IntArray
+from lampsam.arrays import BoolArray, FloatArray, IntArray
 from lampsam.backend.covariance import LowerCovariance
 from lampsam.factors.geometry import mahalanobis2_2x2
 
@@ -77,7 +77,7 @@ class CoVisibility:
 
 def merge_pairs(ids: IntArray, xy: FloatArray, created: IntArray, diff_cov: DiffCovFn,
                 exclusive: Callable[[int, int], bool], gate: float, ambiguity: float,
-                radius: float) -> list[MergePair]:
+                radius: float, sigma_max: FloatArray | None = None) -> list[MergePair]:
     """Unambiguous duplicate pairs among M planar landmarks.
 
     Args:
@@ -92,6 +92,11 @@ def merge_pairs(ids: IntArray, xy: FloatArray, created: IntArray, diff_cov: Diff
             ambiguous (>= ``gate``; ``chi2.ppf(new_prob, 2)``).
         radius: only pairs closer than this (m) are tested (a cheap pre-selection:
             no pair farther apart is expected inside the gate).
+        sigma_max: (M,) an upper bound of each landmark's largest marginal standard
+            deviation, m (None: no pre-test). A pair with ``|l_i - l_j|^2 >
+            max(gate, ambiguity) (s_i + s_j)^2`` is beyond both thresholds whatever
+            its cross-covariance (:func:`pair_bound_far`), so ``diff_cov`` is not
+            asked for it: the same pairs come out, with fewer joint marginals.
 
     Returns:
         Disjoint pairs, smallest distance first.
@@ -104,11 +109,16 @@ def merge_pairs(ids: IntArray, xy: FloatArray, created: IntArray, diff_cov: Diff
     if not cand:
         return []
     pa = np.asarray(cand, int)
-    c = diff_cov(pa[:, 0], pa[:, 1])
     d = xy[pa[:, 0]] - xy[pa[:, 1]]
-    d2, pd = mahalanobis2_2x2(d[:, 0], d[:, 1], c[:, 0, 0], 0.5 * (c[:, 0, 1] + c[:, 1, 0]),
-                              c[:, 1, 1])
-    d2 = np.where(pd, d2, np.inf)
+    d2 = np.full(len(pa), np.inf)
+    test = (np.ones(len(pa), bool) if sigma_max is None else
+            ~pair_bound_far(d, sigma_max[pa[:, 0]], sigma_max[pa[:, 1]], max(gate, ambiguity)))
+    if np.any(test):
+        c = diff_cov(pa[test, 0], pa[test, 1])
+        dt = d[test]
+        d2t, pd = mahalanobis2_2x2(dt[:, 0], dt[:, 1], c[:, 0, 0],
+                                   0.5 * (c[:, 0, 1] + c[:, 1, 0]), c[:, 1, 1])
+        d2[test] = np.where(pd, d2t, np.inf)
     rivals = np.zeros(m, int)
     close = d2 < ambiguity
     np.add.at(rivals, pa[close, 0], 1)
@@ -123,6 +133,23 @@ def merge_pairs(ids: IntArray, xy: FloatArray, created: IntArray, diff_cov: Diff
         older_i = (created[i], ids[i]) <= (created[j], ids[j])
         keep, drop = (i, j) if older_i else (j, i)
         out.append(MergePair(int(ids[keep]), int(ids[drop]), float(d2[k])))
+    return out
+
+
+def pair_bound_far(d: FloatArray, s_i: FloatArray, s_j: FloatArray, threshold: float
+                   ) -> BoolArray:
+    """(K,) True where a pair is surely beyond ``threshold`` in squared Mahalanobis
+    distance, from its (K, 2) difference ``d`` (m) and upper bounds ``s_i``, ``s_j`` (K,)
+    of each landmark's largest marginal standard deviation (m).
+
+    For any unit direction ``u``, ``u^T Cov(l_i - l_j) u = v_i + v_j - 2 c_ij`` with
+    ``|c_ij| <= sqrt(v_i v_j)`` (Cauchy-Schwarz), so the largest eigenvalue of the
+    difference's covariance is at most ``(s_i + s_j)^2`` and ``d2 >= |d|^2 / (s_i +
+    s_j)^2``. The test uses a margin of 1e-9 relative, so rounding never drops a pair
+    that is at the threshold.
+    """
+    bound = (np.asarray(s_i, float) + np.asarray(s_j, float)) ** 2 * threshold
+    out: BoolArray = np.einsum("ki,ki->k", d, d) > bound * (1.0 + 1e-9)
     return out
 
 

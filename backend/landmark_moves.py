@@ -45,6 +45,7 @@ from gtsam.symbol_shorthand import L, X
 from scipy.spatial import cKDTree
 
 from lampsam.arrays import FloatArray, IntArray
+from lampsam.backend.cpu_budget import CpuBudget
 from lampsam.backend.reassociate import Sightings, build_graph, read_estimate
 
 log = logging.getLogger(__name__)
@@ -304,7 +305,8 @@ def solve_association(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatAr
 
 def refine_by_cost(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray, FloatArray]],
                    s: Sightings, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                   new_cost: float, radius: float, rounds: int = 10
+                   new_cost: float, radius: float, rounds: int = 10,
+                   budget: CpuBudget | None = None
                    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[Move]]:
     """Rounds of :func:`cost_moves`, each followed by LM on the whole graph (module doc).
 
@@ -317,6 +319,8 @@ def refine_by_cost(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray
         s: the sightings and their association; graph, values: its graph and optimum.
         new_cost: ``c_new``; radius: merge candidates closer than this, m.
         rounds: rounds at most.
+        budget: a CPU budget, checked before each round; once spent, the rounds stop
+            and the last accepted one is kept.
 
     Returns:
         ``(graph, values, accepted moves)`` of the final association.
@@ -324,7 +328,9 @@ def refine_by_cost(prior: gtsam.NonlinearFactor, odometry: list[tuple[FloatArray
     n_kf = len(odometry)
     moves: list[Move] = []
     c_old = description_cost(graph, values, s.lid, new_cost)
-    for _ in range(rounds):
+    for n in range(rounds):
+        if budget is not None and budget.spent(f"description-length round {n + 1}"):
+            break
         poses, lms = read_estimate(values, n_kf, np.unique(s.lid).tolist())
         new, moved, round_moves = cost_moves(poses, s.k, s.z, s.r, s.lid, lms, new_cost, radius)
         if not round_moves:

@@ -58,6 +58,7 @@ from gtsam.symbol_shorthand import L, X
 
 from lampsam.arrays import FloatArray, IntArray
 from lampsam.backend.config import SlamConfig
+from lampsam.backend.cpu_budget import BudgetSpent, CpuBudget, interrupt_past
 from lampsam.backend.final_moves import readmit, refine_final
 from lampsam.backend.graph_log import graph_log_steps
 from lampsam.backend.interface import GraphSnapshot, LandmarkEstimate, LandmarkKind, SlamResult
@@ -96,6 +97,8 @@ class OfflineRun:
         graph, values: the final association's factor graph and its optimum.
         moves: the description-length merges and splits after the passes
             (:mod:`lampsam.backend.landmark_moves`; ``[reassociation] cost_moves``).
+        stopped: the stage a CPU budget stopped (:mod:`lampsam.backend.cpu_budget`;
+            the answer is the last state it accepted); "" when none did.
     """
 
     scale: float
@@ -114,6 +117,7 @@ class OfflineRun:
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
     moves: list[Move] = dataclasses.field(default_factory=list)
+    stopped: str = ""
 
     def mapped(self, min_observations: int = 2) -> dict[int, FloatArray]:
         """Landmarks with at least ``min_observations`` sightings."""
@@ -226,7 +230,8 @@ def run_candidate(g: GraphLog, config: SlamConfig, scale: float,
 
 def solve_candidate(g: GraphLog, config: SlamConfig, scale: float, poses0: FloatArray,
                     lms0: dict[int, FloatArray], s: Sightings, online_cpu_s: float,
-                    report: PassReport | None = None) -> OfflineRun:
+                    report: PassReport | None = None,
+                    budget: CpuBudget | None = None) -> OfflineRun:
     """The batch re-association of one online association with the stated noise
     (``config.reassociation``; at least one pass) and the description-length moves.
 
@@ -240,6 +245,9 @@ def solve_candidate(g: GraphLog, config: SlamConfig, scale: float, poses0: Float
         online_cpu_s: the online pass's CPU time, s (recorded).
         report: called with the online answer as pass 0, then after each accepted pass,
             then once after the moves (if any) as one more pass.
+        budget: a CPU budget (:class:`lampsam.backend.cpu_budget.CpuBudget`; None:
+            none) for the passes and the moves: once spent, each stops and keeps its
+            last accepted state, and the answer's ``stopped`` names the stage.
     """
     c1 = time.process_time()
     prior, odo = batch_graph_inputs(g, config)
@@ -251,19 +259,20 @@ def solve_candidate(g: GraphLog, config: SlamConfig, scale: float, poses0: Float
     hook = None if report is None else (
         lambda i, p, ps, lm: report(i, p, ps, lm, s))  # s.lid is updated in place
     graph, values, passes = refine(prior, odo, s, poses0, lms0, config.association.gate(2),
-                                   config.association.new_threshold(2), rc, hook)
+                                   config.association.new_threshold(2), rc, hook, budget)
     moves: list[Move] = []
-    if rc.cost_moves:
+    if rc.cost_moves and not (budget is not None and budget.spent("description-length moves")):
         graph, values, moves = refine_by_cost(prior, odo, s, graph, values,
                                               config.association.new_threshold(2),
-                                              rc.merge_radius)
+                                              rc.merge_radius, budget=budget)
         if moves and report is not None:
             merged = sum(m.kind == "merge" for m in moves)
             report(len(passes) + 1, Pass(len(np.unique(s.lid)), merged, 0, 0,
                                          float(graph.error(values))),
                    *read_estimate(values, len(g.pose_ids), np.unique(s.lid).tolist()), s)
-    return answer_of(g, config, scale, s, passes, online_cpu_s, time.process_time() - c1, graph,
-                   values, moves)
+    out = answer_of(g, config, scale, s, passes, online_cpu_s, time.process_time() - c1, graph,
+                    values, moves)
+    return dataclasses.replace(out, stopped=budget.stopped) if budget and budget.stopped else out
 
 
 def answer_of(g: GraphLog, config: SlamConfig, scale: float, s: Sightings, passes: list[Pass],
@@ -303,13 +312,29 @@ def dropped_sightings(g: GraphLog, s: Sightings) -> tuple[IntArray, FloatArray, 
 
 
 def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
-               report: PassReport | None = None) -> OfflineRun:
+               report: PassReport | None = None,
+               budget: CpuBudget | None = None) -> OfflineRun:
     """:func:`lampsam.backend.final_moves.refine_final` on one candidate's answer (the
     chosen one): with ``[reassociation] readmit_dropped`` the dropped sightings a
     landmark explains first (:func:`lampsam.backend.final_moves.readmit`), then single
     sightings and merges with the poses free; each kept only if ``C`` falls, so the
     chosen candidate stays the least. ``report`` is called once
-    after it (as one more pass) if anything moved."""
+    after it (as one more pass) if anything moved. A ``budget``
+    (:class:`lampsam.backend.cpu_budget.CpuBudget`) spent before it or while it runs
+    (:func:`lampsam.backend.cpu_budget.interrupt_past`) gives ``run`` as it is, with
+    ``stopped`` set."""
+    if budget is not None and budget.spent("final pass"):
+        return dataclasses.replace(run, stopped=run.stopped or budget.stopped)
+    try:
+        with interrupt_past(budget, "final pass"):
+            return _final_pass(g, config, run, report)
+    except BudgetSpent:  # stopped inside: the answer before the final pass
+        return dataclasses.replace(run, stopped=run.stopped or "final pass")
+
+
+def _final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
+                report: PassReport | None) -> OfflineRun:
+    """:func:`final_pass`'s work (``run`` is not modified)."""
     c0 = time.process_time()
     prior, odo = batch_graph_inputs(g, config)
     s = Sightings(run.sightings.k, run.sightings.z, run.sightings.r, run.sightings.lid.copy())
@@ -342,6 +367,7 @@ def final_pass(g: GraphLog, config: SlamConfig, run: OfflineRun,
     out = answer_of(g, config, run.scale, s, run.passes, run.online_cpu_s,
                   run.batch_cpu_s + time.process_time() - c0, graph, values,
                   run.moves + moves)
+    out = dataclasses.replace(out, stopped=run.stopped)
     if report is not None:
         report(len(run.passes) + 2, Pass(len(out.landmarks),
                                          sum(m.kind == "merge" for m in moves), 0,
@@ -393,7 +419,8 @@ def result_of(g: GraphLog, config: SlamConfig, best: OfflineRun, extra: dict[str
     fewer than ``association.min_observations`` sightings are ``provisional``. ``extra``
     holds the answer's factor (``noids_scale``), its passes, the group chi-squares per
     dof, the description length (``noids_cost``), the merges and splits, the dropped
-    sightings and the CPU time since ``c0`` (wall since ``t0``), then ``extra``; ``graph``
+    sightings, whether a CPU budget stopped it (``noids_stopped_by_budget`` 1, else 0)
+    and the CPU time since ``c0`` (wall since ``t0``), then ``extra``; ``graph``
     is the answer's factor graph at its optimum (``lampsam slam --g2o``).
     """
     try:
@@ -419,6 +446,7 @@ def result_of(g: GraphLog, config: SlamConfig, best: OfflineRun, extra: dict[str
              "noids_merges": float(sum(m.kind == "merge" for m in best.moves)),
              "noids_splits": float(sum(m.kind == "split" for m in best.moves)),
              "noids_sighting_moves": float(sum(m.kind == "sighting" for m in best.moves)),
+             "noids_stopped_by_budget": float(bool(best.stopped)),
              **extra, "total_time_s": wall, "total_cpu_s": time.process_time() - c0}
     return SlamResult(
         backend="batch", times=g.odometry.t.copy(), poses=best.poses,

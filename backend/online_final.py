@@ -33,6 +33,15 @@ compares ``C`` plus the entropy of the sightings' labels, at each candidate's ow
 sighting noise scale (:mod:`lampsam.backend.label_entropy`): a map that splits a
 landmark into copies closer than the noise pays for its guessed labels.
 
+CPU budgets (:mod:`lampsam.backend.cpu_budget`): the first candidate's online run gets
+``[reassociation] online_first_cpu_per_sighting`` s per sighting of the log (the later
+ones ``online_candidate_cpu_factor`` times the least finished one's), each final solve
+``final_solve_cpu_per_sighting``, both at least ``online_candidate_cpu_floor_s``. A final
+solve past its budget stops at its next pass, round or stage and keeps the last
+association it accepted (a valid answer; the warning, the candidate's row and
+``noids_stopped_by_budget`` say so); the chosen one's left-out sightings are then not
+placed.
+
 Frames: world, m and rad; sightings ``[bearing, range]`` in the body frame.
 """
 
@@ -48,7 +57,8 @@ import numpy as np
 
 from lampsam.arrays import FloatArray
 from lampsam.backend.config import SlamConfig
-from lampsam.backend.config_offline import online_candidate_changes
+from lampsam.backend.config_offline import ReassociationConfig, online_candidate_changes
+from lampsam.backend.cpu_budget import BudgetSpent, CpuBudget, interrupt_past, sighting_budget
 from lampsam.backend.graph_log import run_graph_log_backend
 from lampsam.backend.held_placement import place_into
 from lampsam.backend.interface import SlamBackend, SlamResult, log_pruned
@@ -146,7 +156,7 @@ def final_config(config: SlamConfig) -> SlamConfig:
 
 
 def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sightings,
-                place: bool = True) -> OfflineRun:
+                place: bool = True, budget: CpuBudget | None = None) -> OfflineRun:
     """The online association ``s`` re-solved in batch (module doc), then, with
     ``[reassociation] online_final_held_mixture`` and ``place``, the sightings it left
     out placed (:func:`place_left_out`).
@@ -160,6 +170,9 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
             ``cov_scale=1/16``, 0.342 m against the defaults' 0.005), so the picker
             places the left-out sightings of the chosen candidate only
             (:func:`place_chosen`).
+        budget: a CPU budget (:mod:`lampsam.backend.cpu_budget`; None: none) for every
+            stage; a spent one stops the stage under way at its next pass or round and
+            skips the later stages (the answer's ``stopped`` names where).
 
     Returns:
         The answer; its ``scale`` is the online pass's odometry variance factor relative
@@ -170,12 +183,14 @@ def final_solve(g: GraphLog, config: SlamConfig, online: SlamResult, s: Sighting
     if cfg.reassociation.online_final_singletons:
         s = with_singletons(g, s)
     run = solve_candidate(g, cfg, q, online.poses, online_landmarks(online, s), s,
-                          float(online.extra.get("total_cpu_s", float("nan"))))
+                          float(online.extra.get("total_cpu_s", float("nan"))), budget=budget)
     log.info("final solve of the online association: %d passes, %d moves, C %.1f",
              len(run.passes), len(run.moves), run.cost)
     if cfg.reassociation.final_pass:
-        run = final_pass(g, cfg, run)
+        run = final_pass(g, cfg, run, budget=budget)
     if place and cfg.reassociation.online_final_held_mixture:
+        if budget is not None and budget.spent("placement of the left-out sightings"):
+            return dataclasses.replace(run, stopped=run.stopped or budget.stopped)
         run = place_left_out(g, cfg, run)
     return run
 
@@ -285,6 +300,11 @@ class Candidate:
         picker_cost: with ``[reassociation] online_label_entropy``, what the picker
             compares: ``C`` at the candidate's own sighting noise scale plus
             ``label_cost`` (:func:`label_entropy_costs`); NaN without it.
+
+    A final solve stopped by its CPU budget (``[reassociation]
+    final_solve_cpu_per_sighting``) is still ``"ok"``: its answer is the last state it
+    accepted, a valid association with its ``C``; ``solve.stopped`` (``row()``'s
+    ``stopped_by_budget``) names the stage it stopped in.
     """
 
     name: str
@@ -313,7 +333,9 @@ class Candidate:
                 "held": int(on.get("n_held", 0)), "held_unused": int(on.get("n_held_unused", 0)),
                 "sightings_dropped": (None if self.final is None else
                                       int(self.final.extra["sightings_dropped"])),
-                "cpu_s": round(self.cpu_s, 3)}
+                "cpu_s": round(self.cpu_s, 3),
+                "stopped_by_budget": (self.solve.stopped or None) if self.solve is not None
+                else None}
 
 
 class OverBudget(LampsamError):
@@ -321,26 +343,32 @@ class OverBudget(LampsamError):
     (``[reassociation] online_candidate_cpu_factor``)."""
 
 
-def _budget_watch(c0: float, budget_s: float) -> Callable[[str, Mapping[str, Any]], None]:
+def _budget_watch(c0: float, budget_s: float,
+                  name: str = "[reassociation] online_candidate_cpu_factor"
+                  ) -> Callable[[str, Mapping[str, Any]], None]:
     """An observer (:mod:`lampsam.observe`) that raises :class:`OverBudget` at the first
-    step after ``budget_s`` s of process CPU since ``c0``; the run's driver then ends it
-    as failed, keeping its finished steps."""
+    step after ``budget_s`` s of process CPU since ``c0`` (``name``: the option that set
+    the budget, for the message); the run's driver then ends it as failed, keeping its
+    finished steps."""
 
     def watch(event: str, _: Mapping[str, Any]) -> None:
         if event == "slam.step" and time.process_time() - c0 > budget_s:
-            raise OverBudget(f"stopped after {budget_s:.1f} s of CPU (its budget: "
-                             "[reassociation] online_candidate_cpu_factor)")
+            raise OverBudget(f"stopped after {budget_s:.1f} s of CPU (its budget: {name})")
 
     return watch
 
 
 def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | None,
-                   budget_s: float = float("inf")) -> Candidate:
+                   budget_s: float = float("inf"), final_budget_s: float = float("inf"),
+                   budget_name: str = "[reassociation] online_candidate_cpu_factor"
+                   ) -> Candidate:
     """One candidate: the online run with ``spec``'s changes (stopped past ``budget_s``
-    s of CPU), then :func:`final_solve` of its association with ``config`` as given (its
-    ``cov_scale`` replaced by the candidate's, which only sets the recorded
-    ``noids_scale``): every candidate's ``C`` is then the same sightings under the same
-    noise and the same ``c_new``."""
+    s of CPU, ``budget_name`` the option that set it), then :func:`final_solve` of its
+    association with ``config`` as given (its ``cov_scale`` replaced by the
+    candidate's, which only sets the recorded ``noids_scale``), stopped past
+    ``final_budget_s`` s of CPU with the last state it accepted
+    (:class:`lampsam.backend.cpu_budget.CpuBudget`): every candidate's ``C`` is then the
+    same sightings under the same noise and the same ``c_new``."""
     name = "as given" if spec is None else spec
     if stop_requested():
         return Candidate(name, "not run (stop requested)")
@@ -348,7 +376,7 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
     cfg = config if spec is None else candidate_config(config, spec)
     # the online map's pruning is not the written map's
     with candidate_pruning_quiet(), observing(
-            _budget_watch(c0, budget_s) if np.isfinite(budget_s) else None):
+            _budget_watch(c0, budget_s, budget_name) if np.isfinite(budget_s) else None):
         online, be = run_graph_log_backend(g, backend, cfg, known_ids=False)
     if online.n_pruned:
         log.info("online run (%s): %d landmarks pruned from its map", name, online.n_pruned)
@@ -364,7 +392,9 @@ def _run_candidate(g: GraphLog, backend: str, config: SlamConfig, spec: str | No
     c1 = time.process_time()
     solve_cfg = dataclasses.replace(config, pose2_odometry=cfg.pose2_odometry)
     try:
-        best = final_solve(g, solve_cfg, online, s, place=False)
+        budget = CpuBudget(final_budget_s, "[reassociation] final_solve_cpu_per_sighting",
+                           c1)
+        best = final_solve(g, solve_cfg, online, s, place=False, budget=budget)
     except (RuntimeError, KeyboardInterrupt) as exc:  # GTSAM's LM, or SIGINT / SIGTERM
         why = f"{type(exc).__name__}: {str(exc).strip()[:120] or 'interrupted'}"
         log.error("final solve of candidate %s stopped (%s)", name, why)
@@ -432,11 +462,15 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
     rc = config.reassociation
     specs: list[str | None] = list(rc.online_candidates) or [None]
     cands: list[Candidate] = []
+    n_sightings = sum(len(x) for x in g.sightings)
+    first_s = sighting_budget(rc.online_first_cpu_per_sighting, n_sightings,
+                              rc.online_candidate_cpu_floor_s)
+    final_s = sighting_budget(rc.final_solve_cpu_per_sighting, n_sightings,
+                              rc.online_candidate_cpu_floor_s)
     for spec in specs:
-        done = [x.cpu_s for x in cands if x.status == "ok"]
-        budget = (max(rc.online_candidate_cpu_factor * min(done),
-                      rc.online_candidate_cpu_floor_s) if done else float("inf"))
-        c = _run_candidate(g, backend, config, spec, budget)
+        budget, name = picker_budget([x.cpu_s for x in cands if x.status == "ok"], rc,
+                                     first_s)
+        c = _run_candidate(g, backend, config, spec, budget, final_s, name)
         log.info("online candidate %s: %s, C %.1f, %.1f s CPU", c.name, c.status, c.cost,
                  c.cpu_s)
         cands.append(c)
@@ -456,7 +490,17 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
             answer, _ = run_graph_log_backend(g, backend, config, known_ids=False)
         answer.extra["online_final"] = 0.0
         return answer, None, cands, i
-    place_chosen(g, config, c)
+    if c.solve is not None and c.solve.stopped:
+        log.warning("the chosen candidate's final solve was stopped by its CPU budget (in %s): "
+                    "its left-out sightings are not placed", c.solve.stopped)
+    else:
+        placing = CpuBudget(final_s, "[reassociation] final_solve_cpu_per_sighting")
+        try:
+            with interrupt_past(placing, "placement of the left-out sightings"):
+                place_chosen(g, config, c)
+        except BudgetSpent:  # the chosen final solve as it was before the placement
+            log.warning("the placement of the chosen candidate's left-out sightings was "
+                        "stopped by its CPU budget: they are not placed")
     if len(cands) > 1:
         c.final.extra.update({"online_candidates": float(len(cands)),
                               "online_candidate_chosen": float(i),
@@ -464,6 +508,19 @@ def run_online_picker(g: GraphLog, backend: str, config: SlamConfig
     if c.final.n_pruned:
         log_pruned(c.final.n_pruned, c.final.pruned, config.association.min_observations)
     return c.final, c.online, cands, i
+
+
+def picker_budget(done_cpu_s: list[float], rc: ReassociationConfig, first_s: float
+                  ) -> tuple[float, str]:
+    """``(budget_s, the option that set it)`` of the next candidate's online run: with
+    finished candidates (``done_cpu_s``: their CPU, s), ``online_candidate_cpu_factor``
+    times the least, at least ``online_candidate_cpu_floor_s``; before any finished,
+    ``first_s`` (from ``online_first_cpu_per_sighting``)."""
+    if done_cpu_s:
+        return (max(rc.online_candidate_cpu_factor * min(done_cpu_s),
+                    rc.online_candidate_cpu_floor_s),
+                "[reassociation] online_candidate_cpu_factor")
+    return first_s, "[reassociation] online_first_cpu_per_sighting"
 
 
 def run_online_final(g: GraphLog, backend: str, config: SlamConfig

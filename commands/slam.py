@@ -341,6 +341,9 @@ def _slam_graph_text(args: argparse.Namespace, config: SlamConfig, out: Path) ->
                 f"{int(s['noids_merges'])} merges, {int(s['noids_splits'])} splits, "
                 f"{int(s['noids_sighting_moves'])} sighting moves; online: "
                 f"{len(online.landmarks)} landmarks, poses in online.tum)")
+        if s.get("noids_stopped_by_budget"):
+            msg += ("; the final solve was STOPPED by its CPU budget ([reassociation] "
+                    "final_solve_cpu_per_sighting): the answer is the last state it finished")
     elif not known and not offline and config.reassociation.online_final:
         msg += "; no final solve (the online run did not finish or mapped nothing, or it failed)"
     if result.extra.get("n_held"):

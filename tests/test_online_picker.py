@@ -158,8 +158,9 @@ def test_cli_summary_lists_every_candidate_and_the_choice(
     assert p["chosen"] == "defaults" and [r["name"] for r in p["candidates"]] == [
         "defaults", "cov_scale=10000"]
     keys = {"name", "status", "C", "picker_cost", "landmarks", "landmarks_online", "held",
-            "held_unused", "sightings_dropped", "cpu_s"}
-    assert all(set(r) == keys and r["status"] == "ok" for r in p["candidates"])
+            "held_unused", "sightings_dropped", "cpu_s", "stopped_by_budget"}
+    assert all(set(r) == keys and r["status"] == "ok" and r["stopped_by_budget"] is None
+               for r in p["candidates"])
     assert p["candidates"][0]["C"] < p["candidates"][1]["C"]
     # the chosen final solve with the held sightings placed: C no higher than at the pick
     assert s["noids_cost"] <= p["candidates"][0]["C"] + 1e-3 and s["noids_held_placed"] >= 0
@@ -197,7 +198,8 @@ def test_a_candidate_past_its_cpu_budget_is_stopped_and_loses(
         small: tuple[Path, Path, GraphLog], monkeypatch: pytest.MonkeyPatch) -> None:
     """An online run past its CPU budget stops at the next step, failed, and loses; the
     budget is ``online_candidate_cpu_factor`` times the least CPU of the candidates
-    finished before it, at least ``online_candidate_cpu_floor_s``; the first has none."""
+    finished before it, at least ``online_candidate_cpu_floor_s``; the first's is
+    ``online_first_cpu_per_sighting`` times the log's sightings, at least the floor."""
     import lampsam.backend.online_final as of
 
     _, _, g = small
@@ -208,7 +210,7 @@ def test_a_candidate_past_its_cpu_budget_is_stopped_and_loses(
     cpu = iter([2.0, 0.5, 9.0])
 
     def fake(g_: GraphLog, backend: str, config: SlamConfig, spec: str | None,
-             budget_s: float = float("inf")) -> of.Candidate:
+             budget_s: float = float("inf"), *_: object) -> of.Candidate:
         budgets.append(budget_s)
         return of.Candidate(str(spec), "ok", 1.0 + len(budgets), cpu_s=next(cpu))
 
@@ -217,7 +219,8 @@ def test_a_candidate_past_its_cpu_budget_is_stopped_and_loses(
     cfg = dataclasses.replace(cfg, reassociation=dataclasses.replace(
         cfg.reassociation, online_candidate_cpu_factor=4.0, online_candidate_cpu_floor_s=3.0))
     of.run_online_picker(g, "isam2", cfg)  # the fakes have no final solve: an online answer
-    assert budgets == [float("inf"), 8.0, 3.0]
+    n = sum(len(x) for x in g.sightings)
+    assert budgets == [max(0.05 * n, 3.0), 8.0, 3.0]
 
 
 def test_the_held_placement_runs_after_the_pick_on_the_chosen_candidate_only(
