@@ -58,10 +58,13 @@ def _cmd_slam(args: argparse.Namespace) -> int:
         return _slam_graph_text(args, config, output_dir(args))
     if args.duration is not None and not args.mrclam:
         raise LampsamError("--duration applies only with --mrclam (a logged run is used whole)")
+    if args.robot is not None and not args.mrclam:
+        raise LampsamError("--robot applies only with --mrclam")
     if args.mrclam:
         from lampsam.datasets.mrclam import mrclam_run
 
-        run = mrclam_run(Path(args.run), duration=args.duration)
+        run = (mrclam_run(Path(args.run), duration=args.duration) if args.robot is None else
+               mrclam_run(Path(args.run), duration=args.duration, robot=args.robot))
     else:
         from lampsam.datasets.logrun import read_run
 
@@ -395,7 +398,10 @@ def add_slam(sub: argparse._SubParsersAction) -> None:
                    help="with a text log: a file of VERTEX2/VERTEX_SE2 true poses")
     p.add_argument("--mrclam", action="store_true",
                    help="RUN is an MRCLAM folder: the resampled ds0_RS_ copy, or MRCLAM_DatasetN "
-                        "as distributed (Robot1_Odometry.dat ...: robot 1)")
+                        "as distributed (Robot1_Odometry.dat ...: robot 1, or --robot N)")
+    p.add_argument("--robot", type=int, default=None, metavar="N",
+                   help="with --mrclam on a MRCLAM_DatasetN folder as distributed: robot N "
+                        "(1-5; default 1)")
     p.add_argument("--g2o", default=None, metavar="OUT.g2o",
                    help="also write the final graph as g2o: poses, landmarks and every factor "
                         "(custom LAMPSAM_* lines for the ceiling model; backend/g2o_export.py)")

@@ -157,6 +157,9 @@ def mrclam_files(root: Path, prefix: str = "ds0_RS_", robot: int = ORIGINAL_ROBO
         DatasetError: neither layout's odometry file is in ``root`` (both named).
     """
     if (root / f"{prefix}Control.dat").exists():
+        if robot != ORIGINAL_ROBOT:
+            raise DatasetError(f"robot {robot} asked for, but the resampled copy "
+                               f"({prefix}Control.dat ...) holds robot {ORIGINAL_ROBOT} only", root)
         return {"control": root / f"{prefix}Control.dat",
                 "measurement": root / f"{prefix}Measurement.dat",
                 "groundtruth": root / f"{prefix}Groundtruth.dat",
@@ -168,7 +171,8 @@ def mrclam_files(root: Path, prefix: str = "ds0_RS_", robot: int = ORIGINAL_ROBO
                         if f.name[5:-13].isdigit() and int(f.name[5:-13]) != robot)
         if others:
             log.warning("%s: robot %d is read; robots %s (Robot<i>_*.dat) are not used "
-                        "(one robot a run: from Python, mrclam_run(folder, robot=i))", root,
+                        "(one robot a run: lampsam slam FOLDER --mrclam --robot i, or "
+                        "mrclam_run(folder, robot=i))", root,
                         robot, ", ".join(map(str, others)))
         return {"control": root / f"Robot{robot}_Odometry.dat",
                 "measurement": root / f"Robot{robot}_Measurement.dat",

@@ -96,3 +96,21 @@ def test_robot_without_measurements_says_so(tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match="Robot1_Measurement.dat: no measurements .*saw no "
                                            "landmark"):
         read_mrclam(root)
+
+
+def test_cli_robot_flag_reads_that_robot_and_refuses_one_the_folder_lacks(tmp_path: Path) -> None:
+    """``slam --mrclam --robot N``: robot N of a MRCLAM_DatasetN folder as distributed; a
+    robot the folder lacks, or any robot but 1 of the resampled copy, names the file."""
+    from lampsam.datasets.mrclam import mrclam_files
+
+    (tmp_path / "Robot2_Odometry.dat").write_text("")
+    files = mrclam_files(tmp_path, robot=2)
+    assert files["control"].name == "Robot2_Odometry.dat"
+    with pytest.raises(DatasetError, match="Robot3_Odometry.dat"):
+        mrclam_files(tmp_path, robot=3)
+    rs = tmp_path / "rs"
+    rs.mkdir()
+    (rs / "ds0_RS_Control.dat").write_text("")
+    with pytest.raises(DatasetError, match="holds robot 1 only"):
+        mrclam_files(rs, robot=2)
+    assert mrclam_files(rs, robot=1)["control"].name == "ds0_RS_Control.dat"
