@@ -18,6 +18,7 @@ import pytest
 
 from lampsam.datasets.paths import shared_dataset
 from lampsam.interrupt import EXIT_INTERRUPTED
+from lampsam.localization.grid import OccupancyGrid
 
 
 @pytest.fixture
@@ -147,3 +148,24 @@ def interrupted_summary(proc: subprocess.Popen[str], out: Path, total_steps: int
     assert (out / "landmarks.csv").read_text().startswith("id,type")
     assert not [p for p in out.iterdir() if p.name.startswith(".tmp-")]
     return summary
+
+
+def cast_grid_ranges(grid: OccupancyGrid, poses: np.ndarray, angles: np.ndarray,
+                     max_range: float, step: float) -> np.ndarray:
+    """(N, B) ranges from each pose ``(x, y, theta)`` to the first occupied cell
+    (``log_odds > 0``) along body-frame beam ``angles`` (rad), marched in ``step`` m;
+    ``max_range`` where none is hit. The laser-log tests' independent truth (no
+    lampsam ray caster)."""
+    occ = grid.log_odds > 0
+    steps = np.arange(step, max_range, step)
+    out = np.full((len(poses), len(angles)), max_range)
+    for k, p in enumerate(poses):
+        phi = p[2] + angles
+        xy = p[:2] + steps[None, :, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[:, None, :]
+        cells = grid.world_to_cell(xy.reshape(-1, 2)).reshape(len(angles), len(steps), 2)
+        inside = grid.in_bounds(cells)
+        hit = np.zeros(inside.shape, bool)
+        hit[inside] = occ[cells[inside][:, 1], cells[inside][:, 0]]
+        first = np.argmax(hit, axis=1)
+        out[k] = np.where(hit.any(axis=1), steps[first], max_range)
+    return out

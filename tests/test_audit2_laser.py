@@ -19,6 +19,7 @@ from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.laser_consistency import ScanConsistency
 from lampsam.localization.laser_grid import build_checked_laser_grid
 from lampsam.localization.map_config import LaserGridConfig
+from tests.conftest import cast_grid_ranges
 
 ANGLES = carmen_beam_angles(180)
 
@@ -49,19 +50,8 @@ def _room() -> OccupancyGrid:
 
 
 def _cast(grid: OccupancyGrid, poses: np.ndarray, max_range: float) -> np.ndarray:
-    occ = grid.log_odds > 0
-    steps = np.arange(0.03, max_range, 0.03)
-    out = np.full((len(poses), len(ANGLES)), max_range)
-    for k, p in enumerate(poses):
-        phi = p[2] + ANGLES
-        xy = p[:2] + steps[None, :, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[:, None, :]
-        cells = grid.world_to_cell(xy.reshape(-1, 2)).reshape(len(ANGLES), len(steps), 2)
-        inside = grid.in_bounds(cells)
-        hit = np.zeros(inside.shape, bool)
-        hit[inside] = occ[cells[inside][:, 1], cells[inside][:, 0]]
-        first = np.argmax(hit, axis=1)
-        out[k] = np.where(hit.any(axis=1), steps[first], max_range)
-    return out
+    """(N, 180) ranges to the first occupied cell, marched in 3 cm steps."""
+    return cast_grid_ranges(grid, poses, ANGLES, max_range, 0.03)
 
 
 def _laps(laps: int, step: float = 0.4) -> np.ndarray:

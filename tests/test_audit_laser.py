@@ -17,6 +17,7 @@ from lampsam.datasets.carmen import carmen_beam_angles, read_carmen
 from lampsam.localization.grid import OccupancyGrid, integrate_scan
 from lampsam.localization.laser_grid import build_checked_laser_grid, keyframe_indices
 from lampsam.localization.map_config import LaserGridConfig
+from tests.conftest import cast_grid_ranges
 
 ANGLES = carmen_beam_angles(180)
 
@@ -33,20 +34,8 @@ def _room() -> OccupancyGrid:
 
 
 def _cast(grid: OccupancyGrid, poses: np.ndarray, max_range: float) -> np.ndarray:
-    """(N, 180) ranges to the first occupied cell, marched in 2 cm steps (max_range: none)."""
-    occ = grid.log_odds > 0
-    steps = np.arange(0.02, max_range, 0.02)
-    out = np.full((len(poses), len(ANGLES)), max_range)
-    for k, p in enumerate(poses):
-        phi = p[2] + ANGLES
-        xy = p[:2] + steps[None, :, None] * np.stack([np.cos(phi), np.sin(phi)], -1)[:, None, :]
-        cells = grid.world_to_cell(xy.reshape(-1, 2)).reshape(len(ANGLES), len(steps), 2)
-        inside = grid.in_bounds(cells)
-        hit = np.zeros(inside.shape, bool)
-        hit[inside] = occ[cells[inside][:, 1], cells[inside][:, 0]]
-        first = np.argmax(hit, axis=1)
-        out[k] = np.where(hit.any(axis=1), steps[first], max_range)
-    return out
+    """(N, 180) ranges to the first occupied cell, marched in 2 cm steps."""
+    return cast_grid_ranges(grid, poses, ANGLES, max_range, 0.02)
 
 
 def _loop_poses(laps: int = 2, step: float = 0.2) -> np.ndarray:
