@@ -40,7 +40,7 @@ from lampsam.backend.landmark_moves import (
     sighted_points,
     solve_association,
 )
-from lampsam.backend.reassociate import Sightings, pair_diff_cov, read_estimate
+from lampsam.backend.reassociate import Sightings, pairs_diff_cov, read_estimate
 
 log = logging.getLogger(__name__)
 
@@ -209,10 +209,11 @@ def joint_merge_candidates(graph: gtsam.NonlinearFactorGraph, values: gtsam.Valu
         log.warning("joint merges: no marginals (%s)", exc)
         return []
 
+    ordered = [(a, b) if (min(kset[a]), a) <= (min(kset[b]), b) else (b, a) for a, b in pairs]
+    first, second = np.array(ordered, int).T
+    covs = pairs_diff_cov(marg, first, second)  # joint marginals in chunks, not one per pair
     out: list[tuple[float, list[tuple[int, int]]]] = []
-    for a, b in pairs:
-        pair = (a, b) if (min(kset[a]), a) <= (min(kset[b]), b) else (b, a)
-        c = pair_diff_cov(marg, *pair)
+    for pair, c in zip(ordered, covs, strict=True):
         d = xy[pair[0]] - xy[pair[1]]
         try:
             d2 = float(d @ np.linalg.solve(0.5 * (c + c.T), d))
