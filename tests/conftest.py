@@ -5,6 +5,7 @@ subprocess."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -169,3 +170,40 @@ def cast_grid_ranges(grid: OccupancyGrid, poses: np.ndarray, angles: np.ndarray,
         first = np.argmax(hit, axis=1)
         out[k] = np.where(hit.any(axis=1), steps[first], max_range)
     return out
+
+
+def boxed_room(width: float, height: float,
+               boxes: Sequence[tuple[float, float, float, float]]) -> OccupancyGrid:
+    """A ``width`` x ``height`` m room at the origin, 0.1 m cells: 0.2 m walls and the
+    ``(x0, y0, x1, y1)`` boxes occupied (log-odds 4), the rest free (-4)."""
+    g = OccupancyGrid.empty(0.0, 0.0, width, height, 0.1)
+    lo = np.full((g.height, g.width), -4.0)
+    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
+    for x0, y0, x1, y1 in boxes:
+        lo[int(y0 * 10):int(y1 * 10), int(x0 * 10):int(x1 * 10)] = 4.0
+    g.log_odds = lo
+    return g
+
+
+def rectangle_laps(lo: tuple[float, float], hi: tuple[float, float], laps: int,
+                   step: float) -> np.ndarray:
+    """(N, 3) poses driven ``laps`` times around the rectangle from corner ``lo`` to
+    ``hi`` (counter-clockwise from ``lo``), every ``step`` m, heading along each side."""
+    corners = [lo, (hi[0], lo[1]), hi, (lo[0], hi[1]), lo]
+    lap = []
+    for (xa, ya), (xb, yb) in zip(corners[:-1], corners[1:], strict=True):
+        n = int(round(math.hypot(xb - xa, yb - ya) / step))
+        th = math.atan2(yb - ya, xb - xa)
+        lap += [(xa + (xb - xa) * k / n, ya + (yb - ya) * k / n, th) for k in range(n)]
+    return np.array(lap * laps)
+
+
+def write_flaser_log(path: Path, poses: np.ndarray, ranges: np.ndarray) -> Path:
+    """A CARMEN log of one ``FLASER 180`` line per scan: ``ranges`` (N, 180) m at ``poses``
+    (N, 3) (as laser and odometry pose), 5 Hz from t = 100 s; returns ``path``."""
+    with open(path, "w", encoding="utf-8") as fh:
+        for k, (p, r) in enumerate(zip(poses, ranges, strict=True)):
+            ts = 100.0 + 0.2 * k
+            fh.write(f"FLASER 180 {' '.join(f'{v:.3f}' for v in r)} {p[0]:.4f} {p[1]:.4f} "
+                     f"{p[2]:.4f} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {ts:.3f} host {ts:.3f}\n")
+    return path

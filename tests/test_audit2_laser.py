@@ -19,7 +19,7 @@ from lampsam.localization.grid import OccupancyGrid
 from lampsam.localization.laser_consistency import ScanConsistency
 from lampsam.localization.laser_grid import build_checked_laser_grid
 from lampsam.localization.map_config import LaserGridConfig
-from tests.conftest import cast_grid_ranges
+from tests.conftest import boxed_room, cast_grid_ranges, rectangle_laps, write_flaser_log
 
 ANGLES = carmen_beam_angles(180)
 
@@ -39,14 +39,8 @@ def test_worst_chunk_rule_on_its_own() -> None:
 
 def _room() -> OccupancyGrid:
     """A 16 m x 10 m hall with walls and five boxes, 0.1 m cells."""
-    g = OccupancyGrid.empty(0.0, 0.0, 16.0, 10.0, 0.1)
-    lo = np.full((g.height, g.width), -4.0)
-    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
-    for x0, y0, x1, y1 in ((3.0, 3.0, 5.0, 4.5), (7.5, 2.5, 8.5, 5.5), (10.0, 6.0, 11.0, 7.0),
-                           (12.5, 2.5, 14.0, 3.5), (5.5, 6.8, 6.5, 7.6)):
-        lo[int(y0 * 10):int(y1 * 10), int(x0 * 10):int(x1 * 10)] = 4.0
-    g.log_odds = lo
-    return g
+    return boxed_room(16.0, 10.0, ((3.0, 3.0, 5.0, 4.5), (7.5, 2.5, 8.5, 5.5), (10.0, 6.0, 11.0, 7.0),
+                                   (12.5, 2.5, 14.0, 3.5), (5.5, 6.8, 6.5, 7.6)))
 
 
 def _cast(grid: OccupancyGrid, poses: np.ndarray, max_range: float) -> np.ndarray:
@@ -55,22 +49,9 @@ def _cast(grid: OccupancyGrid, poses: np.ndarray, max_range: float) -> np.ndarra
 
 
 def _laps(laps: int, step: float = 0.4) -> np.ndarray:
-    corners = [(1.5, 1.5), (14.5, 1.5), (14.5, 8.5), (1.5, 8.5), (1.5, 1.5)]
-    lap = []
-    for (xa, ya), (xb, yb) in zip(corners[:-1], corners[1:], strict=True):
-        n = int(round(math.hypot(xb - xa, yb - ya) / step))
-        th = math.atan2(yb - ya, xb - xa)
-        lap += [(xa + (xb - xa) * k / n, ya + (yb - ya) * k / n, th) for k in range(n)]
-    return np.array(lap * laps)
+    """(N, 3) poses around the rectangle x in [1.5, 14.5], y in [1.5, 8.5], ``laps`` times."""
+    return rectangle_laps((1.5, 1.5), (14.5, 8.5), laps, step)
 
-
-def _write(path: Path, poses: np.ndarray, ranges: np.ndarray) -> Path:
-    with open(path, "w", encoding="utf-8") as fh:
-        for k, (p, r) in enumerate(zip(poses, ranges, strict=True)):
-            ts = 100.0 + 0.2 * k
-            fh.write(f"FLASER 180 {' '.join(f'{v:.3f}' for v in r)} {p[0]:.4f} {p[1]:.4f} "
-                     f"{p[2]:.4f} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {ts:.3f} host {ts:.3f}\n")
-    return path
 
 
 def test_drift_in_one_stretch_is_flagged_by_the_worst_chunk(
@@ -84,8 +65,8 @@ def test_drift_in_one_stretch_is_flagged_by_the_worst_chunk(
     n = len(poses)
     ramp = np.clip((np.arange(n) - 5 * n // 6) / (n / 12), 0.0, 1.0)
     bad[:, 1] += 0.6 * ramp
-    good = read_carmen(_write(tmp_path / "good.log", poses, ranges)).scans
-    drifted = read_carmen(_write(tmp_path / "stretch.log", bad, ranges)).scans
+    good = read_carmen(write_flaser_log(tmp_path / "good.log", poses, ranges)).scans
+    drifted = read_carmen(write_flaser_log(tmp_path / "stretch.log", bad, ranges)).scans
     _, _, c_good = build_checked_laser_grid(good, good.poses)
     _, _, c_bad = build_checked_laser_grid(drifted, drifted.poses)
     assert c_good is not None and c_bad is not None

@@ -17,20 +17,14 @@ from lampsam.datasets.carmen import carmen_beam_angles, read_carmen
 from lampsam.localization.grid import OccupancyGrid, integrate_scan
 from lampsam.localization.laser_grid import build_checked_laser_grid, keyframe_indices
 from lampsam.localization.map_config import LaserGridConfig
-from tests.conftest import cast_grid_ranges
+from tests.conftest import boxed_room, cast_grid_ranges, rectangle_laps, write_flaser_log
 
 ANGLES = carmen_beam_angles(180)
 
 
 def _room() -> OccupancyGrid:
     """A 12 m x 8 m room with walls and three boxes, 0.1 m cells."""
-    g = OccupancyGrid.empty(0.0, 0.0, 12.0, 8.0, 0.1)
-    lo = np.full((g.height, g.width), -4.0)
-    lo[:2, :] = lo[-2:, :] = lo[:, :2] = lo[:, -2:] = 4.0
-    for x0, y0, x1, y1 in ((3.0, 3.0, 5.0, 4.5), (7.5, 2.5, 8.5, 5.5), (10.0, 6.0, 11.0, 7.0)):
-        lo[int(y0 * 10):int(y1 * 10), int(x0 * 10):int(x1 * 10)] = 4.0
-    g.log_odds = lo
-    return g
+    return boxed_room(12.0, 8.0, ((3.0, 3.0, 5.0, 4.5), (7.5, 2.5, 8.5, 5.5), (10.0, 6.0, 11.0, 7.0)))
 
 
 def _cast(grid: OccupancyGrid, poses: np.ndarray, max_range: float) -> np.ndarray:
@@ -40,13 +34,7 @@ def _cast(grid: OccupancyGrid, poses: np.ndarray, max_range: float) -> np.ndarra
 
 def _loop_poses(laps: int = 2, step: float = 0.2) -> np.ndarray:
     """(N, 3) poses around the rectangle x in [1.5, 10.5], y in [1.5, 6.5], ``laps`` times."""
-    corners = [(1.5, 1.5), (10.5, 1.5), (10.5, 6.5), (1.5, 6.5), (1.5, 1.5)]
-    lap = []
-    for (xa, ya), (xb, yb) in zip(corners[:-1], corners[1:], strict=True):
-        n = int(round(math.hypot(xb - xa, yb - ya) / step))
-        th = math.atan2(yb - ya, xb - xa)
-        lap += [(xa + (xb - xa) * k / n, ya + (yb - ya) * k / n, th) for k in range(n)]
-    return np.array(lap * laps)
+    return rectangle_laps((1.5, 1.5), (10.5, 6.5), laps, step)
 
 
 def _drift(poses: np.ndarray, heading_bias: float) -> np.ndarray:
@@ -64,14 +52,6 @@ def _drift(poses: np.ndarray, heading_bias: float) -> np.ndarray:
     return np.array(out)
 
 
-def _write_log(path: Path, poses: np.ndarray, ranges: np.ndarray) -> Path:
-    with open(path, "w", encoding="utf-8") as fh:
-        for k, (p, r) in enumerate(zip(poses, ranges, strict=True)):
-            ts = 100.0 + 0.2 * k
-            fh.write(f"FLASER 180 {' '.join(f'{v:.3f}' for v in r)} {p[0]:.4f} {p[1]:.4f} "
-                     f"{p[2]:.4f} {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {ts:.3f} host {ts:.3f}\n")
-    return path
-
 
 @pytest.fixture(scope="module")
 def scans_and_poses() -> tuple[np.ndarray, np.ndarray]:
@@ -85,9 +65,9 @@ def scans_and_poses() -> tuple[np.ndarray, np.ndarray]:
 def test_true_poses_are_consistent_and_drifting_ones_are_not(
         tmp_path: Path, scans_and_poses: tuple[np.ndarray, np.ndarray]) -> None:
     poses, ranges = scans_and_poses
-    good = read_carmen(_write_log(tmp_path / "good.log", poses, ranges)).scans
+    good = read_carmen(write_flaser_log(tmp_path / "good.log", poses, ranges)).scans
     # 0.01 rad per 0.2 m step: 2.4 rad over the two laps, a raw odometry log's poses
-    bad = read_carmen(_write_log(tmp_path / "raw.log", _drift(poses, 0.01), ranges)).scans
+    bad = read_carmen(write_flaser_log(tmp_path / "raw.log", _drift(poses, 0.01), ranges)).scans
     _, _, c_good = build_checked_laser_grid(good, good.poses)
     _, _, c_bad = build_checked_laser_grid(bad, bad.poses)
     assert c_good is not None and c_bad is not None
@@ -100,7 +80,7 @@ def test_the_check_leaves_the_grid_as_it_was(
         tmp_path: Path, scans_and_poses: tuple[np.ndarray, np.ndarray]) -> None:
     """The grid built with the check is the scan-by-scan ``integrate_scan`` grid."""
     poses, ranges = scans_and_poses
-    scans = read_carmen(_write_log(tmp_path / "good.log", poses, ranges)).scans
+    scans = read_carmen(write_flaser_log(tmp_path / "good.log", poses, ranges)).scans
     cfg = LaserGridConfig()
     grid, used, _ = build_checked_laser_grid(scans, scans.poses, cfg)
     ref = OccupancyGrid(np.zeros_like(grid.log_odds), grid.resolution, grid.origin)
@@ -122,7 +102,7 @@ def test_build_map_warns_on_a_raw_odometry_log(
     from lampsam.localization.map_store import load_env_map
 
     poses, ranges = scans_and_poses
-    log_path = _write_log(tmp_path / "raw.log", _drift(poses, 0.01), ranges)
+    log_path = write_flaser_log(tmp_path / "raw.log", _drift(poses, 0.01), ranges)
     with caplog.at_level(logging.WARNING):
         build_map(log_path, tmp_path / "map")
     assert "the scans disagree with each other" in caplog.text and "raw.log" in caplog.text
