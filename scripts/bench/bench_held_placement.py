@@ -18,7 +18,7 @@ and, on the same answer:
 - **max-mixture**: :func:`lampsam.backend.held_placement.place_into` over the mapped
   landmarks, and with new landmarks (clusters of left-out sightings);
 - the known-id batch of lampsam on the file's ids (all sightings), with each pair of
-  twin ids (``bench_noids_scale.twin_map``: known-id landmarks within 1.5 m) as one
+  twin ids (``lampsam.evaluation.twin_ids.twin_map``: known-id landmarks within 1.5 m) as one
   landmark, all pairs and one pair at a time: the known-association optimum a no-ids
   answer that merges the twins is aiming at (its ``chi2`` against the file's ids says
   whether the data pays for the second landmark).
@@ -64,6 +64,7 @@ from lampsam.backend.online_final import (
     online_association,
 )
 from lampsam.backend.reassociate import Sightings, first_sight_positions, read_estimate
+from lampsam.evaluation import twin_ids
 from lampsam.evaluation.held_plots import write_pose_error_plot
 
 
@@ -92,7 +93,7 @@ def main() -> None:  # noqa: PLR0915 (one study, printed in order)
         marks.gtsam_graph(g, SlamConfig()), marks.gtsam_isam2(g, SlamConfig())[0],
         gtsam.LevenbergMarquardtParams()).optimize(), n)
     known = run_graph_log(g, "batch", SlamConfig())
-    twins = scale.twin_map(g, {int(x.id): np.asarray(x.position[:2], float)
+    twins = twin_ids.twin_map(g, {int(x.id): np.asarray(x.position[:2], float)
                                for x in list(known.landmarks) + list(known.provisional)})
     trees = Counter(twins.get(x.landmark, x.landmark) for ss in g.sightings for x in ss)
     n_trees2 = sum(1 for v in trees.values() if v >= 2)

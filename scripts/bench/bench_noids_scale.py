@@ -15,7 +15,7 @@ every log, docs/graph-backend.md). Per candidate: chi-square per dof of the odom
 the sighting groups at the optimum, the description length ``C`` and which candidate it
 picks, CPU s of the EKF pass and of the batch passes. "dup" and "wrong" count trees: file
 ids never sighted together and under 1.5 m apart in the known-id map are one tree
-(:func:`twin_map`; Victoria Park has four such pairs). The last pass of a candidate is
+(:func:`lampsam.evaluation.twin_ids.twin_map`; Victoria Park has four such pairs). The last pass of a candidate is
 the description-length merges and splits (``[reassociation] cost_moves``) when they moved
 anything; the chosen candidate's final pass (``[reassociation] final_pass``,
 :mod:`lampsam.backend.final_moves`) is one more line when it moved anything, and the
@@ -106,15 +106,10 @@ def file_ids(g: GraphLog, s: Sightings) -> np.ndarray:
     return out
 
 
-def twin_map(g: GraphLog, landmarks: dict[int, np.ndarray], radius: float = 1.5) -> dict[int, int]:
-    """File id -> the smallest file id of its twin group
-    (:func:`lampsam.evaluation.twin_ids.twin_map`: ids within ``radius`` m in the
-    known-id map and never sighted at one pose)."""
-    return twin_ids.twin_map(g, landmarks, radius)
-
 
 def tree_ids(g: GraphLog, s: Sightings, twins: dict[int, int]) -> np.ndarray:
-    """(S,) the tree of each sighting: its file id, twins as one (:func:`twin_map`)."""
+    """(S,) the tree of each sighting: its file id, twins as one
+    (:func:`lampsam.evaluation.twin_ids.twin_map`)."""
     return np.array([twins.get(f, f) for f in file_ids(g, s).tolist()], int)
 
 
@@ -160,7 +155,7 @@ def main() -> None:
         c0 = time.process_time()
         ref_run = run_graph_log(g, "batch", config)
         ref = ref_run.poses
-        twins = twin_map(g, {int(lm.id): np.asarray(lm.position[:2], float)
+        twins = twin_ids.twin_map(g, {int(lm.id): np.asarray(lm.position[:2], float)
                              for lm in list(ref_run.landmarks) + list(ref_run.provisional)})
         n_twins = sum(1 for k, v in twins.items() if k != v)
         c_ref = time.process_time() - c0

@@ -16,7 +16,7 @@ the references (:func:`references`): GTSAM's LM on the file's graph with its ids
 its twin ids merged (:mod:`lampsam.evaluation.twin_ids`), lampsam's known-id batch on each,
 and per twin pair the evidence for one tree. Printed per run: position RMS from GTSAM's
 LM on the file's ids / with the twin ids merged, landmarks with 2+ sightings against the trees sighted 2+
-times (file ids, twins as one: ``bench_noids_scale.twin_map``), duplicated trees, wrong
+times (file ids, twins as one: ``lampsam.evaluation.twin_ids.twin_map``), duplicated trees, wrong
 sightings (``bench_noids_scale.score``), the description length ``C`` (final solve),
 failures (iSAM2 recoveries that dropped measurements) and process CPU s of each stage.
 The file ids are read only to score. CPU figures are process time on a shared machine.
